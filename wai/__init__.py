@@ -1,0 +1,1 @@
+"""Command line and experiments of the wavy-water testbed."""

@@ -1,0 +1,258 @@
+"""System configuration: the scene as data (a TOML file in ``scenes/``, or ``scene.json``).
+
+Every section maps to a frozen dataclass. Unknown keys, missing keys and values of the wrong kind
+raise :class:`~wai_core.errors.WaiInputError` naming the key, so a typo never passes silently.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, get_type_hints
+
+import numpy as np
+
+from wai_core.errors import WaiInputError
+from wai_core.geometry import PinholeCamera, Pose
+
+
+@dataclass(frozen=True)
+class WaterConfig:
+    """Mean water level, index and the modelled patch (mm)."""
+
+    h0_mm: float = 150.0
+    n_water: float = 4.0 / 3.0
+    extent_x_mm: tuple[float, float] = (0.0, 660.0)
+    extent_y_mm: tuple[float, float] = (-330.0, 330.0)
+    surface: str = "dielectric"
+
+
+@dataclass(frozen=True)
+class WavesConfig:
+    """Longuet-Higgins sea state (eq. 38-43)."""
+
+    wind_speed_m_s: float = 1.0
+    time_s: float = 10.0
+    seed: int = 0
+    wind_direction_deg: float = 0.0
+    n_frequencies: int = 64
+    n_directions: int = 24
+    omega_min_rel: float = 0.5
+    omega_max_rel: float = 5.0
+    mesh_points_per_wavelength: float = 12.0
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    """A pinhole camera or projector with Table 1's pose convention ``u_cam = R u_lab + t``."""
+
+    width_px: int
+    height_px: int
+    sensor_width_mm: float
+    focal_mm: float
+    rotation: tuple[tuple[float, ...], ...]
+    translation_mm: tuple[float, float, float]
+
+    def camera(self) -> PinholeCamera:
+        """The device as a :class:`PinholeCamera` (rotation re-orthonormalised)."""
+        u, _, vt = np.linalg.svd(np.asarray(self.rotation, dtype=float))
+        pose = Pose(u @ vt, np.asarray(self.translation_mm, dtype=float))
+        return PinholeCamera(
+            self.width_px, self.height_px, self.focal_mm, self.sensor_width_mm / self.width_px, pose
+        )
+
+
+@dataclass(frozen=True)
+class PatternConfig:
+    """Grid of Gaussian dots on the projector panel."""
+
+    spacing_px: float = 28.0
+    sigma_px: float = 3.0
+    color: tuple[float, float, float] = (0.0, 0.75, 1.0)
+    power: float = 2.0e5
+
+
+@dataclass(frozen=True)
+class DiffuserConfig:
+    """Horizontal translucent screen at ``z = z_mm`` (z_h)."""
+
+    z_mm: float = 60.0
+
+
+@dataclass(frozen=True)
+class ObjectConfig:
+    """Textured plane above the water, seen by camera v."""
+
+    height_above_water_mm: float = 1000.0
+    size_mm: tuple[float, float] = (3200.0, 2400.0)
+    texture: str = "checkerboard"
+    squares: tuple[int, int] = (16, 12)
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Samples per pixel of the two renders."""
+
+    spp_pattern: int = 64
+    spp_view: int = 16
+
+
+@dataclass(frozen=True)
+class SystemConfig:
+    """The whole sensing system: water, waves, projector, pattern, cameras, diffuser, object."""
+
+    water: WaterConfig = field(default_factory=WaterConfig)
+    waves: WavesConfig = field(default_factory=WavesConfig)
+    projector: DeviceConfig | None = None
+    pattern: PatternConfig = field(default_factory=PatternConfig)
+    camera_s: DeviceConfig | None = None
+    camera_v: DeviceConfig | None = None
+    diffuser: DiffuserConfig = field(default_factory=DiffuserConfig)
+    object: ObjectConfig = field(default_factory=ObjectConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (JSON/TOML-able)."""
+        return dataclasses.asdict(self)
+
+    def replace(self, section: str, **changes: Any) -> SystemConfig:
+        """Copy with some keys of one section changed, e.g. ``cfg.replace('waves', seed=3)``."""
+        return dataclasses.replace(
+            self, **{section: dataclasses.replace(getattr(self, section), **changes)}
+        )
+
+    @property
+    def object_z_mm(self) -> float:
+        """Height of the object plane, mm (z_a = h0 + 1000 in the paper)."""
+        return self.water.h0_mm + self.object.height_above_water_mm
+
+
+_SECTIONS = {
+    "water": WaterConfig,
+    "waves": WavesConfig,
+    "projector": DeviceConfig,
+    "pattern": PatternConfig,
+    "camera_s": DeviceConfig,
+    "camera_v": DeviceConfig,
+    "diffuser": DiffuserConfig,
+    "object": ObjectConfig,
+    "render": RenderConfig,
+}
+
+
+def _coerce(value: Any, hint: Any, where: str) -> Any:
+    """Convert a TOML/JSON value to the dataclass field's type, or raise naming ``where``."""
+    origin = getattr(hint, "__origin__", None)
+    try:
+        if hint is float:
+            if isinstance(value, bool):
+                raise TypeError
+            out = float(value)
+            if not np.isfinite(out):
+                raise WaiInputError(f"config: {where} is not finite")
+            return out
+        if hint is int:
+            if isinstance(value, bool) or float(value) != int(value):
+                raise TypeError
+            return int(value)
+        if hint is str:
+            if not isinstance(value, str):
+                raise TypeError
+            return value
+        if origin is tuple:
+            args = hint.__args__
+            if len(args) == 2 and args[1] is Ellipsis:
+                return tuple(_coerce(v, args[0], where) for v in value)
+            if len(value) != len(args):
+                raise WaiInputError(f"config: {where} needs {len(args)} values, got {len(value)}")
+            return tuple(_coerce(v, a, where) for v, a in zip(value, args, strict=True))
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, WaiInputError):
+            raise
+        raise WaiInputError(f"config: {where} has a value of the wrong kind: {value!r}") from None
+    return value
+
+
+def _section(cls: type, data: Any, name: str) -> Any:
+    if not isinstance(data, dict):
+        raise WaiInputError(f"config: section [{name}] must be a table")
+    hints = get_type_hints(cls)
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise WaiInputError(f"config: unknown key [{name}].{unknown[0]}")
+    kwargs = {k: _coerce(v, hints[k], f"[{name}].{k}") for k, v in data.items()}
+    try:
+        return cls(**kwargs)
+    except TypeError:
+        missing = sorted(
+            f.name
+            for f in fields(cls)
+            if f.name not in data
+            and f.default is dataclasses.MISSING
+            and f.default_factory is dataclasses.MISSING
+        )
+        raise WaiInputError(f"config: missing key [{name}].{missing[0]}") from None
+
+
+def config_from_dict(data: dict[str, Any]) -> SystemConfig:
+    """Build and check a :class:`SystemConfig` from nested dicts."""
+    unknown = sorted(set(data) - set(_SECTIONS))
+    if unknown:
+        raise WaiInputError(f"config: unknown section [{unknown[0]}]")
+    for name in ("projector", "camera_s", "camera_v"):
+        if name not in data:
+            raise WaiInputError(f"config: missing section [{name}]")
+    cfg = SystemConfig(**{k: _section(_SECTIONS[k], v, k) for k, v in data.items()})
+    validate(cfg)
+    return cfg
+
+
+def load_config(path: str | Path) -> SystemConfig:
+    """Read a scene TOML file (e.g. ``scenes/paper.toml``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise WaiInputError(f"config file not found: {path}")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise WaiInputError(f"config file {path} is not valid TOML: {exc}") from None
+    return config_from_dict(data)
+
+
+def validate(cfg: SystemConfig) -> None:
+    """Reject impossible geometry with a message naming the problem."""
+    w = cfg.water
+    if w.surface not in ("dielectric", "mirror"):
+        raise WaiInputError(f"config: [water].surface must be dielectric or mirror, not {w.surface}")
+    if w.n_water <= 1.0:
+        raise WaiInputError("config: [water].n_water must exceed 1 (water is denser than air)")
+    if w.h0_mm <= 0:
+        raise WaiInputError("config: [water].h0_mm must be positive (water above the projector)")
+    for name in ("extent_x_mm", "extent_y_mm"):
+        lo, hi = getattr(w, name)
+        if not lo < hi:
+            raise WaiInputError(f"config: [water].{name} must be increasing")
+    if not 0 < cfg.diffuser.z_mm < w.h0_mm:
+        raise WaiInputError("config: [diffuser].z_mm must lie between the projector and the water")
+    if cfg.object.height_above_water_mm <= 0:
+        raise WaiInputError("config: [object].height_above_water_mm must be positive")
+    wv = cfg.waves
+    if wv.wind_speed_m_s < 0 or wv.n_frequencies < 1 or wv.n_directions < 1:
+        raise WaiInputError("config: [waves] needs wind_speed >= 0 and at least one component")
+    if not 0 < wv.omega_min_rel < wv.omega_max_rel:
+        raise WaiInputError("config: [waves] needs 0 < omega_min_rel < omega_max_rel")
+    if cfg.pattern.spacing_px <= 2 * cfg.pattern.sigma_px:
+        raise WaiInputError("config: [pattern].spacing_px must exceed twice sigma_px")
+    for name in ("projector", "camera_s", "camera_v"):
+        dev: DeviceConfig = getattr(cfg, name)
+        if min(dev.width_px, dev.height_px) < 2 or dev.focal_mm <= 0 or dev.sensor_width_mm <= 0:
+            raise WaiInputError(f"config: [{name}] needs positive size, focal length and sensor")
+        try:
+            dev.camera()
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            raise WaiInputError(f"config: [{name}] {exc}") from None
+    if cfg.render.spp_pattern < 1 or cfg.render.spp_view < 1:
+        raise WaiInputError("config: [render] spp must be at least 1")

@@ -1,0 +1,165 @@
+"""A water surface as heights on a rectilinear grid, with smooth interpolation and ray hits.
+
+The file format (``heightfield.npz``, ``--heightfield``) holds arrays ``x`` (n,), ``y`` (m,), both
+strictly increasing, mm, ``lab`` frame, and ``z`` (m, n): absolute heights in mm, ``z[j, i]`` at
+``(x[i], y[j])``. Between samples the surface is the bicubic interpolating spline (scipy's
+``RectBivariateSpline``, k = 3), so slopes are continuous and exact for cubics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.interpolate import RectBivariateSpline
+
+from wai_core.errors import WaiInputError
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Heightfield:
+    """Heights ``z`` (m, n) in mm over ``x`` (n,) and ``y`` (m,) in mm, ``lab`` frame.
+
+    ``z`` may hold NaN where the surface is unknown (a reconstruction's uncovered border);
+    :meth:`height` then returns NaN near those samples.
+    """
+
+    x: Array
+    y: Array
+    z: Array
+
+    def __post_init__(self) -> None:
+        x = np.asarray(self.x, dtype=float)
+        y = np.asarray(self.y, dtype=float)
+        z = np.asarray(self.z, dtype=float)
+        if x.ndim != 1 or y.ndim != 1 or z.shape != (y.size, x.size):
+            raise WaiInputError(
+                f"heightfield: z must have shape (len(y), len(x)) = ({y.size}, {x.size}), "
+                f"got {z.shape}"
+            )
+        if x.size < 4 or y.size < 4:
+            raise WaiInputError("heightfield: needs at least 4 samples along x and along y")
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+            raise WaiInputError("heightfield: x or y holds NaN or inf")
+        if np.any(np.diff(x) <= 0) or np.any(np.diff(y) <= 0):
+            raise WaiInputError("heightfield: x and y must be strictly increasing")
+        object.__setattr__(self, "x", x)
+        object.__setattr__(self, "y", y)
+        object.__setattr__(self, "z", z)
+        valid = np.isfinite(z)
+        if not valid.any():
+            raise WaiInputError("heightfield: z holds no finite height")
+        # The spline needs finite values: fill unknown samples, then mask them on evaluation.
+        filled = np.where(valid, z, np.nanmean(z))
+        object.__setattr__(self, "_spline", RectBivariateSpline(y, x, filled, kx=3, ky=3))
+        object.__setattr__(self, "_valid", valid)
+
+    @property
+    def has_holes(self) -> bool:
+        """True when some samples are NaN."""
+        return not bool(self._valid.all())
+
+    def contains(self, x: ArrayLike, y: ArrayLike) -> NDArray[np.bool_]:
+        """True where ``(x, y)`` lies inside the grid and away from unknown samples."""
+        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        inside = (x >= self.x[0]) & (x <= self.x[-1]) & (y >= self.y[0]) & (y <= self.y[-1])
+        if not self.has_holes:
+            return inside
+        ix = np.clip(np.searchsorted(self.x, np.where(inside, x, self.x[0])), 1, self.x.size - 1)
+        iy = np.clip(np.searchsorted(self.y, np.where(inside, y, self.y[0])), 1, self.y.size - 1)
+        v = self._valid
+        cell_ok = v[iy, ix] & v[iy - 1, ix] & v[iy, ix - 1] & v[iy - 1, ix - 1]
+        return inside & cell_ok
+
+    def height(self, x: ArrayLike, y: ArrayLike) -> Array:
+        """Surface height at points, mm; NaN outside the known surface."""
+        return self._eval(x, y, 0, 0)
+
+    def gradient(self, x: ArrayLike, y: ArrayLike) -> tuple[Array, Array]:
+        """Slopes ``(dz/dx, dz/dy)`` at points (dimensionless); NaN outside."""
+        return self._eval(x, y, 1, 0), self._eval(x, y, 0, 1)
+
+    def normal(self, x: ArrayLike, y: ArrayLike) -> Array:
+        """Unit normals pointing up (into the air), shape (..., 3)."""
+        gx, gy = self.gradient(x, y)
+        n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+    def _eval(self, x: ArrayLike, y: ArrayLike, dx: int, dy: int) -> Array:
+        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        ok = self.contains(x, y)
+        out = np.full(x.shape, np.nan)
+        if ok.any():
+            # RectBivariateSpline's first axis is y (rows of z).
+            out[ok] = self._spline.ev(y[ok], x[ok], dx=dy, dy=dx)
+        return out
+
+    def intersect(
+        self, origins: ArrayLike, dirs: ArrayLike, n_iter: int = 8, tol_mm: float = 1e-6
+    ) -> tuple[Array, NDArray[np.bool_]]:
+        """First hit of rays with the surface, by Newton steps on ``f(t) = o_z + t d_z - z(o + t d)``.
+
+        Starts from the hit with the horizontal plane at the mean height. Converges in a few
+        steps for the gentle slopes of sea waves; rays that do not converge, leave the grid or
+        run along the surface are flagged invalid.
+
+        Parameters
+        ----------
+        origins : (..., 3) or (3,) array_like
+            Ray origins, mm, below the surface.
+        dirs : (..., 3) array_like
+            Unit directions.
+
+        Returns
+        -------
+        points_mm : (..., 3) ndarray
+            Hit points; NaN where invalid.
+        valid : (...,) ndarray of bool
+        """
+        d = np.asarray(dirs, dtype=float)
+        o = np.broadcast_to(np.asarray(origins, dtype=float), d.shape)
+        z_ref = float(np.nanmean(self.z))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (z_ref - o[..., 2]) / d[..., 2]
+        for _ in range(n_iter):
+            p = o + t[..., None] * d
+            h = self.height(p[..., 0], p[..., 1])
+            gx, gy = self.gradient(p[..., 0], p[..., 1])
+            f = p[..., 2] - h
+            df = d[..., 2] - gx * d[..., 0] - gy * d[..., 1]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                step = f / df
+            t = t - step
+        p = o + t[..., None] * d
+        residual = np.abs(p[..., 2] - self.height(p[..., 0], p[..., 1]))
+        valid = np.isfinite(residual) & (residual < max(tol_mm, 1e-9) * 1e3) & (t > 0)
+        p[~valid] = np.nan
+        return p, valid
+
+    def save(self, path: str | Path) -> None:
+        """Write the ``x``, ``y``, ``z`` arrays to an ``.npz`` file."""
+        np.savez_compressed(path, x=self.x, y=self.y, z=self.z)
+
+
+def load_heightfield(path: str | Path) -> Heightfield:
+    """Read and check a heightfield ``.npz`` file (see the module docstring for the format)."""
+    path = Path(path)
+    if not path.is_file():
+        raise WaiInputError(f"heightfield file not found: {path}")
+    try:
+        with np.load(path) as data:
+            missing = [k for k in ("x", "y", "z") if k not in data]
+            if missing:
+                raise WaiInputError(f"heightfield {path}: missing array '{missing[0]}'")
+            x, y, z = data["x"], data["y"], data["z"]
+    except WaiInputError:
+        raise
+    except Exception as exc:  # corrupt zip, not an npz, pickled objects...
+        raise WaiInputError(f"heightfield {path} cannot be read: {exc}") from None
+    if not np.all(np.isfinite(z)):
+        raise WaiInputError(f"heightfield {path}: z holds NaN or inf")
+    return Heightfield(x, y, z)
