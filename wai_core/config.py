@@ -20,12 +20,10 @@ from wai_core.geometry import PinholeCamera, Pose
 
 @dataclass(frozen=True)
 class WaterConfig:
-    """Mean water level, index and the modelled patch (mm)."""
+    """Mean water level (mm), refractive index and the surface's material."""
 
     h0_mm: float = 150.0
     n_water: float = 4.0 / 3.0
-    extent_x_mm: tuple[float, float] = (0.0, 660.0)
-    extent_y_mm: tuple[float, float] = (-330.0, 330.0)
     surface: str = "dielectric"
 
 
@@ -40,8 +38,8 @@ class WavesConfig:
     n_frequencies: int = 64
     n_directions: int = 24
     omega_min_rel: float = 0.5
-    omega_max_rel: float = 5.0
-    mesh_points_per_wavelength: float = 12.0
+    omega_max_rel: float = 2.5
+    mesh_points_per_wavelength: float = 48.0
 
 
 @dataclass(frozen=True)
@@ -226,15 +224,11 @@ def validate(cfg: SystemConfig) -> None:
     """Reject impossible geometry with a message naming the problem."""
     w = cfg.water
     if w.surface not in ("dielectric", "mirror"):
-        raise WaiInputError(f"config: [water].surface must be dielectric or mirror, not {w.surface}")
+        raise WaiInputError(f"config: [water].surface must be dielectric or mirror: {w.surface}")
     if w.n_water <= 1.0:
         raise WaiInputError("config: [water].n_water must exceed 1 (water is denser than air)")
     if w.h0_mm <= 0:
         raise WaiInputError("config: [water].h0_mm must be positive (water above the projector)")
-    for name in ("extent_x_mm", "extent_y_mm"):
-        lo, hi = getattr(w, name)
-        if not lo < hi:
-            raise WaiInputError(f"config: [water].{name} must be increasing")
     if not 0 < cfg.diffuser.z_mm < w.h0_mm:
         raise WaiInputError("config: [diffuser].z_mm must lie between the projector and the water")
     if cfg.object.height_above_water_mm <= 0:

@@ -121,7 +121,7 @@ class PinholeCamera:
 
     @property
     def fov_x_deg(self) -> float:
-        """Horizontal field of view, degrees (what Mitsuba's ``fov`` with ``fov_axis='x'`` takes)."""
+        """Horizontal field of view, degrees (Mitsuba's ``fov`` with ``fov_axis='x'``)."""
         return float(np.degrees(2 * np.arctan(self.sensor_size_mm[0] / (2 * self.focal_mm))))
 
     @property

@@ -101,7 +101,7 @@ class Heightfield:
     def intersect(
         self, origins: ArrayLike, dirs: ArrayLike, n_iter: int = 8, tol_mm: float = 1e-6
     ) -> tuple[Array, NDArray[np.bool_]]:
-        """First hit of rays with the surface, by Newton steps on ``f(t) = o_z + t d_z - z(o + t d)``.
+        """First hit of rays with the surface: Newton steps on ``f(t) = o_z + t d_z - z(o + t d)``.
 
         Starts from the hit with the horizontal plane at the mean height. Converges in a few
         steps for the gentle slopes of sea waves; rays that do not converge, leave the grid or

@@ -1,0 +1,274 @@
+"""Render a frame of both systems and write a render folder that the restoration can read alone.
+
+A render folder holds:
+
+``pattern.exr`` / ``pattern_flat.exr``
+    Camera s's image of the diffuser with wavy / flat water (linear float RGB).
+``view.exr`` / ``view_truth.exr``
+    Camera v's image of the object through wavy / flat water. **Ground truth** is the view the
+    same camera would have through perfectly flat water at the mean level ``h0``: the image that
+    restoration aims to recover, in that view's pixel geometry.
+``heightfield.npz`` / ``surface.ply``
+    The true surface (``x`` (n,), ``y`` (m,), ``z`` (m, n), mm, lab frame) and the mesh rendered.
+``scene.json``
+    Everything that made the renders: configuration, derived layout, seeds, variant, versions.
+
+Each image also gets a PNG preview. The folder appears atomically when complete.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mitsuba_wai import mesh as meshes
+from mitsuba_wai.scenes import (
+    SCENE_S_DEPTH,
+    SCENE_V_DEPTH,
+    pattern_scene,
+    view_scene,
+    water_bsdf,
+)
+from mitsuba_wai.textures import object_texture
+from mitsuba_wai.variant import mitsuba, select_variant
+from mitsuba_wai.waves import mesh_spacing_mm, sea_surface
+from wai_core.config import SystemConfig
+from wai_core.errors import WaiInputError
+from wai_core.heightfield import Heightfield
+from wai_core.io import atomic_dir, write_exr, write_json, write_png
+from wai_core.layout import diffuser_rect, object_plane_center, observed_patch, surface_extent
+
+# Largest mesh the renderer builds: ~1 M vertices keeps a frame's memory and time bounded.
+MAX_MESH_VERTICES = 1_000_000
+
+
+def _axis(lo: float, hi: float, spacing: float) -> NDArray:
+    n = max(int(np.ceil((hi - lo) / spacing)) + 1, 5)
+    return np.linspace(lo, hi, n)
+
+
+def wave_surface(cfg: SystemConfig) -> Heightfield:
+    """The true surface of ``cfg.waves`` at ``time_s`` on the mesh grid: the modelled extent
+    sampled at the shortest wavelength / ``mesh_points_per_wavelength``."""
+    ext = surface_extent(cfg)
+    sea = sea_surface(cfg.waves)
+    spacing = mesh_spacing_mm(
+        sea, cfg.waves.mesh_points_per_wavelength, float(np.max(ext[:, 1] - ext[:, 0]))
+    )
+    x, y = _axis(*ext[0], spacing), _axis(*ext[1], spacing)
+    if x.size * y.size > MAX_MESH_VERTICES:
+        raise WaiInputError(
+            f"mesh of {x.size}x{y.size} vertices is too large: lower mesh_points_per_wavelength"
+        )
+    return sea.grid(x, y, cfg.waves.time_s, mean_level_mm=cfg.water.h0_mm)
+
+
+def file_surface(cfg: SystemConfig, given: Heightfield) -> Heightfield:
+    """A surface given as a file, resampled on the modelled extent at the file's own spacing.
+
+    The file must cover the observed patch (what either system looks at). Beyond the file's grid
+    (e.g. camera v's TIR band) the water is flat at ``h0``.
+    """
+    patch = observed_patch(cfg)
+    if (
+        given.x[0] > patch[0, 0]
+        or given.x[-1] < patch[0, 1]
+        or given.y[0] > patch[1, 0]
+        or given.y[-1] < patch[1, 1]
+    ):
+        raise WaiInputError(
+            "heightfield does not cover the observed patch "
+            f"x {patch[0, 0]:.0f}..{patch[0, 1]:.0f} mm, y {patch[1, 0]:.0f}..{patch[1, 1]:.0f} mm"
+        )
+    ext = surface_extent(cfg)
+    spacing = float(min(np.diff(given.x).min(), np.diff(given.y).min()))
+    spacing = max(spacing, float(np.sqrt(np.prod(ext[:, 1] - ext[:, 0]) / MAX_MESH_VERTICES)))
+    x, y = _axis(*ext[0], spacing), _axis(*ext[1], spacing)
+    xx, yy = np.meshgrid(x, y)
+    z = given.height(xx, yy)
+    return Heightfield(x, y, np.where(np.isfinite(z), z, cfg.water.h0_mm))
+
+
+@dataclass
+class FrameRenderer:
+    """Loaded scenes of both systems whose water surface is swapped per frame.
+
+    Scenes are loaded once; a new surface only rewrites the mesh's vertex buffers, so Dr.Jit's
+    compiled kernels are reused from frame to frame (what makes sweeps and benchmarks fast).
+    The grid (vertex count) is fixed by the first surface.
+    """
+
+    cfg: SystemConfig
+    grid: Heightfield
+    texture: NDArray | None = None
+    variant: str = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.variant = select_variant()
+        mi = mitsuba()
+        tm = meshes.heightfield_mesh(self.grid)
+        bsdf = water_bsdf(self.cfg)
+        tex = self.texture if self.texture is not None else object_texture(self.cfg.object)
+        # Each scene owns its mesh object: Mitsuba meshes cannot be shared between scenes.
+        self._scene_s = mi.load_dict(
+            pattern_scene(self.cfg, meshes.to_mitsuba(tm, "water", bsdf))
+        )
+        self._scene_v = mi.load_dict(
+            view_scene(self.cfg, meshes.to_mitsuba(tm, "water", bsdf), tex)
+        )
+        self._params_s = mi.traverse(self._scene_s)
+        self._params_v = mi.traverse(self._scene_v)
+
+    def _set_surface(self, surface: Heightfield) -> None:
+        if surface.z.shape != self.grid.z.shape:
+            raise ValueError("surface grid differs from the renderer's mesh grid")
+        tm = meshes.heightfield_mesh(surface)
+        meshes.set_mesh_geometry(self._params_s, tm, prefix="water.")
+        meshes.set_mesh_geometry(self._params_v, tm, prefix="water.")
+
+    def render(self, surface: Heightfield, seed: int) -> dict[str, NDArray[np.float32]]:
+        """Render the pattern (camera s) and the view (camera v) through ``surface``."""
+        import drjit as dr
+
+        mi = mitsuba()
+        self._set_surface(surface)
+        out = {}
+        r = self.cfg.render
+        jobs = (("pattern", self._scene_s, r.spp_pattern), ("view", self._scene_v, r.spp_view))
+        for key, scene, spp in jobs:
+            img = mi.render(scene, spp=spp, seed=seed)
+            dr.eval(img)
+            out[key] = np.asarray(img, dtype=np.float32)[..., :3]
+        return out
+
+
+def scene_record(cfg: SystemConfig, variant: str, surface: Heightfield, source: str) -> dict:
+    """What ``scene.json`` holds: enough for the restoration to run from the folder alone."""
+    import drjit
+    import mitsuba as mi
+
+    devices = {}
+    for name in ("projector", "camera_s", "camera_v"):
+        cam = getattr(cfg, name).camera()
+        devices[name] = {
+            "center_lab_mm": cam.pose.center_lab_mm,
+            "axis_lab": cam.pose.axis_lab,
+            "R": cam.pose.R,
+            "t_mm": cam.pose.t_mm,
+            "pixel_pitch_mm": cam.pixel_pitch_mm,
+            "focal_px": cam.focal_px,
+            "fov_x_deg": cam.fov_x_deg,
+            "sensor_size_mm": cam.sensor_size_mm,
+        }
+    return {
+        "format": "wai-render/1",
+        "config": cfg.to_dict(),
+        "derived": {
+            "devices": devices,
+            "diffuser_rect_mm": diffuser_rect(cfg),
+            "surface_extent_mm": surface_extent(cfg),
+            "observed_patch_mm": observed_patch(cfg),
+            "object_center_mm": object_plane_center(cfg),
+            "object_z_mm": cfg.object_z_mm,
+            "mesh_vertices": [int(surface.y.size), int(surface.x.size)],
+            "mesh_spacing_mm": float(np.diff(surface.x).mean()),
+            "vertex_normals": "exact surface normals (smooth shading)",
+            "view_radiance_gain": cfg.water.n_water**2,
+        },
+        "surface_source": source,
+        "seed": cfg.waves.seed,
+        "render_seed": render_seed(cfg),
+        "variant": variant,
+        "integrators": {
+            "pattern": {"type": "ptracer", "max_depth": SCENE_S_DEPTH},
+            "view": {"type": "path", "max_depth": SCENE_V_DEPTH},
+        },
+        "versions": {
+            "mitsuba": mi.__version__,
+            "drjit": drjit.__version__,
+            "numpy": np.__version__,
+            "python": platform.python_version(),
+        },
+    }
+
+
+def render_seed(cfg: SystemConfig) -> int:
+    """Mitsuba's sampler seed, derived from the scene seed so reruns are identical."""
+    return int(cfg.waves.seed) * 7919 + 17
+
+
+def render_folder(
+    cfg: SystemConfig,
+    out_dir: str | Path,
+    heightfield: Heightfield | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Render one frame of both systems (wavy and flat) and write the render folder atomically.
+
+    Parameters
+    ----------
+    cfg : SystemConfig
+    out_dir : path
+        Folder to create (replaced if it exists, only once everything is written).
+    heightfield : Heightfield, optional
+        A surface to use instead of the wave model (``--heightfield``).
+    progress : bool
+        Show a progress bar over the render steps.
+
+    Returns
+    -------
+    dict
+        The ``scene.json`` record, with ``timings_s`` per step.
+    """
+    from tqdm import tqdm
+
+    steps = ["surface", "load scenes", "render wavy", "render flat", "write"]
+    bar = tqdm(steps, desc="render", disable=not progress, unit="step", leave=False)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    def tick(name: str) -> None:
+        nonlocal t0
+        timings[name] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        bar.update(1)
+
+    bar.set_postfix_str("surface")
+    if heightfield is None:
+        surface, source = wave_surface(cfg), "waves"
+    else:
+        surface, source = file_surface(cfg, heightfield), "file"
+    tick("surface")
+    renderer = FrameRenderer(cfg, surface)
+    tick("load scenes")
+    seed = render_seed(cfg)
+    wavy = renderer.render(surface, seed)
+    tick("render wavy")
+    flat = renderer.render(meshes.flat_like(surface, cfg.water.h0_mm), seed)
+    tick("render flat")
+    record = scene_record(cfg, renderer.variant, surface, source)
+    with atomic_dir(out_dir) as tmp:
+        images = {
+            "pattern": wavy["pattern"],
+            "pattern_flat": flat["pattern"],
+            "view": wavy["view"],
+            "view_truth": flat["view"],
+        }
+        gain = cfg.water.n_water**2
+        for name, img in images.items():
+            write_exr(tmp / f"{name}.exr", img)
+            exposure = 1.0 / gain if name.startswith("view") else None
+            write_png(tmp / f"{name}.png", img, exposure=exposure)
+        surface.save(tmp / "heightfield.npz")
+        meshes.heightfield_mesh(surface).export(tmp / "surface.ply")
+        tick("write")
+        record["timings_s"] = timings
+        write_json(tmp / "scene.json", record)
+    bar.close()
+    return record

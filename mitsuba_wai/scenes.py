@@ -1,0 +1,151 @@
+"""Mitsuba scene descriptions of the paper's two optical systems, built from the configuration.
+
+Each scene carries only what its measurement needs:
+
+System S (structured light): the projector with the dot pattern, the water surface, the diffuser
+and camera s. The pattern reaches camera s only after a specular bounce, which a camera-side path
+tracer can never connect to a delta-position projector, so it is rendered with ``ptracer`` (light
+tracing), ``max_depth = 3``: projector -> water -> diffuser -> camera.
+
+System V (observation): camera v, the water surface and the object plane as an area emitter that
+carries the texture, so every path is camera -> water -> object: the ``path`` integrator with
+``max_depth = 2`` (one specular bounce, nothing more).
+
+Water is ``dielectric`` (n = 4/3 below, air above; default) or an ideal ``mirror``
+(``conductor`` with no absorption) for system S's idealised variant.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wai_core.config import SystemConfig
+from wai_core.geometry import PinholeCamera
+from wai_core.layout import diffuser_rect, object_plane_center
+from wai_core.pattern import pattern_image
+
+SCENE_S_DEPTH = 3
+SCENE_V_DEPTH = 2
+
+
+def _transform(matrix: NDArray) -> object:
+    import mitsuba as mi
+
+    return mi.ScalarTransform4f(np.asarray(matrix, dtype=float).tolist())
+
+
+def device_to_world(camera: PinholeCamera) -> object:
+    """Mitsuba ``to_world`` of a device: looks along its +z_cam with image +y_cam down (the
+    ``cam`` frame of :mod:`wai_core.geometry`)."""
+    import mitsuba as mi
+
+    c = camera.pose.center_lab_mm
+    R = camera.pose.R
+    return mi.ScalarTransform4f().look_at(
+        origin=c.tolist(), target=(c + R[2]).tolist(), up=(-R[1]).tolist()
+    )
+
+
+def sensor_dict(camera: PinholeCamera, rfilter: str = "box") -> dict:
+    """Perspective sensor matching a :class:`PinholeCamera` (square pixels, centred)."""
+    return {
+        "type": "perspective",
+        "fov": camera.fov_x_deg,
+        "fov_axis": "x",
+        "near_clip": 1.0,
+        "far_clip": 1.0e5,
+        "to_world": device_to_world(camera),
+        "film": {
+            "type": "hdrfilm",
+            "width": camera.width_px,
+            "height": camera.height_px,
+            "pixel_format": "rgb",
+            "rfilter": {"type": rfilter},
+        },
+    }
+
+
+def water_bsdf(cfg: SystemConfig) -> dict:
+    """The water surface's BSDF: normals point into the air (exterior)."""
+    if cfg.water.surface == "mirror":
+        return {"type": "conductor", "material": "none"}
+    return {"type": "dielectric", "int_ior": cfg.water.n_water, "ext_ior": 1.0}
+
+
+def rectangle_to_world(center: NDArray, size_mm: NDArray, facing_down: bool) -> object:
+    """``to_world`` of Mitsuba's [-1, 1]^2 rectangle: centred, sized, normal up or down.
+
+    Facing down is a mirror of local y (``diag(1, -1, -1)``), a proper rotation that also keeps
+    texture v growing with lab -y; callers account for that in their uv mapping.
+    """
+    sx, sy = np.asarray(size_mm, dtype=float) / 2.0
+    flip = -1.0 if facing_down else 1.0
+    m = np.array(
+        [
+            [sx, 0.0, 0.0, center[0]],
+            [0.0, flip * sy, 0.0, center[1]],
+            [0.0, 0.0, flip, center[2]],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
+    return _transform(m)
+
+
+def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
+    """System S: projector, water, diffuser, camera s (see module notes)."""
+    import mitsuba as mi
+
+    projector = cfg.projector.camera()
+    rect = diffuser_rect(cfg)
+    center = np.array([rect[0].mean(), rect[1].mean(), cfg.diffuser.z_mm])
+    return {
+        "type": "scene",
+        "integrator": {"type": "ptracer", "max_depth": SCENE_S_DEPTH, "hide_emitters": True},
+        "sensor": sensor_dict(cfg.camera_s.camera(), rfilter="gaussian"),
+        "projector": {
+            "type": "projector",
+            "irradiance": {
+                "type": "bitmap",
+                "bitmap": mi.Bitmap(pattern_image(cfg.pattern, projector)),
+                "raw": True,
+            },
+            "fov": projector.fov_x_deg,
+            "scale": cfg.pattern.power,
+            "to_world": device_to_world(projector),
+        },
+        "water": water_mesh,
+        # Pure diffuse transmission: lit from above, seen from below (Mitsuba has no difftrans).
+        "diffuser": {
+            "type": "rectangle",
+            "to_world": rectangle_to_world(center, rect[:, 1] - rect[:, 0], facing_down=False),
+            "bsdf": {
+                "type": "principledthin",
+                "base_color": {"type": "rgb", "value": [1.0, 1.0, 1.0]},
+                "diff_trans": 2.0,
+                "spec_trans": 0.0,
+                "roughness": 1.0,
+            },
+        },
+    }
+
+
+def view_scene(cfg: SystemConfig, water_mesh: object, texture: NDArray) -> dict:
+    """System V: camera v, water, the textured object plane as an emitter facing down."""
+    import mitsuba as mi
+
+    center = object_plane_center(cfg)
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": SCENE_V_DEPTH, "hide_emitters": False},
+        "sensor": sensor_dict(cfg.camera_v.camera(), rfilter="box"),
+        "water": water_mesh,
+        "object": {
+            "type": "rectangle",
+            "to_world": rectangle_to_world(center, np.array(cfg.object.size_mm), facing_down=True),
+            "emitter": {
+                "type": "area",
+                "radiance": {"type": "bitmap", "bitmap": mi.Bitmap(texture), "raw": True},
+            },
+        },
+    }

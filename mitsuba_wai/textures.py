@@ -1,0 +1,76 @@
+"""Images shown on the object plane above the water.
+
+Orientation: texture column ``c`` grows with lab +x and row ``r`` with lab +y, and the image spans
+the object rectangle exactly (``ObjectConfig.size_mm``), stretched if its aspect ratio differs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wai_core.config import ObjectConfig
+from wai_core.errors import WaiInputError
+
+# Checkerboard levels: dark and light squares stay off 0 and 1 so tone mapping never clips them.
+CHECKER_LEVELS = (0.05, 0.95)
+
+
+def checkerboard(squares: tuple[int, int], px_per_square: int = 64) -> NDArray[np.float32]:
+    """Grey checkerboard (h, w, 3) in [0, 1] with ``squares = (n_x, n_y)`` squares; the square at
+    the first row and column is dark."""
+    nx, ny = squares
+    jj, ii = np.mgrid[0 : ny * px_per_square, 0 : nx * px_per_square] // px_per_square
+    lo, hi = CHECKER_LEVELS
+    board = np.where((ii + jj) % 2 == 0, lo, hi).astype(np.float32)
+    return np.repeat(board[..., None], 3, axis=2)
+
+
+def _skimage_image(name: str) -> NDArray:
+    from skimage import data
+
+    loader = getattr(data, name, None)
+    if loader is None or not callable(loader):
+        raise WaiInputError(f"texture: scikit-image has no sample image '{name}'")
+    return loader()
+
+
+def _file_image(path: Path) -> NDArray:
+    from skimage.io import imread
+
+    if not path.is_file():
+        raise WaiInputError(f"texture file not found: {path}")
+    try:
+        return imread(path)
+    except Exception as exc:
+        raise WaiInputError(f"texture file {path} cannot be read: {exc}") from None
+
+
+def to_rgb_float(img: NDArray) -> NDArray[np.float32]:
+    """Any grey/RGB/RGBA image as float32 RGB in [0, 1]."""
+    img = np.asarray(img)
+    out = img.astype(np.float32)
+    if np.issubdtype(img.dtype, np.integer):
+        out /= float(np.iinfo(img.dtype).max)
+    if out.ndim == 2:
+        out = np.repeat(out[..., None], 3, axis=2)
+    if out.ndim != 3 or out.shape[2] not in (3, 4):
+        raise WaiInputError(f"texture: expected a grey or RGB image, got shape {img.shape}")
+    return np.clip(out[..., :3], 0.0, 1.0)
+
+
+def object_texture(obj: ObjectConfig, base_dir: Path | None = None) -> NDArray[np.float32]:
+    """The object plane's image (h, w, 3) in [0, 1] for ``ObjectConfig.texture``:
+    ``checkerboard``, ``skimage:<name>`` (e.g. ``skimage:astronaut``) or an image file path
+    (relative paths resolve against ``base_dir``)."""
+    spec = obj.texture
+    if spec == "checkerboard":
+        return checkerboard(obj.squares)
+    if spec.startswith("skimage:"):
+        return to_rgb_float(_skimage_image(spec.split(":", 1)[1]))
+    path = Path(spec)
+    if not path.is_absolute() and base_dir is not None:
+        path = base_dir / path
+    return to_rgb_float(_file_image(path))

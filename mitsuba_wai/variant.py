@@ -1,0 +1,113 @@
+"""Choose the Mitsuba variant once, in one place, before Dr.Jit starts.
+
+Dr.Jit 1.5 emits ``llvm.minimum``/``llvm.maximum``, which Debian 12's libLLVM 15 cannot lower: the
+process aborts inside LLVM (no exception to catch). So the LLVM backend is only used with a libLLVM
+of version 16 or newer, pinned through ``DRJIT_LIBLLVM_PATH`` before ``drjit`` is imported. Without
+one, ``auto`` falls back to ``scalar_rgb`` with a one-line warning.
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import glob
+import os
+import re
+import sys
+from types import ModuleType
+
+_MIN_LLVM = 16
+_LLVM_GLOBS = (
+    "/usr/lib/x86_64-linux-gnu/libLLVM*.so*",
+    "/usr/lib/aarch64-linux-gnu/libLLVM*.so*",
+    "/usr/lib/llvm-*/lib/libLLVM*.so*",
+    "/usr/local/lib/libLLVM*.so*",
+)
+_chosen: str | None = None
+
+
+def _llvm_major(path: str) -> int | None:
+    """Major version from a libLLVM file name (``libLLVM-19.so``, ``libLLVM.so.19.1``)."""
+    m = re.search(r"libLLVM[-.]?(?:so\.)?(\d+)", os.path.basename(path))
+    return int(m.group(1)) if m else None
+
+
+def find_libllvm() -> str | None:
+    """Path of the newest libLLVM with major version >= 16, or None.
+
+    An explicit ``DRJIT_LIBLLVM_PATH`` wins when it names an existing file of a working version.
+    """
+    env = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if env and os.path.isfile(env) and (_llvm_major(env) or _MIN_LLVM) >= _MIN_LLVM:
+        return env
+    found = []
+    for pattern in _LLVM_GLOBS:
+        for path in glob.glob(pattern):
+            major = _llvm_major(path)
+            if major is not None and major >= _MIN_LLVM and os.path.isfile(path):
+                found.append((major, path))
+    return max(found)[1] if found else None
+
+
+def _cuda_driver_present() -> bool:
+    return ctypes.util.find_library("cuda") is not None or os.path.exists("/dev/nvidiactl")
+
+
+def select_variant(requested: str = "auto") -> str:
+    """Set the Mitsuba variant for this process and return its name.
+
+    Parameters
+    ----------
+    requested : str
+        ``auto`` picks ``cuda_ad_rgb`` when a GPU works, else ``llvm_ad_rgb`` when a working
+        libLLVM is installed, else ``scalar_rgb``. Any other name is set as given (an LLVM variant
+        without a working libLLVM is refused rather than allowed to abort the process).
+
+    Notes
+    -----
+    A process can hold one variant; asking again for the same one is a no-op, asking for another
+    raises ``RuntimeError``.
+    """
+    global _chosen
+    if _chosen is not None:
+        if requested not in ("auto", _chosen):
+            raise RuntimeError(f"variant already set to {_chosen}; cannot switch to {requested}")
+        return _chosen
+    llvm = find_libllvm()
+    if llvm and "drjit" not in sys.modules:
+        os.environ["DRJIT_LIBLLVM_PATH"] = llvm
+    import mitsuba as mi
+
+    if requested == "auto":
+        candidates = (["cuda_ad_rgb"] if _cuda_driver_present() else []) + (
+            ["llvm_ad_rgb"] if llvm else []
+        )
+    else:
+        if requested.startswith("llvm") and not llvm:
+            raise RuntimeError(
+                f"variant {requested} needs libLLVM >= {_MIN_LLVM} (apt-get install libllvm19)"
+            )
+        candidates = [requested]
+    for name in candidates:
+        try:
+            mi.set_variant(name)
+            _chosen = name
+            return name
+        except (ImportError, RuntimeError, AttributeError) as exc:
+            if requested != "auto":
+                raise RuntimeError(f"variant {name} is not usable here: {exc}") from None
+    if requested == "auto":
+        print(
+            f"warning: no GPU and no libLLVM >= {_MIN_LLVM}; rendering with scalar_rgb (slow)",
+            file=sys.stderr,
+        )
+    mi.set_variant("scalar_rgb")
+    _chosen = "scalar_rgb"
+    return _chosen
+
+
+def mitsuba(requested: str = "auto") -> ModuleType:
+    """The ``mitsuba`` module with a variant set (``select_variant`` on first use)."""
+    select_variant(requested)
+    import mitsuba as mi
+
+    return mi

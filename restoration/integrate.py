@@ -1,0 +1,613 @@
+"""From sampled surface slopes to heights (section 3.2.2), and from scattered heights to a grid.
+
+Every integrator shares one interface (:data:`Integrator`) and lives in :data:`INTEGRATORS`, so
+new ones can be added and compared by name:
+
+``integrator(ij, xy_mm, slopes) -> heights_mm``
+
+``ij`` (K, 2) int
+    Grid index ``(i, j)`` of each sample (its dot in the pattern); 4-neighbours in ``(i, j)`` are
+    neighbours on the surface. Missing nodes (undetected dots) are simply absent.
+``xy_mm`` (K, 2) float
+    Horizontal sample positions, mm (irregular: the projector's keystone plus the waves).
+``slopes`` (K, 2) float
+    ``(dz/dx, dz/dy)`` at the samples, dimensionless.
+``heights_mm`` (K,) float
+    Heights up to a constant, mm, with zero mean; NaN for samples that the integrator cannot tie
+    to the others (outside the largest connected piece of the sample grid).
+
+Integrators
+-----------
+``"paper"``
+    Eq. 10-13: central differences on the ``(i, j)`` grid, one-sided at borders and holes, solved
+    by least squares. Eq. 10 divides by ``x`` spacings, which assumes rows of samples run along
+    ``x``; the projector's samples form a keystone, so each difference is taken along the actual
+    displacement, ``h(c+) - h(c-) = g(c) . (xy(c+) - xy(c-))``, weighted to a residual in slope
+    units as in eq. 13. On a rectilinear grid this is eq. 10 exactly.
+``"trapezoid"``
+    Least squares over the edges of the 4-neighbour graph with the trapezoid rule,
+    ``h(b) - h(a) = (g(a) + g(b)) / 2 . (xy(b) - xy(a))``: exact for quadratic surfaces on any
+    irregular grid, and free of the odd-even decoupling that central differences suffer.
+``"spline"``
+    A bicubic B-spline on a regular control grid fitted by sparse least squares straight to the
+    slopes, with a weak penalty on third differences of its coefficients (it leaves planes and
+    quadratics untouched and only steers coefficients that the data leave free).
+
+:func:`to_heightfield` grids scattered heights (and slopes) onto a regular :class:`Heightfield`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import ArrayLike, NDArray
+from scipy.interpolate import CloughTocher2DInterpolator
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import splu
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+from wai_core.errors import WaiInputError
+from wai_core.heightfield import Heightfield
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+Integrator = Callable[[ArrayLike, ArrayLike, ArrayLike], Array]
+
+MIN_SAMPLES = 4
+"""Fewest samples that integration and gridding accept."""
+
+# Weight of the third-difference penalty relative to the data (dimensionless, see _penalty).
+_SPLINE_SMOOTHING = 1e-2
+
+
+# --------------------------------------------------------------------------------------------
+# Input checks and the sample grid
+# --------------------------------------------------------------------------------------------
+
+
+def check_samples(
+    ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike
+) -> tuple[IntArray, Array, Array]:
+    """Validate integrator input and return it as arrays (see the module docstring for shapes).
+
+    Raises
+    ------
+    WaiInputError
+        On wrong shapes, NaN or inf, repeated grid indices or fewer than :data:`MIN_SAMPLES`.
+    """
+    ij_arr = np.asarray(ij)
+    xy = np.asarray(xy_mm, dtype=float)
+    g = np.asarray(slopes, dtype=float)
+    for name, arr in (("ij", ij_arr), ("xy_mm", xy), ("slopes", g)):
+        if arr.ndim != 2 or arr.shape[1] != 2:
+            raise WaiInputError(f"integrate: {name} must have shape (K, 2), got {arr.shape}")
+    if not ij_arr.shape[0] == xy.shape[0] == g.shape[0]:
+        raise WaiInputError("integrate: ij, xy_mm and slopes must hold the same number of samples")
+    if ij_arr.shape[0] < MIN_SAMPLES:
+        raise WaiInputError(
+            f"integrate: too few features to integrate ({ij_arr.shape[0]} < {MIN_SAMPLES})"
+        )
+    if not np.issubdtype(ij_arr.dtype, np.integer):
+        raise WaiInputError("integrate: ij must hold integer grid indices")
+    if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(g))):
+        raise WaiInputError("integrate: xy_mm or slopes hold NaN or inf")
+    ij_arr = ij_arr.astype(np.int64)
+    if _has_repeats(ij_arr):
+        raise WaiInputError("integrate: two samples share one grid index (i, j)")
+    return ij_arr, xy, g
+
+
+def _has_repeats(ij: IntArray) -> bool:
+    """True when two rows of ``ij`` (K, 2) are equal."""
+    span = ij.max(axis=0) - ij.min(axis=0) + 1
+    if span[0] * span[1] > 16 * ij.shape[0] + 4096:
+        # A sparse spread of indices: sorting is cheaper than a table.
+        return np.unique(ij, axis=0).shape[0] != ij.shape[0]
+    flat = (ij[:, 1] - ij[:, 1].min()) * span[0] + (ij[:, 0] - ij[:, 0].min())
+    return bool(np.bincount(flat).max() > 1)
+
+
+def grid_neighbours(ij: IntArray, offsets: ArrayLike) -> IntArray:
+    """Index of the sample at ``(i + di, j + dj)`` for every sample and offset, -1 where absent.
+
+    Parameters
+    ----------
+    ij : (K, 2) ndarray of int
+        Grid indices (unique).
+    offsets : (P, 2) array_like of int
+        Offsets ``(di, dj)``, each component -1, 0 or 1.
+
+    Returns
+    -------
+    (P, K) ndarray of int
+    """
+    off = np.asarray(offsets, dtype=np.int64).reshape(-1, 2)
+    lo = ij.min(axis=0) - 1
+    shape = ij.max(axis=0) - lo + 2
+    # A padded lookup table: the border ring of -1 answers for neighbours past the edge.
+    table = np.full((shape[1], shape[0]), -1, dtype=np.int64)
+    local = ij - lo
+    table[local[:, 1], local[:, 0]] = np.arange(ij.shape[0])
+    return table[local[None, :, 1] + off[:, 1:2], local[None, :, 0] + off[:, 0:1]]
+
+
+# --------------------------------------------------------------------------------------------
+# Least squares over height differences (shared by "paper" and "trapezoid")
+# --------------------------------------------------------------------------------------------
+
+
+def spd_solve(matrix: sp.spmatrix, rhs: Array) -> Array:
+    """Solve a sparse symmetric positive definite system (SuperLU in symmetric mode)."""
+    # Symmetric mode with a minimum-degree ordering of A + A^T and no pivoting: a few times
+    # faster than the default unsymmetric LU on these Laplacian-like matrices.
+    lu = splu(
+        sp.csc_matrix(matrix),
+        permc_spec="MMD_AT_PLUS_A",
+        diag_pivot_thresh=0.0,
+        options={"SymmetricMode": True},
+    )
+    return lu.solve(rhs)
+
+
+def solve_differences(
+    n: int, a: IntArray, b: IntArray, diff_mm: Array, weights: Array
+) -> Array:
+    """Heights minimising ``sum_e w_e (h[b_e] - h[a_e] - diff_e)^2``, zero mean.
+
+    The normal matrix is a weighted graph Laplacian with one null vector per connected piece; the
+    largest piece is solved with its first node pinned, then shifted to zero mean.
+
+    Parameters
+    ----------
+    n : int
+        Number of samples.
+    a, b : (E,) ndarray of int
+        End points of each difference (``h[b] - h[a]``).
+    diff_mm : (E,) ndarray
+        Measured differences, mm.
+    weights : (E,) ndarray
+        Positive weights.
+
+    Returns
+    -------
+    (n,) ndarray
+        Heights, mm; NaN outside the largest connected piece.
+    """
+    adjacency = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n))
+    _, labels = connected_components(adjacency, directed=False)
+    keep = labels == np.bincount(labels).argmax()
+    if keep.sum() < MIN_SAMPLES:
+        raise WaiInputError(
+            f"integrate: too few connected features to integrate ({keep.sum()} < {MIN_SAMPLES})"
+        )
+    # Renumber the kept nodes with the pinned one (the first) last, then drop it.
+    order = np.flatnonzero(keep)
+    new = np.full(n, -1, dtype=np.int64)
+    new[order] = np.roll(np.arange(order.size), -1)
+    on = keep[a] & keep[b]
+    ea, eb, d, w = new[a[on]], new[b[on]], diff_mm[on], weights[on]
+    m = order.size
+    rows = np.arange(ea.size)
+    incidence = sp.csr_matrix(
+        (np.r_[-np.ones(ea.size), np.ones(ea.size)], (np.r_[rows, rows], np.r_[ea, eb])),
+        shape=(ea.size, m),
+    )
+    weighted = incidence.T.multiply(w).tocsr()
+    laplacian = (weighted @ incidence)[: m - 1, : m - 1].tocsc()
+    rhs = (weighted @ d)[: m - 1]
+    h_kept = np.r_[spd_solve(laplacian, rhs), 0.0]
+    heights = np.full(n, np.nan)
+    heights[order] = h_kept[new[order]] - h_kept.mean()
+    return heights
+
+
+def _edge_system(
+    ij: IntArray, xy: Array, g: Array, scheme: str
+) -> tuple[IntArray, IntArray, Array, Array]:
+    """Differences ``(a, b, diff, weight)`` along both grid axes for one finite-difference scheme.
+
+    ``scheme`` is ``"central"`` (eq. 10, one-sided at borders and holes) or ``"trapezoid"``.
+    Weights ``1 / |xy(b) - xy(a)|^2`` turn each residual into slope units (eq. 13).
+    """
+    centre = np.arange(ij.shape[0])
+    neighbours = grid_neighbours(ij, [(1, 0), (-1, 0), (0, 1), (0, -1)])
+    parts = []
+    for plus, minus in (neighbours[:2], neighbours[2:]):
+        if scheme == "trapezoid":
+            on = plus >= 0
+            a, b = centre[on], plus[on]
+            slope = 0.5 * (g[a] + g[b])
+        else:
+            # Central where both neighbours exist, else forward or backward (slope at the centre).
+            a = np.where(minus >= 0, minus, centre)
+            b = np.where(plus >= 0, plus, centre)
+            on = a != b
+            a, b, slope = a[on], b[on], g[on]
+        step = xy[b] - xy[a]
+        parts.append((a, b, np.sum(slope * step, axis=1), 1.0 / np.sum(step**2, axis=1)))
+    a, b, d, w = (np.concatenate(p) for p in zip(*parts, strict=True))
+    if np.any(~np.isfinite(w)):
+        raise WaiInputError("integrate: two neighbouring samples sit at the same position")
+    return a, b, d, w
+
+
+def integrate_paper(ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike) -> Array:
+    """Eq. 10-13: central differences on the sample grid, least squares (see module docstring).
+
+    Parameters
+    ----------
+    ij : (K, 2) array_like of int
+    xy_mm : (K, 2) array_like, mm
+    slopes : (K, 2) array_like, dimensionless
+
+    Returns
+    -------
+    (K,) ndarray
+        Zero-mean heights, mm; NaN for samples cut off from the largest connected piece.
+    """
+    ij_a, xy, g = check_samples(ij, xy_mm, slopes)
+    return solve_differences(ij_a.shape[0], *_edge_system(ij_a, xy, g, "central"))
+
+
+def integrate_trapezoid(ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike) -> Array:
+    """Trapezoid-rule least squares over the 4-neighbour edges (see module docstring).
+
+    Parameters and return as :func:`integrate_paper`.
+    """
+    ij_a, xy, g = check_samples(ij, xy_mm, slopes)
+    return solve_differences(ij_a.shape[0], *_edge_system(ij_a, xy, g, "trapezoid"))
+
+
+# --------------------------------------------------------------------------------------------
+# Uniform bicubic B-splines (the "spline" integrator and the default gridding)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SplineGrid:
+    """A uniform bicubic B-spline: cell ``(cx, cy)`` spans ``[x0 + cx h, x0 + (cx + 1) h)``.
+
+    Coefficient ``(a, b)`` (row-major, ``a`` along y) scales the basis function centred on the
+    knot ``(x0 + (b - 1) h, y0 + (a - 1) h)``; there are ``(ncy + 3) x (ncx + 3)`` of them.
+    """
+
+    x0: float
+    y0: float
+    step_mm: float
+    ncx: int
+    ncy: int
+
+    @classmethod
+    def covering(cls, xy_mm: Array, step_mm: float) -> SplineGrid:
+        """Smallest grid of cells of size ``step_mm`` covering points of shape (K, 2)."""
+        lo = xy_mm.min(axis=0)
+        span = xy_mm.max(axis=0) - lo
+        ncx, ncy = (np.floor(span / step_mm).astype(int) + 1).tolist()
+        return cls(float(lo[0]), float(lo[1]), float(step_mm), ncx, ncy)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Coefficient array shape ``(ny, nx)``."""
+        return self.ncy + 3, self.ncx + 3
+
+    def design(self, x: Array, y: Array, dx: int = 0, dy: int = 0) -> sp.csr_matrix:
+        """Sparse matrix (N, ny * nx) mapping coefficients to the ``(dx, dy)`` derivative at points.
+
+        Parameters
+        ----------
+        x, y : (N,) ndarray
+            Points, mm (clamped into the grid's cells).
+        dx, dy : int
+            Derivative order along x and y, 0 or 1 (1 gives per-mm values).
+        """
+        cx, bx = self._axis(x, self.x0, self.ncx, dx)
+        cy, by = self._axis(y, self.y0, self.ncy, dy)
+        nx = self.shape[1]
+        offs = np.arange(4)
+        cols = (cy[:, None, None] + offs[None, :, None]) * nx + (cx[:, None, None] + offs)
+        vals = by[:, :, None] * bx[:, None, :]
+        rows = np.repeat(np.arange(x.size), 16)
+        return sp.csr_matrix(
+            (vals.ravel(), (rows, cols.ravel())), shape=(x.size, self.shape[0] * nx)
+        )
+
+    def coef_index(self, x: float, y: float) -> int:
+        """Flat index of the coefficient whose basis function peaks nearest ``(x, y)``, mm."""
+        cx, _ = self._axis(np.array([x]), self.x0, self.ncx, 0)
+        cy, _ = self._axis(np.array([y]), self.y0, self.ncy, 0)
+        return int((cy[0] + 1) * self.shape[1] + cx[0] + 1)
+
+    def dense_axis(self, coords: Array, along_x: bool) -> Array:
+        """Dense (N, n_coef_axis) basis matrix along one axis (for tensor-product evaluation)."""
+        origin, ncell = (self.x0, self.ncx) if along_x else (self.y0, self.ncy)
+        cell, basis = self._axis(coords, origin, ncell, 0)
+        out = np.zeros((coords.size, ncell + 3))
+        np.put_along_axis(out, cell[:, None] + np.arange(4), basis, axis=1)
+        return out
+
+    def _axis(self, u_mm: Array, origin: float, ncell: int, order: int) -> tuple[IntArray, Array]:
+        u = (u_mm - origin) / self.step_mm
+        cell = np.clip(np.floor(u).astype(np.int64), 0, ncell - 1)
+        t = (u - cell)[:, None]
+        if order == 0:
+            parts = [(1 - t) ** 3, 3 * t**3 - 6 * t**2 + 4, -3 * t**3 + 3 * t**2 + 3 * t + 1, t**3]
+            basis = np.hstack(parts) / 6.0
+        else:
+            parts = [-((1 - t) ** 2), 3 * t**2 - 4 * t, -3 * t**2 + 2 * t + 1, t**2]
+            basis = np.hstack(parts) / (2.0 * self.step_mm)
+        return cell, basis
+
+    def penalty(self) -> sp.csr_matrix:
+        """Third differences of the coefficients along x and y, divided by ``step^2``.
+
+        Zero for any biquadratic (hence for planes and paraboloids), so it never biases them; per
+        row it is about ``step * d3z/dx3`` (dimensionless, comparable with a slope residual).
+        """
+        ny, nx = self.shape
+        stencil = np.array([-1.0, 3.0, -3.0, 1.0])
+
+        def d3(n: int) -> sp.csr_matrix:
+            return sp.diags(stencil, np.arange(4), shape=(max(n - 3, 0), n))
+
+        return (
+            sp.vstack([sp.kron(sp.eye(ny), d3(nx)), sp.kron(d3(ny), sp.eye(nx))]).tocsr()
+            / self.step_mm**2
+        )
+
+
+def _median_spacing(xy: Array) -> float:
+    """Median distance from each sample to its nearest other sample, mm."""
+    dist, _ = cKDTree(xy).query(xy, k=2)
+    spacing = float(np.median(dist[:, 1]))
+    if spacing <= 0:
+        raise WaiInputError("integrate: samples sit at repeated positions")
+    return spacing
+
+
+def _solve_normal(rows: sp.csr_matrix, rhs: Array, pin: int | None = None) -> Array:
+    """Least squares ``rows c ~ rhs`` by sparse normal equations (optionally ``c[pin] = 0``)."""
+    # No ridge is needed: the penalty's null space is the biquadratics, and a biquadratic whose
+    # slopes vanish at scattered samples is a constant, which the pin (or height rows) fixes.
+    normal = (rows.T @ rows).tocsc()
+    b = rows.T @ rhs
+    if pin is None:
+        return spd_solve(normal, b)
+    keep = np.arange(rows.shape[1]) != pin
+    coef = np.zeros(rows.shape[1])
+    coef[keep] = spd_solve(normal.tocsr()[keep][:, keep], b[keep])
+    return coef
+
+
+def integrate_spline(ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike) -> Array:
+    """Bicubic B-spline fitted by least squares to the slopes (see module docstring).
+
+    The control spacing is the median nearest-neighbour distance of the samples. ``ij`` is only
+    checked, not used: the fit needs positions, not the grid.
+
+    Parameters and return as :func:`integrate_paper` (never NaN).
+    """
+    _, xy, g = check_samples(ij, xy_mm, slopes)
+    grid = SplineGrid.covering(xy, _median_spacing(xy))
+    rows = sp.vstack(
+        [
+            grid.design(xy[:, 0], xy[:, 1], dx=1),
+            grid.design(xy[:, 0], xy[:, 1], dy=1),
+            _SPLINE_SMOOTHING * grid.penalty(),
+        ]
+    ).tocsr()
+    rhs = np.r_[g[:, 0], g[:, 1], np.zeros(rows.shape[0] - 2 * xy.shape[0])]
+    # Slopes fix no constant: pin the coefficient under the sample nearest the centroid.
+    centre = np.argmin(np.sum((xy - xy.mean(axis=0)) ** 2, axis=1))
+    pin = grid.coef_index(xy[centre, 0], xy[centre, 1])
+    heights = grid.design(xy[:, 0], xy[:, 1]) @ _solve_normal(rows, rhs, pin)
+    return heights - heights.mean()
+
+
+INTEGRATORS: dict[str, Integrator] = {
+    "paper": integrate_paper,
+    "trapezoid": integrate_trapezoid,
+    "spline": integrate_spline,
+}
+"""Registered integrators by name; add an entry to make a new one selectable."""
+
+
+def integrate(
+    ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike, method: str = "trapezoid"
+) -> Array:
+    """Heights (K,) in mm, zero mean, from slopes with the integrator named ``method``."""
+    try:
+        integrator = INTEGRATORS[method]
+    except KeyError:
+        raise WaiInputError(
+            f"integrate: unknown integrator {method!r} (known: {', '.join(INTEGRATORS)})"
+        ) from None
+    return integrator(ij, xy_mm, slopes)
+
+
+# --------------------------------------------------------------------------------------------
+# Gridding
+# --------------------------------------------------------------------------------------------
+
+
+def _grid_axes(xy: Array, spacing_mm: float) -> tuple[Array, Array]:
+    """Regular node coordinates covering the bounding box of ``xy``, mm."""
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    n = np.ceil((hi - lo) / spacing_mm).astype(int) + 1
+    if np.any(n < 4):
+        raise WaiInputError(
+            f"to_heightfield: samples span too little for a {spacing_mm} mm grid (need 4 nodes)"
+        )
+    return lo[0] + spacing_mm * np.arange(n[0]), lo[1] + spacing_mm * np.arange(n[1])
+
+
+def _hermite_spline_grid(
+    xy: Array, heights: Array, slopes: Array, gx: Array, gy: Array
+) -> Array:
+    """Bicubic B-spline fitted to heights and slopes, evaluated on the grid (ny, nx), mm."""
+    grid = SplineGrid.covering(xy, _median_spacing(xy))
+    x, y = xy[:, 0], xy[:, 1]
+    # Slope residuals scaled by the control spacing: a slope error over one cell weighs like
+    # the height error it causes there.
+    rows = sp.vstack(
+        [
+            grid.design(x, y),
+            grid.step_mm * grid.design(x, y, dx=1),
+            grid.step_mm * grid.design(x, y, dy=1),
+            grid.step_mm * _SPLINE_SMOOTHING * grid.penalty(),
+        ]
+    ).tocsr()
+    mean = heights.mean()
+    rhs = np.r_[heights - mean, grid.step_mm * slopes[:, 0], grid.step_mm * slopes[:, 1]]
+    rhs = np.r_[rhs, np.zeros(rows.shape[0] - rhs.size)]
+    coef = _solve_normal(rows, rhs).reshape(grid.shape)
+    return grid.dense_axis(gy, along_x=False) @ coef @ grid.dense_axis(gx, along_x=True).T + mean
+
+
+def _locate_nodes(
+    corners: Array, gx: Array, gy: Array
+) -> tuple[IntArray, IntArray, Array]:
+    """Find the grid nodes inside each triangle (a vectorised rasterisation).
+
+    Every triangle is paired with the nodes of its bounding box and the pairs with non-negative
+    barycentric weights are kept; a node on a shared edge may appear twice (with equal
+    interpolated values). Far cheaper than qhull's point location for one regular grid.
+
+    Parameters
+    ----------
+    corners : (T, 3, 2) ndarray
+        Triangle vertices, mm.
+    gx, gy : (n,), (m,) ndarray
+        Regular node coordinates along x and y, mm.
+
+    Returns
+    -------
+    node : (P,) ndarray of int
+        Flat node index ``row * n + col``.
+    tri : (P,) ndarray of int
+        Triangle holding the node.
+    lam : (P, 3) ndarray
+        Barycentric weights of the node in that triangle.
+    """
+    step = gx[1] - gx[0]
+    lo = np.ceil((corners.min(axis=1) - [gx[0], gy[0]]) / step - 1e-9).astype(np.int64)
+    hi = np.floor((corners.max(axis=1) - [gx[0], gy[0]]) / step + 1e-9).astype(np.int64)
+    lo = np.maximum(lo, 0)
+    hi = np.minimum(hi, [gx.size - 1, gy.size - 1])
+    size = np.maximum(hi - lo + 1, 0)
+    count = size[:, 0] * size[:, 1]
+    tri = np.repeat(np.arange(corners.shape[0]), count)
+    local = np.arange(tri.size) - np.repeat(np.cumsum(count) - count, count)
+    col = lo[tri, 0] + local % size[tri, 0]
+    row = lo[tri, 1] + local // size[tri, 0]
+    c = corners[tri]
+    e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+    r = np.column_stack([gx[col], gy[row]]) - c[:, 0]
+    # Barycentric weights by Cramer's rule (Delaunay triangles are never flat).
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    l1 = (r[:, 0] * e2[:, 1] - r[:, 1] * e2[:, 0]) / det
+    l2 = (e1[:, 0] * r[:, 1] - e1[:, 1] * r[:, 0]) / det
+    lam = np.column_stack([1.0 - l1 - l2, l1, l2])
+    inside = np.all(lam >= -1e-9, axis=1)
+    return (row * gx.size + col)[inside], tri[inside], lam[inside]
+
+
+def _tangent_blend_grid(
+    tri: Delaunay, heights: Array, slopes: Array, gx: Array, gy: Array
+) -> Array:
+    """Barycentric blend of each triangle's vertex predictions ``h_v + g_v . (p - x_v) / 2``.
+
+    For a quadratic ``f``, ``f(p) = f(x_v) + (g_v + g(p)) . (p - x_v) / 2`` (the trapezoid rule)
+    and the barycentric weights sum ``p - x_v`` to zero, so the ``g(p)`` terms cancel: the blend
+    is exact for quadratics. It is continuous (C0) and local. Returns (m, n) heights, mm, NaN
+    outside the triangulation (the convex hull).
+    """
+    verts = tri.simplices
+    node, t, lam = _locate_nodes(tri.points[verts], gx, gy)
+    v = verts[t]
+    p = np.column_stack([gx[node % gx.size], gy[node // gx.size]])
+    offset = p[:, None, :] - tri.points[v]
+    pred = heights[v] + 0.5 * np.sum(slopes[v] * offset, axis=2)
+    out = np.full(gy.size * gx.size, np.nan)
+    out[node] = np.sum(lam * pred, axis=1)
+    return out.reshape(gy.size, gx.size)
+
+
+GRIDDERS = ("tangent_blend", "hermite_spline", "clough_tocher")
+"""Methods of :func:`to_heightfield`."""
+
+
+def to_heightfield(
+    xy_mm: ArrayLike,
+    heights_mm: ArrayLike,
+    slopes: ArrayLike | None,
+    spacing_mm: float,
+    method: str = "tangent_blend",
+) -> Heightfield:
+    """Grid scattered surface samples onto a regular :class:`Heightfield`.
+
+    The grid has nodes every ``spacing_mm`` from the samples' minimum x and y, covering their
+    bounding box; nodes outside the samples' convex hull are NaN.
+
+    Parameters
+    ----------
+    xy_mm : (K, 2) array_like
+        Sample positions, mm.
+    heights_mm : (K,) array_like
+        Sample heights, mm (absolute or relative).
+    slopes : (K, 2) array_like or None
+        Slopes ``(dz/dx, dz/dy)`` at the samples; needed except by ``"clough_tocher"``.
+    spacing_mm : float
+        Grid node spacing, mm.
+    method : {"tangent_blend", "hermite_spline", "clough_tocher"}
+        ``"tangent_blend"`` (default, fastest): on the Delaunay triangulation of the samples,
+        the barycentric blend of the vertices' half-step tangent-plane predictions
+        ``h_v + g_v . (p - x_v) / 2``; continuous, exact for quadratic surfaces.
+        ``"hermite_spline"``: a bicubic B-spline (control spacing = median sample spacing) fitted
+        by least squares to heights and slopes together, so slopes shape the surface between
+        samples; exact for quadratic surfaces. ``"clough_tocher"``: scipy's
+        ``CloughTocher2DInterpolator`` on heights only (it estimates its own gradients), the
+        paper's "bicubic interpolation" baseline.
+
+    Returns
+    -------
+    Heightfield
+        ``x`` (n,), ``y`` (m,), ``z`` (m, n) in mm.
+    """
+    xy = np.asarray(xy_mm, dtype=float)
+    h = np.asarray(heights_mm, dtype=float)
+    if xy.ndim != 2 or xy.shape[1] != 2 or h.shape != xy.shape[:1]:
+        raise WaiInputError(
+            f"to_heightfield: need xy_mm (K, 2) and heights_mm (K,), got {xy.shape}, {h.shape}"
+        )
+    if xy.shape[0] < MIN_SAMPLES:
+        raise WaiInputError(
+            f"to_heightfield: too few samples to grid ({xy.shape[0]} < {MIN_SAMPLES})"
+        )
+    if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(h))):
+        raise WaiInputError("to_heightfield: xy_mm or heights_mm hold NaN or inf")
+    if not spacing_mm > 0:
+        raise WaiInputError("to_heightfield: spacing_mm must be positive")
+    if method not in GRIDDERS:
+        raise WaiInputError(f"to_heightfield: unknown method {method!r} (known: {GRIDDERS})")
+    gx, gy = _grid_axes(xy, spacing_mm)
+    try:
+        tri = Delaunay(xy)
+    except QhullError:
+        raise WaiInputError("to_heightfield: samples are collinear (no area to grid)") from None
+    if method == "clough_tocher":
+        nodes = np.stack(np.meshgrid(gx, gy), axis=-1)
+        z = CloughTocher2DInterpolator(tri, h)(nodes)
+        return Heightfield(gx, gy, z)
+    g = np.asarray(slopes, dtype=float) if slopes is not None else None
+    if g is None or g.shape != xy.shape or not np.all(np.isfinite(g)):
+        raise WaiInputError(f"to_heightfield: {method} needs finite slopes of shape (K, 2)")
+    if method == "tangent_blend":
+        return Heightfield(gx, gy, _tangent_blend_grid(tri, h, g, gx, gy))
+    z = _hermite_spline_grid(xy, h, g, gx, gy)
+    inside = np.zeros(z.size, dtype=bool)
+    inside[_locate_nodes(tri.points[tri.simplices], gx, gy)[0]] = True
+    z[~inside.reshape(z.shape)] = np.nan
+    return Heightfield(gx, gy, z)

@@ -1,0 +1,65 @@
+"""Rendering: physics visible in the images, and the render folder's contract."""
+
+import json
+
+import numpy as np
+import pytest
+
+from mitsuba_wai.mesh import flat_like
+from mitsuba_wai.render import FrameRenderer, render_folder, wave_surface
+from wai_core.errors import WaiInputError
+from wai_core.geometry import refract
+from wai_core.heightfield import Heightfield
+from wai_core.io import read_exr
+
+
+@pytest.fixture(scope="module")
+def flat_frame(small_cfg):
+    grid = wave_surface(small_cfg)
+    renderer = FrameRenderer(small_cfg, grid)
+    return renderer.render(flat_like(grid, small_cfg.water.h0_mm), seed=1)
+
+
+def test_view_goes_dark_at_the_edge_of_snells_window(small_cfg, flat_frame):
+    # Geometry alone says which pixels look beyond the critical angle (TIR: no sky).
+    cam = small_cfg.camera_v.camera()
+    _, d = cam.pixel_rays(*cam.pixel_grid())
+    _, tir = refract(d, np.array([0, 0, 1.0]), small_cfg.water.n_water)
+    lum = flat_frame["view"].mean(axis=2)
+    inside = ~tir & (cam.pixel_grid()[0] < cam.width_px * 0.5)  # the object covers this part
+    assert lum[tir].max() < 1e-6
+    assert np.median(lum[inside]) > 0.05
+
+
+def test_flat_pattern_dots_are_on_the_diffuser_side_only(small_cfg, flat_frame):
+    from wai_core.layout import diffuser_rect
+
+    cam = small_cfg.camera_s.camera()
+    rect = diffuser_rect(small_cfg)
+    # Columns whose rays meet the diffuser plane before its near edge see no light.
+    x_edge_col = cam.project(np.array([rect[0, 0] - 3.0, 0.0, small_cfg.diffuser.z_mm]))[0]
+    img = flat_frame["pattern"].sum(axis=2)
+    assert img[:, : int(x_edge_col)].max() < 1e-6
+    assert img[:, int(x_edge_col) + 2 :].max() > 0.0
+
+
+def test_render_folder_contract(small_cfg, tmp_path):
+    out = tmp_path / "frame"
+    record = render_folder(small_cfg, out, progress=False)
+    for name in ("pattern", "pattern_flat", "view", "view_truth"):
+        img = read_exr(out / f"{name}.exr")
+        assert img.shape == (small_cfg.camera_s.height_px, small_cfg.camera_s.width_px, 3)
+        assert (out / f"{name}.png").is_file()
+    assert (out / "heightfield.npz").is_file() and (out / "surface.ply").is_file()
+    saved = json.loads((out / "scene.json").read_text())
+    assert saved["seed"] == small_cfg.waves.seed and saved["variant"] == record["variant"]
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())
+
+
+def test_heightfield_not_covering_the_patch_leaves_nothing(small_cfg, tmp_path):
+    x = np.linspace(0, 100, 11)
+    y = np.linspace(-20, 20, 5)
+    small = Heightfield(x, y, np.full((5, 11), 150.0))
+    with pytest.raises(WaiInputError, match="observed patch"):
+        render_folder(small_cfg, tmp_path / "frame", heightfield=small, progress=False)
+    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,51 @@
+"""The command line: bad input gives one line and exit code 2, and writes nothing."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tests.conftest import PAPER_TOML
+from wai.cli import main
+
+
+def _run(capsys, *argv):
+    code = main(list(argv))
+    err = capsys.readouterr().err.strip().splitlines()
+    return code, err
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["render", "missing.toml"], "not found"),
+        (["render", str(PAPER_TOML), "--wind", "-1"], "--wind"),
+        (["render", str(PAPER_TOML), "--spp", "0"], "--spp"),
+    ],
+)
+def test_bad_render_input(capsys, tmp_path, argv, needle):
+    code, err = _run(capsys, *argv, "--out", str(tmp_path / "out"))
+    assert code == 2 and len(err) == 1 and needle in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_heightfield_with_nans(capsys, tmp_path):
+    path = tmp_path / "h.npz"
+    z = np.full((5, 6), 150.0)
+    z[2, 2] = np.nan
+    np.savez(path, x=np.arange(6.0), y=np.arange(5.0), z=z)
+    code, err = _run(
+        capsys, "render", str(PAPER_TOML), "--heightfield", str(path), "--out", str(tmp_path / "o")
+    )
+    assert code == 2 and "NaN" in err[0] and not (tmp_path / "o").exists()
+
+
+def test_console_script_exit_code(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "wai.cli", "render", str(tmp_path / "nope.toml")],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0

@@ -1,0 +1,46 @@
+"""Configuration loading: the paper's file parses; mistakes name the key."""
+
+import pytest
+
+from wai_core.config import config_from_dict, load_config
+from wai_core.errors import WaiInputError
+
+
+def test_paper_config_values(paper_cfg):
+    assert paper_cfg.water.h0_mm == 150 and paper_cfg.diffuser.z_mm == 60
+    assert paper_cfg.object_z_mm == 1150
+    assert paper_cfg.projector.camera().fov_x_deg == pytest.approx(52.0, abs=0.1)
+
+
+def test_unknown_key_is_named(paper_cfg):
+    data = paper_cfg.to_dict()
+    data["water"]["depth"] = 3
+    with pytest.raises(WaiInputError, match=r"\[water\]\.depth"):
+        config_from_dict(data)
+
+
+def test_wrong_kind_and_missing(paper_cfg):
+    data = paper_cfg.to_dict()
+    data["waves"]["seed"] = "one"
+    with pytest.raises(WaiInputError, match="seed"):
+        config_from_dict(data)
+    data = paper_cfg.to_dict()
+    del data["camera_v"]["focal_mm"]
+    with pytest.raises(WaiInputError, match="focal_mm"):
+        config_from_dict(data)
+
+
+def test_impossible_geometry(paper_cfg):
+    data = paper_cfg.to_dict()
+    data["diffuser"]["z_mm"] = 200.0
+    with pytest.raises(WaiInputError, match="diffuser"):
+        config_from_dict(data)
+
+
+def test_missing_and_corrupt_files(tmp_path):
+    with pytest.raises(WaiInputError, match="not found"):
+        load_config(tmp_path / "none.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[water\nh0 = ")
+    with pytest.raises(WaiInputError, match="TOML"):
+        load_config(bad)

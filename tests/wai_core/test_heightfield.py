@@ -1,0 +1,51 @@
+"""Heightfields: bicubic interpolation, normals and ray hits against analytic surfaces."""
+
+import numpy as np
+import pytest
+
+from wai_core.errors import WaiInputError
+from wai_core.heightfield import Heightfield, load_heightfield
+
+
+def _plane(ax=0.1, ay=-0.05, c=150.0):
+    x = np.linspace(0, 100, 21)
+    y = np.linspace(-50, 50, 11)
+    xx, yy = np.meshgrid(x, y)
+    return Heightfield(x, y, c + ax * xx + ay * yy)
+
+
+def test_plane_heights_normals_and_hits():
+    hf = _plane()
+    assert hf.height(33.3, 7.7) == pytest.approx(150 + 3.33 - 0.385)
+    n = hf.normal(10.0, 0.0)
+    assert np.allclose(n, np.array([-0.1, 0.05, 1]) / np.linalg.norm([-0.1, 0.05, 1]))
+    d = np.array([[0.3, 0.1, 1.0]]) / np.linalg.norm([0.3, 0.1, 1.0])
+    p, ok = hf.intersect(np.array([20.0, 0.0, 0.0]), d)
+    assert ok[0] and p[0, 2] == pytest.approx(hf.height(p[0, 0], p[0, 1]), abs=1e-6)
+
+
+def test_sinusoid_slopes_match_derivative():
+    x = np.linspace(0, 200, 201)
+    y = np.linspace(0, 10, 6)
+    xx, _ = np.meshgrid(x, y)
+    k = 2 * np.pi / 80
+    hf = Heightfield(x, y, 2 * np.sin(k * xx))
+    xs = np.linspace(20, 180, 17)
+    gx, gy = hf.gradient(xs, np.full_like(xs, 5.0))
+    assert np.allclose(gx, 2 * k * np.cos(k * xs), atol=1e-4)
+    assert np.allclose(gy, 0, atol=1e-9)
+
+
+def test_bad_heightfields(tmp_path):
+    with pytest.raises(WaiInputError, match="shape"):
+        Heightfield(np.arange(5.0), np.arange(4.0), np.zeros((5, 5)))
+    with pytest.raises(WaiInputError, match="increasing"):
+        Heightfield(np.array([0, 1, 1, 2.0, 3]), np.arange(4.0), np.zeros((4, 5)))
+    path = tmp_path / "nan.npz"
+    np.savez(path, x=np.arange(5.0), y=np.arange(5.0), z=np.full((5, 5), np.nan))
+    with pytest.raises(WaiInputError, match="NaN"):
+        load_heightfield(path)
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip")
+    with pytest.raises(WaiInputError, match="cannot be read"):
+        load_heightfield(junk)

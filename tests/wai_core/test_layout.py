@@ -1,0 +1,49 @@
+"""Consistency of the paper's geometry (Table 1, section 5.1), worked out independently."""
+
+import numpy as np
+import pytest
+
+from wai_core import layout
+from wai_core.geometry import intersect_plane_z, reflect
+
+
+def test_device_centres_from_table1(paper_cfg):
+    assert np.allclose(paper_cfg.projector.camera().pose.center_lab_mm, 0, atol=1e-9)
+    assert np.allclose(paper_cfg.camera_s.camera().pose.center_lab_mm, [286.4, 0, -190], atol=0.01)
+    assert np.allclose(paper_cfg.camera_v.camera().pose.center_lab_mm, [107.0, 0, 0], atol=0.05)
+
+
+def test_projector_axis_reflects_onto_the_diffuser_above_camera_s(paper_cfg):
+    proj = paper_cfg.projector.camera()
+    # 40 deg elevation: flat water at x = 150 / tan 40 = 178.8 mm, diffuser at 240 / tan 40.
+    q, _ = intersect_plane_z(np.zeros(3), proj.pose.axis_lab, 150.0)
+    assert q[0] == pytest.approx(150 / np.tan(np.radians(40)), abs=0.2)
+    s, _ = intersect_plane_z(q, reflect(proj.pose.axis_lab, np.array([0, 0, 1.0])), 60.0)
+    assert s[0] == pytest.approx(286.1, abs=0.3)
+    cam_s = paper_cfg.camera_s.camera()
+    cols, rows, front = cam_s.project(s)
+    assert front and abs(cols - 399.5) < 2 and abs(rows - 299.5) < 2
+
+
+def test_both_systems_look_at_the_same_patch(paper_cfg):
+    cam_v = paper_cfg.camera_v.camera()
+    q, _ = intersect_plane_z(cam_v.pose.center_lab_mm, cam_v.pose.axis_lab, 150.0)
+    assert q[0] == pytest.approx(180.2, abs=0.3)
+    q_proj, _ = intersect_plane_z(np.zeros(3), paper_cfg.projector.camera().pose.axis_lab, 150.0)
+    assert abs(q[0] - q_proj[0]) < 2.0
+
+
+def test_diffuser_never_shadows_the_projector(paper_cfg):
+    rect = layout.diffuser_rect(paper_cfg)
+    proj = paper_cfg.projector.camera()
+    o, d = proj.pixel_rays(*proj.pixel_grid(10))
+    p, _ = intersect_plane_z(o, d.reshape(-1, 3), paper_cfg.diffuser.z_mm)
+    inside = (p[:, 0] >= rect[0, 0]) & (p[:, 0] <= rect[0, 1]) & (np.abs(p[:, 1]) <= rect[1, 1])
+    assert not inside.any()
+
+
+def test_observed_patch_inside_the_modelled_surface(paper_cfg):
+    patch, ext = layout.observed_patch(paper_cfg), layout.surface_extent(paper_cfg)
+    assert (ext[:, 0] <= patch[:, 0]).all() and (ext[:, 1] >= patch[:, 1]).all()
+    _, _, seen = layout.flat_pattern_hits(paper_cfg)
+    assert seen.sum() > 300

@@ -1,0 +1,101 @@
+"""The ``wai`` command: render, restore, benchmark and run experiments.
+
+Bad input ends with one line on stderr naming the problem and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from wai_core.errors import WaiInputError
+
+EXIT_BAD_INPUT = 2
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    from wai.render_cli import run_render
+
+    run_render(args)
+    return 0
+
+
+def _cmd_restore(args: argparse.Namespace) -> int:
+    from wai.restore_cli import run_restore
+
+    run_restore(args)
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from wai.bench import run_bench
+
+    run_bench(args)
+    return 0
+
+
+def _add_render(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("render", help="render both optical systems for one sea state")
+    p.add_argument("config", type=Path, help="scene TOML, e.g. scenes/paper.toml")
+    p.add_argument("--out", type=Path, default=Path("renders/latest"), help="output folder")
+    p.add_argument("--wind", type=float, help="wind speed U at 19.5 m, m/s")
+    p.add_argument("--time", type=float, help="time t, s")
+    p.add_argument("--seed", type=int, help="random seed of the wave phases and the renders")
+    p.add_argument("--heightfield", type=Path, help="surface file (.npz with x, y, z in mm)")
+    p.add_argument("--surface", choices=["dielectric", "mirror"], help="water surface material")
+    p.add_argument("--spp", type=int, help="samples per pixel of both renders")
+    p.add_argument("--variant", default="auto", help="Mitsuba variant (auto, llvm_ad_rgb, ...)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_render)
+
+
+def _add_restore(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("restore", help="reconstruct the surface and undistort the view")
+    p.add_argument("dir", type=Path, help="a render folder written by 'wai render'")
+    p.add_argument("--integrator", default="trapezoid", help="gradient integrator")
+    p.add_argument("--refine", type=int, default=3, help="refinement passes (0 = the paper)")
+    p.add_argument("--method", default="structured-light", help="surface sensing method")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_restore)
+
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="benchmarks that print figures")
+    p.add_argument("what", choices=["render", "restore"], help="what to time")
+    p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
+    p.add_argument("--dir", type=Path, help="render folder to restore (default: render one)")
+    p.add_argument("--runs", type=int, default=5, help="measured runs (after a warm-up)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--variant", default="auto")
+    p.set_defaults(func=_cmd_bench)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``wai``."""
+    parser = argparse.ArgumentParser(
+        prog="wai", description="Wavy water-air interface testbed (Jian et al. 2022)."
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_add_render, _add_restore, _add_bench):
+        add(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except WaiInputError as exc:
+        print(f"wai: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("wai: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

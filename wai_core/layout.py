@@ -1,0 +1,125 @@
+"""Geometry derived from the configuration: where things are, not what they are made of.
+
+- The diffuser is a finite horizontal screen: it spans camera s's view of the plane ``z = z_h``,
+  but starts just beyond the projector's direct beam, so it never shadows the projector (the
+  paper's Fig. 9 draws it beside the beam).
+- The object plane is a rectangle centred where camera v's optical axis, refracted by flat water,
+  meets ``z = z_a``.
+- The observed patch is the part of the flat water that either system looks at; a surface given
+  as a file must cover it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wai_core.config import SystemConfig
+from wai_core.geometry import (
+    PinholeCamera,
+    intersect_plane_z,
+    reflect,
+    refract,
+)
+from wai_core.pattern import dot_grid
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def frame_border_px(camera: PinholeCamera, n: int = 64) -> tuple[NDArray, NDArray]:
+    """Pixel coordinates along the outer border of a device's image, shape (4 n,) each."""
+    w, h = camera.width_px - 0.5, camera.height_px - 0.5
+    s = np.linspace(0.0, 1.0, n, endpoint=False)
+    cols = np.concatenate([-0.5 + s * w, np.full(n, w), w - s * w, np.full(n, -0.5)])
+    rows = np.concatenate([np.full(n, -0.5), -0.5 + s * h, np.full(n, h), h - s * h])
+    return cols, rows
+
+
+def footprint_on_plane(camera: PinholeCamera, z_mm: float) -> NDArray:
+    """Bounding box ``[[x0, x1], [y0, y1]]`` (mm) of a device's view of the plane ``z = z_mm``
+    (rays that never reach the plane are ignored)."""
+    o, d = camera.pixel_rays(*frame_border_px(camera))
+    p, _ = intersect_plane_z(o, d, z_mm)
+    p = p[np.isfinite(p[:, 0])]
+    return np.array([[p[:, 0].min(), p[:, 0].max()], [p[:, 1].min(), p[:, 1].max()]])
+
+
+def diffuser_rect(cfg: SystemConfig, margin_mm: float = 5.0) -> NDArray:
+    """Extent ``[[x0, x1], [y0, y1]]`` of the diffuser, mm.
+
+    Camera s's footprint on ``z = z_h``, with the near edge moved to ``margin_mm`` beyond the
+    farthest point where the projector's direct beam crosses ``z = z_h``.
+    """
+    z_h = cfg.diffuser.z_mm
+    rect = footprint_on_plane(cfg.camera_s.camera(), z_h)
+    beam = cfg.projector.camera()
+    o, d = beam.pixel_rays(*frame_border_px(beam))
+    p, _ = intersect_plane_z(o, d, z_h)
+    beam_x = np.nanmax(p[:, 0])
+    rect[0, 0] = max(rect[0, 0], beam_x + margin_mm)
+    if rect[0, 0] >= rect[0, 1]:
+        raise ValueError("the projector beam covers camera s's whole view of the diffuser")
+    return rect
+
+
+def flat_pattern_hits(cfg: SystemConfig) -> tuple[NDArray, NDArray, NDArray]:
+    """Flat-water path of every dot: water hit ``q`` (K, 3), diffuser hit ``s`` (K, 3), and a
+    mask of the dots whose spot lands on the diffuser inside camera s's view."""
+    projector = cfg.projector.camera()
+    _, panel = dot_grid(cfg.pattern, projector)
+    o, d = projector.pixel_rays(panel[:, 0], panel[:, 1])
+    q, _ = intersect_plane_z(o, d, cfg.water.h0_mm)
+    s, _ = intersect_plane_z(q, reflect(d, UP), cfg.diffuser.z_mm)
+    rect = diffuser_rect(cfg)
+    cam_s = cfg.camera_s.camera()
+    cols, rows, front = cam_s.project(s)
+    seen = (
+        front
+        & cam_s.in_image(cols, rows)
+        & (s[:, 0] >= rect[0, 0])
+        & (s[:, 0] <= rect[0, 1])
+        & (s[:, 1] >= rect[1, 0])
+        & (s[:, 1] <= rect[1, 1])
+    )
+    return q, s, seen
+
+
+def snell_window_hits(cfg: SystemConfig, step_px: float = 8.0) -> NDArray:
+    """Points (N, 3) where camera v's rays that leave the water (flat, not TIR) cross it."""
+    cam = cfg.camera_v.camera()
+    o, d = cam.pixel_rays(*cam.pixel_grid(step_px))
+    q, _ = intersect_plane_z(o, d.reshape(-1, 3), cfg.water.h0_mm)
+    _, tir = refract(d.reshape(-1, 3), np.broadcast_to(UP, (q.shape[0], 3)), cfg.water.n_water)
+    return q[~tir & np.isfinite(q[:, 0])]
+
+
+def observed_patch(cfg: SystemConfig, margin_mm: float = 10.0) -> NDArray:
+    """Extent ``[[x0, x1], [y0, y1]]`` (mm) of flat water seen by system S (the dots that reach
+    camera s) or system V (camera v inside Snell's window), plus a margin."""
+    q, _, seen = flat_pattern_hits(cfg)
+    pts = np.concatenate([q[seen], snell_window_hits(cfg)])
+    lo, hi = pts[:, :2].min(0) - margin_mm, pts[:, :2].max(0) + margin_mm
+    return np.stack([lo, hi], axis=1)
+
+
+def object_plane_center(cfg: SystemConfig) -> NDArray:
+    """Centre (3,) mm of the object rectangle: camera v's axis refracted by flat water, on z_a."""
+    cam = cfg.camera_v.camera()
+    o, axis = cam.pose.center_lab_mm, cam.pose.axis_lab
+    q, _ = intersect_plane_z(o, axis, cfg.water.h0_mm)
+    d_air, tir = refract(axis, UP, cfg.water.n_water)
+    if tir:
+        raise ValueError("camera v's axis is beyond the critical angle: it sees no sky")
+    p, _ = intersect_plane_z(q, d_air, cfg.object_z_mm)
+    return p
+
+
+def surface_extent(cfg: SystemConfig, margin_mm: float = 15.0) -> NDArray:
+    """Extent ``[[x0, x1], [y0, y1]]`` (mm) of the water that must be modelled: the observed
+    patch and all of camera v's footprint (its TIR rays must meet water too), plus a margin for
+    the waves' deflections. Nothing beyond it is modelled."""
+    patch = observed_patch(cfg, margin_mm=0.0)
+    view = footprint_on_plane(cfg.camera_v.camera(), cfg.water.h0_mm)
+    lo = np.minimum(patch[:, 0], view[:, 0]) - margin_mm
+    hi = np.maximum(patch[:, 1], view[:, 1]) + margin_mm
+    return np.stack([lo, hi], axis=1)
