@@ -2,8 +2,8 @@
 
 Each scene carries only what its measurement needs:
 
-System S (structured light): the projector with the dot pattern, the water surface, the diffuser
-and camera s. The pattern reaches camera s only after a specular bounce, which a camera-side path
+System S (structured light): the projector with the dot pattern (only the dots whose spots can
+reach the diffuser are lit), the water surface, the diffuser and camera s. The pattern reaches camera s only after a specular bounce, which a camera-side path
 tracer can never connect to a delta-position projector, so it is rendered with ``ptracer`` (light
 tracing), ``max_depth = 3``: projector -> water -> diffuser -> camera.
 
@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from wai_core.config import SystemConfig
 from wai_core.geometry import PinholeCamera
-from wai_core.layout import diffuser_rect, object_plane_center
+from wai_core.layout import diffuser_rect, lit_dots, object_plane_center
 from wai_core.pattern import pattern_image
 
 SCENE_S_DEPTH = 3
@@ -102,12 +102,13 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
     return {
         "type": "scene",
         "integrator": {"type": "ptracer", "max_depth": SCENE_S_DEPTH, "hide_emitters": True},
-        "sensor": sensor_dict(cfg.camera_s.camera(), rfilter="gaussian"),
+        # Box filter: splats land in one pixel, so centroids stay unbiased and splatting is cheap.
+        "sensor": sensor_dict(cfg.camera_s.camera(), rfilter="box"),
         "projector": {
             "type": "projector",
             "irradiance": {
                 "type": "bitmap",
-                "bitmap": mi.Bitmap(pattern_image(cfg.pattern, projector)),
+                "bitmap": mi.Bitmap(pattern_image(cfg.pattern, projector, lit_dots(cfg))),
                 "raw": True,
             },
             "fov": projector.fov_x_deg,

@@ -178,32 +178,24 @@ def _background(smooth: NDArray[np.float32], size_px: int) -> NDArray[np.float32
     return cv2.blur(low, (size_px, size_px), borderType=cv2.BORDER_REPLICATE)
 
 
-def _robust_levels(smooth: NDArray[np.float32]) -> tuple[float, float]:
-    """Noise standard deviation (MAD) and bright-spot level (99.9th percentile) of an image."""
-    sub = smooth[::3, ::3].ravel()  # every 9th pixel is plenty for two statistics
-    med = float(np.median(sub))
-    noise = 1.4826 * float(np.median(np.abs(sub - med)))
-    return noise, float(np.percentile(sub, 99.9))
+def _noise_sigma(lum: NDArray[np.float32], smooth: NDArray[np.float32], smooth_px: float) -> float:
+    """Noise standard deviation of the smoothed image (image units).
 
-
-def _truncation_factor(level: float) -> float:
-    """Per-axis variance of a 2-D Gaussian cut at ``level`` x peak, relative to the full one."""
-    u = np.log(1.0 / level)
-    return float((1.0 - level * (1.0 + u)) / (1.0 - level))
-
-
-def _segment_stats(
-    labels: NDArray[np.int32], n: int, smooth: NDArray[np.float32], raw: NDArray[np.float32]
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Per-segment sums over the segmented pixels, one ``bincount`` per moment (no segment loop).
-
-    Returns the smoothed-intensity total, centroid (n, 2) and covariance (n, 2, 2), the peak of
-    the smoothed image and the raw flux, each indexed by label.
+    Taken from the high-pass residual ``lum - smooth``, whose MAD is set by the dark background
+    even when dots fill much of the image, and scaled by what the Gaussian does to white noise.
     """
-    rows, cols = np.nonzero(labels)
-    lab = labels[rows, cols]
-    s = smooth[rows, cols].astype(np.float64)
-    w = np.clip(s, 0.0, None)
+    g = cv2.getGaussianKernel(2 * int(np.ceil(4 * smooth_px)) + 1, smooth_px).ravel()
+    g2 = float(np.sum(g**2)) ** 2  # sum of the squared 2-D kernel
+    g0 = float(g.max()) ** 2  # its centre weight
+    sub = (lum[::3, ::3] - smooth[::3, ::3]).ravel()  # every 9th pixel is plenty
+    mad = 1.4826 * float(np.median(np.abs(sub - np.median(sub))))
+    return mad * float(np.sqrt(g2 / (1.0 - 2.0 * g0 + g2)))
+
+
+def _weighted_moments(
+    lab: IntArray, rows: IntArray, cols: IntArray, w: FloatArray, n: int
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per-label total, mean (n, 2) and covariance (n, 2, 2) of pixels with weights ``w``."""
     tot = np.bincount(lab, w, n)
     safe = np.where(tot > 0, tot, 1.0)
     mx = np.bincount(lab, w * cols, n) / safe
@@ -213,10 +205,32 @@ def _segment_stats(
     cov[:, 0, 0] = np.bincount(lab, w * dx * dx, n) / safe
     cov[:, 1, 1] = np.bincount(lab, w * dy * dy, n) / safe
     cov[:, 0, 1] = cov[:, 1, 0] = np.bincount(lab, w * dx * dy, n) / safe
+    return tot, np.stack([mx, my], axis=1), cov
+
+
+@dataclass(frozen=True)
+class _Segments:
+    """Per-label statistics of the segmented image (index 0 is the background)."""
+
+    tot: FloatArray  # smoothed intensity summed over the segment
+    mean: FloatArray  # (n, 2) smoothed-intensity centroid, px
+    cov: FloatArray  # (n, 2, 2) smoothed-intensity second moments, px^2
+    peak: FloatArray  # peak of the smoothed image
+    flux: FloatArray  # raw intensity summed over the segment
+
+
+def _segment_stats(
+    labels: NDArray[np.int32], n: int, smooth: NDArray[np.float32], raw: NDArray[np.float32]
+) -> _Segments:
+    """Moments of every segment at once: ``bincount`` over the segmented pixels, no segment loop."""
+    rows, cols = np.nonzero(labels)
+    lab = labels[rows, cols]
+    s = smooth[rows, cols].astype(np.float64)
+    r = raw[rows, cols].astype(np.float64)
+    tot, mean, cov = _weighted_moments(lab, rows, cols, np.clip(s, 0.0, None), n)
     peak = np.full(n, -np.inf)
     np.maximum.at(peak, lab, s)
-    flux = np.bincount(lab, raw[rows, cols].astype(np.float64), n)
-    return tot, np.stack([mx, my], axis=1), cov, peak, flux
+    return _Segments(tot, mean, cov, peak, np.bincount(lab, r, n))
 
 
 def _windowed_centroids(
@@ -237,26 +251,31 @@ def _windowed_centroids(
     a wrong C only slows convergence. Pixels of *other* kept segments are masked so a much brighter
     neighbour cannot pull the centre.
     """
-    off = np.arange(-half_px, half_px + 1, dtype=np.float64)
+    off = np.arange(-half_px, half_px + 1)
     base = np.rint(start).astype(np.int64)
     h, w = img.shape
-    cols = base[:, 0, None, None] + off.astype(np.int64)[None, None, :]
-    rows = base[:, 1, None, None] + off.astype(np.int64)[None, :, None]
+    cols = base[:, 0, None, None] + off[None, None, :]
+    rows = base[:, 1, None, None] + off[None, :, None]
     inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
     rc, cc = np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)
     lab = keep_label[labels[rc, cc]]
     keep = inside & ((lab == 0) | (lab == own[:, None, None]))
-    vals = np.where(keep, img[rc, cc], 0.0)
-    inv = np.linalg.inv(cov)
-    a, b, c = inv[:, 0, 0, None, None], inv[:, 0, 1, None, None], inv[:, 1, 1, None, None]
+    vals = np.where(keep, img[rc, cc], np.float32(0.0))
+    inv = np.linalg.inv(cov).astype(np.float32)
+    a, b, c = inv[:, 0, 0, None], inv[:, 0, 1, None, None], inv[:, 1, 1, None]
+    offf = off.astype(np.float32)[None, :]
     x = start.copy()
     for _ in range(n_iter):
-        dx = off[None, None, :] - (x[:, 0] - base[:, 0])[:, None, None]
-        dy = off[None, :, None] - (x[:, 1] - base[:, 1])[:, None, None]
-        wv = np.exp(-0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)) * vals
-        tot = wv.sum(axis=(1, 2))
-        mx = np.einsum("nij,nij->n", wv, np.broadcast_to(dx, wv.shape))
-        my = np.einsum("nij,nij->n", wv, np.broadcast_to(dy, wv.shape))
+        dx = offf - (x[:, 0] - base[:, 0]).astype(np.float32)[:, None]  # (n, w)
+        dy = offf - (x[:, 1] - base[:, 1]).astype(np.float32)[:, None]
+        q = (a * dx * dx)[:, None, :] + (c * dy * dy)[:, :, None]
+        q += 2.0 * b * dy[:, :, None] * dx[:, None, :]
+        wv = vals * np.exp(-0.5 * q)
+        col_sum = wv.sum(axis=1)  # (n, w) over rows
+        row_sum = wv.sum(axis=2)
+        tot = col_sum.sum(axis=1).astype(np.float64)
+        mx = np.einsum("nw,nw->n", col_sum, dx).astype(np.float64)
+        my = np.einsum("nw,nw->n", row_sum, dy).astype(np.float64)
         ok = tot > 0
         step = 2.0 * np.stack([mx, my], axis=1) / np.where(ok, tot, 1.0)[:, None]
         # A step longer than a pixel means noise dominates the window: do not wander off.
@@ -289,6 +308,34 @@ def _refine_centres(
     return out
 
 
+def _segment(
+    smooth: NDArray[np.float32], radius_px: int, rel_level: float, floor: float
+) -> tuple[int, NDArray[np.int32], NDArray[np.int32]]:
+    """Label pixels above ``rel_level`` x their local maximum (and above ``floor``).
+
+    The max filter's radius is under half the spot spacing, so a pixel is compared with its own
+    dot's peak: a dim dot next to a bright one is segmented like the bright one.
+    """
+    size = 2 * radius_px + 1
+    local_max = cv2.dilate(smooth, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    mask = (smooth > rel_level * local_max) & (smooth > floor)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    return n, labels, stats
+
+
+def _spot_covariance(cov_seg: FloatArray) -> FloatArray:
+    """Spot covariance (n, 2, 2) for the centroid window, from the segments' second moments.
+
+    The segment (cut at a fraction of the smoothed peak) holds about 0.55 of the variance of a
+    large spot and, because the smoothing widens a small one, about 0.85 of a small one's; the
+    window needs only a rough width (a wrong one just slows convergence), so the moments are used
+    as they are, with eigenvalues kept above (0.3 px)^2.
+    """
+    evals, evecs = np.linalg.eigh(cov_seg)
+    evals = np.clip(evals, 0.3**2, None)
+    return np.einsum("nij,nj,nkj->nik", evecs, evals, evecs)
+
+
 def _local_ratio(values: FloatArray, centres: FloatArray, k: int = 8) -> FloatArray:
     """Each value divided by the median of its ``k`` nearest spots' values."""
     n = values.shape[0]
@@ -303,7 +350,7 @@ def detect_spots(
     image: NDArray,
     *,
     smooth_px: float = 1.0,
-    local_radius_px: int = 4,
+    local_radius_px: int = 3,
     rel_level: float = 0.25,
     snr_min: float = 6.0,
     rel_floor: float = 1e-3,
@@ -361,45 +408,41 @@ def detect_spots(
     """
     lum = _luminance(image)
     smooth = cv2.GaussianBlur(lum, (0, 0), smooth_px, borderType=cv2.BORDER_REFLECT)
+    noise = _noise_sigma(lum, smooth, smooth_px)
     bg = _background(smooth, background_px)
     smooth -= bg
     raw = lum - bg
-    noise, bright = _robust_levels(smooth)
-    tiny = 1e-6 * max(float(smooth.max()), 1e-30)
-    size = 2 * local_radius_px + 1
-    local_max = cv2.dilate(smooth, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
-    floor = max(2.0 * noise, 0.2 * rel_floor * bright, tiny)
-    mask = (smooth > rel_level * local_max) & (smooth > floor)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-
-    tot, mean, cov_seg, peak, flux = _segment_stats(labels, n, smooth, raw)
+    bright = float(np.percentile(smooth[::3, ::3], 99.9))  # level of the bright spots
+    tiny = 1e-6 * max(float(smooth.max()), 1e-30)  # keeps a noiseless zero background out
+    n, labels, stats = _segment(
+        smooth, local_radius_px, rel_level, max(2.0 * noise, 0.2 * rel_floor * bright, tiny)
+    )
+    seg = _segment_stats(labels, n, smooth, raw)
     area = stats[:, cv2.CC_STAT_AREA]
-    thr = max(snr_min * noise, rel_floor * bright, tiny)
-    good = (peak > thr) & (area >= min_area_px) & (tot > 0)
+    good = (
+        (seg.peak > max(snr_min * noise, rel_floor * bright, tiny))
+        & (area >= min_area_px)
+        & (seg.tot > 0)
+    )
     good[0] = False  # label 0 is the background
     idx = np.flatnonzero(good)
-    # Rejected segments count as background in the centroid windows.
-    keep_label = np.where(good, np.arange(n), 0)
-
-    # The segment is cut at rel_level x peak and blurred by the smoothing: undo both.
-    cov = cov_seg[idx] / _truncation_factor(rel_level) - smooth_px**2 * np.eye(2)
-    evals, evecs = np.linalg.eigh(cov)
-    evals = np.clip(evals, 0.3**2, None)
-    cov = np.einsum("nij,nj,nkj->nik", evecs, evals, evecs)
-    centres = _refine_centres(raw, labels, keep_label, idx, mean[idx], cov)
+    keep_label = np.where(good, np.arange(n), 0)  # rejected segments count as background
+    cov = _spot_covariance(seg.cov[idx])
+    centres = _refine_centres(raw, labels, keep_label, idx, seg.mean[idx], cov)
 
     x, y, wd, ht = (stats[idx, k] for k in range(4))
     h, w = raw.shape
     border = (x == 0) | (y == 0) | (x + wd == w) | (y + ht == h)
-    eq_area = np.sqrt(np.clip(np.linalg.det(cov_seg[idx]), 0.0, None))
+    # Merging is judged on the segment's own moments (truncation and smoothing cancel in ratios).
+    eq_area = np.sqrt(np.clip(np.linalg.det(seg.cov[idx]), 0.0, None))
     merged = _local_ratio(eq_area, centres) > merge_factor
     saturated = np.zeros(idx.size, bool)
     if saturation is not None:
         saturated = np.bincount(labels[lum >= saturation], minlength=n)[idx] > 0
     return Spots(
         centres_px=centres,
-        flux=flux[idx],
-        peak=peak[idx],
+        flux=seg.flux[idx],
+        peak=seg.peak[idx],
         area_px=area[idx].astype(np.int64),
         cov_px2=cov,
         merged=merged,

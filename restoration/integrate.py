@@ -59,8 +59,10 @@ Integrator = Callable[[ArrayLike, ArrayLike, ArrayLike], Array]
 MIN_SAMPLES = 4
 """Fewest samples that integration and gridding accept."""
 
-# Weight of the third-difference penalty relative to the data (dimensionless, see _penalty).
+# Weight of the third-difference penalty relative to the data (dimensionless, see penalty()).
 _SPLINE_SMOOTHING = 1e-2
+# Spline control spacing in units of the median nearest-neighbour distance of the samples.
+_SPLINE_STEP = 1.5
 
 
 # --------------------------------------------------------------------------------------------
@@ -134,6 +136,34 @@ def grid_neighbours(ij: IntArray, offsets: ArrayLike) -> IntArray:
     return table[local[None, :, 1] + off[:, 1:2], local[None, :, 0] + off[:, 0:1]]
 
 
+def largest_piece(n: int, a: IntArray, b: IntArray) -> NDArray[np.bool_]:
+    """Mask (n,) of the nodes in the largest connected piece of the graph with edges ``a-b``.
+
+    Slopes say nothing about the height step between pieces that share no difference, so
+    every integrator reports NaN outside this piece rather than guess it.
+
+    Raises
+    ------
+    WaiInputError
+        When that piece holds fewer than :data:`MIN_SAMPLES` nodes.
+    """
+    adjacency = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n))
+    _, labels = connected_components(adjacency, directed=False)
+    keep = labels == np.bincount(labels).argmax()
+    if keep.sum() < MIN_SAMPLES:
+        raise WaiInputError(
+            f"integrate: too few connected features to integrate ({keep.sum()} < {MIN_SAMPLES})"
+        )
+    return keep
+
+
+def largest_grid_piece(ij: IntArray) -> NDArray[np.bool_]:
+    """Mask (K,) of the samples in the largest 4-connected piece of the ``(i, j)`` grid."""
+    plus = grid_neighbours(ij, [(1, 0), (0, 1)]).ravel()
+    a = np.tile(np.arange(ij.shape[0]), 2)
+    return largest_piece(ij.shape[0], a[plus >= 0], plus[plus >= 0])
+
+
 # --------------------------------------------------------------------------------------------
 # Least squares over height differences (shared by "paper" and "trapezoid")
 # --------------------------------------------------------------------------------------------
@@ -157,8 +187,9 @@ def solve_differences(
 ) -> Array:
     """Heights minimising ``sum_e w_e (h[b_e] - h[a_e] - diff_e)^2``, zero mean.
 
-    The normal matrix is a weighted graph Laplacian with one null vector per connected piece; the
-    largest piece is solved with its first node pinned, then shifted to zero mean.
+    The normal matrix is a weighted graph Laplacian with one null vector (the constant) per
+    connected piece; the largest piece is solved with its first node pinned to zero, then
+    shifted to zero mean.
 
     Parameters
     ----------
@@ -176,16 +207,10 @@ def solve_differences(
     (n,) ndarray
         Heights, mm; NaN outside the largest connected piece.
     """
-    adjacency = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n))
-    _, labels = connected_components(adjacency, directed=False)
-    keep = labels == np.bincount(labels).argmax()
-    if keep.sum() < MIN_SAMPLES:
-        raise WaiInputError(
-            f"integrate: too few connected features to integrate ({keep.sum()} < {MIN_SAMPLES})"
-        )
+    keep = largest_piece(n, a, b)
     # Renumber the kept nodes with the pinned one (the first) last, then drop it.
     order = np.flatnonzero(keep)
-    new = np.full(n, -1, dtype=np.int64)
+    new = np.full(keep.size, -1, dtype=np.int64)
     new[order] = np.roll(np.arange(order.size), -1)
     on = keep[a] & keep[b]
     ea, eb, d, w = new[a[on]], new[b[on]], diff_mm[on], weights[on]
@@ -196,10 +221,10 @@ def solve_differences(
         shape=(ea.size, m),
     )
     weighted = incidence.T.multiply(w).tocsr()
-    laplacian = (weighted @ incidence)[: m - 1, : m - 1].tocsc()
+    laplacian = (weighted @ incidence)[: m - 1, : m - 1]
     rhs = (weighted @ d)[: m - 1]
     h_kept = np.r_[spd_solve(laplacian, rhs), 0.0]
-    heights = np.full(n, np.nan)
+    heights = np.full(keep.size, np.nan)
     heights[order] = h_kept[new[order]] - h_kept.mean()
     return heights
 
@@ -384,13 +409,15 @@ def _solve_normal(rows: sp.csr_matrix, rhs: Array, pin: int | None = None) -> Ar
 def integrate_spline(ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike) -> Array:
     """Bicubic B-spline fitted by least squares to the slopes (see module docstring).
 
-    The control spacing is the median nearest-neighbour distance of the samples. ``ij`` is only
-    checked, not used: the fit needs positions, not the grid.
+    The control spacing is 1.5 times the median nearest-neighbour distance of the samples
+    (about the mean grid spacing, as the samples lie closer across than along the keystone).
 
-    Parameters and return as :func:`integrate_paper` (never NaN).
+    Parameters and return as :func:`integrate_paper`.
     """
-    _, xy, g = check_samples(ij, xy_mm, slopes)
-    grid = SplineGrid.covering(xy, _median_spacing(xy))
+    ij_a, xy_all, g_all = check_samples(ij, xy_mm, slopes)
+    keep = largest_grid_piece(ij_a)
+    xy, g = xy_all[keep], g_all[keep]
+    grid = SplineGrid.covering(xy, _SPLINE_STEP * _median_spacing(xy))
     rows = sp.vstack(
         [
             grid.design(xy[:, 0], xy[:, 1], dx=1),
@@ -402,8 +429,10 @@ def integrate_spline(ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike) -> Arra
     # Slopes fix no constant: pin the coefficient under the sample nearest the centroid.
     centre = np.argmin(np.sum((xy - xy.mean(axis=0)) ** 2, axis=1))
     pin = grid.coef_index(xy[centre, 0], xy[centre, 1])
-    heights = grid.design(xy[:, 0], xy[:, 1]) @ _solve_normal(rows, rhs, pin)
-    return heights - heights.mean()
+    h = grid.design(xy[:, 0], xy[:, 1]) @ _solve_normal(rows, rhs, pin)
+    heights = np.full(ij_a.shape[0], np.nan)
+    heights[keep] = h - h.mean()
+    return heights
 
 
 INTEGRATORS: dict[str, Integrator] = {
@@ -447,7 +476,7 @@ def _hermite_spline_grid(
     xy: Array, heights: Array, slopes: Array, gx: Array, gy: Array
 ) -> Array:
     """Bicubic B-spline fitted to heights and slopes, evaluated on the grid (ny, nx), mm."""
-    grid = SplineGrid.covering(xy, _median_spacing(xy))
+    grid = SplineGrid.covering(xy, _SPLINE_STEP * _median_spacing(xy))
     x, y = xy[:, 0], xy[:, 1]
     # Slope residuals scaled by the control spacing: a slope error over one cell weighs like
     # the height error it causes there.
@@ -505,12 +534,15 @@ def _locate_nodes(
     c = corners[tri]
     e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
     r = np.column_stack([gx[col], gy[row]]) - c[:, 0]
-    # Barycentric weights by Cramer's rule (Delaunay triangles are never flat).
+    # Barycentric weights by Cramer's rule; qhull may leave a flat sliver on the hull (det = 0),
+    # whose nodes the neighbouring triangles cover anyway.
     det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    flat = np.abs(det) <= 1e-12 * np.sum(e1**2 + e2**2, axis=1)
+    det = np.where(flat, 1.0, det)
     l1 = (r[:, 0] * e2[:, 1] - r[:, 1] * e2[:, 0]) / det
     l2 = (e1[:, 0] * r[:, 1] - e1[:, 1] * r[:, 0]) / det
     lam = np.column_stack([1.0 - l1 - l2, l1, l2])
-    inside = np.all(lam >= -1e-9, axis=1)
+    inside = np.all(lam >= -1e-9, axis=1) & ~flat
     return (row * gx.size + col)[inside], tri[inside], lam[inside]
 
 

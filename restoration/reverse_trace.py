@@ -30,6 +30,7 @@ from enum import IntEnum
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import BSpline
 
@@ -165,12 +166,11 @@ class _FlatWater:
     def __init__(self, h0_mm: float) -> None:
         self.h0 = float(h0_mm)
 
-    def gather(self, x: Array, y: Array) -> None:
-        return None
-
-    def jet(self, local: None, x: Array, y: Array) -> tuple[Array, Array, Array]:
-        zero = np.zeros(np.shape(x))
-        return zero + self.h0, zero, zero
+    def jet(self, x: Array, y: Array) -> Array:
+        """Height and derivatives (N, 6), see :meth:`_SplinePatches.jet`."""
+        out = np.zeros((np.size(x), 6))
+        out[:, 0] = self.h0
+        return out
 
 
 def _interval_polynomials(knots: Array) -> tuple[Array, Array, Array]:
@@ -179,7 +179,7 @@ def _interval_polynomials(knots: Array) -> tuple[Array, Array, Array]:
     Returns
     -------
     starts : (k,) ndarray
-        Left end of each non-empty interval, mm.
+        Left end of each interval, mm.
     widths : (k,) ndarray
         Interval widths, mm.
     poly : (k, 4, 4) ndarray
@@ -191,8 +191,8 @@ def _interval_polynomials(knots: Array) -> tuple[Array, Array, Array]:
     frac = np.array([0.125, 0.375, 0.625, 0.875])
     pts = (starts[:, None] + frac[None, :] * widths[:, None]).ravel()
     basis = BSpline.design_matrix(pts, knots, 3).toarray().reshape(starts.size, 4, -1)
-    k = np.arange(starts.size)
-    vals = basis[k[:, None, None], np.arange(4)[None, :, None], k[:, None, None] + np.arange(4)]
+    k = np.arange(starts.size)[:, None, None]
+    vals = basis[k, np.arange(4)[None, :, None], k + np.arange(4)]
     vinv = np.linalg.inv(np.vander(frac, 4, increasing=True))
     return starts, widths, vinv[None] @ vals
 
@@ -210,10 +210,14 @@ def _cached_interval_polynomials(knots: Array) -> tuple[Array, Array, Array]:
     return _BASIS_CACHE[key]
 
 
-def _powers(s: Array) -> tuple[Array, Array]:
-    """``[1, s, s^2, s^3]`` and its derivative, each (N, 4)."""
-    one, zero = np.ones_like(s), np.zeros_like(s)
-    return np.stack([one, s, s * s, s * s * s], -1), np.stack([zero, one, 2 * s, 3 * s * s], -1)
+def _powers(s: Array) -> Array:
+    """``[1, s, s^2, s^3]`` and its first two derivatives in ``s``, (N, 3, 4)."""
+    out = np.zeros((s.size, 3, 4))
+    out[:, 0, 0] = out[:, 1, 1] = 1.0
+    out[:, 0, 1], out[:, 0, 2], out[:, 0, 3] = s, s * s, s * s * s
+    out[:, 1, 2], out[:, 1, 3] = 2 * s, 3 * s * s
+    out[:, 2, 2], out[:, 2, 3] = 2.0, 6 * s
+    return out
 
 
 class _SplinePatches:
@@ -221,8 +225,9 @@ class _SplinePatches:
 
     The spline is ``sum_jl c[j, l] B_j(y) B_l(x)``; on a knot interval the four active B-splines
     are cubics whose power-basis coefficients are tabulated once per grid. A point then needs
-    its 4 x 4 coefficient block and two small products: several times faster than FITPACK point
-    evaluation, which would dominate the solver. Values equal ``Heightfield.height`` to rounding.
+    its 4 x 4 block of ``c`` and a few small products, several times faster than FITPACK point
+    evaluation (which would dominate the solver), and gives the second derivatives that the
+    Jacobian needs in the same pass. Values equal ``Heightfield.height`` to rounding.
     """
 
     def __init__(self, surface: Heightfield) -> None:
@@ -231,34 +236,33 @@ class _SplinePatches:
         # identical to Heightfield.height (same fill of unknown samples, same knots).
         spline = surface._spline
         ty, tx = spline.get_knots()
-        self.ncx = tx.size - 4
-        self.c = spline.get_coeffs()
+        coeffs = spline.get_coeffs().reshape(ty.size - 4, tx.size - 4)
+        self.blocks = sliding_window_view(coeffs, (4, 4))  # a view: (cells y, cells x, 4, 4)
         self.y0, self.wy, self.qy = _cached_interval_polynomials(ty)
-        self.x0, self.wx, self.qx = _cached_interval_polynomials(tx)
+        self.x0, self.wx, qx = _cached_interval_polynomials(tx)
+        self.qxt = np.ascontiguousarray(qx.transpose(0, 2, 1))
 
-    def gather(self, x: Array, y: Array) -> tuple[Array, Array, Array, Array, Array, BoolArray]:
-        """Power-basis coefficients (N, 4, 4) of the cells holding points (x, y) mm, with the
-        cells' origins and widths: :meth:`jet` reuses them for nearby finite-difference points."""
+    def jet(self, x: Array, y: Array) -> Array:
+        """Height and its derivatives at points (x, y) (N,) mm, lab frame.
+
+        Returns
+        -------
+        (N, 6) ndarray
+            ``h`` (mm), ``h_x``, ``h_y`` (dimensionless), ``h_xx``, ``h_xy``, ``h_yy`` (1/mm);
+            NaN rows outside the known surface.
+        """
         ix = np.clip(np.searchsorted(self.x0, x, side="right") - 1, 0, self.x0.size - 1)
         iy = np.clip(np.searchsorted(self.y0, y, side="right") - 1, 0, self.y0.size - 1)
-        four = np.arange(4)
-        block = self.c[(iy[:, None, None] + four[:, None]) * self.ncx + ix[:, None, None] + four]
-        # coef[n, a, b]: coefficient of v^a u^b in the cell's polynomial (v, u in [0, 1]).
-        coef = self.qy[iy] @ block @ self.qx[ix].transpose(0, 2, 1)
-        return coef, self.x0[ix], self.wx[ix], self.y0[iy], self.wy[iy], self.surface.contains(x, y)
-
-    def jet(self, local: tuple, x: Array, y: Array) -> tuple[Array, Array, Array]:
-        """Height (mm) and slopes ``dz/dx``, ``dz/dy`` at points near the gathered ones."""
-        coef, x0, wx, y0, wy, inside = local
-        pu, dpu = _powers((x - x0) / wx)
-        pv, dpv = _powers((y - y0) / wy)
-        a = coef @ np.stack([pu, dpu], axis=-1)  # (N, 4, 2): rows are powers of v
-        h = np.einsum("na,na->n", pv, a[:, :, 0])
-        hx = np.einsum("na,na->n", pv, a[:, :, 1]) / wx
-        hy = np.einsum("na,na->n", dpv, a[:, :, 0]) / wy
-        bad = ~inside
-        h[bad] = hx[bad] = hy[bad] = np.nan
-        return h, hx, hy
+        wx, wy = self.wx[ix], self.wy[iy]
+        pu = _powers((x - self.x0[ix]) / wx)  # (N, 3, 4): value, first, second derivative
+        pv = _powers((y - self.y0[iy]) / wy)
+        by = pv @ self.qy[iy]  # B-spline values and derivatives along y, (N, 3, 4)
+        bx = self.qxt[ix] @ pu.transpose(0, 2, 1)  # along x, (N, 4, 3)
+        m = by @ self.blocks[iy, ix] @ bx  # m[n, i, j] = d^i/dv^i d^j/du^j of h
+        out = np.stack([m[:, 0, 0], m[:, 0, 1] / wx, m[:, 1, 0] / wy, m[:, 0, 2] / wx**2,
+                        m[:, 1, 1] / (wx * wy), m[:, 2, 0] / wy**2], axis=-1)
+        out[~self.surface.contains(x, y)] = np.nan
+        return out
 
 
 def _surface_model(surface: Heightfield | None, h0_mm: float) -> _FlatWater | _SplinePatches:
@@ -280,46 +284,85 @@ class _Optics:
 
 
 def _map_from_surface(
-    optics: _Optics, x: Array, y: Array, jet: tuple[Array, Array, Array]
-) -> tuple[Array, NDArray[np.int8]]:
-    """Object-plane (x, y) mm seen through surface point (x, y, h): eq. 18-20 from the hit on."""
-    h, hx, hy = jet
-    q = np.stack([x, y, h], axis=-1)
-    v = q - optics.center
-    v /= np.linalg.norm(v, axis=-1, keepdims=True)
-    nrm = np.stack([-hx, -hy, np.ones_like(hx)], axis=-1)
-    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
-    air, tir = refract(v, nrm, optics.n_water)
+    optics: _Optics, x: Array, y: Array, h: Array, hx: Array, hy: Array
+) -> tuple[Array, Array, Array, BoolArray]:
+    """Object-plane point seen through surface point (x, y, h) with slopes (hx, hy): eq. 18-20.
+
+    Component-wise (1-D arrays, N points) because this is the solver's inner loop.
+
+    Returns
+    -------
+    px, py : (N,) ndarray
+        Object-plane x and y, mm; NaN or meaningless where not ``reached``.
+    lam : (N,) ndarray
+        Air path length to the object plane, mm (positive where reached).
+    tir : (N,) ndarray of bool
+        Total internal reflection.
+    """
+    cx, cy, cz = optics.center
+    vx, vy, vz = x - cx, y - cy, h - cz
+    inv = 1.0 / np.sqrt(vx * vx + vy * vy + vz * vz)
+    vx, vy, vz = vx * inv, vy * inv, vz * inv
+    s = 1.0 / np.sqrt(1.0 + hx * hx + hy * hy)
+    mx, my, mz = -hx * s, -hy * s, s  # unit normal, up
+    cos = vx * mx + vy * my + vz * mz
+    n = optics.n_water
+    k = 1.0 - n * n * (1.0 - cos * cos)
+    # Vector Snell (eq. 20) with the normal turned against the ray, whichever side it hits.
+    g = np.sign(cos) * (n * np.abs(cos) - np.sqrt(np.maximum(k, 0.0)))
+    tx, ty, tz = n * vx - g * mx, n * vy - g * my, n * vz - g * mz
     with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (optics.z_object - h) / air[..., 2]
-    out = q[..., :2] + lam[..., None] * air[..., :2]
-    status = np.full(h.shape, RayStatus.OK, dtype=np.int8)
-    status[~(lam > 0) | ~np.all(np.isfinite(out), axis=-1)] = RayStatus.MISSED_OBJECT
+        lam = (optics.z_object - h) / tz
+    return x + lam * tx, y + lam * ty, lam, k < 0
+
+
+def _status(h: Array, lam: Array, tir: BoolArray, px: Array, py: Array) -> NDArray[np.int8]:
+    """RayStatus of each forward-mapped surface point."""
+    reached = (lam > 0) & np.isfinite(px) & np.isfinite(py)
+    status = np.where(reached, RayStatus.OK, RayStatus.MISSED_OBJECT).astype(np.int8)
     status[tir] = RayStatus.TIR
-    status[~np.isfinite(h)] = RayStatus.MISSED_SURFACE
-    return out, status
+    status[np.isnan(h)] = RayStatus.MISSED_SURFACE
+    return status
 
 
-def _map_and_jacobian(
-    model: _FlatWater | _SplinePatches, optics: _Optics, q: Array
-) -> tuple[Array, Array, NDArray[np.int8], Array]:
-    """Forward map at surface points ``q`` (N, 2) mm and its Jacobian (N, 2, 2) by differences.
+@dataclass
+class _State:
+    """Newton state of the targets being solved (all arrays share the first axis, N)."""
 
-    Also returns the status (N,) and the surface height (N,) mm at ``q``.
+    idx: NDArray[np.intp]  # position in the caller's arrays
+    target: Array  # (N, 2) object-plane x, y, mm
+    q: Array  # (N, 2) surface point x, y, mm
+    jet: Array  # (N, 3) height (mm) and slopes there
+    p: Array  # (N, 2) object-plane point seen there, mm
+    jac: Array  # (N, 2, 2) dp/dq
+    status: NDArray[np.int8]  # (N,) status at q
+
+    def take(self, keep: BoolArray | NDArray[np.intp]) -> _State:
+        return _State(*(getattr(self, f)[keep] for f in self.__dataclass_fields__))
+
+
+def _evaluate(
+    model: _FlatWater | _SplinePatches, optics: _Optics, idx: NDArray, target: Array, q: Array
+) -> _State:
+    """Forward map at surface points ``q`` (N, 2) mm and its Jacobian by forward differences.
+
+    The height and slopes at the shifted points come from the second derivatives at ``q``
+    (their error, O(step^2), is far below the difference's own).
     """
     x, y = q[:, 0], q[:, 1]
-    local = model.gather(x, y)
+    j = model.jet(x, y)
+    h, hx, hy, hxx, hxy, hyy = j.T
+    px, py, lam, tir = _map_from_surface(optics, x, y, h, hx, hy)
     d = _FD_STEP_MM
-    jet = model.jet(local, x, y)
-    p, status = _map_from_surface(optics, x, y, jet)
-    px, _ = _map_from_surface(optics, x + d, y, model.jet(local, x + d, y))
-    py, _ = _map_from_surface(optics, x, y + d, model.jet(local, x, y + d))
-    jac = np.stack([(px - p) / d, (py - p) / d], axis=-1)
-    return p, jac, status, jet[0]
+    ax, ay, _, _ = _map_from_surface(optics, x + d, y, h + d * hx, hx + d * hxx, hy + d * hxy)
+    bx, by, _, _ = _map_from_surface(optics, x, y + d, h + d * hy, hx + d * hxy, hy + d * hyy)
+    jac = np.stack([np.stack([ax - px, bx - px], -1), np.stack([ay - py, by - py], -1)], 1) / d
+    return _State(idx, target, q, j[:, :3], np.stack([px, py], -1), jac,
+                  _status(h, lam, tir, px, py))
 
 
 def _newton_step(jac: Array, resid: Array) -> Array:
-    """``-J^{-1} r`` for a stack of 2x2 systems; NaN where J is singular."""
+    """``-J^{-1} r`` for a stack of 2x2 systems (N, 2, 2), (N, 2); NaN where J is singular."""
     a, b, c, d = jac[:, 0, 0], jac[:, 0, 1], jac[:, 1, 0], jac[:, 1, 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / (a * d - b * c)
@@ -331,51 +374,33 @@ def _newton_step(jac: Array, resid: Array) -> Array:
 
 def _project(camera: PinholeCamera, q: Array, h: Array) -> Array:
     """Pixels (N, 2) of surface points (x, y) = ``q`` (N, 2) at heights ``h`` (N,), mm."""
-    cols, rows, _ = camera.project(np.stack([q[:, 0], q[:, 1], h], axis=-1))
+    cols, rows, _ = camera.project(np.column_stack([q, h]))
     return np.stack([cols, rows], axis=-1)
 
 
-@dataclass
-class _Iterate:
-    """Newton state of the targets still being solved (all arrays share the first axis)."""
+def _damped_move(
+    model: _FlatWater | _SplinePatches, optics: _Optics, st: _State, step: Array
+) -> tuple[_State, NDArray[np.int8]]:
+    """Take Newton steps (N, 2) mm, halving those that leave the surface or hit TIR.
 
-    idx: NDArray[np.intp]  # position in the caller's arrays
-    target: Array  # (N, 2) object-plane x, y, mm
-    q: Array  # (N, 2) surface point, mm
-    h: Array  # (N,) surface height there, mm
-    p: Array  # (N, 2) object-plane point seen there, mm
-    jac: Array  # (N, 2, 2) dp/dq
-    px: Array  # (N, 2) pixel
-
-    def take(self, keep: BoolArray) -> _Iterate:
-        return _Iterate(*(getattr(self, f)[keep] for f in self.__dataclass_fields__))
-
-
-def _damped_step(
-    model: _FlatWater | _SplinePatches, optics: _Optics, it: _Iterate
-) -> tuple[_Iterate, NDArray[np.int8]]:
-    """One Newton step per target, halved while it leaves the surface or hits TIR.
-
-    Returns the moved state (unmoved rows keep their old values) and the status of each move.
+    Returns the moved state (rows that could not move keep their old values) and the status of
+    each row's last try (OK where it moved).
     """
-    step = _newton_step(it.jac, it.p - it.target)
-    new = _Iterate(it.idx, it.target, it.q.copy(), it.h.copy(), it.p.copy(), it.jac.copy(),
-                   it.px)
-    status = np.full(it.idx.size, RayStatus.NOT_CONVERGED, dtype=np.int8)
+    new = st.take(np.arange(st.idx.size))
+    tried = np.full(st.idx.size, RayStatus.NOT_CONVERGED, dtype=np.int8)
     pending = np.all(np.isfinite(step), axis=1)
     for _ in range(_MAX_HALVINGS + 1):
         sel = np.flatnonzero(pending)
         if not sel.size:
             break
-        qs = it.q[sel] + step[sel]
-        ps, js, ss, hs = _map_and_jacobian(model, optics, qs)
-        good = ss == RayStatus.OK
-        g = sel[good]
-        new.q[g], new.h[g], new.p[g], new.jac[g] = qs[good], hs[good], ps[good], js[good]
-        status[sel] = ss
-        pending[g] = False
+        trial = _evaluate(model, optics, st.idx[sel], st.target[sel], st.q[sel] + step[sel])
+        tried[sel] = trial.status
+        good = trial.status == RayStatus.OK
+        for f in ("q", "jet", "p", "jac", "status"):
+            getattr(new, f)[sel[good]] = getattr(trial, f)[good]
+        pending[sel[good]] = False
         step[sel[~good]] *= 0.5
-    return new, status
+    return new, tried
 
 
 def _newton(
@@ -394,23 +419,29 @@ def _newton(
     n = targets.shape[0]
     px_out = np.full((n, 2), np.nan)
     q_out = np.full((n, 3), np.nan)
-    status_out = np.full(n, RayStatus.NOT_CONVERGED, dtype=np.int8)
-    p, jac, st, h = _map_and_jacobian(model, optics, q0)
-    status_out[:] = np.where(st == RayStatus.OK, RayStatus.NOT_CONVERGED, st)
-    it = _Iterate(np.arange(n), targets, q0, h, p, jac, _project(camera, q0, h))
-    it = it.take(st == RayStatus.OK)
+    st = _evaluate(model, optics, np.arange(n), targets, q0)
+    status_out = np.where(st.status == RayStatus.OK, RayStatus.NOT_CONVERGED, st.status)
+    status_out = status_out.astype(np.int8)
+    st = st.take(st.status == RayStatus.OK)
     count = 0
-    while it.idx.size and count < max_iter:
+    while st.idx.size and count < max_iter:
         count += 1
-        new, moved_status = _damped_step(model, optics, it)
-        moved = moved_status == RayStatus.OK
-        new.px = _project(camera, new.q, new.h)
-        done = moved & (np.linalg.norm(new.px - it.px, axis=1) < tol_px)
-        status_out[new.idx[~moved]] = moved_status[~moved]
-        status_out[new.idx[done]] = RayStatus.OK
-        px_out[new.idx[done]] = new.px[done]
-        q_out[new.idx[done]] = np.column_stack([new.q[done], new.h[done]])
-        it = new.take(moved & ~done)
+        step = _newton_step(st.jac, st.p - st.target)
+        # Where the step is below tolerance, take it on the surface's tangent plane without a
+        # new evaluation: what remains after it is second order.
+        q_next = st.q + step
+        h_next = st.jet[:, 0] + np.sum(st.jet[:, 1:] * step, axis=1)
+        px_next = _project(camera, q_next, h_next)
+        moved_px = np.linalg.norm(px_next - _project(camera, st.q, st.jet[:, 0]), axis=1)
+        done = moved_px < tol_px
+        status_out[st.idx[done]] = RayStatus.OK
+        px_out[st.idx[done]] = px_next[done]
+        q_out[st.idx[done]] = np.column_stack([q_next[done], h_next[done]])
+        st, step = st.take(~done), step[~done]
+        st, tried = _damped_move(model, optics, st, step)
+        moved = tried == RayStatus.OK
+        status_out[st.idx[~moved]] = tried[~moved]
+        st = st.take(moved)
     return px_out, status_out, q_out, count
 
 

@@ -93,7 +93,7 @@ class ObjectConfig:
 class RenderConfig:
     """Samples per pixel of the two renders."""
 
-    spp_pattern: int = 64
+    spp_pattern: int = 8
     spp_view: int = 16
 
 

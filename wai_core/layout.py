@@ -84,6 +84,30 @@ def flat_pattern_hits(cfg: SystemConfig) -> tuple[NDArray, NDArray, NDArray]:
     return q, s, seen
 
 
+def lit_dots(cfg: SystemConfig, margin_spacings: float = 2.0) -> NDArray[np.bool_]:
+    """Dots (K,) worth projecting: those whose flat-water spot lands on the diffuser grown by
+    ``margin_spacings`` dot spacings (waves move spots by less). Lighting only these spends every
+    projected photon on a spot that camera s can see."""
+    q, s, _ = flat_pattern_hits(cfg)
+    rect = diffuser_rect(cfg)
+    _, panel = dot_grid(cfg.pattern, cfg.projector.camera())
+    # Spacing of neighbouring spots on the diffuser, from the flat-water model.
+    spacing = np.nanmedian(np.linalg.norm(np.diff(s.reshape(-1, _grid_side(panel), 3), axis=1), axis=2))
+    grow = margin_spacings * spacing
+    return (
+        np.isfinite(s[:, 0])
+        & (s[:, 0] >= rect[0, 0] - grow)
+        & (s[:, 0] <= rect[0, 1] + grow)
+        & (s[:, 1] >= rect[1, 0] - grow)
+        & (s[:, 1] <= rect[1, 1] + grow)
+    )
+
+
+def _grid_side(panel: NDArray) -> int:
+    """Dots per grid row (the grid is square, laid out row by row)."""
+    return int(round(np.sqrt(panel.shape[0])))
+
+
 def snell_window_hits(cfg: SystemConfig, step_px: float = 8.0) -> NDArray:
     """Points (N, 3) where camera v's rays that leave the water (flat, not TIR) cross it."""
     cam = cfg.camera_v.camera()

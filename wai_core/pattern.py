@@ -36,18 +36,23 @@ def dot_grid(pattern: PatternConfig, projector: PinholeCamera) -> tuple[NDArray,
     return ij, panel
 
 
-def pattern_image(pattern: PatternConfig, projector: PinholeCamera) -> NDArray[np.float32]:
+def pattern_image(
+    pattern: PatternConfig, projector: PinholeCamera, lit: NDArray[np.bool_] | None = None
+) -> NDArray[np.float32]:
     """Panel image (height, width, 3) in [0, 1]: the dots in ``pattern.color`` on black.
 
     Each dot is a Gaussian of standard deviation ``sigma_px``; dots are far enough apart
-    (``spacing_px > 2 sigma``) that their tails barely overlap.
+    (``spacing_px > 2 sigma``) that their tails barely overlap. ``lit`` (K,) selects the dots
+    to draw (default: all), in :func:`dot_grid` order.
     """
     _, panel = dot_grid(pattern, projector)
+    if lit is not None:
+        panel = panel[np.asarray(lit, dtype=bool)]
     cols = np.arange(projector.width_px, dtype=np.float64)
     rows = np.arange(projector.height_px, dtype=np.float64)
     s2 = 2.0 * pattern.sigma_px**2
-    # The grid is separable: a sum over dot columns times a sum over dot rows.
-    gx = np.exp(-((cols[None, :] - np.unique(panel[:, 0])[:, None]) ** 2) / s2).sum(0)
-    gy = np.exp(-((rows[None, :] - np.unique(panel[:, 1])[:, None]) ** 2) / s2).sum(0)
-    lum = np.clip(np.outer(gy, gx), 0.0, 1.0)
+    # Each dot is separable: a column profile times a row profile; sum their outer products.
+    gx = np.exp(-((cols[None, :] - panel[:, :1]) ** 2) / s2)
+    gy = np.exp(-((rows[None, :] - panel[:, 1:]) ** 2) / s2)
+    lum = np.clip(gy.T @ gx, 0.0, 1.0)
     return (lum[..., None] * np.asarray(pattern.color, dtype=np.float64)).astype(np.float32)

@@ -1,0 +1,202 @@
+"""Water-surface reconstruction from one structured-light frame (section 3.2 of the paper).
+
+Pipeline per frame: spots on the diffuser (camera-s pixels back-projected to ``z = z_h``) and
+projector rays give normals by the law of reflection (eq. 3-7); the normals' slopes are
+integrated to heights (eq. 8-13) and gridded to a :class:`~wai_core.heightfield.Heightfield`.
+
+Iteration 0 is the paper's method: every reflection point ``q_k`` is put on the mean level
+``z = h0`` (eq. 3). Refinement removes that approximation: the integrated heights move each
+``q_k`` along its projector ray to the reconstructed surface, normals and slopes are recomputed
+there and re-integrated, until the heights change by less than ``tol_mm``.
+
+Anchor and remaining bias
+-------------------------
+One spot per projector ray fixes the surface only up to a one-parameter family (raise or lower
+the surface and slightly different normals explain the same spots: the depth-normal ambiguity
+of deflectometry); slopes fix nothing about the constant either. Like the paper, the
+reconstruction takes the mean level ``h0`` (from a depth gauge) as known and sets the **mean of
+the sample heights** to ``h0`` at every iteration. Where the true mean height of the sampled
+points differs from ``h0`` (waves longer than the sampled patch, or a patch whose samples
+cluster on crests), the whole estimate sits on the wrong member of the family: a height offset
+plus a small, smooth normal error that no refinement can recover without extra information (a
+second camera, a second spot per ray, or a calibrated reference).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from restoration.integrate import INTEGRATORS, integrate, to_heightfield
+from restoration.normals import (
+    points_on_rays,
+    projector_rays,
+    reflection_normals,
+    slopes_from_normals,
+    spots_on_diffuser,
+)
+from wai_core.errors import WaiInputError
+from wai_core.geometry import PinholeCamera
+from wai_core.heightfield import Heightfield
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SurfaceEstimate:
+    """A reconstructed water surface and the samples it was built from.
+
+    Attributes
+    ----------
+    heightfield : Heightfield
+        Absolute heights on a regular grid, mm; NaN outside the samples' convex hull.
+    ij : (K, 2) ndarray of int
+        Grid indices of the samples kept (those the integrator could tie together).
+    points_mm : (K, 3) ndarray
+        Surface samples: ``(x, y)`` where the last normals were evaluated (the reflection
+        points ``q_k`` on the projector rays) and the reconstructed height ``z``, mm.
+    normals : (K, 3) ndarray
+        Unit normals at the samples, pointing up.
+    slopes : (K, 2) ndarray
+        ``(dz/dx, dz/dy)`` at the samples.
+    iterations : int
+        Refinement passes run after the paper's pass (0 reproduces the paper).
+    height_change_mm : float
+        Largest height change of the last refinement pass, mm (NaN when none ran).
+    timings_ms : dict of str to float
+        Wall time per stage, ms: ``rays`` (back-projection of spots and projector rays),
+        ``normals``, ``integrate`` (summed over passes), ``grid`` and ``total``.
+    """
+
+    heightfield: Heightfield
+    ij: NDArray[np.int64]
+    points_mm: Array
+    normals: Array
+    slopes: Array
+    iterations: int
+    height_change_mm: float
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+def _check_inputs(
+    ij: ArrayLike, panel_px: ArrayLike, spot_px: ArrayLike, z_h_mm: float, h0_mm: float,
+    integrator: str, n_refine: int,
+) -> NDArray[np.int64]:
+    """Validate what the arrays in :func:`reconstruct_surface` cannot check themselves."""
+    ij_arr = np.asarray(ij)
+    n = {np.shape(a)[0] if np.ndim(a) else -1 for a in (ij_arr, panel_px, spot_px)}
+    if len(n) != 1:
+        raise WaiInputError("reconstruct_surface: ij, panel_px and spot_px differ in length")
+    if not np.issubdtype(ij_arr.dtype, np.integer):
+        raise WaiInputError("reconstruct_surface: ij must hold integer grid indices")
+    if not h0_mm > z_h_mm:
+        raise WaiInputError("reconstruct_surface: the water level h0 must lie above the diffuser")
+    if integrator not in INTEGRATORS:
+        raise WaiInputError(
+            f"reconstruct_surface: unknown integrator {integrator!r} "
+            f"(known: {', '.join(INTEGRATORS)})"
+        )
+    if int(n_refine) != n_refine or n_refine < 0:
+        raise WaiInputError("reconstruct_surface: n_refine must be a non-negative integer")
+    return ij_arr
+
+
+def reconstruct_surface(
+    ij: ArrayLike,
+    panel_px: ArrayLike,
+    spot_px: ArrayLike,
+    projector: PinholeCamera,
+    camera_s: PinholeCamera,
+    z_h_mm: float,
+    h0_mm: float,
+    integrator: str = "trapezoid",
+    n_refine: int = 3,
+    grid_spacing_mm: float = 5.0,
+    gridder: str = "tangent_blend",
+    tol_mm: float = 1e-4,
+) -> SurfaceEstimate:
+    """Reconstruct the water surface from matched structured-light features.
+
+    Parameters
+    ----------
+    ij : (K, 2) array_like of int
+        Grid index of each feature's dot.
+    panel_px : (K, 2) array_like
+        Projector panel position ``(col, row)`` of each dot, pixels.
+    spot_px : (K, 2) array_like
+        Detected spot ``(col, row)`` of each dot in camera s, pixels.
+    projector, camera_s : PinholeCamera
+        Calibrated projector and diffuser camera.
+    z_h_mm : float
+        Height of the diffuser plane, mm.
+    h0_mm : float
+        Mean water level, mm (the anchor; see the module docstring).
+    integrator : str
+        Name in :data:`restoration.integrate.INTEGRATORS` (``"paper"``, ``"trapezoid"``,
+        ``"spline"``).
+    n_refine : int
+        Refinement passes after the paper's ``q = h0`` pass; 0 is the paper's method.
+    grid_spacing_mm : float
+        Node spacing of the output heightfield, mm.
+    gridder : str
+        ``method`` of :func:`restoration.integrate.to_heightfield`; the paper's pipeline is
+        ``integrator="paper", n_refine=0, gridder="clough_tocher"``.
+    tol_mm : float
+        Refinement stops once no height changes by more than this, mm.
+
+    Returns
+    -------
+    SurfaceEstimate
+    """
+    t_start = time.perf_counter()
+    ij_arr = _check_inputs(ij, panel_px, spot_px, z_h_mm, h0_mm, integrator, n_refine)
+    spots = spots_on_diffuser(spot_px, camera_s, z_h_mm)
+    origin, v_p = projector_rays(panel_px, projector)
+    timings = {"rays": _ms(t_start), "normals": 0.0, "integrate": 0.0}
+
+    heights = np.full(ij_arr.shape[0], float(h0_mm))
+    change = np.nan
+    for it in range(int(n_refine) + 1):
+        t0 = time.perf_counter()
+        q = points_on_rays(origin, v_p, heights)
+        normals = reflection_normals(v_p, q, spots)
+        slopes = slopes_from_normals(normals)
+        t1 = time.perf_counter()
+        relative = integrate(ij_arr, q[:, :2], slopes, integrator)
+        timings["normals"] += _ms(t0, t1)
+        timings["integrate"] += _ms(t1)
+        # Drop samples the integrator could not tie to the rest (NaN), for good.
+        keep = np.isfinite(relative)
+        ij_arr, v_p, spots, q, normals, slopes = (
+            a[keep] for a in (ij_arr, v_p, spots, q, normals, slopes)
+        )
+        # The anchor: the sample heights average to the known mean level h0.
+        new_heights = h0_mm + relative[keep] - relative[keep].mean()
+        if it > 0:
+            change = float(np.max(np.abs(new_heights - heights[keep])))
+        heights = new_heights
+        if it > 0 and change < tol_mm:
+            break
+
+    t0 = time.perf_counter()
+    heightfield = to_heightfield(q[:, :2], heights, slopes, grid_spacing_mm, method=gridder)
+    timings["grid"] = _ms(t0)
+    timings["total"] = _ms(t_start)
+    return SurfaceEstimate(
+        heightfield=heightfield,
+        ij=ij_arr,
+        points_mm=np.column_stack([q[:, :2], heights]),
+        normals=normals,
+        slopes=slopes,
+        iterations=it,
+        height_change_mm=change,
+        timings_ms=timings,
+    )
+
+
+def _ms(start: float, end: float | None = None) -> float:
+    """Milliseconds from ``start`` to ``end`` (default: now)."""
+    return 1e3 * ((time.perf_counter() if end is None else end) - start)

@@ -1,0 +1,57 @@
+"""Figures of the paper's kind, drawn from render and restore folders (matplotlib, Agg)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from numpy.typing import NDArray  # noqa: E402
+
+from wai_core.heightfield import Heightfield  # noqa: E402
+from wai_core.io import to_srgb8  # noqa: E402
+
+
+def _save(fig: plt.Figure, path: str | Path) -> None:
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def surface_figure(surface: Heightfield, h0_mm: float, title: str, path: str | Path) -> None:
+    """3-D view and height map of a surface (the paper's Fig. 10), heights relative to h0."""
+    fig = plt.figure(figsize=(11, 4.2))
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    step = max(1, surface.x.size // 120)
+    xx, yy = np.meshgrid(surface.x[::step], surface.y[::step])
+    eta = surface.z[::step, ::step] - h0_mm
+    ax.plot_surface(xx, yy, eta, cmap="viridis", linewidth=0, antialiased=True)
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_zlabel("η (mm)")
+    ax2 = fig.add_subplot(1, 2, 2)
+    im = ax2.pcolormesh(surface.x, surface.y, surface.z - h0_mm, cmap="viridis", shading="auto")
+    ax2.set_aspect("equal")
+    ax2.set_xlabel("x (mm)")
+    ax2.set_ylabel("y (mm)")
+    fig.colorbar(im, ax=ax2, label="η = z − h0 (mm)")
+    fig.suptitle(title)
+    _save(fig, path)
+
+
+def side_by_side(
+    images: list[NDArray], titles: list[str], path: str | Path, exposures: list[float | None]
+) -> None:
+    """Linear images next to each other with titles, tone-mapped for display."""
+    fig, axes = plt.subplots(1, len(images), figsize=(5 * len(images), 4))
+    for ax, img, title, exposure in zip(np.atleast_1d(axes), images, titles, exposures, strict=True):
+        ax.imshow(to_srgb8(img, exposure))
+        ax.set_title(title)
+        ax.set_axis_off()
+    _save(fig, path)
