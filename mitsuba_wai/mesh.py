@@ -11,32 +11,13 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
-from numpy.typing import NDArray
 
 from wai_core.heightfield import Heightfield
 
 
-def grid_faces(n_rows: int, n_cols: int) -> NDArray[np.uint32]:
-    """Triangles (2 (m-1)(n-1), 3) over a row-major vertex grid, counter-clockwise from above."""
-    idx = np.arange(n_rows * n_cols, dtype=np.uint32).reshape(n_rows, n_cols)
-    a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
-    c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
-    # Rows grow with +y and columns with +x, so (a, b, d) and (a, d, c) turn counter-clockwise.
-    return np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
-
-
 def heightfield_mesh(surface: Heightfield) -> trimesh.Trimesh:
     """Triangle mesh through the heightfield's samples, mm, with exact vertex normals."""
-    xx, yy = np.meshgrid(surface.x, surface.y)
-    vertices = np.stack([xx.ravel(), yy.ravel(), surface.z.ravel()], axis=1)
-    normals = surface.normal(xx.ravel(), yy.ravel())
-    mesh = trimesh.Trimesh(
-        vertices=vertices,
-        faces=grid_faces(surface.y.size, surface.x.size),
-        vertex_normals=normals,
-        process=False,
-    )
-    return mesh
+    return surface.to_trimesh()
 
 
 def flat_like(surface: Heightfield, z_mm: float) -> Heightfield:

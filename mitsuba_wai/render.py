@@ -108,6 +108,7 @@ class FrameRenderer:
     grid: Heightfield
     texture: NDArray | None = None
     variant: str = field(init=False)
+    nonfinite_pixels: dict[str, int] = field(init=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         self.variant = select_variant()
@@ -144,7 +145,12 @@ class FrameRenderer:
         for key, scene, spp in jobs:
             img = mi.render(scene, spp=spp, seed=seed)
             dr.eval(img)
-            out[key] = np.asarray(img, dtype=np.float32)[..., :3]
+            arr = np.asarray(img, dtype=np.float32)[..., :3]
+            # Rare invalid splats of the particle tracer: zeroed and counted, never hidden.
+            bad = ~np.isfinite(arr).all(axis=2)
+            self.nonfinite_pixels[key] = self.nonfinite_pixels.get(key, 0) + int(bad.sum())
+            arr[bad] = 0.0
+            out[key] = arr
         return out
 
 
@@ -269,6 +275,7 @@ def render_folder(
         meshes.heightfield_mesh(surface).export(tmp / "surface.ply")
         tick("write")
         record["timings_s"] = timings
+        record["nonfinite_pixels_zeroed"] = renderer.nonfinite_pixels
         write_json(tmp / "scene.json", record)
     bar.close()
     return record

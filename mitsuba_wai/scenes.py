@@ -3,16 +3,19 @@
 Each scene carries only what its measurement needs:
 
 System S (structured light): the projector with the dot pattern (only the dots whose spots can
-reach the diffuser are lit), the water surface, the diffuser and camera s. The pattern reaches camera s only after a specular bounce, which a camera-side path
-tracer can never connect to a delta-position projector, so it is rendered with ``ptracer`` (light
-tracing), ``max_depth = 3``: projector -> water -> diffuser -> camera.
+reach the diffuser are lit, each as bright as its Fresnel loss needs), the water surface, the diffuser and camera s. The pattern reaches
+camera s only after a specular bounce, which a camera-side path tracer can never connect to a
+delta-position projector, so it is rendered with ``ptracer`` (light tracing), ``max_depth = 4``:
+projector -> (through the one-way diffuser) -> water -> diffuser -> camera; the pass-through
+counts as a bounce.
 
 System V (observation): camera v, the water surface and the object plane as an area emitter that
 carries the texture, so every path is camera -> water -> object: the ``path`` integrator with
 ``max_depth = 2`` (one specular bounce, nothing more).
 
 Water is ``dielectric`` (n = 4/3 below, air above; default) or an ideal ``mirror``
-(``conductor`` with no absorption) for system S's idealised variant.
+(a perfect ``conductor``, two-sided because Mitsuba's conductors reflect on the front side only
+and the light arrives from below) for system S's idealised variant.
 """
 
 from __future__ import annotations
@@ -22,10 +25,10 @@ from numpy.typing import NDArray
 
 from wai_core.config import SystemConfig
 from wai_core.geometry import PinholeCamera
-from wai_core.layout import diffuser_rect, lit_dots, object_plane_center
+from wai_core.layout import diffuser_rect, dot_weights, object_plane_center
 from wai_core.pattern import pattern_image
 
-SCENE_S_DEPTH = 3
+SCENE_S_DEPTH = 4
 SCENE_V_DEPTH = 2
 
 
@@ -69,7 +72,7 @@ def sensor_dict(camera: PinholeCamera, rfilter: str = "box") -> dict:
 def water_bsdf(cfg: SystemConfig) -> dict:
     """The water surface's BSDF: normals point into the air (exterior)."""
     if cfg.water.surface == "mirror":
-        return {"type": "conductor", "material": "none"}
+        return {"type": "twosided", "bsdf": {"type": "conductor", "material": "none"}}
     return {"type": "dielectric", "int_ior": cfg.water.n_water, "ext_ior": 1.0}
 
 
@@ -96,6 +99,9 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
     """System S: projector, water, diffuser, camera s (see module notes)."""
     import mitsuba as mi
 
+    from mitsuba_wai.diffuser import register
+
+    register()
     projector = cfg.projector.camera()
     rect = diffuser_rect(cfg)
     center = np.array([rect[0].mean(), rect[1].mean(), cfg.diffuser.z_mm])
@@ -108,7 +114,7 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
             "type": "projector",
             "irradiance": {
                 "type": "bitmap",
-                "bitmap": mi.Bitmap(pattern_image(cfg.pattern, projector, lit_dots(cfg))),
+                "bitmap": mi.Bitmap(pattern_image(cfg.pattern, projector, dot_weights(cfg))),
                 "raw": True,
             },
             "fov": projector.fov_x_deg,
@@ -116,17 +122,11 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
             "to_world": device_to_world(projector),
         },
         "water": water_mesh,
-        # Pure diffuse transmission: lit from above, seen from below (Mitsuba has no difftrans).
+        # Diffuse transmission from above, pass-through from below (see mitsuba_wai.diffuser).
         "diffuser": {
             "type": "rectangle",
             "to_world": rectangle_to_world(center, rect[:, 1] - rect[:, 0], facing_down=False),
-            "bsdf": {
-                "type": "principledthin",
-                "base_color": {"type": "rgb", "value": [1.0, 1.0, 1.0]},
-                "diff_trans": 2.0,
-                "spec_trans": 0.0,
-                "roughness": 1.0,
-            },
+            "bsdf": {"type": "oneway_diffuser"},
         },
     }
 

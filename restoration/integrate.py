@@ -63,6 +63,8 @@ MIN_SAMPLES = 4
 _SPLINE_SMOOTHING = 1e-2
 # Spline control spacing in units of the median nearest-neighbour distance of the samples.
 _SPLINE_STEP = 1.5
+# Largest (i, j) index span, and largest output grid, accepted (a dot pattern has ~10^3 dots).
+_MAX_GRID_NODES = 4_000_000
 
 
 # --------------------------------------------------------------------------------------------
@@ -78,7 +80,8 @@ def check_samples(
     Raises
     ------
     WaiInputError
-        On wrong shapes, NaN or inf, repeated grid indices or fewer than :data:`MIN_SAMPLES`.
+        On wrong shapes, NaN or inf, repeated or absurdly spread grid indices, or fewer than
+        :data:`MIN_SAMPLES` samples.
     """
     ij_arr = np.asarray(ij)
     xy = np.asarray(xy_mm, dtype=float)
@@ -97,19 +100,14 @@ def check_samples(
     if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(g))):
         raise WaiInputError("integrate: xy_mm or slopes hold NaN or inf")
     ij_arr = ij_arr.astype(np.int64)
-    if _has_repeats(ij_arr):
+    span = ij_arr.max(axis=0) - ij_arr.min(axis=0) + 1
+    if span[0] * span[1] > _MAX_GRID_NODES:
+        raise WaiInputError(f"integrate: grid indices span {span[0]} x {span[1]}, too wide a grid")
+    # A table over the index span finds repeated (i, j) without sorting.
+    flat = (ij_arr[:, 1] - ij_arr[:, 1].min()) * span[0] + (ij_arr[:, 0] - ij_arr[:, 0].min())
+    if np.bincount(flat).max() > 1:
         raise WaiInputError("integrate: two samples share one grid index (i, j)")
     return ij_arr, xy, g
-
-
-def _has_repeats(ij: IntArray) -> bool:
-    """True when two rows of ``ij`` (K, 2) are equal."""
-    span = ij.max(axis=0) - ij.min(axis=0) + 1
-    if span[0] * span[1] > 16 * ij.shape[0] + 4096:
-        # A sparse spread of indices: sorting is cheaper than a table.
-        return np.unique(ij, axis=0).shape[0] != ij.shape[0]
-    flat = (ij[:, 1] - ij[:, 1].min()) * span[0] + (ij[:, 0] - ij[:, 0].min())
-    return bool(np.bincount(flat).max() > 1)
 
 
 def grid_neighbours(ij: IntArray, offsets: ArrayLike) -> IntArray:
@@ -173,13 +171,19 @@ def spd_solve(matrix: sp.spmatrix, rhs: Array) -> Array:
     """Solve a sparse symmetric positive definite system (SuperLU in symmetric mode)."""
     # Symmetric mode with a minimum-degree ordering of A + A^T and no pivoting: a few times
     # faster than the default unsymmetric LU on these Laplacian-like matrices.
-    lu = splu(
-        sp.csc_matrix(matrix),
-        permc_spec="MMD_AT_PLUS_A",
-        diag_pivot_thresh=0.0,
-        options={"SymmetricMode": True},
-    )
-    return lu.solve(rhs)
+    try:
+        lu = splu(
+            sp.csc_matrix(matrix),
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
+        out = lu.solve(rhs)
+    except RuntimeError:  # SuperLU: "Factor is exactly singular"
+        out = np.full(rhs.shape, np.nan)
+    if not np.all(np.isfinite(out)):
+        raise WaiInputError("integrate: the samples do not determine the surface (singular fit)")
+    return out
 
 
 def solve_differences(
@@ -189,7 +193,7 @@ def solve_differences(
 
     The normal matrix is a weighted graph Laplacian with one null vector (the constant) per
     connected piece; the largest piece is solved with its first node pinned to zero, then
-    shifted to zero mean.
+    shifted to zero mean. Direct sparse LU: about 1 ms for 600 samples.
 
     Parameters
     ----------
@@ -208,24 +212,22 @@ def solve_differences(
         Heights, mm; NaN outside the largest connected piece.
     """
     keep = largest_piece(n, a, b)
-    # Renumber the kept nodes with the pinned one (the first) last, then drop it.
-    order = np.flatnonzero(keep)
-    new = np.full(keep.size, -1, dtype=np.int64)
-    new[order] = np.roll(np.arange(order.size), -1)
+    m = int(keep.sum())
+    new = np.cumsum(keep) - 1  # index among the kept nodes
     on = keep[a] & keep[b]
-    ea, eb, d, w = new[a[on]], new[b[on]], diff_mm[on], weights[on]
-    m = order.size
-    rows = np.arange(ea.size)
-    incidence = sp.csr_matrix(
-        (np.r_[-np.ones(ea.size), np.ones(ea.size)], (np.r_[rows, rows], np.r_[ea, eb])),
-        shape=(ea.size, m),
-    )
-    weighted = incidence.T.multiply(w).tocsr()
-    laplacian = (weighted @ incidence)[: m - 1, : m - 1]
-    rhs = (weighted @ d)[: m - 1]
-    h_kept = np.r_[spd_solve(laplacian, rhs), 0.0]
-    heights = np.full(keep.size, np.nan)
-    heights[order] = h_kept[new[order]] - h_kept.mean()
+    ea, eb, w, wd = new[a[on]], new[b[on]], weights[on], weights[on] * diff_mm[on]
+    # Assemble the Laplacian and B^T W d directly (repeated pairs are summed by the sparse
+    # constructor), then pin kept node 0 by dropping its row and column.
+    rhs = np.bincount(eb, wd, m) - np.bincount(ea, wd, m)
+    diag = np.bincount(ea, w, m) + np.bincount(eb, w, m)
+    free = (ea > 0) & (eb > 0)
+    rows = np.r_[ea[free], eb[free], np.arange(1, m)] - 1
+    cols = np.r_[eb[free], ea[free], np.arange(1, m)] - 1
+    vals = np.r_[-w[free], -w[free], diag[1:]]
+    laplacian = sp.csc_matrix((vals, (rows, cols)), shape=(m - 1, m - 1))
+    h_kept = np.r_[0.0, spd_solve(laplacian, rhs[1:])]
+    heights = np.full(n, np.nan)
+    heights[keep] = h_kept - h_kept.mean()
     return heights
 
 
@@ -287,7 +289,7 @@ def integrate_trapezoid(ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike) -> A
 
 
 # --------------------------------------------------------------------------------------------
-# Uniform bicubic B-splines (the "spline" integrator and the default gridding)
+# Uniform bicubic B-splines (the "spline" integrator and "hermite_spline" gridding)
 # --------------------------------------------------------------------------------------------
 
 
@@ -465,6 +467,8 @@ def _grid_axes(xy: Array, spacing_mm: float) -> tuple[Array, Array]:
     """Regular node coordinates covering the bounding box of ``xy``, mm."""
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     n = np.ceil((hi - lo) / spacing_mm).astype(int) + 1
+    if n[0] * n[1] > _MAX_GRID_NODES:
+        raise WaiInputError(f"to_heightfield: a {spacing_mm} mm grid needs too many nodes")
     if np.any(n < 4):
         raise WaiInputError(
             f"to_heightfield: samples span too little for a {spacing_mm} mm grid (need 4 nodes)"
@@ -546,70 +550,63 @@ def _locate_nodes(
     return (row * gx.size + col)[inside], tri[inside], lam[inside]
 
 
-def _tangent_blend_grid(
-    tri: Delaunay, heights: Array, slopes: Array, gx: Array, gy: Array
+def _tangent_blend(
+    xy: Array, heights: Array, slopes: Array, verts: IntArray, nodes: Array, lam: Array
 ) -> Array:
     """Barycentric blend of each triangle's vertex predictions ``h_v + g_v . (p - x_v) / 2``.
 
     For a quadratic ``f``, ``f(p) = f(x_v) + (g_v + g(p)) . (p - x_v) / 2`` (the trapezoid rule)
     and the barycentric weights sum ``p - x_v`` to zero, so the ``g(p)`` terms cancel: the blend
-    is exact for quadratics. It is continuous (C0) and local. Returns (m, n) heights, mm, NaN
-    outside the triangulation (the convex hull).
+    is exact for quadratics. It is continuous (C0) and local.
+
+    Parameters
+    ----------
+    xy, heights, slopes : (K, 2), (K,), (K, 2) ndarray
+        The samples (mm, mm, dimensionless).
+    verts : (P, 3) ndarray of int
+        Vertices of the triangle holding each node.
+    nodes : (P, 2) ndarray
+        Node positions, mm.
+    lam : (P, 3) ndarray
+        Barycentric weights of the nodes.
+
+    Returns
+    -------
+    (P,) ndarray
+        Heights at the nodes, mm.
     """
-    verts = tri.simplices
-    node, t, lam = _locate_nodes(tri.points[verts], gx, gy)
-    v = verts[t]
-    p = np.column_stack([gx[node % gx.size], gy[node // gx.size]])
-    offset = p[:, None, :] - tri.points[v]
-    pred = heights[v] + 0.5 * np.sum(slopes[v] * offset, axis=2)
-    out = np.full(gy.size * gx.size, np.nan)
-    out[node] = np.sum(lam * pred, axis=1)
-    return out.reshape(gy.size, gx.size)
+    offset = nodes[:, None, :] - xy[verts]
+    pred = heights[verts] + 0.5 * np.sum(slopes[verts] * offset, axis=2)
+    return np.sum(lam * pred, axis=1)
+
+
+def gap_free_triangles(tri: Delaunay, max_edge_ratio: float | None) -> IntArray:
+    """Delaunay triangles (T, 3) less those that bridge gaps in the samples.
+
+    A triangle is dropped when its longest edge exceeds ``max_edge_ratio`` times the largest
+    nearest-neighbour distance among its vertices. Such triangles span concave bays of the
+    sampled footprint and large holes, where any interpolant extrapolates far. On a grid of
+    spacings ``a >= b`` the ratio is ``sqrt(1 + (a / b)^2)``: 1.4 when square, about 3.1 for the
+    projector's keystone far field (29 x 10 mm); a single missing sample adds a factor 2.
+    ``None`` keeps the whole convex hull.
+    """
+    simplices = tri.simplices
+    if max_edge_ratio is None:
+        return simplices
+    corners = tri.points[simplices]
+    length = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=2)  # (T, 3)
+    # The Delaunay graph holds every nearest neighbour: the shortest edge at each vertex.
+    nearest = np.full(tri.points.shape[0], np.inf)
+    np.minimum.at(nearest, simplices.ravel(), np.minimum(length, np.roll(length, 1, 1)).ravel())
+    return simplices[length.max(axis=1) <= max_edge_ratio * nearest[simplices].max(axis=1)]
 
 
 GRIDDERS = ("tangent_blend", "hermite_spline", "clough_tocher")
 """Methods of :func:`to_heightfield`."""
 
 
-def to_heightfield(
-    xy_mm: ArrayLike,
-    heights_mm: ArrayLike,
-    slopes: ArrayLike | None,
-    spacing_mm: float,
-    method: str = "tangent_blend",
-) -> Heightfield:
-    """Grid scattered surface samples onto a regular :class:`Heightfield`.
-
-    The grid has nodes every ``spacing_mm`` from the samples' minimum x and y, covering their
-    bounding box; nodes outside the samples' convex hull are NaN.
-
-    Parameters
-    ----------
-    xy_mm : (K, 2) array_like
-        Sample positions, mm.
-    heights_mm : (K,) array_like
-        Sample heights, mm (absolute or relative).
-    slopes : (K, 2) array_like or None
-        Slopes ``(dz/dx, dz/dy)`` at the samples; needed except by ``"clough_tocher"``.
-    spacing_mm : float
-        Grid node spacing, mm.
-    method : {"tangent_blend", "hermite_spline", "clough_tocher"}
-        ``"tangent_blend"`` (default, fastest): on the Delaunay triangulation of the samples,
-        the barycentric blend of the vertices' half-step tangent-plane predictions
-        ``h_v + g_v . (p - x_v) / 2``; continuous, exact for quadratic surfaces.
-        ``"hermite_spline"``: a bicubic B-spline (control spacing = median sample spacing) fitted
-        by least squares to heights and slopes together, so slopes shape the surface between
-        samples; exact for quadratic surfaces. ``"clough_tocher"``: scipy's
-        ``CloughTocher2DInterpolator`` on heights only (it estimates its own gradients), the
-        paper's "bicubic interpolation" baseline.
-
-    Returns
-    -------
-    Heightfield
-        ``x`` (n,), ``y`` (m,), ``z`` (m, n) in mm.
-    """
-    xy = np.asarray(xy_mm, dtype=float)
-    h = np.asarray(heights_mm, dtype=float)
+def _check_grid_input(xy: Array, h: Array, spacing_mm: float, method: str) -> None:
+    """Raise WaiInputError for unusable :func:`to_heightfield` input."""
     if xy.ndim != 2 or xy.shape[1] != 2 or h.shape != xy.shape[:1]:
         raise WaiInputError(
             f"to_heightfield: need xy_mm (K, 2) and heights_mm (K,), got {xy.shape}, {h.shape}"
@@ -624,22 +621,71 @@ def to_heightfield(
         raise WaiInputError("to_heightfield: spacing_mm must be positive")
     if method not in GRIDDERS:
         raise WaiInputError(f"to_heightfield: unknown method {method!r} (known: {GRIDDERS})")
+
+
+def to_heightfield(
+    xy_mm: ArrayLike,
+    heights_mm: ArrayLike,
+    slopes: ArrayLike | None,
+    spacing_mm: float,
+    method: str = "tangent_blend",
+    max_edge_ratio: float | None = 4.0,
+) -> Heightfield:
+    """Grid scattered surface samples onto a regular :class:`Heightfield`.
+
+    The grid has nodes every ``spacing_mm`` from the samples' minimum x and y, covering their
+    bounding box. Nodes outside the samples' convex hull are NaN, and so are nodes in Delaunay
+    triangles that bridge gaps in the samples (see :func:`gap_free_triangles`).
+
+    Parameters
+    ----------
+    xy_mm : (K, 2) array_like
+        Sample positions, mm.
+    heights_mm : (K,) array_like
+        Sample heights, mm (absolute or relative).
+    slopes : (K, 2) array_like or None
+        Slopes ``(dz/dx, dz/dy)`` at the samples; needed except by ``"clough_tocher"``.
+    spacing_mm : float
+        Grid node spacing, mm.
+    method : {"tangent_blend", "hermite_spline", "clough_tocher"}
+        ``"tangent_blend"`` (default, fastest): on the Delaunay triangulation of the samples,
+        the barycentric blend of the vertices' half-step tangent-plane predictions
+        ``h_v + g_v . (p - x_v) / 2``; continuous, exact for quadratic surfaces, with the
+        trapezoid rule's error (``d^3 |f'''| / 12`` over triangles of size ``d``).
+        ``"hermite_spline"`` (most accurate, slower): a bicubic B-spline (control spacing 1.5
+        times the median nearest-neighbour distance) fitted by least squares to heights and
+        slopes together, with a weak third-difference penalty; C2, exact for quadratics.
+        ``"clough_tocher"``: scipy's ``CloughTocher2DInterpolator`` on heights only (it
+        estimates its own gradients), the paper's "bicubic interpolation" baseline.
+    max_edge_ratio : float or None
+        Gap threshold of :func:`gap_free_triangles`; None masks only outside the convex hull.
+
+    Returns
+    -------
+    Heightfield
+        ``x`` (n,), ``y`` (m,), ``z`` (m, n) in mm.
+    """
+    xy = np.asarray(xy_mm, dtype=float)
+    h = np.asarray(heights_mm, dtype=float)
+    _check_grid_input(xy, h, spacing_mm, method)
+    g = None
+    if method != "clough_tocher":
+        g = np.asarray(slopes, dtype=float) if slopes is not None else None
+        if g is None or g.shape != xy.shape or not np.all(np.isfinite(g)):
+            raise WaiInputError(f"to_heightfield: {method} needs finite slopes of shape (K, 2)")
     gx, gy = _grid_axes(xy, spacing_mm)
     try:
         tri = Delaunay(xy)
     except QhullError:
         raise WaiInputError("to_heightfield: samples are collinear (no area to grid)") from None
-    if method == "clough_tocher":
-        nodes = np.stack(np.meshgrid(gx, gy), axis=-1)
-        z = CloughTocher2DInterpolator(tri, h)(nodes)
-        return Heightfield(gx, gy, z)
-    g = np.asarray(slopes, dtype=float) if slopes is not None else None
-    if g is None or g.shape != xy.shape or not np.all(np.isfinite(g)):
-        raise WaiInputError(f"to_heightfield: {method} needs finite slopes of shape (K, 2)")
+    simplices = gap_free_triangles(tri, max_edge_ratio)
+    node, t, lam = _locate_nodes(xy[simplices], gx, gy)
+    nodes = np.column_stack([gx[node % gx.size], gy[node // gx.size]])
+    z = np.full(gy.size * gx.size, np.nan)
     if method == "tangent_blend":
-        return Heightfield(gx, gy, _tangent_blend_grid(tri, h, g, gx, gy))
-    z = _hermite_spline_grid(xy, h, g, gx, gy)
-    inside = np.zeros(z.size, dtype=bool)
-    inside[_locate_nodes(tri.points[tri.simplices], gx, gy)[0]] = True
-    z[~inside.reshape(z.shape)] = np.nan
-    return Heightfield(gx, gy, z)
+        z[node] = _tangent_blend(xy, h, g, simplices[t], nodes, lam)
+    elif method == "clough_tocher":
+        z[node] = CloughTocher2DInterpolator(tri, h)(nodes)
+    else:
+        z[node] = _hermite_spline_grid(xy, h, g, gx, gy).ravel()[node]
+    return Heightfield(gx, gy, z.reshape(gy.size, gx.size))

@@ -9,8 +9,9 @@ through a given surface. It is solved by Newton's method over all targets at onc
 the surface point ``q = (x, y)`` where the ray crosses the water rather than the pixel itself:
 for a candidate ``q`` the ray from the camera centre to ``(x, y, h(x, y))`` and the normal there are
 explicit, so each Newton step needs one surface evaluation instead of a nested ray-surface
-intersection; the pixel is the projection of ``q``. The Jacobian is a forward finite difference of
-the forward map in ``q``.
+intersection; the pixel is the projection of ``q``. Newton drives the angle between the refracted
+ray and the direction to the target to zero (:func:`_residual`); its Jacobian is a forward finite
+difference in ``q``.
 
 Restoration (:func:`restore_view`): the ground-truth view is camera v through *flat* water. For each
 truth pixel ``p`` the target ``P`` is the flat-water forward map of ``p``; the distorted image
@@ -46,7 +47,9 @@ DEFAULT_TOL_PX = 1e-3
 #: Finite-difference step of the Jacobian, mm on the water surface.
 _FD_STEP_MM = 1e-4
 #: Step halvings tried when a Newton step leaves the surface or hits TIR.
-_MAX_HALVINGS = 5
+_MAX_HALVINGS = 4
+#: Pulls of a TIR start towards the nadir, and the factor of each.
+_MAX_PULLS, _PULL = 8, 0.97
 
 
 class RayStatus(IntEnum):
@@ -221,12 +224,12 @@ def _powers(s: Array) -> Array:
 
 
 class _SplinePatches:
-    """Fast evaluation of a :class:`Heightfield`'s bicubic spline with its slopes.
+    """Fast evaluation of a :class:`Heightfield`'s bicubic spline with its derivatives.
 
     The spline is ``sum_jl c[j, l] B_j(y) B_l(x)``; on a knot interval the four active B-splines
     are cubics whose power-basis coefficients are tabulated once per grid. A point then needs
-    its 4 x 4 block of ``c`` and a few small products, several times faster than FITPACK point
-    evaluation (which would dominate the solver), and gives the second derivatives that the
+    its 4 x 4 block of ``c`` and a few 4 x 4 products: several times faster than FITPACK point
+    evaluation (which would dominate the solver), and it gives the second derivatives that the
     Jacobian needs in the same pass. Values equal ``Heightfield.height`` to rounding.
     """
 
@@ -258,9 +261,18 @@ class _SplinePatches:
         pv = _powers((y - self.y0[iy]) / wy)
         by = pv @ self.qy[iy]  # B-spline values and derivatives along y, (N, 3, 4)
         bx = self.qxt[ix] @ pu.transpose(0, 2, 1)  # along x, (N, 4, 3)
-        m = by @ self.blocks[iy, ix] @ bx  # m[n, i, j] = d^i/dv^i d^j/du^j of h
-        out = np.stack([m[:, 0, 0], m[:, 0, 1] / wx, m[:, 1, 0] / wy, m[:, 0, 2] / wx**2,
-                        m[:, 1, 1] / (wx * wy), m[:, 2, 0] / wy**2], axis=-1)
+        m = by @ self.blocks[iy, ix] @ bx  # m[n, i, j]: d^i/dv^i d^j/du^j of h
+        out = np.stack(
+            [
+                m[:, 0, 0],
+                m[:, 0, 1] / wx,
+                m[:, 1, 0] / wy,
+                m[:, 0, 2] / wx**2,
+                m[:, 1, 1] / (wx * wy),
+                m[:, 2, 0] / wy**2,
+            ],
+            axis=-1,
+        )
         out[~self.surface.contains(x, y)] = np.nan
         return out
 
@@ -283,19 +295,17 @@ class _Optics:
     z_object: float
 
 
-def _map_from_surface(
+def _air_direction(
     optics: _Optics, x: Array, y: Array, h: Array, hx: Array, hy: Array
 ) -> tuple[Array, Array, Array, BoolArray]:
-    """Object-plane point seen through surface point (x, y, h) with slopes (hx, hy): eq. 18-20.
+    """Unit air direction seen through surface point (x, y, h) with slopes (hx, hy): eq. 18-20.
 
     Component-wise (1-D arrays, N points) because this is the solver's inner loop.
 
     Returns
     -------
-    px, py : (N,) ndarray
-        Object-plane x and y, mm; NaN or meaningless where not ``reached``.
-    lam : (N,) ndarray
-        Air path length to the object plane, mm (positive where reached).
+    tx, ty, tz : (N,) ndarray
+        The refracted (air) ray direction; meaningless where ``tir``.
     tir : (N,) ndarray of bool
         Total internal reflection.
     """
@@ -310,55 +320,83 @@ def _map_from_surface(
     k = 1.0 - n * n * (1.0 - cos * cos)
     # Vector Snell (eq. 20) with the normal turned against the ray, whichever side it hits.
     g = np.sign(cos) * (n * np.abs(cos) - np.sqrt(np.maximum(k, 0.0)))
-    tx, ty, tz = n * vx - g * mx, n * vy - g * my, n * vz - g * mz
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (optics.z_object - h) / tz
-    return x + lam * tx, y + lam * ty, lam, k < 0
+    return n * vx - g * mx, n * vy - g * my, n * vz - g * mz, k < 0
 
 
-def _status(h: Array, lam: Array, tir: BoolArray, px: Array, py: Array) -> NDArray[np.int8]:
-    """RayStatus of each forward-mapped surface point."""
-    reached = (lam > 0) & np.isfinite(px) & np.isfinite(py)
-    status = np.where(reached, RayStatus.OK, RayStatus.MISSED_OBJECT).astype(np.int8)
+def _residual(
+    optics: _Optics, x: Array, y: Array, jet: tuple[Array, Array, Array], target: Array
+) -> tuple[Array, NDArray[np.int8]]:
+    """How far the air ray through surface point (x, y) misses its target, and a status.
+
+    The miss is measured between directions, not on the object plane: the air direction and the
+    direction from the surface point to the target, both mapped by the stereographic chart
+    ``(t_x, t_y) / (1 + t_z)`` of the upper hemisphere. Object-plane distances grow like
+    ``tan`` towards the edge of Snell's window and make Newton crawl there; the chart stays
+    smooth up to the horizon.
+
+    Returns
+    -------
+    r : (N, 2) ndarray
+        The residual (dimensionless); zero at the solution.
+    status : (N,) ndarray of int8
+        :class:`RayStatus` of the ray through (x, y).
+    """
+    h, hx, hy = jet
+    tx, ty, tz, tir = _air_direction(optics, x, y, h, hx, hy)
+    dx, dy, dz = target[:, 0] - x, target[:, 1] - y, optics.z_object - h
+    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+    dx, dy, dz = dx * inv, dy * inv, dz * inv
+    a, b = 1.0 / (1.0 + tz), 1.0 / (1.0 + dz)
+    r = np.stack([tx * a - dx * b, ty * a - dy * b], axis=-1)
+    status = np.where(tz > 0, RayStatus.OK, RayStatus.MISSED_OBJECT).astype(np.int8)
     status[tir] = RayStatus.TIR
     status[np.isnan(h)] = RayStatus.MISSED_SURFACE
-    return status
+    return r, status
 
 
 @dataclass
-class _State:
-    """Newton state of the targets being solved (all arrays share the first axis, N)."""
+class _Solver:
+    """Newton state of all targets, updated in place (first axis: target, N).
 
-    idx: NDArray[np.intp]  # position in the caller's arrays
+    Rows are gathered and scattered by index rather than compacted, so that a few slow
+    targets do not make every iteration copy the whole state.
+    """
+
+    model: _FlatWater | _SplinePatches
+    optics: _Optics
     target: Array  # (N, 2) object-plane x, y, mm
     q: Array  # (N, 2) surface point x, y, mm
-    jet: Array  # (N, 3) height (mm) and slopes there
-    p: Array  # (N, 2) object-plane point seen there, mm
-    jac: Array  # (N, 2, 2) dp/dq
-    status: NDArray[np.int8]  # (N,) status at q
+    jet: Array  # (N, 3) height (mm) and slopes at q
+    r: Array  # (N, 2) residual at q (see _residual)
+    jac: Array  # (N, 2, 2) dr/dq, 1/mm
+    status: NDArray[np.int8]  # (N,) final status, NOT_CONVERGED while running
 
-    def take(self, keep: BoolArray | NDArray[np.intp]) -> _State:
-        return _State(*(getattr(self, f)[keep] for f in self.__dataclass_fields__))
+    def evaluate(self, rows: NDArray[np.intp], q: Array) -> tuple[Array, Array, Array, NDArray]:
+        """Residual (R, 2), Jacobian (R, 2, 2), jet (R, 3) and status (R,) of ``rows`` moved to
+        surface points ``q`` (R, 2) mm; the Jacobian by forward differences, with the height and
+        slopes at the shifted points taken from the second derivatives at ``q`` (their error,
+        O(step^2), is far below the difference's own)."""
+        x, y = q[:, 0], q[:, 1]
+        j = self.model.jet(x, y)
+        h, hx, hy, hxx, hxy, hyy = j.T
+        d = _FD_STEP_MM
+        # Base point and its two shifts in one call.
+        r3, status3 = _residual(
+            self.optics,
+            np.concatenate([x, x + d, x]),
+            np.concatenate([y, y, y + d]),
+            (
+                np.concatenate([h, h + d * hx, h + d * hy]),
+                np.concatenate([hx, hx + d * hxx, hx + d * hxy]),
+                np.concatenate([hy, hy + d * hxy, hy + d * hyy]),
+            ),
+            np.tile(self.target[rows], (3, 1)),
+        )
+        r, rx, ry = np.split(r3, 3)
+        return r, np.stack([rx - r, ry - r], axis=-1) / d, j[:, :3], status3[: rows.size]
 
-
-def _evaluate(
-    model: _FlatWater | _SplinePatches, optics: _Optics, idx: NDArray, target: Array, q: Array
-) -> _State:
-    """Forward map at surface points ``q`` (N, 2) mm and its Jacobian by forward differences.
-
-    The height and slopes at the shifted points come from the second derivatives at ``q``
-    (their error, O(step^2), is far below the difference's own).
-    """
-    x, y = q[:, 0], q[:, 1]
-    j = model.jet(x, y)
-    h, hx, hy, hxx, hxy, hyy = j.T
-    px, py, lam, tir = _map_from_surface(optics, x, y, h, hx, hy)
-    d = _FD_STEP_MM
-    ax, ay, _, _ = _map_from_surface(optics, x + d, y, h + d * hx, hx + d * hxx, hy + d * hxy)
-    bx, by, _, _ = _map_from_surface(optics, x, y + d, h + d * hy, hx + d * hxy, hy + d * hyy)
-    jac = np.stack([np.stack([ax - px, bx - px], -1), np.stack([ay - py, by - py], -1)], 1) / d
-    return _State(idx, target, q, j[:, :3], np.stack([px, py], -1), jac,
-                  _status(h, lam, tir, px, py))
+    def store(self, rows: NDArray[np.intp], q: Array, r: Array, jac: Array, jet: Array) -> None:
+        self.q[rows], self.r[rows], self.jac[rows], self.jet[rows] = q, r, jac, jet
 
 
 def _newton_step(jac: Array, resid: Array) -> Array:
@@ -378,29 +416,70 @@ def _project(camera: PinholeCamera, q: Array, h: Array) -> Array:
     return np.stack([cols, rows], axis=-1)
 
 
-def _damped_move(
-    model: _FlatWater | _SplinePatches, optics: _Optics, st: _State, step: Array
-) -> tuple[_State, NDArray[np.int8]]:
-    """Take Newton steps (N, 2) mm, halving those that leave the surface or hit TIR.
+def _first_ok(ok: BoolArray) -> tuple[NDArray[np.intp], BoolArray]:
+    """For a (K, R) table of tries, the first good try of each column and whether there is one."""
+    return np.argmax(ok, axis=0), ok.any(axis=0)
 
-    Returns the moved state (rows that could not move keep their old values) and the status of
-    each row's last try (OK where it moved).
+
+def _start(solver: _Solver) -> NDArray[np.intp]:
+    """First evaluation; starts beyond the edge of Snell's window are pulled towards the nadir.
+
+    A start just past the window's edge (TIR, or an air ray below the horizon) is common for
+    targets near it; moving it towards the point above the camera lowers the incidence angle
+    until the ray gets out. All pulls are tried in one batch and the mildest that works is kept.
+    Returns the rows that start well; the others keep the status of their first try.
     """
-    new = st.take(np.arange(st.idx.size))
-    tried = np.full(st.idx.size, RayStatus.NOT_CONVERGED, dtype=np.int8)
-    pending = np.all(np.isfinite(step), axis=1)
-    for _ in range(_MAX_HALVINGS + 1):
-        sel = np.flatnonzero(pending)
-        if not sel.size:
-            break
-        trial = _evaluate(model, optics, st.idx[sel], st.target[sel], st.q[sel] + step[sel])
-        tried[sel] = trial.status
-        good = trial.status == RayStatus.OK
-        for f in ("q", "jet", "p", "jac", "status"):
-            getattr(new, f)[sel[good]] = getattr(trial, f)[good]
-        pending[sel[good]] = False
-        step[sel[~good]] *= 0.5
-    return new, tried
+    rows = np.arange(solver.q.shape[0])
+    r, jac, jet, status = solver.evaluate(rows, solver.q)
+    solver.store(rows, solver.q, r, jac, jet)
+    solver.status[:] = status
+    out = np.flatnonzero((status == RayStatus.TIR) | (status == RayStatus.MISSED_OBJECT))
+    if out.size:
+        nadir = solver.optics.center[:2]
+        pull = _PULL ** np.arange(1, _MAX_PULLS + 1)
+        q = (nadir + pull[:, None, None] * (solver.q[out] - nadir)).reshape(-1, 2)
+        tries = np.tile(out, pull.size)
+        r, jac, jet, status = solver.evaluate(tries, q)
+        k, found = _first_ok((status == RayStatus.OK).reshape(pull.size, out.size))
+        pick = k[found] * out.size + np.flatnonzero(found)
+        solver.store(out[found], q[pick], r[pick], jac[pick], jet[pick])
+        solver.status[out[found]] = RayStatus.OK
+    started = np.flatnonzero(solver.status == RayStatus.OK)
+    solver.status[started] = RayStatus.NOT_CONVERGED
+    return started
+
+
+def _damped_move(solver: _Solver, rows: NDArray[np.intp], step: Array) -> NDArray[np.intp]:
+    """Take Newton steps (R, 2) mm where they reduce the residual, else the longest of the
+    steps halved up to four times that does.
+
+    A step must land on the known surface, without TIR, and shrink ``|r|``; the Newton direction
+    always does so when short enough, unless the target is out of reach (beyond the wavy
+    window's edge): such rows stop instead of wandering, with the status of their last try.
+    The halved steps are tried in one batch. Returns the rows that moved.
+    """
+    finite = np.all(np.isfinite(step), axis=1)
+    solver.status[rows[~finite]] = RayStatus.NOT_CONVERGED
+    rows, step = rows[finite], step[finite]
+    r2 = np.sum(solver.r[rows] ** 2, axis=1)
+    q = solver.q[rows] + step
+    r, jac, jet, status = solver.evaluate(rows, q)
+    good = (status == RayStatus.OK) & (np.sum(r**2, axis=1) < r2)
+    solver.store(rows[good], q[good], r[good], jac[good], jet[good])
+    bad = np.flatnonzero(~good)
+    if not bad.size:
+        return rows
+    frac = 0.5 ** np.arange(1, _MAX_HALVINGS + 1)
+    qb = (solver.q[rows[bad]] + frac[:, None, None] * step[bad]).reshape(-1, 2)
+    rb, jb, jetb, sb = solver.evaluate(np.tile(rows[bad], frac.size), qb)
+    ok = (sb == RayStatus.OK) & (np.sum(rb**2, axis=1) < np.tile(r2[bad], frac.size))
+    k, found = _first_ok(ok.reshape(frac.size, bad.size))
+    pick = k[found] * bad.size + np.flatnonzero(found)
+    solver.store(rows[bad[found]], qb[pick], rb[pick], jb[pick], jetb[pick])
+    # Rows that found no step stop, with the failure of their shortest try.
+    last = sb[(frac.size - 1) * bad.size :][~found]
+    solver.status[rows[bad[~found]]] = np.where(last == RayStatus.OK, RayStatus.NOT_CONVERGED, last)
+    return np.concatenate([rows[good], rows[bad[found]]])
 
 
 def _newton(
@@ -417,32 +496,35 @@ def _newton(
     Returns pixels (N, 2), status (N,), surface points (N, 3) mm and the iterations run.
     """
     n = targets.shape[0]
+    solver = _Solver(
+        model,
+        optics,
+        targets,
+        q0.copy(),
+        np.full((n, 3), np.nan),
+        np.full((n, 2), np.nan),
+        np.full((n, 2, 2), np.nan),
+        np.full(n, RayStatus.NOT_CONVERGED, dtype=np.int8),
+    )
     px_out = np.full((n, 2), np.nan)
     q_out = np.full((n, 3), np.nan)
-    st = _evaluate(model, optics, np.arange(n), targets, q0)
-    status_out = np.where(st.status == RayStatus.OK, RayStatus.NOT_CONVERGED, st.status)
-    status_out = status_out.astype(np.int8)
-    st = st.take(st.status == RayStatus.OK)
+    rows = _start(solver)
     count = 0
-    while st.idx.size and count < max_iter:
+    while rows.size and count < max_iter:
         count += 1
-        step = _newton_step(st.jac, st.p - st.target)
+        step = _newton_step(solver.jac[rows], solver.r[rows])
         # Where the step is below tolerance, take it on the surface's tangent plane without a
         # new evaluation: what remains after it is second order.
-        q_next = st.q + step
-        h_next = st.jet[:, 0] + np.sum(st.jet[:, 1:] * step, axis=1)
+        q, jet = solver.q[rows], solver.jet[rows]
+        q_next = q + step
+        h_next = jet[:, 0] + np.sum(jet[:, 1:] * step, axis=1)
         px_next = _project(camera, q_next, h_next)
-        moved_px = np.linalg.norm(px_next - _project(camera, st.q, st.jet[:, 0]), axis=1)
-        done = moved_px < tol_px
-        status_out[st.idx[done]] = RayStatus.OK
-        px_out[st.idx[done]] = px_next[done]
-        q_out[st.idx[done]] = np.column_stack([q_next[done], h_next[done]])
-        st, step = st.take(~done), step[~done]
-        st, tried = _damped_move(model, optics, st, step)
-        moved = tried == RayStatus.OK
-        status_out[st.idx[~moved]] = tried[~moved]
-        st = st.take(moved)
-    return px_out, status_out, q_out, count
+        done = np.linalg.norm(px_next - _project(camera, q, jet[:, 0]), axis=1) < tol_px
+        solver.status[rows[done]] = RayStatus.OK
+        px_out[rows[done]] = px_next[done]
+        q_out[rows[done]] = np.column_stack([q_next[done], h_next[done]])
+        rows = _damped_move(solver, rows[~done], step[~done])
+    return px_out, solver.status, q_out, count
 
 
 @dataclass(frozen=True)
@@ -494,10 +576,12 @@ def solve_pixels(
     """Inverse map with per-target status: which pixel sees each object point through ``surface``.
 
     Newton's method on the surface crossing point ``q = (x, y)`` mm (see the module docstring),
-    started where the ray of ``init_px`` meets the plane ``z = h0``. Failing steps (off the known
-    surface, TIR) are halved up to five times. A target converges when its pixel moves less than
-    ``tol_px`` in one step. Where the forward map folds (caustics) several pixels see one target;
-    the one reached from ``init_px`` is returned.
+    started where the ray of ``init_px`` meets the plane ``z = h0``. Steps that leave the known
+    surface, hit TIR or do not reduce the residual are halved up to four times. A target
+    converges when its pixel moves less than ``tol_px`` in one step. Where the forward map folds
+    (caustics) several pixels see one target; the one reached from ``init_px`` is returned.
+    Starts beyond the edge of Snell's window are first pulled towards the nadir, and starts off
+    a partly known surface are replaced by the flat-water answer.
 
     Parameters
     ----------
@@ -522,6 +606,8 @@ def solve_pixels(
     PixelSolution
     """
     _check_system(h0_mm, n_water, z_object_mm)
+    if not (tol_px > 0 and max_iter >= 1):
+        raise WaiInputError("find_pixels: tol_px must be positive and max_iter at least 1")
     tgt = np.asarray(targets_xyz, dtype=float)
     if tgt.ndim < 1 or tgt.shape[-1] != 3:
         raise WaiInputError(f"find_pixels: targets must have shape (..., 3), got {tgt.shape}")
@@ -537,22 +623,48 @@ def solve_pixels(
         raise WaiInputError("find_pixels: targets must lie on the object plane z = z_object_mm")
     shape = tgt.shape[:-1]
     t2, p0 = tgt.reshape(-1, 3)[:, :2], init.reshape(-1, 2)
-    good = np.all(np.isfinite(t2), axis=1) & np.all(np.isfinite(p0), axis=1)
     px = np.full(t2.shape, np.nan)
     q = np.full((t2.shape[0], 3), np.nan)
     status = np.full(t2.shape[0], RayStatus.MISSED_OBJECT, dtype=np.int8)
     optics = _Optics(camera.pose.center_lab_mm, float(n_water), float(z_object_mm))
+    q0 = _flat_hits(camera, p0, h0_mm)
+    sel = np.flatnonzero(np.all(np.isfinite(t2), axis=1) & np.all(np.isfinite(p0), axis=1))
+    status[sel] = RayStatus.MISSED_SURFACE  # the initial pixel's ray never reaches the water
+    sel = sel[np.all(np.isfinite(q0[sel]), axis=1)]
+    if surface is not None:
+        q0[sel] = _start_on_surface(camera, surface, optics, h0_mm, t2[sel], q0[sel], max_iter)
     model = _surface_model(surface, h0_mm)
-    q0 = _flat_hits(camera, p0[good], h0_mm)
-    start_ok = np.all(np.isfinite(q0), axis=1)
-    sel = np.flatnonzero(good)
-    status[sel[~start_ok]] = RayStatus.MISSED_SURFACE
-    sel = sel[start_ok]
     px[sel], status[sel], q[sel], iters = _newton(
-        camera, model, optics, t2[sel], q0[start_ok], tol_px, max_iter
+        camera, model, optics, t2[sel], q0[sel], tol_px, max_iter
     )
-    return PixelSolution(px.reshape(shape + (2,)), status.reshape(shape), q.reshape(shape + (3,)),
-                         iters)
+    return PixelSolution(
+        px.reshape(shape + (2,)), status.reshape(shape), q.reshape(shape + (3,)), iters
+    )
+
+
+def _start_on_surface(
+    camera: PinholeCamera,
+    surface: Heightfield,
+    optics: _Optics,
+    h0_mm: float,
+    targets: Array,
+    q0: Array,
+    max_iter: int,
+) -> Array:
+    """Starts (N, 2) mm moved onto the known surface where they are off it.
+
+    A start off a partly known surface would fail at once although the answer may lie on it;
+    the flat-water answer is a close guess (waves move it by a few mm).
+    """
+    off = np.flatnonzero(~surface.contains(q0[:, 0], q0[:, 1]))
+    if off.size:
+        _, _, q_flat, _ = _newton(
+            camera, _FlatWater(h0_mm), optics, targets[off], q0[off], DEFAULT_TOL_PX, max_iter
+        )
+        found = np.all(np.isfinite(q_flat), axis=1)
+        q0 = q0.copy()
+        q0[off[found]] = q_flat[found, :2]
+    return q0
 
 
 def find_pixels(
@@ -593,31 +705,40 @@ class Restoration:
     Attributes
     ----------
     image : (H, W[, C]) ndarray
-        Restored image, same dtype as the input; 0 where not valid.
+        Restored image, float32 or float64 like the input; 0 where not valid.
     valid : (H, W) ndarray of bool
         True where the pixel was restored.
-    warp_px : (H, W, 2) ndarray of float32
-        Pixel ``(col, row)`` of the distorted image sampled for each truth pixel; NaN where not
-        valid.
+    map_px : (H, W, 2) ndarray of float32
+        Pixel ``(col, row)`` of the distorted image sampled for each truth pixel (the warp);
+        meaningless where not valid (see :attr:`warp_px`).
     counts : dict of str to int
-        Pixels per :class:`RayStatus` name (they sum to H W): ``tir`` (totally reflected in the
-        truth view, or no ray through the estimated surface reaches the target),
-        ``missed_surface`` (the estimated surface is unknown there), ``out_of_view`` (the target
-        is seen outside the distorted image), ``not_converged``, ``missed_object``, ``ok``.
+        Pixels per :class:`RayStatus` name (they sum to H W): ``ok``; ``tir`` (totally
+        reflected in the truth view, or no ray through the estimated surface reaches the
+        target); ``missed_surface`` (the estimated surface is unknown there); ``out_of_view``
+        (the target is seen outside the distorted image); ``not_converged``; ``missed_object``.
+        A pixel takes the cause of the worst of the four warp nodes around it.
     timings_ms : dict of str to float
-        Wall times of the stages, ms: ``plan`` (geometry of the truth view; cached between
-        calls), ``surface`` (spline to cell polynomials), ``solve`` (coarse warp), ``upsample``,
-        ``remap``, ``total``.
+        Wall times of the stages, ms: ``plan`` (geometry of the truth view, cached between
+        calls), ``surface`` (spline tables), ``solve`` (warp on the coarse grid), ``upsample``,
+        ``remap`` and ``total``.
     step_px : int
         Spacing of the coarse warp grid, pixels.
     """
 
     image: NDArray
     valid: BoolArray
-    warp_px: NDArray[np.float32]
+    map_px: NDArray[np.float32]
     counts: dict[str, int]
     timings_ms: dict[str, float]
     step_px: int
+
+    @property
+    def warp_px(self) -> NDArray[np.float32]:
+        """The warp as (H, W, 2) ``(col, row)`` pixels of the distorted image; NaN where not
+        valid."""
+        warp = self.map_px.copy()
+        warp[~self.valid] = np.nan
+        return warp
 
 
 @dataclass(frozen=True)
@@ -628,9 +749,11 @@ class _Plan:
     node_px: Array  # (K, 2) truth pixel of each node that sees the object plane
     node_index: NDArray[np.intp]  # (K,) flat index of those nodes in the coarse grid
     targets: Array  # (K, 3) their object points, mm
+    node_q0: Array  # (K, 2) where their rays cross flat water, mm: Newton's start
     truth_status: NDArray[np.int8]  # (rows, cols) status of every node in the truth view
-    base_cols: NDArray[np.float32]  # (H, W) column of every pixel
-    base_rows: NDArray[np.float32]  # (H, W) row of every pixel
+    base_px: NDArray[np.float32]  # (H, W, 2) (col, row) of every pixel
+    node_coords: NDArray[np.float32]  # (H, W, 2) the same in node units: (col, row) / step
+    cell_area: NDArray[np.float64]  # (rows - 1, cols - 1) pixels in each coarse cell
 
 
 _PLANS: dict[tuple, _Plan] = {}
@@ -638,8 +761,18 @@ _PLANS: dict[tuple, _Plan] = {}
 
 def _plan_key(camera: PinholeCamera, h0: float, n: float, z: float, step: int) -> tuple:
     pose = camera.pose
-    return (camera.width_px, camera.height_px, camera.focal_mm, camera.pixel_pitch_mm,
-            pose.R.tobytes(), pose.t_mm.tobytes(), float(h0), float(n), float(z), int(step))
+    return (
+        camera.width_px,
+        camera.height_px,
+        camera.focal_mm,
+        camera.pixel_pitch_mm,
+        pose.R.tobytes(),
+        pose.t_mm.tobytes(),
+        float(h0),
+        float(n),
+        float(z),
+        int(step),
+    )
 
 
 def _make_plan(camera: PinholeCamera, h0: float, n: float, z: float, step: int) -> _Plan:
@@ -652,22 +785,41 @@ def _make_plan(camera: PinholeCamera, h0: float, n: float, z: float, step: int) 
     truth = trace_to_object(camera, None, h0, n, z, cols, rows)
     ok = truth.ok.ravel()
     node_px = np.column_stack([cols.ravel(), rows.ravel()])[ok]
-    base_cols, base_rows = np.meshgrid(np.arange(w, dtype=np.float32),
-                                       np.arange(h, dtype=np.float32))
-    return _Plan((nrow, ncol), node_px, np.flatnonzero(ok), truth.object_mm.reshape(-1, 3)[ok],
-                 truth.status, base_cols, base_rows)
+    base = np.stack(
+        np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)), axis=-1
+    )
+    return _Plan(
+        (nrow, ncol),
+        node_px,
+        np.flatnonzero(ok),
+        truth.object_mm.reshape(-1, 3)[ok],
+        truth.surface_mm.reshape(-1, 3)[ok, :2],
+        truth.status,
+        base,
+        base / np.float32(step),
+        np.outer(_cell_sizes(h, nrow, step), _cell_sizes(w, ncol, step)),
+    )
+
+
+def _cell_sizes(n_px: int, n_nodes: int, step: int) -> NDArray[np.float64]:
+    """Pixels in each of the ``n_nodes - 1`` cells along an axis of ``n_px`` pixels: ``step``
+    each, the rest in the last (it also holds a last pixel lying exactly on the last node)."""
+    sizes = np.full(n_nodes - 1, float(step))
+    sizes[-1] = n_px - step * (n_nodes - 2)
+    return sizes
 
 
 def _plan(camera: PinholeCamera, h0: float, n: float, z: float, step: int) -> _Plan:
     key = _plan_key(camera, h0, n, z, step)
     if key not in _PLANS:
-        if len(_PLANS) >= 8:
+        if len(_PLANS) >= 4:
             _PLANS.clear()
         _PLANS[key] = _make_plan(camera, h0, n, z, step)
     return _PLANS[key]
 
 
 def _check_image(distorted: NDArray, camera: PinholeCamera) -> NDArray:
+    """The image as float32 or float64, after checking its shape and values."""
     img = np.asarray(distorted)
     if img.ndim not in (2, 3) or img.shape[:2] != (camera.height_px, camera.width_px):
         raise WaiInputError(
@@ -678,16 +830,27 @@ def _check_image(distorted: NDArray, camera: PinholeCamera) -> NDArray:
         raise WaiInputError(f"restore_view: image must be floating point, got {img.dtype}")
     if img.ndim == 3 and not 1 <= img.shape[2] <= 4:
         raise WaiInputError(f"restore_view: image must have 1 to 4 channels, got {img.shape[2]}")
-    if not np.all(np.isfinite(img)):
+    if img.dtype not in (np.float32, np.float64):
+        img = img.astype(np.float32)
+    img = np.ascontiguousarray(img)
+    if not cv2.checkRange(img)[0]:  # NaN or inf, without a full-size temporary
         raise WaiInputError("restore_view: image holds NaN or inf")
     return img
 
 
 # Which status a cell of four nodes reports when some are invalid (most fundamental first).
 _PRIORITY = np.array([0, 4, 5, 3, 2, 1], dtype=np.int8)  # rank of each RayStatus code
-_BY_RANK = np.array([RayStatus.OK, RayStatus.OUT_OF_VIEW, RayStatus.NOT_CONVERGED,
-                     RayStatus.MISSED_OBJECT, RayStatus.MISSED_SURFACE, RayStatus.TIR],
-                    dtype=np.int8)
+_BY_RANK = np.array(
+    [
+        RayStatus.OK,
+        RayStatus.OUT_OF_VIEW,
+        RayStatus.NOT_CONVERGED,
+        RayStatus.MISSED_OBJECT,
+        RayStatus.MISSED_SURFACE,
+        RayStatus.TIR,
+    ],
+    dtype=np.int8,
+)
 
 
 def _cell_status(node_status: NDArray[np.int8]) -> NDArray[np.int8]:
@@ -697,18 +860,50 @@ def _cell_status(node_status: NDArray[np.int8]) -> NDArray[np.int8]:
     return _BY_RANK[worst]
 
 
-def _upsample(
-    disp: NDArray[np.float32], cell: NDArray[np.int8], step: int, shape: tuple[int, int]
+def _node_warp(
+    plan: _Plan, px: Array, status: NDArray[np.int8]
 ) -> tuple[NDArray[np.float32], NDArray[np.int8]]:
-    """Bilinear displacement (H, W, 2) from nodes every ``step`` px; cell status per pixel."""
-    h, w = shape
-    scale = np.array([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
-    # Pixel (c, r) reads node coordinates (c/step, r/step): exact for steps dividing 32
-    # (OpenCV interpolates at 1/32 of a source cell).
-    full = cv2.warpAffine(disp, scale, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_REPLICATE)
-    status = np.repeat(np.repeat(cell, step, axis=0), step, axis=1)[:h, :w]
-    return full, status
+    """Displacement ``u - p`` (rows, cols, 2) px at the coarse nodes (0 where unsolved) and the
+    status of every node (the truth view's where it sees no object)."""
+    node_status = plan.truth_status.copy().ravel()
+    node_status[plan.node_index] = status
+    disp = np.zeros(plan.grid_shape + (2,), dtype=np.float32)
+    solved = status == RayStatus.OK
+    disp.reshape(-1, 2)[plan.node_index[solved]] = px[solved] - plan.node_px[solved]
+    return disp, node_status.reshape(plan.grid_shape)
+
+
+def _pixel_warp(
+    plan: _Plan, disp: NDArray[np.float32], node_status: NDArray[np.int8], step: int
+) -> tuple[NDArray[np.float32], BoolArray, dict[str, int]]:
+    """Full-resolution sampling positions (H, W, 2), validity (H, W) and counts per cause.
+
+    A pixel is valid when the four nodes of its cell were solved and its sampling position
+    lies inside the distorted image.
+    """
+    h, w = plan.base_px.shape[:2]
+    # Displacements, not positions, are interpolated: they vary slowly, so OpenCV's rounding of
+    # the read position (to 1/32 of a cell; none for steps dividing 32) costs far less than a px.
+    disp_full = cv2.remap(
+        disp, plan.node_coords, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+    maps = plan.base_px + disp_full
+    cell = _cell_status(node_status)
+    cell_ok = np.repeat(np.repeat((cell == RayStatus.OK).view(np.uint8), step, 0), step, 1)
+    # A last pixel lying exactly on the last node belongs to the cell before it.
+    cell_ok = np.pad(
+        cell_ok[:h, :w],
+        ((0, max(0, h - cell_ok.shape[0])), (0, max(0, w - cell_ok.shape[1]))),
+        mode="edge",
+    )
+    inside = cv2.inRange(maps, (-0.5, -0.5), (w - 0.5, h - 0.5))  # 255 inside, as in_image
+    valid = cv2.bitwise_and(inside, cell_ok * np.uint8(255)) > 0
+    hist = np.bincount(cell.ravel(), weights=plan.cell_area.ravel(), minlength=len(RayStatus))
+    counts = {s.name.lower(): int(round(hist[s])) for s in RayStatus}
+    n_valid = int(np.count_nonzero(valid))
+    counts["out_of_view"] += counts["ok"] - n_valid
+    counts["ok"] = n_valid
+    return maps, valid, counts
 
 
 def restore_view(
@@ -750,8 +945,9 @@ def restore_view(
     t_start = time.perf_counter()
     img = _check_image(distorted, camera)
     if isinstance(warp_step_px, bool) or int(warp_step_px) != warp_step_px or warp_step_px < 1:
-        raise WaiInputError(f"restore_view: warp_step_px must be a positive integer, got "
-                            f"{warp_step_px!r}")
+        raise WaiInputError(
+            f"restore_view: warp_step_px must be a positive integer, got {warp_step_px!r}"
+        )
     step = int(warp_step_px)
     _check_system(h0_mm, n_water, z_object_mm)
     t = {"plan": time.perf_counter()}
@@ -760,31 +956,24 @@ def restore_view(
     model = _surface_model(surface_est, h0_mm)
     optics = _Optics(camera.pose.center_lab_mm, float(n_water), float(z_object_mm))
     t["solve"] = time.perf_counter()
-    px, st, _, _ = _newton(camera, model, optics, plan.targets[:, :2],
-                               _flat_hits(camera, plan.node_px, h0_mm), DEFAULT_TOL_PX, 12)
-    node_status = plan.truth_status.copy().ravel()
-    node_status[plan.node_index] = st
-    node_status = node_status.reshape(plan.grid_shape)
-    disp = np.zeros(plan.grid_shape + (2,), dtype=np.float32)
-    solved = st == RayStatus.OK
-    disp.reshape(-1, 2)[plan.node_index[solved]] = px[solved] - plan.node_px[solved]
+    px, st, _, _ = _newton(
+        camera,
+        model,
+        optics,
+        plan.targets[:, :2],
+        plan.node_q0,
+        DEFAULT_TOL_PX,
+        12,
+    )
     t["upsample"] = time.perf_counter()
-    shape = (camera.height_px, camera.width_px)
-    full, status = _upsample(disp, _cell_status(node_status), step, shape)
-    map_c = plan.base_cols + full[..., 0]
-    map_r = plan.base_rows + full[..., 1]
-    inside = camera.in_image(map_c, map_r)
-    status = np.where((status == RayStatus.OK) & ~inside, np.int8(RayStatus.OUT_OF_VIEW), status)
-    valid = status == RayStatus.OK
+    maps, valid, counts = _pixel_warp(plan, *_node_warp(plan, px, st), step)
     t["remap"] = time.perf_counter()
     # Half-pixel border: replicate rather than blend with black.
-    out = cv2.remap(img, map_c, map_r, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    out = out.reshape(img.shape)
-    out[~valid] = 0
-    warp = np.stack([map_c, map_r], axis=-1)
-    warp[~valid] = np.nan
+    sampled = cv2.remap(img, maps, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    out = np.zeros(img.shape, dtype=img.dtype)
+    cv2.copyTo(sampled.reshape(img.shape), valid.view(np.uint8), out)
     t["end"] = time.perf_counter()
     names = list(t)
     timings = {a: 1e3 * (t[b] - t[a]) for a, b in zip(names[:-1], names[1:], strict=True)}
     timings["total"] = 1e3 * (t["end"] - t_start)
-    return Restoration(out, valid, warp, status_counts(status), timings, step)
+    return Restoration(out, valid, maps, counts, timings, step)

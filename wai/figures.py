@@ -55,3 +55,46 @@ def side_by_side(
         ax.set_title(title)
         ax.set_axis_off()
     _save(fig, path)
+
+
+def error_map_figure(est: Heightfield, error_mm: NDArray, path: str | Path) -> None:
+    """Absolute height error over the reconstructed region (the paper's Fig. 12)."""
+    fig, ax = plt.subplots(figsize=(6, 5))
+    im = ax.pcolormesh(est.x, est.y, np.abs(error_mm), cmap="magma", shading="auto")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    fig.colorbar(im, ax=ax, label="|z_est − z_true| (mm)")
+    ax.set_title("Absolute error of the reconstructed surface")
+    _save(fig, path)
+
+
+def profile_figure(
+    x_mm: NDArray, est_mm: NDArray, true_mm: NDArray, y_mm: float, path: str | Path
+) -> None:
+    """True and reconstructed heights along one line (the paper's Fig. 11f)."""
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    ax.plot(x_mm, true_mm, "r-", label="ground truth")
+    ax.plot(x_mm, est_mm, "b--", label="reconstructed")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("z (mm)")
+    ax.set_title(f"Surface profile at y = {y_mm:.0f} mm")
+    ax.legend()
+    _save(fig, path)
+
+
+def corner_scatter_figure(points_px: dict[str, NDArray], stds: dict[str, float], path) -> None:
+    """Checkerboard corners in the truth, distorted and restored views (the paper's Fig. 15d)."""
+    fig, ax = plt.subplots(figsize=(7, 5.5))
+    style = {"truth": ("r", "o"), "distorted": ("m", "x"), "restored": ("b", "+")}
+    for name, pts in points_px.items():
+        color, marker = style[name]
+        label = name if name == "truth" else f"{name} (STD {stds[name]:.2f} px)"
+        ax.scatter(pts[:, 0], pts[:, 1], c=color, marker=marker, s=22, label=label)
+    ax.invert_yaxis()
+    ax.set_aspect("equal")
+    ax.set_xlabel("column (px)")
+    ax.set_ylabel("row (px)")
+    ax.legend(loc="best")
+    ax.set_title("Checkerboard corners")
+    _save(fig, path)

@@ -234,6 +234,18 @@ def refract(d: ArrayLike, n: ArrayLike, eta: float) -> tuple[Array, NDArray[np.b
     return t, tir
 
 
+def fresnel_reflectance(cos_i: ArrayLike, eta: float) -> Array:
+    """Unpolarised Fresnel reflectance for light inside a medium of relative index ``eta``
+    (``n_incident / n_transmitted``, 4/3 from water to air) at incidence cosine ``cos_i``;
+    1 beyond the critical angle (total internal reflection)."""
+    cos_i = np.clip(np.abs(np.asarray(cos_i, dtype=float)), 0.0, 1.0)
+    sin_t2 = eta**2 * (1.0 - cos_i**2)
+    cos_t = np.sqrt(np.clip(1.0 - sin_t2, 0.0, None))
+    rs = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
+    rp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+    return np.where(sin_t2 >= 1.0, 1.0, 0.5 * (rs**2 + rp**2))
+
+
 def critical_angle_rad(n_water: float) -> float:
     """Critical angle for light leaving water of index ``n_water`` into air, radians."""
     return float(np.arcsin(1.0 / n_water))

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import RectBivariateSpline
 
@@ -140,9 +141,34 @@ class Heightfield:
         p[~valid] = np.nan
         return p, valid
 
+    def to_trimesh(self) -> trimesh.Trimesh:
+        """Triangle mesh through the samples, normals up (counter-clockwise seen from above),
+        with the spline's exact vertex normals; cells touching an unknown sample are left out."""
+        xx, yy = np.meshgrid(self.x, self.y)
+        vertices = np.stack([xx.ravel(), yy.ravel(), self.z.ravel()], axis=1)
+        faces = grid_faces(self.y.size, self.x.size)
+        faces = faces[self._valid.ravel()[faces].all(axis=1)]
+        normals = np.nan_to_num(self.normal(xx.ravel(), yy.ravel()), nan=0.0)
+        normals[~self._valid.ravel()] = (0.0, 0.0, 1.0)
+        return trimesh.Trimesh(
+            vertices=np.nan_to_num(vertices, nan=float(np.nanmean(self.z))),
+            faces=faces,
+            vertex_normals=normals,
+            process=False,
+        )
+
     def save(self, path: str | Path) -> None:
         """Write the ``x``, ``y``, ``z`` arrays to an ``.npz`` file."""
         np.savez_compressed(path, x=self.x, y=self.y, z=self.z)
+
+
+def grid_faces(n_rows: int, n_cols: int) -> NDArray[np.int64]:
+    """Triangles (2 (m-1)(n-1), 3) over a row-major vertex grid, counter-clockwise from above."""
+    idx = np.arange(n_rows * n_cols).reshape(n_rows, n_cols)
+    a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
+    c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    # Rows grow with +y and columns with +x, so (a, b, d) and (a, d, c) turn counter-clockwise.
+    return np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
 
 
 def load_heightfield(path: str | Path) -> Heightfield:

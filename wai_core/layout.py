@@ -1,8 +1,8 @@
 """Geometry derived from the configuration: where things are, not what they are made of.
 
-- The diffuser is a finite horizontal screen: it spans camera s's view of the plane ``z = z_h``,
-  but starts just beyond the projector's direct beam, so it never shadows the projector (the
-  paper's Fig. 9 draws it beside the beam).
+- The diffuser is a finite horizontal screen spanning camera s's view of the plane ``z = z_h``.
+  The projector's upward beam crosses that plane too; the renderer's screen is one-way (see
+  :mod:`mitsuba_wai.diffuser`), as the paper's geometry implicitly assumes.
 - The object plane is a rectangle centred where camera v's optical axis, refracted by flat water,
   meets ``z = z_a``.
 - The observed patch is the part of the flat water that either system looks at; a surface given
@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from wai_core.config import SystemConfig
 from wai_core.geometry import (
     PinholeCamera,
+    fresnel_reflectance,
     intersect_plane_z,
     reflect,
     refract,
@@ -44,22 +45,9 @@ def footprint_on_plane(camera: PinholeCamera, z_mm: float) -> NDArray:
     return np.array([[p[:, 0].min(), p[:, 0].max()], [p[:, 1].min(), p[:, 1].max()]])
 
 
-def diffuser_rect(cfg: SystemConfig, margin_mm: float = 5.0) -> NDArray:
-    """Extent ``[[x0, x1], [y0, y1]]`` of the diffuser, mm.
-
-    Camera s's footprint on ``z = z_h``, with the near edge moved to ``margin_mm`` beyond the
-    farthest point where the projector's direct beam crosses ``z = z_h``.
-    """
-    z_h = cfg.diffuser.z_mm
-    rect = footprint_on_plane(cfg.camera_s.camera(), z_h)
-    beam = cfg.projector.camera()
-    o, d = beam.pixel_rays(*frame_border_px(beam))
-    p, _ = intersect_plane_z(o, d, z_h)
-    beam_x = np.nanmax(p[:, 0])
-    rect[0, 0] = max(rect[0, 0], beam_x + margin_mm)
-    if rect[0, 0] >= rect[0, 1]:
-        raise ValueError("the projector beam covers camera s's whole view of the diffuser")
-    return rect
+def diffuser_rect(cfg: SystemConfig) -> NDArray:
+    """Extent ``[[x0, x1], [y0, y1]]`` of the diffuser, mm: camera s's view of ``z = z_h``."""
+    return footprint_on_plane(cfg.camera_s.camera(), cfg.diffuser.z_mm)
 
 
 def flat_pattern_hits(cfg: SystemConfig) -> tuple[NDArray, NDArray, NDArray]:
@@ -106,6 +94,25 @@ def lit_dots(cfg: SystemConfig, margin_spacings: float = 2.0) -> NDArray[np.bool
 def _grid_side(panel: NDArray) -> int:
     """Dots per grid row (the grid is square, laid out row by row)."""
     return int(round(np.sqrt(panel.shape[0])))
+
+
+def dot_weights(cfg: SystemConfig, max_gain: float = 60.0) -> NDArray:
+    """Brightness (K,) in [0, 1] of each dot on the panel: the paper's "adaptive" pattern.
+
+    Dots that cannot reach the diffuser (:func:`lit_dots`) stay dark. On a dielectric surface
+    the others are weighted by ``1 / R`` (R: Fresnel reflectance at their flat-water incidence,
+    1 under total internal reflection), at most ``max_gain``, so that every spot reaches the
+    diffuser about equally bright and gets about as many photons in the particle tracer.
+    """
+    lit = lit_dots(cfg).astype(float)
+    if cfg.water.surface == "mirror":
+        return lit
+    projector = cfg.projector.camera()
+    _, panel = dot_grid(cfg.pattern, projector)
+    _, d = projector.pixel_rays(panel[:, 0], panel[:, 1])
+    gain = np.minimum(1.0 / fresnel_reflectance(d[:, 2], cfg.water.n_water), max_gain)
+    w = lit * gain
+    return w / w.max()
 
 
 def snell_window_hits(cfg: SystemConfig, step_px: float = 8.0) -> NDArray:

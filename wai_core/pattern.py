@@ -37,22 +37,22 @@ def dot_grid(pattern: PatternConfig, projector: PinholeCamera) -> tuple[NDArray,
 
 
 def pattern_image(
-    pattern: PatternConfig, projector: PinholeCamera, lit: NDArray[np.bool_] | None = None
+    pattern: PatternConfig, projector: PinholeCamera, weights: NDArray | None = None
 ) -> NDArray[np.float32]:
     """Panel image (height, width, 3) in [0, 1]: the dots in ``pattern.color`` on black.
 
     Each dot is a Gaussian of standard deviation ``sigma_px``; dots are far enough apart
-    (``spacing_px > 2 sigma``) that their tails barely overlap. ``lit`` (K,) selects the dots
-    to draw (default: all), in :func:`dot_grid` order.
+    (``spacing_px > 2 sigma``) that their tails barely overlap. ``weights`` (K,) in [0, 1], in
+    :func:`dot_grid` order, scales each dot (0 leaves it dark); default: all at 1.
     """
     _, panel = dot_grid(pattern, projector)
-    if lit is not None:
-        panel = panel[np.asarray(lit, dtype=bool)]
+    w = np.ones(len(panel)) if weights is None else np.asarray(weights, dtype=float)
+    panel, w = panel[w > 0], w[w > 0]
     cols = np.arange(projector.width_px, dtype=np.float64)
     rows = np.arange(projector.height_px, dtype=np.float64)
     s2 = 2.0 * pattern.sigma_px**2
     # Each dot is separable: a column profile times a row profile; sum their outer products.
-    gx = np.exp(-((cols[None, :] - panel[:, :1]) ** 2) / s2)
+    gx = w[:, None] * np.exp(-((cols[None, :] - panel[:, :1]) ** 2) / s2)
     gy = np.exp(-((rows[None, :] - panel[:, 1:]) ** 2) / s2)
     lum = np.clip(gy.T @ gx, 0.0, 1.0)
     return (lum[..., None] * np.asarray(pattern.color, dtype=np.float64)).astype(np.float32)

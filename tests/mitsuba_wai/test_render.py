@@ -31,16 +31,24 @@ def test_view_goes_dark_at_the_edge_of_snells_window(small_cfg, flat_frame):
     assert np.median(lum[inside]) > 0.05
 
 
-def test_flat_pattern_dots_are_on_the_diffuser_side_only(small_cfg, flat_frame):
-    from wai_core.layout import diffuser_rect
+def test_one_way_diffuser_lets_the_beam_through(small_cfg, flat_frame):
+    # Spots whose flat-water path lands where the projector's upward beam crosses the diffuser
+    # plane are still seen: the screen passes light from below and diffuses light from above.
+    from wai_core.geometry import intersect_plane_z
+    from wai_core.layout import flat_pattern_hits
 
+    proj = small_cfg.projector.camera()
+    o, d = proj.pixel_rays(*proj.pixel_grid(20))
+    beam, _ = intersect_plane_z(o, d.reshape(-1, 3), small_cfg.diffuser.z_mm)
+    _, s, seen = flat_pattern_hits(small_cfg)
+    inside_beam = seen & (s[:, 0] < np.nanmax(beam[:, 0]) - 20) & (np.abs(s[:, 1]) < 50)
+    assert inside_beam.sum() > 10
     cam = small_cfg.camera_s.camera()
-    rect = diffuser_rect(small_cfg)
-    # Columns whose rays meet the diffuser plane before its near edge see no light.
-    x_edge_col = cam.project(np.array([rect[0, 0] - 3.0, 0.0, small_cfg.diffuser.z_mm]))[0]
+    cols, rows, _ = cam.project(s[inside_beam])
     img = flat_frame["pattern"].sum(axis=2)
-    assert img[:, : int(x_edge_col)].max() < 1e-6
-    assert img[:, int(x_edge_col) + 2 :].max() > 0.0
+    at_spots = img[np.round(rows).astype(int), np.round(cols).astype(int)]
+    # The adaptive pattern makes up for the weak (~2 %) Fresnel reflection of these steep rays.
+    assert np.median(at_spots) > 0.2 * np.percentile(img, 99.9)
 
 
 def test_render_folder_contract(small_cfg, tmp_path):

@@ -7,6 +7,7 @@ from wai_core.geometry import (
     PinholeCamera,
     Pose,
     critical_angle_rad,
+    fresnel_reflectance,
     intersect_plane_z,
     reflect,
     refract,
@@ -70,3 +71,10 @@ def test_centre_pixel_looks_along_the_axis():
 def test_plane_intersection_behind_origin_is_nan():
     p, t = intersect_plane_z(np.zeros(3), np.array([[0, 0, 1.0], [0, 0, -1.0]]), 5.0)
     assert np.allclose(p[0], [0, 0, 5]) and np.isnan(t[1])
+
+
+def test_fresnel_reflectance_textbook_values():
+    # Normal incidence: ((n1 - n2) / (n1 + n2))^2 = (1/7)^2 for water/air; 1 beyond 48.6 deg.
+    assert fresnel_reflectance(1.0, 4 / 3) == pytest.approx((1 / 7) ** 2, rel=1e-9)
+    assert fresnel_reflectance(np.cos(np.radians(50)), 4 / 3) == 1.0
+    assert fresnel_reflectance(np.cos(np.radians(45)), 4 / 3) < 0.2

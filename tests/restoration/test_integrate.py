@@ -1,0 +1,206 @@
+"""Gradient integration (section 3.2.2, eq. 8-13) and gridding to a heightfield."""
+
+import numpy as np
+import pytest
+
+from restoration.integrate import INTEGRATORS, MIN_SAMPLES, integrate, to_heightfield
+from wai_core.errors import WaiInputError
+
+D = 10.0  # grid spacing, mm
+A, WAVELENGTH, DIRECTION = 3.0, 120.0, 0.5  # sinusoid: mm, mm (12 samples), radians
+K = 2 * np.pi / WAVELENGTH
+U = np.array([np.cos(DIRECTION), np.sin(DIRECTION)])
+
+
+def grid(jitter_mm=0.0, seed=0):
+    """A 29 x 25 sample grid, indices (i, j), positions i D, j D plus uniform jitter."""
+    jj, ii = np.mgrid[-12:13, -14:15]
+    ij = np.column_stack([ii.ravel(), jj.ravel()])
+    xy = ij * D + np.random.default_rng(seed).uniform(-jitter_mm, jitter_mm, ij.shape)
+    return ij, xy
+
+
+def plane(xy):
+    return 0.1 * xy[:, 0] - 0.2 * xy[:, 1], np.tile([0.1, -0.2], (len(xy), 1))
+
+
+def paraboloid(xy):
+    x, y = xy[:, 0], xy[:, 1]
+    z = 1e-3 * (x**2 + 0.5 * y**2 + x * y) + 0.05 * x
+    return z, np.column_stack([1e-3 * (2 * x + y) + 0.05, 1e-3 * (y + x)])
+
+
+def sinusoid(xy):
+    phase = K * xy @ U
+    return A * np.sin(phase), (A * K * np.cos(phase))[:, None] * U
+
+
+def errors(name, ij, xy, surface):
+    z, g = surface(xy)
+    h = INTEGRATORS[name](ij, xy, g)
+    assert abs(np.nanmean(h)) < 1e-9  # heights come back zero-mean
+    return h - (z - z.mean())
+
+
+def test_registry_names():
+    assert {"paper", "trapezoid", "spline"} <= set(INTEGRATORS)
+
+
+@pytest.mark.parametrize("name", sorted(INTEGRATORS))
+def test_tilted_plane_is_exact(name):
+    ij, xy = grid(jitter_mm=3.0)
+    assert np.max(np.abs(errors(name, ij, xy, plane))) < 1e-9
+
+
+@pytest.mark.parametrize("name", ["trapezoid", "spline"])
+def test_paraboloid_on_irregular_grid_is_exact(name):
+    # The trapezoid rule is exact for quadratics along any edge; the spline holds quadratics
+    # and its third-difference penalty ignores them.
+    ij, xy = grid(jitter_mm=3.0)
+    assert np.max(np.abs(errors(name, ij, xy, paraboloid))) < 1e-9
+
+
+def test_paper_scheme_is_not_exact_for_paraboloid_on_irregular_grid():
+    # Central differences hold the slope at the centre node, not at the chord's midpoint.
+    ij, xy = grid(jitter_mm=3.0)
+    assert np.max(np.abs(errors("paper", ij, xy, paraboloid))) > 1e-3
+
+
+def test_sinusoid_error_bounds():
+    """12 samples per wavelength of a 3 mm sinusoid, oblique to the grid.
+
+    A difference over one step d errs by the truncation error of its rule, a smooth slope error
+    that integrates to a height error of at most (slope error) / k for a sinusoid:
+    trapezoid: f''' d^3 / 12 -> A (k d)^2 / 12; the paper's central differences
+    f''' d^3 / 6 inside, but forward/backward differences at the border err by f'' d^2 / 2
+    -> A (k d)^2 / 2 (first order, which dominates); the cubic spline (control step h = 1.5 d)
+    approximates to the classic (5 / 384) h^4 f'''' -> (5 / 384) A (k h)^4.
+    """
+    ij, xy = grid()
+    kd = K * D
+    assert np.max(np.abs(errors("trapezoid", ij, xy, sinusoid))) < A * kd**2 / 12
+    assert np.max(np.abs(errors("paper", ij, xy, sinusoid))) < A * kd**2 / 2
+    assert np.max(np.abs(errors("spline", ij, xy, sinusoid))) < 5 / 384 * A * (1.5 * kd) ** 4
+    # Irregular grid: the trapezoid bound with the longest edge still holds.
+    ij, xy = grid(jitter_mm=3.0, seed=1)
+    d_max = np.hypot(D + 6.0, 6.0)
+    assert np.max(np.abs(errors("trapezoid", ij, xy, sinusoid))) < A * (K * d_max) ** 2 / 12
+
+
+def holes(ij):
+    """Drop scattered single nodes and a 3 x 4 block inside the grid."""
+    rng = np.random.default_rng(5)
+    drop = rng.random(len(ij)) < 0.08
+    drop |= (np.abs(ij[:, 0] - 4) <= 1) & (np.abs(ij[:, 1] + 3) <= 1.5)
+    return ~drop
+
+
+@pytest.mark.parametrize(
+    ("name", "surface"), [("paper", plane), ("trapezoid", paraboloid), ("spline", paraboloid)]
+)
+def test_holes_keep_exactness(name, surface):
+    ij, xy = grid(jitter_mm=2.0)
+    keep = holes(ij)
+    e = errors(name, ij[keep], xy[keep], surface)
+    assert np.all(np.isfinite(e))
+    assert np.max(np.abs(e)) < 1e-9
+
+
+@pytest.mark.parametrize("name", sorted(INTEGRATORS))
+def test_island_is_left_unknown(name):
+    """Samples that share no grid edge with the main piece get NaN, not a guessed offset."""
+    ij, xy = grid(jitter_mm=2.0)
+    cut = ij[:, 0] == 10  # a full column removed isolates the columns i = 11..14
+    ij, xy = ij[~cut], xy[~cut]
+    z, g = paraboloid(xy)
+    h = INTEGRATORS[name](ij, xy, g)
+    island = ij[:, 0] > 10
+    assert np.all(np.isnan(h[island])) and np.all(np.isfinite(h[~island]))
+    if name != "paper":
+        np.testing.assert_allclose(h[~island], z[~island] - z[~island].mean(), atol=1e-9)
+
+
+def test_bad_input():
+    ij, xy = grid()
+    _, g = plane(xy)
+    with pytest.raises(WaiInputError, match="too few features"):
+        integrate(ij[: MIN_SAMPLES - 1], xy[:3], g[:3])
+    with pytest.raises(WaiInputError, match="too few connected"):
+        # Five samples, none a grid neighbour of another.
+        integrate(ij[::7][:5] * 3, xy[::7][:5], g[:5])
+    with pytest.raises(WaiInputError, match="share one grid index"):
+        integrate(np.r_[ij, ij[:1]], np.r_[xy, xy[:1] + 1], np.r_[g, g[:1]])
+    with pytest.raises(WaiInputError, match="NaN"):
+        integrate(ij, xy, np.where(np.arange(len(g))[:, None] == 3, np.nan, g))
+    with pytest.raises(WaiInputError, match="shape"):
+        integrate(ij, xy[:, :1], g)
+    with pytest.raises(WaiInputError, match="unknown integrator"):
+        integrate(ij, xy, g, method="magic")
+    with pytest.raises(WaiInputError, match="too wide"):
+        integrate(np.r_[ij[:-1], [[10**5, 10**5]]], xy, g)
+
+
+# ---------------------------------------------------------------------------------------------
+# Gridding
+# ---------------------------------------------------------------------------------------------
+
+
+def truth_on_nodes(hf, surface):
+    x, y = np.meshgrid(hf.x, hf.y)
+    return surface(np.column_stack([x.ravel(), y.ravel()]))[0].reshape(x.shape)
+
+
+@pytest.mark.parametrize("method", ["tangent_blend", "hermite_spline"])
+def test_gridding_with_slopes_is_exact_for_paraboloid(method):
+    ij, xy = grid(jitter_mm=3.0)
+    z, g = paraboloid(xy)
+    hf = to_heightfield(xy, z + 150.0, g, 4.0, method=method)
+    err = hf.z - 150.0 - truth_on_nodes(hf, paraboloid)
+    assert np.isfinite(err).mean() > 0.8
+    assert np.nanmax(np.abs(err)) < 1e-8
+
+
+def test_gridding_accuracy_on_sinusoid():
+    ij, xy = grid(jitter_mm=3.0)
+    z, g = sinusoid(xy)
+    rms = {}
+    for method in ("tangent_blend", "hermite_spline", "clough_tocher"):
+        hf = to_heightfield(xy, z, g, 4.0, method=method)
+        rms[method] = np.sqrt(np.nanmean((hf.z - truth_on_nodes(hf, sinusoid)) ** 2))
+    # The blend's error is the trapezoid rule's, A (k d)^2 / 12 at most; the spline's is O(h^4).
+    assert rms["tangent_blend"] < A * (K * D) ** 2 / 12
+    assert rms["hermite_spline"] < 0.3 * rms["tangent_blend"]
+    assert rms["clough_tocher"] < A * (K * D) ** 2 / 12
+
+
+def test_gridding_is_nan_outside_convex_hull():
+    # Samples filling a triangle: nodes beyond its hypotenuse lie outside the hull.
+    ij, xy = grid()
+    tri = xy[:, 0] + xy[:, 1] <= 0
+    z, g = plane(xy[tri])
+    hf = to_heightfield(xy[tri], z, g, 5.0)
+    x, y = np.meshgrid(hf.x, hf.y)
+    assert np.all(np.isnan(hf.z[x + y > 1e-6]))
+    inside = x + y < -1e-6
+    np.testing.assert_allclose(hf.z[inside], (0.1 * x - 0.2 * y)[inside], atol=1e-9)
+    # clough_tocher (heights only) is exact for planes too, up to its iterative gradient fit.
+    hf_ct = to_heightfield(xy[tri], z, None, 5.0, method="clough_tocher")
+    np.testing.assert_allclose(hf_ct.z, hf.z, atol=1e-5)
+
+
+def test_gridding_bad_input():
+    ij, xy = grid()
+    z, g = plane(xy)
+    with pytest.raises(WaiInputError, match="too few samples"):
+        to_heightfield(xy[:3], z[:3], g[:3], 5.0)
+    with pytest.raises(WaiInputError, match="needs finite slopes"):
+        to_heightfield(xy, z, None, 5.0)
+    with pytest.raises(WaiInputError, match="too many nodes"):
+        to_heightfield(xy, z, g, 1e-3)
+    with pytest.raises(WaiInputError, match="span too little"):
+        to_heightfield(xy, z, g, 1000.0)
+    with pytest.raises(WaiInputError, match="collinear"):
+        to_heightfield(np.column_stack([np.arange(9.0) * 10, np.arange(9.0) * 10]), z[:9],
+                       g[:9], 5.0)
+    with pytest.raises(WaiInputError, match="unknown method"):
+        to_heightfield(xy, z, g, 5.0, method="nearest")

@@ -1,0 +1,267 @@
+"""Reverse tracing and restoration, checked against facts that do not depend on the code.
+
+The views are rendered geometrically: each pixel's ray is traced to the object plane and an
+analytic, smooth texture is read there, so bilinear resampling is accurate and any mismatch is the
+restoration's.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.ndimage import binary_erosion
+from skimage.metrics import structural_similarity
+
+from restoration.reverse_trace import (
+    RayStatus,
+    find_pixels,
+    restore_view,
+    solve_pixels,
+    trace_to_object,
+)
+from wai_core.config import load_config
+from wai_core.errors import WaiInputError
+from wai_core.geometry import PinholeCamera
+from wai_core.heightfield import Heightfield
+
+SCENE = Path(__file__).resolve().parents[2] / "scenes" / "paper.toml"
+PERIOD_MM = 150.0  # texture period on the object plane: ~10 pixels of the small camera
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(SCENE)
+
+
+@pytest.fixture(scope="module")
+def optics(cfg):
+    return cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm
+
+
+@pytest.fixture(scope="module")
+def small_cam(cfg):
+    """Camera v with 4x fewer pixels per side: same pose and field of view, fast renders."""
+    v = cfg.camera_v.camera()
+    return PinholeCamera(200, 150, v.focal_mm, v.pixel_pitch_mm * 4, v.pose)
+
+
+def _grid():
+    x = np.linspace(0.0, 660.0, 67)
+    y = np.linspace(-330.0, 330.0, 67)
+    xx, yy = np.meshgrid(x, y)
+    return x, y, xx, yy
+
+
+def _wavy(h0):
+    x, y, xx, yy = _grid()
+    return Heightfield(x, y, h0 + 3.0 * np.sin(xx / 40.0) * np.cos(yy / 50.0))
+
+
+def _tilted(h0, slope=0.05):
+    x, y, xx, yy = _grid()
+    return Heightfield(x, y, h0 + slope * (xx - 180.0) + 0.5 * slope * yy)
+
+
+def _texture(p):
+    return 0.5 + 0.35 * np.sin(2 * np.pi * p[..., 0] / PERIOD_MM) * np.cos(
+        2 * np.pi * p[..., 1] / PERIOD_MM
+    )
+
+
+def _render(cam, surface, optics):
+    cols, rows = cam.pixel_grid()
+    tr = trace_to_object(cam, surface, *optics, cols, rows)
+    return np.where(tr.ok, _texture(np.nan_to_num(tr.object_mm)), 0.0), tr
+
+
+def _ssim_inside(img, ref, mask):
+    smap = structural_similarity(img, ref, data_range=1.0, full=True)[1]
+    return smap[binary_erosion(mask, np.ones((7, 7)), border_value=0)].mean()
+
+
+# --- Snell's window ---------------------------------------------------------------------------
+
+
+def test_snells_window_edge_is_the_critical_angle(cfg, optics):
+    cam = cfg.camera_v.camera()
+    cols, rows = cam.pixel_grid(step=2)
+    tr = trace_to_object(cam, None, *optics, cols, rows)
+    _, dirs = cam.pixel_rays(cols, rows)
+    zenith = np.degrees(np.arccos(dirs[..., 2]))
+    critical = np.degrees(np.arcsin(3.0 / 4.0))
+    assert critical == pytest.approx(48.59, abs=0.01)
+    assert 2 * critical == pytest.approx(97.2, abs=0.05)  # the paper's Snell cone
+    tir = tr.status == RayStatus.TIR
+    assert tir.any() and tr.ok.any()
+    # Every ray below the critical angle gets out, every ray above is reflected, and the view
+    # samples both sides closely, so the edge found is the critical angle itself.
+    assert np.all(tr.ok == (zenith < critical))
+    assert zenith[tr.ok].max() == pytest.approx(critical, abs=0.1)
+    assert zenith[tir].min() == pytest.approx(critical, abs=0.1)
+
+
+def test_flat_refraction_obeys_snell(cfg, optics):
+    cam = cfg.camera_v.camera()
+    cols, rows = cam.pixel_grid(step=37)
+    tr = trace_to_object(cam, None, *optics, cols, rows)
+    _, dirs = cam.pixel_rays(cols, rows)
+    air = tr.object_mm - tr.surface_mm
+    sin_air = np.linalg.norm(air[..., :2], axis=-1) / np.linalg.norm(air, axis=-1)
+    sin_water = np.linalg.norm(dirs[..., :2], axis=-1)
+    np.testing.assert_allclose(sin_air[tr.ok], optics[1] * sin_water[tr.ok], rtol=1e-9)
+    np.testing.assert_allclose(tr.surface_mm[tr.ok][:, 2], optics[0])
+    np.testing.assert_allclose(tr.object_mm[tr.ok][:, 2], optics[2])
+
+
+# --- inverse map ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("wavy", [False, True])
+def test_find_pixels_inverts_trace_to_object(cfg, optics, wavy):
+    cam = cfg.camera_v.camera()
+    surface = _wavy(optics[0]) if wavy else None
+    cols, rows = cam.pixel_grid(step=10)
+    tr = trace_to_object(cam, surface, *optics, cols, rows)
+    truth = np.stack([cols, rows], axis=-1)
+    px, ok = find_pixels(cam, surface, *optics, tr.object_mm, truth + [3.0, -2.0])
+    assert ok[tr.ok].mean() > 0.999  # at most a ray or two at the very edge of the window
+    assert not ok[~tr.ok].any()  # no pixel found for targets that no ray reaches
+    err = np.linalg.norm(px - truth, axis=-1)[ok]
+    assert err.max() < 1e-3
+
+
+def test_solve_pixels_reports_why(cfg, optics):
+    cam = cfg.camera_v.camera()
+    h0, n, za = optics
+    x, y, xx, _ = _grid()
+    patch = Heightfield(x, y, np.where(xx < 160.0, h0, np.nan))  # known only for x < 160 mm
+    # Seen through x ~ 111 mm (inside the patch), x ~ 240 mm (outside it), and no target.
+    targets = np.array([[150.0, 0.0, za], [2000.0, 0.0, za], [np.nan, 0.0, za]])
+    start = [[400.0, 300.0]] * 3  # its ray crosses the water at x ~ 180 mm, off the patch
+    sol = solve_pixels(cam, patch, h0, n, za, targets, start)
+    flat = solve_pixels(cam, None, h0, n, za, targets, start)
+    assert list(sol.status) == [RayStatus.OK, RayStatus.MISSED_SURFACE, RayStatus.MISSED_OBJECT]
+    assert list(flat.status) == [RayStatus.OK, RayStatus.OK, RayStatus.MISSED_OBJECT]
+    np.testing.assert_allclose(sol.px[0], flat.px[0], atol=1e-3)
+    assert sol.surface_mm[0, 0] == pytest.approx(111.0, abs=2.0)
+    assert flat.surface_mm[1, 0] == pytest.approx(240.0, abs=10.0)
+    assert np.all(np.isnan(sol.px[1:]))
+
+
+def test_find_pixels_rejects_bad_input(cfg, optics):
+    cam = cfg.camera_v.camera()
+    with pytest.raises(WaiInputError):
+        find_pixels(cam, None, *optics, np.zeros((4, 2)), np.zeros((4, 2)))
+    with pytest.raises(WaiInputError):  # not on the object plane
+        find_pixels(cam, None, *optics, [[0.0, 0.0, 500.0]], [[400.0, 300.0]])
+    with pytest.raises(WaiInputError):
+        find_pixels(cam, None, optics[0], 0.9, optics[2], [[0.0, 0.0, optics[2]]], [[0, 0]])
+
+
+# --- restoration ------------------------------------------------------------------------------
+
+
+def test_flat_estimate_restores_the_flat_view_exactly(cfg, optics):
+    cam = cfg.camera_v.camera()
+    truth, tr = _render(cam, None, optics)
+    h0 = optics[0]
+    x, y, xx, _ = _grid()
+    flat = Heightfield(x, y, np.full(xx.shape, h0))
+    rgb = np.stack([truth, 1.0 - truth, 0.5 * truth], axis=-1).astype(np.float32)
+    res = restore_view(rgb, cam, flat, *optics, warp_step_px=8)
+    assert res.image.shape == rgb.shape and res.image.dtype == np.float32
+    assert res.valid.mean() > 0.6
+    assert not (res.valid & ~tr.ok).any()  # never restores a pixel that sees no object
+    assert np.all(res.image[~res.valid] == 0)
+    # The warp is the identity to within the solver's tolerance.
+    dev = res.warp_px[res.valid] - np.stack(cam.pixel_grid(), axis=-1)[res.valid]
+    assert np.abs(dev).max() < 2e-3
+    mse = np.mean((res.image[res.valid] - rgb[res.valid]) ** 2)
+    assert mse < 1e-8
+    assert _ssim_inside(res.image[..., 0], truth.astype(np.float32), res.valid) > 0.9999
+    assert sum(res.counts.values()) == cam.width_px * cam.height_px
+    assert res.counts["ok"] == res.valid.sum()
+    assert res.counts["tir"] >= (~tr.ok).sum()  # coarse cells lose a little more at the edge
+
+
+def test_tilted_plane_is_undone_by_the_same_plane(small_cam, optics):
+    """A tilted plane shifts and shears the view by several pixels (SSIM ~0.35 against the
+    truth). Restoring with the same plane brings it back to SSIM > 0.98. What remains is
+    resampling: the distorted image holds the texture (period ~10 px) only at pixel centres,
+    and bilinear reading between them damps it by up to 1 - cos(pi / 10) ~ 5 %. Scoring keeps
+    to air angles below 60 deg; beyond, towards the edge of Snell's window, the object plane is
+    squeezed into few pixels and the texture aliases in both renders."""
+    tilt = _tilted(optics[0])
+    truth, tr = _render(small_cam, None, optics)
+    distorted, _ = _render(small_cam, tilt, optics)
+    air = tr.object_mm - tr.surface_mm
+    core = tr.ok & (air[..., 2] / np.linalg.norm(air, axis=-1) > np.cos(np.radians(60)))
+    res = restore_view(distorted, small_cam, tilt, *optics, warp_step_px=4)
+    mask = res.valid & core
+    assert mask.sum() > 0.5 * core.sum()
+    assert _ssim_inside(res.image, truth, mask) > 0.98
+    assert np.mean((res.image - truth)[mask] ** 2) < 2e-3
+    naive = restore_view(distorted, small_cam, None, *optics, warp_step_px=4)
+    assert _ssim_inside(naive.image, truth, naive.valid & core) < 0.6
+    assert np.mean((naive.image - truth)[naive.valid & core] ** 2) > 10 * np.mean(
+        (res.image - truth)[mask] ** 2
+    )
+
+
+def test_unknown_surface_is_masked_and_counted(small_cam, optics):
+    h0 = optics[0]
+    x, y, xx, _ = _grid()
+    patch = Heightfield(x, y, np.where(xx < 160.0, h0, np.nan))
+    truth, tr = _render(small_cam, None, optics)
+    res = restore_view(truth, small_cam, patch, *optics, warp_step_px=8)
+    full = restore_view(truth, small_cam, None, *optics, warp_step_px=8)
+    assert res.counts["missed_surface"] > 0
+    assert res.valid.sum() + res.counts["missed_surface"] <= full.valid.sum() + 64 * 4
+    assert np.all(res.image[~res.valid] == 0)
+    assert np.all(np.isnan(res.warp_px[~res.valid]))
+    assert sum(res.counts.values()) == truth.size
+    # Where it is known the patch is flat water: those pixels are restored exactly.
+    np.testing.assert_allclose(res.image[res.valid], truth[res.valid], atol=1e-6)
+
+
+@pytest.mark.parametrize("step", [5, 8])
+def test_coarse_warp_matches_the_per_pixel_warp(small_cam, optics, step):
+    """The warp solved every ``step`` px and interpolated bilinearly stays within 0.05 px of the
+    warp solved at every pixel, up to air angles of 60 deg (this camera's pixels are 4x
+    coarser than camera v's, so its 8 px cells span what 32 px do there)."""
+    tilt = _tilted(optics[0])
+    distorted, _ = _render(small_cam, tilt, optics)
+    _, tr = _render(small_cam, None, optics)
+    air = tr.object_mm - tr.surface_mm
+    core = tr.ok & (air[..., 2] / np.linalg.norm(air, axis=-1) > np.cos(np.radians(60)))
+    ref = restore_view(distorted, small_cam, tilt, *optics, warp_step_px=1)
+    res = restore_view(distorted, small_cam, tilt, *optics, warp_step_px=step)
+    both = ref.valid & res.valid & core
+    assert both.sum() > 0.9 * (ref.valid & core).sum()
+    assert np.abs(res.warp_px[both] - ref.warp_px[both]).max() < 0.05
+
+
+def test_restore_view_keeps_dtype_and_channels(small_cam, optics):
+    truth, _ = _render(small_cam, None, optics)
+    gray = restore_view(truth, small_cam, None, *optics)
+    assert gray.image.dtype == np.float64 and gray.image.shape == truth.shape
+    rgba = np.repeat(truth[..., None], 4, axis=2).astype(np.float32)
+    res = restore_view(rgba, small_cam, None, *optics)
+    assert res.image.dtype == np.float32 and res.image.shape == rgba.shape
+    np.testing.assert_allclose(res.image[..., 3], gray.image, atol=1e-6)
+
+
+def test_restore_view_rejects_bad_input(small_cam, optics):
+    img = np.zeros((150, 200))
+    with pytest.raises(WaiInputError):
+        restore_view(np.zeros((100, 200)), small_cam, None, *optics)
+    with pytest.raises(WaiInputError):
+        restore_view(img.astype(np.uint8), small_cam, None, *optics)
+    with pytest.raises(WaiInputError):
+        restore_view(np.full((150, 200), np.nan), small_cam, None, *optics)
+    with pytest.raises(WaiInputError):
+        restore_view(img, small_cam, None, *optics, warp_step_px=0)
+    with pytest.raises(WaiInputError):
+        restore_view(img, small_cam, None, optics[0], optics[1], optics[0] - 1.0)
