@@ -1362,23 +1362,45 @@ def find_features(
         timings[name] = 1e3 * (t1 - t0)
         t0 = t1
 
-    outline = _outline_px(cfg)
-    flat = flag_diffuser_edge(detect_spots(pattern_flat_img), outline)
-    lap("detect_flat")
-    wavy = flag_diffuser_edge(detect_spots(pattern_img), outline)
-    lap("detect")
+    if not np.isfinite(pattern_img).all():
+        raise WaiInputError("pattern image holds NaN or inf")
+    ref = prepare_reference(pattern_flat_img, cfg, lit=lit, min_features=min_features)
+    timings["reference"] = 1e3 * (time.perf_counter() - t_all)
+    matches = features_from_reference(pattern_img, ref, cfg, min_features=min_features)
+    matches.timings_ms["reference"] = timings["reference"]
+    matches.timings_ms["total"] = 1e3 * (time.perf_counter() - t_all)
+    return matches
+
+
+def prepare_reference(
+    pattern_flat_img: NDArray, cfg: SystemConfig, *, lit: BoolArray | None = None,
+    min_features: int = 16,
+) -> ReferenceGrid:
+    """The flat-water reference grid: calibration, computed once per rig, not per frame."""
+    flat = flag_diffuser_edge(detect_spots(pattern_flat_img), _outline_px(cfg))
     predicted = predict_flat_spots(cfg)
-    if lit is None:
-        lit = lit_dots(cfg)
-    lap("predict")
-    ref = match_reference(flat, predicted, lit=lit)
-    lap("match_reference")
+    ref = match_reference(flat, predicted, lit=lit_dots(cfg) if lit is None else lit)
     if ref.counts["observed"] < min_features:
         raise WaiInputError(f"too few features on flat water: {ref.counts['observed']}")
+    return ref
+
+
+def features_from_reference(
+    pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig, *, min_features: int = 16
+) -> Matches:
+    """Detect the spots of one wavy frame and match them to a prepared reference grid."""
+    cam = cfg.camera_s
+    if np.shape(pattern_img)[:2] != (cam.height_px, cam.width_px):
+        raise WaiInputError(
+            f"pattern image is {np.shape(pattern_img)[:2]}, camera s is "
+            f"{cam.height_px}x{cam.width_px}"
+        )
+    t0 = time.perf_counter()
+    wavy = flag_diffuser_edge(detect_spots(pattern_img), _outline_px(cfg))
+    t1 = time.perf_counter()
     matches = match_distorted(ref, wavy, visible_px=_visible_outline(cfg))
-    lap("match")
-    timings["total"] = 1e3 * (time.perf_counter() - t_all)
+    t2 = time.perf_counter()
     if len(matches) < min_features:
         raise WaiInputError(f"too few features matched: {len(matches)} (need {min_features})")
-    matches.timings_ms.update(timings)
+    matches.timings_ms.update({"detect": 1e3 * (t1 - t0), "match": 1e3 * (t2 - t1)})
     return matches

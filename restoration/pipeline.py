@@ -1,4 +1,4 @@
-"""The paper's method end to end on a render folder: features -> normals -> surface -> restored view.
+"""The paper's method end to end on a render folder: features, normals, surface, restored view.
 
 Reads only the images (``pattern.exr``, ``pattern_flat.exr``, ``view.exr``) and the calibration
 in ``scene.json``. The true surface and view are never read here; :mod:`restoration.scoring` reads
@@ -14,7 +14,12 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration.features import Matches, find_features
+from restoration.features import (
+    Matches,
+    ReferenceGrid,
+    features_from_reference,
+    prepare_reference,
+)
 from restoration.reverse_trace import Restoration, restore_view
 from restoration.surface import SurfaceEstimate, reconstruct_surface
 from wai_core.config import SystemConfig, config_from_dict
@@ -39,12 +44,20 @@ class RestoreOptions:
     warp_step_px: int = 8
 
 
-@dataclass(frozen=True)
+@dataclass
 class Calibration:
-    """What the restoration knows of the system: the configuration in ``scene.json``."""
+    """What the restoration knows of the system: the configuration in ``scene.json`` and, once
+    prepared, the flat-water reference grid (per rig, not per frame)."""
 
     cfg: SystemConfig
     view_gain: float
+    reference: ReferenceGrid | None = None
+
+    def prepare(self, pattern_flat: NDArray) -> ReferenceGrid:
+        """Detect and label the flat-water pattern once; later frames reuse it."""
+        if self.reference is None:
+            self.reference = prepare_reference(pattern_flat, self.cfg)
+        return self.reference
 
     @property
     def camera_v(self) -> PinholeCamera:
@@ -103,10 +116,14 @@ def panel_positions(cfg: SystemConfig, ij: NDArray) -> NDArray:
 def restore(
     images: dict[str, NDArray], cal: Calibration, options: RestoreOptions = RestoreOptions()
 ) -> RestoreResult:
-    """Run the restoration on already-loaded images (the per-frame hot path)."""
+    """Run the restoration on already-loaded images (the per-frame hot path).
+
+    The flat-water reference is prepared on the first call and kept in ``cal``.
+    """
     cfg = cal.cfg
+    reference = cal.prepare(images["pattern_flat"])
     t0 = time.perf_counter()
-    features = find_features(images["pattern"], images["pattern_flat"], cfg)
+    features = features_from_reference(images["pattern"], reference, cfg)
     t1 = time.perf_counter()
     surface = reconstruct_surface(
         features.ij,

@@ -36,6 +36,21 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from wai.demo import run_demo
+
+    run_demo(args)
+    return 0
+
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="render and restore the paper's configuration")
+    p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
+    p.add_argument("--out", type=Path, default=Path("renders/demo"))
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_demo)
+
+
 def _add_render(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="render both optical systems for one sea state")
     p.add_argument("config", type=Path, help="scene TOML, e.g. scenes/paper.toml")
@@ -78,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="wai", description="Wavy water-air interface testbed (Jian et al. 2022)."
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_add_render, _add_restore, _add_bench):
+    for add in (_add_render, _add_restore, _add_bench, _add_demo):
         add(sub)
     return parser
 

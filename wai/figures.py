@@ -50,7 +50,8 @@ def side_by_side(
 ) -> None:
     """Linear images next to each other with titles, tone-mapped for display."""
     fig, axes = plt.subplots(1, len(images), figsize=(5 * len(images), 4))
-    for ax, img, title, exposure in zip(np.atleast_1d(axes), images, titles, exposures, strict=True):
+    panels = zip(np.atleast_1d(axes), images, titles, exposures, strict=True)
+    for ax, img, title, exposure in panels:
         ax.imshow(to_srgb8(img, exposure))
         ax.set_title(title)
         ax.set_axis_off()

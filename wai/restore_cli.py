@@ -86,7 +86,8 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
         f"({m['features_rejected']} rejected)",
         f"corner STD {m['corner_std_distorted_px']:.2f} px -> {m['corner_std_restored_px']:.2f} px "
         f"on {m['corners_common']} corners",
-        f"SSIM {d['ssim']:.4f} -> {r['ssim']:.4f}, PSNR {d['psnr_db']:.2f} -> {r['psnr_db']:.2f} dB, "
+        f"SSIM {d['ssim']:.4f} -> {r['ssim']:.4f}, "
+        f"PSNR {d['psnr_db']:.2f} -> {r['psnr_db']:.2f} dB, "
         f"MSE {d['mse']:.4f} -> {r['mse']:.4f} on {m['view_restored_fraction']:.0%} of the view",
         f"end to end {m['timings_ms']['end_to_end']:.1f} ms",
     ]

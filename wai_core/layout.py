@@ -80,7 +80,8 @@ def lit_dots(cfg: SystemConfig, margin_spacings: float = 2.0) -> NDArray[np.bool
     rect = diffuser_rect(cfg)
     _, panel = dot_grid(cfg.pattern, cfg.projector.camera())
     # Spacing of neighbouring spots on the diffuser, from the flat-water model.
-    spacing = np.nanmedian(np.linalg.norm(np.diff(s.reshape(-1, _grid_side(panel), 3), axis=1), axis=2))
+    rows = s.reshape(-1, _grid_side(panel), 3)
+    spacing = np.nanmedian(np.linalg.norm(np.diff(rows, axis=1), axis=2))
     grow = margin_spacings * spacing
     return (
         np.isfinite(s[:, 0])

@@ -1,0 +1,204 @@
+"""``wai bench accuracy``: the paper's scores over several seeds, and where the error comes from.
+
+For each seed a frame is rendered and restored; the surface error is then split by re-running
+the surface stage with one source of error removed at a time (scoring only — these reruns read
+the truth and never feed the restoration):
+
+``paper``       the paper's method (q_k on z = h0, eq. 10-13 differences, cubic gridding);
+``no_refine``   our integrator and gridding, but q_k ≈ h0 kept (isolates that approximation);
+``ours``        the default restoration;
+``oracle_spots``  the default, fed the exact spot positions ray-traced through the true surface
+                (what is left is integration, gridding and the anchor);
+``oracle_anchor`` the default with the truth's mean height over the samples as anchor instead
+                of h0 (what is left is shape error alone).
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from wai_core.config import SystemConfig, load_config
+from wai_core.geometry import intersect_plane_z, reflect
+from wai_core.heightfield import Heightfield
+from wai_core.io import write_json
+
+
+def true_spots(cfg: SystemConfig, truth: Heightfield, panel_px: NDArray) -> NDArray:
+    """Exact camera-s pixels (K, 2) of dots reflected by the true surface (geometry only)."""
+    projector = cfg.projector.camera()
+    o, d = projector.pixel_rays(panel_px[:, 0], panel_px[:, 1])
+    q, ok = truth.intersect(o, d)
+    n = truth.normal(q[:, 0], q[:, 1])
+    s, _ = intersect_plane_z(q, reflect(d, n), cfg.diffuser.z_mm)
+    cols, rows, _ = cfg.camera_s.camera().project(s)
+    px = np.stack([cols, rows], axis=1)
+    px[~ok] = np.nan
+    return px
+
+
+def _surface_variant(
+    name: str, features: Any, cal: Any, truth: Heightfield, options: Any
+) -> dict[str, float]:
+    from restoration.metrics import surface_errors
+    from restoration.pipeline import panel_positions
+    from restoration.surface import reconstruct_surface
+
+    cfg = cal.cfg
+    panel = panel_positions(cfg, features.ij)
+    spots = features.spot_px
+    kw = {
+        "integrator": options.integrator,
+        "n_refine": options.n_refine,
+        "grid_spacing_mm": options.grid_spacing_mm,
+        "gridder": options.gridder,
+    }
+    h0 = cfg.water.h0_mm
+    if name == "paper":
+        kw.update(integrator="paper", n_refine=0, gridder="clough_tocher")
+    elif name == "no_refine":
+        kw.update(n_refine=0)
+    elif name == "oracle_spots":
+        spots = true_spots(cfg, truth, panel)
+    keep = np.isfinite(spots).all(axis=1)
+    args = (
+        features.ij[keep],
+        panel[keep],
+        spots[keep],
+        cfg.projector.camera(),
+        cfg.camera_s.camera(),
+        cfg.diffuser.z_mm,
+    )
+    est = reconstruct_surface(*args, h0, **kw)
+    if name == "oracle_anchor":
+        # Anchor on the truth's mean over the samples instead of the depth gauge's h0.
+        pts = est.points_mm
+        anchor = float(np.mean(truth.height(pts[:, 0], pts[:, 1])))
+        est = reconstruct_surface(*args, anchor, **kw)
+    err = surface_errors(est.heightfield, truth)
+    return {k: float(err[k]) for k in ("rmse_mm", "rmse_demeaned_mm", "max_abs_mm")}
+
+
+VARIANTS = ("paper", "no_refine", "ours", "oracle_spots", "oracle_anchor")
+
+
+def spot_noise_px(cfg: SystemConfig, features: Any, truth: Heightfield) -> dict[str, float]:
+    """Detected minus ray-traced spot centres, pixels: median and 95th percentile of |d|."""
+    from restoration.pipeline import panel_positions
+
+    exact = true_spots(cfg, truth, panel_positions(cfg, features.ij))
+    d = np.linalg.norm(features.spot_px - exact, axis=1)
+    d = d[np.isfinite(d)]
+    return {"median_px": float(np.median(d)), "p95_px": float(np.percentile(d, 95))}
+
+
+def run_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Any]:
+    """Render, restore and dissect one seed."""
+    from mitsuba_wai.render import render_folder
+    from restoration.pipeline import RestoreOptions
+    from restoration.scoring import load_truth
+    from wai.restore_cli import restore_folder
+
+    frame = out / f"seed{seed:03d}"
+    if not (frame / "scene.json").is_file():
+        render_folder(cfg.replace("waves", seed=seed), frame, progress=False)
+    options = RestoreOptions()
+    metrics = restore_folder(frame, options, progress=False)
+    from restoration.pipeline import load_calibration, load_inputs, restore
+
+    cal = load_calibration(frame)
+    images = load_inputs(frame, cal)
+    features = restore(images, cal, options).features
+    truth, _ = load_truth(frame, cal)
+    others = [v for v in VARIANTS if v != "ours"]
+    budget = {v: _surface_variant(v, features, cal, truth, options) for v in others}
+    budget["ours"] = {
+        "rmse_mm": metrics["wai_rmse_mm"],
+        "rmse_demeaned_mm": metrics["wai_rmse_demeaned_mm"],
+        "max_abs_mm": metrics["wai_max_abs_mm"],
+    }
+    return {
+        "seed": seed,
+        "metrics": {k: v for k, v in metrics.items() if not k.startswith("timings")},
+        "error_budget": budget,
+        "spot_noise": spot_noise_px(cal.cfg, features, truth),
+    }
+
+
+def _mean_std(values: list[float]) -> dict[str, float]:
+    a = np.asarray(values, dtype=float)
+    return {"mean": float(np.nanmean(a)), "std": float(np.nanstd(a)), "n": int(a.size)}
+
+
+def summarize_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Mean ± std over seeds of the headline scores and of every error-budget entry."""
+
+    def col(path: tuple[str, ...]) -> list[float]:
+        out = []
+        for r in runs:
+            v: Any = r
+            for p in path:
+                v = v[p]
+            out.append(np.nan if v is None else v)
+        return out
+
+    keys = {
+        "wai_rmse_mm": ("metrics", "wai_rmse_mm"),
+        "wai_rmse_demeaned_mm": ("metrics", "wai_rmse_demeaned_mm"),
+        "wai_max_abs_mm": ("metrics", "wai_max_abs_mm"),
+        "corner_std_distorted_px": ("metrics", "corner_std_distorted_px"),
+        "corner_std_restored_px": ("metrics", "corner_std_restored_px"),
+        "ssim_distorted": ("metrics", "distorted", "ssim"),
+        "ssim_restored": ("metrics", "restored", "ssim"),
+        "psnr_distorted_db": ("metrics", "distorted", "psnr_db"),
+        "psnr_restored_db": ("metrics", "restored", "psnr_db"),
+        "mse_distorted": ("metrics", "distorted", "mse"),
+        "mse_restored": ("metrics", "restored", "mse"),
+        "view_restored_fraction": ("metrics", "view_restored_fraction"),
+        "features_used": ("metrics", "features_used"),
+        "features_rejected": ("metrics", "features_rejected"),
+        "spot_noise_median_px": ("spot_noise", "median_px"),
+    }
+    summary = {k: _mean_std(col(p)) for k, p in keys.items()}
+    for v in VARIANTS:
+        for m in ("rmse_mm", "rmse_demeaned_mm"):
+            summary[f"budget.{v}.{m}"] = _mean_std(col(("error_budget", v, m)))
+    return summary
+
+
+def run_accuracy(args: argparse.Namespace) -> dict[str, Any]:
+    """``wai bench accuracy``: seeds 0..K-1 of a configuration; writes ``accuracy.json``."""
+    cfg = load_config(args.config)
+    if args.wind is not None:
+        cfg = cfg.replace("waves", wind_speed_m_s=args.wind)
+    if args.surface:
+        cfg = cfg.replace("water", surface=args.surface)
+    out = Path(args.out)
+    runs = [run_seed(cfg, s, out) for s in tqdm(range(args.seeds), desc="seeds", leave=False)]
+    result = {
+        "config": str(args.config),
+        "wind_speed_m_s": cfg.waves.wind_speed_m_s,
+        "surface": cfg.water.surface,
+        "seeds": list(range(args.seeds)),
+        "summary": summarize_runs(runs),
+        "runs": runs,
+    }
+    write_json(out / "accuracy.json", result)
+    return result
+
+
+def print_accuracy(res: dict[str, Any]) -> None:
+    """Mean ± std table of :func:`run_accuracy`."""
+    s = res["summary"]
+    print(f"{len(res['seeds'])} seeds, U = {res['wind_speed_m_s']} m/s, {res['surface']} surface")
+    for k, v in s.items():
+        print(f"  {k:38s} {v['mean']:10.4f} ± {v['std']:.4f}")
+
+
+__all__ = ["run_accuracy", "print_accuracy", "true_spots", "replace"]
