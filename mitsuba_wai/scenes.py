@@ -5,9 +5,9 @@ Each scene carries only what its measurement needs:
 System S (structured light): the projector with the dot pattern (only the dots whose spots can
 reach the diffuser are lit, each as bright as its Fresnel loss needs), the water surface, the
 diffuser and camera s. The pattern reaches camera s only after a specular bounce, which a
-camera-side path tracer can never connect to a delta-position projector, so it is rendered with ``ptracer`` (light tracing), ``max_depth = 4``:
-projector -> (through the one-way diffuser) -> water -> diffuser -> camera; the pass-through
-counts as a bounce.
+camera-side path tracer can never connect to a delta-position projector, so it is rendered
+with ``ptracer`` (light tracing), ``max_depth = 4``: projector -> (through the one-way diffuser)
+-> water -> diffuser -> camera; the pass-through counts as a bounce.
 
 System V (observation): camera v, the water surface and the object plane as an area emitter that
 carries the texture, so every path is camera -> water -> object: the ``path`` integrator with
