@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from restoration.anchor import find_anchor
 from restoration.features import (
     Matches,
     ReferenceGrid,
@@ -33,8 +34,10 @@ from wai_core.pattern import dot_grid
 class RestoreOptions:
     """Choices of the restoration (defaults: the most accurate at real-time speed).
 
-    ``integrator='paper'`` with ``n_refine=0`` and ``gridder='clough_tocher'`` is the paper's
-    method as published (q_k on z = h0, central differences, bicubic-type interpolation).
+    ``integrator='paper'``, ``n_refine=0``, ``gridder='clough_tocher'`` and ``anchor='gauge'``
+    is the paper's method as published (q_k on z = h0, central differences, bicubic-type
+    interpolation, mean height = h0). ``anchor='integrability'`` finds the absolute height
+    from the data instead (:mod:`restoration.anchor`).
     """
 
     integrator: str = "trapezoid"
@@ -42,6 +45,7 @@ class RestoreOptions:
     gridder: str = "tangent_blend"
     grid_spacing_mm: float = 2.0
     warp_step_px: int = 8
+    anchor: str = "integrability"
 
 
 @dataclass
@@ -113,6 +117,41 @@ def panel_positions(cfg: SystemConfig, ij: NDArray) -> NDArray:
     return panel[index]
 
 
+ANCHORS = ("integrability", "gauge")
+
+
+def estimate_surface(
+    ij: NDArray, spot_px: NDArray, cfg: SystemConfig, options: RestoreOptions
+) -> SurfaceEstimate:
+    """Surface from matched features, anchored by the gauge's h0 or by integrability."""
+    if options.anchor not in ANCHORS:
+        raise WaiInputError(f"unknown anchor {options.anchor!r} (known: {', '.join(ANCHORS)})")
+    keep = np.isfinite(spot_px).all(axis=1)
+    ij, spot_px = ij[keep], spot_px[keep]
+    fixed = (
+        ij,
+        panel_positions(cfg, ij),
+        spot_px,
+        cfg.projector.camera(),
+        cfg.camera_s.camera(),
+        cfg.diffuser.z_mm,
+    )
+
+    def reconstruct(anchor_mm: float) -> SurfaceEstimate:
+        return reconstruct_surface(
+            *fixed,
+            anchor_mm,
+            integrator=options.integrator,
+            n_refine=options.n_refine,
+            grid_spacing_mm=options.grid_spacing_mm,
+            gridder=options.gridder,
+        )
+
+    if options.anchor == "gauge":
+        return reconstruct(cfg.water.h0_mm)
+    return find_anchor(reconstruct, cfg.water.h0_mm, step_mm=3.0).estimate
+
+
 def restore(
     images: dict[str, NDArray], cal: Calibration, options: RestoreOptions = RestoreOptions()
 ) -> RestoreResult:
@@ -125,19 +164,7 @@ def restore(
     t0 = time.perf_counter()
     features = features_from_reference(images["pattern"], reference, cfg)
     t1 = time.perf_counter()
-    surface = reconstruct_surface(
-        features.ij,
-        panel_positions(cfg, features.ij),
-        features.spot_px,
-        cfg.projector.camera(),
-        cfg.camera_s.camera(),
-        cfg.diffuser.z_mm,
-        cfg.water.h0_mm,
-        integrator=options.integrator,
-        n_refine=options.n_refine,
-        grid_spacing_mm=options.grid_spacing_mm,
-        gridder=options.gridder,
-    )
+    surface = estimate_surface(features.ij, features.spot_px, cfg, options)
     t2 = time.perf_counter()
     view = restore_view(
         images["view"] / cal.view_gain,

@@ -113,6 +113,11 @@ def run_bench(args: argparse.Namespace) -> None:
     if args.what == "render":
         res = bench_render(args)
         printer = _print_render
+    elif args.what == "accuracy":
+        from wai.accuracy import print_accuracy, run_accuracy
+
+        res = run_accuracy(args)
+        printer = print_accuracy
     else:
         from wai.bench_restore import bench_restore, print_restore
 

@@ -72,18 +72,32 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--integrator", default="trapezoid", help="gradient integrator")
     p.add_argument("--refine", type=int, default=3, help="refinement passes (0 = the paper)")
     p.add_argument("--method", default="structured-light", help="surface sensing method")
+    p.add_argument(
+        "--anchor",
+        default="integrability",
+        choices=["integrability", "gauge"],
+        help="absolute height: from the slopes' integrability, or the gauge's h0 (the paper)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_restore)
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks that print figures")
-    p.add_argument("what", choices=["render", "restore"], help="what to time")
+    p.add_argument(
+        "what",
+        choices=["render", "restore", "accuracy"],
+        help="render/restore: wall time; accuracy: scores over seeds with an error budget",
+    )
     p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
     p.add_argument("--dir", type=Path, help="render folder to restore (default: render one)")
     p.add_argument("--runs", type=int, default=5, help="measured runs (after a warm-up)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--variant", default="auto")
+    p.add_argument("--seeds", type=int, default=10, help="accuracy: seeds 0..K-1")
+    p.add_argument("--out", type=Path, default=Path("renders/bench_accuracy"))
+    p.add_argument("--wind", type=float, help="accuracy: wind speed U, m/s")
+    p.add_argument("--surface", choices=["dielectric", "mirror"])
     p.set_defaults(func=_cmd_bench)
 
 

@@ -99,7 +99,9 @@ def run_restore(args: argparse.Namespace) -> None:
 
     if args.method != "structured-light":
         raise WaiInputError(f"unknown method {args.method!r} (known: structured-light)")
-    options = RestoreOptions(integrator=args.integrator, n_refine=args.refine)
+    options = RestoreOptions(
+        integrator=args.integrator, n_refine=args.refine, anchor=args.anchor
+    )
     metrics = restore_folder(args.dir, options, progress=not args.quiet)
     for line in summary_lines(metrics):
         print(line)
