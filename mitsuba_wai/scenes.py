@@ -146,7 +146,13 @@ def view_scene(cfg: SystemConfig, water_mesh: object, texture: NDArray) -> dict:
             "to_world": rectangle_to_world(center, np.array(cfg.object.size_mm), facing_down=True),
             "emitter": {
                 "type": "area",
-                "radiance": {"type": "bitmap", "bitmap": mi.Bitmap(texture), "raw": True},
+                # The down-facing rectangle runs texture v along lab -y: flip the rows so that
+                # row r grows with lab +y (mitsuba_wai.textures) and camera v sees it upright.
+                "radiance": {
+                    "type": "bitmap",
+                    "bitmap": mi.Bitmap(np.ascontiguousarray(texture[::-1])),
+                    "raw": True,
+                },
             },
         },
     }
