@@ -114,15 +114,12 @@ class FrameRenderer:
         self.variant = select_variant()
         mi = mitsuba()
         tm = meshes.heightfield_mesh(self.grid)
-        bsdf = water_bsdf(self.cfg)
         tex = self.texture if self.texture is not None else object_texture(self.cfg.object)
         # Each scene owns its mesh object: Mitsuba meshes cannot be shared between scenes.
-        self._scene_s = mi.load_dict(
-            pattern_scene(self.cfg, meshes.to_mitsuba(tm, "water", bsdf))
-        )
-        self._scene_v = mi.load_dict(
-            view_scene(self.cfg, meshes.to_mitsuba(tm, "water", bsdf), tex)
-        )
+        water_s = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "S"))
+        water_v = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "V"))
+        self._scene_s = mi.load_dict(pattern_scene(self.cfg, water_s))
+        self._scene_v = mi.load_dict(view_scene(self.cfg, water_v, tex))
         self._params_s = mi.traverse(self._scene_s)
         self._params_v = mi.traverse(self._scene_v)
 

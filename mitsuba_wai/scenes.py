@@ -13,9 +13,11 @@ System V (observation): camera v, the water surface and the object plane as an a
 carries the texture, so every path is camera -> water -> object: the ``path`` integrator with
 ``max_depth = 2`` (one specular bounce, nothing more).
 
-Water is ``dielectric`` (n = 4/3 below, air above; default) or an ideal ``mirror``
-(a perfect ``conductor``, two-sided because Mitsuba's conductors reflect on the front side only
-and the light arrives from below) for system S's idealised variant.
+Water is a smooth interface (n = 4/3 below, air above; default) that follows the one branch its
+system needs with the exact Fresnel weight (``water_interface`` in :mod:`mitsuba_wai.bsdfs`: the
+expectation of Mitsuba's ``dielectric`` without its random branch choice), or, for system S's
+idealised variant, a ``mirror`` (a perfect ``conductor``, two-sided because Mitsuba's
+conductors reflect on the front side only and the light arrives from below).
 """
 
 from __future__ import annotations
@@ -69,11 +71,22 @@ def sensor_dict(camera: PinholeCamera, rfilter: str = "box") -> dict:
     }
 
 
-def water_bsdf(cfg: SystemConfig) -> dict:
-    """The water surface's BSDF: normals point into the air (exterior)."""
-    if cfg.water.surface == "mirror":
+def water_bsdf(cfg: SystemConfig, system: str) -> dict:
+    """The water surface's BSDF in system ``"S"`` (reflection) or ``"V"`` (refraction).
+
+    Normals point into the air (exterior). A water surface follows the one branch its system
+    needs with the exact Fresnel weight (``water_interface``, :mod:`mitsuba_wai.bsdfs`); the
+    ``mirror`` surface of system S reflects everything.
+    """
+    from mitsuba_wai.bsdfs import register
+
+    register()
+    if system not in ("S", "V"):
+        raise ValueError(f"system must be 'S' or 'V', not {system!r}")
+    if system == "S" and cfg.water.surface == "mirror":
         return {"type": "twosided", "bsdf": {"type": "conductor", "material": "none"}}
-    return {"type": "dielectric", "int_ior": cfg.water.n_water, "ext_ior": 1.0}
+    mode = "reflect" if system == "S" else "refract"
+    return {"type": "water_interface", "int_ior": cfg.water.n_water, "ext_ior": 1.0, "mode": mode}
 
 
 def rectangle_to_world(center: NDArray, size_mm: NDArray, facing_down: bool) -> object:
@@ -99,7 +112,7 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
     """System S: projector, water, diffuser, camera s (see module notes)."""
     import mitsuba as mi
 
-    from mitsuba_wai.diffuser import register
+    from mitsuba_wai.bsdfs import register
 
     register()
     projector = cfg.projector.camera()
@@ -122,7 +135,7 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
             "to_world": device_to_world(projector),
         },
         "water": water_mesh,
-        # Diffuse transmission from above, pass-through from below (see mitsuba_wai.diffuser).
+        # Diffuse transmission from above, pass-through from below (see mitsuba_wai.bsdfs).
         "diffuser": {
             "type": "rectangle",
             "to_world": rectangle_to_world(center, rect[:, 1] - rect[:, 0], facing_down=False),

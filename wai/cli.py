@@ -43,6 +43,23 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_experiment(args: argparse.Namespace) -> int:
+    from wai.experiments import run_experiment
+
+    run_experiment(args)
+    return 0
+
+
+def _add_experiment(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("experiment", help="experiments that write reports, tables and charts")
+    p.add_argument("name", choices=["validate", "paper"], help="which experiment")
+    p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
+    p.add_argument("--out", type=Path, help="output folder (default renders/<name>)")
+    p.add_argument("--seeds", type=int, default=10, help="seeds 0..K-1 (paper)")
+    p.add_argument("--quick", action="store_true", help="a small version (for CI)")
+    p.set_defaults(func=_cmd_experiment)
+
+
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="render and restore the paper's configuration")
     p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
@@ -107,7 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="wai", description="Wavy water-air interface testbed (Jian et al. 2022)."
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_add_render, _add_restore, _add_bench, _add_demo):
+    for add in (_add_render, _add_restore, _add_bench, _add_demo, _add_experiment):
         add(sub)
     return parser
 

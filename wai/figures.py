@@ -16,7 +16,7 @@ from wai_core.heightfield import Heightfield  # noqa: E402
 from wai_core.io import to_srgb8  # noqa: E402
 
 
-def _save(fig: plt.Figure, path: str | Path) -> None:
+def save_figure(fig: plt.Figure, path: str | Path) -> None:
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
     fig.savefig(tmp, dpi=120, bbox_inches="tight")
@@ -42,7 +42,7 @@ def surface_figure(surface: Heightfield, h0_mm: float, title: str, path: str | P
     ax2.set_ylabel("y (mm)")
     fig.colorbar(im, ax=ax2, label="η = z − h0 (mm)")
     fig.suptitle(title)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def side_by_side(
@@ -55,7 +55,7 @@ def side_by_side(
         ax.imshow(to_srgb8(img, exposure))
         ax.set_title(title)
         ax.set_axis_off()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def error_map_figure(est: Heightfield, error_mm: NDArray, path: str | Path) -> None:
@@ -67,7 +67,7 @@ def error_map_figure(est: Heightfield, error_mm: NDArray, path: str | Path) -> N
     ax.set_ylabel("y (mm)")
     fig.colorbar(im, ax=ax, label="|z_est − z_true| (mm)")
     ax.set_title("Absolute error of the reconstructed surface")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def profile_figure(
@@ -81,7 +81,7 @@ def profile_figure(
     ax.set_ylabel("z (mm)")
     ax.set_title(f"Surface profile at y = {y_mm:.0f} mm")
     ax.legend()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def corner_scatter_figure(points_px: dict[str, NDArray], stds: dict[str, float], path) -> None:
@@ -98,4 +98,4 @@ def corner_scatter_figure(points_px: dict[str, NDArray], stds: dict[str, float],
     ax.set_ylabel("row (px)")
     ax.legend(loc="best")
     ax.set_title("Checkerboard corners")
-    _save(fig, path)
+    save_figure(fig, path)

@@ -2,7 +2,7 @@
 
 - The diffuser is a finite horizontal screen spanning camera s's view of the plane ``z = z_h``.
   The projector's upward beam crosses that plane too; the renderer's screen is one-way (see
-  :mod:`mitsuba_wai.diffuser`), as the paper's geometry implicitly assumes.
+  :mod:`mitsuba_wai.bsdfs`), as the paper's geometry implicitly assumes.
 - The object plane is a rectangle centred where camera v's optical axis, refracted by flat water,
   meets ``z = z_a``.
 - The observed patch is the part of the flat water that either system looks at; a surface given

@@ -1,0 +1,92 @@
+"""Forward geometric model of both systems, with no Mitsuba render.
+
+- Spots: each lit dot's projector ray meets the exact surface (Newton ray hit on the bicubic
+  heightfield), reflects about the exact normal, meets the diffuser plane and is projected into
+  camera s. That is the chief ray of the dot; the rendered spot is the image of the whole dot.
+- View: camera v's rays refract at the exact surface (Snell's law) and meet the object plane;
+  the texture is sampled there (bilinear). Pixels are supersampled on a regular sub-grid, as a
+  box reconstruction filter averages a pixel's area.
+
+It shares the restoration's ray geometry (:func:`restoration.reverse_trace.trace_to_object`), not
+its outputs: what it is compared with are Mitsuba's renders.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import map_coordinates
+
+from mitsuba_wai.textures import texture_coords
+from restoration.reverse_trace import trace_to_object
+from wai_core.config import SystemConfig
+from wai_core.geometry import intersect_plane_z, reflect
+from wai_core.heightfield import Heightfield
+from wai_core.layout import dot_weights
+from wai_core.pattern import dot_grid
+
+
+def spots_through(
+    cfg: SystemConfig, surface: Heightfield | None, panel_px: NDArray
+) -> NDArray:
+    """Camera-s pixels (K, 2) where dots at ``panel_px`` (K, 2) land; NaN where a ray misses.
+
+    ``surface`` None means flat water at h0.
+    """
+    projector = cfg.projector.camera()
+    o, d = projector.pixel_rays(panel_px[:, 0], panel_px[:, 1])
+    if surface is None:
+        q, _ = intersect_plane_z(o, d, cfg.water.h0_mm)
+        n = np.broadcast_to([0.0, 0.0, 1.0], q.shape)
+        ok = np.isfinite(q[:, 0])
+    else:
+        q, ok = surface.intersect(o, d)
+        n = surface.normal(q[:, 0], q[:, 1])
+    s, _ = intersect_plane_z(q, reflect(d, n), cfg.diffuser.z_mm)
+    cols, rows, front = cfg.camera_s.camera().project(s)
+    px = np.stack([cols, rows], axis=1)
+    px[~(ok & front)] = np.nan
+    return px
+
+
+def predict_spots(
+    cfg: SystemConfig, surface: Heightfield | None
+) -> tuple[NDArray, NDArray]:
+    """Grid indices (K, 2) and predicted camera-s pixels (K, 2) of every lit dot in view."""
+    ij, panel = dot_grid(cfg.pattern, cfg.projector.camera())
+    lit = dot_weights(cfg) > 0
+    px = spots_through(cfg, surface, panel[lit])
+    cam = cfg.camera_s.camera()
+    seen = np.isfinite(px[:, 0]) & cam.in_image(px[:, 0], px[:, 1])
+    return ij[lit][seen], px[seen]
+
+
+def predict_view(
+    cfg: SystemConfig, surface: Heightfield | None, texture: NDArray, supersample: int = 2
+) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Camera v's image (H, W, 3) of the textured plane through ``surface`` (None: flat water),
+    in the texture's units, and a mask of pixels whose rays all reached the object."""
+    cam = cfg.camera_v.camera()
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    acc = np.zeros((cam.height_px, cam.width_px, texture.shape[2]))
+    all_ok = np.ones((cam.height_px, cam.width_px), dtype=bool)
+    cols, rows = cam.pixel_grid()
+    for dy in offsets:
+        for dx in offsets:
+            tr = trace_to_object(
+                cam,
+                surface,
+                cfg.water.h0_mm,
+                cfg.water.n_water,
+                cfg.object_z_mm,
+                cols + dx,
+                rows + dy,
+            )
+            uv = texture_coords(tr.object_mm, cfg, texture.shape)
+            uv = np.where(tr.ok[..., None], uv, -1e6)
+            for k in range(texture.shape[2]):
+                acc[..., k] += map_coordinates(
+                    texture[..., k], [uv[..., 1], uv[..., 0]], order=1, mode="constant"
+                )
+            all_ok &= tr.ok
+    return (acc / supersample**2).astype(np.float32), all_ok

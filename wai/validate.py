@@ -1,0 +1,214 @@
+"""``wai experiment validate``: does the geometric model agree with the physically based render?
+
+Two comparisons, for flat water and for waves at several wind speeds and seeds:
+
+- spot centres detected in Mitsuba's pattern render against the chief rays of the geometric model
+  (:func:`wai.forward.predict_spots`): median and 95th percentile offset, pixels;
+- the path-traced view against the geometric view (:func:`wai.forward.predict_view`): SSIM on
+  the pixels whose rays reach the object (TIR and off-board pixels masked).
+
+Then the testbed's own speed against accuracy: spot agreement against samples per pixel and
+render time, from which the default ``spp_pattern`` is picked.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+from tqdm import tqdm
+
+from wai_core.config import SystemConfig, load_config
+from wai_core.heightfield import Heightfield
+from wai_core.io import atomic_write_bytes, write_json
+
+# A detection farther than this from a predicted spot is another dot, not an offset.
+MATCH_RADIUS_PX = 3.0
+
+
+def spot_agreement(
+    cfg: SystemConfig, surface: Heightfield | None, pattern: NDArray
+) -> dict[str, float]:
+    """Offsets (px) between detected spots and the model's chief rays."""
+    from restoration.features import detect_spots
+    from wai.forward import predict_spots
+
+    _, px = predict_spots(cfg, surface)
+    spots = detect_spots(np.nan_to_num(pattern, nan=0.0, posinf=0.0))
+    dist, _ = cKDTree(spots.centres_px).query(px)
+    found = dist < MATCH_RADIUS_PX
+    d = dist[found]
+    return {
+        "median_px": float(np.median(d)) if d.size else float("nan"),
+        "p95_px": float(np.percentile(d, 95)) if d.size else float("nan"),
+        "n_predicted": int(px.shape[0]),
+        "n_found": int(found.sum()),
+    }
+
+
+def view_agreement(
+    cfg: SystemConfig, surface: Heightfield | None, view: NDArray, texture: NDArray
+) -> dict[str, float]:
+    """SSIM/PSNR of the path-traced view against the geometric one, outside TIR and the board."""
+    from restoration.metrics import image_metrics
+    from wai.forward import predict_view
+
+    predicted, ok = predict_view(cfg, surface, texture)
+    rendered = view / cfg.water.n_water**2
+    mask = ok & (predicted.mean(axis=2) > 0.01)
+    m = image_metrics(rendered, predicted, mask)
+    return {"ssim": m["ssim"], "psnr_db": m["psnr_db"], "n_pixels": m["n_pixels"]}
+
+
+def _cases(quick: bool) -> list[tuple[float, int]]:
+    winds = [0.0, 1.0] if quick else [0.0, 0.5, 1.0, 1.5]
+    seeds = [0] if quick else [0, 1]
+    return [(0.0, 0)] + [(u, s) for u in winds if u > 0 for s in seeds]
+
+
+def agreement_table(cfg: SystemConfig, quick: bool) -> list[dict[str, Any]]:
+    """Spot and view agreement for flat water and each (wind, seed) case at the default spp."""
+    from mitsuba_wai.mesh import flat_like
+    from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
+    from mitsuba_wai.textures import object_texture
+
+    texture = object_texture(cfg.object)
+    default_grid = wave_surface(cfg)
+    renderers: dict[tuple[int, ...], FrameRenderer] = {}
+    rows = []
+    for wind, seed in tqdm(_cases(quick), desc="validate", leave=False):
+        c = cfg.replace("waves", wind_speed_m_s=wind, seed=seed)
+        surface = wave_surface(c) if wind > 0 else None
+        grid = default_grid if surface is None else surface
+        if grid.z.shape not in renderers:  # one loaded scene per mesh size
+            renderers[grid.z.shape] = FrameRenderer(c, grid)
+        shown = flat_like(grid, cfg.water.h0_mm) if surface is None else surface
+        images = renderers[grid.z.shape].render(shown, render_seed(c))
+        spots = spot_agreement(c, surface, images["pattern"])
+        view = view_agreement(c, surface, images["view"], texture)
+        rows.append(
+            {
+                "wind_m_s": wind,
+                "seed": seed,
+                "spp_pattern": cfg.render.spp_pattern,
+                "spp_view": cfg.render.spp_view,
+                **{f"spot_{k}": v for k, v in spots.items()},
+                **{f"view_{k}": v for k, v in view.items()},
+            }
+        )
+    return rows
+
+
+def spp_sweep(cfg: SystemConfig, spps: list[int], runs: int = 2) -> list[dict[str, Any]]:
+    """Spot agreement and render time of the pattern against spp (U from cfg, seed 0)."""
+    import drjit as dr
+
+    from mitsuba_wai.render import FrameRenderer, wave_surface
+    from mitsuba_wai.variant import mitsuba
+
+    mi = mitsuba()
+    surface = wave_surface(cfg)
+    renderer = FrameRenderer(cfg, surface)
+    renderer._set_surface(surface)
+    mi.render(renderer._scene_s, spp=1, seed=0)  # compile the kernels before timing
+    rows = []
+    for spp in tqdm(spps, desc="spp", leave=False):
+        times, medians, p95s = [], [], []
+        for run in range(runs):
+            t0 = time.perf_counter()
+            img = mi.render(renderer._scene_s, spp=spp, seed=1000 + run)
+            dr.eval(img)
+            dr.sync_thread()
+            times.append(time.perf_counter() - t0)
+            agree = spot_agreement(cfg, surface, np.asarray(img)[..., :3])
+            medians.append(agree["median_px"])
+            p95s.append(agree["p95_px"])
+        rows.append(
+            {
+                "spp": spp,
+                "render_s": float(np.median(times)),
+                "spot_median_px": float(np.median(medians)),
+                "spot_p95_px": float(np.median(p95s)),
+            }
+        )
+    return rows
+
+
+def spp_chart(rows: list[dict[str, Any]], default_spp: int, path: Path) -> None:
+    """Spot agreement against render time, one point per spp, the default marked."""
+    from wai.figures import plt, save_figure
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    t = [r["render_s"] for r in rows]
+    ax.plot(t, [r["spot_median_px"] for r in rows], "o-", label="median")
+    ax.plot(t, [r["spot_p95_px"] for r in rows], "s--", label="95th percentile")
+    for r in rows:
+        ax.annotate(
+            f"{r['spp']} spp",
+            (r["render_s"], r["spot_median_px"]),
+            fontsize=8,
+            xytext=(4, 4),
+            textcoords="offset points",
+        )
+    d = next((r for r in rows if r["spp"] == default_spp), None)
+    if d is not None:
+        label = f"default ({default_spp} spp)"
+        ax.plot([d["render_s"]], [d["spot_median_px"]], "r*", ms=16, label=label)
+    ax.axhline(0.05, color="gray", lw=0.8, ls=":", label="goal 0.05 px")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("pattern render time per frame (s)")
+    ax.set_ylabel("spot offset, render vs geometric model (px)")
+    ax.set_title("Testbed speed vs accuracy (camera s, 800x600)")
+    ax.legend(fontsize=8)
+    save_figure(fig, path)
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Rows of dicts as CSV, atomically."""
+    import io
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+    atomic_write_bytes(path, buf.getvalue().encode())
+
+
+def run_validate(args: argparse.Namespace) -> dict[str, Any]:
+    """Run both comparisons and the spp sweep; write JSON, CSV and the chart into ``args.out``."""
+    cfg = load_config(args.config)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    table = agreement_table(cfg, args.quick)
+    spps = [2, 8, 32] if args.quick else [2, 4, 8, 16, 32, 64, 128]
+    sweep = spp_sweep(cfg, spps, runs=1 if args.quick else 3)
+    write_csv(out / "agreement.csv", table)
+    write_csv(out / "spp_sweep.csv", sweep)
+    spp_chart(sweep, cfg.render.spp_pattern, out / "spp_tradeoff.png")
+    result = {"agreement": table, "spp_sweep": sweep, "default_spp": cfg.render.spp_pattern}
+    write_json(out / "validate.json", result)
+    return result
+
+
+def print_validate(res: dict[str, Any]) -> None:
+    """The two tables, readable."""
+    print("wind  seed  spot median  spot p95  found/predicted  view SSIM")
+    for r in res["agreement"]:
+        print(
+            f"{r['wind_m_s']:4.1f} {r['seed']:5d}  {r['spot_median_px']:9.3f} px "
+            f"{r['spot_p95_px']:7.3f} px  {r['spot_n_found']:5d}/{r['spot_n_predicted']:<5d}"
+            f"     {r['view_ssim']:.4f}"
+        )
+    print("spp   render s  spot median  spot p95")
+    for r in res["spp_sweep"]:
+        print(
+            f"{r['spp']:4d} {r['render_s']:9.2f}  {r['spot_median_px']:9.3f} px "
+            f"{r['spot_p95_px']:7.3f} px"
+        )
