@@ -130,8 +130,10 @@ class FrameRenderer:
         meshes.set_mesh_geometry(self._params_s, tm, prefix="water.")
         meshes.set_mesh_geometry(self._params_v, tm, prefix="water.")
 
-    def render(self, surface: Heightfield, seed: int) -> dict[str, NDArray[np.float32]]:
-        """Render the pattern (camera s) and the view (camera v) through ``surface``."""
+    def render(
+        self, surface: Heightfield, seed: int, which: tuple[str, ...] = ("pattern", "view")
+    ) -> dict[str, NDArray[np.float32]]:
+        """Render the pattern (camera s) and/or the view (camera v) through ``surface``."""
         import drjit as dr
 
         mi = mitsuba()
@@ -139,7 +141,7 @@ class FrameRenderer:
         out = {}
         r = self.cfg.render
         jobs = (("pattern", self._scene_s, r.spp_pattern), ("view", self._scene_v, r.spp_view))
-        for key, scene, spp in jobs:
+        for key, scene, spp in (job for job in jobs if job[0] in which):
             img = mi.render(scene, spp=spp, seed=seed)
             dr.eval(img)
             arr = np.asarray(img, dtype=np.float32)[..., :3]

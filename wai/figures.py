@@ -99,3 +99,63 @@ def corner_scatter_figure(points_px: dict[str, NDArray], stds: dict[str, float],
     ax.legend(loc="best")
     ax.set_title("Checkerboard corners")
     save_figure(fig, path)
+
+
+def deflection_figure(curves: dict[str, tuple[NDArray, NDArray]], path: str | Path) -> None:
+    """Deflection ψ of the reflected ray against the surface inclination θ (the paper's Fig. 8)."""
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for label, (theta_deg, psi_deg) in curves.items():
+        ax.plot(theta_deg, psi_deg, label=label)
+    ax.set_xlabel("surface inclination θ (deg)")
+    ax.set_ylabel("deflection ψ of the reflected ray (deg)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    save_figure(fig, path)
+
+
+def features_figure(
+    images: list[NDArray], points: list[NDArray], titles: list[str], path: str | Path
+) -> None:
+    """Pattern images with their detected features marked (the paper's Fig. 11c-d)."""
+    fig, axes = plt.subplots(1, len(images), figsize=(6 * len(images), 4.5))
+    for ax, img, pts, title in zip(np.atleast_1d(axes), images, points, titles, strict=True):
+        ax.imshow(to_srgb8(img))
+        ax.plot(pts[:, 0], pts[:, 1], "r+", ms=3, mew=0.6)
+        ax.set_title(title)
+        ax.set_axis_off()
+    save_figure(fig, path)
+
+
+def surfaces_figure(est: Heightfield, truth: Heightfield, h0_mm: float, path: str | Path) -> None:
+    """Recovered and true surface over the reconstructed region (the paper's Fig. 11e-f)."""
+    xx, yy = np.meshgrid(est.x, est.y)
+    true_z = np.where(np.isfinite(est.z), truth.height(xx, yy), np.nan)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    vmin = np.nanmin([np.nanmin(est.z), np.nanmin(true_z)]) - h0_mm
+    vmax = np.nanmax([np.nanmax(est.z), np.nanmax(true_z)]) - h0_mm
+    for ax, z, title in zip(axes, (est.z, true_z), ("recovered", "ground truth"), strict=True):
+        im = ax.pcolormesh(est.x, est.y, z - h0_mm, vmin=vmin, vmax=vmax, shading="auto")
+        ax.set_aspect("equal")
+        ax.set_title(f"{title} surface")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+    fig.colorbar(im, ax=axes, label="z − h0 (mm)")
+    save_figure(fig, path)
+
+
+def sweep_figure(
+    x: NDArray, ys: dict[str, NDArray], xlabel: str, ylabel: str, path: str | Path,
+    vlines: dict[str, float] | None = None,
+) -> None:
+    """Several measured curves against one swept parameter, with optional predicted bounds."""
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for label, y in ys.items():
+        ax.plot(x, y, "o-", label=label)
+    for label, v in (vlines or {}).items():
+        ax.axvline(v, color="gray", ls="--", lw=1)
+        ax.annotate(label, (v, ax.get_ylim()[1]), rotation=90, va="top", ha="right", fontsize=8)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    save_figure(fig, path)
