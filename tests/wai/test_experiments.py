@@ -1,0 +1,55 @@
+"""Experiments in their --quick form: every figure and table is produced, and the facts they
+report hold (the meridional dψ/dθ = 2, restoration beats distortion)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from wai.cli import main
+from wai.paper import correspondence_limit, deflection_curves
+
+
+def test_meridional_deflection_is_twice_the_tilt_and_sagittal_is_not():
+    fits = deflection_curves(np.linspace(-10, 10, 201))["dpsi_dtheta"]
+    for pro in (30, 45):
+        assert fits[f"θ_pro = {pro}°, meridional"] == pytest.approx(2.0, abs=1e-3)
+        # A sagittal tilt turns the ray by 2 sin(theta_pro), not 2 (derived by hand).
+        assert fits[f"θ_pro = {pro}°, sagittal"] == pytest.approx(
+            2 * np.sin(np.radians(pro)), abs=2e-3
+        )
+
+
+def test_correspondence_limit_follows_eq_35(paper_cfg):
+    lim = correspondence_limit(paper_cfg)
+    h0, zh = paper_cfg.water.h0_mm, paper_cfg.diffuser.z_mm
+    # Plug the bound back into eq. 35: both sides equal.
+    lhs = lim["D_mm"] * (2 * h0 - zh) / h0 - lim["delta_p_mm"] / 2
+    rhs = (h0 - zh) / np.cos(np.radians(lim["theta_flat_deg"])) ** 2 * 2 * 2 * lim["phi_max_rad"]
+    assert lhs == pytest.approx(rhs)
+    assert lim["theta_flat_deg"] == pytest.approx(50.0, abs=0.1)  # 90° - 40° elevation
+
+
+def test_paper_experiment_quick(tmp_path):
+    out = tmp_path / "paper"
+    assert main(["experiment", "paper", "--quick", "--out", str(out)]) == 0
+    for name in (
+        "report.md",
+        "report.html",
+        "paper.json",
+        "fig8_deflection.png",
+        "fig10_surface.png",
+        "fig11_features.png",
+        "fig11_surfaces.png",
+        "fig12_error_map.png",
+        "fig15_views.png",
+        "fig15d_corners.png",
+        "sweep_amplitude.png",
+    ):
+        assert (out / name).is_file(), name
+    data = json.loads((out / "paper.json").read_text())
+    for run in data["seeds"]:
+        for ds in run["datasets"].values():
+            assert ds["restored"]["ssim"] > ds["distorted"]["ssim"]
+            assert ds["restored"]["mse"] < ds["distorted"]["mse"]
+        assert run["metrics"]["corner_std_restored_px"] < run["metrics"]["corner_std_distorted_px"]
