@@ -26,12 +26,17 @@ def flat_like(surface: Heightfield, z_mm: float) -> Heightfield:
     return Heightfield(surface.x, surface.y, np.full_like(surface.z, z_mm))
 
 
-def to_mitsuba(mesh: trimesh.Trimesh, name: str, bsdf: dict) -> object:
-    """A Mitsuba ``Mesh`` with the vertices, faces and vertex normals of a ``trimesh`` mesh."""
+def to_mitsuba(
+    mesh: trimesh.Trimesh, name: str, bsdf: dict, emitter: dict | None = None
+) -> object:
+    """A Mitsuba ``Mesh`` with the vertices, faces and vertex normals of a ``trimesh`` mesh,
+    and optionally an emitter attached to it."""
     import mitsuba as mi
 
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(bsdf)
+    if emitter is not None:
+        props["emitter"] = mi.load_dict(emitter)
     m = mi.Mesh(
         name,
         vertex_count=len(mesh.vertices),

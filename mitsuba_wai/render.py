@@ -53,10 +53,11 @@ def _axis(lo: float, hi: float, spacing: float) -> NDArray:
     return np.linspace(lo, hi, n)
 
 
-def wave_surface(cfg: SystemConfig) -> Heightfield:
+def wave_surface(cfg: SystemConfig, extent: NDArray | None = None) -> Heightfield:
     """The true surface of ``cfg.waves`` at ``time_s`` on the mesh grid: the modelled extent
-    sampled at the shortest wavelength / ``mesh_points_per_wavelength``."""
-    ext = surface_extent(cfg)
+    (``[[x0, x1], [y0, y1]]`` mm; default :func:`~wai_core.layout.surface_extent`) sampled at
+    the shortest wavelength / ``mesh_points_per_wavelength``."""
+    ext = surface_extent(cfg) if extent is None else np.asarray(extent, dtype=float)
     sea = sea_surface(cfg.waves)
     spacing = mesh_spacing_mm(
         sea, cfg.waves.mesh_points_per_wavelength, float(np.max(ext[:, 1] - ext[:, 0]))
@@ -69,8 +70,11 @@ def wave_surface(cfg: SystemConfig) -> Heightfield:
     return sea.grid(x, y, cfg.waves.time_s, mean_level_mm=cfg.water.h0_mm)
 
 
-def file_surface(cfg: SystemConfig, given: Heightfield) -> Heightfield:
-    """A surface given as a file, resampled on the modelled extent at the file's own spacing.
+def file_surface(
+    cfg: SystemConfig, given: Heightfield, extent: NDArray | None = None
+) -> Heightfield:
+    """A surface given as a file, resampled on the modelled extent (default
+    :func:`~wai_core.layout.surface_extent`) at the file's own spacing.
 
     The file must cover the observed patch (what either system looks at). Beyond the file's grid
     (e.g. camera v's TIR band) the water is flat at ``h0``.
@@ -86,7 +90,7 @@ def file_surface(cfg: SystemConfig, given: Heightfield) -> Heightfield:
             "heightfield does not cover the observed patch "
             f"x {patch[0, 0]:.0f}..{patch[0, 1]:.0f} mm, y {patch[1, 0]:.0f}..{patch[1, 1]:.0f} mm"
         )
-    ext = surface_extent(cfg)
+    ext = surface_extent(cfg) if extent is None else np.asarray(extent, dtype=float)
     spacing = float(min(np.diff(given.x).min(), np.diff(given.y).min()))
     spacing = max(spacing, float(np.sqrt(np.prod(ext[:, 1] - ext[:, 0]) / MAX_MESH_VERTICES)))
     x, y = _axis(*ext[0], spacing), _axis(*ext[1], spacing)
@@ -95,18 +99,40 @@ def file_surface(cfg: SystemConfig, given: Heightfield) -> Heightfield:
     return Heightfield(x, y, np.where(np.isfinite(z), z, cfg.water.h0_mm))
 
 
+def render_image(scene: object, spp: int, seed: int) -> tuple[NDArray[np.float32], int]:
+    """Render a loaded scene to linear RGB (H, W, 3); non-finite pixels are zeroed and counted.
+
+    Returns
+    -------
+    image : (H, W, 3) ndarray of float32
+    n_nonfinite : int
+        Pixels zeroed: rare invalid splats of the particle tracer, never hidden.
+    """
+    import drjit as dr
+
+    mi = mitsuba()
+    img = mi.render(scene, spp=spp, seed=seed)
+    dr.eval(img)
+    arr = np.asarray(img, dtype=np.float32)[..., :3]
+    bad = ~np.isfinite(arr).all(axis=2)
+    arr[bad] = 0.0
+    return arr, int(bad.sum())
+
+
 @dataclass
 class FrameRenderer:
     """Loaded scenes of both systems whose water surface is swapped per frame.
 
     Scenes are loaded once; a new surface only rewrites the mesh's vertex buffers, so Dr.Jit's
     compiled kernels are reused from frame to frame (what makes sweeps and benchmarks fast).
-    The grid (vertex count) is fixed by the first surface.
+    The grid (vertex count) is fixed by the first surface. ``systems`` names the renders to
+    prepare (``"pattern"``: system S, ``"view"``: system V); only those can be rendered.
     """
 
     cfg: SystemConfig
     grid: Heightfield
     texture: NDArray | None = None
+    systems: tuple[str, ...] = ("pattern", "view")
     variant: str = field(init=False)
     nonfinite_pixels: dict[str, int] = field(init=False, default_factory=dict)
 
@@ -114,42 +140,38 @@ class FrameRenderer:
         self.variant = select_variant()
         mi = mitsuba()
         tm = meshes.heightfield_mesh(self.grid)
-        tex = self.texture if self.texture is not None else object_texture(self.cfg.object)
+        self._scenes: dict[str, Any] = {}
+        self._params: dict[str, Any] = {}
         # Each scene owns its mesh object: Mitsuba meshes cannot be shared between scenes.
-        water_s = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "S"))
-        water_v = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "V"))
-        self._scene_s = mi.load_dict(pattern_scene(self.cfg, water_s))
-        self._scene_v = mi.load_dict(view_scene(self.cfg, water_v, tex))
-        self._params_s = mi.traverse(self._scene_s)
-        self._params_v = mi.traverse(self._scene_v)
+        if "pattern" in self.systems:
+            water_s = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "S"))
+            self._scenes["pattern"] = mi.load_dict(pattern_scene(self.cfg, water_s))
+        if "view" in self.systems:
+            tex = self.texture if self.texture is not None else object_texture(self.cfg.object)
+            water_v = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "V"))
+            self._scenes["view"] = mi.load_dict(view_scene(self.cfg, water_v, tex))
+        self._params = {k: mi.traverse(scene) for k, scene in self._scenes.items()}
 
     def _set_surface(self, surface: Heightfield) -> None:
         if surface.z.shape != self.grid.z.shape:
             raise ValueError("surface grid differs from the renderer's mesh grid")
         tm = meshes.heightfield_mesh(surface)
-        meshes.set_mesh_geometry(self._params_s, tm, prefix="water.")
-        meshes.set_mesh_geometry(self._params_v, tm, prefix="water.")
+        for params in self._params.values():
+            meshes.set_mesh_geometry(params, tm, prefix="water.")
 
     def render(
         self, surface: Heightfield, seed: int, which: tuple[str, ...] = ("pattern", "view")
     ) -> dict[str, NDArray[np.float32]]:
         """Render the pattern (camera s) and/or the view (camera v) through ``surface``."""
-        import drjit as dr
-
-        mi = mitsuba()
+        missing = set(which) - set(self._scenes)
+        if missing:
+            raise ValueError(f"renderer was not prepared for {sorted(missing)}")
         self._set_surface(surface)
         out = {}
-        r = self.cfg.render
-        jobs = (("pattern", self._scene_s, r.spp_pattern), ("view", self._scene_v, r.spp_view))
-        for key, scene, spp in (job for job in jobs if job[0] in which):
-            img = mi.render(scene, spp=spp, seed=seed)
-            dr.eval(img)
-            arr = np.asarray(img, dtype=np.float32)[..., :3]
-            # Rare invalid splats of the particle tracer: zeroed and counted, never hidden.
-            bad = ~np.isfinite(arr).all(axis=2)
-            self.nonfinite_pixels[key] = self.nonfinite_pixels.get(key, 0) + int(bad.sum())
-            arr[bad] = 0.0
-            out[key] = arr
+        spp = {"pattern": self.cfg.render.spp_pattern, "view": self.cfg.render.spp_view}
+        for key in (k for k in ("pattern", "view") if k in which):
+            out[key], bad = render_image(self._scenes[key], spp[key], seed)
+            self.nonfinite_pixels[key] = self.nonfinite_pixels.get(key, 0) + bad
         return out
 
 
@@ -201,6 +223,21 @@ def scene_record(cfg: SystemConfig, variant: str, surface: Heightfield, source: 
             "python": platform.python_version(),
         },
     }
+
+
+def write_images(folder: Path, images: dict[str, NDArray], view_gain: float) -> None:
+    """Each image as ``NAME.exr`` and a ``NAME.png`` preview; views (``view*``) are shown at
+    the exposure that undoes the radiance gain, others at their own 99.5th percentile."""
+    for name, img in images.items():
+        write_exr(folder / f"{name}.exr", img)
+        exposure = 1.0 / view_gain if name.startswith("view") else None
+        write_png(folder / f"{name}.png", img, exposure=exposure)
+
+
+def write_surface(folder: Path, surface: Heightfield) -> None:
+    """The true surface as ``heightfield.npz`` and the mesh rendered as ``surface.ply``."""
+    surface.save(folder / "heightfield.npz")
+    meshes.heightfield_mesh(surface).export(folder / "surface.ply")
 
 
 def render_seed(cfg: SystemConfig) -> int:
@@ -265,13 +302,8 @@ def render_folder(
             "view": wavy["view"],
             "view_truth": flat["view"],
         }
-        gain = cfg.water.n_water**2
-        for name, img in images.items():
-            write_exr(tmp / f"{name}.exr", img)
-            exposure = 1.0 / gain if name.startswith("view") else None
-            write_png(tmp / f"{name}.png", img, exposure=exposure)
-        surface.save(tmp / "heightfield.npz")
-        meshes.heightfield_mesh(surface).export(tmp / "surface.ply")
+        write_images(tmp, images, view_gain=cfg.water.n_water**2)
+        write_surface(tmp, surface)
         tick("write")
         record["timings_s"] = timings
         record["nonfinite_pixels_zeroed"] = renderer.nonfinite_pixels

@@ -72,7 +72,8 @@ def sensor_dict(camera: PinholeCamera, rfilter: str = "box") -> dict:
 
 
 def water_bsdf(cfg: SystemConfig, system: str) -> dict:
-    """The water surface's BSDF in system ``"S"`` (reflection) or ``"V"`` (refraction).
+    """The water surface's BSDF in system ``"S"`` (reflection), ``"V"`` or ``"A"`` (refraction;
+    A is Alterman's sun sensor, :mod:`mitsuba_wai.alterman`).
 
     Normals point into the air (exterior). A water surface follows the one branch its system
     needs with the exact Fresnel weight (``water_interface``, :mod:`mitsuba_wai.bsdfs`); the
@@ -81,8 +82,8 @@ def water_bsdf(cfg: SystemConfig, system: str) -> dict:
     from mitsuba_wai.bsdfs import register
 
     register()
-    if system not in ("S", "V"):
-        raise ValueError(f"system must be 'S' or 'V', not {system!r}")
+    if system not in ("S", "V", "A"):
+        raise ValueError(f"system must be 'S', 'V' or 'A', not {system!r}")
     if system == "S" and cfg.water.surface == "mirror":
         return {"type": "twosided", "bsdf": {"type": "conductor", "material": "none"}}
     mode = "reflect" if system == "S" else "refract"

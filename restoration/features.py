@@ -20,17 +20,25 @@ with integer values at pixel centres (see :mod:`wai_core.geometry`).
 Ordering fixes labels only up to a whole-lattice shift: where the spots move by more than half a
 spacing (the paper's system at U = 1 m/s moves them by 1-4 spacings) the shift must come from
 something the pattern shows, such as its edge or dots left dark on purpose.
+
+Per frame, :func:`features_from_reference` must fit a 30 frames/s pipeline, so every step works
+on whole arrays: segment moments are sparse (label x pixel) products, centroid windows are
+evaluated for batches of equal-sized boxes with matrix products, and the region growing
+re-evaluates only the lattice nodes whose matched neighbours changed (everything that depends
+on the reference alone is built once with the :class:`ReferenceGrid`).
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 from numpy.typing import NDArray
-from scipy import ndimage
+from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
 from wai_core.config import SystemConfig
@@ -139,6 +147,11 @@ class ReferenceGrid:
     unmatched_ij: IntArray
     counts: dict[str, int]
     rms_px: float
+    tables: _LatticeTables = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # Neighbour tables for the per-frame matching: they depend on the lattice only.
+        object.__setattr__(self, "tables", _LatticeTables.of(self.ij, self.lit))
 
 
 @dataclass(frozen=True)
@@ -166,10 +179,12 @@ class Matches:
         ``unassigned_spots``: detected spots given to no dot. ``anchor_di``, ``anchor_dj``:
         lattice shift applied to the proximity labelling; ``anchor_candidates``: how many shifts
         fit the evidence equally well (1: the labelling is pinned by the pattern's visible
-        boundary; more: it is only the one nearest to flat water, and may be off by whole
-        spacings).
+        boundary; more: it is only the one nearest to flat water). ``labels_ambiguous``: 1 when
+        ``anchor_candidates > 1``, i.e. the labels may be shifted by whole grid steps; the
+        pipeline reports it (with all counts, as ``feature_counts``).
     timings_ms : dict of str to float
-        Wall time per step, ms (filled by :func:`find_features`).
+        Wall time per step, ms: ``detect`` and ``match`` from :func:`features_from_reference`,
+        plus ``reference`` and ``total`` from :func:`find_features`.
     """
 
     ij: IntArray
@@ -188,26 +203,47 @@ class Matches:
 # ----------------------------------------------------------------------------------------------
 
 
-def _luminance(image: NDArray) -> NDArray[np.float32]:
-    """Sum of the colour channels as float32 (h, w); rejects bad shapes and non-finite values."""
+def _luminance(image: NDArray, pad: int) -> NDArray[np.float32]:
+    """Sum of the colour channels, float32, in a new array with ``pad`` zeros around it
+    (h + 2 pad, w + 2 pad); rejects bad shapes and non-finite values."""
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] in (1, 3, 4):
-        img = img[..., :3].sum(axis=2, dtype=np.float64)
-    if img.ndim != 2 or min(img.shape) < 8:
+        shape = img.shape[:2]
+    elif img.ndim == 2:
+        shape = img.shape
+    else:
+        shape = (0, 0)
+    if min(shape) < 8:
         raise WaiInputError(
             f"pattern image must be (h, w) or (h, w, 3), got shape {np.shape(image)}"
         )
-    if not np.issubdtype(img.dtype, np.number):
+    if img.ndim == 2 and not np.issubdtype(img.dtype, np.number):
         raise WaiInputError(f"pattern image must be numeric, got {img.dtype}")
-    img = img.astype(np.float32)
-    if not np.isfinite(img).all():
+    padded = np.zeros((shape[0] + 2 * pad, shape[1] + 2 * pad), np.float32)
+    lum = padded[pad : pad + shape[0], pad : pad + shape[1]]
+    if img.ndim == 2:
+        lum[:] = img
+    elif img.dtype in (np.float32, np.float64) and img.shape[2] > 1:
+        # cv2.transform sums the channels in one pass, ~50x faster than numpy's reduction
+        # over a short last axis; an alpha channel gets weight 0.
+        weights = np.ones((1, img.shape[2]))
+        weights[0, 3:] = 0.0
+        if img.dtype == np.float32:
+            cv2.transform(np.ascontiguousarray(img), weights, dst=lum)
+        else:
+            lum[:] = cv2.transform(np.ascontiguousarray(img), weights)
+    else:
+        lum[:] = img[..., :3].sum(axis=2, dtype=np.float64)
+    if not np.isfinite(lum).all():
         raise WaiInputError("pattern image contains NaN or infinite values")
-    return img
+    return padded
 
 
-def _upsample(small: NDArray[np.float32], shape: tuple[int, ...]) -> NDArray[np.float32]:
-    """Bilinear resize of a coarse map back to the image size (h, w)."""
-    return cv2.resize(small, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+def _upsample(
+    small: NDArray[np.float32], shape: tuple[int, ...], out: NDArray[np.float32] | None = None
+) -> NDArray[np.float32]:
+    """Bilinear resize of a coarse map back to the image size (h, w), into ``out`` if given."""
+    return cv2.resize(small, (shape[1], shape[0]), dst=out, interpolation=cv2.INTER_LINEAR)
 
 
 def _background(smooth: NDArray[np.float32], size_px: int) -> NDArray[np.float32]:
@@ -217,10 +253,10 @@ def _background(smooth: NDArray[np.float32], size_px: int) -> NDArray[np.float32
     subsampled pixels are the darkest of their neighbourhood, not a spot's core.
     """
     k = max(size_px // 4, 1) | 1
-    low = cv2.erode(smooth, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)[::4, ::4]
-    low = cv2.erode(np.ascontiguousarray(low), np.ones((k, k), np.uint8),
+    full = cv2.erode(smooth, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    low = cv2.erode(np.ascontiguousarray(full[::4, ::4]), np.ones((k, k), np.uint8),
                     borderType=cv2.BORDER_REPLICATE)
-    return _upsample(cv2.blur(low, (k, k), borderType=cv2.BORDER_REPLICATE), smooth.shape)
+    return _upsample(cv2.blur(low, (k, k), borderType=cv2.BORDER_REPLICATE), smooth.shape, full)
 
 
 def _noise_sigma(lum: NDArray[np.float32], smooth: NDArray[np.float32], smooth_px: float) -> float:
@@ -240,162 +276,15 @@ def _noise_sigma(lum: NDArray[np.float32], smooth: NDArray[np.float32], smooth_p
     return scale * float(np.sqrt(g2 / (1.0 - 2.0 * g0 + g2)))
 
 
-def _weighted_moments(
-    lab: IntArray, rows: IntArray, cols: IntArray, w: FloatArray, n: int
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Per-label total, mean (n, 2) and covariance (n, 2, 2) of pixels with weights ``w``."""
-    tot = np.bincount(lab, w, n)
-    safe = np.where(tot > 0, tot, 1.0)
-    mx = np.bincount(lab, w * cols, n) / safe
-    my = np.bincount(lab, w * rows, n) / safe
-    dx, dy = cols - mx[lab], rows - my[lab]
-    cov = np.empty((n, 2, 2))
-    cov[:, 0, 0] = np.bincount(lab, w * dx * dx, n) / safe
-    cov[:, 1, 1] = np.bincount(lab, w * dy * dy, n) / safe
-    cov[:, 0, 1] = cov[:, 1, 0] = np.bincount(lab, w * dx * dy, n) / safe
-    return tot, np.stack([mx, my], axis=1), cov
-
-
-@dataclass(frozen=True)
-class _Segments:
-    """Per-label statistics of the segmented image (index 0 is the background)."""
-
-    tot: FloatArray  # smoothed intensity summed over the segment
-    mean: FloatArray  # (n, 2) smoothed-intensity centroid, px
-    cov: FloatArray  # (n, 2, 2) smoothed-intensity second moments, px^2
-    peak: FloatArray  # peak of the smoothed image
-    flux: FloatArray  # raw intensity summed over the segment
-    kurtosis: FloatArray  # along the major axis, of the part above 0.2 x peak
-
-
-def _major_axis_kurtosis(
-    lab: IntArray, rows: IntArray, cols: IntArray, s: FloatArray, peak: FloatArray, n: int
-) -> FloatArray:
-    """Kurtosis ``m4 / m2^2`` along each segment's major axis of ``max(s - 0.2 peak, 0)``.
-
-    Measured relative to the segment's own peak, it is nearly the same for every single Gaussian
-    spot, whatever its size, elongation or brightness (2.2-2.45 after the smoothing, the spread
-    from pixelisation of the smallest), and falls as two spots run together into a flat-topped
-    or two-humped blob (below 2.15 once they are more than ~3 sigma apart).
-    """
-    w = np.clip(s - 0.2 * peak[lab], 0.0, None)
-    _, mean, cov = _weighted_moments(lab, rows, cols, w, n)
-    # Major-axis direction of each 2 x 2 covariance, in closed form.
-    angle = 0.5 * np.arctan2(2.0 * cov[:, 0, 1], cov[:, 0, 0] - cov[:, 1, 1])
-    ux, uy = np.cos(angle), np.sin(angle)
-    proj = (cols - mean[lab, 0]) * ux[lab] + (rows - mean[lab, 1]) * uy[lab]
-    tot = np.bincount(lab, w, n)
-    m2 = np.bincount(lab, w * proj**2, n)
-    m4 = np.bincount(lab, w * proj**4, n)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        kurt = m4 * tot / m2**2
-    return np.where(np.isfinite(kurt), kurt, 3.0)
-
-
-def _segment_stats(
-    labels: NDArray[np.int32], n: int, smooth: NDArray[np.float32], raw: NDArray[np.float32]
-) -> _Segments:
-    """Moments of every segment at once: ``bincount`` over the segmented pixels, no segment loop."""
-    rows, cols = np.nonzero(labels)
-    lab = labels[rows, cols]
-    s = smooth[rows, cols].astype(np.float64)
-    r = raw[rows, cols].astype(np.float64)
-    tot, mean, cov = _weighted_moments(lab, rows, cols, np.clip(s, 0.0, None), n)
-    peak = np.full(n, -np.inf)
-    np.maximum.at(peak, lab, s)
-    kurt = _major_axis_kurtosis(lab, rows, cols, s, peak, n)
-    return _Segments(tot, mean, cov, peak, np.bincount(lab, r, n), kurt)
-
-
-def _windowed_centroids(
-    img: NDArray[np.float32],
-    labels: NDArray[np.int32],
-    keep_label: IntArray,
-    own: IntArray,
-    start: FloatArray,
-    cov: FloatArray,
-    half_px: tuple[int, int],
-    n_iter: int,
-) -> FloatArray:
-    """Gaussian-windowed centroids (as SExtractor's ``XWIN``) of spots sharing one box size.
-
-    A Gaussian spot of covariance C seen through a Gaussian window of covariance ``k^2 C``
-    centred at ``x_n`` has its weighted mean ``m`` a fraction ``k^2 / (1 + k^2)`` of the way to
-    the true centre, so ``x_{n+1} = x_n + (1 + 1/k^2) (m - x_n)`` converges in one step and stays
-    unbiased for any symmetric profile (a wrong C only slows convergence). Unlike a thresholded
-    centroid it has no pixel-locking bias. ``k`` trades noise (``k = 1``: 1.33x the Poisson
-    limit; ``k = 1.5``: 1.1x) against light from neighbours; pixels of *other* kept segments are
-    masked so a much brighter neighbour cannot pull the centre. The box is ``2 half_px + 1``
-    pixels wide and high (``half_px = (along cols, along rows)``).
-    """
-    off_x = np.arange(-half_px[0], half_px[0] + 1)
-    off_y = np.arange(-half_px[1], half_px[1] + 1)
-    base = np.rint(start).astype(np.int64)
-    h, w = img.shape
-    cols = base[:, 0, None, None] + off_x[None, None, :]
-    rows = base[:, 1, None, None] + off_y[None, :, None]
-    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
-    rc, cc = np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)
-    lab = keep_label[labels[rc, cc]]
-    keep = inside & ((lab == 0) | (lab == own[:, None, None]))
-    vals = np.where(keep, img[rc, cc], np.float32(0.0))
-    inv = np.linalg.inv(_WINDOW_VAR * cov).astype(np.float32)
-    a, b, c = inv[:, 0, 0, None], inv[:, 0, 1, None, None], inv[:, 1, 1, None]
-    fx, fy = off_x.astype(np.float32)[None, :], off_y.astype(np.float32)[None, :]
-    x = start.copy()
-    for _ in range(n_iter):
-        dx = fx - (x[:, 0] - base[:, 0]).astype(np.float32)[:, None]  # (n, wx)
-        dy = fy - (x[:, 1] - base[:, 1]).astype(np.float32)[:, None]  # (n, wy)
-        q = (a * dx * dx)[:, None, :] + (c * dy * dy)[:, :, None]
-        q += 2.0 * b * dy[:, :, None] * dx[:, None, :]
-        wv = vals * np.exp(-0.5 * q)
-        col_sum = wv.sum(axis=1)  # (n, wx): summed over rows
-        row_sum = wv.sum(axis=2)  # (n, wy)
-        tot = col_sum.sum(axis=1).astype(np.float64)
-        mx = np.einsum("nw,nw->n", col_sum, dx).astype(np.float64)
-        my = np.einsum("nw,nw->n", row_sum, dy).astype(np.float64)
-        ok = tot > 0
-        step = _WINDOW_GAIN * np.stack([mx, my], axis=1) / np.where(ok, tot, 1.0)[:, None]
-        # A step longer than a pixel means noise dominates the window: do not wander off.
-        x += np.where(ok[:, None], np.clip(step, -1.0, 1.0), 0.0)
-    return x
-
-
-def _refine_centres(
-    img: NDArray[np.float32],
-    labels: NDArray[np.int32],
-    keep_label: IntArray,
-    own: IntArray,
-    start: FloatArray,
-    cov: FloatArray,
-    n_iter: int = 2,
-) -> FloatArray:
-    """Windowed centroids for all spots, batched by box size (a loop over a few sizes).
-
-    The box reaches 3.5 segment sigmas + 1 px along each image axis (about 3 spot sigmas):
-    beyond it the spot times the window is below 0.5 %.
-    """
-    sd = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], axis=1))
-    half = np.clip(np.ceil(3.5 * sd + 1.0), 3, 48).astype(int)
-    half = 3 * np.ceil(half / 3).astype(int)  # a handful of box sizes
-    out = start.copy()
-    sizes, group = np.unique(half, axis=0, return_inverse=True)
-    for g, (hx, hy) in enumerate(sizes):
-        sel = group.ravel() == g
-        out[sel] = _windowed_centroids(
-            img, labels, keep_label, own[sel], start[sel], cov[sel], (int(hx), int(hy)), n_iter
-        )
-    return out
-
-
 def _segment(
     smooth: NDArray[np.float32],
     radius_px: int,
     rel_level: float,
     floor: float,
+    work: NDArray[np.float32],
     wide_px: int = 40,
     wide_level: float = 0.005,
-) -> tuple[int, NDArray[np.int32], NDArray[np.int32]]:
+) -> tuple[int, NDArray[np.int32], BoolArray]:
     """Label pixels above ``rel_level`` x their local maximum (and above ``floor``).
 
     The max filter's radius is under half the spot spacing, so a pixel is compared with its own
@@ -404,31 +293,164 @@ def _segment(
     ``wide_level`` x the maximum within ``wide_px`` of a copy blurred by a 4 px Gaussian. A wide
     spot keeps its peak under that blur, so its segment ends at ~3.5 sigma, short of its
     neighbours; a small bright dot loses most of its peak, so a small dim neighbour survives.
+
+    ``work`` (h, w) is scratch space, overwritten: the maps above and then the labels are
+    written there rather than into fresh image-sized arrays (each new one costs more in page
+    faults than the filter does). Returns the number of labels (background included), the
+    label image (h, w, a view of ``work``) and the mask.
     """
     size = 2 * radius_px + 1
-    local_max = cv2.dilate(smooth, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    level = cv2.dilate(smooth, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)), dst=work)
+    level *= rel_level
+    mask = smooth > level
     # On a 4x coarser grid: a 4 x 4 block average and a 1 px blur there make the ~4 px blur.
     h, w = smooth.shape
     small = cv2.resize(smooth, (w // 4, h // 4), interpolation=cv2.INTER_AREA)
     small = cv2.GaussianBlur(small, (0, 0), 1.0, borderType=cv2.BORDER_REFLECT)
     k = 2 * (wide_px // 4) + 1
-    wide = _upsample(cv2.dilate(small, np.ones((k, k), np.uint8)), smooth.shape)
-    mask = (smooth > rel_level * local_max) & (smooth > wide_level * wide) & (smooth > floor)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    return n, labels, stats
+    level = _upsample(cv2.dilate(small, np.ones((k, k), np.uint8)), smooth.shape, work)
+    level *= wide_level
+    mask &= smooth > level
+    mask &= smooth > floor
+    # Plain labelling: cv2's per-component statistics cost 6x the labelling itself, and the
+    # moments below give the same from the pixel list.
+    n, labels = cv2.connectedComponents(mask.view(np.uint8), work.view(np.int32), 8, cv2.CV_32S)
+    return n, labels, mask
 
 
-def _spot_covariance(cov_seg: FloatArray) -> FloatArray:
-    """Spot covariance (n, 2, 2) for the centroid window, from the segments' second moments.
+def _moments(
+    weights: sparse.csc_matrix, x: FloatArray, y: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per-label total (n,), mean (n, 2) and covariance (n, 2, 2) of pixels at ``(x, y)`` (N,),
+    px, with the weights of ``weights`` (labels x pixels): two sparse products of three columns
+    each, not one bincount per column (and small temporaries). Raw moments: keep ``x, y`` small
+    against the image size."""
+    cols = np.empty((len(x), 3))
+    cols[:, 0], cols[:, 1], cols[:, 2] = 1.0, x, y
+    first = weights @ cols
+    np.multiply(x, x, out=cols[:, 0])
+    np.multiply(x, y, out=cols[:, 1])
+    np.multiply(y, y, out=cols[:, 2])
+    second = weights @ cols
+    tot = first[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = first[:, 1:] / tot[:, None]
+        second /= tot[:, None]
+    cov = np.empty((len(tot), 2, 2))
+    cov[:, 0, 0] = second[:, 0] - mean[:, 0] ** 2
+    cov[:, 0, 1] = cov[:, 1, 0] = second[:, 1] - mean[:, 0] * mean[:, 1]
+    cov[:, 1, 1] = second[:, 2] - mean[:, 1] ** 2
+    return tot, mean, cov
+
+
+def _major_axis_kurtosis(px: _Pixels, peak: FloatArray, centre: FloatArray) -> FloatArray:
+    """Kurtosis ``m4 / m2^2`` along each segment's major axis of ``max(smooth - 0.2 peak, 0)``.
+
+    Measured relative to the segment's own peak, it is nearly the same for every single Gaussian
+    spot, whatever its size, elongation or brightness (2.2-2.45 after the smoothing, the spread
+    from pixelisation of the smallest), and falls as two spots run together into a flat-topped
+    or two-humped blob (below 2.15 once they are more than ~3 sigma apart). Pixel offsets are
+    taken from the segment's ``centre`` (n, 2) rounded to a pixel: exact small integers.
+    """
+    lab = px.lab
+    origin = np.rint(np.nan_to_num(centre)).astype(np.int32)  # NaN: no weight at all
+    x = (px.cols - origin[lab, 0]).astype(np.float64)
+    y = (px.rows - origin[lab, 1]).astype(np.float64)
+    w = np.clip(px.smooth - 0.2 * peak[lab], 0.0, None)
+    weights = px.weigh(w, len(peak))
+    tot, mean, cov = _moments(weights, x, y)
+    # Major-axis direction of each 2 x 2 covariance, in closed form.
+    angle = 0.5 * np.arctan2(2.0 * cov[:, 0, 1], cov[:, 0, 0] - cov[:, 1, 1])
+    x -= mean[lab, 0]
+    y -= mean[lab, 1]
+    x *= np.cos(angle)[lab]
+    y *= np.sin(angle)[lab]
+    x += y  # the projection on the major axis
+    x *= x
+    m2 = weights @ x
+    x *= x
+    m4 = weights @ x
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kurt = m4 * tot / m2**2
+    return np.where(np.isfinite(kurt), kurt, 3.0)
+
+
+@dataclass(frozen=True)
+class _Pixels:
+    """The segmented pixels (N,) in raster order: flat index in the padded image (see
+    :func:`detect_spots`), row, column, label, smoothed (float64) and raw value."""
+
+    at: IntArray
+    rows: NDArray[np.int32]
+    cols: NDArray[np.int32]
+    lab: NDArray[np.int32]
+    smooth: FloatArray
+    raw: NDArray[np.float32]
+
+    @classmethod
+    def of(
+        cls, labels: NDArray[np.int32], mask: BoolArray, smooth: NDArray, padded: NDArray, pad: int
+    ) -> _Pixels:
+        pix = np.flatnonzero(mask)
+        rows, cols = np.divmod(pix.astype(np.int32), labels.shape[1])
+        at = pix + 2 * pad * rows + pad * (padded.shape[1] + 1)
+        return cls(at, rows, cols, labels.ravel()[pix], smooth.ravel()[pix].astype(np.float64),
+                   padded.ravel()[at])
+
+    def weigh(self, weight: FloatArray, n: int) -> sparse.csc_matrix:
+        """Labels x pixels (n, N) sparse matrix holding ``weight`` (N,): times a column of
+        per-pixel values, it sums them per label, weighted."""
+        ptr = np.arange(len(self.at) + 1, dtype=np.int32)
+        return sparse.csc_matrix((weight, self.lab, ptr), shape=(n, len(self.at)))
+
+
+@dataclass(frozen=True)
+class _Segments:
+    """Per-label statistics of the segmented image (index 0 is the background)."""
+
+    tot: FloatArray  # smoothed intensity (clipped at 0) summed over the segment
+    mean: FloatArray  # (n, 2) smoothed-intensity centroid, px
+    cov: FloatArray  # (n, 2, 2) smoothed-intensity second moments, px^2
+    peak: FloatArray  # peak of the smoothed image
+    flux: FloatArray  # raw intensity summed over the segment
+    area: IntArray  # pixels in the segment
+    kurtosis: FloatArray  # along the major axis, of the part above 0.2 x peak
+
+
+def _segment_stats(px: _Pixels, n: int, shape: tuple[int, ...]) -> _Segments:
+    """Moments of every segment at once, from the list of segmented pixels (no segment loop)."""
+    h, w = shape
+    # Coordinates from the image centre: the raw second moments lose < 1e-10 px^2 that way.
+    tot, mean, cov = _moments(
+        px.weigh(np.clip(px.smooth, 0.0, None), n), px.cols - 0.5 * (w - 1),
+        px.rows - 0.5 * (h - 1),
+    )
+    mean += [0.5 * (w - 1), 0.5 * (h - 1)]
+    peak = np.full(n, -np.inf)
+    np.maximum.at(peak, px.lab, px.smooth)
+    flux = np.bincount(px.lab, px.raw, n)
+    area = np.bincount(px.lab, minlength=n)
+    return _Segments(tot, mean, cov, peak, flux, area, _major_axis_kurtosis(px, peak, mean))
+
+
+def _spot_covariance(cov_seg: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Spot covariance (n, 2, 2) for the centroid window, from the segments' second moments,
+    and the larger eigenvalue of the latter (n,), px^2.
 
     The segment (cut at a fraction of the smoothed peak) holds about 0.55 of the variance of a
     large spot and, because the smoothing widens a small one, about 0.85 of a small one's; the
     window needs only a rough width (a wrong one just slows convergence), so the moments are used
     as they are, with eigenvalues kept above (0.3 px)^2.
     """
-    evals, evecs = np.linalg.eigh(cov_seg)
-    evals = np.clip(evals, 0.3**2, None)
-    return np.einsum("nij,nj,nkj->nik", evecs, evals, evecs)
+    a, b, c = cov_seg[:, 0, 0], cov_seg[:, 0, 1], cov_seg[:, 1, 1]
+    mid, rad = 0.5 * (a + c), np.hypot(0.5 * (a - c), b)  # eigenvalues mid -+ rad
+    cov = cov_seg.copy()
+    thin = mid - rad < 0.3**2
+    if thin.any():
+        evals, evecs = np.linalg.eigh(cov_seg[thin])
+        evals = np.clip(evals, 0.3**2, None)
+        cov[thin] = np.einsum("nij,nj,nkj->nik", evecs, evals, evecs)
+    return cov, mid + rad
 
 
 def _typical_flux(flux: FloatArray) -> float:
@@ -438,6 +460,212 @@ def _typical_flux(flux: FloatArray) -> float:
     f = np.sort(flux)
     cum = np.cumsum(f)
     return float(f[np.searchsorted(cum, 0.5 * cum[-1])])
+
+
+# Spot boxes: half widths are multiples of 3 px up to 48, padded to these tiers so that a few
+# batches of equal-sized boxes cover all spots; each spot still uses only its own box.
+_BOX_TIERS = np.array([3, 6, 9, 12, 18, 24, 36, 48])
+_BOX_MAX = int(_BOX_TIERS[-1])
+# OpenBLAS runs a matrix product on one thread up to this many multiply-adds. Above it, its
+# worker threads cost more than they save on these small products (tenfold, on two busy cores)
+# and then spin, taking a core from whatever runs next.
+_BLAS_ONE_THREAD = 65536 * 4
+
+
+def _matmul(a: NDArray, b: NDArray, out: NDArray) -> None:
+    """``out = a @ b`` in row blocks that BLAS runs single-threaded."""
+    rows = max(1, _BLAS_ONE_THREAD // (b.shape[0] * b.shape[1]))
+    for i in range(0, len(a), rows):
+        np.matmul(a[i : i + rows], b, out=out[i : i + rows])
+
+
+@functools.cache
+def _box_basis(hx: int, hy: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Bases over a box of half widths ``(hx, hy)``, pixels row by row (E = box area), px:
+    ``quad`` (6, E), ``fx^2, fx fy, fy^2, fx, fy, 1`` (a quadratic form in the offsets is then
+    one matrix product), and ``lin`` (E, 3), ``1, fx, fy`` (so are the first moments)."""
+    gx, gy = (g.ravel() for g in np.meshgrid(np.arange(-hx, hx + 1.0), np.arange(-hy, hy + 1.0)))
+    quad = np.stack([gx * gx, gx * gy, gy * gy, gx, gy, np.ones_like(gx)]).astype(np.float32)
+    lin = np.ascontiguousarray(quad[[5, 3, 4]].T)
+    for arr in (quad, lin):
+        arr.setflags(write=False)
+    return quad, lin
+
+
+@functools.cache
+def _axis_masks(h: int) -> NDArray[np.float32]:
+    """(h // 3, 2 h + 1): along an axis of a box of half width ``h``, row ``k`` marks the
+    pixels within ``3 (k + 1)`` of the centre (a spot's own half width, padded to ``h``)."""
+    f = np.abs(np.arange(-h, h + 1))
+    mask = (f <= 3 * np.arange(1, h // 3 + 1)[:, None]).astype(np.float32)
+    mask.setflags(write=False)
+    return mask
+
+
+@dataclass(frozen=True)
+class _Boxes:
+    """Boxes around the spots, batched by padded size, stored end to end in one flat buffer.
+
+    Spots are handled in ``order`` (P,), which sorts them by batch; ``batch`` (B + 1,) are the
+    batch boundaries in that order and ``dims`` (B, 2) each batch's padded half widths
+    ``(hx, hy)``. Per spot, in that order: ``half`` (P, 2) its own half widths, ``base`` (P, 2)
+    the box centre ``(col, row)``, and ``frame`` (P + 1, 6): its own box's first column and
+    row, width and height, where that first pixel is in the buffer, and the padded width (last
+    row: an empty box, for "no spot"). ``start`` (P + 1,): where each padded box starts.
+    """
+
+    order: IntArray
+    batch: IntArray
+    dims: IntArray
+    half: IntArray
+    base: IntArray
+    frame: IntArray
+    start: IntArray
+
+    @classmethod
+    def around(cls, start: FloatArray, cov: FloatArray) -> _Boxes:
+        """Boxes reaching 3.5 segment sigmas + 1 px along each image axis (about 3 spot sigmas:
+        beyond it the spot times the centroid window is below 0.5 %), centred on ``start``."""
+        sd = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], axis=1))
+        half = np.clip(np.ceil(3.5 * sd + 1.0), 3, _BOX_MAX).astype(np.int64)
+        half = 3 * ((half + 2) // 3)  # as few distinct sizes as possible
+        tier = np.searchsorted(_BOX_TIERS, half)
+        key = tier[:, 0] * len(_BOX_TIERS) + tier[:, 1]
+        order = np.argsort(key, kind="stable")
+        key = key[order]
+        batch = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+        half, padded = half[order], _BOX_TIERS[tier[order]]
+        base = np.rint(start[order]).astype(np.int64)
+        width = 2 * padded + 1
+        begin = np.r_[0, np.cumsum(width[:, 0] * width[:, 1])]
+        frame = np.zeros((len(order) + 1, 6), np.int32)  # small gathers: int32
+        frame[:-1, :2] = base - half
+        frame[:-1, 2:4] = 2 * half + 1
+        margin = padded - half  # own box within the padded one
+        frame[:-1, 4] = begin[:-1] + margin[:, 1] * width[:, 0] + margin[:, 0]
+        frame[:-1, 5] = width[:, 0]
+        return cls(order, batch, padded[batch[:-1]], half, base, frame, begin)
+
+    @property
+    def size(self) -> int:
+        """Length of the buffer."""
+        return int(self.start[-1])
+
+    def batches(self):
+        """``(slice of spots, slice of the buffer, hx, hy)`` of every batch."""
+        start = self.start[self.batch].tolist()
+        for b, (hx, hy) in enumerate(self.dims.tolist()):
+            yield slice(self.batch[b], self.batch[b + 1]), slice(start[b], start[b + 1]), hx, hy
+
+    def locate(self, rows: IntArray, cols: IntArray, spot: IntArray) -> tuple[IntArray, BoolArray]:
+        """Buffer position (N,) of pixels ``(rows, cols)`` in the box of spot ``spot`` (box
+        order, -1 for none), valid where ``inside`` (N,) the spot's own box."""
+        f = self.frame[spot]
+        ux, uy = cols - f[:, 0], rows - f[:, 1]
+        # As unsigned, a negative offset is huge: one comparison per axis.
+        inside = ux.view(np.uint32) < f[:, 2].view(np.uint32)
+        inside &= uy.view(np.uint32) < f[:, 3].view(np.uint32)
+        return f[:, 4] + uy * f[:, 5] + ux, inside
+
+
+def _windowed_centroids(
+    boxes: _Boxes,
+    vals: NDArray[np.float32],
+    q: NDArray[np.float32],
+    start: FloatArray,
+    cov: FloatArray,
+    n_iter: int,
+) -> FloatArray:
+    """Gaussian-windowed centroids (as SExtractor's ``XWIN``), spots in box order.
+
+    A Gaussian spot of covariance C seen through a Gaussian window of covariance ``k^2 C``
+    centred at ``x_n`` has its weighted mean ``m`` a fraction ``k^2 / (1 + k^2)`` of the way to
+    the true centre, so ``x_{n+1} = x_n + (1 + 1/k^2) (m - x_n)`` converges in one step and stays
+    unbiased for any symmetric profile (a wrong C only slows convergence). Unlike a thresholded
+    centroid it has no pixel-locking bias. ``k`` trades noise (``k = 1``: 1.33x the Poisson
+    limit; ``k = 1.5``: 1.1x) against light from neighbours. ``vals`` (the boxes' pixels) is
+    zero at pixels of *other* kept segments, so a much brighter neighbour cannot pull the
+    centre, and beyond each spot's own box (in a padded one). ``q`` is scratch space as long.
+
+    Per step, the window's exponent over a batch of boxes is one matrix product (coefficients
+    times :func:`_box_basis`'s ``quad``), and its weighted moments another.
+    """
+    det = _WINDOW_VAR * (cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] ** 2)
+    a, b, c = cov[:, 1, 1] / det, -cov[:, 0, 1] / det, cov[:, 0, 0] / det  # inverse window
+    sums = np.empty((len(start), 3), np.float32)  # summed in float32, as the pixels
+    x = start - boxes.base
+    for _ in range(n_iter):
+        sx, sy = x[:, 0], x[:, 1]
+        # -q/2 of the window centred at (sx, sy), as coefficients of fx^2, fx fy, fy^2, fx, fy, 1.
+        coef = np.stack(
+            [a, 2 * b, c, -2 * (a * sx + b * sy), -2 * (b * sx + c * sy),
+             a * sx * sx + 2 * b * sx * sy + c * sy * sy], axis=1
+        )
+        coef = (-0.5 * coef).astype(np.float32)
+        for spots, buf, hx, hy in boxes.batches():
+            quad = _box_basis(hx, hy)[0]
+            _matmul(coef[spots], quad, q[buf].reshape(-1, quad.shape[1]))
+        np.exp(q, out=q)
+        q *= vals
+        for spots, buf, hx, hy in boxes.batches():
+            lin = _box_basis(hx, hy)[1]
+            _matmul(q[buf].reshape(-1, lin.shape[0]), lin, sums[spots])  # w, w fx, w fy
+        tot = sums[:, 0]
+        ok = tot > 0
+        step = _WINDOW_GAIN * (sums[:, 1:] / np.where(ok, tot, 1.0)[:, None] - x)
+        # A step longer than a pixel means noise dominates the window: do not wander off.
+        x += np.where(ok[:, None], np.clip(step, -1.0, 1.0), 0.0)
+    return x + boxes.base
+
+
+def _refine_centres(
+    padded: NDArray[np.float32],
+    px: _Pixels,
+    n: int,
+    keep: IntArray,
+    start: FloatArray,
+    cov: FloatArray,
+    n_iter: int = 2,
+) -> FloatArray:
+    """Windowed centres (P, 2) of the kept segments ``keep`` (of ``n`` labels), from ``start``
+    (P, 2), px.
+
+    Each spot's box (:class:`_Boxes`) holds the raw image there with the pixels of the other
+    kept segments blanked (:func:`_windowed_centroids`). ``padded`` is the raw image with
+    ``_BOX_MAX`` zeros around it; it is used up (blanked, then scratch space).
+    """
+    if len(keep) == 0:
+        return np.zeros((0, 2))
+    pad, wp = _BOX_MAX, padded.shape[1]
+    boxes = _Boxes.around(start, cov)
+    rank = np.empty(len(keep), np.int64)
+    rank[boxes.order] = np.arange(len(keep))
+    spot_of = np.full(n, -1, np.int64)
+    spot_of[keep] = rank
+    spot = spot_of[px.lab]  # -1: a pixel of a dropped segment
+    pos, inside = boxes.locate(px.rows, px.cols, spot)
+
+    # The boxes' pixels from the image without the kept segments, then each spot's own segment
+    # put back in its own box. Index 0 is padding, always zero: where dropped segments' pixels
+    # would be blanked.
+    padded.ravel()[np.where(spot >= 0, px.at, 0)] = 0.0
+    vals = np.empty(boxes.size, np.float32)
+    for spots, buf, hx, hy in boxes.batches():
+        wy, wx = 2 * hy + 1, 2 * hx + 1
+        shape = (padded.shape[0] - wy + 1, wp - wx + 1, wy, wx)
+        win = as_strided(padded, shape, padded.strides * 2)
+        corner = boxes.base[spots] - (hx, hy) + pad
+        box = vals[buf].reshape(-1, wy, wx)
+        box[:] = win[corner[:, 1], corner[:, 0]]
+        half = boxes.half[spots]
+        if (half < (hx, hy)).any():  # padded boxes: zero beyond the spot's own box
+            box *= _axis_masks(hy)[half[:, 1] // 3 - 1][:, :, None]
+            box *= _axis_masks(hx)[half[:, 0] // 3 - 1][:, None, :]
+    vals[pos[inside]] = px.raw[inside]
+    # The image is no longer needed: its memory holds the window weights (no new allocation).
+    q = padded.ravel()[: vals.size] if vals.size <= padded.size else np.empty_like(vals)
+    centres = _windowed_centroids(boxes, vals, q, start[boxes.order], cov[boxes.order], n_iter)
+    return centres[rank]
 
 
 def detect_spots(
@@ -504,41 +732,44 @@ def detect_spots(
     WaiInputError
         On a wrong shape or non-finite values.
     """
-    lum = _luminance(image)
+    # The image sits in a frame of zeros, where the centroid boxes may reach past its edge.
+    padded = _luminance(image, _BOX_MAX)
+    lum = padded[_BOX_MAX:-_BOX_MAX, _BOX_MAX:-_BOX_MAX]
+    h, w = lum.shape
     smooth = cv2.GaussianBlur(lum, (0, 0), smooth_px, borderType=cv2.BORDER_REFLECT)
     noise = _noise_sigma(lum, smooth, smooth_px)
     bg = _background(smooth, background_px)
     smooth -= bg
-    raw = lum - bg
+    saturated_px = None if saturation is None else lum >= saturation
+    lum -= bg  # now the raw, background-subtracted image
     tiny = 1e-6 * max(float(smooth.max()), 1e-30)  # keeps a noiseless zero background out
-    n, labels, stats = _segment(smooth, local_radius_px, rel_level, max(2.0 * noise, tiny))
-    seg = _segment_stats(labels, n, smooth, raw)
-    area = stats[:, cv2.CC_STAT_AREA]
-    good = (seg.peak > max(snr_min * noise, tiny)) & (area >= min_area_px) & (seg.tot > 0)
+    # bg, no longer needed, is the scratch space (and then the labels).
+    n, labels, mask = _segment(smooth, local_radius_px, rel_level, max(2.0 * noise, tiny), bg)
+    px = _Pixels.of(labels, mask, smooth, padded, _BOX_MAX)
+    edge = np.zeros(n, bool)  # the segment has a pixel in the image's outer rows or columns
+    edge[np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])] = True
+    n_saturated = None if saturated_px is None else np.bincount(labels[saturated_px], minlength=n)
+    # Free the image-sized arrays no longer needed before the moments and centroids take their
+    # memory: a lower peak lets the allocator reuse pages from frame to frame, not fault in new.
+    del smooth, bg, labels, mask, saturated_px
+    seg = _segment_stats(px, n, (h, w))
+    good = (seg.peak > max(snr_min * noise, tiny)) & (seg.area >= min_area_px) & (seg.tot > 0)
     good[0] = False  # label 0 is the background
     good &= seg.flux > rel_flux * _typical_flux(seg.flux[good])
     idx = np.flatnonzero(good)
-    keep_label = np.where(good, np.arange(n), 0)  # rejected segments count as background
-    cov = _spot_covariance(seg.cov[idx])
-    centres = _refine_centres(raw, labels, keep_label, idx, seg.mean[idx], cov)
-
-    x, y, wd, ht = (stats[idx, k] for k in range(4))
-    h, w = raw.shape
-    border = (x == 0) | (y == 0) | (x + wd == w) | (y + ht == h)
+    saturated = np.zeros(idx.size, bool) if n_saturated is None else n_saturated[idx] > 0
+    cov, major = _spot_covariance(seg.cov[idx])
+    centres = _refine_centres(padded, px, n, idx, seg.mean[idx], cov)
     # Too few pixels across to tell a shape (single spots of sigma <~ 1.2 px): never "merged".
-    wide_enough = np.linalg.eigvalsh(seg.cov[idx])[:, 1] >= 1.3**2
-    merged = (seg.kurtosis[idx] < merge_kurtosis) & wide_enough
-    saturated = np.zeros(idx.size, bool)
-    if saturation is not None:
-        saturated = np.bincount(labels[lum >= saturation], minlength=n)[idx] > 0
+    merged = (seg.kurtosis[idx] < merge_kurtosis) & (major >= 1.3**2)
     return Spots(
         centres_px=centres,
         flux=seg.flux[idx],
         peak=seg.peak[idx],
-        area_px=area[idx].astype(np.int64),
+        area_px=seg.area[idx].astype(np.int64),
         cov_px2=cov,
         merged=merged,
-        border=border,
+        border=edge[idx],
         saturated=saturated,
     )
 
@@ -607,13 +838,16 @@ def predict_flat_spots(
     return ij.astype(np.int64), panel, spot_px, in_view
 
 
+@functools.lru_cache(maxsize=8)  # per frame it would cost ~0.3 ms; the config is immutable
 def _outline_px(cfg: SystemConfig) -> FloatArray:
-    """The diffuser's corners (4, 2) in camera s, pixels, in order around it."""
+    """The diffuser's corners (4, 2) in camera s, pixels, in order around it (read-only)."""
     (x0, x1), (y0, y1) = _diffuser(cfg)
     z = cfg.diffuser.z_mm
     corners = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
     cols, rows, _ = cfg.camera_s.camera().project(corners)
-    return np.stack([cols, rows], axis=1)
+    out = np.stack([cols, rows], axis=1)
+    out.setflags(write=False)
+    return out
 
 
 def flag_diffuser_edge(spots: Spots, outline_px: FloatArray, n_sigma: float = 2.5) -> Spots:
@@ -685,6 +919,41 @@ class _Lattice:
         ok = (q[..., 0] >= 0) & (q[..., 0] < ni) & (q[..., 1] >= 0) & (q[..., 1] < nj)
         q = np.where(ok[..., None], q, 0)
         return np.where(ok, self.grid[q[..., 1], q[..., 0]], -1)
+
+
+@dataclass(frozen=True)
+class _LatticeTables:
+    """Neighbour tables of a reference lattice (built once with the :class:`ReferenceGrid`).
+
+    Node numbers of neighbours, ``n`` (one past the last node) where there is none: ``back``
+    (n + 1, 16) one step back along each of the 8 grid directions, then two steps, ``fwd``
+    (n + 1, 16) the same forward, ``nbrs4`` (n, 4) and ``nbrs8`` (n, 8); the tables' last rows
+    (node ``n``) point nowhere. ``lit_grid`` marks the lit dots on ``lat.grid``.
+    """
+
+    lat: _Lattice
+    back: IntArray
+    fwd: IntArray
+    nbrs4: IntArray
+    nbrs8: IntArray
+    lit_grid: BoolArray
+
+    @classmethod
+    def of(cls, ij: IntArray, lit: BoolArray) -> _LatticeTables:
+        lat = _Lattice(ij)
+        n = len(lat.ij)
+
+        def table(steps: NDArray, sentinel_row: bool = False) -> IntArray:
+            t = np.stack([lat.neighbour(step) for step in steps], axis=1)
+            t = np.where(t < 0, n, t)
+            return np.vstack([t, np.full((1, len(steps)), n)]) if sentinel_row else t
+
+        back = table(np.vstack([-_DIRS8, -2 * _DIRS8]), True)
+        fwd = table(np.vstack([_DIRS8, 2 * _DIRS8]), True)
+        lit_grid = np.zeros(lat.grid.shape, bool)
+        q = lat.ij[np.asarray(lit, bool)] - lat.lo
+        lit_grid[q[:, 1], q[:, 0]] = True
+        return cls(lat, back, fwd, table(_DIRS4), table(_DIRS8), lit_grid)
 
 
 def _local_spacing(ij: IntArray, px: FloatArray) -> FloatArray:
@@ -843,6 +1112,34 @@ def match_reference(
 _NONE, _MERGED, _BORDER, _AMBIGUOUS, _ORDER, _UNLIT = range(6)
 
 
+def _as_complex(xy: FloatArray) -> NDArray[np.complex128]:
+    """Points (N, 2) as complex numbers ``col + 1j row`` (N,): a view, no arithmetic."""
+    return np.ascontiguousarray(xy, dtype=np.float64).view(np.complex128)[:, 0]
+
+
+def _as_xy(z: NDArray[np.complex128]) -> FloatArray:
+    """Complex points (N,) as (N, 2) ``(col, row)``: a view."""
+    return np.ascontiguousarray(z).view(np.float64).reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class _Outline:
+    """A convex polygon (M, 2) with its inward unit edge normals (M, 2), computed once."""
+
+    poly: FloatArray
+    normal: FloatArray
+
+    @classmethod
+    def of(cls, poly: FloatArray) -> _Outline:
+        poly = np.asarray(poly, dtype=np.float64)
+        return cls(poly, _edge_distances(poly, poly[:1])[1])
+
+    def inside(self, pts: FloatArray, margin: FloatArray) -> BoolArray:
+        """Points (N, 2) at least ``margin`` (N,) inside, pixels."""
+        dist = np.einsum("pmk,mk->pm", pts[:, None, :] - self.poly[None], self.normal)
+        return (dist >= margin[:, None]).all(axis=1)
+
+
 @dataclass(frozen=True)
 class _Growth:
     """State of a region growing, per node: its spot (-1: none), why not, the last spot within
@@ -864,8 +1161,13 @@ def _nearest_two(tree: cKDTree, pts: FloatArray) -> tuple[FloatArray, IntArray, 
     return d[:, 0], idx[:, 0], d2
 
 
+def _det2(m: FloatArray) -> FloatArray:
+    """Determinants of 2 x 2 matrices (N, 2, 2)."""
+    return m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+
+
 def _choose_seed(
-    lat: _Lattice,
+    tab: _LatticeTables,
     base_px: FloatArray,
     ref: ReferenceGrid,
     spots: Spots,
@@ -882,157 +1184,170 @@ def _choose_seed(
     near a caustic, focusing shrinks or swells spots and the displacement field is at its least
     smooth), plus a small pull towards the middle of the pattern.
     """
-    spacing = ref.spacing_px
-    d1, i1, d2 = _nearest_two(tree, base_px)
-    disp = tree.data[i1] - base_px
-    ok = ref.observed & (d1 < accept * spacing) & (d1 < ratio * d2) & ~spots.suspicious[i1]
-    if not ok.any():
+    n, spacing = len(base_px), ref.spacing_px
+    obs = np.flatnonzero(ref.observed)  # only an observed node can be the seed or support it
+    d1, i1, d2 = _nearest_two(tree, base_px[obs])
+    good = (d1 < accept * spacing[obs]) & (d1 < ratio * d2) & ~spots.suspicious[i1]
+    if not good.any():
         return -1
-    worst = np.zeros(len(base_px))
-    n_ok = np.zeros(len(base_px), int)
-    for step in _DIRS8:
-        nb = lat.neighbour(step)
-        has = (nb >= 0) & ok[np.maximum(nb, 0)]
-        diff = np.linalg.norm(disp - disp[np.maximum(nb, 0)], axis=1)
-        worst = np.where(has, np.maximum(worst, diff), worst)
-        n_ok += has
+    ok = np.zeros(n + 1, bool)  # entry n: "no neighbour"
+    ok[obs] = good
+    disp = np.zeros((n + 1, 2))
+    disp[obs] = tree.data[i1] - base_px[obs]
+    cand = obs[good]
+    nb = tab.nbrs8[cand]
+    has = ok[nb]
+    diff = disp[cand, None, :] - disp[nb]
+    diff = np.sqrt(diff[..., 0] ** 2 + diff[..., 1] ** 2)
+    worst = np.where(has, diff, 0.0).max(axis=1)
+    n_ok = has.sum(axis=1)
+    spot = i1[good]
     with np.errstate(divide="ignore", invalid="ignore"):
-        size = np.abs(0.5 * np.log(np.linalg.det(spots.cov_px2[i1]) / np.linalg.det(ref.cov_px2)))
+        size = np.abs(0.5 * np.log(_det2(spots.cov_px2[spot]) / _det2(ref.cov_px2[cand])))
     size = np.where(np.isfinite(size), size, 0.0)
-    centre = np.median(base_px[ref.observed], axis=0)
-    extent = np.ptp(base_px[ref.observed], axis=0).max() + 1.0
-    reach = np.linalg.norm(base_px - centre, axis=1) / extent
-    score = (worst + np.linalg.norm(disp, axis=1)) / spacing + size + 0.1 * reach
-    score = np.where(ok & (n_ok >= min(6, int(n_ok[ok].max()))), score, np.inf)
+    centre = np.median(base_px[obs], axis=0)
+    extent = np.ptp(base_px[obs], axis=0).max() + 1.0
+    reach = np.linalg.norm(base_px[cand] - centre, axis=1) / extent
+    own = np.linalg.norm(disp[cand], axis=1)
+    score = (worst + own) / spacing[cand] + size + 0.1 * reach
+    score = np.where(n_ok >= min(6, int(n_ok.max())), score, np.inf)
     best = int(np.argmin(score))
-    return best if np.isfinite(score[best]) else -1
-
-
-@dataclass(frozen=True)
-class _Lines:
-    """Matched neighbours of frontier nodes along each of the 8 grid directions: ``near`` (F, 8)
-    has a matched neighbour ``n1`` at ``p1`` (F, 8, 2); ``line`` also the next one ``n2`` at
-    ``p2`` beyond it, on the same grid line."""
-
-    near: BoolArray
-    line: BoolArray
-    p1: FloatArray
-    p2: FloatArray
-
-
-def _frontier_lines(
-    back: tuple[IntArray, IntArray], matched: BoolArray, pos: FloatArray, front: IntArray
-) -> _Lines:
-    """Gather, for every frontier node and direction at once, its matched grid-line neighbours.
-
-    ``back`` holds the (G + 1, 8) tables of the neighbour one and two steps back along each
-    direction, with -1 mapped to the sentinel row G (never matched).
-    """
-    b1, b2 = back[0][front], back[1][front]
-    near = matched[b1]
-    return _Lines(near, near & matched[b2], pos[b1], pos[b2])
-
-
-def _predicted_positions(
-    lines: _Lines, back: tuple[IntArray, IntArray], disp: FloatArray, front: IntArray
-) -> FloatArray:
-    """Displacement of frontier nodes from their matched 8-neighbours, (F, 2): linear
-    extrapolation along the grid line through two matched nodes where possible, else the
-    neighbour's own displacement; averaged over directions."""
-    d1, d2 = disp[back[0][front]], disp[back[1][front]]
-    pred = np.where(lines.line[..., None], 2.0 * d1 - d2, d1)
-    total = np.where(lines.near[..., None], pred, 0.0).sum(axis=1)
-    return total / np.maximum(lines.near.sum(axis=1), 1)[:, None]
-
-
-def _step_jumps(lines: _Lines, cand_px: FloatArray, max_ratio: float) -> BoolArray:
-    """Candidates whose step from a matched neighbour differs from the next step along the same
-    grid line by more than ``max_ratio`` either way: the candidate skips a spot or doubles one."""
-    now = np.linalg.norm(cand_px[:, None, :] - lines.p1, axis=2)
-    before = np.linalg.norm(lines.p1 - lines.p2, axis=2)
-    bad = (now > max_ratio * before) | (max_ratio * now < before)
-    return (lines.line & bad).any(axis=1)
+    return int(cand[best]) if np.isfinite(score[best]) else -1
 
 
 def _grow(
-    lat: _Lattice,
+    tab: _LatticeTables,
     base_px: FloatArray,
     spacing: FloatArray,
     spots: Spots,
     tree: cKDTree,
     seed: tuple[int, int],
-    visible: FloatArray,
+    visible: _Outline,
     accept: float,
     ratio: float,
     max_step_ratio: float = 1.7,
 ) -> _Growth:
     """Region growing over the lattice from ``seed = (node, spot)``, best-supported nodes first.
 
-    Each wave predicts the frontier nodes' spots from their matched neighbours and finds the
-    nearest spot; it is acceptable if within ``accept`` x spacing, at most ``ratio`` x as far as
-    the second nearest, usable, claimed by no other node, and keeps the spacing along every grid
-    line through matched neighbours within ``max_step_ratio`` (:func:`_step_jumps`). A wave accepts
-    only the best tier present: nodes with at least 3 matched 8-neighbours and a clear-cut
-    nearest spot, then with at least 2, then any, so the region fills in (interpolating) before it
-    reaches out (extrapolating). Nodes not accepted stay on the frontier, unless predicted more
-    than two spacings outside ``visible``; growth stops when a wave accepts nothing.
+    Each wave predicts the frontier nodes' spots from their matched 8-neighbours (linear
+    extrapolation along the grid line through two matched nodes where possible, else the
+    neighbour's own displacement; averaged over directions) and finds the nearest spot; it is
+    acceptable if within ``accept`` x spacing, at most ``ratio`` x as far as the second nearest,
+    usable, claimed by no other node, and keeps the spacing along every grid line through matched
+    neighbours within ``max_step_ratio`` either way (else it skips or doubles a spot). A wave
+    accepts only the best tier present: nodes with at least 3 matched 8-neighbours and a
+    clear-cut nearest spot, then with at least 2, then any, so the region fills in (interpolating)
+    before it reaches out (extrapolating). Nodes not accepted stay on the frontier, unless
+    predicted more than two spacings outside ``visible``; growth stops when a wave accepts
+    nothing.
+
+    A node's prediction and the tests on it change only when a node one or two steps back along
+    one of its grid lines is accepted, so each wave re-evaluates just those nodes (``dirty``);
+    positions are complex numbers to halve the array operations.
     """
-    n = len(base_px)
+    n, n_spots = len(base_px), len(spots)
     usable = ~spots.suspicious
-    owner = np.full(len(spots), -1, np.int64)
+    spot_c = _as_complex(spots.centres_px)
+    base_c = np.append(_as_complex(base_px), 0.0)
+    radius, margin = accept * spacing, -2.0 * spacing
+    # The visible outline as half-planes: a point is m px inside edge k where
+    # xy @ normal[k] - offset[k] = m.
+    normal_t = visible.normal.T
+    offset = np.einsum("mk,mk->m", visible.poly, visible.normal)
+    # Entry n of the node arrays stands for "no neighbour": never matched, zero displacement.
     match = np.full(n, -1, np.int64)
-    reason = np.full(n, _NONE, np.int8)
-    claim = np.full(n, -1, np.int64)
-    pred_px = base_px.copy()
-    tried = np.zeros(n, bool)
-    retired = np.zeros(n, bool)
-    # Row n is a sentinel for "no neighbour": never matched, zero displacement.
-    disp = np.zeros((n + 1, 2))
-    back = tuple(
-        np.vstack([np.where(t < 0, n, t), np.full((1, 8), n)])
-        for t in (
-            np.stack([lat.neighbour(-k * step) for step in _DIRS8], axis=1) for k in (1, 2)
-        )
-    )
-    nbrs4 = np.stack([lat.neighbour(step) for step in _DIRS4], axis=1)
-    touch = np.zeros(n + 1, bool)  # slot n absorbs the -1 (no neighbour) entries
-    match[seed[0]], owner[seed[1]] = seed[1], seed[0]
-    disp[seed[0]] = spots.centres_px[seed[1]] - base_px[seed[0]]
-    touch[nbrs4[seed[0]]] = True
+    matched = np.zeros(n + 1, bool)
+    blocked = np.zeros(n + 1, bool)  # matched, or retired (predicted far outside the view)
+    blocked[n] = True
+    touch = np.zeros(n + 1, bool)
+    dirty = np.zeros(n + 1, bool)
+    disp = np.zeros(n + 1, complex)
+    pos = base_c.copy()
+    free = np.ones(n_spots, bool)
+    # Each node's last evaluation: prediction, nearest spot, whether it is near (and clear),
+    # and the node's tier if it passes every test that does not depend on other nodes (else 0).
+    pred_c = base_c[:n].copy()
+    last_spot = np.full(n, -1, np.int64)
+    last_near = np.zeros(n, bool)
+    last_nc = np.zeros(n, bool)
+    last_tier = np.zeros(n, np.int64)
+
+    # Beyond reach / (0.5 ratio) a second spot changes no test on a node whose nearest spot is
+    # within reach (and on any other the tests do not matter): the search stops there.
+    bound = float(radius.max()) / (0.5 * ratio) if n and ratio > 0 else np.inf
+
+    def nearest_two(xy: FloatArray) -> tuple[FloatArray, IntArray]:
+        dist, spot = tree.query(xy, k=2, distance_upper_bound=bound)
+        return dist, np.minimum(spot, n_spots - 1)  # none found: any spot, it is out of reach
+
+    acc, spot_acc = np.array([seed[0]]), np.array([seed[1]])
     while True:
-        matched = np.append(match >= 0, False)
-        front = np.flatnonzero(~matched[:n] & touch[:n] & ~retired)
-        if len(front) == 0:
+        match[acc] = spot_acc
+        free[spot_acc] = False
+        moved = spot_c[spot_acc] - base_c[acc]
+        disp[acc] = moved
+        pos[acc] = base_c[acc] + moved
+        matched[acc] = blocked[acc] = True
+        touch[tab.nbrs4[acc]] = True
+        dirty[tab.fwd[acc]] = True
+
+        front = np.flatnonzero(touch > blocked)
+        if front.size == 0:
             break
-        pos = np.vstack([base_px, np.zeros((1, 2))]) + disp
-        lines = _frontier_lines(back, matched, pos, front)
-        pred = base_px[front] + _predicted_positions(lines, back, disp, front)
-        pred_px[front] = pred
-        tried[front] = True
-        far = ~_inside(visible, pred, -2.0 * spacing[front])
-        retired[front[far]] = True
-        d1, i1, d2 = _nearest_two(tree, pred)
-        near = d1 < accept * spacing[front]
-        clear = d1 < ratio * d2
-        taken = owner[i1] >= 0
-        dup = np.bincount(i1[near & clear & ~taken], minlength=len(spots))[i1] > 1
-        jump = _step_jumps(lines, spots.centres_px[i1], max_step_ratio)
-        ok = near & clear & ~taken & ~dup & usable[i1] & ~jump & ~far
-        reason[front] = np.select(
-            [~near, spots.merged[i1], ~usable[i1]], [_NONE, _MERGED, _BORDER], _AMBIGUOUS
-        )
-        claim[front] = np.where(near, i1, -1)
-        support = lines.near.sum(axis=1)
-        tiers = (ok & (support >= 3) & (d1 < 0.5 * ratio * d2), ok & (support >= 2), ok)
-        ok = next((t for t in tiers if t.any()), ok)
-        if not ok.any():
+        new = front[dirty[front]]
+        if new.size:
+            dirty[new] = False
+            back = tab.back[new]  # (F, 16): one step back along each direction, then two
+            near8 = matched[back]
+            line = near8[:, 8:]
+            near8 = near8[:, :8]
+            line &= near8
+            d = disp[back]
+            d1 = d[:, :8]
+            support = near8.sum(axis=1)
+            pred = np.where(line, 2.0 * d1 - d[:, 8:], d1).sum(axis=1)
+            xy = pred.view(np.float64).reshape(-1, 2)
+            xy /= np.maximum(support, 1)[:, None]  # mean displacement, divided as (x, y)
+            pred += base_c[new]
+            pred_c[new] = pred
+            far = (xy @ normal_t - offset).min(axis=1) < margin[new]
+            blocked[new[far]] = True
+            dist, spot = nearest_two(xy)
+            dist1, dist2, spot = dist[:, 0], dist[:, 1], spot[:, 0]
+            near = dist1 < radius[new]
+            nc = dist1 < ratio * dist2
+            nc &= near
+            p = pos[back]
+            p1 = p[:, :8]
+            now = np.abs(spot_c[spot][:, None] - p1)
+            before = np.abs(p1 - p[:, 8:])
+            jump = now > max_step_ratio * before
+            jump |= max_step_ratio * now < before
+            jump &= line
+            ok = nc & usable[spot]
+            ok[far | jump.any(axis=1)] = False
+            tier = 1 + (support >= 2) + ((support >= 3) & (dist1 < 0.5 * ratio * dist2))
+            last_spot[new], last_near[new], last_nc[new] = spot, near, nc
+            last_tier[new] = np.where(ok, tier, 0)
+        # Acceptance: a spot is taken once, and not by two nodes in one wave.
+        spot = last_spot[front]
+        cand = last_nc[front] & free[spot]
+        dup = np.bincount(spot[cand], minlength=n_spots)[spot] > 1
+        level = np.where(cand & ~dup, last_tier[front], 0)
+        best = level.max()
+        if best == 0:
             break
-        acc = front[ok]
-        match[acc] = i1[ok]
-        owner[i1[ok]] = acc
-        disp[acc] = spots.centres_px[i1[ok]] - base_px[acc]
-        touch[nbrs4[acc].ravel()] = True
-    return _Growth(match, reason, claim, pred_px, tried)
+        take = level == best
+        acc, spot_acc = front[take], spot[take]
+
+    tried = last_spot >= 0
+    spot = np.maximum(last_spot, 0)
+    reason = np.select(
+        [~tried | ~last_near, spots.merged[spot], ~usable[spot]], [_NONE, _MERGED, _BORDER],
+        _AMBIGUOUS,
+    ).astype(np.int8)
+    claim = np.where(tried & last_near, last_spot, -1)
+    return _Growth(match, reason, claim, _as_xy(pred_c), tried)
 
 
 def _drop_double_claims(g: _Growth) -> None:
@@ -1083,31 +1398,38 @@ def order_violations(
     if len(ij) == 0:
         return bad
     lat = _Lattice(ij)
+    pairs = [(np.flatnonzero(nb >= 0), nb[nb >= 0]) for nb in map(lat.neighbour, _DIRS4[[0, 2]])]
     tree = cKDTree(all_spots_px) if all_spots_px is not None and len(all_spots_px) else None
-    for step in ([1, 0], [0, 1]):
-        nb = lat.neighbour(step)
-        a = np.flatnonzero(nb >= 0)
-        b = nb[a]
+    return _order_violations(pairs, ref_px, spot_px, margin_px, tree)
+
+
+def _order_violations(
+    pairs: list[tuple[IntArray, IntArray]],
+    ref_px: FloatArray,
+    spot_px: FloatArray,
+    margin_px: float,
+    tree: cKDTree | None,
+) -> BoolArray:
+    """:func:`order_violations` given the neighbour pairs ``(a, b)`` along rows and along
+    columns, and the detected spots in a KD-tree (or None)."""
+    bad = np.zeros(len(spot_px), bool)
+    for a, b in pairs:
         u = ref_px[b] - ref_px[a]
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         gap = np.sum((spot_px[b] - spot_px[a]) * u, axis=1)
         viol = gap <= margin_px
         if tree is not None and len(a):
-            dist, _ = tree.query(0.5 * (spot_px[a] + spot_px[b]))
-            viol |= dist < 0.3 * np.linalg.norm(spot_px[b] - spot_px[a], axis=1)
+            reach = 0.3 * np.linalg.norm(spot_px[b] - spot_px[a], axis=1)
+            # Only whether a spot lies within reach matters: the search stops there.
+            dist, _ = tree.query(0.5 * (spot_px[a] + spot_px[b]), distance_upper_bound=reach.max())
+            viol |= dist < reach
         bad[a[viol]] = True
         bad[b[viol]] = True
     return bad
 
 
-def _inside(poly: FloatArray, pts: FloatArray, margin: FloatArray) -> BoolArray:
-    """Points (N, 2) at least ``margin`` (N,) inside a convex polygon (M, 2), pixels."""
-    dist, _ = _edge_distances(poly, pts)
-    return (dist >= margin[:, None]).all(axis=1)
-
-
 def _anchor_shift(
-    lat: _Lattice, lit: BoolArray, matched: BoolArray, absent: BoolArray, max_shift: int
+    tab: _LatticeTables, matched: BoolArray, absent: BoolArray, max_shift: int
 ) -> tuple[IntArray, int]:
     """Lattice shift that best explains where spots are and are not, and how many tie.
 
@@ -1116,15 +1438,23 @@ def _anchor_shift(
     node seen empty (``absent``: nothing there although it is in view) that would be a lit dot.
     Near the pattern's visible boundary or its unlit marker dots only the right shift is free of
     contradictions; elsewhere all shifts tie, and the unshifted labelling is kept.
+
+    The counts for all shifts at once are cross-correlations, on the lattice grid, of the lit
+    dots with the matched and with the absent nodes.
     """
-    r = np.arange(-max_shift, max_shift + 1)
+    s = max_shift
+    lit = np.pad(tab.lit_grid, s).astype(np.float32)  # nothing is lit off the lattice
+
+    def lit_at(nodes: BoolArray) -> FloatArray:  # (2s + 1, 2s + 1) indexed [dj, di]
+        grid = np.zeros(tab.lat.grid.shape, np.float32)
+        q = tab.lat.ij[nodes] - tab.lat.lo
+        grid[q[:, 1], q[:, 0]] = 1.0
+        return np.rint(cv2.matchTemplate(lit, grid, cv2.TM_CCORR))
+
+    cost = 3 * (matched.sum() - lit_at(matched)) + lit_at(absent)
+    cost = cost.T.ravel().astype(np.int64)  # shift (di, dj), di slowest
+    r = np.arange(-s, s + 1)
     shifts = np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
-
-    def lit_at(ij: IntArray) -> BoolArray:
-        node = lat.lookup(ij[None, :, :] + shifts[:, None, :])
-        return (node >= 0) & lit[np.maximum(node, 0)]
-
-    cost = 3 * (~lit_at(lat.ij[matched])).sum(axis=1) + lit_at(lat.ij[absent]).sum(axis=1)
     best = cost.min()
     tied = cost <= best + 3 + best // 4
     zero = (shifts == 0).all(axis=1)
@@ -1135,17 +1465,17 @@ def _anchor_shift(
 
 
 def _absent_nodes(
-    lat: _Lattice, g: _Growth, tree: cKDTree, spacing: FloatArray, visible: FloatArray
+    tab: _LatticeTables, g: _Growth, tree: cKDTree, spacing: FloatArray, visible: _Outline
 ) -> BoolArray:
     """Nodes seen empty: unmatched, predicted from at least two matched neighbours to a place
     well inside the visible area where no spot at all lies within half a spacing."""
-    nbrs8 = np.stack([lat.neighbour(step) for step in _DIRS8], axis=1)
-    support = ((nbrs8 >= 0) & (g.match[np.maximum(nbrs8, 0)] >= 0)).sum(axis=1)
-    cand = g.tried & (g.match < 0) & (support >= 2)
-    cand &= _inside(visible, g.pred_px, spacing)
+    matched = np.append(g.match >= 0, False)
+    cand = g.tried & (g.match < 0) & (matched[tab.nbrs8].sum(axis=1) >= 2)
     idx = np.flatnonzero(cand)
+    idx = idx[visible.inside(g.pred_px[idx], spacing[idx])]
     dist, _ = tree.query(g.pred_px[idx])
-    cand[idx] = dist > 0.5 * spacing[idx]
+    cand[:] = False
+    cand[idx[dist > 0.5 * spacing[idx]]] = True
     return cand
 
 
@@ -1233,19 +1563,20 @@ def match_distorted(
         "rejected_order": 0, "rejected_merged": 0, "rejected_ambiguous": 0,
         "rejected_border": 0, "rejected_unlit": 0, "unmatched_reference": n_obs,
         "unassigned_spots": len(spots), "anchor_di": 0, "anchor_dj": 0, "anchor_candidates": 0,
+        "labels_ambiguous": 0,
     }
     empty = Matches(
         np.zeros((0, 2), np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool), counts
     )
     if n_obs == 0 or len(spots) == 0:
         return empty
-    lat = _Lattice(ref.ij)
-    base = ref.ref_px.copy()
+    tab = ref.tables
+    base = ref.ref_px
     if prior_px is not None:
         prior = np.asarray(prior_px, dtype=float)
         base = np.where(np.isfinite(prior), prior, base)
     tree = cKDTree(spots.centres_px)
-    seed = _choose_seed(lat, base, ref, spots, tree, accept, ratio)
+    seed = _choose_seed(tab, base, ref, spots, tree, accept, ratio)
     if seed < 0:
         return empty
     seed_spot = int(tree.query(base[seed])[1])
@@ -1253,28 +1584,36 @@ def match_distorted(
         hull = cv2.convexHull(ref.ref_px[ref.observed].astype(np.float32))[:, 0]
     else:
         hull = visible_px
-    hull = np.asarray(hull, dtype=np.float64)
-    g = _grow(lat, base, ref.spacing_px, spots, tree, (seed, seed_spot), hull, accept, ratio)
+    visible = _Outline.of(hull)
+    g = _grow(tab, base, ref.spacing_px, spots, tree, (seed, seed_spot), visible, accept, ratio)
     _drop_double_claims(g)
 
     shift, n_tied = np.zeros(2, np.int64), 1
     if anchor:
-        absent = _absent_nodes(lat, g, tree, ref.spacing_px, hull)
-        shift, n_tied = _anchor_shift(lat, ref.lit, g.match >= 0, absent, max_shift)
-    match, reason, n_off = _relabel(lat, g.match, g.reason, shift)
-    counts.update(anchor_di=int(shift[0]), anchor_dj=int(shift[1]), anchor_candidates=n_tied)
+        absent = _absent_nodes(tab, g, tree, ref.spacing_px, visible)
+        shift, n_tied = _anchor_shift(tab, g.match >= 0, absent, max_shift)
+    match, reason, n_off = _relabel(tab.lat, g.match, g.reason, shift)
+    counts.update(
+        anchor_di=int(shift[0]), anchor_dj=int(shift[1]), anchor_candidates=n_tied,
+        labels_ambiguous=int(n_tied > 1),
+    )
 
     kept = np.flatnonzero(match >= 0)
     spot_px = spots.centres_px[match[kept]]
-    bad = order_violations(
-        ref.ij[kept], ref.ref_px[kept], spot_px, order_margin_px, spots.centres_px
-    )
+    # Grid neighbours (i + 1 or j + 1) among the kept nodes, as positions in ``kept``.
+    where = np.full(len(ref.ij) + 1, -1)
+    where[kept] = np.arange(len(kept))
+    pairs = []
+    for step in (0, 2):  # _DIRS4: (1, 0), (0, 1)
+        nb = where[tab.nbrs4[kept, step]]
+        pairs.append((np.flatnonzero(nb >= 0), nb[nb >= 0]))
+    bad = _order_violations(pairs, ref.ref_px[kept], spot_px, order_margin_px, tree)
     reason[kept[bad]] = _ORDER
     unlit = ~ref.lit[kept] & ~bad
     reason[kept[unlit]] = _UNLIT
     kept = kept[~bad & ~unlit]
     # Labels are only consistent within one connected piece of the lattice: keep the largest.
-    main = _largest_component(lat, kept)
+    main = _largest_component(tab.lat, kept)
     reason[kept[~main]] = _AMBIGUOUS
     kept = kept[main]
     lost = np.ones(len(ref.ij), bool)
@@ -1301,15 +1640,19 @@ def match_distorted(
 # ----------------------------------------------------------------------------------------------
 
 
+@functools.lru_cache(maxsize=8)
 def _visible_outline(cfg: SystemConfig) -> FloatArray:
-    """Where camera s can see a spot: the diffuser's outline clipped to the image, (M, 2) px."""
+    """Where camera s can see a spot: the diffuser's outline clipped to the image, (M, 2) px
+    (read-only)."""
     cam = cfg.camera_s
     w, h = cam.width_px - 0.5, cam.height_px - 0.5
     frame = np.array([[-0.5, -0.5], [w, -0.5], [w, h], [-0.5, h]], np.float32)
     area, poly = cv2.intersectConvexConvex(_outline_px(cfg).astype(np.float32), frame)
     if area <= 0 or poly is None:
         raise WaiInputError("camera s does not see the diffuser")
-    return poly[:, 0].astype(np.float64)
+    out = poly[:, 0].astype(np.float64)
+    out.setflags(write=False)
+    return out
 
 
 def find_features(

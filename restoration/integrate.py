@@ -5,6 +5,8 @@ new ones can be added and compared by name:
 
 ``integrator(ij, xy_mm, slopes) -> heights_mm``
 
+(the built-in ones also take an optional ``weight_xy_mm``, see :func:`integrate`).
+
 ``ij`` (K, 2) int
     Grid index ``(i, j)`` of each sample (its dot in the pattern); 4-neighbours in ``(i, j)`` are
     neighbours on the surface. Missing nodes (undetected dots) are simply absent.
@@ -39,14 +41,14 @@ Integrators
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CloughTocher2DInterpolator
 from scipy.sparse.csgraph import connected_components
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import SuperLU, splu
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from wai_core.errors import WaiInputError
@@ -167,23 +169,136 @@ def largest_grid_piece(ij: IntArray) -> NDArray[np.bool_]:
 # --------------------------------------------------------------------------------------------
 
 
-def spd_solve(matrix: sp.spmatrix, rhs: Array) -> Array:
-    """Solve a sparse symmetric positive definite system (SuperLU in symmetric mode)."""
+def _spd_factor(matrix: sp.spmatrix) -> SuperLU:
+    """Factorise a sparse symmetric positive definite matrix (SuperLU in symmetric mode)."""
     # Symmetric mode with a minimum-degree ordering of A + A^T and no pivoting: a few times
-    # faster than the default unsymmetric LU on these Laplacian-like matrices.
+    # faster than the default unsymmetric LU on these Laplacian-like matrices. (LAPACK's banded
+    # Cholesky would be faster still, but OpenBLAS threads it and, next to OpenCV's threads on
+    # two cores, it stalls for tens of ms now and then.)
     try:
-        lu = splu(
+        return splu(
             sp.csc_matrix(matrix),
             permc_spec="MMD_AT_PLUS_A",
             diag_pivot_thresh=0.0,
             options={"SymmetricMode": True},
         )
-        out = lu.solve(rhs)
     except RuntimeError:  # SuperLU: "Factor is exactly singular"
-        out = np.full(rhs.shape, np.nan)
+        raise _singular() from None
+
+
+def spd_solve(matrix: sp.spmatrix, rhs: Array) -> Array:
+    """Solve a sparse symmetric positive definite system (SuperLU in symmetric mode)."""
+    out = _spd_factor(matrix).solve(rhs)
     if not np.all(np.isfinite(out)):
-        raise WaiInputError("integrate: the samples do not determine the surface (singular fit)")
+        raise _singular()
     return out
+
+
+def _singular() -> WaiInputError:
+    return WaiInputError("integrate: the samples do not determine the surface (singular fit)")
+
+
+@dataclass(frozen=True)
+class DifferenceGraph:
+    """The structure of ``min sum_e w_e (h[b_e] - h[a_e] - d_e)^2``, prepared once per edge set.
+
+    The normal matrix is a weighted graph Laplacian with one null vector (the constant) per
+    connected piece. Everything that depends on the edges alone is kept: the largest connected
+    piece, and the sparsity pattern of its Laplacian with the first kept node pinned to zero,
+    with the scatter indices that fill it from the edge weights. Factorisations are cached by
+    weights, so repeated solves with the same weights (the refinement passes of
+    :func:`restoration.surface.reconstruct_surface`, which weight every pass by the first
+    pass's geometry) cost two triangular solves.
+
+    Attributes
+    ----------
+    n : int
+        Number of samples.
+    keep : (n,) ndarray of bool
+        Samples in the largest connected piece.
+    edges : (E',) ndarray of int
+        The edges inside that piece, as indices into the ``a, b`` given to :meth:`build`.
+    node : (m,) ndarray of int
+        The kept samples, in the order of the unknowns; the first is pinned.
+    ea, eb : (E',) ndarray of int
+        Positions of the edges' end points in ``node``.
+    indptr, indices : ndarray of int
+        CSC pattern of the pinned Laplacian, (m - 1, m - 1).
+    slot, source, sign : ndarray
+        Each Laplacian contribution (an edge's off-diagonal pair and its diagonal terms) adds
+        ``sign * w[source]`` to data entry ``slot``.
+    """
+
+    n: int
+    keep: NDArray[np.bool_]
+    edges: IntArray
+    node: IntArray
+    ea: IntArray
+    eb: IntArray
+    indptr: IntArray
+    indices: IntArray
+    slot: IntArray
+    source: IntArray
+    sign: Array
+    _factors: dict[bytes, SuperLU] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def build(cls, n: int, a: IntArray, b: IntArray) -> DifferenceGraph:
+        """Prepare the system of ``n`` samples and edges ``a -> b`` (E,)."""
+        keep = largest_piece(n, a, b)
+        edges = np.flatnonzero(keep[a] & keep[b])
+        node = np.flatnonzero(keep)
+        pos = np.cumsum(keep) - 1
+        ea, eb = pos[a[edges]], pos[b[edges]]
+        # Contributions to the Laplacian without row and column 0 (the pinned node), in
+        # unknowns 0 .. m - 2 (= position - 1): -w at (a, b) and (b, a), +w at (a, a), (b, b).
+        e = np.arange(edges.size)
+        both = (ea > 0) & (eb > 0)
+        rows = np.r_[ea[both], eb[both], ea[ea > 0], eb[eb > 0]] - 1
+        cols = np.r_[eb[both], ea[both], ea[ea > 0], eb[eb > 0]] - 1
+        source = np.r_[e[both], e[both], e[ea > 0], e[eb > 0]]
+        sign = np.r_[-np.ones(2 * both.sum()), np.ones(source.size - 2 * both.sum())]
+        m = node.size - 1
+        pattern = sp.csc_matrix((np.ones(rows.size), (rows, cols)), shape=(m, m))
+        pattern.sort_indices()
+        # Data slot of each contribution: its (column, row) among the sorted CSC entries.
+        entry = np.repeat(np.arange(m), np.diff(pattern.indptr)) * m + pattern.indices
+        slot = np.searchsorted(entry, cols * m + rows)
+        indptr, indices = pattern.indptr, pattern.indices
+        return cls(n, keep, edges, node, ea, eb, indptr, indices, slot, source, sign)
+
+    def solve(self, diff_mm: Array, weights: Array) -> Array:
+        """Zero-mean heights (n,) in mm minimising the weighted misfit; NaN outside the piece.
+
+        Parameters
+        ----------
+        diff_mm, weights : (E,) ndarray
+            Measured differences (mm) and positive weights of all edges given to
+            :meth:`build` (those outside the largest piece are ignored).
+        """
+        w, d = weights[self.edges], diff_mm[self.edges]
+        m = self.node.size
+        wd = w * d
+        rhs = np.bincount(self.eb, wd, m) - np.bincount(self.ea, wd, m)
+        h = np.r_[0.0, self._factor(w).solve(rhs[1:])]
+        if not np.all(np.isfinite(h)):
+            raise _singular()
+        heights = np.full(self.n, np.nan)
+        heights[self.node] = h - h.mean()
+        return heights
+
+    def _factor(self, w: Array) -> SuperLU:
+        """The factorised pinned Laplacian of edge weights ``w`` (E',), cached."""
+        key = w.tobytes()
+        lu = self._factors.get(key)
+        if lu is None:
+            data = np.bincount(self.slot, self.sign * w[self.source], self.indices.size)
+            m = self.node.size - 1
+            lu = _spd_factor(sp.csc_matrix((data, self.indices, self.indptr), shape=(m, m)))
+            if len(self._factors) >= 8:
+                self._factors.clear()
+            self._factors[key] = lu
+        return lu
 
 
 def solve_differences(
@@ -192,8 +307,9 @@ def solve_differences(
     """Heights minimising ``sum_e w_e (h[b_e] - h[a_e] - diff_e)^2``, zero mean.
 
     The normal matrix is a weighted graph Laplacian with one null vector (the constant) per
-    connected piece; the largest piece is solved with its first node pinned to zero, then
-    shifted to zero mean. Direct sparse LU: about 1 ms for 600 samples.
+    connected piece; the largest piece is solved with one node pinned to zero, then shifted to
+    zero mean (see :class:`DifferenceGraph`, which callers solving one graph repeatedly should
+    keep).
 
     Parameters
     ----------
@@ -211,57 +327,91 @@ def solve_differences(
     (n,) ndarray
         Heights, mm; NaN outside the largest connected piece.
     """
-    keep = largest_piece(n, a, b)
-    m = int(keep.sum())
-    new = np.cumsum(keep) - 1  # index among the kept nodes
-    on = keep[a] & keep[b]
-    ea, eb, w, wd = new[a[on]], new[b[on]], weights[on], weights[on] * diff_mm[on]
-    # Assemble the Laplacian and B^T W d directly (repeated pairs are summed by the sparse
-    # constructor), then pin kept node 0 by dropping its row and column.
-    rhs = np.bincount(eb, wd, m) - np.bincount(ea, wd, m)
-    diag = np.bincount(ea, w, m) + np.bincount(eb, w, m)
-    free = (ea > 0) & (eb > 0)
-    rows = np.r_[ea[free], eb[free], np.arange(1, m)] - 1
-    cols = np.r_[eb[free], ea[free], np.arange(1, m)] - 1
-    vals = np.r_[-w[free], -w[free], diag[1:]]
-    laplacian = sp.csc_matrix((vals, (rows, cols)), shape=(m - 1, m - 1))
-    h_kept = np.r_[0.0, spd_solve(laplacian, rhs[1:])]
-    heights = np.full(n, np.nan)
-    heights[keep] = h_kept - h_kept.mean()
-    return heights
+    return DifferenceGraph.build(n, a, b).solve(diff_mm, weights)
 
 
-def _edge_system(
-    ij: IntArray, xy: Array, g: Array, scheme: str
-) -> tuple[IntArray, IntArray, Array, Array]:
-    """Differences ``(a, b, diff, weight)`` along both grid axes for one finite-difference scheme.
+@dataclass(frozen=True)
+class _EdgePlan:
+    """Edges of one finite-difference scheme on one set of grid indices, with their solver.
 
-    ``scheme`` is ``"central"`` (eq. 10, one-sided at borders and holes) or ``"trapezoid"``.
-    Weights ``1 / |xy(b) - xy(a)|^2`` turn each residual into slope units (eq. 13).
+    Edge ``e`` states ``h[b_e] - h[a_e] = s . (xy[b_e] - xy[a_e])`` with the slope ``s`` the
+    mean of the end points' (trapezoid) or that of sample ``slope_at[e]`` (central).
     """
+
+    a: IntArray
+    b: IntArray
+    slope_at: IntArray | None
+    graph: DifferenceGraph
+
+
+# Plans by (scheme, grid indices): the refinement passes of one frame, and the anchor search's
+# reconstructions, integrate the same samples many times.
+_EDGE_PLANS: dict[tuple, _EdgePlan] = {}
+
+
+def _edge_plan(ij: IntArray, scheme: str) -> _EdgePlan:
+    """The :class:`_EdgePlan` of ``scheme`` (``"central"`` or ``"trapezoid"``) on ``ij``, cached.
+
+    ``"central"`` is eq. 10: central where both neighbours exist, else forward or backward
+    (slope at the centre).
+    """
+    key = (scheme, ij.shape, ij.tobytes())
+    plan = _EDGE_PLANS.get(key)
+    if plan is not None:
+        return plan
     centre = np.arange(ij.shape[0])
     neighbours = grid_neighbours(ij, [(1, 0), (-1, 0), (0, 1), (0, -1)])
     parts = []
     for plus, minus in (neighbours[:2], neighbours[2:]):
         if scheme == "trapezoid":
             on = plus >= 0
-            a, b = centre[on], plus[on]
-            slope = 0.5 * (g[a] + g[b])
+            parts.append((centre[on], plus[on], centre[on]))
         else:
-            # Central where both neighbours exist, else forward or backward (slope at the centre).
             a = np.where(minus >= 0, minus, centre)
             b = np.where(plus >= 0, plus, centre)
             on = a != b
-            a, b, slope = a[on], b[on], g[on]
-        step = xy[b] - xy[a]
-        parts.append((a, b, np.sum(slope * step, axis=1), 1.0 / np.sum(step**2, axis=1)))
-    a, b, d, w = (np.concatenate(p) for p in zip(*parts, strict=True))
-    if np.any(~np.isfinite(w)):
+            parts.append((a[on], b[on], centre[on]))
+    a, b, at = (np.concatenate(p) for p in zip(*parts, strict=True))
+    graph = DifferenceGraph.build(ij.shape[0], a, b)
+    plan = _EdgePlan(a, b, None if scheme == "trapezoid" else at, graph)
+    if len(_EDGE_PLANS) >= 16:
+        _EDGE_PLANS.clear()
+    _EDGE_PLANS[key] = plan
+    return plan
+
+
+def _integrate_scheme(
+    ij: ArrayLike,
+    xy_mm: ArrayLike,
+    slopes: ArrayLike,
+    scheme: str,
+    weight_xy_mm: ArrayLike | None = None,
+) -> Array:
+    """Heights by least squares over the differences of ``scheme`` (see :func:`_edge_plan`).
+
+    Weights ``1 / |xy(b) - xy(a)|^2`` turn each residual into slope units (eq. 13), with the
+    positions ``weight_xy_mm`` (K, 2) mm where given, else ``xy_mm``.
+    """
+    ij_a, xy, g = check_samples(ij, xy_mm, slopes)
+    plan = _edge_plan(ij_a, scheme)
+    a, b = plan.a, plan.b
+    slope = 0.5 * (g[a] + g[b]) if plan.slope_at is None else g[plan.slope_at]
+    step = xy[b] - xy[a]
+    if weight_xy_mm is not None:
+        wxy = np.asarray(weight_xy_mm, dtype=float)
+        if wxy.shape != xy.shape or not np.all(np.isfinite(wxy)):
+            raise WaiInputError("integrate: weight_xy_mm must be finite and shaped like xy_mm")
+        length2 = np.sum((wxy[b] - wxy[a]) ** 2, axis=1)
+    else:
+        length2 = np.einsum("ij,ij->i", step, step)
+    if not np.all(length2 > 0):
         raise WaiInputError("integrate: two neighbouring samples sit at the same position")
-    return a, b, d, w
+    return plan.graph.solve(np.einsum("ij,ij->i", slope, step), 1.0 / length2)
 
 
-def integrate_paper(ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike) -> Array:
+def integrate_paper(
+    ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike, weight_xy_mm: ArrayLike | None = None
+) -> Array:
     """Eq. 10-13: central differences on the sample grid, least squares (see module docstring).
 
     Parameters
@@ -269,23 +419,26 @@ def integrate_paper(ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike) -> Array
     ij : (K, 2) array_like of int
     xy_mm : (K, 2) array_like, mm
     slopes : (K, 2) array_like, dimensionless
+    weight_xy_mm : (K, 2) array_like, mm, optional
+        Positions that set the weights (eq. 13), default ``xy_mm``. Repeated solves with the
+        same weights reuse one factorisation (see :class:`DifferenceGraph`).
 
     Returns
     -------
     (K,) ndarray
         Zero-mean heights, mm; NaN for samples cut off from the largest connected piece.
     """
-    ij_a, xy, g = check_samples(ij, xy_mm, slopes)
-    return solve_differences(ij_a.shape[0], *_edge_system(ij_a, xy, g, "central"))
+    return _integrate_scheme(ij, xy_mm, slopes, "central", weight_xy_mm)
 
 
-def integrate_trapezoid(ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike) -> Array:
+def integrate_trapezoid(
+    ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike, weight_xy_mm: ArrayLike | None = None
+) -> Array:
     """Trapezoid-rule least squares over the 4-neighbour edges (see module docstring).
 
     Parameters and return as :func:`integrate_paper`.
     """
-    ij_a, xy, g = check_samples(ij, xy_mm, slopes)
-    return solve_differences(ij_a.shape[0], *_edge_system(ij_a, xy, g, "trapezoid"))
+    return _integrate_scheme(ij, xy_mm, slopes, "trapezoid", weight_xy_mm)
 
 
 # --------------------------------------------------------------------------------------------
@@ -408,13 +561,16 @@ def _solve_normal(rows: sp.csr_matrix, rhs: Array, pin: int | None = None) -> Ar
     return coef
 
 
-def integrate_spline(ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike) -> Array:
+def integrate_spline(
+    ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike, weight_xy_mm: ArrayLike | None = None
+) -> Array:
     """Bicubic B-spline fitted by least squares to the slopes (see module docstring).
 
     The control spacing is 1.5 times the median nearest-neighbour distance of the samples
     (about the mean grid spacing, as the samples lie closer across than along the keystone).
 
-    Parameters and return as :func:`integrate_paper`.
+    Parameters and return as :func:`integrate_paper`; ``weight_xy_mm`` is unused (all slope
+    residuals weigh the same).
     """
     ij_a, xy_all, g_all = check_samples(ij, xy_mm, slopes)
     keep = largest_grid_piece(ij_a)
@@ -446,16 +602,26 @@ INTEGRATORS: dict[str, Integrator] = {
 
 
 def integrate(
-    ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike, method: str = "trapezoid"
+    ij: ArrayLike,
+    xy_mm: ArrayLike,
+    slopes: ArrayLike,
+    method: str = "trapezoid",
+    weight_xy_mm: ArrayLike | None = None,
 ) -> Array:
-    """Heights (K,) in mm, zero mean, from slopes with the integrator named ``method``."""
+    """Heights (K,) in mm, zero mean, from slopes with the integrator named ``method``.
+
+    ``weight_xy_mm`` (K, 2) mm, optional: positions that set the difference weights of
+    ``"paper"`` and ``"trapezoid"`` (default ``xy_mm``; see :func:`integrate_paper`).
+    """
     try:
         integrator = INTEGRATORS[method]
     except KeyError:
         raise WaiInputError(
             f"integrate: unknown integrator {method!r} (known: {', '.join(INTEGRATORS)})"
         ) from None
-    return integrator(ij, xy_mm, slopes)
+    if weight_xy_mm is None:
+        return integrator(ij, xy_mm, slopes)
+    return integrator(ij, xy_mm, slopes, weight_xy_mm=weight_xy_mm)
 
 
 # --------------------------------------------------------------------------------------------
@@ -499,14 +665,39 @@ def _hermite_spline_grid(
     return grid.dense_axis(gy, along_x=False) @ coef @ grid.dense_axis(gx, along_x=True).T + mean
 
 
-def _locate_nodes(
-    corners: Array, gx: Array, gy: Array
-) -> tuple[IntArray, IntArray, Array]:
-    """Find the grid nodes inside each triangle (a vectorised rasterisation).
+@dataclass(frozen=True)
+class _Spans:
+    """Grid nodes inside triangles, as runs along node rows (see :func:`_scan_triangles`).
 
-    Every triangle is paired with the nodes of its bounding box and the pairs with non-negative
-    barycentric weights are kept; a node on a shared edge may appear twice (with equal
-    interpolated values). Far cheaper than qhull's point location for one regular grid.
+    Run ``s`` holds the ``count[s]`` nodes ``(row[s], col[s] + k)``, ``k = 0 .. count[s] - 1``,
+    of triangle ``tri[s]``. ``bx, by`` (3, T) give each triangle's barycentric weights as
+    ``lam_v(p) = [v == 0] + bx[v] (p_x - x_0) + by[v] (p_y - y_0)`` about its first corner
+    ``(x_0, y_0)``, 1/mm.
+    """
+
+    tri: IntArray
+    row: IntArray
+    col: IntArray
+    count: IntArray
+    bx: Array
+    by: Array
+
+    def nodes(self, n_cols: int) -> tuple[IntArray, IntArray, IntArray]:
+        """Flat index ``row * n_cols + col`` (P,), run (P,) and offset ``k`` (P,) of each node."""
+        run = np.repeat(np.arange(self.count.size), self.count)
+        k = np.arange(run.size) - np.repeat(np.cumsum(self.count) - self.count, self.count)
+        return (self.row * n_cols + self.col)[run] + k, run, k
+
+
+def _scan_triangles(corners: Array, gx: Array, gy: Array) -> _Spans:
+    """Find the grid nodes inside each triangle (a vectorised scan conversion).
+
+    Each triangle is cut by the node rows it spans: with its corners sorted by y, a row meets
+    the long edge (first to last corner) and one of the two short ones, and the nodes between
+    the two crossings form one run. Only inside nodes are generated (no bounding-box
+    candidates to test). A node on a shared edge may fall in two runs (with equal interpolated
+    values). Flat slivers (qhull may leave them on the hull) are skipped: their neighbours
+    cover their nodes.
 
     Parameters
     ----------
@@ -517,67 +708,105 @@ def _locate_nodes(
 
     Returns
     -------
-    node : (P,) ndarray of int
-        Flat node index ``row * n + col``.
-    tri : (P,) ndarray of int
-        Triangle holding the node.
-    lam : (P, 3) ndarray
-        Barycentric weights of the node in that triangle.
+    _Spans
     """
+    tol = 1e-9  # slack on node positions, grid units
     step = gx[1] - gx[0]
-    lo = np.ceil((corners.min(axis=1) - [gx[0], gy[0]]) / step - 1e-9).astype(np.int64)
-    hi = np.floor((corners.max(axis=1) - [gx[0], gy[0]]) / step + 1e-9).astype(np.int64)
-    lo = np.maximum(lo, 0)
-    hi = np.minimum(hi, [gx.size - 1, gy.size - 1])
-    size = np.maximum(hi - lo + 1, 0)
-    count = size[:, 0] * size[:, 1]
-    tri = np.repeat(np.arange(corners.shape[0]), count)
-    local = np.arange(tri.size) - np.repeat(np.cumsum(count) - count, count)
-    col = lo[tri, 0] + local % size[tri, 0]
-    row = lo[tri, 1] + local // size[tri, 0]
-    c = corners[tri]
-    e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
-    r = np.column_stack([gx[col], gy[row]]) - c[:, 0]
-    # Barycentric weights by Cramer's rule; qhull may leave a flat sliver on the hull (det = 0),
-    # whose nodes the neighbouring triangles cover anyway.
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    flat = np.abs(det) <= 1e-12 * np.sum(e1**2 + e2**2, axis=1)
-    det = np.where(flat, 1.0, det)
-    l1 = (r[:, 0] * e2[:, 1] - r[:, 1] * e2[:, 0]) / det
-    l2 = (e1[:, 0] * r[:, 1] - e1[:, 1] * r[:, 0]) / det
-    lam = np.column_stack([1.0 - l1 - l2, l1, l2])
-    inside = np.all(lam >= -1e-9, axis=1) & ~flat
-    return (row * gx.size + col)[inside], tri[inside], lam[inside]
+    px, py = np.ascontiguousarray(corners.transpose(2, 1, 0))  # (3, T) each
+    e1x, e1y, e2x, e2y = px[1] - px[0], py[1] - py[0], px[2] - px[0], py[2] - py[0]
+    det = e1x * e2y - e1y * e2x
+    flat = np.abs(det) <= 1e-12 * (e1x**2 + e1y**2 + e2x**2 + e2y**2)
+    inv = 1.0 / np.where(flat, 1.0, det)
+    # Cramer's rule: lam_1 = (r x e2) / det, lam_2 = (e1 x r) / det with r = p - corner_0.
+    bx = np.stack([(e1y - e2y) * inv, e2y * inv, -e1y * inv])
+    by = np.stack([(e2x - e1x) * inv, -e2x * inv, e1x * inv])
+    # Corners sorted by y: a (top), b, c (bottom); slopes dx/dy of the edges (0 if horizontal).
+    order = np.argsort(py, axis=0)
+    (xa, xb, xc), (ya, yb, yc) = np.take_along_axis(px, order, 0), np.take_along_axis(py, order, 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_ab = np.where(yb > ya, (xb - xa) / (yb - ya), 0.0)
+        s_bc = np.where(yc > yb, (xc - xb) / (yc - yb), 0.0)
+        s_ac = np.where(yc > ya, (xc - xa) / (yc - ya), 0.0)
+    first = np.maximum(np.ceil((ya - gy[0]) / step - tol), 0).astype(np.int64)
+    last = np.minimum(np.floor((yc - gy[0]) / step + tol), gy.size - 1).astype(np.int64)
+    n_rows = np.where(flat, 0, np.maximum(last - first + 1, 0))
+    tri = np.repeat(np.arange(det.size), n_rows)
+    row = first[tri] + np.arange(tri.size) - np.repeat(np.cumsum(n_rows) - n_rows, n_rows)
+    y = np.clip(gy[row], ya[tri], yc[tri])
+    x_long = xa[tri] + (y - ya[tri]) * s_ac[tri]
+    x_short = np.where(
+        y < yb[tri], xa[tri] + (y - ya[tri]) * s_ab[tri], xb[tri] + (y - yb[tri]) * s_bc[tri]
+    )
+    col_lo = np.maximum(np.ceil((np.minimum(x_long, x_short) - gx[0]) / step - tol), 0)
+    col_hi = np.minimum(np.floor((np.maximum(x_long, x_short) - gx[0]) / step + tol), gx.size - 1)
+    count = col_hi - col_lo + 1
+    runs = count > 0
+    return _Spans(
+        tri[runs], row[runs], col_lo[runs].astype(np.int64), count[runs].astype(np.int64), bx, by
+    )
 
 
 def _tangent_blend(
-    xy: Array, heights: Array, slopes: Array, verts: IntArray, nodes: Array, lam: Array
-) -> Array:
+    xy: Array,
+    heights: Array,
+    slopes: Array,
+    verts: IntArray,
+    spans: _Spans,
+    gx: Array,
+    gy: Array,
+) -> tuple[IntArray, Array]:
     """Barycentric blend of each triangle's vertex predictions ``h_v + g_v . (p - x_v) / 2``.
 
     For a quadratic ``f``, ``f(p) = f(x_v) + (g_v + g(p)) . (p - x_v) / 2`` (the trapezoid rule)
     and the barycentric weights sum ``p - x_v`` to zero, so the ``g(p)`` terms cancel: the blend
     is exact for quadratics. It is continuous (C0) and local.
 
+    The blend is a quadratic in ``p`` on each triangle; it is expanded once per triangle (about
+    its first vertex) and once per run of nodes (in the run's column offset ``k``), so each node
+    costs a few multiply-adds.
+
     Parameters
     ----------
     xy, heights, slopes : (K, 2), (K,), (K, 2) ndarray
         The samples (mm, mm, dimensionless).
-    verts : (P, 3) ndarray of int
-        Vertices of the triangle holding each node.
-    nodes : (P, 2) ndarray
-        Node positions, mm.
-    lam : (P, 3) ndarray
-        Barycentric weights of the nodes.
+    verts : (T, 3) ndarray of int
+        Vertices of the triangles.
+    spans : _Spans
+        Their nodes (:func:`_scan_triangles`).
+    gx, gy : (n,), (m,) ndarray
+        Node coordinates, mm.
 
     Returns
     -------
-    (P,) ndarray
+    node : (P,) ndarray of int
+        Flat node indices ``row * n + col``.
+    z : (P,) ndarray
         Heights at the nodes, mm.
     """
-    offset = nodes[:, None, :] - xy[verts]
-    pred = heights[verts] + 0.5 * np.sum(slopes[verts] * offset, axis=2)
-    return np.sum(lam * pred, axis=1)
+    x0 = xy[verts[:, 0]]
+    dx, dy = (xy[verts] - x0[:, None]).transpose(2, 1, 0)  # (3, T) each, mm
+    gvx, gvy = slopes[verts].transpose(2, 1, 0)
+    bx, by = spans.bx, spans.by
+    # z(r) = sum_v lam_v(r) (c_v + g_v . r / 2), r = p - x_0, lam_v = [v == 0] + b_v . r
+    c = heights[verts].T - 0.5 * (gvx * dx + gvy * dy)  # (3, T)
+    lin_x = 0.5 * gvx[0] + np.sum(c * bx, axis=0)
+    lin_y = 0.5 * gvy[0] + np.sum(c * by, axis=0)
+    qxx = 0.5 * np.sum(bx * gvx, axis=0)
+    qyy = 0.5 * np.sum(by * gvy, axis=0)
+    qxy = 0.5 * np.sum(bx * gvy + by * gvx, axis=0)
+    t = spans.tri
+    eta = gy[spans.row] - x0[t, 1]
+    xi = gx[spans.col] - x0[t, 0]
+    # Along the run: z = a0 + b0 rx + c0 rx^2 with rx = xi + step k.
+    a0 = c[0, t] + eta * (lin_y[t] + qyy[t] * eta)
+    b0 = lin_x[t] + qxy[t] * eta
+    c0 = qxx[t]
+    step = gx[1] - gx[0]
+    a = a0 + xi * (b0 + c0 * xi)
+    b = step * (b0 + 2.0 * c0 * xi)
+    c2 = c0 * step**2
+    node, run, k = spans.nodes(gx.size)
+    return node, a[run] + k * (b[run] + c2[run] * k)
 
 
 def gap_free_triangles(tri: Delaunay, max_edge_ratio: float | None) -> IntArray:
@@ -679,13 +908,16 @@ def to_heightfield(
     except QhullError:
         raise WaiInputError("to_heightfield: samples are collinear (no area to grid)") from None
     simplices = gap_free_triangles(tri, max_edge_ratio)
-    node, t, lam = _locate_nodes(xy[simplices], gx, gy)
-    nodes = np.column_stack([gx[node % gx.size], gy[node // gx.size]])
+    spans = _scan_triangles(xy[simplices], gx, gy)
     z = np.full(gy.size * gx.size, np.nan)
     if method == "tangent_blend":
-        z[node] = _tangent_blend(xy, h, g, simplices[t], nodes, lam)
-    elif method == "clough_tocher":
-        z[node] = CloughTocher2DInterpolator(tri, h)(nodes)
+        node, values = _tangent_blend(xy, h, g, simplices, spans, gx, gy)
+        z[node] = values
     else:
-        z[node] = _hermite_spline_grid(xy, h, g, gx, gy).ravel()[node]
+        node, _, _ = spans.nodes(gx.size)
+        if method == "clough_tocher":
+            nodes = np.column_stack([gx[node % gx.size], gy[node // gx.size]])
+            z[node] = CloughTocher2DInterpolator(tri, h)(nodes)
+        else:
+            z[node] = _hermite_spline_grid(xy, h, g, gx, gy).ravel()[node]
     return Heightfield(gx, gy, z.reshape(gy.size, gx.size))

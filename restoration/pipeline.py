@@ -118,6 +118,8 @@ def panel_positions(cfg: SystemConfig, ij: NDArray) -> NDArray:
 
 
 ANCHORS = ("integrability", "gauge")
+METHODS = ("structured-light", "alterman")
+"""Surface sensing methods: this module's, and Alterman's sun sensor (restoration.alterman)."""
 
 
 def estimate_surface(

@@ -52,10 +52,12 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
 
 def _add_experiment(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("experiment", help="experiments that write reports, tables and charts")
-    p.add_argument("name", choices=["validate", "paper"], help="which experiment")
+    p.add_argument("name", choices=["validate", "paper", "alterman"], help="which experiment")
     p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
     p.add_argument("--out", type=Path, help="output folder (default renders/<name>)")
-    p.add_argument("--seeds", type=int, default=10, help="seeds 0..K-1 (paper)")
+    p.add_argument(
+        "--seeds", type=int, default=None, help="seeds 0..K-1 (default: paper 10, alterman 3)"
+    )
     p.add_argument("--quick", action="store_true", help="a small version (for CI)")
     p.set_defaults(func=_cmd_experiment)
 
@@ -88,12 +90,18 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dir", type=Path, help="a render folder written by 'wai render'")
     p.add_argument("--integrator", default="trapezoid", help="gradient integrator")
     p.add_argument("--refine", type=int, default=3, help="refinement passes (0 = the paper)")
-    p.add_argument("--method", default="structured-light", help="surface sensing method")
+    p.add_argument(
+        "--method",
+        default="structured-light",
+        help="surface sensing method: structured-light, or alterman (the sun-and-pinhole "
+        "baseline, on a folder rendered from scenes/alterman.toml)",
+    )
     p.add_argument(
         "--anchor",
-        default="integrability",
+        default=None,
         choices=["integrability", "gauge"],
-        help="absolute height: from the slopes' integrability, or the gauge's h0 (the paper)",
+        help="absolute height: from the slopes' integrability (structured light's default), or "
+        "the gauge's h0 (the paper; alterman's only anchor)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_restore)

@@ -5,11 +5,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+# Seeds 0..K-1 when --seeds is not given: the sun sweep renders six sensors per seed.
+DEFAULT_SEEDS = {"validate": 10, "paper": 10, "alterman": 3}
+
 
 def run_experiment(args: argparse.Namespace) -> None:
     """Run one experiment into ``args.out`` (default ``renders/<name>``) and print its tables."""
     if args.out is None:
         args.out = Path("renders") / args.name
+    if args.seeds is None:
+        args.seeds = DEFAULT_SEEDS[args.name]
     if args.name == "validate":
         from wai.validate import print_validate, run_validate
 
@@ -18,3 +23,7 @@ def run_experiment(args: argparse.Namespace) -> None:
         from wai.paper import run_paper
 
         run_paper(args)
+    elif args.name == "alterman":
+        from wai.alterman_experiment import run_alterman
+
+        run_alterman(args)

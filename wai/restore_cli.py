@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -13,23 +14,63 @@ from wai_core.errors import WaiInputError
 from wai_core.io import atomic_dir, write_exr, write_json, write_png
 
 
+@dataclass
+class MethodRun:
+    """One method run on a render folder: its calibration, the images it read, and its result,
+    or (``result`` None) the status that says why it could not run."""
+
+    cal: Any
+    images: dict[str, Any]
+    result: Any
+    status: str = "ok"
+    message: str = ""
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+def run_method(render_dir: Path, method: str, options: Any) -> MethodRun:
+    """Load a render folder's calibration and images and run ``method`` on them."""
+    from restoration.pipeline import METHODS, load_calibration, load_inputs, restore
+
+    if method not in METHODS:
+        raise WaiInputError(f"unknown method {method!r} (known: {', '.join(METHODS)})")
+    if not Path(render_dir).is_dir():
+        raise WaiInputError(f"render folder not found: {render_dir}")
+    if method == "alterman":
+        from restoration.alterman import (
+            load_alterman_calibration,
+            load_alterman_inputs,
+            restore_alterman,
+        )
+
+        cal = load_alterman_calibration(render_dir)
+        images = load_alterman_inputs(render_dir, cal)
+        out = restore_alterman(images, cal, options)
+        return MethodRun(cal, images, out.result, out.status, out.message, out.counts)
+    cal = load_calibration(render_dir)
+    images = load_inputs(render_dir, cal)
+    return MethodRun(cal, images, restore(images, cal, options))
+
+
 def restore_folder(
-    render_dir: Path, options: Any, progress: bool = True
+    render_dir: Path, options: Any, progress: bool = True, method: str = "structured-light"
 ) -> dict[str, Any]:
-    """Restore, score and write ``render_dir/restore`` atomically; returns ``metrics.json``."""
+    """Restore, score and write ``render_dir/restore`` atomically; returns ``metrics.json``.
+
+    ``method`` is ``structured-light`` (the paper's) or ``alterman`` (the sun-sensor baseline,
+    on a folder rendered from ``scenes/alterman.toml``). A method that cannot run on this input
+    (e.g. no sun) writes only ``metrics.json`` with its ``status``: never a made-up surface.
+    """
     from tqdm import tqdm
 
-    from restoration.pipeline import load_calibration, load_inputs, restore
     from restoration.scoring import load_and_score, surface_profile
     from wai import figures
 
-    if not Path(render_dir).is_dir():
-        raise WaiInputError(f"render folder not found: {render_dir}")
-    bar = tqdm(total=4, desc="restore", disable=not progress, leave=False, unit="step")
-    cal = load_calibration(render_dir)
-    images = load_inputs(render_dir, cal)
-    bar.update(1)
-    result = restore(images, cal, options)
+    bar = tqdm(total=3, desc="restore", disable=not progress, leave=False, unit="step")
+    run = run_method(render_dir, method, options)
+    if run.result is None:
+        bar.close()
+        return write_status(render_dir, method, run, options)
+    cal, images, result = run.cal, run.images, run.result
     bar.update(1)
     distorted = images["view"] / cal.view_gain
     scores = load_and_score(render_dir, result, cal, distorted)
@@ -47,6 +88,8 @@ def restore_folder(
         },
         "seed": json.loads((Path(render_dir) / "scene.json").read_text()).get("seed"),
     }
+    if method != "structured-light":
+        metrics.update(method=method, status="ok")
     with atomic_dir(Path(render_dir) / "restore") as tmp:
         est = result.surface.heightfield
         est.save(tmp / "heightfield_est.npz")
@@ -77,8 +120,25 @@ def restore_folder(
     return metrics
 
 
+def write_status(render_dir: Path, method: str, run: MethodRun, options: Any) -> dict[str, Any]:
+    """``metrics.json`` alone, for a method that could not run: its status and why."""
+    metrics = {
+        "method": method,
+        "status": run.status,
+        "message": run.message,
+        "feature_counts": run.counts,
+        "options": vars(options),
+        "seed": json.loads((Path(render_dir) / "scene.json").read_text()).get("seed"),
+    }
+    with atomic_dir(Path(render_dir) / "restore") as tmp:
+        write_json(tmp / "metrics.json", metrics)
+    return metrics
+
+
 def summary_lines(m: dict[str, Any]) -> list[str]:
     """The scores a person reads first."""
+    if m.get("status", "ok") != "ok":
+        return [f"{m['method']}: cannot run ({m['status']}): {m['message']}"]
     d, r = m["distorted"], m["restored"]
     return [
         f"surface RMSE {m['wai_rmse_mm']:.3f} mm (de-meaned {m['wai_rmse_demeaned_mm']:.3f} mm, "
@@ -95,13 +155,13 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
 
 def run_restore(args: argparse.Namespace) -> None:
     """CLI entry: restore ``args.dir`` and print the summary."""
-    from restoration.pipeline import RestoreOptions
+    from restoration.pipeline import METHODS, RestoreOptions
 
-    if args.method != "structured-light":
-        raise WaiInputError(f"unknown method {args.method!r} (known: structured-light)")
-    options = RestoreOptions(
-        integrator=args.integrator, n_refine=args.refine, anchor=args.anchor
-    )
-    metrics = restore_folder(args.dir, options, progress=not args.quiet)
+    if args.method not in METHODS:
+        raise WaiInputError(f"unknown method {args.method!r} (known: {', '.join(METHODS)})")
+    # The structured light finds the height from integrability; the sun sensor cannot.
+    anchor = args.anchor or ("gauge" if args.method == "alterman" else "integrability")
+    options = RestoreOptions(integrator=args.integrator, n_refine=args.refine, anchor=anchor)
+    metrics = restore_folder(args.dir, options, progress=not args.quiet, method=args.method)
     for line in summary_lines(metrics):
         print(line)

@@ -144,6 +144,10 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
     """Convert a TOML/JSON value to the dataclass field's type, or raise naming ``where``."""
     origin = getattr(hint, "__origin__", None)
     try:
+        if hint is bool:
+            if not isinstance(value, bool):
+                raise TypeError
+            return value
         if hint is float:
             if isinstance(value, bool):
                 raise TypeError
@@ -173,7 +177,9 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
     return value
 
 
-def _section(cls: type, data: Any, name: str) -> Any:
+def parse_section(cls: type, data: Any, name: str) -> Any:
+    """An instance of the dataclass ``cls`` from the table ``[name]``, each value coerced to its
+    field's type; unknown, missing or wrongly typed keys raise WaiInputError naming the key."""
     if not isinstance(data, dict):
         raise WaiInputError(f"config: section [{name}] must be a table")
     hints = get_type_hints(cls)
@@ -203,21 +209,25 @@ def config_from_dict(data: dict[str, Any]) -> SystemConfig:
     for name in ("projector", "camera_s", "camera_v"):
         if name not in data:
             raise WaiInputError(f"config: missing section [{name}]")
-    cfg = SystemConfig(**{k: _section(_SECTIONS[k], v, k) for k, v in data.items()})
+    cfg = SystemConfig(**{k: parse_section(_SECTIONS[k], v, k) for k, v in data.items()})
     validate(cfg)
     return cfg
 
 
-def load_config(path: str | Path) -> SystemConfig:
-    """Read a scene TOML file (e.g. ``scenes/paper.toml``)."""
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """The tables of a TOML file; a missing or unparsable file raises WaiInputError."""
     path = Path(path)
     if not path.is_file():
         raise WaiInputError(f"config file not found: {path}")
     try:
-        data = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise WaiInputError(f"config file {path} is not valid TOML: {exc}") from None
-    return config_from_dict(data)
+
+
+def load_config(path: str | Path) -> SystemConfig:
+    """Read a scene TOML file (e.g. ``scenes/paper.toml``)."""
+    return config_from_dict(read_toml(path))
 
 
 def validate(cfg: SystemConfig) -> None:

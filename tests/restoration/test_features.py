@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from restoration import features
 from restoration.features import (
     ReferenceGrid,
     detect_spots,
@@ -153,6 +154,103 @@ def test_two_dots_run_together_are_flagged_merged():
     merged_at = spots.centres_px[spots.merged]
     assert len(merged_at) == 10
     assert nearest(merged_at, mid).max() < 0.5
+
+
+def reference_detect(image: np.ndarray) -> dict[str, np.ndarray]:
+    """:func:`detect_spots` (default parameters) written plainly: a loop over segments, float64,
+    each spot's centroid window evaluated pixel by pixel over its box. Only the image-level
+    segmentation (noise, background, labelling) is shared with the module."""
+    lum = np.asarray(image, np.float64)
+    lum = (lum[..., :3].sum(axis=2) if lum.ndim == 3 else lum).astype(np.float32)
+    smooth = cv2.GaussianBlur(lum, (0, 0), 1.0, borderType=cv2.BORDER_REFLECT)
+    noise = features._noise_sigma(lum, smooth, 1.0)
+    bg = features._background(smooth, 25)
+    smooth, raw = smooth - bg, (lum - bg).astype(np.float64)
+    tiny = 1e-6 * max(float(smooth.max()), 1e-30)
+    n, labels, _ = features._segment(smooth, 3, 0.25, max(2.0 * noise, tiny), np.empty_like(smooth))
+    h, w = labels.shape
+    seg = []
+    for k in range(1, n):
+        r, c = np.nonzero(labels == k)
+        s = smooth[r, c].astype(np.float64)
+        wt = np.clip(s, 0.0, None)
+        mean = np.array([wt @ c, wt @ r]) / wt.sum() if wt.sum() > 0 else np.zeros(2)
+        d = np.stack([c - mean[0], r - mean[1]])
+        cov = (wt * d) @ d.T / max(wt.sum(), 1e-300)
+        # Kurtosis along the major axis of the part above 0.2 x peak.
+        w2 = np.clip(s - 0.2 * s.max(), 0.0, None)
+        m2c = np.array([w2 @ c, w2 @ r]) / w2.sum()
+        d2 = np.stack([c - m2c[0], r - m2c[1]])
+        c2 = (w2 * d2) @ d2.T / w2.sum()
+        angle = 0.5 * np.arctan2(2 * c2[0, 1], c2[0, 0] - c2[1, 1])
+        t = np.cos(angle) * d2[0] + np.sin(angle) * d2[1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            kurt = (w2 @ t**4) * w2.sum() / (w2 @ t**2) ** 2
+        seg.append(dict(
+            label=k, tot=wt.sum(), mean=mean, cov=cov, peak=s.max(), flux=raw[r, c].sum(),
+            area=len(r), kurt=kurt if np.isfinite(kurt) else 3.0,
+            border=bool(r.min() == 0 or c.min() == 0 or r.max() == h - 1 or c.max() == w - 1),
+        ))
+    good = [g for g in seg if g["peak"] > max(6.0 * noise, tiny) and g["area"] >= 3
+            and g["tot"] > 0]
+    flux = np.sort([g["flux"] for g in good])
+    typical = flux[np.searchsorted(np.cumsum(flux), 0.5 * flux.sum())]
+    kept = [g for g in good if g["flux"] > 5e-3 * typical]
+    own = np.zeros(n, np.int64)  # label -> itself if kept, else 0 (background)
+    own[[g["label"] for g in kept]] = [g["label"] for g in kept]
+    owner = own[labels]
+    out = {k: [] for k in ("centres_px", "cov_px2", "merged", "border", "flux", "area_px")}
+    for g in kept:
+        evals, evecs = np.linalg.eigh(g["cov"])
+        cov = evecs @ np.diag(np.clip(evals, 0.09, None)) @ evecs.T
+        half = np.clip(np.ceil(3.5 * np.sqrt(np.diag(cov)) + 1.0), 3, 48)
+        hx, hy = (3 * np.ceil(half / 3)).astype(int)
+        bx, by = np.rint(g["mean"]).astype(int)
+        rr, cc = np.mgrid[by - hy : by + hy + 1, bx - hx : bx + hx + 1]
+        inside = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+        rr, cc = rr[inside], cc[inside]
+        vals = np.where(np.isin(owner[rr, cc], [0, g["label"]]), raw[rr, cc], 0.0)
+        inv = np.linalg.inv(2.5 * cov)
+        x = g["mean"].copy()
+        for _ in range(2):
+            d = np.stack([cc - x[0], rr - x[1]])
+            wv = vals * np.exp(-0.5 * np.einsum("ip,ij,jp->p", d, inv, d))
+            if wv.sum() > 0:
+                step = (1.0 + 1.0 / (0.7 * 2.5)) * (d @ wv) / wv.sum()
+                x += np.clip(step, -1.0, 1.0)
+        out["centres_px"].append(x)
+        out["cov_px2"].append(cov)
+        out["merged"].append(g["kurt"] < 2.15 and np.linalg.eigvalsh(g["cov"])[1] >= 1.3**2)
+        out["border"].append(g["border"])
+        out["flux"].append(g["flux"])
+        out["area_px"].append(g["area"])
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def test_detection_matches_a_plain_per_spot_implementation():
+    # Round, elongated, dim, merged, border-cut and noise-only spots on a small noisy image.
+    rng = np.random.default_rng(7)
+    shape = (180, 260)
+    c = np.stack(np.meshgrid(np.arange(8, 260, 17.0), np.arange(6, 180, 15.0)), -1).reshape(-1, 2)
+    c += rng.uniform(-0.5, 0.5, c.shape)
+    angle = rng.uniform(0, np.pi, len(c))
+    rot = np.stack([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]).T
+    sd = np.where(rng.random((len(c), 1)) < 0.25, [3.5, 1.2], [1.6, 1.4])
+    cov = rot @ (sd[:, :, None] * np.eye(2) * sd[:, None, :]) @ rot.transpose(0, 2, 1)
+    flux = np.where(rng.random(len(c)) < 0.3, 40.0, 2000.0)
+    pair = np.array([[100.2, 91.4], [107.3, 91.9]])  # two dots 3.5 sigma apart: one blob
+    img = draw_dots(np.vstack([c, pair]), np.r_[flux, 2000.0, 2000.0],
+                    np.vstack([cov, np.broadcast_to(4.0 * np.eye(2), (2, 2, 2))]), shape)
+    img = rng.poisson(img + 0.5).astype(np.float32)
+    spots = detect_spots(img)
+    ref = reference_detect(img)
+    assert len(spots) == len(ref["centres_px"]) > 100
+    assert np.abs(spots.centres_px - ref["centres_px"]).max() < 1e-4
+    assert np.abs(spots.cov_px2 - ref["cov_px2"]).max() < 1e-8
+    assert np.allclose(spots.flux, ref["flux"], rtol=1e-9, atol=1e-6)
+    assert (spots.area_px == ref["area_px"]).all()
+    assert (spots.border == ref["border"]).all() and spots.border.any()
+    assert (spots.merged == ref["merged"]).all() and spots.merged.any()
 
 
 def test_bad_images_raise():
@@ -316,10 +414,53 @@ def test_shifted_pattern_is_anchored_by_unlit_marker_dots():
     spots = detect_spots(rng.poisson(draw_dots(pos[lit], 3000.0, cov)).astype(np.float32))
     m = match_distorted(ref, spots)
     assert (m.counts["anchor_di"], m.counts["anchor_dj"]) == (-2, -1)
-    assert m.counts["anchor_candidates"] == 1
+    assert m.counts["anchor_candidates"] == 1 and m.counts["labels_ambiguous"] == 0
     assert labels_correct(m, ij, pos).all()
     seen = lit & ((pos > 15) & (pos < np.array(SHAPE[::-1]) - 15)).all(axis=1)
     assert len(m) > 0.9 * seen.sum()
+
+
+def test_anchor_shift_counts_equal_a_lookup_per_shift():
+    # The correlation that scores all lattice shifts at once against the plain count.
+    rng = np.random.default_rng(8)
+    jj, ii = np.mgrid[-9:10, -12:13]
+    ij = np.stack([ii.ravel(), jj.ravel()], 1)
+    lit = rng.random(len(ij)) < 0.9
+    tab = features._LatticeTables.of(ij, lit)
+    matched = rng.random(len(ij)) < 0.5
+    absent = ~matched & (rng.random(len(ij)) < 0.3)
+    shift, tied = features._anchor_shift(tab, matched, absent, 4)
+    r = np.arange(-4, 5)
+    shifts = np.stack(np.meshgrid(r, r, indexing="ij"), -1).reshape(-1, 2)
+    lookup = {tuple(k): bool(v) for k, v in zip(ij.tolist(), lit, strict=True)}
+
+    def lit_count(nodes, d):
+        return sum(lookup.get((i + d[0], j + d[1]), False) for i, j in ij[nodes].tolist())
+
+    cost = np.array([3 * (matched.sum() - lit_count(matched, d)) + lit_count(absent, d)
+                     for d in shifts])
+    best = cost.min()
+    ties = cost <= best + 3 + best // 4
+    assert tied == ties.sum()
+    if ties[(shifts == 0).all(1)].any():
+        assert (shift == 0).all()
+    else:
+        cand = np.flatnonzero(ties)
+        assert (shift == shifts[cand[np.argmin(np.abs(shifts[cand]).sum(1))]]).all()
+
+
+def test_shift_without_markers_or_visible_edge_is_flagged_ambiguous():
+    # All dots lit and the pattern wider than the view: nothing pins a whole-spacing shift.
+    sp = 22.0
+    jj, ii = np.mgrid[-20:21, -25:26]
+    ij = np.stack([ii.ravel(), jj.ravel()], 1)
+    px = np.stack([399.5 + ij[:, 0] * sp, 299.5 + ij[:, 1] * sp], 1)
+    in_view = ((px > 10) & (px < np.array(SHAPE[::-1]) - 10)).all(axis=1)
+    cov = (sp / 9.3) ** 2 * np.eye(2)
+    ref = match_reference(detect_spots(draw_dots(px, 3000.0, cov)), (ij, px, px, in_view))
+    spots = detect_spots(draw_dots(px + np.array([2, 1]) * sp, 3000.0, cov))
+    m = match_distorted(ref, spots)
+    assert m.counts["anchor_candidates"] > 1 and m.counts["labels_ambiguous"] == 1
 
 
 def test_too_few_features_raise(cfg, flat_scene):

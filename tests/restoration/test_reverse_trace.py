@@ -16,6 +16,7 @@ from skimage.metrics import structural_similarity
 
 from restoration.reverse_trace import (
     RayStatus,
+    _SplinePatches,
     find_pixels,
     restore_view,
     solve_pixels,
@@ -113,6 +114,34 @@ def test_flat_refraction_obeys_snell(cfg, optics):
     np.testing.assert_allclose(sin_air[tr.ok], optics[1] * sin_water[tr.ok], rtol=1e-9)
     np.testing.assert_allclose(tr.surface_mm[tr.ok][:, 2], optics[0])
     np.testing.assert_allclose(tr.object_mm[tr.ok][:, 2], optics[2])
+
+
+# --- surface model ----------------------------------------------------------------------------
+
+
+def test_spline_patches_match_the_heightfield():
+    """The solver's per-cell polynomials give FITPACK's values and derivatives, and NaN exactly
+    where the heightfield does not know the surface (outside, and next to unknown samples)."""
+    x = np.r_[0.0, 7.0, np.linspace(15.0, 300.0, 40)]  # non-uniform cells too
+    y = np.linspace(-100.0, 120.0, 31)
+    xx, yy = np.meshgrid(x, y)
+    z = 150.0 + 2.0 * np.sin(xx / 23.0) * np.cos(yy / 17.0) + 1e-3 * xx * yy
+    z[5:9, 10:13] = np.nan
+    hf = Heightfield(x, y, z)
+    rng = np.random.default_rng(4)
+    px = np.r_[rng.uniform(-5.0, 305.0, 5000), x[[0, -1, 5]], 100.0]
+    py = np.r_[rng.uniform(-105.0, 125.0, 5000), y[[0, -1, 3]], y[-1]]
+    h, hx, hy, hxx, hxy, hyy = _SplinePatches(hf).jet(px, py)
+    known = hf.contains(px, py)
+    np.testing.assert_array_equal(np.isfinite(h), known)
+    gx, gy = hf.gradient(px, py)
+    np.testing.assert_allclose(h[known], hf.height(px, py)[known], atol=1e-10)
+    np.testing.assert_allclose(hx[known], gx[known], atol=1e-10)
+    np.testing.assert_allclose(hy[known], gy[known], atol=1e-10)
+    spline = hf._spline  # FITPACK: first axis y
+    for value, dx, dy in ((hxx, 2, 0), (hxy, 1, 1), (hyy, 0, 2)):
+        ref = spline.ev(py[known], px[known], dx=dy, dy=dx)
+        np.testing.assert_allclose(value[known], ref, atol=1e-9)
 
 
 # --- inverse map ------------------------------------------------------------------------------

@@ -204,6 +204,15 @@ def test_heightfield_matches_samples(sine_case):
     assert set(est.timings_ms) >= {"rays", "normals", "integrate", "grid", "total"}
 
 
+def test_heightfield_is_gridded_once_on_demand(sine_case):
+    est = run(sine_case, grid_spacing_mm=3.0)
+    assert "grid" not in est.timings_ms  # an anchor search reads only the samples
+    hf = est.heightfield
+    assert est.heightfield is hf and "grid" in est.timings_ms
+    assert est.timings_ms["total"] >= est.timings_ms["grid"]
+    np.testing.assert_allclose(np.diff(hf.x), 3.0)
+
+
 def test_bad_input(plane_case):
     ij, panel, spots = plane_case[:3]
     with pytest.raises(WaiInputError, match="differ in length"):
@@ -214,6 +223,10 @@ def test_bad_input(plane_case):
         reconstruct_surface(ij, panel, spots, PROJ, CAM, ZH, H0, integrator="magic")
     with pytest.raises(WaiInputError, match="n_refine"):
         reconstruct_surface(ij, panel, spots, PROJ, CAM, ZH, H0, n_refine=-1)
+    with pytest.raises(WaiInputError, match="unknown gridder"):
+        reconstruct_surface(ij, panel, spots, PROJ, CAM, ZH, H0, gridder="nearest")
+    with pytest.raises(WaiInputError, match="grid_spacing_mm"):
+        reconstruct_surface(ij, panel, spots, PROJ, CAM, ZH, H0, grid_spacing_mm=0.0)
     with pytest.raises(WaiInputError, match="too few features"):
         reconstruct_surface(ij[:3], panel[:3], spots[:3], PROJ, CAM, ZH, H0)
     with pytest.raises(WaiInputError, match="NaN"):

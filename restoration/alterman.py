@@ -1,0 +1,466 @@
+"""Alterman et al.'s method (STELLA MARIS, ICCP 2014): the surface from sun spots behind pinholes.
+
+The sensor (:mod:`wai_core.alterman`) images the refracted sun through an array of pinholes onto
+a screen. Per frame:
+
+1. detect the sun spots (:func:`restoration.features.detect_spots`) and give each to its pinhole:
+   the mutually nearest flat-water reference spot, within half the pitch; failures are counted;
+2. refracted sun direction ``t = (s - P) / |s - P|`` from the pinhole ``P`` to its spot ``s`` on
+   the screen (the spot's pixel back-projected onto the screen plane);
+3. normal by Snell's law with the known sun direction ``d``: ``d x N = n (t x N)``, so
+   ``N ~ d - n t`` (the isoplanatic assumption: one normal per pinhole);
+4. the normal belongs to the point where the line through ``P`` along ``-t`` crosses the surface:
+   at ``h0`` first (the published method), then, as in the structured light's refinement, at the
+   height the integration gives, repeated until the heights settle. The normals themselves do not
+   depend on that height (the sun is a known direction, not a known point), so unlike the
+   structured light the absolute height cannot come from integrability: the gauge's ``h0`` is the
+   mean height of the samples;
+5. the slopes are integrated (:func:`restoration.integrate.integrate`) on the pinhole grid and
+   gridded (:func:`restoration.integrate.to_heightfield`); the view is restored by the same
+   reverse ray tracing (:func:`restoration.reverse_trace.restore_view`).
+
+When the method cannot run on valid input (no sun, sun spots out of view, too few spots) it says
+so with a status instead of a surface: it never makes one up.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from restoration.features import Matches, Spots, detect_spots
+from restoration.integrate import MIN_SAMPLES, integrate, to_heightfield
+from restoration.normals import slopes_from_normals, spots_on_diffuser
+from restoration.pipeline import RestoreOptions, RestoreResult
+from restoration.reverse_trace import restore_view
+from wai_core.alterman import (
+    AltermanSystem,
+    SensorLayout,
+    alterman_from_dict,
+    sensor_layout,
+    sun_is_up,
+)
+from wai_core.config import SystemConfig, config_from_dict
+from wai_core.errors import WaiInputError
+from wai_core.geometry import PinholeCamera
+from wai_core.heightfield import Heightfield
+from wai_core.io import read_exr, read_json
+
+Array = NDArray[np.float64]
+
+OK = "ok"
+NO_SUN = "no_sun"
+SUN_OUT_OF_VIEW = "sun_out_of_view"
+TOO_FEW_SPOTS = "too_few_spots"
+MIN_SPOTS = 16
+"""Fewest matched spots the method integrates (as the structured light's features)."""
+DEFAULT_OPTIONS = RestoreOptions(anchor="gauge")
+"""The structured light's defaults with the only anchor this method has (see the notes)."""
+
+
+@dataclass(frozen=True)
+class SpotReference:
+    """The flat-water sun spots, each labelled with its pinhole (calibration, once per rig).
+
+    Attributes
+    ----------
+    ij : (R, 2) ndarray of int
+        Pinhole grid index of each observed reference spot.
+    ref_px : (R, 2) ndarray
+        Detected flat-water spot centres in camera a, px.
+    counts : dict of str to int
+        ``predicted_in_view``, ``observed``, ``unmatched_predicted``, ``unassigned_spots``.
+    """
+
+    ij: NDArray[np.int64]
+    ref_px: Array
+    counts: dict[str, int]
+
+
+@dataclass(frozen=True)
+class AltermanSurface:
+    """A surface reconstructed from sun spots, with the samples it was built from (the same
+    public attributes as the structured light's :class:`restoration.surface.SurfaceEstimate`,
+    so scoring and reporting treat both alike).
+
+    Attributes
+    ----------
+    heightfield : Heightfield
+        Absolute heights on a regular grid, mm; NaN outside the samples.
+    ij : (K, 2) ndarray of int
+        Pinhole grid indices of the samples kept.
+    points_mm : (K, 3) ndarray
+        Samples: where each pinhole's sunlight crossed the surface (last pass) and its height.
+    normals : (K, 3) ndarray
+        Unit normals at the samples, pointing up.
+    slopes : (K, 2) ndarray
+        ``(dz/dx, dz/dy)`` at the samples.
+    iterations : int
+        Refinement passes after the samples-at-h0 pass.
+    height_change_mm : float
+        Largest height change of the last refinement pass, mm (NaN when none ran).
+    timings_ms : dict of str to float
+        ``normals``, ``integrate`` (all passes), ``grid`` and ``total``, ms.
+    """
+
+    heightfield: Heightfield
+    ij: NDArray[np.int64]
+    points_mm: Array
+    normals: Array
+    slopes: Array
+    iterations: int
+    height_change_mm: float
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class AltermanCalibration:
+    """What the method knows: the base configuration (water, camera v, object), the sensor's
+    configuration and layout, and, once prepared, the flat-water spot reference."""
+
+    cfg: SystemConfig
+    system: AltermanSystem
+    layout: SensorLayout
+    view_gain: float
+    reference: SpotReference | None = None
+
+    @property
+    def camera_v(self) -> PinholeCamera:
+        return self.cfg.camera_v.camera()
+
+
+@dataclass
+class AltermanOutcome:
+    """A run of the method: ``status`` ``ok`` with a result, or why it could not run."""
+
+    status: str
+    message: str
+    result: RestoreResult | None = None
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+def load_alterman_calibration(render_dir: str | Path) -> AltermanCalibration:
+    """Read ``scene.json`` of a system-A render folder as calibration."""
+    record = read_json(Path(render_dir) / "scene.json")
+    if not isinstance(record, dict) or "config" not in record or "alterman" not in record:
+        raise WaiInputError(
+            f"{render_dir}/scene.json is not a sun-sensor render (no 'alterman' entry)"
+        )
+    system = AltermanSystem(
+        config_from_dict(record["config"]), alterman_from_dict(record["alterman"])
+    )
+    cfg = system.base
+    gain = float(record.get("derived", {}).get("view_radiance_gain", cfg.water.n_water**2))
+    return AltermanCalibration(cfg, system, sensor_layout(system), gain)
+
+
+def load_alterman_inputs(
+    render_dir: str | Path, cal: AltermanCalibration
+) -> dict[str, NDArray[np.float32]]:
+    """The images the method may read (``sunspots``, ``sunspots_flat``, ``view``), with sizes
+    checked against the calibration."""
+    render_dir = Path(render_dir)
+    cam_a, cam_v = cal.layout.camera, cal.camera_v
+    sizes = {"sunspots": cam_a, "sunspots_flat": cam_a, "view": cam_v}
+    images = {}
+    for name, cam in sizes.items():
+        img = read_exr(render_dir / f"{name}.exr")
+        if img.shape[:2] != (cam.height_px, cam.width_px):
+            raise WaiInputError(
+                f"{name}.exr is {img.shape[1]}x{img.shape[0]} but scene.json says "
+                f"{cam.width_px}x{cam.height_px}"
+            )
+        images[name] = img
+    return images
+
+
+# ----------------------------------------------------------------------------------------------
+# Can the method run?
+# ----------------------------------------------------------------------------------------------
+
+
+def sun_status(system: AltermanSystem, layout: SensorLayout) -> tuple[str, str]:
+    """From the calibration alone: is there a sun, and do its spots land in camera a's view?"""
+    if not sun_is_up(system.sensor.sun):
+        return NO_SUN, "no direct sunlight (sun off, below the horizon or zero irradiance)"
+    _, seen = layout.flat_spots_px()
+    if seen.sum() < MIN_SPOTS:
+        return SUN_OUT_OF_VIEW, (
+            f"the refracted sun reaches only {int(seen.sum())} pinhole spots on the screen in "
+            f"camera a's view (need {MIN_SPOTS})"
+        )
+    return OK, ""
+
+
+# ----------------------------------------------------------------------------------------------
+# Correspondence
+# ----------------------------------------------------------------------------------------------
+
+
+def _mutual_nearest(a: Array, b: Array, max_px: float) -> tuple[NDArray, NDArray, NDArray]:
+    """For points ``a`` (N, 2): the index of the nearest ``b`` (M, 2), whether it lies within
+    ``max_px``, and whether ``a`` is in turn the nearest of that ``b`` (mutual)."""
+    if len(a) == 0 or len(b) == 0:
+        none = np.zeros(len(a), bool)
+        return np.zeros(len(a), int), none, none
+    dist, idx = cKDTree(b).query(a)
+    back = cKDTree(a).query(b)[1]
+    return idx, dist <= max_px, back[idx] == np.arange(len(a))
+
+
+def prepare_spot_reference(flat_img: NDArray, layout: SensorLayout) -> SpotReference:
+    """Label the flat-water spots with their pinholes: each predicted spot (calibration) takes
+    the mutually nearest detected spot within a third of the pitch.
+
+    Parameters
+    ----------
+    flat_img : (H, W) or (H, W, 3) ndarray
+        Camera a's image of the sun spots over flat water (linear intensity).
+    layout : SensorLayout
+        The sensor's calibration (predicted spots, pitch in pixels).
+    """
+    pred_px, seen = layout.flat_spots_px()
+    spots = detect_spots(flat_img)
+    centres = spots.centres_px[~spots.suspicious]
+    idx, near, mutual = _mutual_nearest(pred_px[seen], centres, layout.pitch_px / 3.0)
+    ok = near & mutual
+    rows = np.flatnonzero(seen)[ok]
+    return SpotReference(
+        ij=layout.ij[rows],
+        ref_px=centres[idx[ok]],
+        counts={
+            "predicted_in_view": int(seen.sum()),
+            "observed": int(ok.sum()),
+            "unmatched_predicted": int((~ok).sum()),
+            "unassigned_spots": int(len(spots) - ok.sum()),
+        },
+    )
+
+
+def match_spots(spots: Spots, ref: SpotReference, max_px: float) -> Matches:
+    """Give each reference pinhole the mutually nearest wavy-water spot within ``max_px``.
+
+    Counts: ``detected``, ``reference``, ``matched``; reference spots dropped as
+    ``rejected_far`` (nearest spot beyond ``max_px``), ``rejected_ambiguous`` (that spot is
+    nearer another reference) or ``rejected_border`` (spot cut by the image border, merged or
+    saturated); ``unmatched_reference`` (all dropped) and ``unassigned_spots`` (spots given to
+    no pinhole).
+
+    Parameters
+    ----------
+    spots : Spots
+        Spots detected in the wavy frame (centres in px).
+    ref : SpotReference
+        The flat-water spots and their pinholes.
+    max_px : float
+        Largest move of a spot from its flat-water place, px (half the pitch: beyond it the
+        spot would be nearer its neighbour's place).
+
+    Returns
+    -------
+    Matches
+        Pinhole grid index, flat-water and wavy spot centre (px) of each kept match.
+    """
+    idx, near, mutual = _mutual_nearest(ref.ref_px, spots.centres_px, max_px)
+    suspicious = spots.suspicious[idx] if len(spots) else np.zeros(len(idx), bool)
+    ok = near & mutual & ~suspicious
+    counts = {
+        "detected": len(spots),
+        "reference": len(ref.ij),
+        "matched": int(ok.sum()),
+        "rejected_far": int((~near).sum()),
+        "rejected_ambiguous": int((near & ~mutual).sum()),
+        "rejected_border": int((near & mutual & suspicious).sum()),
+        "unmatched_reference": int((~ok).sum()),
+        "unassigned_spots": int(len(spots) - ok.sum()),
+    }
+    return Matches(
+        ij=ref.ij[ok],
+        ref_px=ref.ref_px[ok],
+        spot_px=spots.centres_px[idx[ok]],
+        observed=np.ones(int(ok.sum()), bool),
+        counts=counts,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Normals and samples
+# ----------------------------------------------------------------------------------------------
+
+
+def refracted_dirs(pinholes_mm: ArrayLike, spots_mm: ArrayLike) -> Array:
+    """Unit refracted sun directions ``t = (s - P) / |s - P|`` (K, 3), pointing down."""
+    v = np.asarray(spots_mm, dtype=float) - np.asarray(pinholes_mm, dtype=float)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def snell_normals(sun_dir: ArrayLike, t: ArrayLike, n_water: float) -> Array:
+    """Unit normals (K, 3), pointing up, that refract the sun direction ``d`` into ``t``.
+
+    Snell's law in vector form, ``1 (d x N) = n (t x N)``, makes ``N`` parallel to ``d - n t``
+    (for air into water of index ``n``).
+    """
+    w = np.asarray(sun_dir, dtype=float) - n_water * np.asarray(t, dtype=float)
+    w /= np.linalg.norm(w, axis=-1, keepdims=True)
+    return w * np.where(w[..., 2:3] < 0, -1.0, 1.0)
+
+
+def points_on_lines(pinholes_mm: Array, t: Array, heights_mm: ArrayLike) -> Array:
+    """Points at the given heights (K,) on the lines through the pinholes along ``t`` (K, 3):
+    where each pinhole's sunlight crossed a surface of that height, mm."""
+    h = np.broadcast_to(np.asarray(heights_mm, dtype=float), pinholes_mm.shape[:1])
+    return pinholes_mm + ((h - pinholes_mm[:, 2]) / t[:, 2])[:, None] * t
+
+
+def reconstruct_alterman(
+    ij: NDArray,
+    pinholes_mm: Array,
+    spots_mm: Array,
+    layout: SensorLayout,
+    options: RestoreOptions,
+    tol_mm: float = 1e-4,
+) -> AltermanSurface:
+    """Surface from matched spots: Snell normals, samples at h0 then refined, integrated on the
+    pinhole grid (``options.integrator``) with mean height h0, gridded (``options.gridder``).
+
+    Parameters
+    ----------
+    ij : (K, 2) ndarray of int
+        Pinhole grid indices (4-neighbours on the grid are neighbours on the surface).
+    pinholes_mm, spots_mm : (K, 3) ndarray
+        Pinhole centres and their spots on the screen, mm.
+    layout : SensorLayout
+        The sensor's calibration (sun direction, water index and level).
+    options : RestoreOptions
+        ``integrator``, ``n_refine`` (0: samples stay on z = h0, the published method),
+        ``gridder``, ``grid_spacing_mm``.
+    tol_mm : float
+        Refinement stops once a pass changes no height by more than this, mm.
+    """
+    t0 = time.perf_counter()
+    t = refracted_dirs(pinholes_mm, spots_mm)
+    normals = snell_normals(layout.sun_dir, t, layout.n_water)
+    slopes = slopes_from_normals(normals)
+    t1 = time.perf_counter()
+    heights = np.full(len(ij), layout.h0_mm)
+    change, it = np.nan, 0
+    for it in range(int(options.n_refine) + 1):
+        q = points_on_lines(pinholes_mm, t, heights)
+        rel = integrate(ij, q[:, :2], slopes, options.integrator)
+        new = rel - np.nanmean(rel) + layout.h0_mm
+        # Samples the integrator cannot tie to the rest leave for good.
+        keep = np.isfinite(new)
+        ij, pinholes_mm, t, normals, slopes, q = (
+            a[keep] for a in (ij, pinholes_mm, t, normals, slopes, q)
+        )
+        new, heights = new[keep], heights[keep]
+        change = float(np.max(np.abs(new - heights))) if it > 0 else np.nan
+        heights = new
+        if it > 0 and change < tol_mm:
+            break
+    t2 = time.perf_counter()
+    surface = to_heightfield(
+        q[:, :2], heights, slopes, options.grid_spacing_mm, method=options.gridder
+    )
+    t3 = time.perf_counter()
+    return AltermanSurface(
+        heightfield=surface,
+        ij=ij,
+        points_mm=np.column_stack([q[:, :2], heights]),
+        normals=normals,
+        slopes=slopes,
+        iterations=it,
+        height_change_mm=change,
+        timings_ms={
+            "normals": 1e3 * (t1 - t0),
+            "integrate": 1e3 * (t2 - t1),
+            "grid": 1e3 * (t3 - t2),
+            "total": 1e3 * (t3 - t0),
+        },
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# The method end to end
+# ----------------------------------------------------------------------------------------------
+
+
+def _spot_features(
+    images: dict[str, NDArray], cal: AltermanCalibration
+) -> tuple[Matches | None, str, str]:
+    """Reference (once) and this frame's matches, or the status that stops the method."""
+    if cal.reference is None:
+        cal.reference = prepare_spot_reference(images["sunspots_flat"], cal.layout)
+    ref = cal.reference
+    if ref.counts["observed"] == 0:
+        return None, NO_SUN, "no sun spot on the flat-water reference (overcast?)"
+    spots = detect_spots(images["sunspots"])
+    if len(spots) == 0:
+        return None, NO_SUN, "no sun spot in the frame (overcast?)"
+    matches = match_spots(spots, ref, max_px=0.5 * cal.layout.pitch_px)
+    if len(matches) < max(MIN_SPOTS, MIN_SAMPLES):
+        return matches, TOO_FEW_SPOTS, (
+            f"only {len(matches)} sun spots matched to pinholes (need {MIN_SPOTS})"
+        )
+    return matches, OK, ""
+
+
+def restore_alterman(
+    images: dict[str, NDArray],
+    cal: AltermanCalibration,
+    options: RestoreOptions = DEFAULT_OPTIONS,
+) -> AltermanOutcome:
+    """Run the method on loaded images (``sunspots``, ``sunspots_flat``, ``view``).
+
+    Returns an outcome with status ``ok`` and a :class:`~restoration.pipeline.RestoreResult`
+    (features, surface, restored view, timings), or ``no_sun`` / ``sun_out_of_view`` /
+    ``too_few_spots`` and no result.
+
+    Raises
+    ------
+    WaiInputError
+        For an anchor other than ``gauge`` (its normals do not depend on the height, so the
+        structured light's integrability anchor has nothing to work with).
+    """
+    if options.anchor != "gauge":
+        raise WaiInputError(
+            "alterman: the absolute height comes from the gauge (--anchor gauge); its normals do "
+            "not depend on height, so integrability cannot fix it"
+        )
+    status, message = sun_status(cal.system, cal.layout)
+    if status != OK:
+        return AltermanOutcome(status, message)
+    t0 = time.perf_counter()
+    matches, status, message = _spot_features(images, cal)
+    if matches is None or status != OK:
+        return AltermanOutcome(status, message, counts={} if matches is None else matches.counts)
+    t1 = time.perf_counter()
+    pinholes = cal.layout.pinholes_mm[cal.layout.index_of(matches.ij)]
+    spots_mm = spots_on_diffuser(matches.spot_px, cal.layout.camera, cal.layout.screen_z_mm)
+    surface = reconstruct_alterman(matches.ij, pinholes, spots_mm, cal.layout, options)
+    t2 = time.perf_counter()
+    cfg = cal.cfg
+    view = restore_view(
+        images["view"] / cal.view_gain,
+        cal.camera_v,
+        surface.heightfield,
+        cfg.water.h0_mm,
+        cfg.water.n_water,
+        cfg.object_z_mm,
+        warp_step_px=options.warp_step_px,
+    )
+    t3 = time.perf_counter()
+    matches.timings_ms.update({"detect_and_match": 1e3 * (t1 - t0)})
+    timings = {
+        "features": 1e3 * (t1 - t0),
+        "surface": 1e3 * (t2 - t1),
+        "reverse_trace": 1e3 * (t3 - t2),
+        "end_to_end": 1e3 * (t3 - t0),
+    }
+    result = RestoreResult(matches, surface, view, timings)
+    return AltermanOutcome(OK, "", result, matches.counts)
