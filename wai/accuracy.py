@@ -27,22 +27,15 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from wai_core.config import SystemConfig, load_config
-from wai_core.geometry import intersect_plane_z, reflect
 from wai_core.heightfield import Heightfield
 from wai_core.io import write_json
 
 
 def true_spots(cfg: SystemConfig, truth: Heightfield, panel_px: NDArray) -> NDArray:
     """Exact camera-s pixels (K, 2) of dots reflected by the true surface (geometry only)."""
-    projector = cfg.projector.camera()
-    o, d = projector.pixel_rays(panel_px[:, 0], panel_px[:, 1])
-    q, ok = truth.intersect(o, d)
-    n = truth.normal(q[:, 0], q[:, 1])
-    s, _ = intersect_plane_z(q, reflect(d, n), cfg.diffuser.z_mm)
-    cols, rows, _ = cfg.camera_s.camera().project(s)
-    px = np.stack([cols, rows], axis=1)
-    px[~ok] = np.nan
-    return px
+    from wai.forward import spots_through
+
+    return spots_through(cfg, truth, panel_px)
 
 
 def _surface_variant(
