@@ -11,6 +11,14 @@ parameter recovers the absolute height from the data alone.
 
 The squared residual is close to a parabola in the anchor (the residual is nearly linear in
 it), so a few evaluations and a parabola fit find the minimum.
+
+The information comes from the surface's curvature: over flat or nearly flat water a wrong
+anchor tilts the normals almost exactly like a plane seen from a shifted height would (a mirror
+images a point source onto a point), the residual no longer has a minimum above the noise, and
+the search would wander. So each search also reports how well the data pin the anchor: the
+edges are split into four interleaved sets (by the parity of the dot indices), each set's
+parabola gives its own minimum, and their spread gives a standard error. A search whose sets
+find no minimum, or disagree, is not reliable, and the caller falls back to the gauge.
 """
 
 from __future__ import annotations
@@ -25,18 +33,70 @@ from restoration.integrate import grid_neighbours
 from restoration.surface import SurfaceEstimate
 
 _STEPS = ((1, 0), (0, 1))
+N_SETS = 4
+"""Interleaved edge sets whose separate minima measure the anchor's standard error."""
 
 
-def integration_residual_mm(est: SurfaceEstimate) -> float:
-    """RMS mismatch (mm) over grid edges between the height difference of neighbouring samples
-    and the trapezoid rule on their slopes: zero for an integrable slope field."""
+def edge_residuals_mm(est: SurfaceEstimate) -> tuple[NDArray, NDArray]:
+    """Per grid edge: the mismatch (mm) between the height difference of neighbouring samples
+    and the trapezoid rule on their slopes (zero for an integrable slope field), and the edge's
+    set in ``0 .. N_SETS - 1`` (parity of its first dot's ``i`` and ``j``). Finite edges only."""
     nb = grid_neighbours(est.ij, _STEPS)
     a = np.concatenate([np.flatnonzero(row >= 0) for row in nb])
     b = np.concatenate([row[row >= 0] for row in nb])
     p, g = est.points_mm, est.slopes
     r = p[b, 2] - p[a, 2] - 0.5 * np.sum((g[a] + g[b]) * (p[b, :2] - p[a, :2]), axis=1)
-    r = r[np.isfinite(r)]
+    sets = (est.ij[a, 0] % 2) + 2 * (est.ij[a, 1] % 2)
+    ok = np.isfinite(r)
+    return r[ok], sets[ok]
+
+
+def integration_residual_mm(est: SurfaceEstimate) -> float:
+    """RMS of :func:`edge_residuals_mm` over all edges, mm (NaN when there are none)."""
+    r, _ = edge_residuals_mm(est)
     return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+
+
+def _set_mean_squares(est: SurfaceEstimate) -> NDArray:
+    """Mean squared edge residual of each edge set (N_SETS,), mm^2."""
+    r, sets = edge_residuals_mm(est)
+    n = np.bincount(sets, minlength=N_SETS)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.bincount(sets, r**2, minlength=N_SETS) / n
+
+
+def _parabola_vertex(x: NDArray, y: NDArray) -> float:
+    """Abscissa of the minimum of the least-squares parabola through ``(x, y)``; NaN when the
+    parabola opens downwards or the fit is undetermined."""
+    if x.size < 3 or not np.isfinite(y).all():
+        return float("nan")
+    a, b, _ = np.polyfit(x - x.mean(), y, 2)
+    return float(x.mean() - b / (2 * a)) if a > 0 else float("nan")
+
+
+def anchor_sigma_mm(anchors_mm: NDArray, set_ms: NDArray, reach_mm: float) -> float:
+    """Standard error of the anchor from the spread of the edge sets' own minima, mm.
+
+    Parameters
+    ----------
+    anchors_mm : (A,) ndarray
+        Anchors evaluated, mm.
+    set_ms : (A, N_SETS) ndarray
+        Mean squared residual of each edge set at each anchor, mm^2.
+    reach_mm : float
+        A set's minimum further than this outside the evaluated anchors counts as not found.
+
+    Returns
+    -------
+    float
+        ``std(minima) / sqrt(N_SETS)``, mm; infinite when any set has no minimum in reach (the
+        data do not pin the anchor).
+    """
+    vertices = np.array([_parabola_vertex(anchors_mm, set_ms[:, k]) for k in range(N_SETS)])
+    lo, hi = anchors_mm.min() - reach_mm, anchors_mm.max() + reach_mm
+    if not (np.isfinite(vertices).all() and np.all((vertices >= lo) & (vertices <= hi))):
+        return float("inf")
+    return float(np.std(vertices, ddof=1) / np.sqrt(N_SETS))
 
 
 @dataclass(frozen=True)
@@ -52,6 +112,9 @@ class AnchorSearch:
     curvature : float
         Second derivative of the squared residual (mm^2 per mm^2): how sharply the data pin the
         anchor; small values mean a weakly determined height.
+    sigma_mm : float
+        Standard error of ``anchor_mm`` (:func:`anchor_sigma_mm`), mm; infinite when the data do
+        not pin it (flat or nearly flat water).
     evaluations : int
         Surface reconstructions run.
     estimate : SurfaceEstimate
@@ -61,6 +124,7 @@ class AnchorSearch:
     anchor_mm: float
     residual_mm: float
     curvature: float
+    sigma_mm: float
     evaluations: int
     estimate: SurfaceEstimate
 
@@ -91,14 +155,15 @@ def find_anchor(
     """
     centre, step, evaluations = start_mm, step_mm, 0
     curvature = float("nan")
-    cache: dict[float, tuple[float, SurfaceEstimate]] = {}
+    first_step = step_mm
+    cache: dict[float, tuple[float, NDArray, SurfaceEstimate]] = {}
 
     def residual2(anchor: float) -> float:
         nonlocal evaluations
         if anchor not in cache:
             est = reconstruct(anchor)
             evaluations += 1
-            cache[anchor] = (integration_residual_mm(est) ** 2, est)
+            cache[anchor] = (integration_residual_mm(est) ** 2, _set_mean_squares(est), est)
         return cache[anchor][0]
 
     for _ in range(rounds):
@@ -113,7 +178,13 @@ def find_anchor(
         centre = float(np.clip(centre, start_mm - max_shift_mm, start_mm + max_shift_mm))
         step /= 2.0
     r2 = residual2(centre)
-    return AnchorSearch(centre, float(np.sqrt(r2)), curvature, evaluations, cache[centre][1])
+    anchors = np.array(sorted(cache))
+    sigma = anchor_sigma_mm(anchors, np.array([cache[a][1] for a in anchors]), first_step)
+    if not curvature > 0:
+        sigma = float("inf")
+    return AnchorSearch(
+        centre, float(np.sqrt(r2)), curvature, sigma, evaluations, cache[centre][2]
+    )
 
 
 def anchor_residual_curve(

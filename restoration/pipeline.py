@@ -37,7 +37,9 @@ class RestoreOptions:
     ``integrator='paper'``, ``n_refine=0``, ``gridder='clough_tocher'`` and ``anchor='gauge'``
     is the paper's method as published (q_k on z = h0, central differences, bicubic-type
     interpolation, mean height = h0). ``anchor='integrability'`` finds the absolute height
-    from the data instead (:mod:`restoration.anchor`).
+    from the data instead (:mod:`restoration.anchor`); when the data do not pin it (standard
+    error above ``anchor_max_sigma_mm``, e.g. over calm water) the gauge's h0 is used and the
+    estimate says so (``SurfaceEstimate.anchor["method"] == "gauge_fallback"``).
     """
 
     integrator: str = "trapezoid"
@@ -46,6 +48,7 @@ class RestoreOptions:
     grid_spacing_mm: float = 2.0
     warp_step_px: int = 8
     anchor: str = "integrability"
+    anchor_max_sigma_mm: float = 1.0
 
 
 @dataclass
@@ -149,9 +152,24 @@ def estimate_surface(
             gridder=options.gridder,
         )
 
+    h0 = cfg.water.h0_mm
     if options.anchor == "gauge":
-        return reconstruct(cfg.water.h0_mm)
-    return find_anchor(reconstruct, cfg.water.h0_mm, step_mm=3.0).estimate
+        est = reconstruct(h0)
+        est.anchor.update(method="gauge", anchor_mm=h0)
+        return est
+    search = find_anchor(reconstruct, h0, step_mm=3.0)
+    info = {
+        "searched_mm": search.anchor_mm,
+        "sigma_mm": search.sigma_mm,
+        "evaluations": search.evaluations,
+    }
+    if search.sigma_mm <= options.anchor_max_sigma_mm:
+        est = search.estimate
+        est.anchor.update(method="integrability", anchor_mm=search.anchor_mm, **info)
+    else:  # the slopes do not pin the level (calm water): trust the gauge, and say so
+        est = reconstruct(h0)
+        est.anchor.update(method="gauge_fallback", anchor_mm=h0, **info)
+    return est
 
 
 def restore(

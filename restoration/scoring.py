@@ -87,6 +87,7 @@ def score(
         ),
         "feature_counts": counts,
         "refine_iterations": int(result.surface.iterations),
+        "anchor": result.surface.anchor,
         "_error_map": surf["error_map_mm"],
         "_corner_points": corners["points_px"],
     }

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -78,6 +79,10 @@ class SurfaceEstimate:
         Node spacing of :attr:`heightfield`, mm.
     gridder : str
         ``method`` of :func:`restoration.integrate.to_heightfield` that builds it.
+    anchor : dict
+        How the absolute level was set (filled by the caller, e.g.
+        :func:`restoration.pipeline.estimate_surface`): ``method``, ``anchor_mm`` and, after an
+        integrability search, ``searched_mm``, ``sigma_mm``, ``evaluations``.
     """
 
     ij: NDArray[np.int64]
@@ -89,6 +94,7 @@ class SurfaceEstimate:
     timings_ms: dict[str, float] = field(default_factory=dict)
     grid_spacing_mm: float = 5.0
     gridder: str = "tangent_blend"
+    anchor: dict[str, Any] = field(default_factory=dict)
     _heightfield: Heightfield | None = field(default=None, init=False, repr=False, compare=False)
 
     @property

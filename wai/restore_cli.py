@@ -149,8 +149,21 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
         f"SSIM {d['ssim']:.4f} -> {r['ssim']:.4f}, "
         f"PSNR {d['psnr_db']:.2f} -> {r['psnr_db']:.2f} dB, "
         f"MSE {d['mse']:.4f} -> {r['mse']:.4f} on {m['view_restored_fraction']:.0%} of the view",
+        anchor_line(m.get("anchor", {})),
         f"end to end {m['timings_ms']['end_to_end']:.1f} ms",
     ]
+
+
+def anchor_line(anchor: dict[str, Any]) -> str:
+    """How the absolute water level was set, in words."""
+    level = f"mean level {anchor.get('anchor_mm', float('nan')):.2f} mm"
+    sigma = anchor.get("sigma_mm")
+    if anchor.get("method") == "integrability":
+        return f"{level} from integrability (+- {sigma:.2f} mm)"
+    if anchor.get("method") == "gauge_fallback":
+        why = "not pinned" if sigma is None or not np.isfinite(sigma) else f"+- {sigma:.2f} mm"
+        return f"{level} from the gauge (integrability {why}: too little curvature)"
+    return f"{level} from the gauge"
 
 
 def run_restore(args: argparse.Namespace) -> None:

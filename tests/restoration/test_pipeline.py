@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mitsuba_wai.render import render_folder
-from restoration.anchor import find_anchor, integration_residual_mm
+from restoration.anchor import find_anchor
 from restoration.pipeline import (
     RestoreOptions,
     estimate_surface,
@@ -87,21 +87,55 @@ def test_integrability_anchor_beats_the_gauge_on_an_offset_surface(bump_dir, qui
     assert err_g > 3.0 and err_i < 0.5
 
 
-def test_anchor_search_finds_a_parabola_minimum():
-    class Fake:  # residual^2 = (a - 3)^2 + 1: minimum at 3
-        def __init__(self, a):
-            self.a = a
+class _FakeEstimate:
+    """Stands in for a SurfaceEstimate: its edge residuals are ``slope * (a - 3)`` plus a fixed
+    'noise' pattern, so the squared residual is a parabola with its minimum at 3 in every edge
+    set when ``slope`` is non-zero, and carries no information about ``a`` when it is zero."""
 
+    noise = np.random.default_rng(0).normal(0.0, 0.1, 400)
+    sets = np.arange(400) % 4
+
+    def __init__(self, a, slope):
+        self.a, self.slope = a, slope
+
+    def residuals(self):
+        return self.slope * (self.a - 3.0) + self.noise, self.sets
+
+
+def _patched_search(monkeypatch, slope):
     import restoration.anchor as anchor
 
-    original = anchor.integration_residual_mm
-    anchor.integration_residual_mm = lambda est: float(np.sqrt((est.a - 3.0) ** 2 + 1.0))
-    try:
-        res = find_anchor(Fake, start_mm=0.0, step_mm=2.0)
-    finally:
-        anchor.integration_residual_mm = original
-    assert res.anchor_mm == pytest.approx(3.0, abs=1e-9)
-    assert integration_residual_mm is original
+    monkeypatch.setattr(anchor, "edge_residuals_mm", lambda est: est.residuals())
+    return find_anchor(lambda a: _FakeEstimate(a, slope), start_mm=0.0, step_mm=2.0)
+
+
+def test_anchor_search_finds_a_parabola_minimum(monkeypatch):
+    res = _patched_search(monkeypatch, slope=1.0)
+    # The noise is the same at every anchor, so it shifts no set's minimum: each is at 3.
+    assert res.anchor_mm == pytest.approx(3.0, abs=0.05)
+    assert res.sigma_mm < 0.05
+
+
+def test_anchor_search_says_when_the_data_do_not_pin_the_level(monkeypatch):
+    # No curvature (a flat surface): the residual does not depend on the anchor.
+    res = _patched_search(monkeypatch, slope=0.0)
+    assert res.sigma_mm == float("inf")
+
+
+def test_flat_water_restores_to_the_truth_with_the_gauge_level(flat_dir, quick_cfg):
+    # Flat water carries no curvature, so integrability cannot pin the level: the pipeline must
+    # notice and fall back to the gauge rather than drift along the depth-normal ambiguity.
+    result, scores = _run(flat_dir)
+    assert result.surface.anchor["method"] == "gauge_fallback"
+    counts = result.features.counts
+    # A perfectly regular pattern: every dot seen on flat water is found again under its own
+    # label, at its flat-water position (the two images are the same render).
+    assert counts["unmatched_reference"] == 0
+    assert (counts["anchor_di"], counts["anchor_dj"], counts["labels_ambiguous"]) == (0, 0, 0)
+    np.testing.assert_allclose(result.features.spot_px, result.features.ref_px, atol=1e-9)
+    assert scores["wai_rmse_mm"] < 0.05
+    assert scores["restored"]["ssim"] > 0.99
+    assert scores["corner_std_restored_px"] < 0.1
 
 
 def test_image_size_mismatch_is_a_clear_error(flat_dir, tmp_path):
