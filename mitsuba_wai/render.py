@@ -160,15 +160,23 @@ class FrameRenderer:
             meshes.set_mesh_geometry(params, tm, prefix="water.")
 
     def render(
-        self, surface: Heightfield, seed: int, which: tuple[str, ...] = ("pattern", "view")
+        self,
+        surface: Heightfield,
+        seed: int,
+        which: tuple[str, ...] = ("pattern", "view"),
+        spp: int | None = None,
     ) -> dict[str, NDArray[np.float32]]:
-        """Render the pattern (camera s) and/or the view (camera v) through ``surface``."""
+        """Render the pattern (camera s) and/or the view (camera v) through ``surface``, with
+        the configuration's samples per pixel or, if given, ``spp`` for every image."""
         missing = set(which) - set(self._scenes)
         if missing:
             raise ValueError(f"renderer was not prepared for {sorted(missing)}")
         self._set_surface(surface)
         out = {}
-        spp = {"pattern": self.cfg.render.spp_pattern, "view": self.cfg.render.spp_view}
+        spp = {
+            "pattern": spp or self.cfg.render.spp_pattern,
+            "view": spp or self.cfg.render.spp_view,
+        }
         for key in (k for k in ("pattern", "view") if k in which):
             out[key], bad = render_image(self._scenes[key], spp[key], seed)
             self.nonfinite_pixels[key] = self.nonfinite_pixels.get(key, 0) + bad

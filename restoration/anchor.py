@@ -129,14 +129,35 @@ class AnchorSearch:
     estimate: SurfaceEstimate
 
 
+def _bracket(
+    f: Callable[[float], float], start: float, step: float, max_shift: float
+) -> tuple[float, float, float] | None:
+    """Three anchors ``lo < mid < hi`` with ``f(mid)`` the lowest, found by walking downhill
+    from ``start`` with doubling strides; None when the walk leaves ``start +- max_shift``."""
+    lo, mid, hi = start - step, start, start + step
+    while max(start - lo, hi - start) <= max_shift:
+        flo, fmid, fhi = f(lo), f(mid), f(hi)
+        if fmid <= flo and fmid <= fhi:
+            return lo, mid, hi
+        if flo < fhi:
+            lo, mid, hi = lo - 2.0 * (mid - lo), lo, mid
+        else:
+            lo, mid, hi = mid, hi, hi + 2.0 * (hi - mid)
+    return None
+
+
 def find_anchor(
     reconstruct: Callable[[float], SurfaceEstimate],
     start_mm: float,
     step_mm: float = 2.0,
     rounds: int = 2,
-    max_shift_mm: float = 30.0,
+    max_shift_mm: float = 60.0,
 ) -> AnchorSearch:
     """Minimise the integration residual over the anchor height.
+
+    The minimum is first bracketed by walking downhill from ``start_mm`` with doubling strides
+    (the mean level of a patch smaller than the waves can sit 10-20 mm off h0 at U = 1 m/s),
+    then located by parabola fits on brackets that halve each round.
 
     Parameters
     ----------
@@ -146,16 +167,14 @@ def find_anchor(
     start_mm : float
         First guess, mm (the gauge's h0, or the previous frame's anchor).
     step_mm : float
-        Half-width of the first bracket, mm; each later round halves it around the minimum.
+        Half-width of the first bracket, mm.
     rounds : int
-        Parabola fits (3 reconstructions each, sharing the centre).
+        Parabola fits after bracketing (2 new reconstructions each).
     max_shift_mm : float
-        Largest move from ``start_mm`` accepted; beyond it the start is kept (and flagged by a
-        non-positive curvature).
+        Farthest from ``start_mm`` the search looks, mm; a minimum beyond it is not found: the
+        start is kept and ``sigma_mm`` is infinite.
     """
-    centre, step, evaluations = start_mm, step_mm, 0
-    curvature = float("nan")
-    first_step = step_mm
+    evaluations = 0
     cache: dict[float, tuple[float, NDArray, SurfaceEstimate]] = {}
 
     def residual2(anchor: float) -> float:
@@ -166,6 +185,16 @@ def find_anchor(
             cache[anchor] = (integration_residual_mm(est) ** 2, _set_mean_squares(est), est)
         return cache[anchor][0]
 
+    found = _bracket(residual2, start_mm, step_mm, max_shift_mm)
+    if found is None:
+        r2 = residual2(start_mm)
+        return AnchorSearch(
+            start_mm, float(np.sqrt(r2)), float("nan"), float("inf"), evaluations,
+            cache[start_mm][2],
+        )
+    lo, centre, hi = found
+    step = min(centre - lo, hi - centre)
+    curvature = float("nan")
     for _ in range(rounds):
         xs = np.array([centre - step, centre, centre + step])
         ys = np.array([residual2(float(x)) for x in xs])
@@ -174,12 +203,12 @@ def find_anchor(
         if a <= 0 or not np.isfinite(a):
             centre = float(xs[np.argmin(ys)])
         else:
-            centre = centre + float(np.clip(-b / (2 * a), -2 * step, 2 * step))
-        centre = float(np.clip(centre, start_mm - max_shift_mm, start_mm + max_shift_mm))
+            centre = centre + float(np.clip(-b / (2 * a), -step, step))
         step /= 2.0
     r2 = residual2(centre)
-    anchors = np.array(sorted(cache))
-    sigma = anchor_sigma_mm(anchors, np.array([cache[a][1] for a in anchors]), first_step)
+    # The sets' parabolas are fitted near the minimum, where the squared residual is one.
+    near = np.array(sorted(a for a in cache if abs(a - centre) <= 2.0 * step_mm))
+    sigma = anchor_sigma_mm(near, np.array([cache[a][1] for a in near]), step_mm)
     if not curvature > 0:
         sigma = float("inf")
     return AnchorSearch(

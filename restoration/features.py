@@ -185,6 +185,11 @@ class Matches:
     timings_ms : dict of str to float
         Wall time per step, ms: ``detect`` and ``match`` from :func:`features_from_reference`,
         plus ``reference`` and ``total`` from :func:`find_features`.
+    alt_shifts : (C, 2) ndarray of int
+        Lattice shifts, relative to ``ij``, that fit the lit/unlit evidence as well as the one
+        applied (``[0, 0]`` included); more than one row when ``labels_ambiguous``. A caller
+        with more evidence (:func:`restoration.pipeline.restore` uses the integrability of the
+        slopes) may relabel ``ij + shift``.
     """
 
     ij: IntArray
@@ -193,6 +198,7 @@ class Matches:
     observed: BoolArray
     counts: dict[str, int]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    alt_shifts: IntArray = field(default_factory=lambda: np.zeros((1, 2), np.int64))
 
     def __len__(self) -> int:
         return int(self.ij.shape[0])
@@ -1430,8 +1436,9 @@ def _order_violations(
 
 def _anchor_shift(
     tab: _LatticeTables, matched: BoolArray, absent: BoolArray, max_shift: int
-) -> tuple[IntArray, int]:
-    """Lattice shift that best explains where spots are and are not, and how many tie.
+) -> tuple[IntArray, IntArray]:
+    """Lattice shift that best explains where spots are and are not, and all shifts that tie
+    with it (C, 2), best first.
 
     A shift ``d`` relabels node ``ij`` as ``ij + d``. Its cost counts the contradictions: each
     matched node that would not be a lit dot (weight 3: a spot where no dot shines), and each
@@ -1456,12 +1463,14 @@ def _anchor_shift(
     r = np.arange(-s, s + 1)
     shifts = np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
     best = cost.min()
-    tied = cost <= best + 3 + best // 4
-    zero = (shifts == 0).all(axis=1)
-    if tied[zero].any():
-        return np.zeros(2, np.int64), int(tied.sum())
-    pick = np.flatnonzero(tied)[np.argmin(np.abs(shifts[tied]).sum(axis=1))]
-    return shifts[pick].astype(np.int64), int(tied.sum())
+    tied = np.flatnonzero(cost <= best + 3 + best // 4)
+    # Among ties, the labelling nearest to flat water first (the unshifted one if it ties).
+    tied = tied[np.lexsort((np.abs(shifts[tied]).sum(axis=1), cost[tied]))]
+    zero = (shifts[tied] == 0).all(axis=1)
+    pick = tied[np.flatnonzero(zero)[0]] if zero.any() else tied[
+        np.argmin(np.abs(shifts[tied]).sum(axis=1))
+    ]
+    return shifts[pick].astype(np.int64), shifts[tied].astype(np.int64)
 
 
 def _absent_nodes(
@@ -1588,10 +1597,11 @@ def match_distorted(
     g = _grow(tab, base, ref.spacing_px, spots, tree, (seed, seed_spot), visible, accept, ratio)
     _drop_double_claims(g)
 
-    shift, n_tied = np.zeros(2, np.int64), 1
+    shift, tied = np.zeros(2, np.int64), np.zeros((1, 2), np.int64)
     if anchor:
         absent = _absent_nodes(tab, g, tree, ref.spacing_px, visible)
-        shift, n_tied = _anchor_shift(tab, g.match >= 0, absent, max_shift)
+        shift, tied = _anchor_shift(tab, g.match >= 0, absent, max_shift)
+    n_tied = len(tied)
     match, reason, n_off = _relabel(tab.lat, g.match, g.reason, shift)
     counts.update(
         anchor_di=int(shift[0]), anchor_dj=int(shift[1]), anchor_candidates=n_tied,
@@ -1631,7 +1641,8 @@ def match_distorted(
         unassigned_spots=int(len(spots) - len(kept)),
     )
     return Matches(
-        ref.ij[kept], ref.ref_px[kept], spots.centres_px[match[kept]], ref.observed[kept], counts
+        ref.ij[kept], ref.ref_px[kept], spots.centres_px[match[kept]], ref.observed[kept], counts,
+        alt_shifts=tied - shift,
     )
 
 

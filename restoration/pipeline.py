@@ -8,13 +8,13 @@ them to score.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration.anchor import find_anchor
+from restoration.anchor import find_anchor, integration_residual_mm
 from restoration.features import (
     Matches,
     ReferenceGrid,
@@ -27,6 +27,7 @@ from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.io import read_exr, read_json
+from wai_core.layout import lit_dots
 from wai_core.pattern import dot_grid
 
 
@@ -111,13 +112,20 @@ def load_inputs(render_dir: str | Path, cal: Calibration) -> dict[str, NDArray[n
     return images
 
 
+def _dot_index(cfg: SystemConfig, ij: NDArray) -> NDArray:
+    """Index of each grid dot ``ij`` (K, 2) in :func:`~wai_core.pattern.dot_grid` order, -1 for
+    indices off the grid."""
+    grid_ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
+    half = int(grid_ij[:, 0].max())
+    ij = np.asarray(ij)
+    on = (np.abs(ij) <= half).all(axis=1)
+    return np.where(on, (ij[:, 1] + half) * (2 * half + 1) + (ij[:, 0] + half), -1)
+
+
 def panel_positions(cfg: SystemConfig, ij: NDArray) -> NDArray:
     """Projector panel ``(col, row)`` of the dots with grid indices ``ij`` (K, 2)."""
-    grid_ij, panel = dot_grid(cfg.pattern, cfg.projector.camera())
-    side = int(grid_ij[:, 0].max()) * 2 + 1
-    half = side // 2
-    index = (np.asarray(ij)[:, 1] + half) * side + (np.asarray(ij)[:, 0] + half)
-    return panel[index]
+    _, panel = dot_grid(cfg.pattern, cfg.projector.camera())
+    return panel[_dot_index(cfg, ij)]
 
 
 ANCHORS = ("integrability", "gauge")
@@ -172,6 +180,63 @@ def estimate_surface(
     return est
 
 
+# Most label shifts tried when the pattern leaves the labels ambiguous (each costs a surface).
+MAX_SHIFT_CANDIDATES = 24
+# A shifted labelling must keep this fraction of the features on lit dots to be considered.
+MIN_SHIFT_KEEP = 0.8
+
+
+def shifted(features: Matches, shift: NDArray, keep: NDArray) -> Matches:
+    """``features`` relabelled ``ij + shift``, keeping the rows ``keep``."""
+    di, dj = (int(v) for v in shift)
+    counts = {**features.counts, "label_shift_di": di, "label_shift_dj": dj}
+    return replace(
+        features,
+        ij=features.ij[keep] + shift,
+        ref_px=features.ref_px[keep],
+        spot_px=features.spot_px[keep],
+        observed=features.observed[keep],
+        counts=counts,
+        alt_shifts=features.alt_shifts - shift,
+    )
+
+
+def resolve_label_shift(
+    features: Matches, surface: SurfaceEstimate, cfg: SystemConfig, options: RestoreOptions
+) -> tuple[Matches, SurfaceEstimate]:
+    """Among lattice shifts that the lit/unlit evidence cannot tell apart, keep the labelling
+    whose slopes integrate best.
+
+    A labelling shifted by whole dots pairs every spot with a neighbouring projector ray: the
+    normals then describe no surface, and the integration residual grows (on the paper's rig
+    by 2-3x per dot of shift). ``counts`` gains ``label_shift_candidates`` (tried) and
+    ``label_shift_di/dj`` (applied on top of the pattern's choice).
+    """
+    lit = lit_dots(cfg)
+    best = (integration_residual_mm(surface), features, surface)
+    tried = 1
+    for shift in features.alt_shifts[:MAX_SHIFT_CANDIDATES]:
+        if not shift.any():
+            continue
+        index = _dot_index(cfg, features.ij + shift)
+        keep = index >= 0
+        keep[keep] = lit[index[keep]]
+        if keep.sum() < MIN_SHIFT_KEEP * len(keep):
+            continue
+        candidate = shifted(features, shift, keep)
+        try:
+            est = estimate_surface(candidate.ij, candidate.spot_px, cfg, options)
+        except WaiInputError:
+            continue
+        tried += 1
+        residual = integration_residual_mm(est)
+        if residual < best[0]:
+            best = (residual, candidate, est)
+    _, chosen, est = best
+    chosen.counts["label_shift_candidates"] = tried
+    return chosen, est
+
+
 def restore(
     images: dict[str, NDArray], cal: Calibration, options: RestoreOptions = RestoreOptions()
 ) -> RestoreResult:
@@ -185,6 +250,8 @@ def restore(
     features = features_from_reference(images["pattern"], reference, cfg)
     t1 = time.perf_counter()
     surface = estimate_surface(features.ij, features.spot_px, cfg, options)
+    if len(features.alt_shifts) > 1:
+        features, surface = resolve_label_shift(features, surface, cfg, options)
     t2 = time.perf_counter()
     view = restore_view(
         images["view"] / cal.view_gain,

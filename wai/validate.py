@@ -107,26 +107,19 @@ def agreement_table(cfg: SystemConfig, quick: bool) -> list[dict[str, Any]]:
 
 def spp_sweep(cfg: SystemConfig, spps: list[int], runs: int = 2) -> list[dict[str, Any]]:
     """Spot agreement and render time of the pattern against spp (U from cfg, seed 0)."""
-    import drjit as dr
-
     from mitsuba_wai.render import FrameRenderer, wave_surface
-    from mitsuba_wai.variant import mitsuba
 
-    mi = mitsuba()
     surface = wave_surface(cfg)
-    renderer = FrameRenderer(cfg, surface)
-    renderer._set_surface(surface)
-    mi.render(renderer._scene_s, spp=1, seed=0)  # compile the kernels before timing
+    renderer = FrameRenderer(cfg, surface, systems=("pattern",))
+    renderer.render(surface, 0, ("pattern",), spp=1)  # compile the kernels before timing
     rows = []
     for spp in tqdm(spps, desc="spp", leave=False):
         times, medians, p95s = [], [], []
         for run in range(runs):
             t0 = time.perf_counter()
-            img = mi.render(renderer._scene_s, spp=spp, seed=1000 + run)
-            dr.eval(img)
-            dr.sync_thread()
+            img = renderer.render(surface, 1000 + run, ("pattern",), spp=spp)["pattern"]
             times.append(time.perf_counter() - t0)
-            agree = spot_agreement(cfg, surface, np.asarray(img)[..., :3])
+            agree = spot_agreement(cfg, surface, img)
             medians.append(agree["median_px"])
             p95s.append(agree["p95_px"])
         rows.append(
