@@ -1,70 +1,291 @@
-"""``wai bench restore``: per-stage and end-to-end time of the restoration of one 800x600 frame."""
+"""``wai bench restore``: per-stage and end-to-end time of the restoration of one 800x600 frame.
+
+The pipeline reports its own timings (:attr:`restoration.pipeline.RestoreResult.timings_ms` and
+those of its features, surface and view); :func:`stage_times` maps them to the report's stages.
+That mapping is tolerant, since the restoration's keys change as it is optimised: a key it does
+not know passes through under its dotted name (``features.<key>``, ``surface.<key>``,
+``view.<key>``), a missing one drops the stages that need it, and a stage the pipeline does not
+time itself is computed from the others and listed as ``derived``.
+"""
 
 from __future__ import annotations
 
 import argparse
+import numbers
+import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from wai.bench import machine, summarize, time_runs
+from wai.bench import (
+    machine,
+    peak_rss_mib,
+    print_stage_table,
+    runtime,
+    summarize,
+    time_runs,
+)
+
+# Report name of each key of the pipeline's timing dicts, by source ("" is RestoreResult's own);
+# None for aggregates the report rebuilds from their parts.
+_KNOWN: dict[str, dict[str, str | None]] = {
+    "": {"features": "features", "surface": "surface", "reverse_trace": "view", "end_to_end": None},
+    "features": {"detect": "features.detect", "match": "features.match"},
+    "surface": {
+        "rays": "surface.rays",
+        "normals": "surface.normals",
+        "integrate": "surface.integrate",
+        "grid": "grid",
+        "total": None,
+    },
+    "view": {
+        "plan": "view.plan",
+        "surface": "view.surface",
+        "solve": "view.solve",
+        "upsample": "view.upsample",
+        "remap": "view.remap",
+        "total": None,
+    },
+}
+
+DERIVED: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
+    "normals": (
+        ("surface.rays", "surface.normals"),
+        (),
+        "surface.rays + surface.normals (back-projected rays and normals, final reconstruction)",
+    ),
+    "integration": (
+        ("surface",),
+        ("normals",),
+        "surface - normals (integration of every pass, plus the anchor search's other "
+        "reconstructions)",
+    ),
+    "surface.anchor_search": (
+        ("surface",),
+        ("surface.rays", "surface.normals", "surface.integrate"),
+        "surface - its final reconstruction's parts (the anchor search's other reconstructions)",
+    ),
+    "reverse_trace": (
+        ("view.plan", "view.surface", "view.solve"),
+        (),
+        "view.plan + view.surface + view.solve (ray-surface intersection and refraction solve)",
+    ),
+    "resampling": (
+        ("view.upsample", "view.remap"),
+        (),
+        "view.upsample + view.remap (warp upsampled to pixels, image remapped)",
+    ),
+}
+"""Stages computed from others: name -> (terms added, terms subtracted, meaning). A stage the
+pipeline times itself is never overwritten."""
+
+NOTES = {
+    "end_to_end": "wall time of restore() on images in memory (loading not timed)",
+    "surface": "the pipeline's surface stage: anchor search with its reconstructions",
+    "grid": "heightfield gridding, timed when the view stage first reads the heightfield",
+    "view": "the pipeline's reverse_trace stage: grid + reverse_trace + resampling",
+}
+
+ORDER = (
+    "features",
+    "features.detect",
+    "features.match",
+    "surface",
+    "normals",
+    "integration",
+    "surface.rays",
+    "surface.normals",
+    "surface.integrate",
+    "surface.anchor_search",
+    "grid",
+    "view",
+    "reverse_trace",
+    "resampling",
+    "view.plan",
+    "view.surface",
+    "view.solve",
+    "view.upsample",
+    "view.remap",
+)
+"""Display order; unknown stages follow, then ``end_to_end``."""
+
+CHART_HIDDEN = frozenset(
+    {"view", "surface.rays", "surface.normals", "surface.integrate", "surface.anchor_search"}
+    | {n for n in ORDER if n.startswith("view.")}
+)
+"""Parts left out of ``bench.png`` (they are in the JSON and the table) to keep it readable."""
+
+
+def _timings(obj: Any) -> dict[str, Any]:
+    return dict(getattr(obj, "timings_ms", None) or {})
+
+
+def stage_times(result: Any) -> tuple[dict[str, float], list[str]]:
+    """Report stages (ms) of one :class:`~restoration.pipeline.RestoreResult`, derived included.
+
+    Parameters
+    ----------
+    result : RestoreResult
+        Anything with ``timings_ms`` and ``features``/``surface``/``view`` holding their own
+        ``timings_ms``; missing parts are skipped.
+
+    Returns
+    -------
+    times : dict of str to float
+        Milliseconds per stage, without ``end_to_end`` (the caller times the whole call).
+    derived : list of str
+        The stages of ``times`` computed by :data:`DERIVED` rather than read.
+    """
+    sources = {
+        "": _timings(result),
+        "features": _timings(getattr(result, "features", None)),
+        "surface": _timings(getattr(result, "surface", None)),
+        "view": _timings(getattr(result, "view", None)),
+    }
+    out: dict[str, float] = {}
+    for source, timings in sources.items():
+        known = _KNOWN[source]
+        for key, ms in timings.items():
+            name = known[key] if key in known else (f"{source}.{key}" if source else key)
+            if name is not None and isinstance(ms, numbers.Real) and not isinstance(ms, bool):
+                out[name] = float(ms)
+    derived = []
+    for name, (plus, minus, _) in DERIVED.items():
+        if name not in out and all(t in out for t in plus + minus):
+            out[name] = sum(out[t] for t in plus) - sum(out[t] for t in minus)
+            derived.append(name)
+    return out, derived
+
+
+def ordered(names: list[str]) -> list[str]:
+    """``names`` in display order: :data:`ORDER`, then unknown ones, then ``end_to_end``."""
+    rest = [n for n in names if n not in ORDER and n != "end_to_end"]
+    tail = ["end_to_end"] if "end_to_end" in names else []
+    return [n for n in ORDER if n in names] + rest + tail
+
+
+def peak_traced_mib(fn: Callable[[], Any]) -> float:
+    """Peak of the Python and NumPy allocations made during ``fn()``, MiB (tracemalloc).
+
+    Counted above what was allocated when ``fn`` started. Native allocations of other
+    libraries (OpenCV, BLAS workspaces) are not traced.
+    """
+    was_tracing = tracemalloc.is_tracing()
+    if was_tracing:
+        tracemalloc.reset_peak()
+    else:
+        tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        fn()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        if not was_tracing:
+            tracemalloc.stop()
+    return (peak - base) / 2**20
+
+
+def _render_dir(args: argparse.Namespace) -> Path:
+    """``--dir``, or ``renders/bench`` (rendered from ``--config`` unless already there)."""
+    if args.dir is not None:
+        return Path(args.dir)
+    render_dir = Path("renders/bench")
+    if not (render_dir / "scene.json").is_file():
+        from mitsuba_wai.render import render_folder
+        from mitsuba_wai.variant import select_variant
+        from wai_core.config import load_config
+
+        # The variant asked for, before render_folder takes "auto": a process cannot switch.
+        select_variant(args.variant)
+        render_folder(load_config(args.config), render_dir, progress=False)
+    return render_dir
 
 
 def bench_restore(args: argparse.Namespace) -> dict[str, Any]:
     """Time :func:`restoration.pipeline.restore` on a render folder (rendered if not given).
 
     Loading the images is not timed (a camera delivers them in memory); everything from the
-    pattern image to the restored view is.
+    pattern image to the restored view is. A warm-up run (which also prepares the flat-water
+    reference) is reported apart; one more run, untimed, measures allocations.
+
+    Returns
+    -------
+    dict
+        ``end_to_end_ms`` and ``stages_ms``: medians, ms, as printed before (``stages_ms`` keeps
+        the pipeline's own keys, so there ``reverse_trace`` is the whole view stage);
+        ``stages``: summaries under the report's stage names (see :func:`stage_times`),
+        ``derived`` and ``notes`` on them; ``warmup_ms``, ``peak_rss_mib`` and
+        ``tracemalloc_peak_mib``.
     """
     from restoration.pipeline import RestoreOptions, load_calibration, load_inputs, restore
 
-    render_dir = args.dir
-    if render_dir is None:
-        from mitsuba_wai.render import render_folder
-        from wai_core.config import load_config
-
-        render_dir = Path("renders/bench")
-        if not (render_dir / "scene.json").is_file():
-            render_folder(load_config(args.config), render_dir, progress=False)
+    render_dir = _render_dir(args)
     cal = load_calibration(render_dir)
     images = load_inputs(render_dir, cal)
     options = RestoreOptions()
+    raw: dict[str, list[float]] = {}
     stages: dict[str, list[float]] = {}
+    derived: list[str] = []
 
-    def run(_: int) -> None:
+    def run(i: int) -> None:
         res = restore(images, cal, options)
-        for name, ms in res.timings_ms.items():
+        if i < 0:  # the warm-up's figures are not kept
+            return
+        for name, ms in _raw_timings(res).items():
+            raw.setdefault(name, []).append(ms)
+        times, made = stage_times(res)
+        derived.extend(n for n in made if n not in derived)
+        for name, ms in times.items():
             stages.setdefault(name, []).append(ms)
-        for name, ms in res.features.timings_ms.items():
-            stages.setdefault(f"features.{name}", []).append(ms)
-        for name, ms in res.surface.timings_ms.items():
-            stages.setdefault(f"surface.{name}", []).append(ms)
-        for name, ms in res.view.timings_ms.items():
-            stages.setdefault(f"reverse_trace.{name}", []).append(ms)
 
     warm, samples = time_runs(run, args.runs)
-    measured = {k: v[1:] for k, v in stages.items()}  # drop the warm-up's entry
-    e2e = summarize(samples)
+    stages["end_to_end"] = [s * 1e3 for s in samples]
+    summaries = {n: summarize([ms / 1e3 for ms in stages[n]]) for n in ordered(list(stages))}
+    e2e = summaries["end_to_end"]
     return {
         "render_dir": str(render_dir),
         "machine": machine(),
+        "runtime": runtime(),
         "options": vars(options),
         "warmup_ms": warm * 1e3,
         "end_to_end_ms": e2e["median_ms"],
         "end_to_end": e2e,
         "fps": 1e3 / e2e["median_ms"],
-        "stages_ms": {k: float(np.median(v)) for k, v in measured.items()},
+        "stages_ms": {k: float(np.median(v)) for k, v in raw.items()},
+        "stages": summaries,
+        "derived": derived,
+        "notes": {
+            **{k: v for k, v in NOTES.items() if k in summaries},
+            **{k: DERIVED[k][2] for k in derived},
+        },
+        "peak_rss_mib": peak_rss_mib(),  # before the traced run: tracemalloc costs memory too
+        "tracemalloc_peak_mib": peak_traced_mib(lambda: restore(images, cal, options)),
     }
+
+
+def _raw_timings(res: Any) -> dict[str, float]:
+    """The pipeline's timings under the keys ``wai bench restore`` has always printed."""
+    out = dict(_timings(res))
+    parts = {"features": "features", "surface": "surface", "reverse_trace": "view"}
+    for prefix, part in parts.items():
+        out.update({f"{prefix}.{k}": v for k, v in _timings(getattr(res, part, None)).items()})
+    return out
 
 
 def print_restore(res: dict[str, Any]) -> None:
     """Human-readable report of :func:`bench_restore`."""
     e = res["end_to_end"]
+    rt = res["runtime"]
     print(
         f"restore {res['render_dir']}: end to end median {e['median_ms']:.1f} ms "
         f"({res['fps']:.1f} frames/s; min {e['min_ms']:.1f}, max {e['max_ms']:.1f}, "
-        f"{e['runs']} runs, {res['machine']['cores']} cores)"
+        f"{e['runs']} runs, {res['machine']['cores']} cores, "
+        f"{rt.get('opencv_threads')} OpenCV threads; warm-up {res['warmup_ms']:.0f} ms)"
     )
-    for name, ms in res["stages_ms"].items():
-        print(f"  {name:32s} {ms:8.2f} ms")
+    print_stage_table(res["stages"], res["derived"], res["notes"], e["runs"])
+    print(
+        f"peak RSS {res['peak_rss_mib']:.0f} MiB; Python/NumPy allocations in one restoration "
+        f"peak at {res['tracemalloc_peak_mib']:.1f} MiB (tracemalloc)"
+    )

@@ -111,8 +111,12 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmarks that print figures")
     p.add_argument(
         "what",
-        choices=["render", "restore", "accuracy"],
-        help="render/restore: wall time; accuracy: scores over seeds with an error budget",
+        nargs="?",
+        default="all",
+        choices=["all", "render", "restore", "accuracy"],
+        help="all (default): time every stage, write bench.json and bench.png to --out; "
+        "render/restore: wall time of one part, printed; "
+        "accuracy: scores over seeds with an error budget",
     )
     p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
     p.add_argument("--dir", type=Path, help="render folder to restore (default: render one)")
@@ -120,7 +124,9 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--variant", default="auto")
     p.add_argument("--seeds", type=int, default=10, help="accuracy: seeds 0..K-1")
-    p.add_argument("--out", type=Path, default=Path("renders/bench_accuracy"))
+    p.add_argument(
+        "--out", type=Path, help="all: renders/bench (default); accuracy: renders/bench_accuracy"
+    )
     p.add_argument("--wind", type=float, help="accuracy: wind speed U, m/s")
     p.add_argument("--surface", choices=["dielectric", "mirror"])
     p.set_defaults(func=_cmd_bench)

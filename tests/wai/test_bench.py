@@ -1,0 +1,135 @@
+"""``wai bench``: every stage in bench.json with consistent figures, a chart, the old
+``bench restore --json`` keys, and a stage mapping that survives renamed or missing timings."""
+
+import json
+import re
+from types import SimpleNamespace
+
+import pytest
+
+from mitsuba_wai.render import render_folder
+from tests.conftest import PAPER_TOML
+from wai.bench_restore import stage_times
+from wai.cli import main
+
+STAGES = (
+    "render_s",
+    "render_v",
+    "features",
+    "features.detect",
+    "features.match",
+    "surface",
+    "normals",
+    "integration",
+    "grid",
+    "reverse_trace",
+    "resampling",
+    "end_to_end",
+)
+
+
+@pytest.fixture(scope="module")
+def quick_toml(tmp_path_factory):
+    """The paper's scene at 1 sample per pixel (the dots stay resolved at 800x600)."""
+    text = PAPER_TOML.read_text()
+    for key in ("spp_pattern", "spp_view"):
+        text, n = re.subn(rf"^{key}\s*=\s*\d+", f"{key} = 1", text, flags=re.MULTILINE)
+        assert n == 1, key
+    path = tmp_path_factory.mktemp("cfg") / "quick.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def frame_dir(quick_toml, tmp_path_factory):
+    from wai_core.config import load_config
+
+    out = tmp_path_factory.mktemp("bench") / "frame"
+    render_folder(load_config(quick_toml), out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def report(quick_toml, frame_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("report") / "bench"
+    argv = ["bench", "--config", str(quick_toml), "--dir", str(frame_dir), "--out", str(out)]
+    assert main([*argv, "--runs", "2"]) == 0
+    return out, json.loads((out / "bench.json").read_text())
+
+
+def test_every_stage_with_a_consistent_summary(report):
+    _, rep = report
+    stages = rep["stages"]
+    assert set(STAGES) <= set(stages)
+    for name, s in stages.items():
+        assert 0 <= s["min_ms"] <= s["q1_ms"] <= s["median_ms"] <= s["q3_ms"] <= s["max_ms"], name
+        assert s["iqr_ms"] >= 0 and s["runs"] == 2, name
+    # Every restoration stage is a part of each run's end-to-end time, so of its median too.
+    e2e = stages["end_to_end"]["median_ms"]
+    assert all(s["median_ms"] <= e2e for s in stages.values() if s["group"] == "restore")
+    assert all(stages[n]["group"] == "render" for n in ("render_s", "render_v"))
+
+
+def test_setup_warmup_memory_and_derived(report):
+    _, rep = report
+    assert rep["runs"] == 2 and rep["machine"]["cores"] >= 1
+    assert isinstance(rep["runtime"]["variant"], str) and rep["runtime"]["drjit_threads"] >= 1
+    assert set(rep["warmup_ms"]) == {"render_s", "render_v", "restore"}
+    assert all(v > 0 for v in rep["warmup_ms"].values())
+    mem = rep["peak_memory_mib"]
+    assert 0 < mem["rss_after_restore"] <= mem["rss_after_render"]  # a process-wide peak
+    assert mem["tracemalloc_restore"] > 0
+    assert set(rep["derived"]) <= set(rep["stages"]) and set(rep["derived"]) <= set(rep["notes"])
+
+
+def test_chart_and_nothing_else_written(report):
+    out, _ = report
+    assert sorted(p.name for p in out.iterdir()) == ["bench.json", "bench.png"]
+    assert (out / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_restore_json_keeps_its_keys(frame_dir, capsys):
+    assert main(["bench", "restore", "--dir", str(frame_dir), "--runs", "1", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["end_to_end_ms"] > 0
+    assert {"features", "surface", "reverse_trace", "end_to_end"} <= set(res["stages_ms"])
+    assert all(isinstance(v, float) for v in res["stages_ms"].values())
+
+
+def test_zero_runs_is_bad_input(capsys):
+    assert main(["bench", "restore", "--runs", "0"]) == 2
+    assert "--runs" in capsys.readouterr().err
+
+
+def _result(top=None, features=None, surface=None, view=None):
+    return SimpleNamespace(
+        timings_ms=top or {},
+        features=SimpleNamespace(timings_ms=features or {}),
+        surface=SimpleNamespace(timings_ms=surface or {}),
+        view=SimpleNamespace(timings_ms=view or {}),
+    )
+
+
+def test_mapping_derives_renames_and_passes_unknown_keys_through():
+    res = _result(
+        top={"features": 10.0, "surface": 8.0, "reverse_trace": 6.0, "end_to_end": 25.0},
+        features={"detect": 6.0, "match": 3.0, "subpixel": 1.0},
+        surface={"rays": 1.0, "normals": 2.0, "integrate": 3.0, "grid": 1.5, "total": 7.5},
+        view={"plan": 0.1, "surface": 0.4, "solve": 2.0, "upsample": 1.0, "remap": 1.0},
+    )
+    times, derived = stage_times(res)
+    assert times["view"] == 6.0 and times["grid"] == 1.5 and times["features.subpixel"] == 1.0
+    assert times["normals"] == 3.0 and times["integration"] == 5.0
+    assert times["reverse_trace"] == pytest.approx(2.5) and times["resampling"] == 2.0
+    assert "end_to_end" not in times and "surface.total" not in times
+    assert set(derived) == {"normals", "integration", "surface.anchor_search"} | {
+        "reverse_trace",
+        "resampling",
+    }
+
+
+def test_mapping_omits_what_it_cannot_compute_and_never_overwrites_a_measurement():
+    times, derived = stage_times(_result(top={"surface": 8.0, "normals": 2.5}))
+    assert times == {"surface": 8.0, "normals": 2.5, "integration": 5.5}
+    assert derived == ["integration"]
+    assert stage_times(SimpleNamespace()) == ({}, [])
