@@ -28,6 +28,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -106,6 +107,8 @@ class AltermanSurface:
         Largest height change of the last refinement pass, mm (NaN when none ran).
     timings_ms : dict of str to float
         ``normals``, ``integrate`` (all passes), ``grid`` and ``total``, ms.
+    anchor : dict
+        How the absolute level was set: always the gauge's h0 (the sensor has no other anchor).
     """
 
     heightfield: Heightfield
@@ -116,6 +119,7 @@ class AltermanSurface:
     iterations: int
     height_change_mm: float
     timings_ms: dict[str, float] = field(default_factory=dict)
+    anchor: dict[str, Any] = field(default_factory=lambda: {"method": "gauge"})
 
 
 @dataclass

@@ -10,6 +10,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from wai.sweep import add_sweep_arguments
 from wai_core.errors import WaiInputError
 
 EXIT_BAD_INPUT = 2
@@ -52,13 +53,18 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
 
 def _add_experiment(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("experiment", help="experiments that write reports, tables and charts")
-    p.add_argument("name", choices=["validate", "paper", "alterman"], help="which experiment")
+    p.add_argument(
+        "name",
+        choices=["validate", "paper", "alterman", "tradeoffs", "stability"],
+        help="which experiment (tradeoffs and stability are sweeps on Dask)",
+    )
     p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
     p.add_argument("--out", type=Path, help="output folder (default renders/<name>)")
     p.add_argument(
         "--seeds", type=int, default=None, help="seeds 0..K-1 (default: paper 10, alterman 3)"
     )
     p.add_argument("--quick", action="store_true", help="a small version (for CI)")
+    add_sweep_arguments(p)
     p.set_defaults(func=_cmd_experiment)
 
 

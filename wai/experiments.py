@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 # Seeds 0..K-1 when --seeds is not given: the sun sweep renders six sensors per seed.
-DEFAULT_SEEDS = {"validate": 10, "paper": 10, "alterman": 3}
+DEFAULT_SEEDS = {"validate": 10, "paper": 10, "alterman": 3, "tradeoffs": 2, "stability": 2}
 
 
 def run_experiment(args: argparse.Namespace) -> None:
@@ -27,3 +27,11 @@ def run_experiment(args: argparse.Namespace) -> None:
         from wai.alterman_experiment import run_alterman
 
         run_alterman(args)
+    elif args.name == "tradeoffs":
+        from wai.tradeoffs import run_tradeoffs
+
+        run_tradeoffs(args)
+    elif args.name == "stability":
+        from wai.stability import run_stability
+
+        run_stability(args)

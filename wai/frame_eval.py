@@ -1,0 +1,215 @@
+"""One frame of a sweep: render it in memory, restore it, score it, and say how it went.
+
+Sweeps (``wai experiment tradeoffs``, ``wai experiment stability``) are many independent frames,
+each described by a *point*: a flat dict of JSON-able values (so it can be hashed, shipped to a
+Dask worker and written as a table row). :func:`evaluate_frame` turns one point into one row.
+
+Point keys (all optional except ``config`` and ``seed``)
+--------------------------------------------------------
+``config`` (str)
+    Scene TOML, e.g. ``scenes/paper.toml``.
+``seed`` (int)
+    Wave phases, render noise and sensor noise.
+``wind_mps``, ``spacing_px``, ``z_h_mm``, ``spp_pattern``
+    Override the wind speed U (m/s), the pattern spacing D (panel pixels), the diffuser height
+    z_h (mm) and the pattern's samples per pixel.
+``amplitude`` (float, default 1)
+    Scales the wave heights about h0 at fixed U (steeper waves of the same shape).
+``noise_rel`` (float, default 0)
+    Sensor read noise added to both cameras' wavy-water images: Gaussian, standard deviation
+    this fraction of the image's 99.9th percentile. The flat-water reference is a calibration
+    (averaged over many frames), so it stays clean.
+``integrators`` (str, default the pipeline's)
+    Comma-separated integrator names: each is run on the same frame, columns get a suffix.
+``warp_steps`` (str)
+    Comma-separated warp steps (px): the reverse trace is run at each on the same surface.
+``repeats`` (int, default 3)
+    Timed restorations per variant; the median is reported.
+
+Row
+---
+The point's fields, then ``frame_status`` (``ok``; ``failed: <why>`` when the restoration refused
+the frame; ``wrong_labels`` when more than 5 % of the kept correspondences are wrong), the
+correspondence counts against the geometric model (``n_in_view``, ``n_matched``,
+``n_correct``, ``fraction_correct``), eq. 35's effective slope amplitude ``phi_deg``, the
+surface and view scores and the timings.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wai_core.config import SystemConfig, load_config
+from wai_core.errors import WaiInputError
+from wai_core.heightfield import Heightfield
+
+# A matched spot farther than this from the model's spot for its label is a wrong label.
+CORRECT_RADIUS_PX = 3.0
+# More wrong labels than this fraction of the kept ones make the frame's status "wrong_labels".
+WRONG_LABEL_FRACTION = 0.05
+
+
+def frame_config(point: dict[str, Any]) -> SystemConfig:
+    """The configuration of one point: the scene file with the point's overrides."""
+    cfg = load_config(Path(point["config"])).replace("waves", seed=int(point["seed"]))
+    if point.get("wind_mps") is not None:
+        cfg = cfg.replace("waves", wind_speed_m_s=float(point["wind_mps"]))
+    if point.get("spacing_px") is not None:
+        cfg = cfg.replace("pattern", spacing_px=float(point["spacing_px"]))
+    if point.get("z_h_mm") is not None:
+        cfg = cfg.replace("diffuser", z_mm=float(point["z_h_mm"]))
+    if point.get("spp_pattern") is not None:
+        cfg = cfg.replace("render", spp_pattern=int(point["spp_pattern"]))
+    return cfg
+
+
+def scaled_surface(surface: Heightfield, h0_mm: float, amplitude: float) -> Heightfield:
+    """``surface`` with its heights about ``h0_mm`` multiplied by ``amplitude``."""
+    return Heightfield(surface.x, surface.y, h0_mm + amplitude * (surface.z - h0_mm))
+
+
+def add_read_noise(image: NDArray, rel: float, rng: np.random.Generator) -> NDArray[np.float32]:
+    """``image`` plus Gaussian noise of ``rel`` x its 99.9th percentile (float32)."""
+    if rel <= 0:
+        return image
+    scale = rel * float(np.percentile(image, 99.9))
+    return (image + rng.normal(0.0, scale, image.shape)).astype(np.float32)
+
+
+def render_frame(cfg: SystemConfig, amplitude: float = 1.0) -> tuple[dict[str, Any], Any]:
+    """Render the four images of one frame in memory; returns them (with ``render_s_pattern``
+    and ``render_s_view``, the wavy renders' wall times) and the true surface."""
+    from mitsuba_wai.mesh import flat_like
+    from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
+
+    surface = scaled_surface(wave_surface(cfg), cfg.water.h0_mm, amplitude)
+    renderer = FrameRenderer(cfg, surface)
+    seed = render_seed(cfg)
+    images: dict[str, Any] = {}
+    for system in ("pattern", "view"):
+        t0 = time.perf_counter()
+        images[system] = renderer.render(surface, seed, (system,))[system]
+        images[f"render_s_{system}"] = time.perf_counter() - t0
+    flat = renderer.render(flat_like(surface, cfg.water.h0_mm), seed)
+    images["pattern_flat"], images["view_truth"] = flat["pattern"], flat["view"]
+    return images, surface
+
+
+def correspondence_counts(cfg: SystemConfig, surface: Heightfield, features: Any) -> dict:
+    """Kept correspondences checked against the geometric model's spot for each label."""
+    from wai.forward import predict_spots
+
+    ij_true, px_true = predict_spots(cfg, surface)
+    index = {tuple(k): n for n, k in enumerate(ij_true.tolist())}
+    rows = np.array([index.get(tuple(k), -1) for k in features.ij.tolist()], dtype=np.int64)
+    known = rows >= 0
+    err = np.full(len(rows), np.inf)
+    err[known] = np.linalg.norm(features.spot_px[known] - px_true[rows[known]], axis=1)
+    n_correct = int(np.sum(err < CORRECT_RADIUS_PX))
+    return {
+        "n_in_view": int(len(px_true)),
+        "n_matched": int(len(rows)),
+        "n_correct": n_correct,
+        "n_wrong": int(len(rows) - n_correct),
+        "fraction_correct": n_correct / max(len(px_true), 1),
+        "spot_median_px": float(np.median(err[err < CORRECT_RADIUS_PX])) if n_correct else None,
+    }
+
+
+def _names(value: Any, default: str) -> list[str]:
+    return [s.strip() for s in str(value or default).split(",") if s.strip()]
+
+
+def _timed_restore(images: dict, cal: Any, options: Any, repeats: int) -> tuple[Any, dict]:
+    """Restore ``repeats`` times; the last result and the median time of each stage, ms."""
+    from restoration.pipeline import restore
+
+    stages: dict[str, list[float]] = {}
+    result = None
+    for _ in range(max(int(repeats), 1)):
+        result = restore(images, cal, options)
+        for name, ms in result.timings_ms.items():
+            stages.setdefault(name, []).append(ms)
+        for name, ms in result.surface.timings_ms.items():
+            stages.setdefault(f"surface.{name}", []).append(ms)
+    return result, {k: float(np.median(v)) for k, v in stages.items()}
+
+
+def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[str, Any]:
+    from restoration.scoring import score
+
+    s = score(
+        result,
+        images["view"] / cal.view_gain,
+        cal,
+        surface,
+        images["view_truth"] / cal.view_gain,
+    )
+    return {
+        "wai_rmse_mm": s["wai_rmse_mm"],
+        "wai_rmse_demeaned_mm": s["wai_rmse_demeaned_mm"],
+        "wai_max_abs_mm": s["wai_max_abs_mm"],
+        "distorted_ssim": s["distorted"]["ssim"],
+        "restored_ssim": s["restored"]["ssim"],
+        "corner_std_distorted_px": s["corner_std_distorted_px"],
+        "corner_std_restored_px": s["corner_std_restored_px"],
+        "anchor_method": result.surface.anchor.get("method"),
+        "anchor_mm": result.surface.anchor.get("anchor_mm"),
+    }
+
+
+def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
+    """Render, restore and score the frame of ``point`` (see the module docstring)."""
+    from restoration.pipeline import Calibration, RestoreOptions
+    from wai.paper import correspondence_limit, effective_phi_deg
+
+    cfg = frame_config(point)
+    row: dict[str, Any] = {"phi_max_deg": correspondence_limit(cfg)["phi_max_deg"]}
+    try:
+        images, surface = render_frame(cfg, float(point.get("amplitude", 1.0)))
+    except (WaiInputError, ValueError) as exc:  # e.g. waves that reach the diffuser
+        row["frame_status"] = f"failed: cannot render: {exc}"
+        return row
+    rng = np.random.default_rng([int(point["seed"]), 2024])
+    noise = float(point.get("noise_rel", 0.0))
+    for key in ("pattern", "view"):
+        images[key] = add_read_noise(images[key], noise, rng)
+    for key in ("render_s_pattern", "render_s_view"):
+        row[key] = images.pop(key)
+    row["phi_deg"] = effective_phi_deg(surface, cfg)
+    cal = Calibration(cfg, cfg.water.n_water**2)
+    base = RestoreOptions()
+    integrators = _names(point.get("integrators"), base.integrator)
+    steps = [int(s) for s in _names(point.get("warp_steps"), str(base.warp_step_px))]
+    repeats = int(point.get("repeats", 3))
+    try:
+        cal.prepare(images["pattern_flat"])
+        for name in integrators:
+            for step in steps:
+                options = replace(base, integrator=name, warp_step_px=step)
+                result, ms = _timed_restore(images, cal, options, repeats)
+                suffix = _suffix(name, step, integrators, steps)
+                scores = _scores(result, images, cal, surface)
+                row.update({f"{k}{suffix}": v for k, v in scores.items()})
+                row.update({f"ms_{k}{suffix}": v for k, v in ms.items()})
+        row.update(correspondence_counts(cfg, surface, result.features))
+        row.update({f"count_{k}": v for k, v in result.features.counts.items()})
+    except WaiInputError as exc:
+        # A refused frame yields no usable correspondence: it counts as none correct.
+        row.update(n_correct=0, fraction_correct=0.0, frame_status=f"failed: {exc}")
+        return row
+    wrong = row["n_wrong"] > WRONG_LABEL_FRACTION * max(row["n_matched"], 1)
+    row["frame_status"] = "wrong_labels" if wrong else "ok"
+    return row
+
+
+def _suffix(name: str, step: int, names: list[str], steps: list[int]) -> str:
+    """Column suffix of one variant: empty when only one variant runs."""
+    parts = ([name] if len(names) > 1 else []) + ([f"step{step}"] if len(steps) > 1 else [])
+    return "".join(f"_{p}" for p in parts)

@@ -1,0 +1,224 @@
+"""``wai experiment stability``: where each method breaks, against the bound eq. 35 predicts.
+
+Sweeps, each over seeds (frames by :func:`wai.frame_eval.evaluate_frame`, on Dask):
+
+- sea state: wind speed U from calm to where everything fails, and the wave heights scaled at
+  fixed U = 1 m/s (steeper waves of the same shape);
+- pattern spacing D, diffuser height z_h, sensor read noise;
+- Alterman's sun sensor: the sun's zenith angle (:func:`evaluate_sun`).
+
+Every frame reports its fraction of correct correspondences (against the geometric model's
+spot for each label), surface RMSE, restored SSIM and a status; a failed frame is a row with
+its status, never left out of a mean. The summary chart puts every structured-light frame's
+fraction of correct correspondences against its effective slope amplitude Φ (eq. 35's 2Φ is
+the largest inclination change between neighbouring dots) divided by the Φ that eq. 35 allows
+for its geometry: the bound predicts failure beyond 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from wai.figures import save_figure  # noqa: E402
+from wai.frame_eval import evaluate_frame  # noqa: E402
+from wai.sweep import run_sweep, sweep_kwargs  # noqa: E402
+from wai_core.io import atomic_write_bytes, write_json  # noqa: E402
+
+SWEEPS: dict[str, tuple[str, tuple[float, ...]]] = {
+    "wind": ("wind_mps", (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0)),
+    "amplitude": ("amplitude", (0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0)),
+    "spacing": ("spacing_px", (12.0, 16.0, 20.0, 28.0, 40.0, 56.0)),
+    "z_h": ("z_h_mm", (20.0, 40.0, 60.0, 80.0, 100.0, 120.0)),
+    "noise": ("noise_rel", (0.0, 0.01, 0.03, 0.1, 0.2, 0.4)),
+    "sun": ("theta_sun_deg", (0.0, 15.0, 30.0, 45.0, 60.0)),
+}
+QUICK: dict[str, tuple[float, ...]] = {
+    "wind": (0.5, 1.0, 3.0),
+    "amplitude": (1.0, 4.0),
+    "spacing": (16.0, 28.0),
+    "z_h": (60.0,),
+    "noise": (0.0, 0.1),
+    "sun": (0.0,),
+}
+
+
+def evaluate_sun(point: dict[str, Any]) -> dict[str, Any]:
+    """Render and restore Alterman's sun sensor at the point's sun zenith angle."""
+    from mitsuba_wai.alterman import render_alterman_folder
+    from restoration.alterman import DEFAULT_OPTIONS
+    from wai.restore_cli import restore_folder
+    from wai_core.alterman import AltermanSystem, load_alterman
+    from wai_core.config import load_config
+
+    sensor = load_alterman(Path(point["alterman"])).sensor
+    sensor = sensor.replace("sun", zenith_deg=float(point["theta_sun_deg"]))
+    base = load_config(Path(point["config"])).replace("waves", seed=int(point["seed"]))
+    with tempfile.TemporaryDirectory(prefix="wai-sun-") as tmp:
+        frame = Path(tmp) / "frame"
+        render_alterman_folder(AltermanSystem(base, sensor), frame, progress=False)
+        m = restore_folder(frame, DEFAULT_OPTIONS, progress=False, method="alterman")
+    status = m.get("status", "ok")
+    row = {"frame_status": status}
+    if status == "ok":
+        row.update(
+            wai_rmse_mm=m["wai_rmse_mm"],
+            wai_rmse_demeaned_mm=m["wai_rmse_demeaned_mm"],
+            restored_ssim=m["restored"]["ssim"],
+            features_used=m["features_used"],
+            features_rejected=m["features_rejected"],
+        )
+    return row
+
+
+def evaluate_point(point: dict[str, Any]) -> dict[str, Any]:
+    """One stability point: the sun sweep's own evaluation, or a structured-light frame."""
+    return evaluate_sun(point) if point["sweep"] == "sun" else evaluate_frame(point)
+
+
+def stability_points(
+    config: Path, alterman: Path, seeds: list[int], quick: bool
+) -> list[dict[str, Any]]:
+    """The sweeps' points: one per swept value and seed."""
+    points = []
+    for sweep, (field, values) in SWEEPS.items():
+        for value in QUICK[sweep] if quick else values:
+            for seed in seeds:
+                p = {"sweep": sweep, "config": str(config), "seed": seed, field: value,
+                     "repeats": 1}
+                if sweep == "sun":
+                    p["alterman"] = str(alterman)
+                points.append(p)
+    return points
+
+
+def _ok(row: dict) -> bool:
+    return row.get("status") == "ok" and row.get("frame_status") == "ok"
+
+
+def sweep_summary(rows: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """Per sweep and value: frames, how many ended ok and how each other one ended, and the
+    means over the ok frames (fraction correct is averaged over all frames that ran)."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    for sweep, (field, _) in SWEEPS.items():
+        sel = [r for r in rows if r.get("sweep") == sweep]
+        entries = []
+        for value in sorted({r[field] for r in sel}):
+            group = [r for r in sel if r[field] == value]
+            good = [r for r in group if _ok(r)]
+            statuses: dict[str, int] = {}
+            for r in group:
+                s = r.get("frame_status") if r.get("status") == "ok" else r.get("status")
+                key = str(s).split(":")[0]
+                statuses[key] = statuses.get(key, 0) + 1
+
+            def mean(key: str, rows_: list[dict] = good) -> float:
+                vals = [float(r[key]) for r in rows_ if r.get(key) is not None]
+                vals = [v for v in vals if np.isfinite(v)]
+                return float(np.mean(vals)) if vals else float("nan")
+
+            entries.append({
+                "value": value, "frames": len(group), "ok": len(good), "statuses": statuses,
+                "fraction_correct": mean("fraction_correct", group),
+                "wai_rmse_mm": mean("wai_rmse_mm"), "restored_ssim": mean("restored_ssim"),
+                "phi_deg": mean("phi_deg", group), "phi_max_deg": mean("phi_max_deg", group),
+            })
+        out[sweep] = entries
+    return out
+
+
+def stability_figure(rows: list[dict], summary: dict[str, list[dict]], path: Path) -> None:
+    """Fraction correct against Φ / Φ_max (eq. 35) for every frame, and per sweep the surface
+    RMSE and the share of frames that ended ok."""
+    fig, axes = plt.subplots(2, 4, figsize=(17, 8))
+    ax = axes[0, 0]
+    markers = dict(zip(SWEEPS, "osD^vP", strict=False))
+    for sweep in SWEEPS:
+        pts = [r for r in rows if r.get("sweep") == sweep and r.get("phi_max_deg")
+               and r.get("phi_deg") is not None]
+        if not pts:
+            continue
+        x = [r["phi_deg"] / r["phi_max_deg"] for r in pts]
+        y = [r.get("fraction_correct") or 0.0 for r in pts]
+        ax.plot(x, y, markers[sweep], ms=5, alpha=0.7, label=sweep)
+    ax.axvline(1.0, color="gray", ls="--", lw=1, label="eq. 35 bound")
+    ax.set(xlabel="Φ / Φ_max (eq. 35)", ylabel="fraction of dots correctly matched",
+           title="Correspondence against the bound")
+    ax.set_xscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    labels = {"wind": "U (m/s)", "amplitude": "height scale at U = 1", "spacing": "D (px)",
+              "z_h": "z_h (mm)", "noise": "read noise (x p99.9)", "sun": "sun zenith (deg)"}
+    for ax, sweep in zip(axes.ravel()[1:], SWEEPS, strict=False):
+        ent = summary[sweep]
+        if not ent:
+            ax.set_visible(False)
+            continue
+        x = [e["value"] for e in ent]
+        ax.plot(x, [e["wai_rmse_mm"] for e in ent], "o-", label="surface RMSE (mm, ok frames)")
+        ax.set_yscale("log")
+        ax.set(xlabel=labels[sweep], title=sweep)
+        tw = ax.twinx()
+        tw.plot(x, [e["ok"] / max(e["frames"], 1) for e in ent], "s--", color="tab:red",
+                label="share of frames ok")
+        if sweep != "sun":
+            tw.plot(x, [e["fraction_correct"] for e in ent], "^:", color="tab:green",
+                    label="fraction correct")
+        tw.set_ylim(-0.05, 1.05)
+        ax.grid(alpha=0.3)
+        h1, l1 = ax.get_legend_handles_labels()
+        h2, l2 = tw.get_legend_handles_labels()
+        ax.legend(h1 + h2, l1 + l2, fontsize=6)
+    axes.ravel()[-1].set_visible(False)  # seven panels on a 2 x 4 grid
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def report_markdown(summary: dict[str, list[dict]], command: str) -> str:
+    """Tables of the sweeps with the status of every frame."""
+    lines = ["# Stability: where the methods break", "", f"Command: `{command}`", "",
+             "![stability](stability.png)", "",
+             "Status counts per value: `ok`; `wrong_labels` (over 5 % of kept correspondences "
+             "wrong); `failed` (the restoration refused the frame, e.g. too few features); "
+             "`no_sun` (Alterman's sensor without a sun); `error` (an exception, in the table).",
+             ""]
+    for sweep, entries in summary.items():
+        field = SWEEPS[sweep][0]
+        lines += [f"## {sweep} ({field})", "",
+                  "| value | frames | statuses | fraction correct | Φ (deg) | Φ_max (deg) | "
+                  "RMSE (mm) | SSIM |", "|" + " --- |" * 8]
+        for e in entries:
+            st = ", ".join(f"{k} {v}" for k, v in sorted(e["statuses"].items()))
+            lines.append(
+                f"| {e['value']:g} | {e['frames']} | {st} | {e['fraction_correct']:.3f} | "
+                f"{e['phi_deg']:.2f} | {e['phi_max_deg']:.2f} | {e['wai_rmse_mm']:.3g} | "
+                f"{e['restored_ssim']:.3f} |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+def run_stability(args: argparse.Namespace) -> dict[str, Any]:
+    """Run the sweeps into ``args.out/stability.csv``; write the chart and the report."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    points = stability_points(
+        args.config, Path("scenes/alterman.toml"), list(range(args.seeds)), args.quick
+    )
+    rows = run_sweep(points, evaluate_point, out / "stability.csv", **sweep_kwargs(args))
+    summary = sweep_summary(rows)
+    stability_figure(rows, summary, out / "stability.png")
+    command = f"wai experiment stability --seeds {args.seeds}" + (" --quick" if args.quick else "")
+    text = report_markdown(summary, command)
+    atomic_write_bytes(out / "stability.md", text.encode())
+    write_json(out / "stability.json", summary)
+    print(text)
+    return summary
