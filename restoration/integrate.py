@@ -637,8 +637,8 @@ class SlopeGrid:
     p, q : (ny, nx) ndarray
         ``dz/dx`` and ``dz/dy`` at the nodes, dimensionless.
     inside : (ny, nx) ndarray of bool
-        Nodes inside the samples' convex hull (the others hold their nearest inside node's
-        slopes).
+        Nodes inside the samples' convex hull (the others hold extrapolated slopes, see
+        :func:`_extrapolate_slopes`).
     """
 
     x0: float
@@ -665,7 +665,8 @@ def _regular_axes(xy: Array, step_mm: float) -> tuple[Array, Array]:
             f"integrate: samples {step_mm:.3g} mm apart span a {n[0]} x {n[1]} grid, too large"
         )
     # (Rounding the node counts up to FFT-friendly sizes would save ~1 ms but add nodes outside
-    # the hull, whose filled slopes cost accuracy: see _extrapolate_slopes.)
+    # the hull, whose extrapolated slopes cost accuracy: 0.07 -> 0.39 mm on the unjittered test
+    # sinusoid; see _extrapolate_slopes.)
     return lo[0] + step_mm * np.arange(n[0]), lo[1] + step_mm * np.arange(n[1])
 
 
@@ -719,8 +720,8 @@ def _linear_on_grid(tri: Delaunay, values: Array, gx: Array, gy: Array) -> Array
     spans = _scan_triangles(xy[verts], gx, gy)
     corner_values = values[verts].transpose(2, 1, 0)  # (C, 3, T)
     # On each triangle the interpolant is v_0 + dv/dx (x - x_0) + dv/dy (y - y_0), with the
-    # derivatives from the barycentric weights' (see _Spans); it is evaluated at the first node
-    # of each run and stepped along the run, so each node costs one multiply-add.
+    # derivatives from the barycentric weights' gradients (see _Spans); it is evaluated at the
+    # first node of each run and stepped along the run, so each node costs one multiply-add.
     dv_dx = np.sum(spans.bx * corner_values, axis=1)  # (C, T)
     dv_dy = np.sum(spans.by * corner_values, axis=1)
     t = spans.tri
