@@ -133,6 +133,10 @@ METHODS = ("structured-light", "alterman")
 """Surface sensing methods: this module's, and Alterman's sun sensor (restoration.alterman)."""
 
 
+SEARCH_INTEGRATOR = "trapezoid"
+"""Integrator of the anchor search (see :func:`estimate_surface`)."""
+
+
 def estimate_surface(
     ij: NDArray, spot_px: NDArray, cfg: SystemConfig, options: RestoreOptions
 ) -> SurfaceEstimate:
@@ -150,22 +154,28 @@ def estimate_surface(
         cfg.diffuser.z_mm,
     )
 
-    def reconstruct(anchor_mm: float) -> SurfaceEstimate:
+    def reconstruct(anchor_mm: float, integrator: str = options.integrator) -> SurfaceEstimate:
         return reconstruct_surface(
             *fixed,
             anchor_mm,
-            integrator=options.integrator,
+            integrator=integrator,
             n_refine=options.n_refine,
             grid_spacing_mm=options.grid_spacing_mm,
             gridder=options.gridder,
         )
+
+    def probe(anchor_mm: float) -> SurfaceEstimate:
+        # The level is a property of the data, not of the integrator: search it with the
+        # trapezoid rule, whose fit error is the integrability residual itself (integrators
+        # that resample onto a grid add their own resampling error to it).
+        return reconstruct(anchor_mm, SEARCH_INTEGRATOR)
 
     h0 = cfg.water.h0_mm
     if options.anchor == "gauge":
         est = reconstruct(h0)
         est.anchor.update(method="gauge", anchor_mm=h0)
         return est
-    search = find_anchor(reconstruct, h0, step_mm=3.0)
+    search = find_anchor(probe, h0, step_mm=3.0)
     info = {
         "searched_mm": search.anchor_mm,
         "sigma_mm": search.sigma_mm,
@@ -173,6 +183,8 @@ def estimate_surface(
     }
     if search.sigma_mm <= options.anchor_max_sigma_mm:
         est = search.estimate
+        if options.integrator != SEARCH_INTEGRATOR:
+            est = reconstruct(search.anchor_mm)
         est.anchor.update(method="integrability", anchor_mm=search.anchor_mm, **info)
     else:  # the slopes do not pin the level (calm water): trust the gauge, and say so
         est = reconstruct(h0)

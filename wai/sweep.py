@@ -410,6 +410,9 @@ def _dask_client(scheduler: str | None, workers: int, threads_per_worker: int) -
             threads_per_worker=threads_per_worker,
             processes=True,
             dashboard_address=None,  # needs bokeh, which is not a dependency
+            # the scheduler's HTTP endpoints would otherwise claim port 8787, and warn when
+            # another cluster (a concurrent sweep) holds it
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
             silence_logs=logging.ERROR,  # start/stop chatter; errors still show
         )
     with cluster, Client(cluster) as client:
