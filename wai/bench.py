@@ -24,7 +24,11 @@ import numpy as np
 from wai_core.errors import WaiInputError
 from wai_core.io import write_json
 
-DEFAULT_OUT = {"all": Path("renders/bench"), "accuracy": Path("renders/bench_accuracy")}
+DEFAULT_OUT = {
+    "all": Path("renders/bench"),
+    "accuracy": Path("renders/bench_accuracy"),
+    "video": Path("renders/bench_video"),
+}
 """Output folder of the benchmarks that write files, when ``--out`` is not given."""
 
 RENDER_STAGES = {"render_s": "pattern", "render_v": "view"}
@@ -354,6 +358,11 @@ def run_bench(args: argparse.Namespace) -> None:
 
         res = run_accuracy(args)
         printer = print_accuracy
+    elif what == "video":
+        from wai.bench_video import bench_video, print_video
+
+        res = bench_video(args)
+        printer = print_video
     else:
         from wai.bench_restore import bench_restore, print_restore
 

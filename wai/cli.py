@@ -119,10 +119,11 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "what",
         nargs="?",
         default="all",
-        choices=["all", "render", "restore", "accuracy"],
+        choices=["all", "render", "restore", "accuracy", "video"],
         help="all (default): time every stage, write bench.json and bench.png to --out; "
         "render/restore: wall time of one part, printed; "
-        "accuracy: scores over seeds with an error budget",
+        "accuracy: scores over seeds with an error budget; "
+        "video: latency and multi-process throughput over a rendered frame sequence",
     )
     p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
     p.add_argument("--dir", type=Path, help="render folder to restore (default: render one)")
@@ -135,6 +136,9 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--wind", type=float, help="accuracy: wind speed U, m/s")
     p.add_argument("--surface", choices=["dielectric", "mirror"])
+    p.add_argument("--workers", type=int, default=2, help="video: worker processes (and 1)")
+    p.add_argument("--frames", type=int, default=60, help="video: frames restored per count")
+    p.add_argument("--sequence", type=int, default=6, help="video: distinct frames rendered")
     p.set_defaults(func=_cmd_bench)
 
 

@@ -28,8 +28,9 @@ Point keys (all optional except ``config`` and ``seed``)
 
 Row
 ---
-The point's fields, then ``frame_status`` (``ok``; ``failed: <why>`` when the restoration refused
-the frame; ``wrong_labels`` when more than 5 % of the kept correspondences are wrong), the
+The point's fields, then ``frame_status`` (``ok``; ``failed: <why>`` when the restoration
+refused the frame; ``wrong_labels`` when more than 5 % of the kept correspondences are wrong;
+``gauge_level`` when the slopes did not pin the level and the gauge's h0 was used), the
 correspondence counts against the geometric model (``n_in_view``, ``n_matched``,
 ``n_correct``, ``fraction_correct``), eq. 35's effective slope amplitude ``phi_deg``, the
 surface and view scores and the timings.
@@ -205,7 +206,12 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
         row.update(n_correct=0, fraction_correct=0.0, frame_status=f"failed: {exc}")
         return row
     wrong = row["n_wrong"] > WRONG_LABEL_FRACTION * max(row["n_matched"], 1)
-    row["frame_status"] = "wrong_labels" if wrong else "ok"
+    if wrong:
+        row["frame_status"] = "wrong_labels"
+    elif result.surface.anchor.get("method") == "gauge_fallback":
+        row["frame_status"] = "gauge_level"  # shape restored, the level is only the gauge's
+    else:
+        row["frame_status"] = "ok"
     return row
 
 

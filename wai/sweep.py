@@ -42,6 +42,7 @@ from wai_core.io import atomic_write_bytes, read_json, write_json
 BOOKKEEPING = ("point_id", "status", "elapsed_s", "worker")
 OK = "ok"
 IN_PROCESS = "in-process"
+MAX_MESSAGE = 400  # characters of an error message kept in a row's status
 
 # Native thread pools that read their size from the environment when they are loaded.
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -148,8 +149,14 @@ def _checked_result(result: Any, point: Point) -> dict[str, Any]:
 
 
 def error_status(exc: BaseException) -> str:
-    """One-line status of a failed point: ``error: <ExceptionType>: <message>``."""
+    """One-line status of a failed point: ``error: <ExceptionType>: <message>``.
+
+    Messages longer than :data:`MAX_MESSAGE` characters are cut (Dask's serialisation errors
+    carry whole tracebacks).
+    """
     message = " ".join(str(exc).split())
+    if len(message) > MAX_MESSAGE:
+        message = message[: MAX_MESSAGE - 3] + "..."
     name = type(exc).__name__
     return f"error: {name}: {message}" if message else f"error: {name}"
 
@@ -425,13 +432,16 @@ def _backend(
 ) -> Iterator[tuple[Runner, dict[str, Any]]]:
     """Yield a runner of points and a description of where it runs (for the metadata)."""
     if scheduler is None and workers == 0:
-        yield _run_in_process, {"scheduler": IN_PROCESS, "workers": 0, "threads": 1}
+        where = {"scheduler": IN_PROCESS, "workers": 0, "threads_per_worker": 1, "threads": 1}
+        yield _run_in_process, where
         return
     with _dask_client(scheduler, workers, threads_per_worker) as client:
         nthreads = client.nthreads()
+        per_worker = set(nthreads.values())
         where = {
             "scheduler": scheduler or "local",
             "workers": len(nthreads),
+            "threads_per_worker": per_worker.pop() if len(per_worker) == 1 else None,
             "threads": sum(nthreads.values()),
         }
         yield functools.partial(_run_on_dask, client), where
@@ -625,6 +635,7 @@ def run_sweep(
         "scheduler": scheduler or ("local" if workers else IN_PROCESS),
         "workers": workers,
         "threads_per_worker": threads_per_worker,
+        "threads": workers * threads_per_worker or 1,
         "key": None if key is None else list(key),
         "started": _now(),
     }

@@ -6,6 +6,7 @@ import argparse
 import csv
 import json
 import os
+import threading
 import time
 
 import pytest
@@ -32,7 +33,10 @@ def square(point: dict) -> dict:
 
 
 def square_and_threads(point: dict) -> dict:
-    """square() plus the worker's OpenMP thread count (to check the worker environment)."""
+    """square() plus the worker's OpenMP thread count (to check the worker environment); for
+    x = 5 a result that does not pickle (to check that a Dask failure is a row too)."""
+    if point["x"] == 5:
+        return {"y": threading.Lock()}
     return {**square(point), "omp": os.environ.get("OMP_NUM_THREADS")}
 
 
@@ -182,8 +186,10 @@ def test_local_cluster_of_two_workers(tmp_path):
     rows = run_sweep(points(6), square_and_threads, table, workers=2, progress=False)
 
     new = [r for r in rows if r["x"] >= 2]
-    assert summary(new) == {(2, 4, "ok"), (3, None, "error"), (4, 16, "ok"), (5, 25, "ok")}
-    assert all(r["worker"].startswith("tcp://") for r in new)
+    assert summary(new) == {(2, 4, "ok"), (3, None, "error"), (4, 16, "ok"), (5, None, "error")}
+    assert "error: ValueError: no square for 3" in {r["status"] for r in new}
+    assert all(r["worker"].startswith("tcp://") for r in new if r["x"] != 5)
     assert {r["omp"] for r in new if r["status"] == "ok"} == {1}  # one native thread per worker
     run = last_run(table)
-    assert (run["scheduler"], run["workers"], run["skipped"], run["ran"]) == ("local", 2, 2, 4)
+    assert (run["scheduler"], run["workers"], run["threads_per_worker"]) == ("local", 2, 1)
+    assert (run["skipped"], run["ran"], run["failed"]) == (2, 4, 2)
