@@ -759,7 +759,7 @@ def detect_spots(
     # A local minimum sits below the mean of noise: without this, read noise would lift every
     # pixel above the floor. Capped by the lower quartile of what remains, which is ~0 where
     # there is no noise (there the noise estimate is only the dots' sharpness).
-    lifted = float(np.percentile((smooth - bg)[::4, ::4], 25.0))
+    lifted = float(np.percentile(smooth[::4, ::4] - bg[::4, ::4], 25.0))
     bg += min(noise * _minimum_bias(smooth_px, background_px), max(lifted, 0.0))
     smooth -= bg
     saturated_px = None if saturation is None else lum >= saturation

@@ -181,7 +181,7 @@ def reference_detect(image: np.ndarray) -> dict[str, np.ndarray]:
     smooth = cv2.GaussianBlur(lum, (0, 0), 1.0, borderType=cv2.BORDER_REFLECT)
     noise = features._noise_sigma(lum, smooth, 1.0)
     bg = features._background(smooth, 25)
-    lifted = float(np.percentile((smooth - bg)[::4, ::4], 25.0))
+    lifted = float(np.percentile(smooth[::4, ::4] - bg[::4, ::4], 25.0))
     bg += min(noise * features._minimum_bias(1.0, 25), max(lifted, 0.0))
     smooth, raw = smooth - bg, (lum - bg).astype(np.float64)
     tiny = 1e-6 * max(float(smooth.max()), 1e-30)
