@@ -60,6 +60,9 @@ class Calibration:
     cfg: SystemConfig
     view_gain: float
     reference: ReferenceGrid | None = None
+    last_level_mm: float | None = None
+    """Mean level found from integrability in the previous frame (a video's level drifts by
+    far less than the search's first step between frames): where the next search starts."""
 
     def prepare(self, pattern_flat: NDArray) -> ReferenceGrid:
         """Detect and label the flat-water pattern once; later frames reuse it."""
@@ -138,9 +141,14 @@ SEARCH_INTEGRATOR = "trapezoid"
 
 
 def estimate_surface(
-    ij: NDArray, spot_px: NDArray, cfg: SystemConfig, options: RestoreOptions
+    ij: NDArray,
+    spot_px: NDArray,
+    cfg: SystemConfig,
+    options: RestoreOptions,
+    start_mm: float | None = None,
 ) -> SurfaceEstimate:
-    """Surface from matched features, anchored by the gauge's h0 or by integrability."""
+    """Surface from matched features, anchored by the gauge's h0 or by integrability (searched
+    from ``start_mm``, default h0)."""
     if options.anchor not in ANCHORS:
         raise WaiInputError(f"unknown anchor {options.anchor!r} (known: {', '.join(ANCHORS)})")
     keep = np.isfinite(spot_px).all(axis=1)
@@ -175,7 +183,7 @@ def estimate_surface(
         est = reconstruct(h0)
         est.anchor.update(method="gauge", anchor_mm=h0)
         return est
-    search = find_anchor(probe, h0, step_mm=3.0)
+    search = find_anchor(probe, h0 if start_mm is None else start_mm, step_mm=3.0)
     info = {
         "searched_mm": search.anchor_mm,
         "sigma_mm": search.sigma_mm,
@@ -254,16 +262,19 @@ def restore(
 ) -> RestoreResult:
     """Run the restoration on already-loaded images (the per-frame hot path).
 
-    The flat-water reference is prepared on the first call and kept in ``cal``.
+    The flat-water reference is prepared on the first call and kept in ``cal``, and so is the
+    level found, where the next frame's search starts.
     """
     cfg = cal.cfg
     reference = cal.prepare(images["pattern_flat"])
     t0 = time.perf_counter()
     features = features_from_reference(images["pattern"], reference, cfg)
     t1 = time.perf_counter()
-    surface = estimate_surface(features.ij, features.spot_px, cfg, options)
+    surface = estimate_surface(features.ij, features.spot_px, cfg, options, cal.last_level_mm)
     if len(features.alt_shifts) > 1:
         features, surface = resolve_label_shift(features, surface, cfg, options)
+    if surface.anchor.get("method") == "integrability":
+        cal.last_level_mm = surface.anchor["anchor_mm"]
     t2 = time.perf_counter()
     view = restore_view(
         images["view"] / cal.view_gain,
