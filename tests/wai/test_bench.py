@@ -133,3 +133,25 @@ def test_mapping_omits_what_it_cannot_compute_and_never_overwrites_a_measurement
     assert times == {"surface": 8.0, "normals": 2.5, "integration": 5.5}
     assert derived == ["integration"]
     assert stage_times(SimpleNamespace()) == ({}, [])
+
+
+def test_bench_video_reports_latency_and_throughput(quick_toml, tmp_path, capsys):
+    # One rendered frame restored by one worker process: the figures must be consistent
+    # (throughput over n frames cannot beat n times the in-worker time by more than the
+    # number of workers), and the sequence is rendered once, then reused.
+    args = ["bench", "video", "--config", str(quick_toml), "--out", str(tmp_path / "v"),
+            "--sequence", "1", "--frames", "3", "--workers", "1", "--runs", "1", "--json"]
+    assert main(args) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["latency"]["median_ms"] > 0
+    (one,) = res["throughput"]
+    assert one["workers"] == 1 and one["frames"] == 3
+    assert one["fps"] <= 1e3 / one["worker_ms_median"] * 1.05
+    assert (tmp_path / "v" / "frame00" / "scene.json").is_file()
+    assert main([*args[:-1]]) == 0  # a rerun renders nothing new and prints the report
+    assert "throughput, 1 worker(s)" in capsys.readouterr().out
+
+
+def test_bench_video_rejects_zero_workers(tmp_path, capsys):
+    assert main(["bench", "video", "--workers", "0", "--out", str(tmp_path)]) == 2
+    assert "--workers" in capsys.readouterr().err
