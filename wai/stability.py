@@ -141,7 +141,7 @@ def stability_figure(rows: list[dict], summary: dict[str, list[dict]], path: Pat
     fig, axes = plt.subplots(2, 4, figsize=(17, 8))
     ax = axes[0, 0]
     markers = dict(zip(SWEEPS, "osD^vP", strict=False))
-    for sweep in SWEEPS:
+    for sweep in ("wind", "amplitude", "spacing", "z_h"):  # the geometry sweeps eq. 35 covers
         pts = [r for r in rows if r.get("sweep") == sweep and r.get("phi_max_deg")
                and r.get("phi_deg") is not None]
         if not pts:
