@@ -221,6 +221,6 @@ def run_stability(args: argparse.Namespace) -> dict[str, Any]:
     command = f"wai experiment stability --seeds {args.seeds}" + (" --quick" if args.quick else "")
     text = report_markdown(summary, command)
     atomic_write_bytes(out / "stability.md", text.encode())
-    write_json(out / "stability.json", summary)
+    write_json(out / "stability_summary.json", summary)  # stability.json: the run record
     print(text)
     return summary

@@ -230,6 +230,6 @@ def run_tradeoffs(args: argparse.Namespace) -> dict[str, Any]:
     tradeoff_figure(series, defaults, out / "tradeoffs.png")
     command = f"wai experiment tradeoffs --seeds {args.seeds}" + (" --quick" if args.quick else "")
     atomic_write_bytes(out / "tradeoffs.md", report_markdown(series, defaults, command).encode())
-    write_json(out / "tradeoffs.json", {"defaults": defaults, "series": series})
+    write_json(out / "tradeoffs_series.json", {"defaults": defaults, "series": series})
     print(report_markdown(series, defaults, command))
     return {"defaults": defaults, "series": series}
