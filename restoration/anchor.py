@@ -57,12 +57,15 @@ def integration_residual_mm(est: SurfaceEstimate) -> float:
     return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
 
 
-def _set_mean_squares(est: SurfaceEstimate) -> NDArray:
-    """Mean squared edge residual of each edge set (N_SETS,), mm^2."""
+def _mean_squares(est: SurfaceEstimate) -> tuple[float, NDArray]:
+    """Mean squared edge residual over all edges (mm^2; NaN without edges) and of each edge
+    set (N_SETS,)."""
     r, sets = edge_residuals_mm(est)
+    r2 = r**2
     n = np.bincount(sets, minlength=N_SETS)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.bincount(sets, r**2, minlength=N_SETS) / n
+        per_set = np.bincount(sets, r2, minlength=N_SETS) / n
+    return (float(r2.mean()) if r.size else float("nan")), per_set
 
 
 def _parabola_vertex(x: NDArray, y: NDArray) -> float:
@@ -182,7 +185,7 @@ def find_anchor(
         if anchor not in cache:
             est = reconstruct(anchor)
             evaluations += 1
-            cache[anchor] = (integration_residual_mm(est) ** 2, _set_mean_squares(est), est)
+            cache[anchor] = (*_mean_squares(est), est)
         return cache[anchor][0]
 
     found = _bracket(residual2, start_mm, step_mm, max_shift_mm)

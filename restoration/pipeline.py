@@ -21,6 +21,7 @@ from restoration.features import (
     features_from_reference,
     prepare_reference,
 )
+from restoration.normals import points_on_rays, projector_rays
 from restoration.reverse_trace import Restoration, restore_view
 from restoration.surface import SurfaceEstimate, reconstruct_surface
 from wai_core.config import SystemConfig, config_from_dict
@@ -153,14 +154,12 @@ def estimate_surface(
         raise WaiInputError(f"unknown anchor {options.anchor!r} (known: {', '.join(ANCHORS)})")
     keep = np.isfinite(spot_px).all(axis=1)
     ij, spot_px = ij[keep], spot_px[keep]
-    fixed = (
-        ij,
-        panel_positions(cfg, ij),
-        spot_px,
-        cfg.projector.camera(),
-        cfg.camera_s.camera(),
-        cfg.diffuser.z_mm,
-    )
+    panel = panel_positions(cfg, ij)
+    projector = cfg.projector.camera()
+    fixed = (ij, panel, spot_px, projector, cfg.camera_s.camera(), cfg.diffuser.z_mm)
+    # Every reconstruction weighs its differences by the dots' spacing on z = h0: the anchor
+    # search's reconstructions then share one factorisation.
+    weight_xy = points_on_rays(*projector_rays(panel, projector), cfg.water.h0_mm)[:, :2]
 
     def reconstruct(anchor_mm: float, integrator: str = options.integrator) -> SurfaceEstimate:
         return reconstruct_surface(
@@ -170,6 +169,7 @@ def estimate_surface(
             n_refine=options.n_refine,
             grid_spacing_mm=options.grid_spacing_mm,
             gridder=options.gridder,
+            weight_xy_mm=weight_xy,
         )
 
     def probe(anchor_mm: float) -> SurfaceEstimate:

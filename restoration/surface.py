@@ -166,6 +166,7 @@ def reconstruct_surface(
     gridder: str = "tangent_blend",
     tol_mm: float = 1e-4,
     accelerate: bool = True,
+    weight_xy_mm: ArrayLike | None = None,
 ) -> SurfaceEstimate:
     """Reconstruct the water surface from matched structured-light features.
 
@@ -200,6 +201,10 @@ def reconstruct_surface(
         Mix each refinement step with the previous one (Anderson acceleration, depth 1): the
         same fixed point in about half the passes. False gives the plain iteration
         ``h <- integrate(normals(q(h)))``.
+    weight_xy_mm : (K, 2) array_like, optional
+        Sample positions that set the integration weights of every pass, mm (default: the
+        first pass's reflection points). Reconstructions of the same features that share them
+        share one sparse factorisation (the anchor search runs several).
 
     Returns
     -------
@@ -215,6 +220,10 @@ def reconstruct_surface(
 
     heights = np.full(ij_arr.shape[0], float(h0_mm))  # pass 0: the paper's q on z = h0
     weight_xy: Array | None = None
+    if weight_xy_mm is not None:
+        weight_xy = np.asarray(weight_xy_mm, dtype=float)
+        if weight_xy.shape != (ij_arr.shape[0], 2):
+            raise WaiInputError("reconstruct_surface: weight_xy_mm must be (K, 2)")
     previous: tuple[Array, Array] | None = None
     change = np.nan
     for it in range(int(n_refine) + 1):
