@@ -13,6 +13,10 @@ the truth and never feed the restoration):
                 (what is left is integration, gridding and the anchor);
 ``oracle_anchor`` the default with the truth's mean height over the samples as anchor instead
                 of h0 (what is left is shape error alone).
+
+The corner STD is split the same way: ``corner_floor`` restores the view through the *true*
+surface, so what it measures is the reverse trace, the resampling and the corner detector's own
+noise on the rendered images: the floor no surface estimate can go below.
 """
 
 from __future__ import annotations
@@ -110,8 +114,25 @@ def run_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Any]:
         "seed": seed,
         "metrics": {k: v for k, v in metrics.items() if not k.startswith("timings")},
         "error_budget": budget,
+        "corner_floor_px": corner_floor_px(frame, cal, images, truth, options),
         "spot_noise": spot_noise_px(cal.cfg, features, truth),
     }
+
+
+def corner_floor_px(frame: Path, cal: Any, images: dict, truth: Heightfield, options: Any) -> Any:
+    """Restored corner STD (px) when the view is restored through the true surface."""
+    from restoration.pipeline import restore
+    from restoration.reverse_trace import restore_view
+    from restoration.scoring import load_and_score
+
+    cfg = cal.cfg
+    distorted = images["view"] / cal.view_gain
+    view = restore_view(
+        distorted, cal.camera_v, truth, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm,
+        warp_step_px=options.warp_step_px,
+    )
+    result = replace(restore(images, cal, options), view=view)
+    return load_and_score(frame, result, cal, distorted)["corner_std_restored_px"]
 
 
 def _mean_std(values: list[float]) -> dict[str, float]:
@@ -147,6 +168,7 @@ def summarize_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "features_used": ("metrics", "features_used"),
         "features_rejected": ("metrics", "features_rejected"),
         "spot_noise_median_px": ("spot_noise", "median_px"),
+        "corner_std_floor_px": ("corner_floor_px",),
     }
     summary = {k: _mean_std(col(p)) for k, p in keys.items()}
     for v in VARIANTS:
