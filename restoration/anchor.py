@@ -149,12 +149,23 @@ def _bracket(
     return None
 
 
+def _clipped_vertex(xs: NDArray, ys: NDArray) -> float:
+    """Minimum of the parabola through three points ``xs`` (ascending), kept within them; the
+    lowest point when the parabola opens downwards."""
+    a, b, _ = np.polyfit(xs - xs[1], ys, 2)
+    if a <= 0 or not np.isfinite(a):
+        return float(xs[np.argmin(ys)])
+    return float(np.clip(xs[1] - b / (2 * a), xs[0], xs[2]))
+
+
 def find_anchor(
     reconstruct: Callable[[float], SurfaceEstimate],
     start_mm: float,
     step_mm: float = 2.0,
     rounds: int = 2,
     max_shift_mm: float = 60.0,
+    tol_mm: float = 0.1,
+    max_rounds: int = 5,
 ) -> AnchorSearch:
     """Minimise the integration residual over the anchor height.
 
@@ -172,10 +183,13 @@ def find_anchor(
     step_mm : float
         Half-width of the first bracket, mm.
     rounds : int
-        Parabola fits after bracketing (2 new reconstructions each).
+        Fewest parabola fits after bracketing (2 new reconstructions each); more follow, up to
+        ``max_rounds``, while a fit still moves the level by ``tol_mm`` or more.
     max_shift_mm : float
         Farthest from ``start_mm`` the search looks, mm; a minimum beyond it is not found: the
         start is kept and ``sigma_mm`` is infinite.
+    tol_mm, max_rounds : float, int
+        See ``rounds``.
     """
     evaluations = 0
     cache: dict[float, tuple[float, NDArray, SurfaceEstimate]] = {}
@@ -196,18 +210,22 @@ def find_anchor(
             cache[start_mm][2],
         )
     lo, centre, hi = found
-    step = min(centre - lo, hi - centre)
+    if hi - lo > 2.0 * step_mm:
+        # A walk's bracket is wide: its parabola places the first refined bracket, whose
+        # half-width is the first step again, so every search ends on the same fine scale.
+        centre = _clipped_vertex(np.array(found), np.array([residual2(x) for x in found]))
+    step = step_mm
     curvature = float("nan")
-    for _ in range(rounds):
+    for k in range(max_rounds):
         xs = np.array([centre - step, centre, centre + step])
         ys = np.array([residual2(float(x)) for x in xs])
-        a, b, _ = np.polyfit(xs - centre, ys, 2)
+        a = np.polyfit(xs - centre, ys, 2)[0]
         curvature = 2.0 * a
-        if a <= 0 or not np.isfinite(a):
-            centre = float(xs[np.argmin(ys)])
-        else:
-            centre = centre + float(np.clip(-b / (2 * a), -step, step))
+        moved = _clipped_vertex(xs, ys) - centre
+        centre += moved
         step /= 2.0
+        if k + 1 >= rounds and abs(moved) < tol_mm:
+            break
     r2 = residual2(centre)
     # The sets' parabolas are fitted near the minimum, where the squared residual is one.
     near = np.array(sorted(a for a in cache if abs(a - centre) <= 2.0 * step_mm))
