@@ -1130,6 +1130,10 @@ def match_reference(
 # 4. Wavy-water correspondence: region growing + ordering check (eq. 33) + anchoring
 # ----------------------------------------------------------------------------------------------
 
+# A growth that matches fewer than this fraction of the flat-water dots is tried once more from
+# another seed (see match_distorted).
+REGROW_BELOW = 0.5
+
 # Why a lattice node was not matched (the last reason seen while it was on the frontier).
 _NONE, _MERGED, _BORDER, _AMBIGUOUS, _ORDER, _UNLIT = range(6)
 
@@ -1196,8 +1200,10 @@ def _choose_seed(
     tree: cKDTree,
     accept: float,
     ratio: float,
+    exclude: BoolArray | None = None,
 ) -> int:
-    """Node whose nearest spot is most confidently its own, in a calm part of the image.
+    """Node whose nearest spot is most confidently its own, in a calm part of the image (and
+    not ``exclude``, (G,) bool, if given).
 
     Among observed nodes whose nearest spot is close, unambiguous and usable, and so are those
     of at least 6 of their 8 neighbours (or as many as any node has), the score adds (in units
@@ -1210,6 +1216,8 @@ def _choose_seed(
     obs = np.flatnonzero(ref.observed)  # only an observed node can be the seed or support it
     d1, i1, d2 = _nearest_two(tree, base_px[obs])
     good = (d1 < accept * spacing[obs]) & (d1 < ratio * d2) & ~spots.suspicious[i1]
+    if exclude is not None:
+        good &= ~exclude[obs]
     if not good.any():
         return -1
     ok = np.zeros(n + 1, bool)  # entry n: "no neighbour"
@@ -1601,17 +1609,35 @@ def match_distorted(
         prior = np.asarray(prior_px, dtype=float)
         base = np.where(np.isfinite(prior), prior, base)
     tree = cKDTree(spots.centres_px)
-    seed = _choose_seed(tab, base, ref, spots, tree, accept, ratio)
-    if seed < 0:
-        return empty
-    seed_spot = int(tree.query(base[seed])[1])
     if visible_px is None:
         hull = cv2.convexHull(ref.ref_px[ref.observed].astype(np.float32))[:, 0]
     else:
         hull = visible_px
     visible = _Outline.of(hull)
-    g = _grow(tab, base, ref.spacing_px, spots, tree, (seed, seed_spot), visible, accept, ratio)
-    _drop_double_claims(g)
+
+    def grow_from(exclude: BoolArray | None) -> _Growth | None:
+        seed = _choose_seed(tab, base, ref, spots, tree, accept, ratio, exclude)
+        if seed < 0:
+            return None
+        seed_spot = int(tree.query(base[seed])[1])
+        g = _grow(tab, base, ref.spacing_px, spots, tree, (seed, seed_spot), visible, accept,
+                  ratio)
+        _drop_double_claims(g)
+        return g
+
+    g = grow_from(None)
+    if g is None:
+        return empty
+    counts["regrown"] = 0
+    if np.sum(g.match >= 0) < REGROW_BELOW * n_obs:
+        # A fold of the pattern (a caustic) stops the growing: try once more from a seed away
+        # from the first piece, and keep the larger piece.
+        near_first = np.zeros(len(ref.ij) + 1, bool)
+        near_first[tab.nbrs8[g.match >= 0]] = True
+        near_first[np.flatnonzero(g.match >= 0)] = True
+        other = grow_from(near_first[:-1])
+        if other is not None and np.sum(other.match >= 0) > np.sum(g.match >= 0):
+            g, counts["regrown"] = other, 1
 
     shift, tied = np.zeros(2, np.int64), np.zeros((1, 2), np.int64)
     if anchor:

@@ -495,3 +495,19 @@ def test_too_few_features_raise(cfg, flat_scene):
         find_features(bad, img, cfg)
     with pytest.raises(WaiInputError, match="camera s"):
         find_features(img[:100], img, cfg)
+
+
+def test_a_second_seed_avoids_the_first_piece(flat_scene, reference):
+    # After a growth stops at a fold, the retry must start elsewhere: the seed chooser honours
+    # an exclusion mask (the first piece and its neighbours).
+    ij, _, spot, _, _, _ = flat_scene
+    spots = detect_spots(pattern_image(flat_scene, spot, np.full(len(ij), 3000.0)))
+    tab, tree = reference.tables, cKDTree(spots.centres_px)
+    args = (tab, reference.ref_px, reference, spots, tree, 0.35, 0.6)
+    first = features._choose_seed(*args)
+    assert first >= 0
+    exclude = np.zeros(len(reference.ij), bool)
+    exclude[reference.ij[:, 0] >= reference.ij[first, 0] - 2] = True  # a half-plane around it
+    second = features._choose_seed(*args, exclude)
+    assert second >= 0 and not exclude[second]
+    assert features._choose_seed(*args, np.ones(len(reference.ij), bool)) == -1
