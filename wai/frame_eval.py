@@ -30,7 +30,7 @@ Row
 ---
 The point's fields, then ``frame_status`` (``ok``; ``failed: <why>`` when the restoration
 refused the frame; ``wrong_labels`` when more than 5 % of the kept correspondences are wrong;
-``sparse`` when fewer than a quarter of the flat-water dots were matched; ``gauge_level`` when
+``sparse`` when fewer than a quarter of the dots in view were matched; ``gauge_level`` when
 the slopes did not pin the level and the gauge's h0 was used), the
 correspondence counts against the geometric model (``n_in_view``, ``n_matched``,
 ``n_correct``, ``fraction_correct``), eq. 35's effective slope amplitude ``phi_deg``, the
@@ -55,7 +55,8 @@ from wai_core.heightfield import Heightfield
 CORRECT_RADIUS_PX = 3.0
 # More wrong labels than this fraction of the kept ones make the frame's status "wrong_labels".
 WRONG_LABEL_FRACTION = 0.05
-# Fewer matches than this fraction of the flat-water dots make it "sparse" (no truth involved).
+# Fewer matches than this fraction of the dots the calibration puts in view make a frame
+# "sparse" (no truth involved: it also catches a reference that saw few of them).
 SPARSE_FRACTION = 0.25
 
 
@@ -212,7 +213,7 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     counts = result.features.counts
     if wrong:
         row["frame_status"] = "wrong_labels"
-    elif counts["matched"] < SPARSE_FRACTION * max(counts["reference"], 1):
+    elif counts["matched"] < SPARSE_FRACTION * max(cal.reference.counts["predicted_in_view"], 1):
         row["frame_status"] = "sparse"  # a small patch: its level and shape are weakly pinned
     elif result.surface.anchor.get("method") == "gauge_fallback":
         row["frame_status"] = "gauge_level"  # shape restored, the level is only the gauge's

@@ -187,7 +187,7 @@ def report_markdown(summary: dict[str, list[dict]], command: str) -> str:
     lines = ["# Stability: where the methods break", "", f"Command: `{command}`", "",
              "![stability](stability.png)", "",
              "Status counts per value: `ok`; `wrong_labels` (over 5 % of kept correspondences "
-             "wrong); `sparse` (under a quarter of the dots matched: a small patch); "
+             "wrong); `sparse` (under a quarter of the dots in view matched); "
              "`gauge_level` (integrability did not pin the level: the gauge's h0 was "
              "used, and scores are not averaged in); `failed` (the restoration refused the "
              "frame, e.g. too few features); "
