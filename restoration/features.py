@@ -153,6 +153,11 @@ class ReferenceGrid:
         # Neighbour tables for the per-frame matching: they depend on the lattice only.
         object.__setattr__(self, "tables", _LatticeTables.of(self.ij, self.lit))
 
+    def lit_at(self, ij: NDArray) -> BoolArray:
+        """Whether each lattice index ``ij`` (K, 2) is a lit dot of this lattice."""
+        node = self.tables.lat.lookup(ij)
+        return (node >= 0) & self.lit[np.maximum(node, 0)]
+
 
 @dataclass(frozen=True)
 class Matches:

@@ -28,7 +28,6 @@ from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.io import read_exr, read_json
-from wai_core.layout import lit_dots
 from wai_core.pattern import dot_grid
 
 
@@ -116,20 +115,13 @@ def load_inputs(render_dir: str | Path, cal: Calibration) -> dict[str, NDArray[n
     return images
 
 
-def _dot_index(cfg: SystemConfig, ij: NDArray) -> NDArray:
-    """Index of each grid dot ``ij`` (K, 2) in :func:`~wai_core.pattern.dot_grid` order, -1 for
-    indices off the grid."""
-    grid_ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
-    half = int(grid_ij[:, 0].max())
-    ij = np.asarray(ij)
-    on = (np.abs(ij) <= half).all(axis=1)
-    return np.where(on, (ij[:, 1] + half) * (2 * half + 1) + (ij[:, 0] + half), -1)
-
-
 def panel_positions(cfg: SystemConfig, ij: NDArray) -> NDArray:
     """Projector panel ``(col, row)`` of the dots with grid indices ``ij`` (K, 2)."""
-    _, panel = dot_grid(cfg.pattern, cfg.projector.camera())
-    return panel[_dot_index(cfg, ij)]
+    grid_ij, panel = dot_grid(cfg.pattern, cfg.projector.camera())
+    side = int(grid_ij[:, 0].max()) * 2 + 1
+    half = side // 2
+    index = (np.asarray(ij)[:, 1] + half) * side + (np.asarray(ij)[:, 0] + half)
+    return panel[index]
 
 
 ANCHORS = ("integrability", "gauge")
@@ -222,7 +214,11 @@ def shifted(features: Matches, shift: NDArray, keep: NDArray) -> Matches:
 
 
 def resolve_label_shift(
-    features: Matches, surface: SurfaceEstimate, cfg: SystemConfig, options: RestoreOptions
+    features: Matches,
+    surface: SurfaceEstimate,
+    reference: ReferenceGrid,
+    cfg: SystemConfig,
+    options: RestoreOptions,
 ) -> tuple[Matches, SurfaceEstimate]:
     """Among lattice shifts that the lit/unlit evidence cannot tell apart, keep the labelling
     whose slopes integrate best.
@@ -232,15 +228,12 @@ def resolve_label_shift(
     by 2-3x per dot of shift). ``counts`` gains ``label_shift_candidates`` (tried) and
     ``label_shift_di/dj`` (applied on top of the pattern's choice).
     """
-    lit = lit_dots(cfg)
     best = (integration_residual_mm(surface), features, surface)
     tried = 1
     for shift in features.alt_shifts[:MAX_SHIFT_CANDIDATES]:
         if not shift.any():
             continue
-        index = _dot_index(cfg, features.ij + shift)
-        keep = index >= 0
-        keep[keep] = lit[index[keep]]
+        keep = reference.lit_at(features.ij + shift)
         if keep.sum() < MIN_SHIFT_KEEP * len(keep):
             continue
         candidate = shifted(features, shift, keep)
@@ -272,7 +265,7 @@ def restore(
     t1 = time.perf_counter()
     surface = estimate_surface(features.ij, features.spot_px, cfg, options, cal.last_level_mm)
     if len(features.alt_shifts) > 1:
-        features, surface = resolve_label_shift(features, surface, cfg, options)
+        features, surface = resolve_label_shift(features, surface, reference, cfg, options)
     if surface.anchor.get("method") == "integrability":
         cal.last_level_mm = surface.anchor["anchor_mm"]
     t2 = time.perf_counter()
