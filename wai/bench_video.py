@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -22,11 +21,10 @@ from typing import Any
 import numpy as np
 
 from wai.bench import machine, summarize
+from wai.sweep import THREAD_VARIABLES, limit_native_threads, scoped_environ
 from wai_core.errors import WaiInputError
 
 FRAME_INTERVAL_S = 1.0 / 30.0
-# Native thread pools that would otherwise each start one thread per core in every worker.
-_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 # Per worker process: the calibration and the frames' images, loaded by _init_worker.
 _STATE: dict[str, Any] = {}
@@ -50,11 +48,9 @@ def render_sequence(config: Path, out: Path, n_frames: int) -> list[Path]:
 
 def _init_worker(folders: list[str]) -> None:
     """Load the calibration and every frame's images; prepare the reference; warm up."""
-    import cv2
-
     from restoration.pipeline import load_calibration, load_inputs, restore
 
-    cv2.setNumThreads(1)
+    limit_native_threads(1)
     cal = load_calibration(folders[0])
     frames = [load_inputs(f, cal) for f in folders]
     restore(frames[0], cal)  # prepares the reference and warms every code path
@@ -75,21 +71,14 @@ def _restore_frame(index: int) -> tuple[np.ndarray, float]:
 
 def throughput(folders: list[Path], workers: int, n_frames: int) -> dict[str, Any]:
     """Frames per second over ``n_frames`` restorations spread over ``workers`` processes."""
-    env = {k: os.environ.get(k) for k in _THREAD_VARIABLES}
-    os.environ.update({k: "1" for k in _THREAD_VARIABLES})  # inherited by spawned workers
-    try:
+    # Spawned workers load OpenBLAS before any task: they must inherit one thread each.
+    with scoped_environ({name: "1" for name in THREAD_VARIABLES}):
         ctx = mp.get_context("spawn")
         with ctx.Pool(workers, _init_worker, ([str(f) for f in folders],)) as pool:
             pool.map(_restore_frame, range(workers), chunksize=1)  # every worker is ready
             t0 = time.perf_counter()
             worker_ms = [ms for _, ms in pool.imap(_restore_frame, range(n_frames), chunksize=1)]
             wall = time.perf_counter() - t0
-    finally:
-        for k, v in env.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
     return {
         "workers": workers,
         "frames": n_frames,

@@ -134,7 +134,7 @@ def _evaluate_on_worker(fn: Callable[[dict], Mapping[str, Any]], point: Point) -
     """:func:`_evaluate` in a Dask worker, with native thread pools sized to the worker."""
     from distributed import get_worker
 
-    _limit_native_threads(get_worker().state.nthreads)
+    limit_native_threads(get_worker().state.nthreads)
     return _evaluate(fn, point)
 
 
@@ -178,12 +178,13 @@ def _worker_name() -> str:
 
 
 @functools.cache
-def _limit_native_threads(threads: int) -> None:
-    """Size the native thread pools of this worker process to its Dask thread count, once.
+def limit_native_threads(threads: int) -> None:
+    """Size the native thread pools of this (worker) process to ``threads``, once.
 
     OpenBLAS and OpenMP read the environment when loaded, which in a local cluster's workers is
-    before any task (see :func:`_environ`); setting it here covers libraries loaded later. Dr.Jit
-    (Mitsuba's LLVM backend) and OpenCV otherwise start one thread per core in every worker.
+    before any task (see :func:`scoped_environ`); setting it here covers libraries loaded
+    later. Dr.Jit (Mitsuba's LLVM backend) and OpenCV otherwise start one thread per core in
+    every worker.
     """
     os.environ.update({name: str(threads) for name in THREAD_VARIABLES})
     if importlib.util.find_spec("drjit") is not None:
@@ -384,7 +385,7 @@ def _run_on_dask(
 
 
 @contextlib.contextmanager
-def _environ(values: Mapping[str, str]) -> Iterator[None]:
+def scoped_environ(values: Mapping[str, str]) -> Iterator[None]:
     """Set environment variables for the block (spawned workers inherit them), then restore."""
     saved = {name: os.environ.get(name) for name in values}
     os.environ.update(values)
@@ -411,7 +412,7 @@ def _dask_client(scheduler: str | None, workers: int, threads_per_worker: int) -
     # be in the environment they are spawned with. Nannies copy these variables over dask's
     # defaults because they are set in os.environ.
     env = {name: str(threads_per_worker) for name in THREAD_VARIABLES}
-    with _environ(env):
+    with scoped_environ(env):
         cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=threads_per_worker,
