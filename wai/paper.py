@@ -192,6 +192,7 @@ def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> l
     from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
     from restoration.features import features_from_reference, prepare_reference
     from wai.forward import predict_spots
+    from wai.frame_eval import correspondence_counts
     from wai_core.errors import WaiInputError
     from wai_core.heightfield import Heightfield
 
@@ -205,26 +206,17 @@ def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> l
     for a in tqdm(factors, desc="amplitude", leave=False):
         surface = Heightfield(base.x, base.y, h0 + a * (base.z - h0))
         img = renderer.render(surface, render_seed(c), which=("pattern",))["pattern"]
-        ij_true, px_true = predict_spots(c, surface)
-        truth = {tuple(k): p for k, p in zip(ij_true, px_true, strict=True)}
         try:
-            m = features_from_reference(img, reference, c)
-            ok = np.array(
-                [
-                    tuple(k) in truth and np.linalg.norm(p - truth[tuple(k)]) < 3.0
-                    for k, p in zip(m.ij, m.spot_px, strict=True)
-                ]
-            )
-            n_correct, n_wrong = int(ok.sum()), int((~ok).sum())
-        except WaiInputError:
-            n_correct, n_wrong = 0, 0
+            counts = correspondence_counts(c, surface, features_from_reference(img, reference, c))
+        except WaiInputError:  # refused: no correspondence at all
+            counts = {"n_in_view": len(predict_spots(c, surface)[0]), "n_correct": 0, "n_wrong": 0}
         rows.append(
             {
                 "factor": a,
                 "phi_deg": effective_phi_deg(surface, c),
-                "n_in_view": len(px_true),
-                "fraction_correct": n_correct / max(len(px_true), 1),
-                "n_wrong": n_wrong,
+                "n_in_view": counts["n_in_view"],
+                "fraction_correct": counts["n_correct"] / max(counts["n_in_view"], 1),
+                "n_wrong": counts["n_wrong"],
             }
         )
     return rows
