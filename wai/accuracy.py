@@ -101,7 +101,8 @@ def run_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Any]:
 
     cal = load_calibration(frame)
     images = load_inputs(frame, cal)
-    features = restore(images, cal, options).features
+    result = restore(images, cal, options)
+    features = result.features
     truth, _ = load_truth(frame, cal)
     others = [v for v in VARIANTS if v != "ours"]
     budget = {v: _surface_variant(v, features, cal, truth, options) for v in others}
@@ -114,14 +115,15 @@ def run_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Any]:
         "seed": seed,
         "metrics": {k: v for k, v in metrics.items() if not k.startswith("timings")},
         "error_budget": budget,
-        "corner_floor_px": corner_floor_px(frame, cal, images, truth, options),
+        "corner_floor_px": corner_floor_px(frame, cal, images, truth, result, options),
         "spot_noise": spot_noise_px(cal.cfg, features, truth),
     }
 
 
-def corner_floor_px(frame: Path, cal: Any, images: dict, truth: Heightfield, options: Any) -> Any:
-    """Restored corner STD (px) when the view is restored through the true surface."""
-    from restoration.pipeline import restore
+def corner_floor_px(
+    frame: Path, cal: Any, images: dict, truth: Heightfield, result: Any, options: Any
+) -> Any:
+    """Restored corner STD (px) of ``result`` with its view restored through the true surface."""
     from restoration.reverse_trace import restore_view
     from restoration.scoring import load_and_score
 
@@ -131,8 +133,9 @@ def corner_floor_px(frame: Path, cal: Any, images: dict, truth: Heightfield, opt
         distorted, cal.camera_v, truth, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm,
         warp_step_px=options.warp_step_px,
     )
-    result = replace(restore(images, cal, options), view=view)
-    return load_and_score(frame, result, cal, distorted)["corner_std_restored_px"]
+    return load_and_score(frame, replace(result, view=view), cal, distorted)[
+        "corner_std_restored_px"
+    ]
 
 
 def _mean_std(values: list[float]) -> dict[str, float]:
