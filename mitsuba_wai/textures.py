@@ -11,9 +11,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from wai_core.config import ObjectConfig, SystemConfig
+from wai_core.config import ObjectConfig
 from wai_core.errors import WaiInputError
-from wai_core.layout import object_plane_center
 
 # Checkerboard levels: dark and light squares stay off 0 and 1 so tone mapping never clips them.
 CHECKER_LEVELS = (0.05, 0.95)
@@ -75,14 +74,3 @@ def object_texture(obj: ObjectConfig, base_dir: Path | None = None) -> NDArray[n
     if not path.is_absolute() and base_dir is not None:
         path = base_dir / path
     return to_rgb_float(_file_image(path))
-
-
-def texture_coords(points_lab_mm: NDArray, cfg: SystemConfig, shape: tuple[int, ...]) -> NDArray:
-    """Continuous texture pixel ``(col, row)`` (..., 2) of points on the object plane, for a
-    texture of ``shape`` (h, w, ...); outside [-0.5, w - 0.5) x [-0.5, h - 0.5) is off the board."""
-    c = object_plane_center(cfg)
-    sx, sy = cfg.object.size_mm
-    h, w = shape[:2]
-    u = ((points_lab_mm[..., 0] - c[0]) / sx + 0.5) * w - 0.5
-    v = ((points_lab_mm[..., 1] - c[1]) / sy + 0.5) * h - 0.5
-    return np.stack([u, v], axis=-1)

@@ -1,5 +1,55 @@
-"""Restoration: from renders plus calibration to a surface and an undistorted image.
+"""Restoration: from images plus calibration to a surface and an undistorted view.
 
-Reads only the images and ``scene.json``; the true surface and view are read only to score. Never
-imports the wave generator or the renderer.
+Reads only the images and the calibration (``scene.json``); the true surface and view are read
+only to score, and only when they exist. Never imports the wave generator or the renderer (it
+runs without Mitsuba installed).
+
+A frame in ten lines::
+
+    import restoration as rs
+
+    done = rs.restore_folder("renders/demo")          # calibration, images, truth if any
+    print(done.result.status, done.scores.rmse_mm)
+
+    cal = rs.Calibration.from_folder("renders/demo")   # or step by step, from memory
+    method = rs.StructuredLight(rs.RestoreOptions(integrator="paper"))
+    result = method(cal.load_images("renders/demo"), cal)
+
+Stages (one subpackage or module each): :mod:`~restoration.features` (detect, reference,
+match), :mod:`~restoration.normals`, :mod:`~restoration.surface` with
+:mod:`~restoration.integrate` and :mod:`~restoration.anchor`, :mod:`~restoration.reverse_trace`
+(inverse solve, warp); methods in :mod:`~restoration.structured_light` and
+:mod:`~restoration.alterman`; scores in :mod:`~restoration.scoring` and
+:mod:`~restoration.metrics`.
 """
+
+from restoration.alterman import AltermanCalibration
+from restoration.calibration import Calibration, LevelTrack, RigCalibration
+from restoration.folder import FolderRestore, restore_folder
+from restoration.methods import METHODS, Alterman, Method, get_method, load_calibration
+from restoration.options import ANCHORS, RestoreOptions
+from restoration.result import STATUSES, RestoreResult
+from restoration.scoring import Scores, Truth, score
+from restoration.structured_light import StructuredLight
+
+__all__ = [
+    "ANCHORS",
+    "METHODS",
+    "STATUSES",
+    "Alterman",
+    "AltermanCalibration",
+    "Calibration",
+    "FolderRestore",
+    "LevelTrack",
+    "Method",
+    "RestoreOptions",
+    "RestoreResult",
+    "RigCalibration",
+    "Scores",
+    "StructuredLight",
+    "Truth",
+    "get_method",
+    "load_calibration",
+    "restore_folder",
+    "score",
+]

@@ -28,17 +28,18 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from restoration.calibration import RigCalibration, read_scene_record, record_view_gain
 from restoration.features import Matches, Spots, detect_spots
 from restoration.integrate import MIN_SAMPLES, integrate, to_heightfield
 from restoration.normals import slopes_from_normals, spots_on_diffuser
-from restoration.pipeline import RestoreOptions, RestoreResult
-from restoration.reverse_trace import restore_view
+from restoration.options import RestoreOptions
+from restoration.result import RestoreResult
 from wai_core.alterman import (
     AltermanSystem,
     SensorLayout,
@@ -46,14 +47,13 @@ from wai_core.alterman import (
     sensor_layout,
     sun_is_up,
 )
-from wai_core.config import SystemConfig, config_from_dict
+from wai_core.config import config_from_dict
 from wai_core.errors import WaiInputError
-from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
-from wai_core.io import read_exr, read_json
 
 Array = NDArray[np.float64]
 
+METHOD = "alterman"
 OK = "ok"
 NO_SUN = "no_sun"
 SUN_OUT_OF_VIEW = "sun_out_of_view"
@@ -123,64 +123,41 @@ class AltermanSurface:
 
 
 @dataclass
-class AltermanCalibration:
+class AltermanCalibration(RigCalibration):
     """What the method knows: the base configuration (water, camera v, object), the sensor's
     configuration and layout, and, once prepared, the flat-water spot reference."""
 
-    cfg: SystemConfig
-    system: AltermanSystem
-    layout: SensorLayout
-    view_gain: float
+    system: AltermanSystem | None = None
+    layout: SensorLayout | None = None
     reference: SpotReference | None = None
 
-    @property
-    def camera_v(self) -> PinholeCamera:
-        return self.cfg.camera_v.camera()
+    IMAGES: ClassVar[tuple[str, ...]] = ("sunspots", "sunspots_flat", "view")
 
+    @classmethod
+    def from_system(cls, system: AltermanSystem, view_gain: float = 1.0) -> AltermanCalibration:
+        """From a sensor system in memory (e.g. :func:`wai_core.load_system` ``("alterman")``)."""
+        return cls(system.base, view_gain, system, sensor_layout(system))
 
-@dataclass
-class AltermanOutcome:
-    """A run of the method: ``status`` ``ok`` with a result, or why it could not run."""
-
-    status: str
-    message: str
-    result: RestoreResult | None = None
-    counts: dict[str, int] = field(default_factory=dict)
-
-
-def load_alterman_calibration(render_dir: str | Path) -> AltermanCalibration:
-    """Read ``scene.json`` of a system-A render folder as calibration."""
-    record = read_json(Path(render_dir) / "scene.json")
-    if not isinstance(record, dict) or "config" not in record or "alterman" not in record:
-        raise WaiInputError(
-            f"{render_dir}/scene.json is not a sun-sensor render (no 'alterman' entry)"
+    @classmethod
+    def from_record(cls, record: dict[str, Any]) -> AltermanCalibration:
+        """From a ``scene.json`` record of a sun-sensor render (with an ``alterman`` table)."""
+        if not isinstance(record.get("alterman"), dict):
+            raise WaiInputError("scene.json is not a sun-sensor render (no 'alterman' entry)")
+        system = AltermanSystem(
+            config_from_dict(record["config"]), alterman_from_dict(record["alterman"])
         )
-    system = AltermanSystem(
-        config_from_dict(record["config"]), alterman_from_dict(record["alterman"])
-    )
-    cfg = system.base
-    gain = float(record.get("derived", {}).get("view_radiance_gain", cfg.water.n_water**2))
-    return AltermanCalibration(cfg, system, sensor_layout(system), gain)
+        return cls.from_system(system, record_view_gain(record))
 
+    @classmethod
+    def from_folder(cls, folder: str | Path) -> AltermanCalibration:
+        """From ``folder/scene.json``."""
+        return cls.from_record(read_scene_record(folder))
 
-def load_alterman_inputs(
-    render_dir: str | Path, cal: AltermanCalibration
-) -> dict[str, NDArray[np.float32]]:
-    """The images the method may read (``sunspots``, ``sunspots_flat``, ``view``), with sizes
-    checked against the calibration."""
-    render_dir = Path(render_dir)
-    cam_a, cam_v = cal.layout.camera, cal.camera_v
-    sizes = {"sunspots": cam_a, "sunspots_flat": cam_a, "view": cam_v}
-    images = {}
-    for name, cam in sizes.items():
-        img = read_exr(render_dir / f"{name}.exr")
-        if img.shape[:2] != (cam.height_px, cam.width_px):
-            raise WaiInputError(
-                f"{name}.exr is {img.shape[1]}x{img.shape[0]} but scene.json says "
-                f"{cam.width_px}x{cam.height_px}"
-            )
-        images[name] = img
-    return images
+    def image_size(self, name: str) -> tuple[int, int]:
+        if name in ("sunspots", "sunspots_flat"):
+            cam = self.layout.camera
+            return cam.height_px, cam.width_px
+        return super().image_size(name)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -418,12 +395,12 @@ def restore_alterman(
     images: dict[str, NDArray],
     cal: AltermanCalibration,
     options: RestoreOptions = DEFAULT_OPTIONS,
-) -> AltermanOutcome:
+) -> RestoreResult:
     """Run the method on loaded images (``sunspots``, ``sunspots_flat``, ``view``).
 
-    Returns an outcome with status ``ok`` and a :class:`~restoration.pipeline.RestoreResult`
-    (features, surface, restored view, timings), or ``no_sun`` / ``sun_out_of_view`` /
-    ``too_few_spots`` and no result.
+    Returns a :class:`~restoration.result.RestoreResult`: status ``ok`` with the features,
+    surface, restored view and timings, or ``no_sun`` / ``sun_out_of_view`` /
+    ``too_few_spots`` and no surface.
 
     Raises
     ------
@@ -438,26 +415,19 @@ def restore_alterman(
         )
     status, message = sun_status(cal.system, cal.layout)
     if status != OK:
-        return AltermanOutcome(status, message)
+        return RestoreResult(METHOD, status, message)
     t0 = time.perf_counter()
     matches, status, message = _spot_features(images, cal)
     if matches is None or status != OK:
-        return AltermanOutcome(status, message, counts={} if matches is None else matches.counts)
+        counts = {} if matches is None else matches.counts
+        return RestoreResult(METHOD, status, message, counts=counts)
     t1 = time.perf_counter()
     pinholes = cal.layout.pinholes_mm[cal.layout.index_of(matches.ij)]
     spots_mm = spots_on_diffuser(matches.spot_px, cal.layout.camera, cal.layout.screen_z_mm)
     surface = reconstruct_alterman(matches.ij, pinholes, spots_mm, cal.layout, options)
     t2 = time.perf_counter()
-    cfg = cal.cfg
-    view = restore_view(
-        images["view"] / cal.view_gain,
-        cal.camera_v,
-        surface.heightfield,
-        cfg.water.h0_mm,
-        cfg.water.n_water,
-        cfg.object_z_mm,
-        warp_step_px=options.warp_step_px,
-    )
+    view = cal.restore_view(images["view"] / cal.view_gain, surface.heightfield,
+                            options.warp_step_px)
     t3 = time.perf_counter()
     matches.timings_ms.update({"detect_and_match": 1e3 * (t1 - t0)})
     timings = {
@@ -466,5 +436,4 @@ def restore_alterman(
         "reverse_trace": 1e3 * (t3 - t2),
         "end_to_end": 1e3 * (t3 - t0),
     }
-    result = RestoreResult(matches, surface, view, timings)
-    return AltermanOutcome(OK, "", result, matches.counts)
+    return RestoreResult(METHOD, OK, "", matches, surface, view, timings, matches.counts)

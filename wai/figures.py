@@ -2,26 +2,22 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from numpy.typing import NDArray
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from numpy.typing import NDArray  # noqa: E402
-
-from wai_core.heightfield import Heightfield  # noqa: E402
-from wai_core.io import to_srgb8  # noqa: E402
-
-
-def save_figure(fig: plt.Figure, path: str | Path) -> None:
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    fig.savefig(tmp, dpi=120, bbox_inches="tight")
-    plt.close(fig)
-    os.replace(tmp, path)
+from restoration.figures import (  # noqa: F401  (re-exported for the experiments)
+    corner_scatter_figure,
+    error_map_figure,
+    plt,
+    profile_figure,
+    save_figure,
+    side_by_side,
+)
+from wai_core.config import SystemConfig
+from wai_core.heightfield import Heightfield
+from wai_core.io import to_srgb8
 
 
 def surface_figure(surface: Heightfield, h0_mm: float, title: str, path: str | Path) -> None:
@@ -42,62 +38,6 @@ def surface_figure(surface: Heightfield, h0_mm: float, title: str, path: str | P
     ax2.set_ylabel("y (mm)")
     fig.colorbar(im, ax=ax2, label="η = z − h0 (mm)")
     fig.suptitle(title)
-    save_figure(fig, path)
-
-
-def side_by_side(
-    images: list[NDArray], titles: list[str], path: str | Path, exposures: list[float | None]
-) -> None:
-    """Linear images next to each other with titles, tone-mapped for display."""
-    fig, axes = plt.subplots(1, len(images), figsize=(5 * len(images), 4))
-    panels = zip(np.atleast_1d(axes), images, titles, exposures, strict=True)
-    for ax, img, title, exposure in panels:
-        ax.imshow(to_srgb8(img, exposure))
-        ax.set_title(title)
-        ax.set_axis_off()
-    save_figure(fig, path)
-
-
-def error_map_figure(est: Heightfield, error_mm: NDArray, path: str | Path) -> None:
-    """Absolute height error over the reconstructed region (the paper's Fig. 12)."""
-    fig, ax = plt.subplots(figsize=(6, 5))
-    im = ax.pcolormesh(est.x, est.y, np.abs(error_mm), cmap="magma", shading="auto")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    fig.colorbar(im, ax=ax, label="|z_est − z_true| (mm)")
-    ax.set_title("Absolute error of the reconstructed surface")
-    save_figure(fig, path)
-
-
-def profile_figure(
-    x_mm: NDArray, est_mm: NDArray, true_mm: NDArray, y_mm: float, path: str | Path
-) -> None:
-    """True and reconstructed heights along one line (the paper's Fig. 11f)."""
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    ax.plot(x_mm, true_mm, "r-", label="ground truth")
-    ax.plot(x_mm, est_mm, "b--", label="reconstructed")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("z (mm)")
-    ax.set_title(f"Surface profile at y = {y_mm:.0f} mm")
-    ax.legend()
-    save_figure(fig, path)
-
-
-def corner_scatter_figure(points_px: dict[str, NDArray], stds: dict[str, float], path) -> None:
-    """Checkerboard corners in the truth, distorted and restored views (the paper's Fig. 15d)."""
-    fig, ax = plt.subplots(figsize=(7, 5.5))
-    style = {"truth": ("r", "o"), "distorted": ("m", "x"), "restored": ("b", "+")}
-    for name, pts in points_px.items():
-        color, marker = style[name]
-        label = name if name == "truth" else f"{name} (STD {stds[name]:.2f} px)"
-        ax.scatter(pts[:, 0], pts[:, 1], c=color, marker=marker, s=22, label=label)
-    ax.invert_yaxis()
-    ax.set_aspect("equal")
-    ax.set_xlabel("column (px)")
-    ax.set_ylabel("row (px)")
-    ax.legend(loc="best")
-    ax.set_title("Checkerboard corners")
     save_figure(fig, path)
 
 
@@ -159,3 +99,33 @@ def sweep_figure(
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     save_figure(fig, path)
+
+
+def render_overview(render_dir: Path, cfg: SystemConfig, view_gain: float) -> None:
+    """Fig. 10 (the simulated surface) and flat-vs-wavy pattern and view, into ``render_dir``."""
+    from wai_core.heightfield import load_heightfield
+    from wai_core.io import read_exr
+
+    waves = cfg.waves
+    surface = load_heightfield(render_dir / "heightfield.npz")
+    surface_figure(
+        surface,
+        cfg.water.h0_mm,
+        f"Simulated sea surface (U = {waves.wind_speed_m_s} m/s, t = {waves.time_s} s, "
+        f"seed {waves.seed})",
+        render_dir / "fig10_surface.png",
+    )
+    img = {n: read_exr(render_dir / f"{n}.exr") for n in ("pattern_flat", "pattern")}
+    side_by_side(
+        [img["pattern_flat"], img["pattern"]],
+        ["pattern, flat water (reference)", "pattern, wavy water"],
+        render_dir / "pattern_flat_vs_wavy.png",
+        [None, None],
+    )
+    views = {n: read_exr(render_dir / f"{n}.exr") for n in ("view_truth", "view")}
+    side_by_side(
+        [views["view_truth"], views["view"]],
+        ["view, flat water (ground truth)", "view, wavy water"],
+        render_dir / "view_flat_vs_wavy.png",
+        [1 / view_gain, 1 / view_gain],
+    )

@@ -22,7 +22,7 @@ from restoration.alterman import (
     sun_status,
 )
 from restoration.features import Spots
-from restoration.pipeline import RestoreOptions
+from restoration.options import RestoreOptions
 from restoration.reverse_trace import restore_view, trace_to_object
 from tests.conftest import ROOT, shrink
 from wai_core.alterman import AltermanSystem, chief_rays, load_alterman, sensor_layout
@@ -43,9 +43,7 @@ def system():
 
 
 def _cal(system) -> AltermanCalibration:
-    return AltermanCalibration(
-        system.base, system, sensor_layout(system), system.base.water.n_water**2
-    )
+    return AltermanCalibration.from_system(system, system.base.water.n_water**2)
 
 
 def _surface(h0, fn):
@@ -152,10 +150,10 @@ def test_overcast_and_clouds_give_no_sun(system):
     for sun in (dict(enabled=False), dict(irradiance=0.0)):
         overcast = AltermanSystem(system.base, system.sensor.replace("sun", **sun))
         out = restore_alterman(images, _cal(overcast), OPTIONS)
-        assert out.status == NO_SUN and out.result is None
+        assert out.status == NO_SUN and out.surface is None
     # The sun is configured but the frame shows none (a cloud): the images say no_sun too.
     out = restore_alterman(images, _cal(system), OPTIONS)
-    assert out.status == NO_SUN and out.result is None
+    assert out.status == NO_SUN and out.surface is None
 
 
 def test_spots_out_of_view_and_too_few_spots(system):
@@ -174,7 +172,7 @@ def test_spots_out_of_view_and_too_few_spots(system):
         "view": np.zeros((cam_v.height_px, cam_v.width_px, 3), np.float32),
     }
     out = restore_alterman(images, cal, OPTIONS)
-    assert out.status == TOO_FEW_SPOTS and out.result is None
+    assert out.status == TOO_FEW_SPOTS and out.surface is None
 
 
 def test_integrability_anchor_is_refused(system):
@@ -199,12 +197,12 @@ def test_wavy_surface_is_recovered_and_restores_the_view(system):
     }
     out = restore_alterman(images, _cal(sys30), OPTIONS)
     assert out.status == OK and out.counts["matched"] == len(lay.ij)
-    est = out.result.surface.heightfield
+    est = out.surface.heightfield
     xx, yy = np.meshgrid(est.x, est.y)
     err = est.z - truth.height(xx, yy)
     # The shape to a few hundredths of a mm; the offset is the samples' true mean minus h0.
     assert np.nanstd(err) < 0.03
-    q = out.result.surface.points_mm
+    q = out.surface.points_mm
     true_mean = np.mean(truth.height(q[:, 0], q[:, 1]))
     assert np.nanmean(err) == pytest.approx(h0 - true_mean, abs=0.03)
     flat_truth = _view(cfg, None)
@@ -212,7 +210,7 @@ def test_wavy_surface_is_recovered_and_restores_the_view(system):
         images["view"] / cfg.water.n_water**2, cfg.camera_v.camera(), truth, h0,
         cfg.water.n_water, cfg.object_z_mm,
     )
-    ours = out.result.view
+    ours = out.view
     both = ours.valid & with_truth.valid & (flat_truth[..., 0] > 0)
     assert both.mean() > 0.5
     distorted = np.abs(images["view"] / cfg.water.n_water**2 - flat_truth)[both].mean()

@@ -9,14 +9,8 @@ import pytest
 
 from mitsuba_wai.render import render_folder
 from restoration.anchor import find_anchor
-from restoration.pipeline import (
-    RestoreOptions,
-    estimate_surface,
-    load_calibration,
-    load_inputs,
-    restore,
-)
-from restoration.scoring import load_and_score
+from restoration import Calibration, RestoreOptions, StructuredLight, restore_folder
+from restoration.structured_light import estimate_surface
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
 from wai_core.io import write_exr
@@ -53,10 +47,8 @@ def bump_dir(quick_cfg, tmp_path_factory):
 
 
 def _run(render_dir):
-    cal = load_calibration(render_dir)
-    images = load_inputs(render_dir, cal)
-    result = restore(images, cal)
-    return result, load_and_score(render_dir, result, cal, images["view"] / cal.view_gain)
+    done = restore_folder(render_dir, write=False)
+    return done.result, done.metrics
 
 
 def test_known_bump_is_recovered(bump_dir, quick_cfg):
@@ -74,9 +66,8 @@ def test_known_bump_is_recovered(bump_dir, quick_cfg):
 def test_integrability_anchor_beats_the_gauge_on_an_offset_surface(bump_dir, quick_cfg):
     # Shift the calibration's mean level by 4 mm: the gauge anchor inherits the error, the
     # integrability anchor does not.
-    cal = load_calibration(bump_dir)
-    images = load_inputs(bump_dir, cal)
-    feats = restore(images, cal).features
+    cal = Calibration.from_folder(bump_dir)
+    feats = StructuredLight()(cal.load_images(bump_dir), cal).features
     wrong = quick_cfg.replace("water", h0_mm=quick_cfg.water.h0_mm + 4.0)
     gauge = estimate_surface(feats.ij, feats.spot_px, wrong, RestoreOptions(anchor="gauge"))
     integ = estimate_surface(feats.ij, feats.spot_px, wrong, RestoreOptions())
@@ -144,6 +135,6 @@ def test_image_size_mismatch_is_a_clear_error(flat_dir, tmp_path):
     bad = tmp_path / "bad"
     shutil.copytree(flat_dir, bad)
     write_exr(bad / "view.exr", np.zeros((10, 10, 3), np.float32))
-    cal = load_calibration(bad)
+    cal = Calibration.from_folder(bad)
     with pytest.raises(WaiInputError, match="view.exr"):
-        load_inputs(bad, cal)
+        cal.load_images(bad)

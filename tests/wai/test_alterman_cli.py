@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import PAPER_TOML, ROOT
-from wai.alterman_experiment import COLUMNS, csv_text, report_markdown, row
+from wai.experiments.alterman import COLUMNS, csv_text, report_markdown, row
 from wai.cli import main
 from wai_core.alterman import load_alterman
 

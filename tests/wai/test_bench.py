@@ -9,7 +9,7 @@ import pytest
 
 from mitsuba_wai.render import render_folder
 from tests.conftest import PAPER_TOML
-from wai.bench_restore import stage_times
+from wai.bench.restore import stage_times
 from wai.cli import main
 
 STAGES = (

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from wai.cli import main
-from wai.paper import correspondence_limit, deflection_curves
+from wai.experiments.paper import deflection_curves
+from wai_core.limits import correspondence_limit
 
 
 def test_meridional_deflection_is_twice_the_tilt_and_sagittal_is_not():

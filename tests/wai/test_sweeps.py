@@ -3,9 +3,9 @@ failed frame in."""
 
 import pytest
 
-from wai.frame_eval import evaluate_frame
-from wai.stability import sweep_summary
-from wai.tradeoffs import chart_series
+from wai.experiments.frame_eval import evaluate_frame
+from wai.experiments.stability import sweep_summary
+from wai.experiments.tradeoffs import chart_series
 
 PAPER = "scenes/paper.toml"
 

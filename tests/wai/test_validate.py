@@ -7,7 +7,7 @@ import pytest
 from mitsuba_wai.mesh import flat_like
 from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
 from mitsuba_wai.textures import object_texture
-from wai.validate import spot_agreement, view_agreement
+from wai.experiments.validate import spot_agreement, view_agreement
 
 
 @pytest.fixture(scope="module")

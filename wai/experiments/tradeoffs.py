@@ -28,8 +28,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from wai.experiments.frame_eval import evaluate_frame  # noqa: E402
 from wai.figures import save_figure  # noqa: E402
-from wai.frame_eval import evaluate_frame  # noqa: E402
 from wai.sweep import run_sweep, sweep_kwargs  # noqa: E402
 from wai_core.io import atomic_write_bytes, write_json  # noqa: E402
 
@@ -209,7 +209,7 @@ def _verdict(series: list[dict], key: str, default: Any, higher_is_better: bool)
 
 def run_tradeoffs(args: argparse.Namespace) -> dict[str, Any]:
     """Run the sweep into ``args.out/tradeoffs.csv`` and write the charts and report."""
-    from restoration.pipeline import RestoreOptions
+    from restoration import RestoreOptions
     from wai_core.config import load_config
 
     out = Path(args.out)

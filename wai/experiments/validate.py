@@ -37,7 +37,7 @@ def spot_agreement(
 ) -> dict[str, float]:
     """Offsets (px) between detected spots and the model's chief rays."""
     from restoration.features import detect_spots
-    from wai.forward import predict_spots
+    from wai_core.forward import predict_spots
 
     _, px = predict_spots(cfg, surface)
     spots = detect_spots(np.nan_to_num(pattern, nan=0.0, posinf=0.0))
@@ -57,7 +57,7 @@ def view_agreement(
 ) -> dict[str, float]:
     """SSIM/PSNR of the path-traced view against the geometric one, outside TIR and the board."""
     from restoration.metrics import image_metrics
-    from wai.forward import predict_view
+    from wai_core.forward import predict_view
 
     predicted, ok = predict_view(cfg, surface, texture)
     rendered = view / cfg.water.n_water**2

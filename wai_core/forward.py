@@ -7,7 +7,7 @@
   the texture is sampled there (bilinear). Pixels are supersampled on a regular sub-grid, as a
   box reconstruction filter averages a pixel's area.
 
-It shares the restoration's ray geometry (:func:`restoration.reverse_trace.trace_to_object`), not
+It shares the restoration's ray geometry (:func:`wai_core.optics.trace_to_object`), not
 its outputs: what it is compared with are Mitsuba's renders.
 """
 
@@ -17,13 +17,26 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 
-from mitsuba_wai.textures import texture_coords
-from restoration.reverse_trace import trace_to_object
 from wai_core.config import SystemConfig
 from wai_core.geometry import intersect_plane_z, reflect
 from wai_core.heightfield import Heightfield
-from wai_core.layout import dot_weights
+from wai_core.layout import dot_weights, object_plane_center
+from wai_core.optics import trace_to_object
 from wai_core.pattern import dot_grid
+
+__all__ = ["predict_spots", "predict_view", "spots_through", "texture_coords"]
+
+
+def texture_coords(points_lab_mm: NDArray, cfg: SystemConfig, shape: tuple[int, ...]) -> NDArray:
+    """Continuous texture pixel ``(col, row)`` (..., 2) of points on the object plane, for a
+    texture of ``shape`` (h, w, ...); outside [-0.5, w - 0.5) x [-0.5, h - 0.5) is off the board.
+    Column grows with lab +x, row with lab +y; the texture spans ``cfg.object.size_mm``."""
+    c = object_plane_center(cfg)
+    sx, sy = cfg.object.size_mm
+    h, w = shape[:2]
+    u = ((points_lab_mm[..., 0] - c[0]) / sx + 0.5) * w - 0.5
+    v = ((points_lab_mm[..., 1] - c[1]) / sy + 0.5) * h - 0.5
+    return np.stack([u, v], axis=-1)
 
 
 def spots_through(

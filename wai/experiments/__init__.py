@@ -16,22 +16,22 @@ def run_experiment(args: argparse.Namespace) -> None:
     if args.seeds is None:
         args.seeds = DEFAULT_SEEDS[args.name]
     if args.name == "validate":
-        from wai.validate import print_validate, run_validate
+        from wai.experiments.validate import print_validate, run_validate
 
         print_validate(run_validate(args))
     elif args.name == "paper":
-        from wai.paper import run_paper
+        from wai.experiments.paper import run_paper
 
         run_paper(args)
     elif args.name == "alterman":
-        from wai.alterman_experiment import run_alterman
+        from wai.experiments.alterman import run_alterman
 
         run_alterman(args)
     elif args.name == "tradeoffs":
-        from wai.tradeoffs import run_tradeoffs
+        from wai.experiments.tradeoffs import run_tradeoffs
 
         run_tradeoffs(args)
     elif args.name == "stability":
-        from wai.stability import run_stability
+        from wai.experiments.stability import run_stability
 
         run_stability(args)

@@ -28,8 +28,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from wai.experiments.frame_eval import evaluate_frame  # noqa: E402
 from wai.figures import save_figure  # noqa: E402
-from wai.frame_eval import evaluate_frame  # noqa: E402
 from wai.sweep import run_sweep, sweep_kwargs  # noqa: E402
 from wai_core.io import atomic_write_bytes, write_json  # noqa: E402
 
@@ -54,8 +54,7 @@ QUICK: dict[str, tuple[float, ...]] = {
 def evaluate_sun(point: dict[str, Any]) -> dict[str, Any]:
     """Render and restore Alterman's sun sensor at the point's sun zenith angle."""
     from mitsuba_wai.alterman import render_alterman_folder
-    from restoration.alterman import DEFAULT_OPTIONS
-    from wai.restore_cli import restore_folder
+    from restoration import Alterman, restore_folder
     from wai_core.alterman import AltermanSystem, load_alterman
     from wai_core.config import load_config
 
@@ -65,7 +64,7 @@ def evaluate_sun(point: dict[str, Any]) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="wai-sun-") as tmp:
         frame = Path(tmp) / "frame"
         render_alterman_folder(AltermanSystem(base, sensor), frame, progress=False)
-        m = restore_folder(frame, DEFAULT_OPTIONS, progress=False, method="alterman")
+        m = restore_folder(frame, Alterman(), write=False).metrics
     status = m.get("status", "ok")
     row = {"frame_status": status}
     if status == "ok":

@@ -24,10 +24,11 @@ from tqdm import tqdm
 from wai_core.alterman import AltermanSystem, is_alterman_file, load_alterman
 from wai_core.config import load_config
 from wai_core.io import atomic_write_bytes, read_exr
+from wai_core.scenes import scene_path
 
 ANGLES_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0)
 QUICK_ANGLES_DEG = (15.0, 60.0)
-SENSOR_TOML = Path(__file__).resolve().parents[1] / "scenes" / "alterman.toml"
+SENSOR_TOML = scene_path("alterman")
 # The paper's numbers (section 5.2.2-5.2.3, Table 2 data 1: the checkerboard).
 PAPER = {
     "alterman_min_rmse_mm": 3.4603,
@@ -90,27 +91,23 @@ def row(seed: int, method: str, variant: str, theta: float | None, m: dict[str, 
 
 def _in_memory(frame: Path, method: str, options: Any) -> dict[str, Any]:
     """Restore and score a folder without writing (a second variant of the same frame)."""
-    from restoration.scoring import load_and_score
-    from wai.restore_cli import run_method
+    from restoration import restore_folder
 
-    run = run_method(frame, method, options)
-    if run.result is None:
-        return {"status": run.status}
-    scores = load_and_score(frame, run.result, run.cal, run.images["view"] / run.cal.view_gain)
-    return {**scores, "timings_ms": run.result.timings_ms}
+    return restore_folder(frame, method, options, write=False).metrics
 
 
-def common_region_errors(frame: Path, paper: Path) -> dict[str, float]:
-    """Errors (mm) of ``frame``'s estimate on the nodes where the structured light's estimate of
-    the same surface (``paper``) is known: the two methods compared on one region."""
+def common_region_errors(done: Any, paper: Any) -> dict[str, float]:
+    """Errors (mm) of ``done``'s estimate on the nodes where the structured light's estimate of
+    the same surface (``paper``) is known: the two methods compared on one region (both are
+    FolderRestores of the same seed)."""
     from wai_core.heightfield import load_heightfield
 
-    est = _estimate(frame)
-    sl = _estimate(paper)
+    est = done.result.surface.heightfield
+    sl = paper.result.surface.heightfield
     xx, yy = np.meshgrid(sl.x, sl.y)
     known = np.isfinite(sl.z)
     x, y = xx[known], yy[known]
-    err = est.height(x, y) - load_heightfield(frame / "heightfield.npz").height(x, y)
+    err = est.height(x, y) - load_heightfield(done.folder / "heightfield.npz").height(x, y)
     err = err[np.isfinite(err)]
     if err.size == 0:
         return {}
@@ -122,23 +119,20 @@ def common_region_errors(frame: Path, paper: Path) -> dict[str, float]:
     }
 
 
-def oracle_level_errors(frame: Path) -> dict[str, float]:
-    """Diagnostic, not a method: Alterman's surface re-anchored with the true mean height of
-    its samples instead of the gauge's h0 (isolates what the unknown mean level costs)."""
+def oracle_level_errors(done: Any) -> dict[str, float]:
+    """Diagnostic, not a method: Alterman's surface (``done``, a FolderRestore) re-anchored
+    with the true mean height of its samples instead of the gauge's h0 (isolates what the
+    unknown mean level costs)."""
     import dataclasses
 
     from restoration.alterman import DEFAULT_OPTIONS, reconstruct_alterman
     from restoration.metrics import surface_errors
     from restoration.normals import spots_on_diffuser
-    from wai.restore_cli import run_method
     from wai_core.heightfield import load_heightfield
 
-    run = run_method(frame, "alterman", DEFAULT_OPTIONS)
-    if run.result is None:
-        return {}
-    truth = load_heightfield(frame / "heightfield.npz")
-    lay, m = run.cal.layout, run.result.features
-    q = run.result.surface.points_mm
+    truth = load_heightfield(done.folder / "heightfield.npz")
+    lay, m = done.cal.layout, done.result.features
+    q = done.result.surface.points_mm
     level = float(np.mean(truth.height(q[:, 0], q[:, 1])))
     spots = spots_on_diffuser(m.spot_px, lay.camera, lay.screen_z_mm)
     est = reconstruct_alterman(
@@ -150,46 +144,44 @@ def oracle_level_errors(frame: Path) -> dict[str, float]:
             "oracle_level_rmse_demeaned_mm": e["rmse_demeaned_mm"]}
 
 
-def _estimate(frame: Path) -> Any:
-    """The surface ``wai restore`` wrote into ``frame/restore`` (NaN holes allowed)."""
-    from wai_core.heightfield import Heightfield
-
-    with np.load(frame / "restore" / "heightfield_est.npz") as d:
-        return Heightfield(d["x"], d["y"], d["z"])
-
-
-def structured_light_rows(system: AltermanSystem, seeds: list[int], out: Path) -> list[dict]:
-    """Render and restore the paper's system per seed (default and gauge anchor)."""
+def structured_light_rows(
+    system: AltermanSystem, seeds: list[int], out: Path
+) -> tuple[list[dict], dict[int, Any]]:
+    """Render and restore the paper's system per seed (default and gauge anchor); the rows,
+    and each seed's restoration (to compare the sun sensor with on the same region)."""
     import time
 
     from mitsuba_wai.render import render_folder
-    from restoration.pipeline import RestoreOptions
-    from wai.restore_cli import restore_folder
+    from restoration import RestoreOptions, restore_folder
 
-    rows = []
+    rows, restored = [], {}
     for seed in tqdm(seeds, desc="structured light", leave=False):
         frame = out / f"seed{seed:03d}" / "paper"
         t0 = time.perf_counter()
         render_folder(system.base.replace("waves", seed=seed), frame, progress=False)
         render_s = time.perf_counter() - t0
-        m = restore_folder(frame, RestoreOptions(), progress=False)
-        rows.append(row(seed, "structured-light", "integrability", None, m, render_s))
-        rows[-1].update(common_region_errors(frame, frame))
+        done = restore_folder(frame)
+        restored[seed] = done
+        rows.append(row(seed, "structured-light", "integrability", None, done.metrics, render_s))
+        rows[-1].update(common_region_errors(done, done))
         gauge = _in_memory(frame, "structured-light", RestoreOptions(anchor="gauge"))
         rows.append(row(seed, "structured-light", "gauge", None, gauge))
-    return rows
+    return rows, restored
 
 
 def sun_rows(
-    system: AltermanSystem, seeds: list[int], angles: tuple[float, ...], out: Path
+    system: AltermanSystem,
+    seeds: list[int],
+    angles: tuple[float, ...],
+    out: Path,
+    paper: dict[int, Any],
 ) -> list[dict]:
-    """Render and restore the sun sensor per angle and seed, through the paper's surfaces."""
+    """Render and restore the sun sensor per angle and seed, through the paper's surfaces
+    (``paper``: the structured light's restoration of each seed)."""
     import time
 
     from mitsuba_wai.alterman import SunRenderer, alterman_surface, render_alterman_folder
-    from restoration.alterman import DEFAULT_OPTIONS
-    from restoration.pipeline import RestoreOptions
-    from wai.restore_cli import restore_folder
+    from restoration import Alterman, RestoreOptions, restore_folder
 
     rows = []
     for theta in tqdm(angles, desc="sun angles", leave=False):
@@ -197,19 +189,18 @@ def sun_rows(
         first = at(system, seeds[0], theta)
         renderer = SunRenderer(first, alterman_surface(first, None))
         for seed in seeds:
-            paper = out / f"seed{seed:03d}" / "paper"
-            views = {k: read_exr(paper / f"{k}.exr") for k in ("view", "view_truth")}
+            views = {k: read_exr(paper[seed].folder / f"{k}.exr") for k in ("view", "view_truth")}
             frame = out / f"seed{seed:03d}" / f"sun{theta:02.0f}"
             t0 = time.perf_counter()
             render_alterman_folder(
                 at(system, seed, theta), frame, views=views, renderer=renderer, progress=False
             )
             render_s = time.perf_counter() - t0
-            m = restore_folder(frame, DEFAULT_OPTIONS, progress=False, method="alterman")
-            rows.append(row(seed, "alterman", "refined", theta, m, render_s))
-            if m.get("status", "ok") == "ok":
-                rows[-1].update(common_region_errors(frame, paper))
-                rows[-1].update(oracle_level_errors(frame))
+            done = restore_folder(frame, Alterman())
+            rows.append(row(seed, "alterman", "refined", theta, done.metrics, render_s))
+            if done.result.ok:
+                rows[-1].update(common_region_errors(done, paper[seed]))
+                rows[-1].update(oracle_level_errors(done))
             published = _in_memory(frame, "alterman", RestoreOptions(anchor="gauge", n_refine=0))
             rows.append(row(seed, "alterman", "h0", theta, published))
     return rows
@@ -218,15 +209,13 @@ def sun_rows(
 def overcast_row(system: AltermanSystem, seed: int, out: Path) -> dict[str, Any]:
     """An overcast frame: the method must decline with ``no_sun``."""
     from mitsuba_wai.alterman import render_alterman_folder
-    from restoration.alterman import DEFAULT_OPTIONS
-    from wai.restore_cli import restore_folder
+    from restoration import Alterman, restore_folder
 
     paper = out / f"seed{seed:03d}" / "paper"
     views = {k: read_exr(paper / f"{k}.exr") for k in ("view", "view_truth")}
     frame = out / f"seed{seed:03d}" / "overcast"
     render_alterman_folder(at(system, seed, 30.0, sun=False), frame, views=views, progress=False)
-    m = restore_folder(frame, DEFAULT_OPTIONS, progress=False, method="alterman")
-    return row(seed, "alterman", "overcast", 30.0, m)
+    return row(seed, "alterman", "overcast", 30.0, restore_folder(frame, Alterman()).metrics)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -263,6 +252,14 @@ def csv_text(rows: list[dict]) -> str:
             {k: ("" if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()}
         )
     return buf.getvalue()
+
+
+def _estimate(frame: Path) -> Any:
+    """The surface ``wai restore`` wrote into ``frame/restore`` (NaN holes allowed)."""
+    from wai_core.heightfield import Heightfield
+
+    with np.load(frame / "restore" / "heightfield_est.npz") as d:
+        return Heightfield(d["x"], d["y"], d["z"])
 
 
 def error_maps_figure(out: Path, seed: int, angles: tuple[float, ...]) -> str:
@@ -498,8 +495,8 @@ def run_alterman(args: argparse.Namespace) -> None:
     out.mkdir(parents=True, exist_ok=True)
     seeds = [0] if args.quick else list(range(args.seeds))
     angles = QUICK_ANGLES_DEG if args.quick else ANGLES_DEG
-    rows = structured_light_rows(system, seeds, out)
-    rows += sun_rows(system, seeds, angles, out)
+    rows, paper = structured_light_rows(system, seeds, out)
+    rows += sun_rows(system, seeds, angles, out, paper)
     rows.append(overcast_row(system, seeds[0], out))
     atomic_write_bytes(out / "results.csv", csv_text(rows).encode())
     figs = [error_maps_figure(out, seeds[0], angles), rmse_figure(out, rows, angles)]

@@ -55,9 +55,6 @@ from wai_core.heightfield import Heightfield
 CORRECT_RADIUS_PX = 3.0
 # More wrong labels than this fraction of the kept ones make the frame's status "wrong_labels".
 WRONG_LABEL_FRACTION = 0.05
-# Fewer matches than this fraction of the dots the calibration puts in view make a frame
-# "sparse" (no truth involved: it also catches a reference that saw few of them).
-SPARSE_FRACTION = 0.25
 
 
 def frame_config(point: dict[str, Any]) -> SystemConfig:
@@ -108,7 +105,7 @@ def render_frame(cfg: SystemConfig, amplitude: float = 1.0) -> tuple[dict[str, A
 
 def correspondence_counts(cfg: SystemConfig, surface: Heightfield, features: Any) -> dict:
     """Kept correspondences checked against the geometric model's spot for each label."""
-    from wai.forward import predict_spots
+    from wai_core.forward import predict_spots
 
     ij_true, px_true = predict_spots(cfg, surface)
     index = {tuple(k): n for n, k in enumerate(ij_true.tolist())}
@@ -132,13 +129,17 @@ def _names(value: Any, default: str) -> list[str]:
 
 
 def _timed_restore(images: dict, cal: Any, options: Any, repeats: int) -> tuple[Any, dict]:
-    """Restore ``repeats`` times; the last result and the median time of each stage, ms."""
-    from restoration.pipeline import restore
+    """Restore ``repeats`` times; the last result and the median time of each stage, ms (the
+    result alone when the frame failed)."""
+    from restoration import StructuredLight
 
+    method = StructuredLight(options)
     stages: dict[str, list[float]] = {}
     result = None
     for _ in range(max(int(repeats), 1)):
-        result = restore(images, cal, options)
+        result = method(images, cal)
+        if not result.restored:
+            return result, {}
         for name, ms in result.timings_ms.items():
             stages.setdefault(name, []).append(ms)
         for name, ms in result.surface.timings_ms.items():
@@ -147,23 +148,20 @@ def _timed_restore(images: dict, cal: Any, options: Any, repeats: int) -> tuple[
 
 
 def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[str, Any]:
-    from restoration.scoring import score
+    from restoration import Truth, score
 
     s = score(
-        result,
-        images["view"] / cal.view_gain,
-        cal,
-        surface,
-        images["view_truth"] / cal.view_gain,
+        result, images["view"] / cal.view_gain, cal,
+        Truth(surface, images["view_truth"] / cal.view_gain),
     )
     return {
-        "wai_rmse_mm": s["wai_rmse_mm"],
-        "wai_rmse_demeaned_mm": s["wai_rmse_demeaned_mm"],
-        "wai_max_abs_mm": s["wai_max_abs_mm"],
-        "distorted_ssim": s["distorted"]["ssim"],
-        "restored_ssim": s["restored"]["ssim"],
-        "corner_std_distorted_px": s["corner_std_distorted_px"],
-        "corner_std_restored_px": s["corner_std_restored_px"],
+        "wai_rmse_mm": s.surface["rmse_mm"],
+        "wai_rmse_demeaned_mm": s.surface["rmse_demeaned_mm"],
+        "wai_max_abs_mm": s.surface["max_abs_mm"],
+        "distorted_ssim": s.distorted["ssim"],
+        "restored_ssim": s.restored["ssim"],
+        "corner_std_distorted_px": s.corner_std_distorted_px,
+        "corner_std_restored_px": s.corner_std_restored_px,
         "anchor_method": result.surface.anchor.get("method"),
         "anchor_mm": result.surface.anchor.get("anchor_mm"),
     }
@@ -171,8 +169,9 @@ def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[s
 
 def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     """Render, restore and score the frame of ``point`` (see the module docstring)."""
-    from restoration.pipeline import Calibration, RestoreOptions
-    from wai.paper import correspondence_limit, effective_phi_deg
+    from restoration import Calibration, RestoreOptions
+    from wai_core.limits import correspondence_limit, effective_phi_deg
+    from wai_core.optics import radiance_gain
 
     cfg = frame_config(point)
     row: dict[str, Any] = {"phi_max_deg": correspondence_limit(cfg)["phi_max_deg"]}
@@ -188,7 +187,7 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     for key in ("render_s_pattern", "render_s_view"):
         row[key] = images.pop(key)
     row["phi_deg"] = effective_phi_deg(surface, cfg)
-    cal = Calibration(cfg, cfg.water.n_water**2)
+    cal = Calibration(cfg, radiance_gain(cfg.water.n_water))
     base = RestoreOptions()
     integrators = _names(point.get("integrators"), base.integrator)
     steps = [int(s) for s in _names(point.get("warp_steps"), str(base.warp_step_px))]
@@ -199,6 +198,8 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
             for step in steps:
                 options = replace(base, integrator=name, warp_step_px=step)
                 result, ms = _timed_restore(images, cal, options, repeats)
+                if result.status == "failed":
+                    raise WaiInputError(result.message)
                 suffix = _suffix(name, step, integrators, steps)
                 scores = _scores(result, images, cal, surface)
                 row.update({f"{k}{suffix}": v for k, v in scores.items()})
@@ -209,16 +210,9 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
         # A refused frame yields no usable correspondence: it counts as none correct.
         row.update(n_correct=0, fraction_correct=0.0, frame_status=f"failed: {exc}")
         return row
+    # Wrong labels need the truth; every other verdict is the restoration's own (truth-free).
     wrong = row["n_wrong"] > WRONG_LABEL_FRACTION * max(row["n_matched"], 1)
-    counts = result.features.counts
-    if wrong:
-        row["frame_status"] = "wrong_labels"
-    elif counts["matched"] < SPARSE_FRACTION * max(cal.reference.counts["predicted_in_view"], 1):
-        row["frame_status"] = "sparse"  # a small patch: its level and shape are weakly pinned
-    elif result.surface.anchor.get("method") == "gauge_fallback":
-        row["frame_status"] = "gauge_level"  # shape restored, the level is only the gauge's
-    else:
-        row["frame_status"] = "ok"
+    row["frame_status"] = "wrong_labels" if wrong else result.status
     return row
 
 

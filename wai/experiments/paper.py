@@ -22,6 +22,7 @@ from tqdm import tqdm
 from wai_core.config import SystemConfig, load_config
 from wai_core.geometry import reflect
 from wai_core.io import atomic_write_bytes, write_json
+from wai_core.limits import correspondence_limit, effective_phi_deg
 
 # The paper's numbers (Jian et al. 2022): section 5.2.2, Fig. 14-15 and Table 2.
 PAPER = {
@@ -73,39 +74,6 @@ def deflection_curves(theta_deg: NDArray) -> dict[str, Any]:
     return {"curves": curves, "dpsi_dtheta": slopes}
 
 
-def correspondence_limit(cfg: SystemConfig) -> dict[str, float]:
-    """Eq. 35-37 for this geometry: the largest slope amplitude Φ and shortest wavelength λ that
-    the pattern spacing D can follow, at the projector's axis."""
-    from wai_core.layout import flat_pattern_hits
-    from wai_core.pattern import dot_grid
-
-    q, _, seen = flat_pattern_hits(cfg)
-    ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
-    near_axis = seen & (np.abs(ij[:, 0]) <= 3) & (np.abs(ij[:, 1]) <= 3)
-    side = int(round(np.sqrt(len(ij))))
-    grid = q.reshape(side, side, 3)
-    steps = np.linalg.norm(np.diff(grid[..., :2], axis=1), axis=2).ravel()
-    steps_ok = near_axis.reshape(side, side)[:, 1:].ravel()
-    d_mm = float(np.median(steps[steps_ok]))
-    h0, z_h = cfg.water.h0_mm, cfg.diffuser.z_mm
-    cam = cfg.camera_s.camera()
-    # Δp: one camera-s pixel's footprint on the diffuser.
-    dp_mm = abs(z_h - cam.pose.center_lab_mm[2]) * cam.pixel_pitch_mm / cam.focal_mm
-    axis = cfg.projector.camera().pose.axis_lab
-    theta_flat = float(np.arccos(axis[2]))  # reflected angle from the vertical at the axis
-    cos2 = np.cos(theta_flat) ** 2
-    # Eq. 35 solved for Φ: D (2 h0 - z_h) / h0 - Δp/2 > (h0 - z_h) / cos² θ · dψ/dθ · 2Φ.
-    phi_max = (d_mm * (2 * h0 - z_h) / h0 - dp_mm / 2) * cos2 / (2.0 * (h0 - z_h) * 2.0)
-    return {
-        "D_mm": d_mm,
-        "delta_p_mm": float(dp_mm),
-        "theta_flat_deg": float(np.degrees(theta_flat)),
-        "phi_max_rad": float(phi_max),
-        "phi_max_deg": float(np.degrees(phi_max)),
-        "lambda_min_mm": 2.0 * d_mm,  # Nyquist: λ/2 > D
-    }
-
-
 # ------------------------------------------------------------------------------------------
 # Runs
 # ------------------------------------------------------------------------------------------
@@ -116,34 +84,36 @@ class SeedRun:
     """Everything one seed produced."""
 
     seed: int
-    metrics: dict[str, Any]
+    done: Any  # restoration.FolderRestore
     datasets: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
+
+    @property
+    def metrics(self) -> dict[str, Any]:
+        return self.done.metrics
 
 
 def _other_datasets(
-    cfg: SystemConfig, frame: Path, seed: int, renderers: dict[str, Any]
+    cfg: SystemConfig, done: Any, seed: int, renderers: dict[str, Any]
 ) -> dict[str, dict[str, dict[str, float]]]:
     """Table 2's natural images: render V through the same surface, restore with the surface
-    the structured light reconstructed for this frame."""
+    the structured light reconstructed for this frame (``done``, a FolderRestore)."""
     from mitsuba_wai.mesh import flat_like
     from mitsuba_wai.render import render_seed
     from restoration.metrics import image_metrics
-    from restoration.reverse_trace import restore_view
     from restoration.scoring import OBJECT_MIN_LEVEL
     from wai_core.heightfield import load_heightfield
 
-    truth = load_heightfield(frame / "heightfield.npz")
-    est = load_heightfield_est(frame)
-    gain = cfg.water.n_water**2
+    truth = load_heightfield(done.folder / "heightfield.npz")
+    est = done.result.surface.heightfield
+    cal = done.cal
+    gain = cal.view_gain
     out = {}
     for name, renderer in renderers.items():
         c = cfg.replace("waves", seed=seed)
         wavy = renderer.render(truth, render_seed(c), which=("view",))["view"] / gain
         flat = renderer.render(flat_like(truth, cfg.water.h0_mm), render_seed(c), which=("view",))
         flat_view = flat["view"] / gain
-        res = restore_view(
-            wavy, cfg.camera_v.camera(), est, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm
-        )
+        res = cal.restore_view(wavy, est)
         mask = res.valid & (flat_view.mean(axis=2) > OBJECT_MIN_LEVEL)
         out[name] = {
             "distorted": image_metrics(wavy, flat_view, mask),
@@ -152,20 +122,11 @@ def _other_datasets(
     return out
 
 
-def load_heightfield_est(frame: Path) -> Any:
-    """The reconstructed surface that ``wai restore`` wrote (NaN holes allowed)."""
-    from wai_core.heightfield import Heightfield
-
-    with np.load(frame / "restore" / "heightfield_est.npz") as d:
-        return Heightfield(d["x"], d["y"], d["z"])
-
-
 def run_seeds(cfg: SystemConfig, seeds: list[int], out: Path) -> list[SeedRun]:
     """Render, restore and score each seed on the checkerboard, then the natural images."""
     from mitsuba_wai.render import FrameRenderer, render_folder, wave_surface
     from mitsuba_wai.textures import object_texture
-    from restoration.pipeline import RestoreOptions
-    from wai.restore_cli import restore_folder
+    from restoration import restore_folder
 
     grid = wave_surface(cfg)
     textures = {n: object_texture(cfg.replace("object", texture=n).object) for n in DATASETS[1:]}
@@ -174,13 +135,13 @@ def run_seeds(cfg: SystemConfig, seeds: list[int], out: Path) -> list[SeedRun]:
     for seed in tqdm(seeds, desc="seeds", leave=False):
         frame = out / f"seed{seed:03d}"
         render_folder(cfg.replace("waves", seed=seed), frame, progress=False)
-        metrics = restore_folder(frame, RestoreOptions(), progress=False)
-        run = SeedRun(seed, metrics)
+        done = restore_folder(frame)
+        run = SeedRun(seed, done)
         run.datasets["checkerboard"] = {
-            "distorted": metrics["distorted"],
-            "restored": metrics["restored"],
+            "distorted": done.metrics["distorted"],
+            "restored": done.metrics["restored"],
         }
-        run.datasets.update(_other_datasets(cfg, frame, seed, renderers))
+        run.datasets.update(_other_datasets(cfg, done, seed, renderers))
         runs.append(run)
     return runs
 
@@ -191,9 +152,9 @@ def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> l
     from mitsuba_wai.mesh import flat_like
     from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
     from restoration.features import features_from_reference, prepare_reference
-    from wai.forward import predict_spots
-    from wai.frame_eval import correspondence_counts
+    from wai.experiments.frame_eval import correspondence_counts
     from wai_core.errors import WaiInputError
+    from wai_core.forward import predict_spots
     from wai_core.heightfield import Heightfield
 
     c = cfg.replace("waves", seed=seed)
@@ -222,26 +183,6 @@ def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> l
     return rows
 
 
-def effective_phi_deg(surface: Any, cfg: SystemConfig) -> float:
-    """Half the largest inclination change between neighbouring samples (eq. 35's 2Φ), deg,
-    over the dots' flat-water hits."""
-    from wai_core.layout import flat_pattern_hits
-
-    q, _, seen = flat_pattern_hits(cfg)
-    side = int(round(np.sqrt(len(q))))
-    gx, gy = surface.gradient(q[:, 0], q[:, 1])
-    incl = np.arctan(np.hypot(gx, gy)).reshape(side, side)
-    seen = seen.reshape(side, side)
-    diffs = []
-    for axis in (0, 1):
-        d = np.abs(np.diff(incl, axis=axis))
-        both = np.logical_and(
-            *(np.take(seen, r, axis=axis) for r in (range(0, side - 1), range(1, side)))
-        )
-        diffs.append(d[both])
-    return float(np.degrees(np.percentile(np.concatenate(diffs), 99)) / 2.0)
-
-
 # ------------------------------------------------------------------------------------------
 # Report
 # ------------------------------------------------------------------------------------------
@@ -252,19 +193,16 @@ def _ms(values: list[float], digits: int = 4) -> str:
     return f"{np.nanmean(a):.{digits}f} ± {np.nanstd(a):.{digits}f}"
 
 
-def figures_from_seed0(cfg: SystemConfig, out: Path, frame: Path) -> dict[str, str]:
-    """The paper's figures from the first seed's folders; returns {figure: file name}."""
-    from restoration.pipeline import load_calibration, load_inputs, restore
+def figures_from_seed0(cfg: SystemConfig, out: Path, done: Any) -> dict[str, str]:
+    """The paper's figures from the first seed's restoration (a FolderRestore); returns
+    {figure: file name}."""
     from wai import figures
-    from wai.demo import overview_figures
     from wai_core.heightfield import load_heightfield
     from wai_core.io import read_exr
 
-    overview_figures(frame)
+    frame, cal, images, result = done.folder, done.cal, done.images, done.result
+    figures.render_overview(frame, cfg.replace("waves", seed=done.metrics["seed"]), cal.view_gain)
     shutil.copy(frame / "fig10_surface.png", out / "fig10_surface.png")
-    cal = load_calibration(frame)
-    images = load_inputs(frame, cal)
-    result = restore(images, cal)
     ref = cal.reference
     figures.features_figure(
         [images["pattern_flat"], images["pattern"]],
@@ -492,7 +430,7 @@ def run_paper(args: argparse.Namespace) -> None:
         out / "sweep_amplitude.png",
         vlines={"eq. 35 bound": limit["phi_max_deg"]},
     )
-    figs = figures_from_seed0(cfg, out, out / f"seed{seeds[0]:03d}")
+    figs = figures_from_seed0(cfg, out, runs[0].done)
     command = "wai experiment paper " + " ".join(sys.argv[3:])
     md = report_markdown(command, cfg, runs, fig8, limit, sweep, figs)
     atomic_write_bytes(out / "report.md", md.encode())

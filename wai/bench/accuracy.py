@@ -37,7 +37,7 @@ from wai_core.io import write_json
 
 def true_spots(cfg: SystemConfig, truth: Heightfield, panel_px: NDArray) -> NDArray:
     """Exact camera-s pixels (K, 2) of dots reflected by the true surface (geometry only)."""
-    from wai.forward import spots_through
+    from wai_core.forward import spots_through
 
     return spots_through(cfg, truth, panel_px)
 
@@ -46,7 +46,7 @@ def _surface_variant(
     name: str, features: Any, cal: Any, truth: Heightfield, options: Any
 ) -> dict[str, float]:
     from restoration.metrics import surface_errors
-    from restoration.pipeline import estimate_surface, panel_positions
+    from restoration.structured_light import estimate_surface, panel_positions
 
     cfg = cal.cfg
     spots = features.spot_px
@@ -77,7 +77,7 @@ VARIANTS = ("paper", "no_refine", "gauge_anchor", "ours", "oracle_spots", "oracl
 
 def spot_noise_px(cfg: SystemConfig, features: Any, truth: Heightfield) -> dict[str, float]:
     """Detected minus ray-traced spot centres, pixels: median and 95th percentile of |d|."""
-    from restoration.pipeline import panel_positions
+    from restoration.structured_light import panel_positions
 
     exact = true_spots(cfg, truth, panel_positions(cfg, features.ij))
     d = np.linalg.norm(features.spot_px - exact, axis=1)
@@ -86,26 +86,20 @@ def spot_noise_px(cfg: SystemConfig, features: Any, truth: Heightfield) -> dict[
 
 
 def run_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Any]:
-    """Render, restore and dissect one seed."""
+    """Render, restore and dissect one seed (the restoration runs once; the budget's variants
+    rerun only the surface stage on its features)."""
     from mitsuba_wai.render import render_folder
-    from restoration.pipeline import RestoreOptions
-    from restoration.scoring import load_truth
-    from wai.restore_cli import restore_folder
+    from restoration import restore_folder
 
     frame = out / f"seed{seed:03d}"
     if not (frame / "scene.json").is_file():
         render_folder(cfg.replace("waves", seed=seed), frame, progress=False)
-    options = RestoreOptions()
-    metrics = restore_folder(frame, options, progress=False)
-    from restoration.pipeline import load_calibration, load_inputs, restore
-
-    cal = load_calibration(frame)
-    images = load_inputs(frame, cal)
-    result = restore(images, cal, options)
-    features = result.features
-    truth, _ = load_truth(frame, cal)
+    done = restore_folder(frame)
+    metrics, cal, result = done.metrics, done.cal, done.result
+    options = result_options(done)
+    truth = done.truth.surface
     others = [v for v in VARIANTS if v != "ours"]
-    budget = {v: _surface_variant(v, features, cal, truth, options) for v in others}
+    budget = {v: _surface_variant(v, result.features, cal, truth, options) for v in others}
     budget["ours"] = {
         "rmse_mm": metrics["wai_rmse_mm"],
         "rmse_demeaned_mm": metrics["wai_rmse_demeaned_mm"],
@@ -115,27 +109,27 @@ def run_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Any]:
         "seed": seed,
         "metrics": {k: v for k, v in metrics.items() if not k.startswith("timings")},
         "error_budget": budget,
-        "corner_floor_px": corner_floor_px(frame, cal, images, truth, result, options),
-        "spot_noise": spot_noise_px(cal.cfg, features, truth),
+        "corner_floor_px": corner_floor_px(done, truth),
+        "spot_noise": spot_noise_px(cal.cfg, result.features, truth),
     }
 
 
-def corner_floor_px(
-    frame: Path, cal: Any, images: dict, truth: Heightfield, result: Any, options: Any
-) -> Any:
-    """Restored corner STD (px) of ``result`` with its view restored through the true surface."""
-    from restoration.reverse_trace import restore_view
-    from restoration.scoring import load_and_score
+def result_options(done: Any) -> Any:
+    """The options ``done`` (a FolderRestore) was restored with."""
+    from restoration import RestoreOptions
 
-    cfg = cal.cfg
-    distorted = images["view"] / cal.view_gain
-    view = restore_view(
-        distorted, cal.camera_v, truth, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm,
-        warp_step_px=options.warp_step_px,
-    )
-    return load_and_score(frame, replace(result, view=view), cal, distorted)[
-        "corner_std_restored_px"
-    ]
+    return RestoreOptions(**done.metrics["options"])
+
+
+def corner_floor_px(done: Any, truth: Heightfield) -> Any:
+    """Restored corner STD (px) of ``done`` (a FolderRestore) with its view restored through
+    the true surface."""
+    from restoration import score
+
+    cal, result = done.cal, done.result
+    distorted = done.images["view"] / cal.view_gain
+    view = cal.restore_view(distorted, truth, result_options(done).warp_step_px)
+    return score(replace(result, view=view), distorted, cal, done.truth).corner_std_restored_px
 
 
 def _mean_std(values: list[float]) -> dict[str, float]:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from wai.bench import machine, summarize
+from wai.bench.timing import machine, reference_workload, summarize
 from wai.sweep import THREAD_VARIABLES, limit_native_threads, scoped_environ
 from wai_core.errors import WaiInputError
 
@@ -48,22 +48,21 @@ def render_sequence(config: Path, out: Path, n_frames: int) -> list[Path]:
 
 def _init_worker(folders: list[str]) -> None:
     """Load the calibration and every frame's images; prepare the reference; warm up."""
-    from restoration.pipeline import load_calibration, load_inputs, restore
+    from restoration import Calibration, LevelTrack, StructuredLight
 
     limit_native_threads(1)
-    cal = load_calibration(folders[0])
-    frames = [load_inputs(f, cal) for f in folders]
+    cal = Calibration.from_folder(folders[0])
+    frames = [cal.load_images(f) for f in folders]
+    restore = StructuredLight()
     restore(frames[0], cal)  # prepares the reference and warms every code path
-    _STATE.update(cal=cal, frames=frames)
+    _STATE.update(cal=cal, frames=frames, restore=restore, track=LevelTrack())
 
 
 def _restore_frame(index: int) -> tuple[np.ndarray, float]:
     """Restore frame ``index`` (modulo the sequence); the 8-bit image and the worker's ms."""
-    from restoration.pipeline import restore
-
     frames = _STATE["frames"]
     t0 = time.perf_counter()
-    res = restore(frames[index % len(frames)], _STATE["cal"])
+    res = _STATE["restore"](frames[index % len(frames)], _STATE["cal"], _STATE["track"])
     ms = 1e3 * (time.perf_counter() - t0)
     img8 = (np.clip(res.view.image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     return img8, ms
@@ -95,19 +94,22 @@ def bench_video(args: argparse.Namespace) -> dict[str, Any]:
             raise WaiInputError(f"--{name} must be at least 1, got {getattr(args, name)}")
     out = Path(args.out or "renders/bench_video")
     folders = render_sequence(args.config, out, args.sequence)
-    from restoration.pipeline import load_calibration, load_inputs, restore
+    from restoration import Calibration, LevelTrack, StructuredLight
 
-    cal = load_calibration(folders[0])
-    frames = [load_inputs(f, cal) for f in folders]
-    restore(frames[0], cal)
+    cal = Calibration.from_folder(folders[0])
+    frames = [cal.load_images(f) for f in folders]
+    restore, track = StructuredLight(), LevelTrack()
+    restore(frames[0], cal, track)
+    reference = reference_workload()
     samples = []
     for k in range(args.runs * len(frames)):
         t0 = time.perf_counter()
-        restore(frames[k % len(frames)], cal)
+        restore(frames[k % len(frames)], cal, track)
         samples.append(time.perf_counter() - t0)
     counts = sorted({1, args.workers})
     return {
         "machine": machine(),
+        "reference": reference,
         "sequence": [str(f) for f in folders],
         "latency": summarize(samples),
         "throughput": [throughput(folders, w, args.frames) for w in counts],
@@ -122,6 +124,11 @@ def print_video(res: dict[str, Any]) -> None:
         f"({1e3 / lat['median_ms']:.1f} frames/s), IQR {lat['iqr_ms']:.1f} ms, "
         f"{lat['runs']} restorations of {len(res['sequence'])} frames, "
         f"{res['machine']['cores']} cores"
+    )
+    ref = res["reference"]
+    print(
+        f"reference workload ({ref['workload']}) in the same run: median {ref['median_ms']:.1f} "
+        f"ms; latency = {lat['median_ms'] / ref['median_ms']:.2f} x reference"
     )
     for t in res["throughput"]:
         print(

@@ -1,6 +1,6 @@
 """``wai bench restore``: per-stage and end-to-end time of the restoration of one 800x600 frame.
 
-The pipeline reports its own timings (:attr:`restoration.pipeline.RestoreResult.timings_ms` and
+The pipeline reports its own timings (:attr:`restoration.RestoreResult.timings_ms` and
 those of its features, surface and view); :func:`stage_times` maps them to the report's stages.
 That mapping is tolerant, since the restoration's keys change as it is optimised: a key it does
 not know passes through under its dotted name (``features.<key>``, ``surface.<key>``,
@@ -19,10 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from wai.bench import (
+from wai.bench.timing import (
     machine,
     peak_rss_mib,
     print_stage_table,
+    reference_workload,
     runtime,
     summarize,
     time_runs,
@@ -123,7 +124,7 @@ def _timings(obj: Any) -> dict[str, Any]:
 
 
 def stage_times(result: Any) -> tuple[dict[str, float], list[str]]:
-    """Report stages (ms) of one :class:`~restoration.pipeline.RestoreResult`, derived included.
+    """Report stages (ms) of one :class:`~restoration.RestoreResult`, derived included.
 
     Parameters
     ----------
@@ -204,7 +205,7 @@ def _render_dir(args: argparse.Namespace) -> Path:
 
 
 def bench_restore(args: argparse.Namespace) -> dict[str, Any]:
-    """Time :func:`restoration.pipeline.restore` on a render folder (rendered if not given).
+    """Time :class:`restoration.StructuredLight` on a render folder (rendered if not given).
 
     Loading the images is not timed (a camera delivers them in memory); everything from the
     pattern image to the restored view is. A warm-up run (which also prepares the flat-water
@@ -217,20 +218,23 @@ def bench_restore(args: argparse.Namespace) -> dict[str, Any]:
         the pipeline's own keys, so there ``reverse_trace`` is the whole view stage);
         ``stages``: summaries under the report's stage names (see :func:`stage_times`),
         ``derived`` and ``notes`` on them; ``warmup_ms``, ``peak_rss_mib`` and
-        ``tracemalloc_peak_mib``.
+        ``tracemalloc_peak_mib``; ``reference``: the reference workload timed in the same run
+        and ``end_to_end_per_reference``, the end-to-end median in units of it.
     """
-    from restoration.pipeline import RestoreOptions, load_calibration, load_inputs, restore
+    from restoration import Calibration, StructuredLight
 
     render_dir = _render_dir(args)
-    cal = load_calibration(render_dir)
-    images = load_inputs(render_dir, cal)
-    options = RestoreOptions()
+    cal = Calibration.from_folder(render_dir)
+    images = cal.load_images(render_dir)
+    restore = StructuredLight()
+    options = restore.options
+    reference = reference_workload()
     raw: dict[str, list[float]] = {}
     stages: dict[str, list[float]] = {}
     derived: list[str] = []
 
     def run(i: int) -> None:
-        res = restore(images, cal, options)
+        res = restore(images, cal)
         if i < 0:  # the warm-up's figures are not kept
             return
         for name, ms in _raw_timings(res).items():
@@ -248,11 +252,13 @@ def bench_restore(args: argparse.Namespace) -> dict[str, Any]:
         "render_dir": str(render_dir),
         "machine": machine(),
         "runtime": runtime(),
-        "options": vars(options),
+        "options": options.to_dict(),
         "warmup_ms": warm * 1e3,
         "end_to_end_ms": e2e["median_ms"],
         "end_to_end": e2e,
         "fps": 1e3 / e2e["median_ms"],
+        "reference": reference,
+        "end_to_end_per_reference": e2e["median_ms"] / reference["median_ms"],
         "stages_ms": {k: float(np.median(v)) for k, v in raw.items()},
         "stages": summaries,
         "derived": derived,
@@ -261,7 +267,7 @@ def bench_restore(args: argparse.Namespace) -> dict[str, Any]:
             **{k: DERIVED[k][2] for k in derived},
         },
         "peak_rss_mib": peak_rss_mib(),  # before the traced run: tracemalloc costs memory too
-        "tracemalloc_peak_mib": peak_traced_mib(lambda: restore(images, cal, options)),
+        "tracemalloc_peak_mib": peak_traced_mib(lambda: restore(images, cal)),
     }
 
 
@@ -283,6 +289,11 @@ def print_restore(res: dict[str, Any]) -> None:
         f"({res['fps']:.1f} frames/s; min {e['min_ms']:.1f}, max {e['max_ms']:.1f}, "
         f"{e['runs']} runs, {res['machine']['cores']} cores, "
         f"{rt.get('opencv_threads')} OpenCV threads; warm-up {res['warmup_ms']:.0f} ms)"
+    )
+    ref = res["reference"]
+    print(
+        f"reference workload ({ref['workload']}) in the same run: median {ref['median_ms']:.1f} "
+        f"ms; end to end = {res['end_to_end_per_reference']:.2f} x reference"
     )
     print_stage_table(res["stages"], res["derived"], res["notes"], e["runs"])
     print(

@@ -1,0 +1,57 @@
+"""Pattern features on camera s and their correspondence with the projector's dot grid.
+
+The paper (Jian et al. 2022, section 3.2.1) needs, for every projected dot ``k``, its spot
+``s_k`` on the diffuser in the wavy image and the dot's grid index, so that the projector ray
+``v_k^p`` is known; section 4.2 (eq. 33) states when ordering alone can make this
+correspondence. The stage's modules:
+
+- :mod:`~restoration.features.detect`: detect the spots with sub-pixel centres
+  (:func:`detect_spots`).
+- :mod:`~restoration.features.reference`: predict the flat-water spots from calibration
+  (:func:`predict_flat_spots`) and label the flat-water spots with grid indices
+  (:func:`match_reference`, :func:`prepare_reference`).
+- :mod:`~restoration.features.match`: label the wavy-water spots by region growing, the
+  ordering check and anchoring (:func:`match_distorted`); per frame
+  (:func:`features_from_reference`) or all steps at once (:func:`find_features`).
+- ``_lattice``, ``_outline``, ``_types``: private helpers shared by the above.
+"""
+
+from restoration.features._lattice import _LatticeTables as _LatticeTables
+from restoration.features.detect import Spots, detect_spots
+from restoration.features.detect import _background as _background
+from restoration.features.detect import _minimum_bias as _minimum_bias
+from restoration.features.detect import _noise_sigma as _noise_sigma
+from restoration.features.detect import _segment as _segment
+from restoration.features.match import (
+    REGROW_BELOW,
+    Matches,
+    features_from_reference,
+    find_features,
+    match_distorted,
+    order_violations,
+)
+from restoration.features.match import _anchor_shift as _anchor_shift
+from restoration.features.match import _choose_seed as _choose_seed
+from restoration.features.reference import (
+    ReferenceGrid,
+    flag_diffuser_edge,
+    match_reference,
+    predict_flat_spots,
+    prepare_reference,
+)
+
+__all__ = [
+    "REGROW_BELOW",
+    "Matches",
+    "ReferenceGrid",
+    "Spots",
+    "detect_spots",
+    "features_from_reference",
+    "find_features",
+    "flag_diffuser_edge",
+    "match_distorted",
+    "match_reference",
+    "order_violations",
+    "predict_flat_spots",
+    "prepare_reference",
+]

@@ -1,0 +1,80 @@
+"""Convex outlines in camera s, shared by the flat-water reference and the wavy-water matching:
+the diffuser's extent and its outline in the image, where camera s can see a spot, and the
+distances of points inside the edges of a convex polygon.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from restoration.features._types import BoolArray, FloatArray
+from wai_core.config import SystemConfig
+from wai_core.errors import WaiInputError
+from wai_core.layout import diffuser_rect
+
+
+def _diffuser(cfg: SystemConfig) -> FloatArray:
+    """Diffuser extent ``[[x0, x1], [y0, y1]]``, mm (:func:`wai_core.layout.diffuser_rect`)."""
+    try:
+        return diffuser_rect(cfg)
+    except ValueError as exc:
+        raise WaiInputError(f"config: {exc}") from None
+
+
+@functools.lru_cache(maxsize=8)  # per frame it would cost ~0.3 ms; the config is immutable
+def _outline_px(cfg: SystemConfig) -> FloatArray:
+    """The diffuser's corners (4, 2) in camera s, pixels, in order around it (read-only)."""
+    (x0, x1), (y0, y1) = _diffuser(cfg)
+    z = cfg.diffuser.z_mm
+    corners = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
+    cols, rows, _ = cfg.camera_s.camera().project(corners)
+    out = np.stack([cols, rows], axis=1)
+    out.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _visible_outline(cfg: SystemConfig) -> FloatArray:
+    """Where camera s can see a spot: the diffuser's outline clipped to the image, (M, 2) px
+    (read-only)."""
+    cam = cfg.camera_s
+    w, h = cam.width_px - 0.5, cam.height_px - 0.5
+    frame = np.array([[-0.5, -0.5], [w, -0.5], [w, h], [-0.5, h]], np.float32)
+    area, poly = cv2.intersectConvexConvex(_outline_px(cfg).astype(np.float32), frame)
+    if area <= 0 or poly is None:
+        raise WaiInputError("camera s does not see the diffuser")
+    out = poly[:, 0].astype(np.float64)
+    out.setflags(write=False)
+    return out
+
+
+def _edge_distances(poly: FloatArray, pts: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Signed distances (N, M) of points (N, 2) inside each edge of a convex polygon (M, 2),
+    positive inwards, and the edges' inward unit normals (M, 2)."""
+    edge = np.roll(poly, -1, axis=0) - poly
+    normal = np.stack([-edge[:, 1], edge[:, 0]], axis=1)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal *= np.sign(np.sum((poly.mean(axis=0) - poly) * normal, axis=1, keepdims=True))
+    return np.einsum("pmk,mk->pm", pts[:, None, :] - poly[None], normal), normal
+
+
+@dataclass(frozen=True)
+class _Outline:
+    """A convex polygon (M, 2) with its inward unit edge normals (M, 2), computed once."""
+
+    poly: FloatArray
+    normal: FloatArray
+
+    @classmethod
+    def of(cls, poly: FloatArray) -> _Outline:
+        poly = np.asarray(poly, dtype=np.float64)
+        return cls(poly, _edge_distances(poly, poly[:1])[1])
+
+    def inside(self, pts: FloatArray, margin: FloatArray) -> BoolArray:
+        """Points (N, 2) at least ``margin`` (N,) inside, pixels."""
+        dist = np.einsum("pmk,mk->pm", pts[:, None, :] - self.poly[None], self.normal)
+        return (dist >= margin[:, None]).all(axis=1)

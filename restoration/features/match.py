@@ -1,0 +1,703 @@
+"""Wavy-water correspondence: label the distorted pattern's spots with grid indices
+(:func:`match_distorted`, which returns :class:`Matches`) by region growing over the reference
+lattice from a confident seed, re-evaluating per wave only the nodes whose matched neighbours
+changed; drop matches that break eq. 33's ordering (:func:`order_violations`), merged blobs and
+doubly claimed spots; and anchor the labels, which ordering fixes only up to a whole-lattice
+shift, on the pattern's visible boundary or its unlit marker dots. Also the per-frame step,
+detection plus matching against a prepared reference (:func:`features_from_reference`), and all
+steps from the two images (:func:`find_features`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
+from restoration.features._outline import _Outline, _outline_px, _visible_outline
+from restoration.features._types import BoolArray, FloatArray, IntArray
+from restoration.features.detect import Spots, detect_spots
+from restoration.features.reference import (
+    ReferenceGrid,
+    flag_diffuser_edge,
+    prepare_reference,
+)
+from wai_core.config import SystemConfig
+from wai_core.errors import WaiInputError
+
+
+@dataclass(frozen=True)
+class Matches:
+    """Correspondence between grid dots, their flat-water spot and their wavy-water spot.
+
+    Attributes
+    ----------
+    ij : (K, 2) ndarray of int
+        Grid index of each kept match.
+    ref_px : (K, 2) ndarray
+        Flat-water spot centre (detected, or predicted where ``observed`` is False), pixels.
+    spot_px : (K, 2) ndarray
+        Wavy-water spot centre, pixels.
+    observed : (K,) ndarray of bool
+        The dot's spot was also seen on flat water.
+    counts : dict of str to int
+        ``detected``: spots in the wavy image. ``reference``: dots seen on flat water.
+        ``matched``: kept matches, of which ``matched_unobserved`` are dots not seen on flat water.
+        Lattice nodes dropped: ``rejected_order`` (break eq. 33 with a grid neighbour),
+        ``rejected_merged`` (their spot is a merged blob), ``rejected_ambiguous`` (two candidate
+        spots, or a spot claimed by two nodes), ``rejected_border`` (spot cut by the image or
+        diffuser edge, or saturated), ``rejected_unlit`` (matched to a node that is not a lit dot).
+        ``unmatched_reference``: dots seen on flat water but lost in the wavy image.
+        ``unassigned_spots``: detected spots given to no dot. ``anchor_di``, ``anchor_dj``:
+        lattice shift applied to the proximity labelling; ``anchor_candidates``: how many shifts
+        fit the evidence equally well (1: the labelling is pinned by the pattern's visible
+        boundary; more: it is only the one nearest to flat water). ``labels_ambiguous``: 1 when
+        ``anchor_candidates > 1``, i.e. the labels may be shifted by whole grid steps; the
+        pipeline reports it (with all counts, as ``feature_counts``).
+    timings_ms : dict of str to float
+        Wall time per step, ms: ``detect`` and ``match`` from :func:`features_from_reference`,
+        plus ``reference`` and ``total`` from :func:`find_features`.
+    alt_shifts : (C, 2) ndarray of int
+        Lattice shifts, relative to ``ij``, that fit the lit/unlit evidence as well as the one
+        applied (``[0, 0]`` included); more than one row when ``labels_ambiguous``. A caller
+        with more evidence (:func:`restoration.pipeline.restore` uses the integrability of the
+        slopes) may relabel ``ij + shift``.
+    """
+
+    ij: IntArray
+    ref_px: FloatArray
+    spot_px: FloatArray
+    observed: BoolArray
+    counts: dict[str, int]
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    alt_shifts: IntArray = field(default_factory=lambda: np.zeros((1, 2), np.int64))
+
+    def __len__(self) -> int:
+        return int(self.ij.shape[0])
+
+
+# A growth that matches fewer than this fraction of the flat-water dots is tried once more from
+# another seed (see match_distorted).
+REGROW_BELOW = 0.5
+
+# Why a lattice node was not matched (the last reason seen while it was on the frontier).
+_NONE, _MERGED, _BORDER, _AMBIGUOUS, _ORDER, _UNLIT = range(6)
+
+
+def _as_complex(xy: FloatArray) -> NDArray[np.complex128]:
+    """Points (N, 2) as complex numbers ``col + 1j row`` (N,): a view, no arithmetic."""
+    return np.ascontiguousarray(xy, dtype=np.float64).view(np.complex128)[:, 0]
+
+
+def _as_xy(z: NDArray[np.complex128]) -> FloatArray:
+    """Complex points (N,) as (N, 2) ``(col, row)``: a view."""
+    return np.ascontiguousarray(z).view(np.float64).reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class _Growth:
+    """State of a region growing, per node: its spot (-1: none), why not, the last spot within
+    reach (-1: none), the last predicted position, and whether it was ever tried."""
+
+    match: IntArray
+    reason: NDArray[np.int8]
+    claim: IntArray
+    pred_px: FloatArray
+    tried: BoolArray
+
+
+def _nearest_two(tree: cKDTree, pts: FloatArray) -> tuple[FloatArray, IntArray, FloatArray]:
+    """Distance and index of the nearest spot, and distance of the second nearest (inf if none)."""
+    k = min(2, tree.n)
+    d, idx = tree.query(pts, k=k)
+    d, idx = d.reshape(len(pts), k), idx.reshape(len(pts), k)
+    d2 = d[:, 1] if k == 2 else np.full(len(pts), np.inf)
+    return d[:, 0], idx[:, 0], d2
+
+
+def _det2(m: FloatArray) -> FloatArray:
+    """Determinants of 2 x 2 matrices (N, 2, 2)."""
+    return m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
+
+
+def _choose_seed(
+    tab: _LatticeTables,
+    base_px: FloatArray,
+    ref: ReferenceGrid,
+    spots: Spots,
+    tree: cKDTree,
+    accept: float,
+    ratio: float,
+    exclude: BoolArray | None = None,
+) -> int:
+    """Node whose nearest spot is most confidently its own, in a calm part of the image (and
+    not ``exclude``, (G,) bool, if given).
+
+    Among observed nodes whose nearest spot is close, unambiguous and usable, and so are those
+    of at least 6 of their 8 neighbours (or as many as any node has), the score adds (in units
+    of the local spacing) the largest displacement difference to a neighbour and the node's own
+    displacement, plus the change of spot size from flat water (``|log|`` of the area ratio:
+    near a caustic, focusing shrinks or swells spots and the displacement field is at its least
+    smooth), plus a small pull towards the middle of the pattern.
+    """
+    n, spacing = len(base_px), ref.spacing_px
+    obs = np.flatnonzero(ref.observed)  # only an observed node can be the seed or support it
+    d1, i1, d2 = _nearest_two(tree, base_px[obs])
+    good = (d1 < accept * spacing[obs]) & (d1 < ratio * d2) & ~spots.suspicious[i1]
+    if exclude is not None:
+        good &= ~exclude[obs]
+    if not good.any():
+        return -1
+    ok = np.zeros(n + 1, bool)  # entry n: "no neighbour"
+    ok[obs] = good
+    disp = np.zeros((n + 1, 2))
+    disp[obs] = tree.data[i1] - base_px[obs]
+    cand = obs[good]
+    nb = tab.nbrs8[cand]
+    has = ok[nb]
+    diff = disp[cand, None, :] - disp[nb]
+    diff = np.sqrt(diff[..., 0] ** 2 + diff[..., 1] ** 2)
+    worst = np.where(has, diff, 0.0).max(axis=1)
+    n_ok = has.sum(axis=1)
+    spot = i1[good]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        size = np.abs(0.5 * np.log(_det2(spots.cov_px2[spot]) / _det2(ref.cov_px2[cand])))
+    size = np.where(np.isfinite(size), size, 0.0)
+    centre = np.median(base_px[obs], axis=0)
+    extent = np.ptp(base_px[obs], axis=0).max() + 1.0
+    reach = np.linalg.norm(base_px[cand] - centre, axis=1) / extent
+    own = np.linalg.norm(disp[cand], axis=1)
+    score = (worst + own) / spacing[cand] + size + 0.1 * reach
+    score = np.where(n_ok >= min(6, int(n_ok.max())), score, np.inf)
+    best = int(np.argmin(score))
+    return int(cand[best]) if np.isfinite(score[best]) else -1
+
+
+def _grow(
+    tab: _LatticeTables,
+    base_px: FloatArray,
+    spacing: FloatArray,
+    spots: Spots,
+    tree: cKDTree,
+    seed: tuple[int, int],
+    visible: _Outline,
+    accept: float,
+    ratio: float,
+    max_step_ratio: float = 1.7,
+) -> _Growth:
+    """Region growing over the lattice from ``seed = (node, spot)``, best-supported nodes first.
+
+    Each wave predicts the frontier nodes' spots from their matched 8-neighbours (linear
+    extrapolation along the grid line through two matched nodes where possible, else the
+    neighbour's own displacement; averaged over directions) and finds the nearest spot; it is
+    acceptable if within ``accept`` x spacing, at most ``ratio`` x as far as the second nearest,
+    usable, claimed by no other node, and keeps the spacing along every grid line through matched
+    neighbours within ``max_step_ratio`` either way (else it skips or doubles a spot). A wave
+    accepts only the best tier present: nodes with at least 3 matched 8-neighbours and a
+    clear-cut nearest spot, then with at least 2, then any, so the region fills in (interpolating)
+    before it reaches out (extrapolating). Nodes not accepted stay on the frontier, unless
+    predicted more than two spacings outside ``visible``; growth stops when a wave accepts
+    nothing.
+
+    A node's prediction and the tests on it change only when a node one or two steps back along
+    one of its grid lines is accepted, so each wave re-evaluates just those nodes (``dirty``);
+    positions are complex numbers to halve the array operations.
+    """
+    n, n_spots = len(base_px), len(spots)
+    usable = ~spots.suspicious
+    spot_c = _as_complex(spots.centres_px)
+    base_c = np.append(_as_complex(base_px), 0.0)
+    radius, margin = accept * spacing, -2.0 * spacing
+    # The visible outline as half-planes: a point is m px inside edge k where
+    # xy @ normal[k] - offset[k] = m.
+    normal_t = visible.normal.T
+    offset = np.einsum("mk,mk->m", visible.poly, visible.normal)
+    # Entry n of the node arrays stands for "no neighbour": never matched, zero displacement.
+    match = np.full(n, -1, np.int64)
+    matched = np.zeros(n + 1, bool)
+    blocked = np.zeros(n + 1, bool)  # matched, or retired (predicted far outside the view)
+    blocked[n] = True
+    touch = np.zeros(n + 1, bool)
+    dirty = np.zeros(n + 1, bool)
+    disp = np.zeros(n + 1, complex)
+    pos = base_c.copy()
+    free = np.ones(n_spots, bool)
+    # Each node's last evaluation: prediction, nearest spot, whether it is near (and clear),
+    # and the node's tier if it passes every test that does not depend on other nodes (else 0).
+    pred_c = base_c[:n].copy()
+    last_spot = np.full(n, -1, np.int64)
+    last_near = np.zeros(n, bool)
+    last_nc = np.zeros(n, bool)
+    last_tier = np.zeros(n, np.int64)
+
+    # Beyond reach / (0.5 ratio) a second spot changes no test on a node whose nearest spot is
+    # within reach (and on any other the tests do not matter): the search stops there.
+    bound = float(radius.max()) / (0.5 * ratio) if n and ratio > 0 else np.inf
+
+    def nearest_two(xy: FloatArray) -> tuple[FloatArray, IntArray]:
+        dist, spot = tree.query(xy, k=2, distance_upper_bound=bound)
+        return dist, np.minimum(spot, n_spots - 1)  # none found: any spot, it is out of reach
+
+    acc, spot_acc = np.array([seed[0]]), np.array([seed[1]])
+    while True:
+        match[acc] = spot_acc
+        free[spot_acc] = False
+        moved = spot_c[spot_acc] - base_c[acc]
+        disp[acc] = moved
+        pos[acc] = base_c[acc] + moved
+        matched[acc] = blocked[acc] = True
+        touch[tab.nbrs4[acc]] = True
+        dirty[tab.fwd[acc]] = True
+
+        front = np.flatnonzero(touch > blocked)
+        if front.size == 0:
+            break
+        new = front[dirty[front]]
+        if new.size:
+            dirty[new] = False
+            back = tab.back[new]  # (F, 16): one step back along each direction, then two
+            near8 = matched[back]
+            line = near8[:, 8:]
+            near8 = near8[:, :8]
+            line &= near8
+            d = disp[back]
+            d1 = d[:, :8]
+            support = near8.sum(axis=1)
+            pred = np.where(line, 2.0 * d1 - d[:, 8:], d1).sum(axis=1)
+            xy = pred.view(np.float64).reshape(-1, 2)
+            xy /= np.maximum(support, 1)[:, None]  # mean displacement, divided as (x, y)
+            pred += base_c[new]
+            pred_c[new] = pred
+            far = (xy @ normal_t - offset).min(axis=1) < margin[new]
+            blocked[new[far]] = True
+            dist, spot = nearest_two(xy)
+            dist1, dist2, spot = dist[:, 0], dist[:, 1], spot[:, 0]
+            near = dist1 < radius[new]
+            nc = dist1 < ratio * dist2
+            nc &= near
+            p = pos[back]
+            p1 = p[:, :8]
+            now = np.abs(spot_c[spot][:, None] - p1)
+            before = np.abs(p1 - p[:, 8:])
+            jump = now > max_step_ratio * before
+            jump |= max_step_ratio * now < before
+            jump &= line
+            ok = nc & usable[spot]
+            ok[far | jump.any(axis=1)] = False
+            tier = 1 + (support >= 2) + ((support >= 3) & (dist1 < 0.5 * ratio * dist2))
+            last_spot[new], last_near[new], last_nc[new] = spot, near, nc
+            last_tier[new] = np.where(ok, tier, 0)
+        # Acceptance: a spot is taken once, and not by two nodes in one wave.
+        spot = last_spot[front]
+        cand = last_nc[front] & free[spot]
+        dup = np.bincount(spot[cand], minlength=n_spots)[spot] > 1
+        level = np.where(cand & ~dup, last_tier[front], 0)
+        best = level.max()
+        if best == 0:
+            break
+        take = level == best
+        acc, spot_acc = front[take], spot[take]
+
+    tried = last_spot >= 0
+    spot = np.maximum(last_spot, 0)
+    reason = np.select(
+        [~tried | ~last_near, spots.merged[spot], ~usable[spot]], [_NONE, _MERGED, _BORDER],
+        _AMBIGUOUS,
+    ).astype(np.int8)
+    claim = np.where(tried & last_near, last_spot, -1)
+    return _Growth(match, reason, claim, _as_xy(pred_c), tried)
+
+
+def _drop_double_claims(g: _Growth) -> None:
+    """A spot within reach of a node that failed is claimed twice: trust neither claim."""
+    failed = (g.match < 0) & (g.claim >= 0)
+    holder = np.full(len(g.match), -1, np.int64)
+    matched = np.flatnonzero(g.match >= 0)
+    owner = np.full(int(max(g.match.max(), g.claim.max())) + 1, -1, np.int64)
+    owner[g.match[matched]] = matched
+    holder[failed] = owner[g.claim[failed]]
+    held = holder[holder >= 0]
+    g.match[held] = -1
+    g.reason[held] = _AMBIGUOUS
+
+
+def order_violations(
+    ij: IntArray,
+    ref_px: FloatArray,
+    spot_px: FloatArray,
+    margin_px: float = 0.5,
+    all_spots_px: FloatArray | None = None,
+) -> BoolArray:
+    """Matches that break eq. 33 with a grid neighbour along a row or a column.
+
+    For grid neighbours ``k`` and ``k+1`` (``i`` or ``j`` + 1, both matched), the flat-water image
+    direction ``u = (ref_{k+1} - ref_k) / |.|`` orders the spots; eq. 33 requires
+    ``(s_{k+1} - s_k) . u > dp/2``. If ``all_spots_px`` is given, the pair is also wrong when
+    another detected spot lies between them (within 0.6 x half their distance of the midpoint):
+    a spot has been skipped, so the two labels cannot both be right. Both ends of a bad pair are
+    flagged.
+
+    Parameters
+    ----------
+    ij : (K, 2) ndarray of int
+        Grid indices of the matches.
+    ref_px, spot_px : (K, 2) ndarray
+        Flat-water and wavy-water spot centres, pixels.
+    margin_px : float
+        ``dp / 2``: half the spot-position uncertainty, pixels.
+    all_spots_px : (P, 2) ndarray, optional
+        Every detected spot in the wavy image, pixels.
+
+    Returns
+    -------
+    (K,) ndarray of bool
+    """
+    bad = np.zeros(len(ij), bool)
+    if len(ij) == 0:
+        return bad
+    lat = _Lattice(ij)
+    pairs = [(np.flatnonzero(nb >= 0), nb[nb >= 0]) for nb in map(lat.neighbour, _DIRS4[[0, 2]])]
+    tree = cKDTree(all_spots_px) if all_spots_px is not None and len(all_spots_px) else None
+    return _order_violations(pairs, ref_px, spot_px, margin_px, tree)
+
+
+def _order_violations(
+    pairs: list[tuple[IntArray, IntArray]],
+    ref_px: FloatArray,
+    spot_px: FloatArray,
+    margin_px: float,
+    tree: cKDTree | None,
+) -> BoolArray:
+    """:func:`order_violations` given the neighbour pairs ``(a, b)`` along rows and along
+    columns, and the detected spots in a KD-tree (or None)."""
+    bad = np.zeros(len(spot_px), bool)
+    for a, b in pairs:
+        u = ref_px[b] - ref_px[a]
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        gap = np.sum((spot_px[b] - spot_px[a]) * u, axis=1)
+        viol = gap <= margin_px
+        if tree is not None and len(a):
+            reach = 0.3 * np.linalg.norm(spot_px[b] - spot_px[a], axis=1)
+            # Only whether a spot lies within reach matters: the search stops there.
+            dist, _ = tree.query(0.5 * (spot_px[a] + spot_px[b]), distance_upper_bound=reach.max())
+            viol |= dist < reach
+        bad[a[viol]] = True
+        bad[b[viol]] = True
+    return bad
+
+
+def _anchor_shift(
+    tab: _LatticeTables, matched: BoolArray, absent: BoolArray, max_shift: int
+) -> tuple[IntArray, IntArray]:
+    """Lattice shift that best explains where spots are and are not, and all shifts that tie
+    with it (C, 2), best first.
+
+    A shift ``d`` relabels node ``ij`` as ``ij + d``. Its cost counts the contradictions: each
+    matched node that would not be a lit dot (weight 3: a spot where no dot shines), and each
+    node seen empty (``absent``: nothing there although it is in view) that would be a lit dot.
+    Near the pattern's visible boundary or its unlit marker dots only the right shift is free of
+    contradictions; elsewhere all shifts tie, and the unshifted labelling is kept.
+
+    The counts for all shifts at once are cross-correlations, on the lattice grid, of the lit
+    dots with the matched and with the absent nodes.
+    """
+    s = max_shift
+    lit = np.pad(tab.lit_grid, s).astype(np.float32)  # nothing is lit off the lattice
+
+    def lit_at(nodes: BoolArray) -> FloatArray:  # (2s + 1, 2s + 1) indexed [dj, di]
+        grid = np.zeros(tab.lat.grid.shape, np.float32)
+        q = tab.lat.ij[nodes] - tab.lat.lo
+        grid[q[:, 1], q[:, 0]] = 1.0
+        return np.rint(cv2.matchTemplate(lit, grid, cv2.TM_CCORR))
+
+    cost = 3 * (matched.sum() - lit_at(matched)) + lit_at(absent)
+    cost = cost.T.ravel().astype(np.int64)  # shift (di, dj), di slowest
+    r = np.arange(-s, s + 1)
+    shifts = np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
+    best = cost.min()
+    tied = np.flatnonzero(cost <= best + 3 + best // 4)
+    # Among ties, the labelling nearest to flat water first (the unshifted one if it ties).
+    tied = tied[np.lexsort((np.abs(shifts[tied]).sum(axis=1), cost[tied]))]
+    zero = (shifts[tied] == 0).all(axis=1)
+    pick = tied[np.flatnonzero(zero)[0]] if zero.any() else tied[
+        np.argmin(np.abs(shifts[tied]).sum(axis=1))
+    ]
+    return shifts[pick].astype(np.int64), shifts[tied].astype(np.int64)
+
+
+def _absent_nodes(
+    tab: _LatticeTables, g: _Growth, tree: cKDTree, spacing: FloatArray, visible: _Outline
+) -> BoolArray:
+    """Nodes seen empty: unmatched, predicted from at least two matched neighbours to a place
+    well inside the visible area where no spot at all lies within half a spacing."""
+    matched = np.append(g.match >= 0, False)
+    cand = g.tried & (g.match < 0) & (matched[tab.nbrs8].sum(axis=1) >= 2)
+    idx = np.flatnonzero(cand)
+    idx = idx[visible.inside(g.pred_px[idx], spacing[idx])]
+    dist, _ = tree.query(g.pred_px[idx])
+    cand[:] = False
+    cand[idx[dist > 0.5 * spacing[idx]]] = True
+    return cand
+
+
+def _largest_component(lat: _Lattice, nodes: IntArray) -> BoolArray:
+    """Which of ``nodes`` belong to their largest 4-connected piece of the lattice."""
+    if len(nodes) == 0:
+        return np.zeros(0, bool)
+    q = lat.ij[nodes] - lat.lo
+    occupied = np.zeros(lat.grid.shape, bool)
+    occupied[q[:, 1], q[:, 0]] = True
+    labels, _ = ndimage.label(occupied)
+    lab = labels[q[:, 1], q[:, 0]]
+    return lab == np.argmax(np.bincount(lab)[1:]) + 1
+
+
+def _relabel(
+    lat: _Lattice, match: IntArray, reason: NDArray[np.int8], shift: IntArray
+) -> tuple[IntArray, NDArray[np.int8], int]:
+    """Move every node's result to node ``ij + shift``; also count matches shifted off the
+    lattice."""
+    if not shift.any():
+        return match.copy(), reason.copy(), 0
+    dest = lat.lookup(lat.ij + shift)
+    ok = dest >= 0
+    new_match = np.full_like(match, -1)
+    new_reason = np.full_like(reason, _NONE)
+    new_match[dest[ok]] = match[ok]
+    new_reason[dest[ok]] = reason[ok]
+    return new_match, new_reason, int(np.sum((match >= 0) & ~ok))
+
+
+def match_distorted(
+    ref: ReferenceGrid,
+    spots: Spots,
+    *,
+    accept: float = 0.35,
+    ratio: float = 0.6,
+    order_margin_px: float = 0.5,
+    visible_px: FloatArray | None = None,
+    prior_px: FloatArray | None = None,
+    anchor: bool = True,
+    max_shift: int = 6,
+) -> Matches:
+    """Label the wavy-water spots with grid indices (robust ordering-based correspondence).
+
+    1. Region growing over the lattice (:func:`_grow`) from the node whose nearest spot is most
+       confidently its own (close to the flat-water position, or to ``prior_px``).
+    2. Spots claimed by two nodes are dropped, then pairs that break eq. 33
+       (:func:`order_violations`).
+    3. Anchoring: growing fixes labels only up to a whole-lattice shift when spots move by more
+       than half a spacing. The shift is chosen so that matched nodes are lit dots and in-view
+       nodes seen empty are not (:func:`_anchor_shift`), and applied to all labels.
+       ``counts['anchor_candidates']`` says whether it was unique.
+
+    Parameters
+    ----------
+    ref : ReferenceGrid
+        Flat-water lattice (:func:`match_reference`).
+    spots : Spots
+        Spots detected in the wavy-water image.
+    accept : float
+        Acceptance radius, in units of the local spot spacing.
+    ratio : float
+        Largest allowed ratio of nearest to second-nearest spot distance.
+    order_margin_px : float
+        ``dp / 2`` of eq. 33, pixels.
+    visible_px : (M, 2) ndarray, optional
+        Convex outline where a spot would be seen (diffuser within the image), pixels; default:
+        the convex hull of the flat-water spots.
+    prior_px : (G, 2) ndarray, optional
+        Expected wavy-water position of each lattice node (e.g. from a previous frame), pixels;
+        NaN where unknown. Default: the flat-water positions.
+    anchor : bool
+        Look for a lattice shift (step 3); off, the labelling nearest to flat water is kept.
+    max_shift : int
+        Largest lattice shift tried when anchoring, nodes.
+
+    Returns
+    -------
+    Matches
+    """
+    n_obs = int(ref.observed.sum())
+    counts = {
+        "detected": len(spots), "reference": n_obs, "matched": 0, "matched_unobserved": 0,
+        "rejected_order": 0, "rejected_merged": 0, "rejected_ambiguous": 0,
+        "rejected_border": 0, "rejected_unlit": 0, "unmatched_reference": n_obs,
+        "unassigned_spots": len(spots), "anchor_di": 0, "anchor_dj": 0, "anchor_candidates": 0,
+        "labels_ambiguous": 0,
+    }
+    empty = Matches(
+        np.zeros((0, 2), np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, bool), counts
+    )
+    if n_obs == 0 or len(spots) == 0:
+        return empty
+    tab = ref.tables
+    base = ref.ref_px
+    if prior_px is not None:
+        prior = np.asarray(prior_px, dtype=float)
+        base = np.where(np.isfinite(prior), prior, base)
+    tree = cKDTree(spots.centres_px)
+    if visible_px is None:
+        hull = cv2.convexHull(ref.ref_px[ref.observed].astype(np.float32))[:, 0]
+    else:
+        hull = visible_px
+    visible = _Outline.of(hull)
+
+    def grow_from(exclude: BoolArray | None) -> _Growth | None:
+        seed = _choose_seed(tab, base, ref, spots, tree, accept, ratio, exclude)
+        if seed < 0:
+            return None
+        seed_spot = int(tree.query(base[seed])[1])
+        g = _grow(tab, base, ref.spacing_px, spots, tree, (seed, seed_spot), visible, accept,
+                  ratio)
+        _drop_double_claims(g)
+        return g
+
+    g = grow_from(None)
+    if g is None:
+        return empty
+    counts["regrown"] = 0
+    if np.sum(g.match >= 0) < REGROW_BELOW * n_obs:
+        # A fold of the pattern (a caustic) stops the growing: try once more from a seed away
+        # from the first piece, and keep the larger piece.
+        near_first = np.zeros(len(ref.ij) + 1, bool)
+        near_first[tab.nbrs8[g.match >= 0]] = True
+        near_first[np.flatnonzero(g.match >= 0)] = True
+        other = grow_from(near_first[:-1])
+        if other is not None and np.sum(other.match >= 0) > np.sum(g.match >= 0):
+            g, counts["regrown"] = other, 1
+
+    shift, tied = np.zeros(2, np.int64), np.zeros((1, 2), np.int64)
+    if anchor:
+        absent = _absent_nodes(tab, g, tree, ref.spacing_px, visible)
+        shift, tied = _anchor_shift(tab, g.match >= 0, absent, max_shift)
+    n_tied = len(tied)
+    match, reason, n_off = _relabel(tab.lat, g.match, g.reason, shift)
+    counts.update(
+        anchor_di=int(shift[0]), anchor_dj=int(shift[1]), anchor_candidates=n_tied,
+        labels_ambiguous=int(n_tied > 1),
+    )
+
+    kept = np.flatnonzero(match >= 0)
+    spot_px = spots.centres_px[match[kept]]
+    # Grid neighbours (i + 1 or j + 1) among the kept nodes, as positions in ``kept``.
+    where = np.full(len(ref.ij) + 1, -1)
+    where[kept] = np.arange(len(kept))
+    pairs = []
+    for step in (0, 2):  # _DIRS4: (1, 0), (0, 1)
+        nb = where[tab.nbrs4[kept, step]]
+        pairs.append((np.flatnonzero(nb >= 0), nb[nb >= 0]))
+    bad = _order_violations(pairs, ref.ref_px[kept], spot_px, order_margin_px, tree)
+    reason[kept[bad]] = _ORDER
+    unlit = ~ref.lit[kept] & ~bad
+    reason[kept[unlit]] = _UNLIT
+    kept = kept[~bad & ~unlit]
+    # Labels are only consistent within one connected piece of the lattice: keep the largest.
+    main = _largest_component(tab.lat, kept)
+    reason[kept[~main]] = _AMBIGUOUS
+    kept = kept[main]
+    lost = np.ones(len(ref.ij), bool)
+    lost[kept] = False
+    why = reason[lost & ref.lit]  # virtual and unlit nodes are nobody's loss
+    counts.update(
+        matched=int(len(kept)),
+        matched_unobserved=int(np.sum(~ref.observed[kept])),
+        rejected_order=int(np.sum(why == _ORDER)),
+        rejected_merged=int(np.sum(why == _MERGED)),
+        rejected_ambiguous=int(np.sum(why == _AMBIGUOUS)),
+        rejected_border=int(np.sum(why == _BORDER)),
+        rejected_unlit=int(np.sum(reason == _UNLIT)) + n_off,
+        unmatched_reference=int(np.sum(lost & ref.observed & (reason == _NONE))),
+        unassigned_spots=int(len(spots) - len(kept)),
+    )
+    return Matches(
+        ref.ij[kept], ref.ref_px[kept], spots.centres_px[match[kept]], ref.observed[kept], counts,
+        alt_shifts=tied - shift,
+    )
+
+
+def find_features(
+    pattern_img: NDArray,
+    pattern_flat_img: NDArray,
+    cfg: SystemConfig,
+    *,
+    lit: BoolArray | None = None,
+    min_features: int = 16,
+) -> Matches:
+    """Detect, predict and match: grid index, flat and wavy spot centre of every usable dot.
+
+    Parameters
+    ----------
+    pattern_img : (h, w) or (h, w, 3) ndarray
+        Camera-s image of the pattern over the wavy water (linear intensity).
+    pattern_flat_img : (h, w) or (h, w, 3) ndarray
+        The same over flat water (the reference).
+    cfg : SystemConfig
+        System calibration; camera s must be ``w x h`` pixels.
+    lit : (K,) ndarray of bool, optional
+        Dots the projector lit, in :func:`~wai_core.pattern.dot_grid` order (default: those the
+        renderer lights, :func:`wai_core.layout.lit_dots`).
+    min_features : int
+        Fewest kept matches accepted.
+
+    Returns
+    -------
+    Matches
+        With ``timings_ms`` for ``detect_flat``, ``detect``, ``predict``, ``match_reference``,
+        ``match`` and ``total``.
+
+    Raises
+    ------
+    WaiInputError
+        On bad images (shape, NaN) or fewer than ``min_features`` matches.
+    """
+    cam = cfg.camera_s
+    for name, img in (("pattern", pattern_img), ("flat pattern", pattern_flat_img)):
+        if np.shape(img)[:2] != (cam.height_px, cam.width_px):
+            raise WaiInputError(
+                f"{name} image is {np.shape(img)[:2]}, camera s is {cam.height_px}x{cam.width_px}"
+            )
+    timings: dict[str, float] = {}
+    t_all = t0 = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t0
+        t1 = time.perf_counter()
+        timings[name] = 1e3 * (t1 - t0)
+        t0 = t1
+
+    if not np.isfinite(pattern_img).all():
+        raise WaiInputError("pattern image holds NaN or inf")
+    ref = prepare_reference(pattern_flat_img, cfg, lit=lit, min_features=min_features)
+    timings["reference"] = 1e3 * (time.perf_counter() - t_all)
+    matches = features_from_reference(pattern_img, ref, cfg, min_features=min_features)
+    matches.timings_ms["reference"] = timings["reference"]
+    matches.timings_ms["total"] = 1e3 * (time.perf_counter() - t_all)
+    return matches
+
+
+def features_from_reference(
+    pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig, *, min_features: int = 16
+) -> Matches:
+    """Detect the spots of one wavy frame and match them to a prepared reference grid."""
+    cam = cfg.camera_s
+    if np.shape(pattern_img)[:2] != (cam.height_px, cam.width_px):
+        raise WaiInputError(
+            f"pattern image is {np.shape(pattern_img)[:2]}, camera s is "
+            f"{cam.height_px}x{cam.width_px}"
+        )
+    t0 = time.perf_counter()
+    wavy = flag_diffuser_edge(detect_spots(pattern_img), _outline_px(cfg))
+    t1 = time.perf_counter()
+    matches = match_distorted(ref, wavy, visible_px=_visible_outline(cfg))
+    t2 = time.perf_counter()
+    if len(matches) < min_features:
+        raise WaiInputError(f"too few features matched: {len(matches)} (need {min_features})")
+    matches.timings_ms.update({"detect": 1e3 * (t1 - t0), "match": 1e3 * (t2 - t1)})
+    return matches

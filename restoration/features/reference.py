@@ -1,0 +1,312 @@
+"""The flat-water reference lattice: where every dot of the grid lands in camera s for flat
+water, predicted from calibration alone (:func:`predict_flat_spots`); which spots the diffuser's
+edge cuts (:func:`flag_diffuser_edge`); the flat-water spots labelled with grid indices by
+proximity to the prediction, the lattice extended by virtual nodes beyond the grid
+(:func:`match_reference`, which returns a :class:`ReferenceGrid`); and the whole of it, computed
+once per rig rather than per frame (:func:`prepare_reference`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
+from restoration.features._outline import _diffuser, _edge_distances, _outline_px
+from restoration.features._types import BoolArray, FloatArray, IntArray
+from restoration.features.detect import Spots, detect_spots
+from wai_core.config import SystemConfig
+from wai_core.errors import WaiInputError
+from wai_core.geometry import intersect_plane_z, reflect
+from wai_core.layout import lit_dots
+from wai_core.pattern import dot_grid
+
+
+@dataclass(frozen=True)
+class ReferenceGrid:
+    """The dot lattice in camera s for flat water: where each dot's spot is, or would be.
+
+    The lattice holds every grid dot plus a margin of *virtual* nodes beyond the grid (never lit),
+    which let the correspondence notice a labelling shifted by whole spacings.
+
+    Attributes
+    ----------
+    ij : (G, 2) ndarray of int
+        Lattice index ``(i, j)`` of each node (grid dots as in :func:`wai_core.pattern.dot_grid`).
+    ref_px : (G, 2) ndarray
+        Flat-water spot centre, pixels: detected where ``observed``, else the calibrated
+        prediction (which may lie off the diffuser or off the image).
+    observed : (G,) ndarray of bool
+        The dot's spot was detected on flat water.
+    lit : (G,) ndarray of bool
+        The node is a projected dot (False for virtual nodes and unlit dots).
+    spacing_px : (G,) ndarray
+        Local spot spacing: distance to the nearest lattice neighbour in the image, pixels.
+    cov_px2 : (G, 2, 2) ndarray
+        Flat-water spot covariance where ``observed`` (NaN elsewhere), pixels^2.
+    unmatched_ij : (M, 2) ndarray of int
+        Dots predicted in view for which no flat-water spot was found.
+    counts : dict of str to int
+        ``predicted_in_view``, ``observed``, ``unmatched_predicted``, ``unassigned_spots``.
+    rms_px : float
+        RMS distance between detected and calibration-predicted centres, pixels.
+    """
+
+    ij: IntArray
+    ref_px: FloatArray
+    observed: BoolArray
+    lit: BoolArray
+    spacing_px: FloatArray
+    cov_px2: FloatArray
+    unmatched_ij: IntArray
+    counts: dict[str, int]
+    rms_px: float
+    tables: _LatticeTables = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # Neighbour tables for the per-frame matching: they depend on the lattice only.
+        object.__setattr__(self, "tables", _LatticeTables.of(self.ij, self.lit))
+
+    def lit_at(self, ij: NDArray) -> BoolArray:
+        """Whether each lattice index ``ij`` (K, 2) is a lit dot of this lattice."""
+        node = self.tables.lat.lookup(ij)
+        return (node >= 0) & self.lit[np.maximum(node, 0)]
+
+
+def predict_flat_spots(
+    cfg: SystemConfig, margin_px: float = 0.0
+) -> tuple[IntArray, FloatArray, FloatArray, BoolArray]:
+    """Where every dot of the grid lands in camera s when the water is flat.
+
+    Projector ray through the dot's panel position -> plane ``z = h0`` -> mirror reflection about
+    ``(0, 0, 1)`` -> diffuser plane ``z = z_h`` -> camera s. Panel -> camera s is then a plane
+    projective map (a homography), so grid lines stay straight.
+
+    Parameters
+    ----------
+    cfg : SystemConfig
+        The system (projector, pattern, water level, diffuser height and extent, camera s).
+    margin_px : float
+        Keep spots at least this far inside the image, pixels.
+
+    Returns
+    -------
+    ij : (K, 2) ndarray of int
+        Grid index of every dot (:func:`wai_core.pattern.dot_grid`).
+    panel_px : (K, 2) ndarray
+        Dot centre on the projector panel, panel pixels.
+    spot_px : (K, 2) ndarray
+        Predicted spot centre in camera s, pixels (NaN where the ray misses).
+    in_view : (K,) ndarray of bool
+        The ray goes up to the water, comes down onto the (finite) diffuser, and the spot is in
+        front of and inside camera s.
+    """
+    projector = cfg.projector.camera()
+    cam = cfg.camera_s.camera()
+    ij, panel = dot_grid(cfg.pattern, projector)
+    origin, dirs = projector.pixel_rays(panel[:, 0], panel[:, 1])
+    hit, _ = intersect_plane_z(origin, dirs, cfg.water.h0_mm)
+    down = reflect(dirs, np.array([0.0, 0.0, 1.0]))
+    spot, _ = intersect_plane_z(hit, down, cfg.diffuser.z_mm)
+    cols, rows, in_front = cam.project(spot)
+    spot_px = np.stack([cols, rows], axis=1)
+    (x0, x1), (y0, y1) = _diffuser(cfg)
+    with np.errstate(invalid="ignore"):
+        on_diffuser = (spot[:, 0] >= x0) & (spot[:, 0] <= x1)
+        on_diffuser &= (spot[:, 1] >= y0) & (spot[:, 1] <= y1)
+        in_view = (
+            (dirs[:, 2] > 0)
+            & on_diffuser
+            & np.isfinite(spot_px).all(axis=1)
+            & in_front
+            & cam.in_image(cols, rows, margin_px)
+        )
+    return ij.astype(np.int64), panel, spot_px, in_view
+
+
+def flag_diffuser_edge(spots: Spots, outline_px: FloatArray, n_sigma: float = 2.5) -> Spots:
+    """Flag as ``border`` the spots that the diffuser's edge cuts (or that lie off it).
+
+    A spot is cut when its centre is closer to an edge of the outline than ``n_sigma`` of its
+    own standard deviation across that edge; its centroid is then pulled inwards.
+
+    Parameters
+    ----------
+    spots : Spots
+        Detected spots.
+    outline_px : (M, 2) ndarray
+        Convex outline of the diffuser in the image, pixels, in order around it.
+    n_sigma : float
+        Clearance needed, in spot standard deviations.
+
+    Returns
+    -------
+    Spots
+        A copy with ``border`` updated.
+    """
+    if len(spots) == 0:
+        return spots
+    dist, normal = _edge_distances(np.asarray(outline_px, dtype=float), spots.centres_px)
+    sd = np.sqrt(np.einsum("mk,pkl,ml->pm", normal, spots.cov_px2, normal))
+    cut = (dist < n_sigma * sd).any(axis=1)
+    return replace(spots, border=spots.border | cut)
+
+
+def _local_spacing(ij: IntArray, px: FloatArray) -> FloatArray:
+    """Distance in the image from each node to its nearest present 4-neighbour, pixels."""
+    lat = _Lattice(ij)
+    dist = np.full((len(ij), 4), np.inf)
+    for n, step in enumerate(_DIRS4):
+        nb = lat.neighbour(step)
+        ok = nb >= 0
+        dist[ok, n] = np.linalg.norm(px[nb[ok]] - px[ok], axis=1)
+    out = dist.min(axis=1)
+    finite = np.isfinite(out)
+    fallback = float(np.median(out[finite])) if finite.any() else 1.0
+    return np.where(finite, out, fallback)
+
+
+def _mutual_nearest(
+    a: FloatArray, b: FloatArray, radius: FloatArray
+) -> tuple[IntArray, IntArray]:
+    """Pairs (ia, ib) that are each other's nearest neighbour and closer than ``radius[ia]``."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    d_ab, nn_ab = cKDTree(b).query(a)
+    _, nn_ba = cKDTree(a).query(b)
+    ia = np.flatnonzero((nn_ba[nn_ab] == np.arange(len(a))) & (d_ab < radius))
+    return ia, nn_ab[ia]
+
+
+def _lattice_homography(ij: IntArray, px: FloatArray) -> FloatArray:
+    """Homography (3, 3) from lattice indices to image pixels (exact for flat water: panel ->
+    camera s is a plane projective map and the panel position is affine in ``(i, j)``)."""
+    hom, _ = cv2.findHomography(ij.astype(np.float64), px.astype(np.float64), 0)
+    if hom is None:
+        raise WaiInputError("cannot relate the dot grid to camera s: degenerate prediction")
+    return hom
+
+
+def _apply_homography(hom: FloatArray, pts: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Map points (N, 2); also return the projective depth ``w`` (its sign marks the side)."""
+    p = np.c_[pts, np.ones(len(pts))] @ hom.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return p[:, :2] / p[:, 2:], p[:, 2]
+
+
+def _extended_lattice(ij: IntArray, margin: int) -> IntArray:
+    """All lattice indices of the grid's bounding box grown by ``margin`` nodes, (G, 2)."""
+    lo, hi = ij.min(axis=0) - margin, ij.max(axis=0) + margin
+    jj, ii = np.mgrid[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
+    return np.stack([ii.ravel(), jj.ravel()], axis=1)
+
+
+def match_reference(
+    ref_spots: Spots,
+    predicted: tuple[IntArray, FloatArray, FloatArray, BoolArray],
+    *,
+    tol: float = 0.35,
+    lit: BoolArray | None = None,
+    margin: int = 6,
+) -> ReferenceGrid:
+    """Label the flat-water spots with grid indices by proximity to the prediction.
+
+    A first mutual-nearest pass (radius 0.5 spacing) fits a homography from predicted to detected
+    centres (RANSAC): both lie on the diffuser plane, so a small calibration error of camera s is
+    a plane projective map. The final pass pairs mutual nearest neighbours closer than ``tol`` x
+    the local spacing, so each dot and each spot is used once. The lattice is then extended by
+    ``margin`` virtual nodes on every side (positions from the same homography).
+
+    Parameters
+    ----------
+    ref_spots : Spots
+        Spots detected in the flat-water image; suspicious ones are not used.
+    predicted : tuple
+        The output of :func:`predict_flat_spots`.
+    tol : float
+        Acceptance radius, in units of the local spot spacing.
+    lit : (K,) ndarray of bool, optional
+        Which grid dots the projector lights, in :func:`~wai_core.pattern.dot_grid` order
+        (default: all).
+    margin : int
+        Virtual nodes added beyond the grid on each side.
+
+    Returns
+    -------
+    ReferenceGrid
+    """
+    ij_grid, _, pred_grid, in_view = predicted
+    lit_grid = np.ones(len(ij_grid), bool) if lit is None else np.asarray(lit, bool)
+    finite = np.isfinite(pred_grid).all(axis=1)
+    if finite.sum() < 4:
+        raise WaiInputError(f"too few dots reach camera s: {int(finite.sum())}")
+    to_px = _lattice_homography(ij_grid[finite], pred_grid[finite])
+    ij = _extended_lattice(ij_grid, margin)
+    pred, depth = _apply_homography(to_px, ij.astype(np.float64))
+    # Nodes on the far side of the horizon (depth sign flipped) have no spot at all.
+    _, grid_depth = _apply_homography(to_px, ij_grid[finite].astype(np.float64))
+    keep = np.sign(depth) == np.sign(np.median(grid_depth))
+    ij, pred = ij[keep], pred[keep]
+    grid_lat = _Lattice(ij_grid)
+    node_dot = grid_lat.lookup(ij)  # index into the grid arrays, -1 for virtual nodes
+    is_dot = node_dot >= 0
+    view = np.zeros(len(ij), bool)
+    view[is_dot] = in_view[node_dot[is_dot]]
+    lit_node = np.zeros(len(ij), bool)
+    lit_node[is_dot] = lit_grid[node_dot[is_dot]]
+    spacing = _local_spacing(ij, pred)
+
+    good = ~ref_spots.suspicious
+    det, det_cov = ref_spots.centres_px[good], ref_spots.cov_px2[good]
+    cand = np.flatnonzero(view & lit_node)
+    pa, pb = _mutual_nearest(pred[cand], det, 0.5 * spacing[cand])
+    moved = pred
+    if len(pa) >= 8:
+        corr, _ = cv2.findHomography(
+            pred[cand[pa]], det[pb], cv2.RANSAC, max(0.5, 0.05 * float(np.median(spacing)))
+        )
+        if corr is not None:
+            moved, _ = _apply_homography(corr, pred)
+    pa, pb = _mutual_nearest(moved[cand], det, tol * spacing[cand])
+    observed = np.zeros(len(ij), bool)
+    observed[cand[pa]] = True
+    ref_px = moved.copy()
+    ref_px[cand[pa]] = det[pb]
+    cov = np.full((len(ij), 2, 2), np.nan)
+    cov[cand[pa]] = det_cov[pb]
+    res = det[pb] - pred[cand[pa]]
+    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if len(pa) else 0.0
+    counts = {
+        "predicted_in_view": int(np.sum(view & lit_node)),
+        "observed": int(len(pa)),
+        "unmatched_predicted": int(np.sum(view & lit_node & ~observed)),
+        "unassigned_spots": int(len(ref_spots) - len(pa)),
+    }
+    return ReferenceGrid(
+        ij=ij,
+        ref_px=ref_px,
+        observed=observed,
+        lit=lit_node,
+        spacing_px=_local_spacing(ij, ref_px),
+        cov_px2=cov,
+        unmatched_ij=ij[view & lit_node & ~observed],
+        counts=counts,
+        rms_px=rms,
+    )
+
+
+def prepare_reference(
+    pattern_flat_img: NDArray, cfg: SystemConfig, *, lit: BoolArray | None = None,
+    min_features: int = 16,
+) -> ReferenceGrid:
+    """The flat-water reference grid: calibration, computed once per rig, not per frame."""
+    flat = flag_diffuser_edge(detect_spots(pattern_flat_img), _outline_px(cfg))
+    predicted = predict_flat_spots(cfg)
+    ref = match_reference(flat, predicted, lit=lit_dots(cfg) if lit is None else lit)
+    if ref.counts["observed"] < min_features:
+        raise WaiInputError(f"too few features on flat water: {ref.counts['observed']}")
+    return ref

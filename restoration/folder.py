@@ -1,0 +1,254 @@
+"""Restore a folder of images (a render, or one's own captures) and write ``FOLDER/restore/``.
+
+Reads ``scene.json`` (the calibration) and the frame's images (EXR, PNG or TIFF); when the
+folder also holds truth (``heightfield.npz``, ``view_truth.exr``) the restoration is scored,
+otherwise ``metrics.json`` says that scores were skipped. Everything is written to a temporary
+folder and renamed into place when complete.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
+from restoration.methods import Method, get_method
+from restoration.options import RestoreOptions
+from restoration.result import RestoreResult
+from restoration.scoring import Scores, Truth, score, surface_profile
+from wai_core.io import atomic_dir, write_exr, write_json, write_png
+
+__all__ = ["FolderRestore", "restore_folder"]
+
+
+@dataclass
+class FolderRestore:
+    """One folder restored: the result, its scores (None without truth) and what was written.
+
+    Attributes
+    ----------
+    folder : Path
+        The folder read.
+    out : Path or None
+        Where the outputs were written (None when ``write=False``).
+    cal : RigCalibration
+        The calibration read (with its per-rig caches, e.g. the flat-water reference).
+    images : dict of str to ndarray
+        The images read, as stored (the view not yet divided by the gain).
+    result : RestoreResult
+    truth : Truth or None
+        The folder's truth, when it has some and scoring was asked.
+    scores : Scores or None
+    metrics : dict
+        What ``metrics.json`` holds: the result's summary, the scores, options and seed.
+    """
+
+    folder: Path
+    out: Path | None
+    cal: RigCalibration
+    images: dict[str, Any]
+    result: RestoreResult
+    truth: Truth | None
+    scores: Scores | None
+    metrics: dict[str, Any]
+
+    def summary_lines(self) -> list[str]:
+        """The figures a person reads first, one line each."""
+        return summary_lines(self.metrics)
+
+
+def _method(method: str | Method, options: RestoreOptions | None) -> Method:
+    if isinstance(method, str):
+        return get_method(method, options)
+    return method
+
+
+def restore_folder(
+    folder: str | Path,
+    method: str | Method = "structured-light",
+    options: RestoreOptions | None = None,
+    *,
+    out: str | Path | None = None,
+    scored: bool = True,
+    write: bool = True,
+    track: LevelTrack | None = None,
+    progress: bool = False,
+) -> FolderRestore:
+    """Restore the frame in ``folder``, score it where truth exists, write the outputs.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Holds ``scene.json`` and the method's images (structured light: ``pattern``,
+        ``pattern_flat``, ``view``; Alterman: ``sunspots``, ``sunspots_flat``, ``view``), each
+        ``.exr``, ``.png``, ``.tif`` or ``.tiff``.
+    method : str or Method
+        ``"structured-light"`` (default), ``"alterman"``, or a configured method object.
+    options : RestoreOptions, optional
+        With a method name: its options (default: the method's own).
+    out : str or Path, optional
+        Output folder (default ``folder/restore``).
+    scored : bool
+        Score against the folder's truth when it has some (default True).
+    write : bool
+        Write the outputs (default True); False only restores and scores.
+    track : LevelTrack, optional
+        A sequence's level (see :class:`~restoration.calibration.LevelTrack`).
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    FolderRestore
+
+    Examples
+    --------
+    >>> from restoration import restore_folder
+    >>> done = restore_folder("renders/demo")               # doctest: +SKIP
+    >>> print("\\n".join(done.summary_lines()))              # doctest: +SKIP
+    """
+    from tqdm import tqdm
+
+    folder = Path(folder)
+    meth = _method(method, options)
+    bar = tqdm(total=3, desc="restore", disable=not progress, leave=False, unit="step")
+    cal = meth.calibration_type.from_record(read_scene_record(folder))
+    images = cal.load_images(folder)
+    result = meth(images, cal, track)
+    bar.update(1)
+    distorted = images["view"] / cal.view_gain
+    truth = Truth.from_folder(folder, cal) if scored and result.restored else None
+    scores = None if truth is None else score(result, distorted, cal, truth)
+    bar.update(1)
+    metrics = folder_metrics(folder, meth, result, scores, scored)
+    target = None
+    if write:
+        target = Path(out) if out is not None else folder / "restore"
+        write_outputs(target, cal, images, result, scores, truth, metrics)
+    bar.update(1)
+    bar.close()
+    return FolderRestore(folder, target, cal, images, result, truth, scores, metrics)
+
+
+def folder_metrics(
+    folder: Path, method: Method, result: RestoreResult, scores: Scores | None, scored: bool
+) -> dict[str, Any]:
+    """``metrics.json``: the truth-free summary, the scores (or why there are none), the
+    options and the render's seed."""
+    metrics = result.summary()
+    if scores is not None:
+        metrics.update(scores.to_dict())
+    metrics["scored"] = scores is not None
+    if scores is None:
+        metrics["scores_skipped"] = (
+            "not asked" if not scored
+            else "no restoration" if not result.restored
+            else "no truth in the folder (heightfield.npz, view_truth.*)"
+        )
+    metrics["options"] = method.options.to_dict()
+    record = read_scene_record(folder)
+    metrics["seed"] = record.get("seed")
+    return metrics
+
+
+def write_outputs(
+    target: Path,
+    cal: RigCalibration,
+    images: dict[str, Any],
+    result: RestoreResult,
+    scores: Scores | None,
+    truth: Truth | None,
+    metrics: dict[str, Any],
+) -> None:
+    """The restore folder, atomically: surface, restored view, figures and ``metrics.json``;
+    only ``metrics.json`` when there is no restoration."""
+    from restoration import figures
+
+    with atomic_dir(target) as tmp:
+        if result.restored:
+            est = result.surface.heightfield
+            est.save(tmp / "heightfield_est.npz")
+            est.to_trimesh().export(tmp / "surface_est.ply")
+            write_exr(tmp / "restored.exr", result.view.image)
+            write_png(tmp / "restored.png", result.view.image, exposure=1.0)
+            figures.side_by_side(
+                [images["view"] / cal.view_gain, result.view.image],
+                ["distorted", "restored"],
+                tmp / "distorted_vs_restored.png",
+                [1.0, 1.0],
+            )
+        if scores is not None and scores.error_map_mm is not None:
+            est = result.surface.heightfield
+            figures.error_map_figure(est, scores.error_map_mm, tmp / "error_map.png")
+            y0 = float(np.nanmedian(result.surface.points_mm[:, 1]))
+            figures.profile_figure(
+                *surface_profile(est, truth.surface, y0), y0, tmp / "profile.png"
+            )
+        if scores is not None and scores.corner_points_px:
+            figures.corner_scatter_figure(
+                scores.corner_points_px,
+                {"distorted": scores.corner_std_distorted_px,
+                 "restored": scores.corner_std_restored_px},
+                tmp / "corners.png",
+            )
+        write_json(tmp / "metrics.json", metrics)
+
+
+def _num(value: Any, spec: str, unit: str = "") -> str:
+    """``value`` formatted, or ``n/a`` when it is missing or not finite (never ``nan``)."""
+    if value is None or not np.isfinite(value):
+        return "n/a"
+    return f"{value:{spec}}{unit}"
+
+
+def summary_lines(m: dict[str, Any]) -> list[str]:
+    """The figures of a ``metrics.json`` a person reads first, one line each."""
+    status = m.get("status", "ok")
+    if "features_used" not in m:
+        return [f"{m['method']}: cannot run ({status}): {m['message']}"]
+    lines = []
+    if status != "ok":
+        lines.append(f"status {status}: {m['message']}")
+    if "wai_rmse_mm" in m:
+        lines.append(
+            f"surface RMSE {_num(m['wai_rmse_mm'], '.3f', ' mm')} (de-meaned "
+            f"{_num(m['wai_rmse_demeaned_mm'], '.3f', ' mm')}, max "
+            f"{_num(m['wai_max_abs_mm'], '.3f', ' mm')}) from {m['features_used']} features "
+            f"({m['features_rejected']} rejected)"
+        )
+    else:
+        lines.append(
+            f"surface from {m['features_used']} features ({m['features_rejected']} rejected); "
+            f"scores skipped: {m.get('scores_skipped', 'no truth')}"
+        )
+    if "corner_std_restored_px" in m:
+        lines.append(
+            f"corner STD {_num(m['corner_std_distorted_px'], '.2f', ' px')} -> "
+            f"{_num(m['corner_std_restored_px'], '.2f', ' px')} on {m['corners_common']} corners"
+        )
+    if "restored" in m:
+        d, r = m["distorted"], m["restored"]
+        lines.append(
+            f"SSIM {_num(d['ssim'], '.4f')} -> {_num(r['ssim'], '.4f')}, "
+            f"PSNR {_num(d['psnr_db'], '.2f')} -> {_num(r['psnr_db'], '.2f')} dB, "
+            f"MSE {_num(d['mse'], '.4f')} -> {_num(r['mse'], '.4f')} on "
+            f"{m['view_restored_fraction']:.0%} of the view"
+        )
+    lines.append(anchor_line(m.get("anchor", {})))
+    lines.append(f"end to end {m['timings_ms']['end_to_end']:.1f} ms")
+    return lines
+
+
+def anchor_line(anchor: dict[str, Any]) -> str:
+    """How the absolute water level was set, in words."""
+    level = f"mean level {_num(anchor.get('anchor_mm'), '.2f', ' mm')}"
+    sigma = anchor.get("sigma_mm")
+    if anchor.get("method") == "integrability":
+        return f"{level} from integrability (+- {_num(sigma, '.2f', ' mm')})"
+    if anchor.get("method") == "gauge_fallback":
+        why = "not pinned" if sigma is None or not np.isfinite(sigma) else f"+- {sigma:.2f} mm"
+        return f"{level} from the gauge (integrability {why}: too little curvature)"
+    return f"{level} from the gauge"

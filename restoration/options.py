@@ -1,0 +1,79 @@
+"""The restoration's choices, and their defaults in one place."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from restoration.integrate import GRIDDERS, INTEGRATORS
+from wai_core.errors import WaiInputError
+
+__all__ = ["ANCHORS", "RestoreOptions"]
+
+ANCHORS = ("integrability", "gauge")
+"""How the absolute level is set: from the slopes' integrability, or the gauge's h0."""
+
+
+@dataclass(frozen=True)
+class RestoreOptions:
+    """Choices of the restoration (defaults: the most accurate at real-time speed).
+
+    ``integrator='paper'``, ``n_refine=0``, ``gridder='clough_tocher'`` and ``anchor='gauge'``
+    is the paper's method as published (q_k on z = h0, central differences, bicubic-type
+    interpolation, mean height = h0). ``anchor='integrability'`` finds the absolute height
+    from the data instead (:mod:`restoration.anchor`); when the data do not pin it (standard
+    error above ``anchor_max_sigma_mm``, e.g. over calm water) the gauge's h0 is used and the
+    estimate says so (``SurfaceEstimate.anchor["method"] == "gauge_fallback"``).
+
+    Attributes
+    ----------
+    integrator : str
+        A name in :data:`restoration.integrate.INTEGRATORS` (``trapezoid``, ``paper``,
+        ``spline``, ``frankot_chellappa``, ``dct_poisson``).
+    n_refine : int
+        Refinement passes of the reflection points after the paper's pass (0: the paper).
+    gridder : str
+        A name in :data:`restoration.integrate.GRIDDERS`.
+    grid_spacing_mm : float
+        Node spacing of the reconstructed heightfield, mm.
+    warp_step_px : int
+        Spacing of the reverse trace's solved nodes in camera v, px (pixels between are
+        interpolated).
+    anchor : str
+        One of :data:`ANCHORS`.
+    anchor_max_sigma_mm : float
+        Largest standard error of the integrability level that is trusted, mm.
+
+    Examples
+    --------
+    >>> from restoration import RestoreOptions
+    >>> RestoreOptions().integrator
+    'trapezoid'
+    >>> RestoreOptions(integrator="paper", n_refine=0, anchor="gauge").n_refine
+    0
+    """
+
+    integrator: str = "trapezoid"
+    n_refine: int = 3
+    gridder: str = "tangent_blend"
+    grid_spacing_mm: float = 2.0
+    warp_step_px: int = 8
+    anchor: str = "integrability"
+    anchor_max_sigma_mm: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name, value, known in (
+            ("integrator", self.integrator, tuple(INTEGRATORS)),
+            ("gridder", self.gridder, GRIDDERS),
+            ("anchor", self.anchor, ANCHORS),
+        ):
+            if value not in known:
+                raise WaiInputError(f"unknown {name} {value!r} (known: {', '.join(known)})")
+        if int(self.n_refine) < 0:
+            raise WaiInputError(f"refinement passes must be >= 0, not {self.n_refine}")
+        if not self.grid_spacing_mm > 0 or int(self.warp_step_px) < 1:
+            raise WaiInputError("grid spacing must be > 0 mm and the warp step >= 1 px")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options as plain values (what ``metrics.json`` records)."""
+        return asdict(self)

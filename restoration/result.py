@@ -1,0 +1,122 @@
+"""What one restoration of one frame produced: a status, and the surface and view when it ran.
+
+Statuses are decided from the images and the calibration alone (no truth), so a user restoring
+their own captures reads the same verdict as a sweep does:
+
+``ok``
+    the frame was restored and nothing truth-free says it is wrong;
+``sparse``
+    fewer than :data:`SPARSE_FRACTION` of the features the calibration puts in view were
+    matched (a lost pattern, swapped reference and frame, or waves past the correspondence
+    limit): the surface covers too little to trust;
+``gauge_level``
+    the slopes did not pin the level, so the gauge's h0 was used (calm water: the shape is
+    fine, the level is the gauge's);
+``dark_view``
+    the view image holds no signal (lens cap, wrong file): nothing to restore;
+``failed``
+    the method could not build a surface (``message`` says why);
+``no_sun``, ``sun_out_of_view``, ``too_few_spots``
+    Alterman's sensor had no usable sunlight (it then returns no surface).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = ["SPARSE_FRACTION", "STATUSES", "RestoreResult"]
+
+STATUSES = (
+    "ok", "sparse", "gauge_level", "dark_view", "failed", "no_sun", "sun_out_of_view",
+    "too_few_spots",
+)
+SPARSE_FRACTION = 0.25
+"""Fewer matches than this fraction of the features in view make a frame ``sparse``."""
+
+
+@dataclass
+class RestoreResult:
+    """One frame restored (or the status saying why not), from images and calibration only.
+
+    Attributes
+    ----------
+    method : str
+        ``structured-light`` or ``alterman``.
+    status : str
+        One of :data:`STATUSES` (see the module notes).
+    message : str
+        Why, in words, when the status is not ``ok``.
+    features : Matches or None
+        Matched features (grid index, flat-water and wavy spot centres in px, counts).
+    surface : SurfaceEstimate or AltermanSurface or None
+        The reconstructed surface (``.heightfield``: absolute heights, mm, lab frame, NaN where
+        not reconstructed) and its samples.
+    view : Restoration or None
+        The restored view (``.image`` (H, W, 3) in the flat-water view's geometry, ``.valid``).
+    timings_ms : dict of str to float
+        ``features``, ``surface``, ``reverse_trace`` and ``end_to_end`` wall times, ms.
+    counts : dict of str to int
+        The features' counts (detected, matched, rejections by cause).
+    """
+
+    method: str
+    status: str = "ok"
+    message: str = ""
+    features: Any = None
+    surface: Any = None
+    view: Any = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        """True when the status is ``ok``."""
+        return self.status == "ok"
+
+    @property
+    def restored(self) -> bool:
+        """True when a surface and a restored view exist (whatever the status says of them)."""
+        return self.surface is not None and self.view is not None
+
+    def summary(self) -> dict[str, Any]:
+        """The truth-free figures of the frame, as plain values (``metrics.json``)."""
+        out: dict[str, Any] = {
+            "method": self.method,
+            "status": self.status,
+            "message": self.message,
+            "feature_counts": dict(self.counts),
+            "features_detected": int(self.counts.get("detected", 0)),
+            "features_rejected": int(
+                sum(v for k, v in self.counts.items() if k.startswith("rejected_"))
+            ),
+        }
+        if self.surface is not None:
+            out.update(
+                features_used=int(len(self.surface.ij)),
+                refine_iterations=int(self.surface.iterations),
+                anchor=self.surface.anchor,
+            )
+        if self.view is not None:
+            valid = self.view.valid
+            out.update(
+                view_status_counts=self.view.counts,
+                view_valid_fraction=float(np.mean(valid)) if valid.size else 0.0,
+            )
+        if self.timings_ms:
+            out["timings_ms"] = self.timings_ms_all()
+        return out
+
+    def timings_ms_all(self) -> dict[str, Any]:
+        """Stage timings with each stage's own steps, ms."""
+        out: dict[str, Any] = dict(self.timings_ms)
+        for key, part in (
+            ("features_steps", self.features),
+            ("surface_steps", self.surface),
+            ("reverse_trace_steps", self.view),
+        ):
+            if part is not None:
+                out[key] = part.timings_ms
+        return out

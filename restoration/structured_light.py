@@ -1,0 +1,272 @@
+"""The paper's method, structured light, on one frame: features, surface, restored view.
+
+Per frame (section 3 of Jian et al. 2022): the dots of the wavy-water pattern are matched to the
+flat-water reference (:mod:`restoration.features`), their reflections give normals and the
+normals a surface (:mod:`restoration.surface`), anchored in height by the slopes'
+integrability (:mod:`restoration.anchor`), and the view is undistorted by reverse ray tracing
+through that surface (:mod:`restoration.reverse_trace`). Reads only images and calibration.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from restoration.anchor import find_anchor, integration_residual_mm
+from restoration.calibration import Calibration, LevelTrack
+from restoration.features import Matches, ReferenceGrid, features_from_reference
+from restoration.normals import points_on_rays, projector_rays
+from restoration.options import RestoreOptions
+from restoration.result import SPARSE_FRACTION, RestoreResult
+from restoration.surface import SurfaceEstimate, reconstruct_surface
+from wai_core.config import SystemConfig
+from wai_core.errors import WaiInputError
+from wai_core.pattern import dot_grid
+
+__all__ = ["StructuredLight", "estimate_surface", "panel_positions", "view_has_signal"]
+
+DARK_VIEW_CONTRAST = 1e-3
+"""A view whose 1st-99th percentile spread (after the gain) is below this has no signal."""
+
+
+def panel_positions(cfg: SystemConfig, ij: NDArray) -> NDArray:
+    """Projector panel ``(col, row)`` of the dots with grid indices ``ij`` (K, 2)."""
+    grid_ij, panel = dot_grid(cfg.pattern, cfg.projector.camera())
+    side = int(grid_ij[:, 0].max()) * 2 + 1
+    half = side // 2
+    index = (np.asarray(ij)[:, 1] + half) * side + (np.asarray(ij)[:, 0] + half)
+    return panel[index]
+
+
+SEARCH_INTEGRATOR = "trapezoid"
+"""Integrator of the anchor search (see :func:`estimate_surface`)."""
+
+
+def estimate_surface(
+    ij: NDArray,
+    spot_px: NDArray,
+    cfg: SystemConfig,
+    options: RestoreOptions,
+    start_mm: float | None = None,
+) -> SurfaceEstimate:
+    """Surface from matched features, anchored by the gauge's h0 or by integrability (searched
+    from ``start_mm``, default h0)."""
+    keep = np.isfinite(spot_px).all(axis=1)
+    ij, spot_px = ij[keep], spot_px[keep]
+    panel = panel_positions(cfg, ij)
+    projector = cfg.projector.camera()
+    fixed = (ij, panel, spot_px, projector, cfg.camera_s.camera(), cfg.diffuser.z_mm)
+    # Every reconstruction weighs its differences by the dots' spacing on z = h0: the anchor
+    # search's reconstructions then share one factorisation.
+    weight_xy = points_on_rays(*projector_rays(panel, projector), cfg.water.h0_mm)[:, :2]
+
+    def reconstruct(anchor_mm: float, integrator: str = options.integrator) -> SurfaceEstimate:
+        return reconstruct_surface(
+            *fixed,
+            anchor_mm,
+            integrator=integrator,
+            n_refine=options.n_refine,
+            grid_spacing_mm=options.grid_spacing_mm,
+            gridder=options.gridder,
+            weight_xy_mm=weight_xy,
+        )
+
+    def probe(anchor_mm: float) -> SurfaceEstimate:
+        # The level is a property of the data, not of the integrator: search it with the
+        # trapezoid rule, whose fit error is the integrability residual itself (integrators
+        # that resample onto a grid add their own resampling error to it).
+        return reconstruct(anchor_mm, SEARCH_INTEGRATOR)
+
+    h0 = cfg.water.h0_mm
+    if options.anchor == "gauge":
+        est = reconstruct(h0)
+        est.anchor.update(method="gauge", anchor_mm=h0)
+        return est
+    search = find_anchor(probe, h0 if start_mm is None else start_mm, step_mm=3.0)
+    info = {
+        "searched_mm": search.anchor_mm,
+        "sigma_mm": search.sigma_mm,
+        "evaluations": search.evaluations,
+    }
+    if search.sigma_mm <= options.anchor_max_sigma_mm:
+        est = search.estimate
+        if options.integrator != SEARCH_INTEGRATOR:
+            est = reconstruct(search.anchor_mm)
+        est.anchor.update(method="integrability", anchor_mm=search.anchor_mm, **info)
+    else:  # the slopes do not pin the level (calm water): trust the gauge, and say so
+        est = reconstruct(h0)
+        est.anchor.update(method="gauge_fallback", anchor_mm=h0, **info)
+    return est
+
+
+# Most label shifts tried when the pattern leaves the labels ambiguous (each costs a surface).
+MAX_SHIFT_CANDIDATES = 24
+# A shifted labelling must keep this fraction of the features on lit dots to be considered.
+MIN_SHIFT_KEEP = 0.8
+
+
+def shifted(features: Matches, shift: NDArray, keep: NDArray) -> Matches:
+    """``features`` relabelled ``ij + shift``, keeping the rows ``keep``."""
+    di, dj = (int(v) for v in shift)
+    counts = {**features.counts, "label_shift_di": di, "label_shift_dj": dj}
+    return replace(
+        features,
+        ij=features.ij[keep] + shift,
+        ref_px=features.ref_px[keep],
+        spot_px=features.spot_px[keep],
+        observed=features.observed[keep],
+        counts=counts,
+        alt_shifts=features.alt_shifts - shift,
+    )
+
+
+def resolve_label_shift(
+    features: Matches,
+    surface: SurfaceEstimate,
+    reference: ReferenceGrid,
+    cfg: SystemConfig,
+    options: RestoreOptions,
+) -> tuple[Matches, SurfaceEstimate]:
+    """Among lattice shifts that the lit/unlit evidence cannot tell apart, keep the labelling
+    whose slopes integrate best.
+
+    A labelling shifted by whole dots pairs every spot with a neighbouring projector ray: the
+    normals then describe no surface, and the integration residual grows (on the paper's rig
+    by 2-3x per dot of shift). ``counts`` gains ``label_shift_candidates`` (tried) and
+    ``label_shift_di/dj`` (applied on top of the pattern's choice).
+    """
+    best = (integration_residual_mm(surface), features, surface)
+    tried = 1
+    for shift in features.alt_shifts[:MAX_SHIFT_CANDIDATES]:
+        if not shift.any():
+            continue
+        keep = reference.lit_at(features.ij + shift)
+        if keep.sum() < MIN_SHIFT_KEEP * len(keep):
+            continue
+        candidate = shifted(features, shift, keep)
+        try:
+            est = estimate_surface(candidate.ij, candidate.spot_px, cfg, options)
+        except WaiInputError:
+            continue
+        tried += 1
+        residual = integration_residual_mm(est)
+        if residual < best[0]:
+            best = (residual, candidate, est)
+    _, chosen, est = best
+    chosen.counts["label_shift_candidates"] = tried
+    return chosen, est
+
+
+def view_has_signal(view: NDArray) -> bool:
+    """Whether the (gain-divided) view shows anything: its spread between the 1st and 99th
+    percentiles, on a sparse sample of pixels, exceeds :data:`DARK_VIEW_CONTRAST`."""
+    sample = np.asarray(view)[::7, ::7]
+    lo, hi = np.percentile(sample, [1.0, 99.0])
+    return bool(hi - lo > DARK_VIEW_CONTRAST)
+
+
+def frame_status(
+    features: Matches, reference: ReferenceGrid, surface: SurfaceEstimate, view_ok: bool,
+    options: RestoreOptions,
+) -> tuple[str, str]:
+    """The truth-free verdict on a restored frame (see :mod:`restoration.result`)."""
+    in_view = max(int(reference.counts.get("predicted_in_view", 0)), 1)
+    seen = int(reference.counts.get("observed", 0))
+    if seen < SPARSE_FRACTION * in_view:
+        return "sparse", (
+            f"the flat-water reference shows only {seen} of the {in_view} dots in view"
+        )
+    if len(features) < SPARSE_FRACTION * in_view:
+        return "sparse", f"only {len(features)} of the {in_view} dots in view were matched"
+    if not view_ok:
+        return "dark_view", "the view image holds no signal (all pixels alike)"
+    if options.anchor == "integrability" and surface.anchor.get("method") == "gauge_fallback":
+        return "gauge_level", "the slopes do not pin the level: the gauge's h0 was used"
+    return "ok", ""
+
+
+class StructuredLight:
+    """The paper's structured-light method, configured once and applied to frames.
+
+    Parameters
+    ----------
+    options : RestoreOptions, optional
+        Integrator, refinement, gridding, anchor and warp choices (default: the testbed's).
+
+    Examples
+    --------
+    >>> from restoration import StructuredLight, RestoreOptions
+    >>> method = StructuredLight(RestoreOptions(integrator="paper"))
+    >>> method.name, method.options.integrator
+    ('structured-light', 'paper')
+    """
+
+    name = "structured-light"
+    calibration_type = Calibration
+
+    def __init__(self, options: RestoreOptions | None = None) -> None:
+        self.options = RestoreOptions() if options is None else options
+
+    def __repr__(self) -> str:
+        return f"StructuredLight({self.options!r})"
+
+    def __call__(
+        self,
+        images: dict[str, NDArray],
+        cal: Calibration,
+        track: LevelTrack | None = None,
+    ) -> RestoreResult:
+        """Restore one frame.
+
+        Parameters
+        ----------
+        images : dict of str to ndarray
+            ``pattern`` and ``pattern_flat`` (camera s, (H, W) or (H, W, 3)) and ``view``
+            (camera v, (H, W, 3)), linear values as read by :meth:`Calibration.load_images`.
+        cal : Calibration
+            The rig; its flat-water reference is prepared on the first call and kept.
+        track : LevelTrack, optional
+            A sequence's level: the search starts at the previous frame's level, and the
+            track takes this frame's.
+
+        Returns
+        -------
+        RestoreResult
+            Status ``failed`` (with the reason, and no surface) when the frame gives no
+            surface; otherwise the surface, the restored view and a truth-free status.
+        """
+        options, cfg = self.options, cal.cfg
+        reference = cal.prepare(images["pattern_flat"])
+        t0 = time.perf_counter()
+        try:
+            features = features_from_reference(images["pattern"], reference, cfg)
+            t1 = time.perf_counter()
+            start = None if track is None else track.start_mm
+            surface = estimate_surface(features.ij, features.spot_px, cfg, options, start)
+            if len(features.alt_shifts) > 1:
+                features, surface = resolve_label_shift(
+                    features, surface, reference, cfg, options
+                )
+        except WaiInputError as exc:
+            return RestoreResult(self.name, "failed", str(exc))
+        if track is not None:
+            track.update(surface.anchor)
+        t2 = time.perf_counter()
+        distorted = images["view"] / cal.view_gain
+        view = cal.restore_view(distorted, surface.heightfield, options.warp_step_px)
+        t3 = time.perf_counter()
+        status, message = frame_status(
+            features, reference, surface, view_has_signal(distorted), options
+        )
+        timings = {
+            "features": 1e3 * (t1 - t0),
+            "surface": 1e3 * (t2 - t1),
+            "reverse_trace": 1e3 * (t3 - t2),
+            "end_to_end": 1e3 * (t3 - t0),
+        }
+        return RestoreResult(
+            self.name, status, message, features, surface, view, timings, features.counts
+        )

@@ -1,0 +1,109 @@
+"""``wai bench render``: wall time per frame of each scene, surface upload included."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from wai.bench.timing import (
+    machine,
+    peak_rss_mib,
+    reference_workload,
+    runtime,
+    summarize,
+    time_runs,
+)
+
+__all__ = ["RENDER_STAGES", "bench_render", "print_render", "render_stages"]
+
+RENDER_STAGES = {"render_s": "pattern", "render_v": "view"}
+"""Report stage of each scene of :func:`bench_render` (system S: pattern, system V: view)."""
+
+
+def _bench_system(cfg: Any, surface: Any, system: str, runs: int) -> dict[str, Any]:
+    """Frames of one system through its own renderer: the surface upload, then the render."""
+    from mitsuba_wai.mesh import flat_like
+    from mitsuba_wai.render import FrameRenderer, render_seed
+
+    renderer = FrameRenderer(cfg, surface, systems=(system,))
+    seed = render_seed(cfg)
+    warm, samples = time_runs(
+        lambda i: renderer.render(surface, seed + i + 1, which=(system,)), runs
+    )
+    # The upload alone (alternating surfaces, so every call really changes the mesh).
+    flat = flat_like(surface, cfg.water.h0_mm)
+    _, upload = time_runs(lambda i: renderer._set_surface(flat if i % 2 else surface), runs)
+    cam = cfg.camera_s if system == "pattern" else cfg.camera_v
+    spp = cfg.render.spp_pattern if system == "pattern" else cfg.render.spp_view
+    return {
+        "resolution": [cam.width_px, cam.height_px],
+        "spp": spp,
+        "warmup_ms": warm * 1e3,
+        **summarize(samples),
+        "surface_update": summarize(upload),
+    }
+
+
+def bench_render(args: argparse.Namespace) -> dict[str, Any]:
+    """Wall time per frame of each scene (pattern: camera s, view: camera v).
+
+    A frame is what a sweep pays for it: the new surface's upload (mesh buffers and BVH) and
+    the render, read back to a NumPy image. ``surface_update`` is the upload alone.
+    """
+    from mitsuba_wai.render import wave_surface
+    from mitsuba_wai.variant import select_variant
+    from wai_core import load_system
+
+    variant = select_variant(args.variant)
+    cfg = load_system(args.config)
+    surface = wave_surface(cfg)
+    reference = reference_workload()
+    scenes = {name: _bench_system(cfg, surface, name, args.runs) for name in ("pattern", "view")}
+    pair = scenes["pattern"]["median_ms"] + scenes["view"]["median_ms"]
+    return {
+        "variant": variant,
+        "reference": reference,
+        "frame_pair_ms": pair,
+        "frame_pair_per_reference": pair / reference["median_ms"],
+        "machine": machine(),
+        "runtime": runtime(),
+        "scenes": scenes,
+        "surface_update": {"vertices": int(surface.z.size), **scenes["pattern"]["surface_update"]},
+        "peak_rss_mib": peak_rss_mib(),
+    }
+
+
+def print_render(res: dict[str, Any]) -> None:
+    print(
+        f"variant {res['variant']}, {res['machine']['cores']} cores, "
+        f"{res['runtime']['drjit_threads']} Dr.Jit threads"
+    )
+    for name, r in res["scenes"].items():
+        w, h = r["resolution"]
+        print(
+            f"{name:8s} {w}x{h} {r['spp']:4d} spp: median {r['median_ms']:8.1f} ms/frame "
+            f"(min {r['min_ms']:.1f}, max {r['max_ms']:.1f}, {r['runs']} runs; "
+            f"warm-up {r['warmup_ms']:.0f} ms)"
+        )
+    ref = res["reference"]
+    print(
+        f"frame pair (pattern + view): {res['frame_pair_ms']:.0f} ms = "
+        f"{res['frame_pair_per_reference']:.1f} x the reference workload ({ref['workload']}, "
+        f"median {ref['median_ms']:.1f} ms in the same run)"
+    )
+    u = res["surface_update"]
+    print(f"surface update ({u['vertices']} vertices): median {u['median_ms']:.1f} ms")
+    print(f"peak RSS {res['peak_rss_mib']:.0f} MiB")
+
+
+def render_stages(render: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """``render_s``/``render_v`` and their uploads from :func:`bench_render`'s scenes."""
+    stages: dict[str, dict[str, Any]] = {}
+    for stage, scene in RENDER_STAGES.items():
+        r = render["scenes"][scene]
+        summary = {k: v for k, v in r.items() if k.endswith("_ms") and k != "warmup_ms"}
+        stages[stage] = {"group": "render", **summary, "runs": r["runs"]}
+        stages[f"{stage}.surface_update"] = {"group": "render", **r["surface_update"]}
+    return stages
+
+

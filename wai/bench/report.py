@@ -1,0 +1,137 @@
+"""``wai bench`` (all): every stage of rendering and restoration, ``bench.json`` and a chart."""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wai.bench.render import RENDER_STAGES, bench_render, render_stages
+from wai.bench.restore import CHART_HIDDEN, bench_restore
+from wai.bench.timing import machine, print_stage_table, runtime
+from wai_core.io import write_json
+
+__all__ = ["bench_all", "bench_chart", "print_report", "write_report"]
+
+
+def bench_all(args: argparse.Namespace) -> dict[str, Any]:
+    """Every stage: rendering (system S and V) and restoration, with memory and the setup.
+
+    The restoration runs first so that the peak RSS recorded after it is its own (unless the
+    render folder had to be rendered first), not the renderer's.
+    """
+    restore = bench_restore(args)
+    render = bench_render(args)
+    stages = render_stages(render)
+    stages.update({k: {"group": "restore", **v} for k, v in restore["stages"].items()})
+    return {
+        "format": "wai-bench/1",
+        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "runs": args.runs,
+        "config": str(args.config),
+        "render_dir": restore["render_dir"],
+        "machine": machine(),
+        "runtime": runtime(),
+        "render": {
+            stage: {k: render["scenes"][scene][k] for k in ("resolution", "spp")}
+            for stage, scene in RENDER_STAGES.items()
+        },
+        "stages": stages,
+        "warmup_ms": {
+            **{
+                stage: render["scenes"][scene]["warmup_ms"]
+                for stage, scene in RENDER_STAGES.items()
+            },
+            "restore": restore["warmup_ms"],
+        },
+        "fps": restore["fps"],
+        "peak_memory_mib": {
+            "rss_after_restore": restore["peak_rss_mib"],
+            "rss_after_render": render["peak_rss_mib"],
+            "tracemalloc_restore": restore["tracemalloc_peak_mib"],
+        },
+        "derived": restore["derived"],
+        "notes": restore["notes"],
+    }
+
+
+def _stage_panel(ax: Any, stages: dict[str, dict[str, Any]], title: str) -> None:
+    """Horizontal bars of the median, a thick line from Q1 to Q3 and min-max whiskers, ms."""
+    names = list(stages)[::-1]  # first stage on top
+    keys = ("median_ms", "min_ms", "max_ms", "q1_ms", "q3_ms")
+    get = {k: np.array([stages[n][k] for n in names]) for k in keys}
+    med = get["median_ms"]
+    y = np.arange(len(names))
+    whiskers = [med - get["min_ms"], get["max_ms"] - med]
+    ax.barh(y, med, color="#9ecae1", xerr=whiskers, capsize=3, error_kw={"elinewidth": 1})
+    ax.hlines(y, get["q1_ms"], get["q3_ms"], color="#08519c", lw=4)
+    for yi, m in zip(y, med, strict=True):
+        ax.annotate(f"{m:.1f}", (m, yi), xytext=(4, 5), textcoords="offset points", fontsize=7)
+    ax.set_yticks(y, names, fontsize=8)
+    ax.set_xlabel("ms: bar median, thick line Q1-Q3, whiskers min-max")
+    ax.set_title(title, fontsize=10)
+    ax.set_xlim(0, 1.12 * float(get["max_ms"].max(initial=1.0)))  # room for the labels
+
+
+def bench_chart(report: dict[str, Any], path: str | Path) -> None:
+    """``bench.png``: restoration and render stages in two panels (their scales differ ~100x)."""
+    from wai.figures import plt, save_figure
+
+    groups = {
+        g: {k: v for k, v in report["stages"].items() if v["group"] == g and k not in CHART_HIDDEN}
+        for g in ("restore", "render")
+    }
+    heights = [max(len(v), 1) for v in groups.values()]
+    fig, axes = plt.subplots(
+        2, 1, figsize=(9, 1.6 + 0.32 * sum(heights)), gridspec_kw={"height_ratios": heights}
+    )
+    _stage_panel(axes[0], groups["restore"], f"restoration ({report['render_dir']})")
+    _stage_panel(
+        axes[1],
+        groups["render"],
+        "rendering: a frame, its surface upload included (.surface_update: the upload alone)",
+    )
+    m, rt = report["machine"], report["runtime"]
+    fig.suptitle(
+        f"wai bench {report['date'][:10]}: {m['cpu_model'] or m['cpu']}, {m['cores']} cores\n"
+        f"{rt['variant']}, {rt['drjit_threads']} Dr.Jit threads, {report['runs']} runs "
+        f"(after a warm-up)",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def write_report(report: dict[str, Any], out: str | Path) -> list[Path]:
+    """Write ``bench.json`` and ``bench.png`` into ``out`` (each atomically); their paths."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / "bench.json", out / "bench.png"]
+    bench_chart(report, paths[1])
+    write_json(paths[0], report)
+    return paths
+
+
+def print_report(report: dict[str, Any]) -> None:
+    """Table of every stage of :func:`bench_all`, with the setup, warm-ups and memory."""
+    m, rt = report["machine"], report["runtime"]
+    print(
+        f"{m['cpu_model'] or m['cpu']}, {m['cores']} cores; {rt['variant']}, "
+        f"{rt['drjit_threads']} Dr.Jit threads, {rt.get('opencv_threads')} OpenCV threads; "
+        f"BLAS {m['blas']}; {report['date']}"
+    )
+    print_stage_table(report["stages"], report["derived"], report["notes"], report["runs"])
+    w = report["warmup_ms"]
+    print("warm-up (not in the figures): " + ", ".join(f"{k} {v:.0f} ms" for k, v in w.items()))
+    mem = report["peak_memory_mib"]
+    print(
+        f"peak RSS {mem['rss_after_restore']:.0f} MiB after restoring, "
+        f"{mem['rss_after_render']:.0f} MiB after rendering; Python/NumPy allocations in one "
+        f"restoration peak at {mem['tracemalloc_restore']:.1f} MiB (tracemalloc)"
+    )
+    print(f"restoration: {report['fps']:.1f} frames/s")
+
+

@@ -1,0 +1,143 @@
+"""Forward ray optics of the observation camera through the water (eq. 14-20 of Jian et al. 2022).
+
+Camera v sits under the water and looks up at a horizontal object plane ``z = z_object`` (z_a).
+The *forward map* of a pixel is: back-project the pixel, hit the water surface, refract into the
+air (Snell, eq. 20), hit the object plane; :func:`trace_to_object` computes it, for the
+restoration's reverse tracing and for the renderer-side geometric model alike. Statuses of a ray
+or target are :class:`RayStatus` codes. Pixel coordinates are continuous ``(col, row)`` with
+integer values at pixel centres (see :mod:`wai_core.geometry`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wai_core.errors import WaiInputError
+from wai_core.geometry import PinholeCamera, intersect_plane_z, refract
+from wai_core.heightfield import Heightfield
+
+Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+class RayStatus(IntEnum):
+    """Outcome of one ray or one target."""
+
+    OK = 0
+    MISSED_SURFACE = 1  # outside the known surface (its extent or its NaN holes)
+    TIR = 2  # totally reflected at the surface: no view of the air there
+    MISSED_OBJECT = 3  # the air ray never reaches the object plane
+    NOT_CONVERGED = 4  # Newton did not settle within its iterations
+    OUT_OF_VIEW = 5  # the solved pixel lies outside the image
+
+
+def status_counts(status: ArrayLike) -> dict[str, int]:
+    """Number of entries with each :class:`RayStatus`, keyed by lower-case name."""
+    hist = np.bincount(np.asarray(status, dtype=np.int64).ravel(), minlength=len(RayStatus))
+    return {s.name.lower(): int(hist[s]) for s in RayStatus}
+
+
+@dataclass(frozen=True)
+class TraceResult:
+    """Forward map of a set of pixels (eq. 17-20).
+
+    Attributes
+    ----------
+    object_mm : (..., 3) ndarray
+        Hit points on the object plane, mm, ``lab``; NaN unless status is OK.
+    surface_mm : (..., 3) ndarray
+        Hit points on the water surface, mm; NaN where the surface was missed.
+    status : (...,) ndarray of int8
+        :class:`RayStatus` code of each ray.
+    """
+
+    object_mm: Array
+    surface_mm: Array
+    status: NDArray[np.int8]
+
+    @property
+    def ok(self) -> BoolArray:
+        """True where the ray reached the object plane."""
+        return self.status == RayStatus.OK
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Rays per status (see :func:`status_counts`)."""
+        return status_counts(self.status)
+
+
+def _check_system(h0_mm: float, n_water: float, z_object_mm: float) -> None:
+    if not (np.isfinite(h0_mm) and np.isfinite(n_water) and np.isfinite(z_object_mm)):
+        raise WaiInputError("reverse trace: h0, n_water and z_object must be finite")
+    if n_water <= 1.0:
+        raise WaiInputError(f"reverse trace: n_water must exceed 1, got {n_water}")
+    if z_object_mm <= h0_mm:
+        raise WaiInputError("reverse trace: the object plane must lie above the water (z > h0)")
+
+
+def trace_to_object(
+    camera: PinholeCamera,
+    surface: Heightfield | None,
+    h0_mm: float,
+    n_water: float,
+    z_object_mm: float,
+    cols: ArrayLike,
+    rows: ArrayLike,
+) -> TraceResult:
+    """Trace pixels of ``camera`` through the water surface to the object plane (eq. 17-20).
+
+    Parameters
+    ----------
+    camera : PinholeCamera
+        The submerged camera (camera v).
+    surface : Heightfield or None
+        The water surface; None means flat water at ``h0_mm``.
+    h0_mm : float
+        Mean water level, mm (used when ``surface`` is None).
+    n_water : float
+        Refractive index of water (4/3).
+    z_object_mm : float
+        Height of the object plane, mm (z_a).
+    cols, rows : array_like
+        Continuous pixel coordinates, broadcast to a common shape (...).
+
+    Returns
+    -------
+    TraceResult
+        Object-plane points (..., 3) mm, surface hits (..., 3) mm and a status per ray.
+    """
+    _check_system(h0_mm, n_water, z_object_mm)
+    origin, dirs = camera.pixel_rays(cols, rows)
+    if surface is None:
+        hit, _ = intersect_plane_z(origin, dirs, h0_mm)
+        normals = np.broadcast_to(np.array([0.0, 0.0, 1.0]), hit.shape)
+    else:
+        hit, _ = surface.intersect(origin, dirs)
+        normals = surface.normal(hit[..., 0], hit[..., 1])
+    missed = ~np.all(np.isfinite(hit), axis=-1)
+    # Water to air: eta = n_water / 1 (eq. 20).
+    air, tir = refract(dirs, normals, n_water)
+    points, _ = intersect_plane_z(hit, air, z_object_mm)
+    status = np.full(missed.shape, RayStatus.OK, dtype=np.int8)
+    status[~np.all(np.isfinite(points), axis=-1)] = RayStatus.MISSED_OBJECT
+    status[tir] = RayStatus.TIR
+    status[missed] = RayStatus.MISSED_SURFACE
+    points[status != RayStatus.OK] = np.nan
+    return TraceResult(points, hit, status)
+
+
+def radiance_gain(n_water: float) -> float:
+    """The factor radiance gains crossing from air into water of index ``n_water``: the
+    n²-law of radiance (basic radiance L/n² is conserved along a ray), so a rendered underwater
+    view carries ``n_water**2`` times the object's radiance.
+
+    Examples
+    --------
+    >>> round(radiance_gain(4 / 3), 4)
+    1.7778
+    """
+    return float(n_water) ** 2
