@@ -71,6 +71,11 @@ class RigCalibration:
         """The observation camera."""
         return self.cfg.camera_v.camera()
 
+    def radiance(self, view: NDArray) -> NDArray:
+        """A view image of this rig on the object's radiance scale: divided by
+        :attr:`view_gain` (what scores and restored images are expressed in)."""
+        return view / self.view_gain
+
     def restore_view(
         self, distorted: NDArray, surface: Heightfield, warp_step_px: int = 8
     ) -> Restoration:

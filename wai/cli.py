@@ -14,6 +14,40 @@ from wai.sweep import add_sweep_arguments
 from wai_core.errors import WaiInputError
 
 EXIT_BAD_INPUT = 2
+SCENE_HELP = "scene: a packaged name (paper, alterman) or a TOML file"
+
+
+class _Help(argparse.HelpFormatter):
+    """Help that shows each option's default (where it has a value to show)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        shown = action.default not in (None, False, argparse.SUPPRESS) and action.option_strings
+        if shown and "%(default)" not in text and "(default" not in text:
+            text += " (default: %(default)s)"
+        return text
+
+
+def _version() -> str:
+    """The installed package's version (the source tree's when not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("wavy-water-testbed")
+    except PackageNotFoundError:  # a checkout run without installing
+        return "unknown (not installed)"
+
+
+def _integrators() -> list[str]:
+    from restoration.integrate import INTEGRATORS
+
+    return list(INTEGRATORS)
+
+
+def _methods() -> list[str]:
+    from restoration import METHODS
+
+    return list(METHODS)
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
@@ -52,13 +86,16 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def _add_experiment(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("experiment", help="experiments that write reports, tables and charts")
+    p = sub.add_parser(
+        "experiment", formatter_class=_Help,
+        help="experiments that write reports, tables and charts",
+    )
     p.add_argument(
         "name",
         choices=["validate", "paper", "alterman", "tradeoffs", "stability"],
         help="which experiment (tradeoffs and stability are sweeps on Dask)",
     )
-    p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
+    p.add_argument("--config", default="paper", help=SCENE_HELP)
     p.add_argument("--out", type=Path, help="output folder (default renders/<name>)")
     p.add_argument(
         "--seeds", type=int, default=None, help="seeds 0..K-1 (default: paper 10, alterman 3)"
@@ -69,9 +106,11 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="render and restore the paper's configuration")
-    p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
-    p.add_argument("--out", type=Path, default=Path("renders/demo"))
+    p = sub.add_parser(
+        "demo", help="render and restore the paper's configuration", formatter_class=_Help
+    )
+    p.add_argument("--config", default="paper", help=SCENE_HELP)
+    p.add_argument("--out", type=Path, default=Path("renders/demo"), help="output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_demo)
 
@@ -92,29 +131,43 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_restore(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("restore", help="reconstruct the surface and undistort the view")
-    p.add_argument("dir", type=Path, help="a render folder written by 'wai render'")
-    p.add_argument("--integrator", default="trapezoid", help="gradient integrator")
-    p.add_argument("--refine", type=int, default=3, help="refinement passes (0 = the paper)")
+    p = sub.add_parser(
+        "restore",
+        help="reconstruct the surface and undistort the view",
+        formatter_class=_Help,
+        description="Restore a folder: a render of 'wai render', or one's own captures (scene.json "
+        "with the rig's config, and pattern, pattern_flat, view as EXR, PNG or TIFF). Scores are "
+        "computed where the folder holds truth (heightfield.npz, view_truth.*), else skipped.",
+    )
+    p.add_argument("dir", type=Path, help="the folder to restore")
+    p.add_argument(
+        "--integrator", default="trapezoid", choices=_integrators(),
+        help="slope integrator (paper: the paper's central differences, eq. 10-13)",
+    )
+    p.add_argument(
+        "--refine", type=int, default=3,
+        help="refinement passes of the reflection points (0 = the paper's q on z = h0)",
+    )
     p.add_argument(
         "--method",
         default="structured-light",
+        choices=_methods(),
         help="surface sensing method: structured-light, or alterman (the sun-and-pinhole "
-        "baseline, on a folder rendered from scenes/alterman.toml)",
+        "baseline, on a folder rendered from the alterman scene)",
     )
     p.add_argument(
         "--anchor",
         default=None,
         choices=["integrability", "gauge"],
         help="absolute height: from the slopes' integrability (structured light's default), or "
-        "the gauge's h0 (the paper; alterman's only anchor)",
+        "the gauge's h0 (the paper; alterman's only anchor); default: the method's",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_restore)
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="benchmarks that print figures")
+    p = sub.add_parser("bench", help="benchmarks that print figures", formatter_class=_Help)
     p.add_argument(
         "what",
         nargs="?",
@@ -125,17 +178,17 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "accuracy: scores over seeds with an error budget; "
         "video: latency and multi-process throughput over a rendered frame sequence",
     )
-    p.add_argument("--config", type=Path, default=Path("scenes/paper.toml"))
+    p.add_argument("--config", default="paper", help=SCENE_HELP)
     p.add_argument("--dir", type=Path, help="render folder to restore (default: render one)")
     p.add_argument("--runs", type=int, default=5, help="measured runs (after a warm-up)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--variant", default="auto")
+    p.add_argument("--variant", default="auto", help="Mitsuba variant (auto: GPU, else LLVM)")
     p.add_argument("--seeds", type=int, default=10, help="accuracy: seeds 0..K-1")
     p.add_argument(
         "--out", type=Path, help="all: renders/bench (default); accuracy: renders/bench_accuracy"
     )
     p.add_argument("--wind", type=float, help="accuracy: wind speed U, m/s")
-    p.add_argument("--surface", choices=["dielectric", "mirror"])
+    p.add_argument("--surface", choices=["dielectric", "mirror"], help="accuracy: water surface")
     p.add_argument("--workers", type=int, default=2, help="video: worker processes (and 1)")
     p.add_argument("--frames", type=int, default=60, help="video: frames restored per count")
     p.add_argument("--sequence", type=int, default=6, help="video: distinct frames rendered")
@@ -147,6 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="wai", description="Wavy water-air interface testbed (Jian et al. 2022)."
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (_add_render, _add_restore, _add_bench, _add_demo, _add_experiment):
         add(sub)

@@ -12,7 +12,7 @@ from wai_core.config import SystemConfig, config_from_dict, load_config
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield, load_heightfield
 from wai_core.scenes import scene_names, scene_path
-from wai_core.system import load_system
+from wai_core.system import load_rig, load_system
 
 __all__ = [
     "AltermanSystem",
@@ -22,6 +22,7 @@ __all__ = [
     "config_from_dict",
     "load_config",
     "load_heightfield",
+    "load_rig",
     "load_system",
     "scene_names",
     "scene_path",

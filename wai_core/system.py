@@ -6,9 +6,10 @@ from pathlib import Path
 
 from wai_core.alterman import AltermanSystem, is_alterman_file, load_alterman
 from wai_core.config import SystemConfig, load_config
+from wai_core.errors import WaiInputError
 from wai_core.scenes import resolve_scene
 
-__all__ = ["load_system"]
+__all__ = ["load_rig", "load_system"]
 
 
 def load_system(scene: str | Path) -> SystemConfig | AltermanSystem:
@@ -44,3 +45,21 @@ def load_system(scene: str | Path) -> SystemConfig | AltermanSystem:
     if path.is_file() and is_alterman_file(path):
         return load_alterman(path)
     return load_config(path)
+
+
+def load_rig(scene: str | Path) -> SystemConfig:
+    """The structured light's system configuration of a scene name or file (as
+    :func:`load_system`), refusing a sun-sensor file.
+
+    Examples
+    --------
+    >>> load_rig("paper").pattern.spacing_px
+    28.0
+    """
+    system = load_system(scene)
+    if isinstance(system, AltermanSystem):
+        raise WaiInputError(
+            f"scene {str(scene)!r} describes the sun sensor; this needs a structured-light "
+            "scene such as 'paper'"
+        )
+    return system

@@ -138,3 +138,57 @@ def test_image_size_mismatch_is_a_clear_error(flat_dir, tmp_path):
     cal = Calibration.from_folder(bad)
     with pytest.raises(WaiInputError, match="view.exr"):
         cal.load_images(bad)
+
+
+def _as_capture(render_dir, out, swap=False, black_view=False):
+    """A render folder as a camera would give it: 16-bit PNGs (scaled to full scale), and a
+    scene.json with the configuration only (no truth files, no derived gain)."""
+    import json
+
+    import cv2
+
+    from wai_core.io import read_exr
+
+    out.mkdir()
+    names = {"pattern": "pattern", "pattern_flat": "pattern_flat", "view": "view"}
+    if swap:
+        names.update(pattern="pattern_flat", pattern_flat="pattern")
+    for stem, source in names.items():
+        img = read_exr(render_dir / f"{source}.exr")
+        if black_view and stem == "view":
+            img = np.zeros_like(img)
+        counts = np.clip(img / max(float(img.max()), 1e-9), 0, 1) * 65535
+        cv2.imwrite(str(out / f"{stem}.png"), counts.astype(np.uint16)[..., ::-1])
+    record = json.loads((render_dir / "scene.json").read_text())
+    (out / "scene.json").write_text(json.dumps({"config": record["config"]}))
+    return out
+
+
+def test_a_capture_without_truth_restores_and_skips_the_scores(bump_dir, quick_cfg, tmp_path):
+    done = restore_folder(_as_capture(bump_dir, tmp_path / "capture"))
+    assert done.result.status == "ok" and done.truth is None and done.scores is None
+    assert done.metrics["scored"] is False and "wai_rmse_mm" not in done.metrics
+    written = {p.name for p in done.out.iterdir()}
+    assert {"heightfield_est.npz", "restored.exr", "metrics.json"} <= written
+    # The same surface as from the EXR render (the PNGs only rescale the images).
+    est = done.result.surface.heightfield
+    xx, yy = np.meshgrid(est.x, est.y)
+    err = est.z - _bump_surface(quick_cfg).height(xx, yy)
+    assert np.sqrt(np.nanmean(err**2)) < 0.5
+
+
+def test_swapped_pattern_images_are_flagged(bump_dir, tmp_path):
+    done = restore_folder(_as_capture(bump_dir, tmp_path / "swapped", swap=True), write=False)
+    # Calibrating on the wavy image and restoring the flat one: whatever comes out, the frame
+    # must not pass as ok.
+    assert done.result.status != "ok", done.result.summary()
+
+
+def test_a_black_view_is_flagged_and_prints_no_nan(bump_dir, tmp_path, capsys):
+    from wai.cli import main
+
+    folder = _as_capture(bump_dir, tmp_path / "black", black_view=True)
+    assert main(["restore", str(folder), "--quiet"]) == 0
+    out, err = capsys.readouterr()
+    assert "dark_view" in err and len(err.strip().splitlines()) == 1
+    assert "nan" not in out.lower()

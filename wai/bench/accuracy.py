@@ -30,9 +30,10 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from wai_core.config import SystemConfig, load_config
+from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import write_json
+from wai_core.system import load_rig
 
 
 def true_spots(cfg: SystemConfig, truth: Heightfield, panel_px: NDArray) -> NDArray:
@@ -176,7 +177,7 @@ def summarize_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run_accuracy(args: argparse.Namespace) -> dict[str, Any]:
     """``wai bench accuracy``: seeds 0..K-1 of a configuration; writes ``accuracy.json``."""
-    cfg = load_config(args.config)
+    cfg = load_rig(args.config)
     if args.wind is not None:
         cfg = cfg.replace("waves", wind_speed_m_s=args.wind)
     if args.surface:

@@ -196,11 +196,11 @@ def _render_dir(args: argparse.Namespace) -> Path:
     if not (render_dir / "scene.json").is_file():
         from mitsuba_wai.render import render_folder
         from mitsuba_wai.variant import select_variant
-        from wai_core.config import load_config
+        from wai_core.system import load_rig
 
         # The variant asked for, before render_folder takes "auto": a process cannot switch.
         select_variant(args.variant)
-        render_folder(load_config(args.config), render_dir, progress=False)
+        render_folder(load_rig(args.config), render_dir, progress=False)
     return render_dir
 
 

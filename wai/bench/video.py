@@ -33,9 +33,9 @@ _STATE: dict[str, Any] = {}
 def render_sequence(config: Path, out: Path, n_frames: int) -> list[Path]:
     """Render (once) ``n_frames`` consecutive frames into ``out/frameNN``; returns the folders."""
     from mitsuba_wai.render import render_folder
-    from wai_core.config import load_config
+    from wai_core.system import load_rig
 
-    cfg = load_config(config)
+    cfg = load_rig(config)
     folders = []
     for k in range(n_frames):
         folder = out / f"frame{k:02d}"

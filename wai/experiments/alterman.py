@@ -21,10 +21,10 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from wai_core.alterman import AltermanSystem, is_alterman_file, load_alterman
-from wai_core.config import load_config
+from wai_core.alterman import AltermanSystem, load_alterman
 from wai_core.io import atomic_write_bytes, read_exr
 from wai_core.scenes import scene_path
+from wai_core.system import load_system
 
 ANGLES_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0)
 QUICK_ANGLES_DEG = (15.0, 60.0)
@@ -53,9 +53,10 @@ COLUMNS = (
 def sensor_system(args: argparse.Namespace) -> AltermanSystem:
     """The sensor of ``scenes/alterman.toml`` over the base scene ``--config`` (or ``--config``
     itself when it is a sensor file)."""
-    if is_alterman_file(args.config):
-        return load_alterman(args.config)
-    return AltermanSystem(load_config(args.config), load_alterman(SENSOR_TOML).sensor)
+    system = load_system(args.config)
+    if isinstance(system, AltermanSystem):
+        return system
+    return AltermanSystem(system, load_alterman(SENSOR_TOML).sensor)
 
 
 def at(system: AltermanSystem, seed: int, theta_deg: float, sun: bool = True) -> AltermanSystem:

@@ -41,15 +41,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from wai_core.config import SystemConfig, load_config
+from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
+from wai_core.system import load_rig
 
 # A matched spot farther than this from the model's spot for its label is a wrong label.
 CORRECT_RADIUS_PX = 3.0
@@ -59,7 +59,7 @@ WRONG_LABEL_FRACTION = 0.05
 
 def frame_config(point: dict[str, Any]) -> SystemConfig:
     """The configuration of one point: the scene file with the point's overrides."""
-    cfg = load_config(Path(point["config"])).replace("waves", seed=int(point["seed"]))
+    cfg = load_rig(point["config"]).replace("waves", seed=int(point["seed"]))
     if point.get("wind_mps") is not None:
         cfg = cfg.replace("waves", wind_speed_m_s=float(point["wind_mps"]))
     if point.get("spacing_px") is not None:

@@ -19,10 +19,11 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from wai_core.config import SystemConfig, load_config
+from wai_core.config import SystemConfig
 from wai_core.geometry import reflect
 from wai_core.io import atomic_write_bytes, write_json
 from wai_core.limits import correspondence_limit, effective_phi_deg
+from wai_core.system import load_rig
 
 # The paper's numbers (Jian et al. 2022): section 5.2.2, Fig. 14-15 and Table 2.
 PAPER = {
@@ -412,7 +413,7 @@ def run_paper(args: argparse.Namespace) -> None:
     """``wai experiment paper [--out DIR] [--seeds K] [--quick]``."""
     from wai import figures
 
-    cfg = load_config(args.config)
+    cfg = load_rig(args.config)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     seeds = list(range(2 if args.quick else args.seeds))

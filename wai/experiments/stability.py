@@ -32,6 +32,7 @@ from wai.experiments.frame_eval import evaluate_frame  # noqa: E402
 from wai.figures import save_figure  # noqa: E402
 from wai.sweep import run_sweep, sweep_kwargs  # noqa: E402
 from wai_core.io import atomic_write_bytes, write_json  # noqa: E402
+from wai_core.scenes import scene_path  # noqa: E402
 
 SWEEPS: dict[str, tuple[str, tuple[float, ...]]] = {
     "wind": ("wind_mps", (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0)),
@@ -56,11 +57,11 @@ def evaluate_sun(point: dict[str, Any]) -> dict[str, Any]:
     from mitsuba_wai.alterman import render_alterman_folder
     from restoration import Alterman, restore_folder
     from wai_core.alterman import AltermanSystem, load_alterman
-    from wai_core.config import load_config
+    from wai_core.system import load_rig
 
-    sensor = load_alterman(Path(point["alterman"])).sensor
+    sensor = load_alterman(point["alterman"]).sensor
     sensor = sensor.replace("sun", zenith_deg=float(point["theta_sun_deg"]))
-    base = load_config(Path(point["config"])).replace("waves", seed=int(point["seed"]))
+    base = load_rig(point["config"]).replace("waves", seed=int(point["seed"]))
     with tempfile.TemporaryDirectory(prefix="wai-sun-") as tmp:
         frame = Path(tmp) / "frame"
         render_alterman_folder(AltermanSystem(base, sensor), frame, progress=False)
@@ -213,7 +214,7 @@ def run_stability(args: argparse.Namespace) -> dict[str, Any]:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     points = stability_points(
-        args.config, Path("scenes/alterman.toml"), list(range(args.seeds)), args.quick
+        args.config, scene_path("alterman"), list(range(args.seeds)), args.quick
     )
     rows = run_sweep(points, evaluate_point, out / "stability.csv", **sweep_kwargs(args))
     summary = sweep_summary(rows)

@@ -210,7 +210,7 @@ def _verdict(series: list[dict], key: str, default: Any, higher_is_better: bool)
 def run_tradeoffs(args: argparse.Namespace) -> dict[str, Any]:
     """Run the sweep into ``args.out/tradeoffs.csv`` and write the charts and report."""
     from restoration import RestoreOptions
-    from wai_core.config import load_config
+    from wai_core.system import load_rig
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -219,7 +219,7 @@ def run_tradeoffs(args: argparse.Namespace) -> dict[str, Any]:
         tradeoff_points(args.config, seeds, args.quick), evaluate_frame, out / "tradeoffs.csv",
         **sweep_kwargs(args),
     )
-    cfg, opts = load_config(args.config), RestoreOptions()
+    cfg, opts = load_rig(args.config), RestoreOptions()
     defaults = {
         "spacing": cfg.pattern.spacing_px,
         "integrator": opts.integrator,

@@ -24,9 +24,10 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from wai_core.config import SystemConfig, load_config
+from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import atomic_write_bytes, write_json
+from wai_core.system import load_rig
 
 # A detection farther than this from a predicted spot is another dot, not an offset.
 MATCH_RADIUS_PX = 3.0
@@ -176,7 +177,7 @@ def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 
 def run_validate(args: argparse.Namespace) -> dict[str, Any]:
     """Run both comparisons and the spp sweep; write JSON, CSV and the chart into ``args.out``."""
-    cfg = load_config(args.config)
+    cfg = load_rig(args.config)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     table = agreement_table(cfg, args.quick)

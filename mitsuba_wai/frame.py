@@ -1,0 +1,95 @@
+"""One frame of both systems rendered in memory: the four images and the true surface."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mitsuba_wai.mesh import flat_like
+from mitsuba_wai.render import FrameRenderer, file_surface, render_seed, wave_surface
+from wai_core.config import SystemConfig
+from wai_core.heightfield import Heightfield
+from wai_core.optics import radiance_gain
+
+__all__ = ["Frame", "render_frame"]
+
+
+@dataclass
+class Frame:
+    """A rendered frame: what a ``wai render`` folder holds, in memory.
+
+    Attributes
+    ----------
+    cfg : SystemConfig
+        The configuration rendered.
+    surface : Heightfield
+        The true surface on the mesh grid, absolute heights, mm, lab frame.
+    images : dict of str to (H, W, 3) ndarray of float32
+        ``pattern`` / ``pattern_flat`` (camera s, wavy / flat water) and ``view`` /
+        ``view_truth`` (camera v), linear radiance.
+    view_gain : float
+        The views carry this factor (n^2) over the object's radiance.
+    render_s : dict of str to float
+        Wall time of each render, s.
+    """
+
+    cfg: SystemConfig
+    surface: Heightfield
+    images: dict[str, NDArray[np.float32]]
+    view_gain: float
+    render_s: dict[str, float] = field(default_factory=dict)
+
+
+def render_frame(
+    cfg: SystemConfig,
+    surface: Heightfield | None = None,
+    *,
+    spp: int | None = None,
+    renderer: FrameRenderer | None = None,
+) -> Frame:
+    """Render both systems through wavy and flat water, in memory.
+
+    Parameters
+    ----------
+    cfg : SystemConfig
+        The system, e.g. :func:`wai_core.load_system` ``("paper")``.
+    surface : Heightfield, optional
+        Any surface covering the observed patch (resampled onto the modelled extent, flat at
+        h0 beyond it); default: the sea state of ``cfg.waves``.
+    spp : int, optional
+        Samples per pixel of every render (default: the configuration's).
+    renderer : FrameRenderer, optional
+        A renderer already loaded for this configuration and grid, reused across frames.
+
+    Returns
+    -------
+    Frame
+
+    Examples
+    --------
+    >>> import mitsuba_wai as mw
+    >>> from wai_core import load_system
+    >>> frame = mw.render_frame(load_system("paper"), spp=1)      # doctest: +SKIP
+    >>> sorted(frame.images)                                      # doctest: +SKIP
+    ['pattern', 'pattern_flat', 'view', 'view_truth']
+    """
+    grid = wave_surface(cfg) if surface is None else file_surface(cfg, surface)
+    renderer = FrameRenderer(cfg, grid) if renderer is None else renderer
+    seed = render_seed(cfg)
+    t0 = time.perf_counter()
+    wavy = renderer.render(grid, seed, spp=spp)
+    t1 = time.perf_counter()
+    flat = renderer.render(flat_like(grid, cfg.water.h0_mm), seed, spp=spp)
+    t2 = time.perf_counter()
+    images = {
+        "pattern": wavy["pattern"],
+        "pattern_flat": flat["pattern"],
+        "view": wavy["view"],
+        "view_truth": flat["view"],
+    }
+    return Frame(
+        cfg, grid, images, radiance_gain(cfg.water.n_water), {"wavy": t1 - t0, "flat": t2 - t1}
+    )
