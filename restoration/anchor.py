@@ -29,10 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration.integrate import grid_neighbours
-from restoration.surface import SurfaceEstimate
+from restoration.surface import SurfaceEstimate, trapezoid_edges, trapezoid_steps
 
-_STEPS = ((1, 0), (0, 1))
 N_SETS = 4
 """Interleaved edge sets whose separate minima measure the anchor's standard error."""
 
@@ -41,14 +39,26 @@ def edge_residuals_mm(est: SurfaceEstimate) -> tuple[NDArray, NDArray]:
     """Per grid edge: the mismatch (mm) between the height difference of neighbouring samples
     and the trapezoid rule on their slopes (zero for an integrable slope field), and the edge's
     set in ``0 .. N_SETS - 1`` (parity of its first dot's ``i`` and ``j``). Finite edges only."""
-    nb = grid_neighbours(est.ij, _STEPS)
-    a = np.concatenate([np.flatnonzero(row >= 0) for row in nb])
-    b = np.concatenate([row[row >= 0] for row in nb])
-    p, g = est.points_mm, est.slopes
-    r = p[b, 2] - p[a, 2] - 0.5 * np.sum((g[a] + g[b]) * (p[b, :2] - p[a, :2]), axis=1)
+    a, b = _edges(est.ij)
+    p = est.points_mm
+    r = p[b, 2] - p[a, 2] - trapezoid_steps(p[:, :2], est.slopes, a, b)
     sets = (est.ij[a, 0] % 2) + 2 * (est.ij[a, 1] % 2)
     ok = np.isfinite(r)
     return r[ok], sets[ok]
+
+
+def _edges(ij: NDArray) -> tuple[NDArray, NDArray]:
+    """:func:`~restoration.surface.trapezoid_edges` of ``ij``, cached: a search evaluates
+    every probe on the same samples."""
+    key = (ij.shape, ij.tobytes())
+    if key not in _EDGES:
+        if len(_EDGES) >= 16:
+            _EDGES.clear()
+        _EDGES[key] = trapezoid_edges(ij)
+    return _EDGES[key]
+
+
+_EDGES: dict[tuple, tuple[NDArray, NDArray]] = {}
 
 
 def integration_residual_mm(est: SurfaceEstimate) -> float:

@@ -8,11 +8,18 @@ of a skew matrix, :func:`reflection_normals` uses the closed form.
 
 All positions are in the ``lab`` frame (origin at the projector centre, z up), mm; directions
 are unit vectors. Normals point up, into the air.
+
+:func:`reflection_slopes` is the per-pass step of the surface refinement: the three steps
+:func:`points_on_rays`, :func:`reflection_normals` and :func:`slopes_from_normals` fused into
+one compiled loop, with the same arithmetic.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from wai_core.errors import WaiInputError
@@ -186,3 +193,84 @@ def slopes_from_normals(normals: ArrayLike) -> Array:
     if np.any(np.abs(n[:, 2]) < 1e-9):
         raise WaiInputError("slopes_from_normals: a normal is horizontal (vertical surface)")
     return -n[:, :2] / n[:, 2:3]
+
+
+# Why _reflection_kernel stopped (0: it did not), with the messages of the NumPy steps.
+_KERNEL_ERRORS = {
+    1: "points_on_rays: every ray must point upwards (positive z component)",
+    2: "reflected_dirs: a reflection point coincides with its spot",
+    3: "reflection_normals: a reflected ray is parallel to its incident ray",
+    4: "slopes_from_normals: a normal is horizontal (vertical surface)",
+}
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _reflection_kernel(origin, dirs, spots, heights, q, normals, slopes):  # pragma: no cover
+    """Fill ``q``, ``normals`` (K, 3) and ``slopes`` (K, 2) row by row; return 0 or the code
+    of the first failed check (:data:`_KERNEL_ERRORS`). Expressions as in the NumPy steps, in
+    the same order, so the results are the same to the last bit."""
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    for k in range(heights.size):
+        dx, dy, dz = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        if not dz > 0.0:
+            return 1
+        t = (heights[k] - oz) / dz
+        qx, qy, qz = ox + t * dx, oy + t * dy, oz + t * dz
+        vx, vy, vz = spots[k, 0] - qx, spots[k, 1] - qy, spots[k, 2] - qz
+        length = math.sqrt(vx * vx + vy * vy + vz * vz)
+        if not length > 0.0:
+            return 2
+        wx, wy, wz = dx - vx / length, dy - vy / length, dz - vz / length
+        length = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if length < 1e-9:
+            return 3
+        nx, ny, nz = wx / length, wy / length, wz / length
+        if nz < 0.0:
+            nx, ny, nz = nx * -1.0, ny * -1.0, nz * -1.0
+        if abs(nz) < 1e-9:
+            return 4
+        q[k, 0], q[k, 1], q[k, 2] = qx, qy, qz
+        normals[k, 0], normals[k, 1], normals[k, 2] = nx, ny, nz
+        slopes[k, 0], slopes[k, 1] = -nx / nz, -ny / nz
+    return 0
+
+
+def reflection_slopes(
+    origin_mm: Array, dirs: Array, spots_mm: Array, heights_mm: Array
+) -> tuple[Array, Array, Array]:
+    """Reflection points, normals and slopes for assumed heights on the projector rays.
+
+    The same as ``q = points_on_rays(origin_mm, dirs, heights_mm)``, ``n =
+    reflection_normals(dirs, q, spots_mm)``, ``slopes_from_normals(n)`` (and the same errors),
+    in one compiled pass: the surface refinement runs it for every pass of every anchor probe.
+
+    Parameters
+    ----------
+    origin_mm : (3,) ndarray
+        The projector centre, mm.
+    dirs : (K, 3) ndarray
+        Unit projector-ray directions ``v_p`` (positive z components).
+    spots_mm : (K, 3) ndarray
+        Spots on the diffuser, mm.
+    heights_mm : (K,) ndarray
+        Assumed height of each reflection point, mm.
+
+    Returns
+    -------
+    q : (K, 3) ndarray
+        Reflection points, mm.
+    normals : (K, 3) ndarray
+        Unit normals, pointing up.
+    slopes : (K, 2) ndarray
+        ``(dz/dx, dz/dy)``, dimensionless.
+    """
+    n = len(heights_mm)
+    q, normals, slopes = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 2))
+    code = _reflection_kernel(
+        np.ascontiguousarray(origin_mm, dtype=float), np.ascontiguousarray(dirs, dtype=float),
+        np.ascontiguousarray(spots_mm, dtype=float), np.ascontiguousarray(heights_mm, float),
+        q, normals, slopes,
+    )
+    if code:
+        raise WaiInputError(_KERNEL_ERRORS[code])
+    return q, normals, slopes

@@ -35,16 +35,19 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from restoration.integrate import GRIDDERS, INTEGRATORS, integrate, to_heightfield
-from restoration.normals import (
-    points_on_rays,
-    projector_rays,
-    reflection_normals,
-    slopes_from_normals,
-    spots_on_diffuser,
+from restoration.integrate import (
+    GRIDDERS,
+    INTEGRATORS,
+    DifferenceGraph,
+    check_samples,
+    grid_neighbours,
+    integrate,
+    to_heightfield,
 )
+from restoration.normals import projector_rays, reflection_slopes, spots_on_diffuser
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
@@ -224,18 +227,24 @@ def reconstruct_surface(
         weight_xy = np.asarray(weight_xy_mm, dtype=float)
         if weight_xy.shape != (ij_arr.shape[0], 2):
             raise WaiInputError("reconstruct_surface: weight_xy_mm must be (K, 2)")
+    system: _TrapezoidSystem | None = None
     previous: tuple[Array, Array] | None = None
     change = np.nan
     for it in range(int(n_refine) + 1):
         t0 = time.perf_counter()
-        q = points_on_rays(origin, v_p, heights)
-        normals = reflection_normals(v_p, q, spots)
-        slopes = slopes_from_normals(normals)
+        q, normals, slopes = reflection_slopes(origin, v_p, spots, heights)
         t1 = time.perf_counter()
         # Every pass weighs the differences by the first pass's geometry: the passes then
         # share one factorisation, and their samples move by only ~mm along the rays.
         weight_xy = q[:, :2] if weight_xy is None else weight_xy
-        integrated = _anchored(integrate(ij_arr, q[:, :2], slopes, integrator, weight_xy), h0_mm)
+        if integrator != "trapezoid":
+            relative = integrate(ij_arr, q[:, :2], slopes, integrator, weight_xy)
+        else:  # the level search's integrator: its system is prepared once per sample set
+            if system is None:
+                check_samples(ij_arr, q[:, :2], slopes)
+                system = _TrapezoidSystem.of(ij_arr, weight_xy)
+            relative = system.graph.solve(system.steps(q[:, :2], slopes), system.weights)
+        integrated = _anchored(relative, h0_mm)
         timings["normals"] += _ms(t0, t1)
         timings["integrate"] += _ms(t1)
         # Samples the integrator could not tie to the rest (NaN) leave for good.
@@ -245,6 +254,7 @@ def reconstruct_surface(
                 a[keep]
                 for a in (ij_arr, v_p, spots, q, normals, slopes, heights, integrated, weight_xy)
             )
+            system = None
             if previous is not None:
                 previous = (previous[0][keep], previous[1][keep])
         residual = integrated - heights
@@ -268,6 +278,88 @@ def reconstruct_surface(
         grid_spacing_mm=float(grid_spacing_mm),
         gridder=gridder,
     )
+
+
+@njit(cache=True, nogil=True)
+def _trapezoid_kernel(xy, slopes, a, b, out):  # pragma: no cover
+    """``out[e] = (slopes[a] + slopes[b]) / 2 . (xy[b] - xy[a])`` for every edge ``e``."""
+    for e in range(a.size):
+        i, j = a[e], b[e]
+        gx = 0.5 * (slopes[i, 0] + slopes[j, 0])
+        gy = 0.5 * (slopes[i, 1] + slopes[j, 1])
+        out[e] = gx * (xy[j, 0] - xy[i, 0]) + gy * (xy[j, 1] - xy[i, 1])
+
+
+@njit(cache=True, nogil=True)
+def _length2_kernel(xy, a, b, out):  # pragma: no cover
+    """``out[e] = |xy[b] - xy[a]|^2`` for every edge ``e``."""
+    for e in range(a.size):
+        dx = xy[b[e], 0] - xy[a[e], 0]
+        dy = xy[b[e], 1] - xy[a[e], 1]
+        out[e] = dx * dx + dy * dy
+
+
+def trapezoid_steps(
+    xy_mm: Array, slopes: Array, a: NDArray[np.int64], b: NDArray[np.int64]
+) -> Array:
+    """Height differences (E,) mm that the trapezoid rule predicts along edges ``a -> b``
+    (E,) from positions ``xy_mm`` (K, 2) mm and slopes (K, 2): the ``"trapezoid"``
+    integrator's differences (:data:`restoration.integrate.INTEGRATORS`), compiled."""
+    out = np.empty(a.size)
+    _trapezoid_kernel(
+        np.ascontiguousarray(xy_mm, dtype=float), np.ascontiguousarray(slopes, dtype=float),
+        a, b, out,
+    )
+    return out
+
+
+def trapezoid_edges(ij: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The ``"trapezoid"`` integrator's edges ``a -> b`` (E,) on grid indices ``ij`` (K, 2):
+    every ``(i, j) -> (i + 1, j)``, then every ``(i, j) -> (i, j + 1)``, in sample order."""
+    nb = grid_neighbours(ij, [(1, 0), (0, 1)])
+    a = np.concatenate([np.flatnonzero(row >= 0) for row in nb])
+    b = np.concatenate([row[row >= 0] for row in nb])
+    return a, b
+
+
+@dataclass(frozen=True)
+class _TrapezoidSystem:
+    """The ``"trapezoid"`` integration of one sample set with fixed weights, prepared once:
+    its edges (:func:`trapezoid_edges`), weights (E,) and :class:`DifferenceGraph`. Solving
+    it gives what :func:`restoration.integrate.integrate_trapezoid` gives, to the last bit,
+    without its per-call checks and lookups (the level search runs ~30 such solves a frame).
+    """
+
+    a: NDArray[np.int64]
+    b: NDArray[np.int64]
+    weights: Array
+    graph: DifferenceGraph
+
+    @classmethod
+    def of(cls, ij: NDArray[np.int64], weight_xy: Array) -> _TrapezoidSystem:
+        key = (ij.shape, ij.tobytes())
+        found = _GRAPHS.get(key)
+        if found is None:
+            a, b = trapezoid_edges(ij)
+            found = (a, b, DifferenceGraph.build(ij.shape[0], a, b))
+            if len(_GRAPHS) >= 16:
+                _GRAPHS.clear()
+            _GRAPHS[key] = found
+        a, b, graph = found
+        length2 = np.empty(a.size)
+        _length2_kernel(np.ascontiguousarray(weight_xy, dtype=float), a, b, length2)
+        if not np.all(length2 > 0):
+            raise WaiInputError("integrate: two neighbouring samples sit at the same position")
+        return cls(a, b, 1.0 / length2, graph)
+
+    def steps(self, xy: Array, slopes: Array) -> Array:
+        """The measured differences (E,) mm (:func:`trapezoid_steps`)."""
+        return trapezoid_steps(xy, slopes, self.a, self.b)
+
+
+# Edges and graphs by grid indices: a frame's anchor probes all integrate the same samples
+# (the graph also keeps their factorisation).
+_GRAPHS: dict[tuple, tuple[NDArray[np.int64], NDArray[np.int64], DifferenceGraph]] = {}
 
 
 def _anchored(relative_mm: Array, h0_mm: float) -> Array:

@@ -1,9 +1,8 @@
 """Spot detection: find the pattern's spots in one camera-s image and measure their sub-pixel
-centres (:func:`detect_spots`, which returns :class:`Spots`). To fit a 30 frames/s pipeline
-every step works on whole arrays: segment moments are sparse (label x pixel) products, and the
-centroid windows are evaluated for batches of equal-sized boxes with matrix products. Pixel
-coordinates are continuous ``(col, row)`` with integer values at pixel centres (see
-:mod:`wai_core.geometry`).
+centres (:func:`detect_spots`, which returns :class:`Spots`). To fit a 30 frames/s pipeline the
+image-wide filters are OpenCV's, and the per-pixel and per-spot loops (segment moments, centroid
+windows) are compiled kernels (:mod:`restoration.features._kernels`). Pixel coordinates are
+continuous ``(col, row)`` with integer values at pixel centres (see :mod:`wai_core.geometry`).
 """
 
 from __future__ import annotations
@@ -13,10 +12,15 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 from numpy.typing import NDArray
-from scipy import sparse
 
+from restoration.features._kernels import (
+    axis_moments,
+    segment_pixels,
+    segment_sums,
+    weighted_sums,
+    windowed_centroids,
+)
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from wai_core.errors import WaiInputError
 
@@ -196,19 +200,12 @@ def _segment(
 
 
 def _moments(
-    weights: sparse.csc_matrix, x: FloatArray, y: FloatArray
+    px: _Pixels, w: FloatArray, x: FloatArray, y: FloatArray, n: int
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Per-label total (n,), mean (n, 2) and covariance (n, 2, 2) of pixels at ``(x, y)`` (N,),
-    px, with the weights of ``weights`` (labels x pixels): two sparse products of three columns
-    each, not one bincount per column (and small temporaries). Raw moments: keep ``x, y`` small
-    against the image size."""
-    cols = np.empty((len(x), 3))
-    cols[:, 0], cols[:, 1], cols[:, 2] = 1.0, x, y
-    first = weights @ cols
-    np.multiply(x, x, out=cols[:, 0])
-    np.multiply(x, y, out=cols[:, 1])
-    np.multiply(y, y, out=cols[:, 2])
-    second = weights @ cols
+    """Per-label total (n,), mean (n, 2) and covariance (n, 2, 2) of the pixels ``px`` at ``(x,
+    y)`` (N,), px, with weights ``w`` (N,): one compiled pass over the pixels. Raw moments:
+    keep ``x, y`` small against the image size."""
+    first, second = weighted_sums(px.lab, w, x, y, n)
     tot = first[:, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         mean = first[:, 1:] / tot[:, None]
@@ -229,24 +226,15 @@ def _major_axis_kurtosis(px: _Pixels, peak: FloatArray, centre: FloatArray) -> F
     or two-humped blob (below 2.15 once they are more than ~3 sigma apart). Pixel offsets are
     taken from the segment's ``centre`` (n, 2) rounded to a pixel: exact small integers.
     """
-    lab = px.lab
+    lab, n = px.lab, len(peak)
     origin = np.rint(np.nan_to_num(centre)).astype(np.int32)  # NaN: no weight at all
     x = (px.cols - origin[lab, 0]).astype(np.float64)
     y = (px.rows - origin[lab, 1]).astype(np.float64)
     w = np.clip(px.smooth - 0.2 * peak[lab], 0.0, None)
-    weights = px.weigh(w, len(peak))
-    tot, mean, cov = _moments(weights, x, y)
+    tot, mean, cov = _moments(px, w, x, y, n)
     # Major-axis direction of each 2 x 2 covariance, in closed form.
     angle = 0.5 * np.arctan2(2.0 * cov[:, 0, 1], cov[:, 0, 0] - cov[:, 1, 1])
-    x -= mean[lab, 0]
-    y -= mean[lab, 1]
-    x *= np.cos(angle)[lab]
-    y *= np.sin(angle)[lab]
-    x += y  # the projection on the major axis
-    x *= x
-    m2 = weights @ x
-    x *= x
-    m4 = weights @ x
+    m2, m4 = axis_moments(lab, w, x, y, mean, np.cos(angle), np.sin(angle), n)
     with np.errstate(divide="ignore", invalid="ignore"):
         kurt = m4 * tot / m2**2
     return np.where(np.isfinite(kurt), kurt, 3.0)
@@ -254,10 +242,9 @@ def _major_axis_kurtosis(px: _Pixels, peak: FloatArray, centre: FloatArray) -> F
 
 @dataclass(frozen=True)
 class _Pixels:
-    """The segmented pixels (N,) in raster order: flat index in the padded image (see
-    :func:`detect_spots`), row, column, label, smoothed (float64) and raw value."""
+    """The segmented pixels (N,) in raster order: row, column, label, smoothed (float64) and
+    raw value."""
 
-    at: IntArray
     rows: NDArray[np.int32]
     cols: NDArray[np.int32]
     lab: NDArray[np.int32]
@@ -266,19 +253,11 @@ class _Pixels:
 
     @classmethod
     def of(
-        cls, labels: NDArray[np.int32], mask: BoolArray, smooth: NDArray, padded: NDArray, pad: int
+        cls, labels: NDArray[np.int32], smooth: NDArray, padded: NDArray, pad: int
     ) -> _Pixels:
-        pix = np.flatnonzero(mask)
-        rows, cols = np.divmod(pix.astype(np.int32), labels.shape[1])
-        at = pix + 2 * pad * rows + pad * (padded.shape[1] + 1)
-        return cls(at, rows, cols, labels.ravel()[pix], smooth.ravel()[pix].astype(np.float64),
-                   padded.ravel()[at])
-
-    def weigh(self, weight: FloatArray, n: int) -> sparse.csc_matrix:
-        """Labels x pixels (n, N) sparse matrix holding ``weight`` (N,): times a column of
-        per-pixel values, it sums them per label, weighted."""
-        ptr = np.arange(len(self.at) + 1, dtype=np.int32)
-        return sparse.csc_matrix((weight, self.lab, ptr), shape=(n, len(self.at)))
+        """Pixels of ``labels`` > 0; raw values from ``padded``, the image in a frame of
+        ``pad`` pixels."""
+        return cls(*segment_pixels(labels, smooth, padded, pad))
 
 
 @dataclass(frozen=True)
@@ -299,14 +278,10 @@ def _segment_stats(px: _Pixels, n: int, shape: tuple[int, ...]) -> _Segments:
     h, w = shape
     # Coordinates from the image centre: the raw second moments lose < 1e-10 px^2 that way.
     tot, mean, cov = _moments(
-        px.weigh(np.clip(px.smooth, 0.0, None), n), px.cols - 0.5 * (w - 1),
-        px.rows - 0.5 * (h - 1),
+        px, np.clip(px.smooth, 0.0, None), px.cols - 0.5 * (w - 1), px.rows - 0.5 * (h - 1), n
     )
     mean += [0.5 * (w - 1), 0.5 * (h - 1)]
-    peak = np.full(n, -np.inf)
-    np.maximum.at(peak, px.lab, px.smooth)
-    flux = np.bincount(px.lab, px.raw, n)
-    area = np.bincount(px.lab, minlength=n)
+    peak, flux, area = segment_sums(px.lab, px.smooth, px.raw, n)
     return _Segments(tot, mean, cov, peak, flux, area, _major_axis_kurtosis(px, peak, mean))
 
 
@@ -339,160 +314,9 @@ def _typical_flux(flux: FloatArray) -> float:
     return float(f[np.searchsorted(cum, 0.5 * cum[-1])])
 
 
-# Spot boxes: half widths are multiples of 3 px up to 48, padded to these tiers so that a few
-# batches of equal-sized boxes cover all spots; each spot still uses only its own box.
-_BOX_TIERS = np.array([3, 6, 9, 12, 18, 24, 36, 48])
-_BOX_MAX = int(_BOX_TIERS[-1])
-# OpenBLAS runs a matrix product on one thread up to this many multiply-adds. Above it, its
-# worker threads cost more than they save on these small products (tenfold, on two busy cores)
-# and then spin, taking a core from whatever runs next.
-_BLAS_ONE_THREAD = 65536 * 4
-
-
-def _matmul(a: NDArray, b: NDArray, out: NDArray) -> None:
-    """``out = a @ b`` in row blocks that BLAS runs single-threaded."""
-    rows = max(1, _BLAS_ONE_THREAD // (b.shape[0] * b.shape[1]))
-    for i in range(0, len(a), rows):
-        np.matmul(a[i : i + rows], b, out=out[i : i + rows])
-
-
-@functools.cache
-def _box_basis(hx: int, hy: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Bases over a box of half widths ``(hx, hy)``, pixels row by row (E = box area), px:
-    ``quad`` (6, E), ``fx^2, fx fy, fy^2, fx, fy, 1`` (a quadratic form in the offsets is then
-    one matrix product), and ``lin`` (E, 3), ``1, fx, fy`` (so are the first moments)."""
-    gx, gy = (g.ravel() for g in np.meshgrid(np.arange(-hx, hx + 1.0), np.arange(-hy, hy + 1.0)))
-    quad = np.stack([gx * gx, gx * gy, gy * gy, gx, gy, np.ones_like(gx)]).astype(np.float32)
-    lin = np.ascontiguousarray(quad[[5, 3, 4]].T)
-    for arr in (quad, lin):
-        arr.setflags(write=False)
-    return quad, lin
-
-
-@functools.cache
-def _axis_masks(h: int) -> NDArray[np.float32]:
-    """(h // 3, 2 h + 1): along an axis of a box of half width ``h``, row ``k`` marks the
-    pixels within ``3 (k + 1)`` of the centre (a spot's own half width, padded to ``h``)."""
-    f = np.abs(np.arange(-h, h + 1))
-    mask = (f <= 3 * np.arange(1, h // 3 + 1)[:, None]).astype(np.float32)
-    mask.setflags(write=False)
-    return mask
-
-
-@dataclass(frozen=True)
-class _Boxes:
-    """Boxes around the spots, batched by padded size, stored end to end in one flat buffer.
-
-    Spots are handled in ``order`` (P,), which sorts them by batch; ``batch`` (B + 1,) are the
-    batch boundaries in that order and ``dims`` (B, 2) each batch's padded half widths
-    ``(hx, hy)``. Per spot, in that order: ``half`` (P, 2) its own half widths, ``base`` (P, 2)
-    the box centre ``(col, row)``, and ``frame`` (P + 1, 6): its own box's first column and
-    row, width and height, where that first pixel is in the buffer, and the padded width (last
-    row: an empty box, for "no spot"). ``start`` (P + 1,): where each padded box starts.
-    """
-
-    order: IntArray
-    batch: IntArray
-    dims: IntArray
-    half: IntArray
-    base: IntArray
-    frame: IntArray
-    start: IntArray
-
-    @classmethod
-    def around(cls, start: FloatArray, cov: FloatArray) -> _Boxes:
-        """Boxes reaching 3.5 segment sigmas + 1 px along each image axis (about 3 spot sigmas:
-        beyond it the spot times the centroid window is below 0.5 %), centred on ``start``."""
-        sd = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], axis=1))
-        half = np.clip(np.ceil(3.5 * sd + 1.0), 3, _BOX_MAX).astype(np.int64)
-        half = 3 * ((half + 2) // 3)  # as few distinct sizes as possible
-        tier = np.searchsorted(_BOX_TIERS, half)
-        key = tier[:, 0] * len(_BOX_TIERS) + tier[:, 1]
-        order = np.argsort(key, kind="stable")
-        key = key[order]
-        batch = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
-        half, padded = half[order], _BOX_TIERS[tier[order]]
-        base = np.rint(start[order]).astype(np.int64)
-        width = 2 * padded + 1
-        begin = np.r_[0, np.cumsum(width[:, 0] * width[:, 1])]
-        frame = np.zeros((len(order) + 1, 6), np.int32)  # small gathers: int32
-        frame[:-1, :2] = base - half
-        frame[:-1, 2:4] = 2 * half + 1
-        margin = padded - half  # own box within the padded one
-        frame[:-1, 4] = begin[:-1] + margin[:, 1] * width[:, 0] + margin[:, 0]
-        frame[:-1, 5] = width[:, 0]
-        return cls(order, batch, padded[batch[:-1]], half, base, frame, begin)
-
-    @property
-    def size(self) -> int:
-        """Length of the buffer."""
-        return int(self.start[-1])
-
-    def batches(self):
-        """``(slice of spots, slice of the buffer, hx, hy)`` of every batch."""
-        start = self.start[self.batch].tolist()
-        for b, (hx, hy) in enumerate(self.dims.tolist()):
-            yield slice(self.batch[b], self.batch[b + 1]), slice(start[b], start[b + 1]), hx, hy
-
-    def locate(self, rows: IntArray, cols: IntArray, spot: IntArray) -> tuple[IntArray, BoolArray]:
-        """Buffer position (N,) of pixels ``(rows, cols)`` in the box of spot ``spot`` (box
-        order, -1 for none), valid where ``inside`` (N,) the spot's own box."""
-        f = self.frame[spot]
-        ux, uy = cols - f[:, 0], rows - f[:, 1]
-        # As unsigned, a negative offset is huge: one comparison per axis.
-        inside = ux.view(np.uint32) < f[:, 2].view(np.uint32)
-        inside &= uy.view(np.uint32) < f[:, 3].view(np.uint32)
-        return f[:, 4] + uy * f[:, 5] + ux, inside
-
-
-def _windowed_centroids(
-    boxes: _Boxes,
-    vals: NDArray[np.float32],
-    q: NDArray[np.float32],
-    start: FloatArray,
-    cov: FloatArray,
-    n_iter: int,
-) -> FloatArray:
-    """Gaussian-windowed centroids (as SExtractor's ``XWIN``), spots in box order.
-
-    A Gaussian spot of covariance C seen through a Gaussian window of covariance ``k^2 C``
-    centred at ``x_n`` has its weighted mean ``m`` a fraction ``k^2 / (1 + k^2)`` of the way to
-    the true centre, so ``x_{n+1} = x_n + (1 + 1/k^2) (m - x_n)`` converges in one step and stays
-    unbiased for any symmetric profile (a wrong C only slows convergence). Unlike a thresholded
-    centroid it has no pixel-locking bias. ``k`` trades noise (``k = 1``: 1.33x the Poisson
-    limit; ``k = 1.5``: 1.1x) against light from neighbours. ``vals`` (the boxes' pixels) is
-    zero at pixels of *other* kept segments, so a much brighter neighbour cannot pull the
-    centre, and beyond each spot's own box (in a padded one). ``q`` is scratch space as long.
-
-    Per step, the window's exponent over a batch of boxes is one matrix product (coefficients
-    times :func:`_box_basis`'s ``quad``), and its weighted moments another.
-    """
-    det = _WINDOW_VAR * (cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] ** 2)
-    a, b, c = cov[:, 1, 1] / det, -cov[:, 0, 1] / det, cov[:, 0, 0] / det  # inverse window
-    sums = np.empty((len(start), 3), np.float32)  # summed in float32, as the pixels
-    x = start - boxes.base
-    for _ in range(n_iter):
-        sx, sy = x[:, 0], x[:, 1]
-        # -q/2 of the window centred at (sx, sy), as coefficients of fx^2, fx fy, fy^2, fx, fy, 1.
-        coef = np.stack(
-            [a, 2 * b, c, -2 * (a * sx + b * sy), -2 * (b * sx + c * sy),
-             a * sx * sx + 2 * b * sx * sy + c * sy * sy], axis=1
-        )
-        coef = (-0.5 * coef).astype(np.float32)
-        for spots, buf, hx, hy in boxes.batches():
-            quad = _box_basis(hx, hy)[0]
-            _matmul(coef[spots], quad, q[buf].reshape(-1, quad.shape[1]))
-        np.exp(q, out=q)
-        q *= vals
-        for spots, buf, hx, hy in boxes.batches():
-            lin = _box_basis(hx, hy)[1]
-            _matmul(q[buf].reshape(-1, lin.shape[0]), lin, sums[spots])  # w, w fx, w fy
-        tot = sums[:, 0]
-        ok = tot > 0
-        step = _WINDOW_GAIN * (sums[:, 1:] / np.where(ok, tot, 1.0)[:, None] - x)
-        # A step longer than a pixel means noise dominates the window: do not wander off.
-        x += np.where(ok[:, None], np.clip(step, -1.0, 1.0), 0.0)
-    return x + boxes.base
+# Half widths of the centroid boxes: multiples of 3 px, up to _BOX_MAX (the frame of zeros
+# around the image in detect_spots).
+_BOX_MAX = 48
 
 
 def _refine_centres(
@@ -504,45 +328,38 @@ def _refine_centres(
     cov: FloatArray,
     n_iter: int = 2,
 ) -> FloatArray:
-    """Windowed centres (P, 2) of the kept segments ``keep`` (of ``n`` labels), from ``start``
-    (P, 2), px.
+    """Gaussian-windowed centres (P, 2) of the kept segments ``keep`` (of ``n`` labels), from
+    ``start`` (P, 2), px (as SExtractor's ``XWIN``).
 
-    Each spot's box (:class:`_Boxes`) holds the raw image there with the pixels of the other
-    kept segments blanked (:func:`_windowed_centroids`). ``padded`` is the raw image with
-    ``_BOX_MAX`` zeros around it; it is used up (blanked, then scratch space).
+    A Gaussian spot of covariance C seen through a Gaussian window of covariance ``k^2 C``
+    centred at ``x_n`` has its weighted mean ``m`` a fraction ``k^2 / (1 + k^2)`` of the way to
+    the true centre, so ``x_{n+1} = x_n + (1 + 1/k^2) (m - x_n)`` converges in one step and stays
+    unbiased for any symmetric profile (a wrong C only slows convergence). Unlike a thresholded
+    centroid it has no pixel-locking bias. ``k`` trades noise (``k = 1``: 1.33x the Poisson
+    limit; ``k = 1.5``: 1.1x) against light from neighbours. A step longer than a pixel is
+    clipped (noise dominates the window).
+
+    Each spot's box reaches 3.5 segment sigmas + 1 px along each image axis (about 3 spot
+    sigmas: beyond it the spot times the window is below 0.5 %), centred on ``start`` rounded
+    to a pixel. It holds the raw image there with the pixels of the other kept segments
+    blanked, so a much brighter neighbour cannot pull the centre. ``padded`` is the raw image
+    with ``_BOX_MAX`` zeros around it; it is used up (blanked). One compiled loop over the
+    spots (:func:`restoration.features._kernels.windowed_centroids`).
     """
     if len(keep) == 0:
         return np.zeros((0, 2))
-    pad, wp = _BOX_MAX, padded.shape[1]
-    boxes = _Boxes.around(start, cov)
-    rank = np.empty(len(keep), np.int64)
-    rank[boxes.order] = np.arange(len(keep))
+    sd = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], axis=1))
+    half = np.clip(np.ceil(3.5 * sd + 1.0), 3, _BOX_MAX).astype(np.int64)
+    half = 3 * ((half + 2) // 3)
+    det = _WINDOW_VAR * (cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] ** 2)
+    inv_win = np.stack([cov[:, 1, 1] / det, -cov[:, 0, 1] / det, cov[:, 0, 0] / det], axis=1)
     spot_of = np.full(n, -1, np.int64)
-    spot_of[keep] = rank
-    spot = spot_of[px.lab]  # -1: a pixel of a dropped segment
-    pos, inside = boxes.locate(px.rows, px.cols, spot)
-
-    # The boxes' pixels from the image without the kept segments, then each spot's own segment
-    # put back in its own box. Index 0 is padding, always zero: where dropped segments' pixels
-    # would be blanked.
-    padded.ravel()[np.where(spot >= 0, px.at, 0)] = 0.0
-    vals = np.empty(boxes.size, np.float32)
-    for spots, buf, hx, hy in boxes.batches():
-        wy, wx = 2 * hy + 1, 2 * hx + 1
-        shape = (padded.shape[0] - wy + 1, wp - wx + 1, wy, wx)
-        win = as_strided(padded, shape, padded.strides * 2)
-        corner = boxes.base[spots] - (hx, hy) + pad
-        box = vals[buf].reshape(-1, wy, wx)
-        box[:] = win[corner[:, 1], corner[:, 0]]
-        half = boxes.half[spots]
-        if (half < (hx, hy)).any():  # padded boxes: zero beyond the spot's own box
-            box *= _axis_masks(hy)[half[:, 1] // 3 - 1][:, :, None]
-            box *= _axis_masks(hx)[half[:, 0] // 3 - 1][:, None, :]
-    vals[pos[inside]] = px.raw[inside]
-    # The image is no longer needed: its memory holds the window weights (no new allocation).
-    q = padded.ravel()[: vals.size] if vals.size <= padded.size else np.empty_like(vals)
-    centres = _windowed_centroids(boxes, vals, q, start[boxes.order], cov[boxes.order], n_iter)
-    return centres[rank]
+    spot_of[keep] = np.arange(len(keep))
+    return windowed_centroids(
+        padded, _BOX_MAX, px.rows, px.cols, spot_of[px.lab], px.raw,
+        np.rint(start).astype(np.int64), half, inv_win, np.ascontiguousarray(start, float),
+        _WINDOW_GAIN, n_iter,
+    )
 
 
 def detect_spots(
@@ -627,7 +444,7 @@ def detect_spots(
     tiny = 1e-6 * max(float(smooth.max()), 1e-30)  # keeps a noiseless zero background out
     # bg, no longer needed, is the scratch space (and then the labels).
     n, labels, mask = _segment(smooth, local_radius_px, rel_level, max(2.0 * noise, tiny), bg)
-    px = _Pixels.of(labels, mask, smooth, padded, _BOX_MAX)
+    px = _Pixels.of(labels, smooth, padded, _BOX_MAX)
     edge = np.zeros(n, bool)  # the segment has a pixel in the image's outer rows or columns
     edge[np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])] = True
     n_saturated = None if saturated_px is None else np.bincount(labels[saturated_px], minlength=n)

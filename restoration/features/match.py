@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from restoration.features._kernels import grow
 from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
 from restoration.features._outline import _Outline, _outline_px, _visible_outline
 from restoration.features._types import BoolArray, FloatArray, IntArray
@@ -88,16 +89,6 @@ REGROW_BELOW = 0.5
 
 # Why a lattice node was not matched (the last reason seen while it was on the frontier).
 _NONE, _MERGED, _BORDER, _AMBIGUOUS, _ORDER, _UNLIT = range(6)
-
-
-def _as_complex(xy: FloatArray) -> NDArray[np.complex128]:
-    """Points (N, 2) as complex numbers ``col + 1j row`` (N,): a view, no arithmetic."""
-    return np.ascontiguousarray(xy, dtype=np.float64).view(np.complex128)[:, 0]
-
-
-def _as_xy(z: NDArray[np.complex128]) -> FloatArray:
-    """Complex points (N,) as (N, 2) ``(col, row)``: a view."""
-    return np.ascontiguousarray(z).view(np.float64).reshape(-1, 2)
 
 
 @dataclass(frozen=True)
@@ -184,7 +175,6 @@ def _grow(
     base_px: FloatArray,
     spacing: FloatArray,
     spots: Spots,
-    tree: cKDTree,
     seed: tuple[int, int],
     visible: _Outline,
     accept: float,
@@ -206,112 +196,31 @@ def _grow(
     nothing.
 
     A node's prediction and the tests on it change only when a node one or two steps back along
-    one of its grid lines is accepted, so each wave re-evaluates just those nodes (``dirty``);
-    positions are complex numbers to halve the array operations.
+    one of its grid lines is accepted, so each wave re-evaluates just those nodes (compiled:
+    :func:`restoration.features._kernels.grow`).
     """
-    n, n_spots = len(base_px), len(spots)
-    usable = ~spots.suspicious
-    spot_c = _as_complex(spots.centres_px)
-    base_c = np.append(_as_complex(base_px), 0.0)
-    radius, margin = accept * spacing, -2.0 * spacing
-    # The visible outline as half-planes: a point is m px inside edge k where
-    # xy @ normal[k] - offset[k] = m.
-    normal_t = visible.normal.T
-    offset = np.einsum("mk,mk->m", visible.poly, visible.normal)
-    # Entry n of the node arrays stands for "no neighbour": never matched, zero displacement.
-    match = np.full(n, -1, np.int64)
-    matched = np.zeros(n + 1, bool)
-    blocked = np.zeros(n + 1, bool)  # matched, or retired (predicted far outside the view)
-    blocked[n] = True
-    touch = np.zeros(n + 1, bool)
-    dirty = np.zeros(n + 1, bool)
-    disp = np.zeros(n + 1, complex)
-    pos = base_c.copy()
-    free = np.ones(n_spots, bool)
-    # Each node's last evaluation: prediction, nearest spot, whether it is near (and clear),
-    # and the node's tier if it passes every test that does not depend on other nodes (else 0).
-    pred_c = base_c[:n].copy()
-    last_spot = np.full(n, -1, np.int64)
-    last_near = np.zeros(n, bool)
-    last_nc = np.zeros(n, bool)
-    last_tier = np.zeros(n, np.int64)
-
+    n = len(base_px)
+    radius = accept * spacing
     # Beyond reach / (0.5 ratio) a second spot changes no test on a node whose nearest spot is
     # within reach (and on any other the tests do not matter): the search stops there.
     bound = float(radius.max()) / (0.5 * ratio) if n and ratio > 0 else np.inf
+    # The visible outline as half-planes: a point is m px inside edge k where
+    # xy . normal[k] - offset[k] = m.
+    offset = np.einsum("mk,mk->m", visible.poly, visible.normal)
+    match, claim, reason, pred, tried = grow(
+        np.vstack([base_px, np.zeros((1, 2))]), np.ascontiguousarray(spots.centres_px, float),
+        ~spots.suspicious, spots.merged, radius, -2.0 * spacing, tab.back, tab.fwd, tab.nbrs4,
+        np.ascontiguousarray(visible.normal), offset, float(ratio), float(max_step_ratio),
+        bound, _lookup_cell(spots.centres_px), int(seed[0]), int(seed[1]),
+    )
+    return _Growth(match, reason, claim, pred, tried)
 
-    def nearest_two(xy: FloatArray) -> tuple[FloatArray, IntArray]:
-        dist, spot = tree.query(xy, k=2, distance_upper_bound=bound)
-        return dist, np.minimum(spot, n_spots - 1)  # none found: any spot, it is out of reach
 
-    acc, spot_acc = np.array([seed[0]]), np.array([seed[1]])
-    while True:
-        match[acc] = spot_acc
-        free[spot_acc] = False
-        moved = spot_c[spot_acc] - base_c[acc]
-        disp[acc] = moved
-        pos[acc] = base_c[acc] + moved
-        matched[acc] = blocked[acc] = True
-        touch[tab.nbrs4[acc]] = True
-        dirty[tab.fwd[acc]] = True
-
-        front = np.flatnonzero(touch > blocked)
-        if front.size == 0:
-            break
-        new = front[dirty[front]]
-        if new.size:
-            dirty[new] = False
-            back = tab.back[new]  # (F, 16): one step back along each direction, then two
-            near8 = matched[back]
-            line = near8[:, 8:]
-            near8 = near8[:, :8]
-            line &= near8
-            d = disp[back]
-            d1 = d[:, :8]
-            support = near8.sum(axis=1)
-            pred = np.where(line, 2.0 * d1 - d[:, 8:], d1).sum(axis=1)
-            xy = pred.view(np.float64).reshape(-1, 2)
-            xy /= np.maximum(support, 1)[:, None]  # mean displacement, divided as (x, y)
-            pred += base_c[new]
-            pred_c[new] = pred
-            far = (xy @ normal_t - offset).min(axis=1) < margin[new]
-            blocked[new[far]] = True
-            dist, spot = nearest_two(xy)
-            dist1, dist2, spot = dist[:, 0], dist[:, 1], spot[:, 0]
-            near = dist1 < radius[new]
-            nc = dist1 < ratio * dist2
-            nc &= near
-            p = pos[back]
-            p1 = p[:, :8]
-            now = np.abs(spot_c[spot][:, None] - p1)
-            before = np.abs(p1 - p[:, 8:])
-            jump = now > max_step_ratio * before
-            jump |= max_step_ratio * now < before
-            jump &= line
-            ok = nc & usable[spot]
-            ok[far | jump.any(axis=1)] = False
-            tier = 1 + (support >= 2) + ((support >= 3) & (dist1 < 0.5 * ratio * dist2))
-            last_spot[new], last_near[new], last_nc[new] = spot, near, nc
-            last_tier[new] = np.where(ok, tier, 0)
-        # Acceptance: a spot is taken once, and not by two nodes in one wave.
-        spot = last_spot[front]
-        cand = last_nc[front] & free[spot]
-        dup = np.bincount(spot[cand], minlength=n_spots)[spot] > 1
-        level = np.where(cand & ~dup, last_tier[front], 0)
-        best = level.max()
-        if best == 0:
-            break
-        take = level == best
-        acc, spot_acc = front[take], spot[take]
-
-    tried = last_spot >= 0
-    spot = np.maximum(last_spot, 0)
-    reason = np.select(
-        [~tried | ~last_near, spots.merged[spot], ~usable[spot]], [_NONE, _MERGED, _BORDER],
-        _AMBIGUOUS,
-    ).astype(np.int8)
-    claim = np.where(tried & last_near, last_spot, -1)
-    return _Growth(match, reason, claim, _as_xy(pred_c), tried)
+def _lookup_cell(xy: FloatArray) -> float:
+    """Cell size of the growing's spot lookup, px: about one spot per cell of their bounding
+    box (any size gives the same answers; this one visits the fewest cells and points)."""
+    extent = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
+    return float(max(np.sqrt(max(extent[0] * extent[1], 1.0) / max(len(xy), 1)), 1.0))
 
 
 def _drop_double_claims(g: _Growth) -> None:
@@ -554,8 +463,7 @@ def match_distorted(
         if seed < 0:
             return None
         seed_spot = int(tree.query(base[seed])[1])
-        g = _grow(tab, base, ref.spacing_px, spots, tree, (seed, seed_spot), visible, accept,
-                  ratio)
+        g = _grow(tab, base, ref.spacing_px, spots, (seed, seed_spot), visible, accept, ratio)
         _drop_double_claims(g)
         return g
 

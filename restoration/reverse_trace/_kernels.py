@@ -227,7 +227,7 @@ def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, frac
     return _NOT_CONVERGED, max_iter
 
 
-@njit(**_JIT)
+@njit(parallel=True, **_JIT)
 def newton_solve(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs, tol,
                  max_iter, targets, q0):
     """Solve every target (N, 2) mm from surface points ``q0`` (N, 2) mm.
@@ -267,10 +267,11 @@ def newton_solve(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fr
     q = np.full((n, 3), np.nan)
     status = np.empty(n, np.int8)
     iters = np.zeros(n, np.int64)
-    for t in range(n):
+    for t in prange(n):
         s, it = _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs,
                            tol, max_iter, targets[t, 0], targets[t, 1], q0[t, 0], q0[t, 1],
                            px, q, t)
         status[t] = s
         iters[t] = it
     return px, status, q, (int(iters.max()) if n else 0)
+

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from mitsuba_wai.render import render_folder
-from restoration.anchor import find_anchor
 from restoration import Calibration, RestoreOptions, StructuredLight, restore_folder
+from restoration.anchor import find_anchor
 from restoration.structured_light import estimate_surface
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from tests.conftest import PAPER_TOML, ROOT
-from wai.experiments.alterman import COLUMNS, csv_text, report_markdown, row
 from wai.cli import main
+from wai.experiments.alterman import COLUMNS, csv_text, report_markdown, row
 from wai_core.alterman import load_alterman
 
 

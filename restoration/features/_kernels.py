@@ -1,0 +1,463 @@
+"""Compiled (numba) kernels of the feature stage: the region growing of
+:func:`restoration.features.match._grow` and the spatial lookup it needs.
+
+The growing is a frontier loop of a few hundred small steps per frame; as NumPy it paid an
+array pass per step and wave, compiled it touches only the nodes it changes. Arithmetic
+follows the NumPy expressions term by term (sums in NumPy's pairwise order), so the labels
+are the same.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+@njit(**_JIT)
+def spot_cells(xy, cell):  # pragma: no cover
+    """Bucket points ``xy`` (P, 2) px into square cells of side ``cell`` px.
+
+    Returns ``(lo (2,), shape (2,) as (nx, ny), start (nx ny + 1,), order (P,))``: the points
+    of cell ``(cx, cy)`` are ``order[start[c] : start[c + 1]]`` with ``c = cy nx + cx``.
+    """
+    p = xy.shape[0]
+    lo = np.empty(2)
+    hi = np.empty(2)
+    for d in range(2):
+        lo[d] = xy[0, d] if p else 0.0
+        hi[d] = lo[d]
+    for i in range(p):
+        for d in range(2):
+            lo[d] = min(lo[d], xy[i, d])
+            hi[d] = max(hi[d], xy[i, d])
+    nx = int((hi[0] - lo[0]) / cell) + 1
+    ny = int((hi[1] - lo[1]) / cell) + 1
+    shape = np.array([nx, ny])
+    of = np.empty(p, np.int64)
+    count = np.zeros(nx * ny + 1, np.int64)
+    for i in range(p):
+        cx = int((xy[i, 0] - lo[0]) / cell)
+        cy = int((xy[i, 1] - lo[1]) / cell)
+        of[i] = cy * nx + cx
+        count[of[i] + 1] += 1
+    start = np.cumsum(count)
+    fill = start[:-1].copy()
+    order = np.empty(p, np.int64)
+    for i in range(p):
+        order[fill[of[i]]] = i
+        fill[of[i]] += 1
+    return lo, shape, start, order
+
+
+@njit(**_JIT)
+def nearest_two(xy, lo, shape, start, order, cell, bound, x, y):  # pragma: no cover
+    """Distances of the nearest and second-nearest of the points ``xy`` (bucketed by
+    :func:`spot_cells` into cells of side ``cell``) to ``(x, y)`` closer than ``bound`` (inf
+    where none), and the nearest's index (``P - 1`` where none, as :func:`grow` clips
+    cKDTree's "none"). Distances as cKDTree computes them, ``sqrt(dx^2 + dy^2)``.
+
+    Rings of cells around the point's are searched outwards until the next ring lies beyond
+    the second distance found (or beyond ``bound``).
+    """
+    nx, ny = shape[0], shape[1]
+    d1, d2, best = np.inf, np.inf, xy.shape[0] - 1
+    if not (math.isfinite(x) and math.isfinite(y)):
+        return d1, d2, best
+    cx = int(math.floor((x - lo[0]) / cell))
+    cy = int(math.floor((y - lo[1]) / cell))
+    r = 0
+    while True:
+        # Ring r: the cells at Chebyshev distance r from (cx, cy), each once.
+        for gy in range(max(cy - r, 0), min(cy + r, ny - 1) + 1):
+            whole = gy == cy - r or gy == cy + r  # a top or bottom row of the ring
+            for gx in range(max(cx - r, 0), min(cx + r, nx - 1) + 1):
+                if not whole and gx != cx - r and gx != cx + r:
+                    continue
+                c = gy * nx + gx
+                for k in range(start[c], start[c + 1]):
+                    i = order[k]
+                    dx, dy = xy[i, 0] - x, xy[i, 1] - y
+                    d = math.sqrt(dx * dx + dy * dy)
+                    if d >= bound:
+                        continue
+                    if d < d1 or (d == d1 and i < best):
+                        d1, d2, best = d, d1, i
+                    elif d < d2:
+                        d2 = d
+        # Points of ring r + 1 and beyond lie at least r cells away.
+        reach = r * cell
+        if reach >= d2 or reach >= bound:
+            break
+        if cx - r <= 0 and cy - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1:
+            break  # the ring covers the whole grid
+        r += 1
+    return d1, d2, best
+
+
+# Why a lattice node was not matched (as restoration.features.match).
+_NONE, _MERGED, _BORDER, _AMBIGUOUS = 0, 1, 2, 3
+
+
+@njit(**_JIT)
+def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal, offset,
+         ratio, max_step_ratio, bound, cell, seed_node, seed_spot):  # pragma: no cover
+    """Region growing over the lattice from ``(seed_node, seed_spot)``; see
+    :func:`restoration.features.match._grow` for the rules.
+
+    Parameters
+    ----------
+    base : (n + 1, 2) ndarray
+        Expected spot of each node, px; row ``n`` (no neighbour) is zero.
+    spot_xy : (P, 2) ndarray
+        Detected spots, px.
+    usable, merged : (P,) ndarray of bool
+        Spots that may be matched; merged blobs.
+    radius, margin : (n,) ndarray
+        Acceptance radius and how far inside the visible outline a prediction must stay
+        (negative: outside), px.
+    back, fwd : (n + 1, 16) ndarray of int
+        One then two steps back (forward) along the 8 grid directions; ``n`` for none.
+    nbrs4 : (n, 4) ndarray of int
+        4-neighbours; ``n`` for none.
+    normal, offset : (M, 2), (M,) ndarray
+        The visible outline as half-planes: ``xy . normal[k] - offset[k]`` px inside edge k.
+    ratio, max_step_ratio, bound : float
+        Nearest to second-nearest ratio, largest spacing change along a grid line, and the
+        search radius of the spot lookup, px.
+    cell : float
+        Cell size of the spot lookup (:func:`spot_cells`), px.
+    seed_node, seed_spot : int
+        The first match.
+
+    Returns
+    -------
+    match, claim : (n,) ndarray of int
+        Matched spot (-1: none); last spot within reach (-1: none).
+    reason : (n,) ndarray of int8
+        Why not matched (``_NONE`` .. ``_AMBIGUOUS``).
+    pred : (n, 2) ndarray
+        Last predicted position, px.
+    tried : (n,) ndarray of bool
+        Evaluated at least once.
+    """
+    n, n_spots = radius.size, spot_xy.shape[0]
+    # Cells of about one spot each: a lookup visits a few cells around the prediction.
+    lo, shape, start, order = spot_cells(spot_xy, cell)
+    match = np.full(n, -1, np.int64)
+    matched = np.zeros(n + 1, np.bool_)
+    blocked = np.zeros(n + 1, np.bool_)
+    blocked[n] = True
+    touch = np.zeros(n + 1, np.bool_)
+    dirty = np.zeros(n + 1, np.bool_)
+    disp = np.zeros((n + 1, 2))
+    pos = base.copy()
+    free = np.ones(n_spots, np.bool_)
+    pred = base[:n].copy()
+    last_spot = np.full(n, -1, np.int64)
+    last_near = np.zeros(n, np.bool_)
+    last_nc = np.zeros(n, np.bool_)
+    last_tier = np.zeros(n, np.int64)
+    claims = np.zeros(n_spots, np.int64)
+    acc = np.empty(n, np.int64)
+    acc_spot = np.empty(n, np.int64)
+    front = np.empty(n, np.int64)
+    t = np.empty((8, 2))
+    acc[0], acc_spot[0], n_acc = seed_node, seed_spot, 1
+    while True:
+        for a in range(n_acc):
+            node, s = acc[a], acc_spot[a]
+            match[node] = s
+            free[s] = False
+            for d in range(2):
+                moved = spot_xy[s, d] - base[node, d]
+                disp[node, d] = moved
+                pos[node, d] = base[node, d] + moved
+            matched[node] = True
+            blocked[node] = True
+            for k in range(4):
+                touch[nbrs4[node, k]] = True
+            for k in range(16):
+                dirty[fwd[node, k]] = True
+        n_front = 0
+        for node in range(n):
+            if touch[node] and not blocked[node]:
+                front[n_front] = node
+                n_front += 1
+        if n_front == 0:
+            break
+        for f in range(n_front):
+            node = front[f]
+            if not dirty[node]:
+                continue
+            dirty[node] = False
+            # Prediction: per direction, the line through two matched nodes, else one's own
+            # displacement; summed in NumPy's pairwise order, then averaged.
+            support = 0
+            for k in range(8):
+                b1, b2 = back[node, k], back[node, 8 + k]
+                if matched[b1]:
+                    support += 1
+                for d in range(2):
+                    if matched[b1] and matched[b2]:
+                        t[k, d] = 2.0 * disp[b1, d] - disp[b2, d]
+                    else:
+                        t[k, d] = disp[b1, d]
+            s_div = float(max(support, 1))
+            for d in range(2):
+                total = ((t[0, d] + t[4, d]) + (t[1, d] + t[5, d])) + (
+                    (t[2, d] + t[6, d]) + (t[3, d] + t[7, d])
+                )
+                pred[node, d] = total / s_div + base[node, d]
+            x, y = pred[node, 0], pred[node, 1]
+            inside = np.inf
+            for m in range(offset.size):
+                inside = min(inside, x * normal[m, 0] + y * normal[m, 1] - offset[m])
+            far = inside < margin[node]
+            if far:
+                blocked[node] = True
+            d1, d2, s = nearest_two(spot_xy, lo, shape, start, order, cell, bound, x, y)
+            near = d1 < radius[node]
+            nc = near and d1 < ratio * d2
+            # A spot that skips or doubles the spacing along a grid line is no match.
+            jump = False
+            for k in range(8):
+                b1, b2 = back[node, k], back[node, 8 + k]
+                if not (matched[b1] and matched[b2]):
+                    continue
+                now = math.hypot(spot_xy[s, 0] - pos[b1, 0], spot_xy[s, 1] - pos[b1, 1])
+                before = math.hypot(pos[b1, 0] - pos[b2, 0], pos[b1, 1] - pos[b2, 1])
+                if now > max_step_ratio * before or max_step_ratio * now < before:
+                    jump = True
+            ok = nc and usable[s] and not far and not jump
+            tier = 1 + (support >= 2) + ((support >= 3) and (d1 < 0.5 * ratio * d2))
+            last_spot[node], last_near[node], last_nc[node] = s, near, nc
+            last_tier[node] = tier if ok else 0
+        # Acceptance: a spot is taken once, and not by two nodes in one wave; only the best
+        # tier present.
+        for f in range(n_front):
+            node = front[f]
+            s = last_spot[node]
+            if last_nc[node] and free[s]:
+                claims[s] += 1
+        best = 0
+        for f in range(n_front):
+            node = front[f]
+            s = last_spot[node]
+            if last_nc[node] and free[s] and claims[s] == 1:
+                best = max(best, last_tier[node])
+        n_acc = 0
+        for f in range(n_front):
+            node = front[f]
+            s = last_spot[node]
+            if last_nc[node] and free[s]:
+                if best > 0 and claims[s] == 1 and last_tier[node] == best:
+                    acc[n_acc], acc_spot[n_acc] = node, s
+                    n_acc += 1
+        for f in range(n_front):
+            s = last_spot[front[f]]
+            if s >= 0:
+                claims[s] = 0
+        if best == 0:
+            break
+
+    reason = np.empty(n, np.int8)
+    claim = np.full(n, -1, np.int64)
+    tried = last_spot >= 0
+    for node in range(n):
+        s = max(last_spot[node], 0)
+        if not tried[node] or not last_near[node]:
+            reason[node] = _NONE
+        elif merged[s]:
+            reason[node] = _MERGED
+        elif not usable[s]:
+            reason[node] = _BORDER
+        else:
+            reason[node] = _AMBIGUOUS
+        if tried[node] and last_near[node]:
+            claim[node] = last_spot[node]
+    return match, claim, reason, pred, tried
+
+
+# --- spot detection ---------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def segment_pixels(labels, smooth, padded, pad):  # pragma: no cover
+    """The labelled pixels (label > 0) in raster order: rows, columns and labels (N,) int32,
+    smoothed values (N,) float64 and raw values (N,) float32 (from ``padded``, the image
+    inside a frame of ``pad`` pixels)."""
+    h, w = labels.shape
+    n = 0
+    for r in range(h):
+        for c in range(w):
+            if labels[r, c] > 0:
+                n += 1
+    rows = np.empty(n, np.int32)
+    cols = np.empty(n, np.int32)
+    lab = np.empty(n, np.int32)
+    val = np.empty(n)
+    raw = np.empty(n, np.float32)
+    k = 0
+    for r in range(h):
+        for c in range(w):
+            if labels[r, c] > 0:
+                rows[k], cols[k], lab[k] = r, c, labels[r, c]
+                val[k] = smooth[r, c]
+                raw[k] = padded[r + pad, c + pad]
+                k += 1
+    return rows, cols, lab, val, raw
+
+
+@njit(**_JIT)
+def weighted_sums(lab, w, x, y, n):  # pragma: no cover
+    """Per label (n,): sums of ``w``, ``w x``, ``w y`` (first (n, 3)) and of ``w x^2``,
+    ``w x y``, ``w y^2`` (second (n, 3)) over the pixels (N,), accumulated in pixel order (as
+    a labels x pixels sparse product does)."""
+    first = np.zeros((n, 3))
+    second = np.zeros((n, 3))
+    for k in range(lab.size):
+        i, wk, xk, yk = lab[k], w[k], x[k], y[k]
+        first[i, 0] += wk * 1.0
+        first[i, 1] += wk * xk
+        first[i, 2] += wk * yk
+        second[i, 0] += wk * (xk * xk)
+        second[i, 1] += wk * (xk * yk)
+        second[i, 2] += wk * (yk * yk)
+    return first, second
+
+
+@njit(**_JIT)
+def segment_sums(lab, smooth, raw, n):  # pragma: no cover
+    """Per label (n,): peak of ``smooth`` (-inf without pixels), sum of ``raw`` (float64) and
+    pixel count."""
+    peak = np.full(n, -np.inf)
+    flux = np.zeros(n)
+    area = np.zeros(n, np.int64)
+    for k in range(lab.size):
+        i = lab[k]
+        peak[i] = max(peak[i], smooth[k])
+        flux[i] += np.float64(raw[k])
+        area[i] += 1
+    return peak, flux, area
+
+
+@njit(**_JIT)
+def axis_moments(lab, w, x, y, mean, cos, sin, n):  # pragma: no cover
+    """Per label (n,): sums of ``w p^2`` and ``w p^4`` with ``p = (x - mean_x) cos + (y -
+    mean_y) sin`` the offset along the label's axis."""
+    m2 = np.zeros(n)
+    m4 = np.zeros(n)
+    for k in range(lab.size):
+        i = lab[k]
+        p = (x[k] - mean[i, 0]) * cos[i] + (y[k] - mean[i, 1]) * sin[i]
+        p2 = p * p
+        m2[i] += w[k] * p2
+        m4[i] += w[k] * (p2 * p2)
+    return m2, m4
+
+
+@njit(**_JIT)
+def _window_sums(box, hx, hy, a, b, c, sx, sy, decay):  # pragma: no cover
+    """``sum w``, ``sum w fx``, ``sum w fy`` over a box (2 hy + 1, 2 hx + 1) of pixel offsets
+    ``(fx, fy)`` from its centre, ``w = box exp(-q / 2)``, ``q = (f - s)^T [[a, b], [b, c]]
+    (f - s)``. Along each row the exponential comes from a recurrence, walking out from the
+    row's maximum (``decay = exp(-a)``): three exponentials per row instead of one per pixel,
+    to ~1e-14 relative."""
+    tot, mx, my = 0.0, 0.0, 0.0
+    for row in range(2 * hy + 1):
+        fy = row - hy
+        dy = fy - sy
+        # The row's maximum, q'(fx) = 0: fx = sx - b dy / a.
+        j0 = min(max(int(math.floor(sx - b * dy / a + 0.5)), -hx), hx)
+        dx = j0 - sx
+        e0 = math.exp(-0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
+        # Ratios of neighbouring weights to the right and to the left of j0.
+        right = math.exp(-0.5 * (a * (2.0 * dx + 1.0) + 2.0 * b * dy))
+        left = math.exp(-0.5 * (a * (1.0 - 2.0 * dx) - 2.0 * b * dy))
+        e = e0
+        for fx in range(j0, hx + 1):
+            v = e * box[row, fx + hx]
+            tot += v
+            mx += v * fx
+            my += v * fy
+            e *= right
+            right *= decay
+        e = e0 * left
+        for fx in range(j0 - 1, -hx - 1, -1):
+            v = e * box[row, fx + hx]
+            tot += v
+            mx += v * fx
+            my += v * fy
+            left *= decay
+            e *= left
+    return tot, mx, my
+
+
+@njit(**_JIT)
+def windowed_centroids(padded, pad, rows, cols, spot, raw, base, half, inv_win, start, gain,
+                       n_iter):  # pragma: no cover
+    """Gaussian-windowed centroids (P, 2) px of P spots; see
+    :func:`restoration.features.detect._refine_centres` for the method.
+
+    Parameters
+    ----------
+    padded : (H + 2 pad, W + 2 pad) ndarray of float32
+        The raw image in a frame of zeros; used up (the spots' pixels are blanked).
+    pad : int
+        Frame width, px (at least the largest half width).
+    rows, cols, spot, raw : (N,) ndarray
+        The segmented pixels: position, the spot whose segment holds them (-1: a dropped
+        segment) and raw value.
+    base, half : (P, 2) ndarray of int
+        Box centre ``(col, row)`` and half widths ``(hx, hy)`` of each spot, px.
+    inv_win : (P, 3) ndarray
+        The window's inverse covariance ``a, b, c`` (``[[a, b], [b, c]]``), 1/px^2.
+    start : (P, 2) ndarray
+        First centres, px.
+    gain : float
+        Step gain ``1 + 1 / k^2``.
+    n_iter : int
+        Window steps.
+    """
+    p = start.shape[0]
+    # Blank every kept segment; each box gets its own segment back below.
+    count = np.zeros(p + 1, np.int64)
+    for k in range(spot.size):
+        if spot[k] >= 0:
+            padded[rows[k] + pad, cols[k] + pad] = 0.0
+            count[spot[k] + 1] += 1
+    first = np.cumsum(count)
+    fill = first[:-1].copy()
+    own = np.empty(first[-1], np.int64)
+    for k in range(spot.size):
+        if spot[k] >= 0:
+            own[fill[spot[k]]] = k
+            fill[spot[k]] += 1
+    out = np.empty((p, 2))
+    box = np.empty((2 * pad + 1, 2 * pad + 1))
+    for s in range(p):
+        hx, hy = half[s, 0], half[s, 1]
+        bx, by = base[s, 0], base[s, 1]
+        for r in range(2 * hy + 1):
+            for c in range(2 * hx + 1):
+                box[r, c] = padded[by - hy + r + pad, bx - hx + c + pad]
+        for j in range(first[s], first[s + 1]):
+            k = own[j]
+            r, c = rows[k] - by + hy, cols[k] - bx + hx
+            if 0 <= r <= 2 * hy and 0 <= c <= 2 * hx:
+                box[r, c] = raw[k]
+        a, b, c = inv_win[s, 0], inv_win[s, 1], inv_win[s, 2]
+        decay = math.exp(-a)
+        sx, sy = start[s, 0] - bx, start[s, 1] - by
+        for _ in range(n_iter):
+            tot, mx, my = _window_sums(box, hx, hy, a, b, c, sx, sy, decay)
+            if tot > 0.0:
+                # A step longer than a pixel means noise dominates the window.
+                sx += min(max(gain * (mx / tot - sx), -1.0), 1.0)
+                sy += min(max(gain * (my / tot - sy), -1.0), 1.0)
+        out[s, 0], out[s, 1] = sx + bx, sy + by
+    return out

@@ -1,0 +1,124 @@
+"""The compiled (numba) kernels against NumPy oracles: the same numbers, to the last bit where
+the kernel promises it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from restoration.features._kernels import nearest_two, spot_cells, weighted_sums
+from restoration.features.detect import _WINDOW_GAIN, _WINDOW_VAR, _Pixels, _refine_centres
+from restoration.integrate import integrate_trapezoid
+from restoration.normals import (
+    points_on_rays,
+    reflection_normals,
+    reflection_slopes,
+    slopes_from_normals,
+)
+from restoration.reverse_trace import _SplinePatches
+from restoration.reverse_trace._kernels import spline_jet
+from restoration.surface import _TrapezoidSystem
+from wai_core.errors import WaiInputError
+from wai_core.heightfield import Heightfield
+
+
+def test_reflection_slopes_are_the_numpy_steps_exactly():
+    rng = np.random.default_rng(1)
+    origin = np.array([1.0, -2.0, 3.0])
+    dirs = rng.normal(size=(500, 3))
+    dirs[:, 2] = np.abs(dirs[:, 2]) + 0.5
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    spots = np.c_[rng.uniform(-50, 50, (500, 2)), np.full(500, 60.0)]
+    heights = rng.uniform(140, 160, 500)
+    q = points_on_rays(origin, dirs, heights)
+    normals = reflection_normals(dirs, q, spots)
+    got = reflection_slopes(origin, dirs, spots, heights)
+    for a, b in zip(got, (q, normals, slopes_from_normals(normals)), strict=True):
+        np.testing.assert_array_equal(a, b)
+    dirs[3, 2] = -0.1
+    with pytest.raises(WaiInputError, match="upwards"):
+        reflection_slopes(origin, dirs, spots, heights)
+
+
+def test_trapezoid_system_is_integrate_trapezoid_exactly():
+    jj, ii = np.mgrid[0:20, 0:25]
+    ij = np.c_[ii.ravel(), jj.ravel()][np.random.default_rng(2).random(500) > 0.1]
+    rng = np.random.default_rng(3)
+    xy = ij * [4.0, 3.0] + rng.normal(0, 0.2, ij.shape)
+    wxy = xy + rng.normal(0, 0.1, ij.shape)
+    slopes = rng.normal(0, 0.05, ij.shape)
+    system = _TrapezoidSystem.of(ij, wxy)
+    got = system.graph.solve(system.steps(xy, slopes), system.weights)
+    np.testing.assert_array_equal(got, integrate_trapezoid(ij, xy, slopes, weight_xy_mm=wxy))
+
+
+def test_spline_jet_matches_the_spline_patches_exactly():
+    x = np.r_[0.0, 7.0, np.linspace(15.0, 300.0, 40)]
+    y = np.linspace(-100.0, 120.0, 31)
+    xx, yy = np.meshgrid(x, y)
+    z = 150.0 + 2.0 * np.sin(xx / 23.0) * np.cos(yy / 17.0)
+    z[5:9, 10:13] = np.nan
+    model = _SplinePatches(Heightfield(x, y, z))
+    rng = np.random.default_rng(4)
+    px = np.r_[rng.uniform(-5.0, 305.0, 2000), x[[0, -1, 5]]]
+    py = np.r_[rng.uniform(-105.0, 125.0, 2000), y[[0, -1, 3]]]
+    want = np.stack(model.jet(px, py), axis=1)
+    got = np.array([spline_jet(model.table, model.cell_ok, model.x, model.y, a, b)
+                    for a, b in zip(px, py, strict=True)])
+    np.testing.assert_array_equal(got, want)
+
+
+def test_nearest_two_is_the_kd_tree_answer():
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(0, 400, (800, 2))
+    queries = rng.uniform(-20, 420, (3000, 2))
+    bound = 30.0
+    cells = spot_cells(pts, 13.0)
+    d, i = cKDTree(pts).query(queries, k=2, distance_upper_bound=bound)
+    for q, dq, iq in zip(queries, d, i, strict=True):
+        d1, d2, best = nearest_two(pts, *cells, 13.0, bound, q[0], q[1])
+        assert (d1, d2) == (dq[0], dq[1])
+        assert best == (iq[0] if np.isfinite(dq[0]) else len(pts) - 1)
+
+
+def test_weighted_sums_are_bincounts():
+    rng = np.random.default_rng(6)
+    lab = rng.integers(0, 7, 1000).astype(np.int32)
+    w, x, y = rng.random(1000), rng.normal(size=1000), rng.normal(size=1000)
+    first, second = weighted_sums(lab, w, x, y, 7)
+    for col, v in enumerate((np.ones(1000), x, y)):
+        np.testing.assert_allclose(first[:, col], np.bincount(lab, w * v, 7), rtol=1e-12)
+    for col, v in enumerate((x * x, x * y, y * y)):
+        np.testing.assert_allclose(second[:, col], np.bincount(lab, w * v, 7), rtol=1e-12)
+
+
+def test_windowed_centroid_matches_a_direct_evaluation():
+    """One elongated spot, away from others: the compiled window (exponentials by recurrence)
+    against the window evaluated pixel by pixel."""
+    pad, h, w = 48, 64, 64
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    cov = np.array([[4.0, 1.5], [1.5, 2.0]])
+    centre = np.array([30.3, 31.6])
+    d = np.stack([xx - centre[0], yy - centre[1]], axis=-1)
+    spot = np.exp(-0.5 * np.einsum("...i,ij,...j", d, np.linalg.inv(cov), d))
+    padded = np.zeros((h + 2 * pad, w + 2 * pad), np.float32)
+    padded[pad:-pad, pad:-pad] = spot
+    labels = (spot > 0.25).astype(np.int32)
+    px = _Pixels.of(labels, spot.astype(np.float32), padded, pad)
+    start = np.array([[29.8, 32.1]])
+    got = _refine_centres(padded.copy(), px, 2, np.array([1]), start, cov[None], n_iter=2)
+    # Direct: the same box (3.5 sd + 1, rounded up to 3 px) and steps.
+    half = 3 * ((np.ceil(3.5 * np.sqrt(np.diag(cov)) + 1.0).astype(int) + 2) // 3)
+    base = np.rint(start[0]).astype(int)
+    box = spot[base[1] - half[1] : base[1] + half[1] + 1, base[0] - half[0] : base[0] + half[0] + 1]
+    fy, fx = np.mgrid[-half[1] : half[1] + 1, -half[0] : half[0] + 1]
+    inv = np.linalg.inv(_WINDOW_VAR * cov)
+    s = start[0] - base
+    for _ in range(2):
+        r = np.stack([fx - s[0], fy - s[1]], axis=-1)
+        wgt = np.exp(-0.5 * np.einsum("...i,ij,...j", r, inv, r)) * box
+        m = np.array([np.sum(wgt * fx), np.sum(wgt * fy)]) / wgt.sum()
+        s = s + np.clip(_WINDOW_GAIN * (m - s), -1.0, 1.0)
+    np.testing.assert_allclose(got[0], s + base, atol=1e-10)
+    assert np.abs(got[0] - centre).max() < 0.01
