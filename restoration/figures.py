@@ -19,12 +19,14 @@ from wai_core.heightfield import Heightfield  # noqa: E402
 from wai_core.io import to_srgb8  # noqa: E402
 
 __all__ = [
+    "confidence_figure",
     "corner_scatter_figure",
     "error_map_figure",
     "plt",
     "profile_figure",
     "save_figure",
     "side_by_side",
+    "views_figure",
 ]
 
 
@@ -90,4 +92,51 @@ def corner_scatter_figure(points_px: dict[str, NDArray], stds: dict[str, float],
     ax.set_ylabel("row (px)")
     ax.legend(loc="best")
     ax.set_title("Checkerboard corners")
+    save_figure(fig, path)
+
+
+def views_figure(
+    panels: list[tuple[str, NDArray | None]], mask: NDArray, path: str | Path
+) -> None:
+    """Views side by side, the restored one shown only where it was restored (hatched grey
+    elsewhere), and the mask of restored pixels last.
+
+    Parameters
+    ----------
+    panels : list of (title, (H, W, 3) ndarray or None)
+        Linear images on the object's radiance scale (1 = white); None panels are skipped.
+        A title may carry the scores.
+    mask : (H, W) ndarray of bool
+        Pixels restored.
+    path : str or Path
+    """
+    shown = [(t, im) for t, im in panels if im is not None]
+    fig, axes = plt.subplots(1, len(shown) + 1, figsize=(4.6 * (len(shown) + 1), 4))
+    for ax, (title, img) in zip(axes, shown, strict=False):
+        rgb = to_srgb8(img, 1.0)
+        if title.startswith("restored"):
+            grey = np.full_like(rgb, 96)
+            rgb = np.where(mask[..., None], rgb, grey)
+        ax.imshow(rgb)
+        ax.set_title(title, fontsize=9)
+        ax.set_axis_off()
+    axes[-1].imshow(mask, cmap="gray", vmin=0, vmax=1)
+    axes[-1].set_title(f"restored pixels ({mask.mean():.0%}); black: not restored", fontsize=9)
+    axes[-1].set_axis_off()
+    save_figure(fig, path)
+
+
+def confidence_figure(
+    surface: Heightfield, residual_px: NDArray, threshold_px: float, path: str | Path
+) -> None:
+    """Where the surface reproduces its spots: each node's nearest-sample residual, px, on a
+    scale that ends at twice the frame's threshold."""
+    fig, ax = plt.subplots(figsize=(6, 5))
+    im = ax.pcolormesh(surface.x, surface.y, residual_px, cmap="viridis", shading="auto",
+                       vmin=0.0, vmax=2.0 * threshold_px)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    fig.colorbar(im, ax=ax, label=f"spot residual (px); threshold {threshold_px:.2f} px")
+    ax.set_title("Forward consistency: predicted vs detected spots")
     save_figure(fig, path)

@@ -174,12 +174,18 @@ def write_outputs(
             est.to_trimesh().export(tmp / "surface_est.ply")
             write_exr(tmp / "restored.exr", result.view.image)
             write_png(tmp / "restored.png", result.view.image, exposure=1.0)
-            figures.side_by_side(
-                [images["view"] / cal.view_gain, result.view.image],
-                ["distorted", "restored"],
-                tmp / "distorted_vs_restored.png",
-                [1.0, 1.0],
-            )
+            valid = result.view.valid
+            write_png(tmp / "restored_mask.png", (valid * np.uint8(255)).astype(np.uint8))
+            figures.views_figure(_view_panels(cal, images, result, scores, truth), valid,
+                                 tmp / "distorted_vs_restored.png")
+            if result.consistency is not None:
+                check = result.consistency
+                np.savez_compressed(
+                    tmp / "confidence.npz", x=est.x, y=est.y,
+                    residual_px=check.residual_map_px, confidence=check.confidence,
+                )
+                figures.confidence_figure(est, check.residual_map_px, check.threshold_px,
+                                          tmp / "confidence.png")
         if scores is not None and scores.error_map_mm is not None:
             est = result.surface.heightfield
             figures.error_map_figure(est, scores.error_map_mm, tmp / "error_map.png")
@@ -195,6 +201,24 @@ def write_outputs(
                 tmp / "corners.png",
             )
         write_json(tmp / "metrics.json", metrics)
+
+
+def _view_panels(
+    cal: RigCalibration, images: dict[str, Any], result: RestoreResult, scores: Scores | None,
+    truth: Truth | None,
+) -> list[tuple[str, Any]]:
+    """(title, image) of the truth (if any), distorted and restored views, scores in titles."""
+    def scored(name: str) -> str:
+        part = None if scores is None else getattr(scores, name)
+        if part is None:
+            return name
+        return f"{name}: SSIM {_num(part['ssim'], '.3f')}, PSNR {_num(part['psnr_db'], '.1f')} dB"
+
+    return [
+        ("truth (flat water)", None if truth is None else truth.view),
+        (scored("distorted"), cal.radiance(images["view"])),
+        (scored("restored"), result.view.image),
+    ]
 
 
 def _num(value: Any, spec: str, unit: str = "") -> str:

@@ -43,6 +43,16 @@ class RestoreOptions:
         One of :data:`ANCHORS`.
     anchor_max_sigma_mm : float
         Largest standard error of the integrability level that is trusted, mm.
+    converge_mm : float
+        When the last of the ``n_refine`` passes still moves a height by more than this (mm),
+        the fixed point has not converged (a diffuser close to the water contracts slowly)
+        and the level search is run again with up to ``max_refine`` passes per probe.
+    max_refine : int
+        Most refinement passes of that second search (it stops earlier once converged).
+    fit_spots : bool
+        After the reconstruction, fit a smooth surface to the detected spots through the
+        exact reflection model (:mod:`restoration.fit`); off by default (see docs/results.md
+        for its cost and gain).
 
     Examples
     --------
@@ -60,6 +70,9 @@ class RestoreOptions:
     warp_step_px: int = 8
     anchor: str = "integrability"
     anchor_max_sigma_mm: float = 1.0
+    converge_mm: float = 0.5
+    max_refine: int = 40
+    fit_spots: bool = False
 
     def __post_init__(self) -> None:
         for name, value, known in (
@@ -69,8 +82,11 @@ class RestoreOptions:
         ):
             if value not in known:
                 raise WaiInputError(f"unknown {name} {value!r} (known: {', '.join(known)})")
-        if int(self.n_refine) < 0:
-            raise WaiInputError(f"refinement passes must be >= 0, not {self.n_refine}")
+        if int(self.n_refine) < 0 or int(self.max_refine) < int(self.n_refine):
+            raise WaiInputError(
+                f"refinement passes must be >= 0 and max_refine >= n_refine, not "
+                f"{self.n_refine} and {self.max_refine}"
+            )
         if not self.grid_spacing_mm > 0 or int(self.warp_step_px) < 1:
             raise WaiInputError("grid spacing must be > 0 mm and the warp step >= 1 px")
 

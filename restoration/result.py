@@ -9,6 +9,9 @@ their own captures reads the same verdict as a sweep does:
     fewer than :data:`SPARSE_FRACTION` of the features the calibration puts in view were
     matched (a lost pattern, swapped reference and frame, or waves past the correspondence
     limit): the surface covers too little to trust;
+``inconsistent``
+    the surface does not reproduce the detected spots through the exact geometric model
+    (:mod:`restoration.consistency`): its level or shape cannot be right;
 ``gauge_level``
     the slopes did not pin the level, so the gauge's h0 was used (calm water: the shape is
     fine, the level is the gauge's);
@@ -30,8 +33,8 @@ import numpy as np
 __all__ = ["SPARSE_FRACTION", "STATUSES", "RestoreResult"]
 
 STATUSES = (
-    "ok", "sparse", "gauge_level", "dark_view", "failed", "no_sun", "sun_out_of_view",
-    "too_few_spots",
+    "ok", "sparse", "inconsistent", "gauge_level", "dark_view", "failed", "no_sun",
+    "sun_out_of_view", "too_few_spots",
 )
 SPARSE_FRACTION = 0.25
 """Fewer matches than this fraction of the features in view make a frame ``sparse``."""
@@ -60,6 +63,8 @@ class RestoreResult:
         ``features``, ``surface``, ``reverse_trace`` and ``end_to_end`` wall times, ms.
     counts : dict of str to int
         The features' counts (detected, matched, rejections by cause).
+    consistency : Consistency or None
+        The forward check of the surface against the spots (structured light).
     """
 
     method: str
@@ -70,6 +75,7 @@ class RestoreResult:
     view: Any = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
+    consistency: Any = None
 
     @property
     def ok(self) -> bool:
@@ -105,6 +111,8 @@ class RestoreResult:
                 view_status_counts=self.view.counts,
                 view_valid_fraction=float(np.mean(valid)) if valid.size else 0.0,
             )
+        if self.consistency is not None:
+            out["consistency"] = self.consistency.summary()
         if self.timings_ms:
             out["timings_ms"] = self.timings_ms_all()
         return out

@@ -17,7 +17,9 @@ from numpy.typing import NDArray
 
 from restoration.anchor import find_anchor, integration_residual_mm
 from restoration.calibration import Calibration, LevelTrack
+from restoration.consistency import Consistency, spot_consistency
 from restoration.features import Matches, ReferenceGrid, features_from_reference
+from restoration.fit import fit_surface
 from restoration.normals import points_on_rays, projector_rays
 from restoration.options import RestoreOptions
 from restoration.result import SPARSE_FRACTION, RestoreResult
@@ -53,7 +55,37 @@ def estimate_surface(
     start_mm: float | None = None,
 ) -> SurfaceEstimate:
     """Surface from matched features, anchored by the gauge's h0 or by integrability (searched
-    from ``start_mm``, default h0)."""
+    from ``start_mm``, default h0).
+
+    When the last refinement pass still moves the heights by more than
+    ``options.converge_mm``, the fixed point had not converged (it contracts slowly when the
+    diffuser is close to the water) and the whole estimate is made again with up to
+    ``options.max_refine`` passes: an unconverged refinement biases the level search, and a
+    wrong level gives a wrong shape (the depth-normal ambiguity). ``anchor["refine_passes"]``
+    says how many passes the estimate allowed.
+    """
+    est = _estimate_surface(ij, spot_px, cfg, options, start_mm, options.n_refine)
+    if (
+        options.n_refine > 0
+        and options.max_refine > options.n_refine
+        and est.height_change_mm > options.converge_mm
+    ):
+        est = _estimate_surface(ij, spot_px, cfg, options, start_mm, options.max_refine)
+        est.anchor["refine_passes"] = options.max_refine
+    else:
+        est.anchor["refine_passes"] = options.n_refine
+    return est
+
+
+def _estimate_surface(
+    ij: NDArray,
+    spot_px: NDArray,
+    cfg: SystemConfig,
+    options: RestoreOptions,
+    start_mm: float | None,
+    n_refine: int,
+) -> SurfaceEstimate:
+    """:func:`estimate_surface` with ``n_refine`` passes per reconstruction."""
     keep = np.isfinite(spot_px).all(axis=1)
     ij, spot_px = ij[keep], spot_px[keep]
     panel = panel_positions(cfg, ij)
@@ -68,7 +100,7 @@ def estimate_surface(
             *fixed,
             anchor_mm,
             integrator=integrator,
-            n_refine=options.n_refine,
+            n_refine=n_refine,
             grid_spacing_mm=options.grid_spacing_mm,
             gridder=options.gridder,
             weight_xy_mm=weight_xy,
@@ -168,9 +200,43 @@ def view_has_signal(view: NDArray) -> bool:
     return bool(hi - lo > DARK_VIEW_CONTRAST)
 
 
+def _spots_of(features: Matches, ij: NDArray) -> NDArray:
+    """The detected spots (K, 2) px of the samples with grid indices ``ij`` (K, 2), which are
+    a subset of the features' (the integrator may drop some)."""
+    base = int(np.abs(features.ij).max()) + 1 if len(features) else 1
+    keys = (features.ij[:, 0] + base) * (2 * base + 1) + features.ij[:, 1] + base
+    order = np.argsort(keys)
+    want = (ij[:, 0] + base) * (2 * base + 1) + ij[:, 1] + base
+    return features.spot_px[order[np.searchsorted(keys, want, sorter=order)]]
+
+
+def fit_to_spots(surface: SurfaceEstimate, spots_px: NDArray, cfg: SystemConfig) -> SurfaceEstimate:
+    """``surface`` refitted to its samples' spots through the exact model (restoration.fit)."""
+    fit = fit_surface(
+        surface.points_mm, surface.slopes, panel_positions(cfg, surface.ij), spots_px,
+        cfg.projector.camera(), cfg.camera_s.camera(), cfg.diffuser.z_mm, surface.heightfield,
+    )
+    est = surface.refitted(
+        fit.heightfield, fit.points_mm, fit.slopes, fit_ms=fit.timings_ms["total"]
+    )
+    est.anchor.update(fit_rms_mm=fit.rms_mm, fit_iterations=fit.iterations)
+    return est
+
+
+def consistency_of(
+    surface: SurfaceEstimate, spots_px: NDArray, cfg: SystemConfig, reference: ReferenceGrid
+) -> Consistency:
+    """The forward check of ``surface`` against its samples' spots (restoration.consistency)."""
+    origin, dirs = projector_rays(panel_positions(cfg, surface.ij), cfg.projector.camera())
+    return spot_consistency(
+        surface.heightfield, surface.points_mm, origin, dirs, spots_px, cfg.camera_s.camera(),
+        cfg.diffuser.z_mm, float(np.nanmedian(reference.spacing_px)),
+    )
+
+
 def frame_status(
-    features: Matches, reference: ReferenceGrid, surface: SurfaceEstimate, view_ok: bool,
-    options: RestoreOptions,
+    features: Matches, reference: ReferenceGrid, surface: SurfaceEstimate, check: Consistency,
+    view_ok: bool, options: RestoreOptions,
 ) -> tuple[str, str]:
     """The truth-free verdict on a restored frame (see :mod:`restoration.result`)."""
     in_view = max(int(reference.counts.get("predicted_in_view", 0)), 1)
@@ -181,6 +247,11 @@ def frame_status(
         )
     if len(features) < SPARSE_FRACTION * in_view:
         return "sparse", f"only {len(features)} of the {in_view} dots in view were matched"
+    if not check.consistent:
+        return "inconsistent", (
+            f"the surface misses the detected spots by {check.median_px:.2f} px (median; "
+            f"threshold {check.threshold_px:.2f} px)"
+        )
     if not view_ok:
         return "dark_view", "the view image holds no signal (all pixels alike)"
     if options.anchor == "integrability" and surface.anchor.get("method") == "gauge_fallback":
@@ -254,19 +325,26 @@ class StructuredLight:
             return RestoreResult(self.name, "failed", str(exc))
         if track is not None:
             track.update(surface.anchor)
+        spots = _spots_of(features, surface.ij)
+        if options.fit_spots:
+            surface = fit_to_spots(surface, spots, cfg)
         t2 = time.perf_counter()
+        check = consistency_of(surface, spots, cfg, reference)
+        t3 = time.perf_counter()
         distorted = images["view"] / cal.view_gain
         view = cal.restore_view(distorted, surface.heightfield, options.warp_step_px)
-        t3 = time.perf_counter()
+        t4 = time.perf_counter()
         status, message = frame_status(
-            features, reference, surface, view_has_signal(distorted), options
+            features, reference, surface, check, view_has_signal(distorted), options
         )
         timings = {
             "features": 1e3 * (t1 - t0),
             "surface": 1e3 * (t2 - t1),
-            "reverse_trace": 1e3 * (t3 - t2),
-            "end_to_end": 1e3 * (t3 - t0),
+            "consistency": 1e3 * (t3 - t2),
+            "reverse_trace": 1e3 * (t4 - t3),
+            "end_to_end": 1e3 * (t4 - t0),
         }
         return RestoreResult(
-            self.name, status, message, features, surface, view, timings, features.counts
+            self.name, status, message, features, surface, view, timings, features.counts,
+            check,
         )

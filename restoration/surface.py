@@ -31,7 +31,7 @@ anchor error costs about 5e-3 rad (rms) in the normals and 0.25 mm (rms) in the 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -99,6 +99,18 @@ class SurfaceEstimate:
     gridder: str = "tangent_blend"
     anchor: dict[str, Any] = field(default_factory=dict)
     _heightfield: Heightfield | None = field(default=None, init=False, repr=False, compare=False)
+
+    def refitted(self, heightfield: Heightfield, points_mm: Array, slopes: Array,
+                 **timings_ms: float) -> SurfaceEstimate:
+        """This estimate with its surface replaced by ``heightfield`` (e.g. a fit to the
+        spots, :mod:`restoration.fit`), its samples moved to ``points_mm`` (K, 3) with
+        ``slopes`` (K, 2), and ``timings_ms`` added."""
+        normals = np.column_stack([-slopes, np.ones(len(slopes))])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        new = replace(self, points_mm=points_mm, slopes=slopes, normals=normals,
+                      timings_ms={**self.timings_ms, **timings_ms}, anchor=dict(self.anchor))
+        object.__setattr__(new, "_heightfield", heightfield)
+        return new
 
     @property
     def heightfield(self) -> Heightfield:

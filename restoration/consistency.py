@@ -1,0 +1,227 @@
+"""Does the restored surface explain what was seen? A truth-free forward check of each frame.
+
+From the reconstructed surface, the exact geometric model predicts where every matched dot's
+spot must be: the dot's projector ray meets the surface, reflects about its normal, meets the
+diffuser and is imaged by camera s. The distance between that prediction and the detected
+spot is the dot's *residual* (px). A surface that is right reproduces the spots to about the
+detector's noise; one that is wrong in level or shape (an unconverged refinement, wrong
+labels, a surface the method cannot follow) does not, because the reflected rays magnify
+slope errors on the way to the diffuser (a 1 mrad slope error moves a spot by ~2 mrad times
+the 50-100 mm path).
+
+Threshold
+---------
+A frame is ``inconsistent`` when its median residual exceeds :data:`INCONSISTENT_FRACTION`
+of the median dot spacing in camera s (in px, from the flat-water reference: the scale that
+every pixel constant of the pattern follows, so a finer camera gets a proportionally larger
+threshold in px). On the paper's rig (13 px median spacing) that is 0.33 px. It was set
+between two measured populations, not tuned to one frame: frames restored to under 0.3 mm
+RMSE give median residuals of 0.03-0.12 px (0.002-0.009 spacings; the detector's own error
+on rendered spots is 0.05-0.07 px), while frames whose surface is wrong by 0.6-3 mm give
+0.6-1.1 px (0.05-0.08 spacings); ``wai experiment stability`` records both rates on every
+sweep frame (docs/results.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from restoration.reverse_trace import _SplinePatches
+from wai_core.geometry import PinholeCamera, intersect_plane_z, reflect
+from wai_core.heightfield import Heightfield
+
+__all__ = ["INCONSISTENT_FRACTION", "Consistency", "spot_consistency"]
+
+Array = NDArray[np.float64]
+
+INCONSISTENT_FRACTION = 0.025
+"""Median spot residual, as a fraction of the median dot spacing in px, above which a frame's
+surface cannot be right (see the module notes)."""
+_NEWTON_STEPS = 3  # ray-surface hit, started at the sample: it moves by well under a cell
+
+
+@dataclass
+class Consistency:
+    """How well the surface predicts the detected spots.
+
+    Attributes
+    ----------
+    residual_px : (K,) ndarray
+        Predicted minus detected spot distance per sample, px (NaN where the ray misses the
+        known surface).
+    median_px, p95_px : float
+        Median and 95th percentile of the finite residuals, px.
+    threshold_px : float
+        The frame's threshold on the median (see :data:`INCONSISTENT_FRACTION`).
+    n_predicted : int
+        Samples whose ray met the surface.
+    surface : Heightfield
+        The surface checked.
+    xy_mm : (K, 2) ndarray
+        The samples' positions, mm.
+    """
+
+    residual_px: Array
+    median_px: float
+    p95_px: float
+    threshold_px: float
+    n_predicted: int
+    surface: Heightfield = field(repr=False)
+    xy_mm: Array = field(repr=False)
+
+    @cached_property
+    def residual_map_px(self) -> Array:
+        """(m, n): the nearest sample's residual at each known node of the surface's grid, px
+        (NaN off the surface): where the surface is trusted. Made on first read (it costs a
+        nearest-neighbour query per node; the per-frame check needs only the figures)."""
+        out = np.full(self.surface.z.shape, np.nan)
+        known = np.isfinite(self.surface.z)
+        finite = np.isfinite(self.residual_px)
+        if finite.any() and known.any():
+            xx, yy = np.meshgrid(self.surface.x, self.surface.y)
+            _, nearest = cKDTree(self.xy_mm[finite]).query(np.column_stack([xx[known], yy[known]]))
+            out[known] = self.residual_px[finite][nearest]
+        return out
+
+    @cached_property
+    def confidence(self) -> Array:
+        """(m, n): ``2 ** -(residual / threshold) ** 2``, 1 where the spots are reproduced,
+        0.5 at the threshold, towards 0 beyond; NaN off the surface."""
+        return np.exp2(-((self.residual_map_px / self.threshold_px) ** 2))
+
+    @property
+    def consistent(self) -> bool:
+        """Whether the median residual is within the threshold."""
+        return bool(self.median_px <= self.threshold_px)
+
+    def summary(self) -> dict[str, Any]:
+        """Plain values for ``metrics.json`` (``confident_fraction``: of the samples, those
+        whose residual is within the threshold)."""
+        finite = np.isfinite(self.residual_px)
+        return {
+            "residual_median_px": self.median_px,
+            "residual_p95_px": self.p95_px,
+            "threshold_px": self.threshold_px,
+            "consistent": self.consistent,
+            "n_predicted": self.n_predicted,
+            "confident_fraction": float(np.mean(self.residual_px[finite] <= self.threshold_px))
+            if finite.any() else 0.0,
+        }
+
+
+def predict_spots_px(
+    surface: Heightfield,
+    origin_mm: Array,
+    dirs: Array,
+    start_mm: Array,
+    camera_s: PinholeCamera,
+    z_h_mm: float,
+) -> Array:
+    """Camera-s pixels (K, 2) of rays ``origin + t dirs`` reflected by ``surface``.
+
+    Parameters
+    ----------
+    surface : Heightfield
+        Absolute heights, mm.
+    origin_mm : (3,) ndarray
+        The projector centre, mm.
+    dirs : (K, 3) ndarray
+        Ray directions (upwards).
+    start_mm : (K, 3) ndarray
+        A point on each ray near its hit (the reconstruction's sample), mm.
+    camera_s : PinholeCamera
+    z_h_mm : float
+        Height of the diffuser plane, mm.
+
+    Returns
+    -------
+    (K, 2) ndarray
+        ``(col, row)`` px; NaN where the ray leaves the known surface.
+    """
+    patches = _SplinePatches(surface)  # the same spline as surface.height, by table lookup
+    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    t = (start_mm[:, 2] - origin_mm[2]) / d[:, 2]
+    for _ in range(_NEWTON_STEPS):
+        p = origin_mm + t[:, None] * d
+        h, gx, gy = patches.jet(p[:, 0], p[:, 1])[:3]
+        t = t - (p[:, 2] - h) / (d[:, 2] - gx * d[:, 0] - gy * d[:, 1])
+    p = origin_mm + t[:, None] * d
+    _, gx, gy = patches.jet(p[:, 0], p[:, 1])[:3]
+    normal = np.stack([-gx, -gy, np.ones_like(gx)], axis=1)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    s, _ = intersect_plane_z(p, reflect(d, normal), z_h_mm)
+    cols, rows, front = camera_s.project(s)
+    px = np.stack([cols, rows], axis=1)
+    px[~front] = np.nan
+    return px
+
+
+def spot_consistency(
+    surface: Heightfield,
+    points_mm: Array,
+    origin_mm: Array,
+    dirs: Array,
+    spot_px: Array,
+    camera_s: PinholeCamera,
+    z_h_mm: float,
+    spacing_px: float,
+) -> Consistency:
+    """The forward check of a reconstructed surface against its spots.
+
+    Parameters
+    ----------
+    surface : Heightfield
+        The reconstruction (absolute heights, mm).
+    points_mm : (K, 3) ndarray
+        Its samples (where each dot's ray met it), mm.
+    origin_mm : (3,) ndarray
+        The projector centre, mm.
+    dirs : (K, 3) ndarray
+        The samples' projector rays.
+    spot_px : (K, 2) ndarray
+        The samples' detected spots in camera s, px.
+    camera_s : PinholeCamera
+    z_h_mm : float
+    spacing_px : float
+        Median dot spacing in camera s, px (sets the threshold).
+
+    Returns
+    -------
+    Consistency
+
+    Examples
+    --------
+    A flat mirror predicts its own spots exactly:
+
+    >>> import numpy as np
+    >>> from wai_core import Heightfield, load_rig
+    >>> cfg = load_rig("paper")
+    >>> from restoration.normals import projector_rays
+    >>> from restoration.structured_light import panel_positions
+    >>> from wai_core.forward import spots_through
+    >>> ij = np.array([[i, j] for i in range(-3, 4) for j in range(-3, 4)])
+    >>> panel = panel_positions(cfg, ij)
+    >>> o, d = projector_rays(panel, cfg.projector.camera())
+    >>> x, y = np.linspace(-200, 800, 101), np.linspace(-400, 400, 81)
+    >>> flat = Heightfield(x, y, np.full((81, 101), cfg.water.h0_mm))
+    >>> spots = spots_through(cfg, flat, panel)
+    >>> q = o + ((cfg.water.h0_mm - o[2]) / d[:, 2])[:, None] * d
+    >>> c = spot_consistency(flat, q, o, d, spots, cfg.camera_s.camera(), cfg.diffuser.z_mm, 13.0)
+    >>> c.median_px < 1e-6, c.consistent
+    (True, True)
+    """
+    pred = predict_spots_px(surface, origin_mm, dirs, points_mm, camera_s, z_h_mm)
+    residual = np.linalg.norm(pred - spot_px, axis=1)
+    finite = np.isfinite(residual)
+    median = float(np.median(residual[finite])) if finite.any() else float("inf")
+    p95 = float(np.percentile(residual[finite], 95)) if finite.any() else float("inf")
+    threshold = INCONSISTENT_FRACTION * float(spacing_px)
+    return Consistency(
+        residual, median, p95, threshold, int(finite.sum()), surface, points_mm[:, :2]
+    )
