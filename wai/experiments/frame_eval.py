@@ -30,8 +30,10 @@ Row
 ---
 The point's fields, then ``frame_status`` (``ok``; ``failed: <why>`` when the restoration
 refused the frame; ``wrong_labels`` when more than 5 % of the kept correspondences are wrong;
-``sparse`` when fewer than a quarter of the dots in view were matched; ``gauge_level`` when
-the slopes did not pin the level and the gauge's h0 was used), the
+otherwise the restoration's own truth-free status: ``sparse``, ``inconsistent``,
+``gauge_level``, ``dark_view``, see :mod:`restoration.result`; ``method_status`` is that
+status alone, without the truth's ``wrong_labels``), the forward-consistency
+residual (``residual_median_px``, ``residual_p95_px``, ``residual_threshold_px``), the
 correspondence counts against the geometric model (``n_in_view``, ``n_matched``,
 ``n_correct``, ``fraction_correct``), eq. 35's effective slope amplitude ``phi_deg``, the
 surface and view scores and the timings.
@@ -164,6 +166,10 @@ def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[s
         "corner_std_restored_px": s.corner_std_restored_px,
         "anchor_method": result.surface.anchor.get("method"),
         "anchor_mm": result.surface.anchor.get("anchor_mm"),
+        "refine_passes": result.surface.anchor.get("refine_passes"),
+        "residual_median_px": result.consistency.median_px,
+        "residual_p95_px": result.consistency.p95_px,
+        "residual_threshold_px": result.consistency.threshold_px,
     }
 
 
@@ -212,6 +218,7 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
         return row
     # Wrong labels need the truth; every other verdict is the restoration's own (truth-free).
     wrong = row["n_wrong"] > WRONG_LABEL_FRACTION * max(row["n_matched"], 1)
+    row["method_status"] = result.status
     row["frame_status"] = "wrong_labels" if wrong else result.status
     return row
 

@@ -135,6 +135,74 @@ def sweep_summary(rows: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]
     return out
 
 
+BAD_RMSE_MM = 1.0
+"""A frame whose surface is off by more than this (RMSE, mm) must not pass as ``ok``."""
+
+
+def detection_rates(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """How well the truth-free statuses flag bad frames, over the structured-light frames.
+
+    A frame is *bad* when its restoration failed or its surface RMSE exceeds
+    :data:`BAD_RMSE_MM`; *flagged* when the method's own status (``method_status``: without
+    the sweep's truth-based ``wrong_labels``; ``failed`` when it refused) is not ``ok``.
+    Returns the counts,
+    the detection rate (bad frames flagged) and the false-alarm rate (good frames flagged),
+    with the statuses of both.
+    """
+    frames = [r for r in rows if r.get("sweep") != "sun" and r.get("status") == "ok"]
+    bad, good = [], []
+    for r in frames:
+        rmse = r.get("wai_rmse_mm")
+        failed = rmse is None or not np.isfinite(float(rmse))
+        (bad if failed or float(rmse) > BAD_RMSE_MM else good).append(r)
+
+    def own_status(r: dict) -> str:
+        return str(r.get("method_status") or r.get("frame_status")).split(":")[0]
+
+    def tally(group: list[dict]) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for r in group:
+            out[own_status(r)] = out.get(own_status(r), 0) + 1
+        return out
+
+    flagged_bad = sum(own_status(r) != "ok" for r in bad)
+    flagged_good = sum(own_status(r) != "ok" for r in good)
+    return {
+        "bad_rmse_mm": BAD_RMSE_MM,
+        "frames": len(frames), "bad": len(bad), "good": len(good),
+        "detection_rate": flagged_bad / len(bad) if bad else float("nan"),
+        "false_alarm_rate": flagged_good / len(good) if good else float("nan"),
+        "bad_statuses": tally(bad), "good_statuses": tally(good),
+    }
+
+
+def confidence_figure(rows: list[dict[str, Any]], rates: dict[str, Any], path: Path) -> None:
+    """True surface RMSE against the truth-free residual (in units of each frame's threshold),
+    by status: the check works when bad frames sit right of 1 and good ones left."""
+    fig, ax = plt.subplots(figsize=(7, 5))
+    pts: dict[str, tuple[list[float], list[float]]] = {}
+    for r in rows:
+        if r.get("sweep") == "sun" or r.get("residual_median_px") is None:
+            continue
+        status = str(r.get("frame_status")).split(":")[0]
+        x = float(r["residual_median_px"]) / float(r["residual_threshold_px"])
+        pts.setdefault(status, ([], []))
+        pts[status][0].append(max(x, 1e-3))
+        pts[status][1].append(float(r["wai_rmse_mm"]))
+    for status, (x, y) in sorted(pts.items()):
+        ax.plot(x, y, "o", ms=5, alpha=0.7, label=f"{status} ({len(x)})")
+    ax.axvline(1.0, color="gray", ls="--", lw=1, label="threshold (status inconsistent)")
+    ax.axhline(BAD_RMSE_MM, color="tab:red", ls=":", lw=1, label=f"RMSE {BAD_RMSE_MM:g} mm")
+    ax.set(xscale="log", yscale="log", xlabel="median spot residual / threshold (truth-free)",
+           ylabel="surface RMSE (mm, truth)",
+           title=f"Detection {rates['detection_rate']:.0%} of {rates['bad']} bad frames, "
+                 f"false alarms {rates['false_alarm_rate']:.0%} of {rates['good']} good")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
 def stability_figure(rows: list[dict], summary: dict[str, list[dict]], path: Path) -> None:
     """Fraction correct against Φ / Φ_max (eq. 35) for every frame, and per sweep the surface
     RMSE and the share of frames that ended ok."""
@@ -182,12 +250,23 @@ def stability_figure(rows: list[dict], summary: dict[str, list[dict]], path: Pat
     save_figure(fig, path)
 
 
-def report_markdown(summary: dict[str, list[dict]], command: str) -> str:
-    """Tables of the sweeps with the status of every frame."""
+def report_markdown(
+    summary: dict[str, list[dict]], command: str, rates: dict[str, Any] | None = None
+) -> str:
+    """Tables of the sweeps with the status of every frame, and the detection rates."""
     lines = ["# Stability: where the methods break", "", f"Command: `{command}`", "",
-             "![stability](stability.png)", "",
-             "Status counts per value: `ok`; `wrong_labels` (over 5 % of kept correspondences "
+             "![stability](stability.png)", ""]
+    if rates is not None:
+        lines += [
+            "## Knowing when a frame is wrong", "", "![confidence](confidence.png)", "",
+            f"Of {rates['frames']} structured-light frames, {rates['bad']} are bad (failed, or "
+            f"surface RMSE over {rates['bad_rmse_mm']:g} mm) and {rates['good']} good. "
+            f"Flagged by a truth-free status: **{rates['detection_rate']:.1%}** of the bad "
+            f"(statuses {rates['bad_statuses']}), **{rates['false_alarm_rate']:.1%}** of the "
+            f"good (statuses {rates['good_statuses']}).", ""]
+    lines += ["Status counts per value: `ok`; `wrong_labels` (over 5 % of kept correspondences "
              "wrong); `sparse` (under a quarter of the dots in view matched); "
+             "`inconsistent` (the surface does not reproduce the spots); "
              "`gauge_level` (integrability did not pin the level: the gauge's h0 was "
              "used, and scores are not averaged in); `failed` (the restoration refused the "
              "frame, e.g. too few features); "
@@ -218,10 +297,13 @@ def run_stability(args: argparse.Namespace) -> dict[str, Any]:
     )
     rows = run_sweep(points, evaluate_point, out / "stability.csv", **sweep_kwargs(args))
     summary = sweep_summary(rows)
+    rates = detection_rates(rows)
     stability_figure(rows, summary, out / "stability.png")
+    confidence_figure(rows, rates, out / "confidence.png")
     command = f"wai experiment stability --seeds {args.seeds}" + (" --quick" if args.quick else "")
-    text = report_markdown(summary, command)
+    text = report_markdown(summary, command, rates)
     atomic_write_bytes(out / "stability.md", text.encode())
-    write_json(out / "stability_summary.json", summary)  # stability.json: the run record
+    # stability.json is the sweep's run record; the summary and the rates go beside it.
+    write_json(out / "stability_summary.json", {"sweeps": summary, "detection": rates})
     print(text)
     return summary
