@@ -70,7 +70,7 @@ class RestoreOptions:
     warp_step_px: int = 8
     anchor: str = "integrability"
     anchor_max_sigma_mm: float = 1.0
-    converge_mm: float = 0.5
+    converge_mm: float = 1.0
     max_refine: int = 40
     fit_spots: bool = False
 

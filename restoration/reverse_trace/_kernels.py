@@ -275,3 +275,171 @@ def newton_solve(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fr
         iters[t] = it
     return px, status, q, (int(iters.max()) if n else 0)
 
+
+
+# --- spline tables ----------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def cell_polynomials(grid, knots, vinv):  # pragma: no cover
+    """The four cubic B-splines of ``knots`` active on each cell of ``grid`` (n,) mm, as cubics
+    in mm from the cell's start; see :func:`restoration.reverse_trace._surface._cell_polynomials`.
+
+    Each cell lies in one knot interval: the B-splines are evaluated (Cox-de Boor) at four
+    points of the cell, at fractions ``frac`` of its width, and ``vinv`` (4, 4), the inverse
+    of ``frac``'s Vandermonde matrix, turns the values into power-basis coefficients.
+
+    Returns ``first`` (n - 1,) int64, the first active B-spline of each cell, and ``poly``
+    (n - 1, 4, 4): ``B_{first[c] + j}(grid[c] + t) = sum_b poly[c, b, j] t^b``.
+    """
+    frac = np.array([0.125, 0.375, 0.625, 0.875])
+    n_int = knots.size - 7  # intervals between the breaks knots[3:-3]
+    n_cell = grid.size - 1
+    first = np.empty(n_cell, np.int64)
+    poly = np.empty((n_cell, 4, 4))
+    vals = np.empty((4, 4))  # [point, B-spline]
+    left = np.empty(4)
+    right = np.empty(4)
+    for c in range(n_cell):
+        g0, width = grid[c], grid[c + 1] - grid[c]
+        # searchsorted(breaks[:-1], g0, side="right") - 1, clipped to the intervals.
+        k = 0
+        while k + 1 < n_int and knots[3 + k + 1] <= g0:
+            k += 1
+        first[c] = k
+        span = 3 + k
+        for a in range(4):
+            x = g0 + frac[a] * width
+            nb = vals[a]
+            nb[0] = 1.0
+            for j in range(1, 4):
+                left[j] = x - knots[span + 1 - j]
+                right[j] = knots[span + j] - x
+                saved = 0.0
+                for r in range(j):
+                    temp = nb[r] / (right[r + 1] + left[j - r])
+                    nb[r] = saved + right[r + 1] * temp
+                    saved = left[j - r] * temp
+                nb[j] = saved
+        scale = 1.0
+        for b in range(4):
+            for j in range(4):
+                acc = 0.0
+                for a in range(4):
+                    acc += vinv[b, a] * vals[a, j]
+                poly[c, b, j] = acc * scale
+            scale /= width
+    return first, poly
+
+
+@njit(**_JIT)
+def spline_table(first_x, poly_x, first_y, poly_y, coeffs):  # pragma: no cover
+    """Power-basis coefficients of a bicubic spline on every grid cell, (ncx + 1, 16, ncy).
+
+    ``coeffs`` (ny, nx) are the spline's B-spline coefficients ``c[j, l]`` (y, x);
+    ``first_*``, ``poly_*`` come from :func:`cell_polynomials` for each axis. Entry
+    ``[ix, 4 a + b, iy]`` multiplies ``u^a v^b`` (``u, v`` mm from the cell's corner); slab
+    ``ncx`` is NaN (the entry of points off the known surface). Two separable passes: first
+    along y for every x coefficient, then along x.
+    """
+    ncx, ncy, nx = first_x.size, first_y.size, coeffs.shape[1]
+    rows = np.empty((4, nx, ncy))  # [power of y, x coefficient, y cell]
+    for iy in range(ncy):
+        ky = first_y[iy]
+        for b in range(4):
+            p0, p1, p2, p3 = poly_y[iy, b, 0], poly_y[iy, b, 1], poly_y[iy, b, 2], poly_y[iy, b, 3]
+            for m in range(nx):
+                rows[b, m, iy] = (p0 * coeffs[ky, m] + p1 * coeffs[ky + 1, m]
+                                  + p2 * coeffs[ky + 2, m] + p3 * coeffs[ky + 3, m])
+    table = np.empty((ncx + 1, 16, ncy))
+    for ix in range(ncx):
+        kx = first_x[ix]
+        for a in range(4):
+            q0, q1, q2, q3 = poly_x[ix, a, 0], poly_x[ix, a, 1], poly_x[ix, a, 2], poly_x[ix, a, 3]
+            for b in range(4):
+                r0, r1, r2, r3 = rows[b, kx], rows[b, kx + 1], rows[b, kx + 2], rows[b, kx + 3]
+                out = table[ix, 4 * a + b]
+                for iy in range(ncy):
+                    out[iy] = q0 * r0[iy] + q1 * r1[iy] + q2 * r2[iy] + q3 * r3[iy]
+    table[ncx] = np.nan
+    return table
+
+
+# --- the restored image -----------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def warp_maps(disp_x, disp_y, cell_ok, col_i, col_t, row_i, row_t, map_x, map_y, valid,
+              blank):  # pragma: no cover
+    """Upsample a coarse warp to every pixel, with its validity, in one pass.
+
+    Parameters
+    ----------
+    disp_x, disp_y : (rows, cols) ndarray of float32
+        Warp displacement ``u - p`` at the coarse nodes, px; interpolated bilinearly.
+    cell_ok : (rows - 1, cols - 1) ndarray of bool
+        Cells whose four nodes were solved.
+    col_i, row_i : (W,), (H,) ndarray of int
+        Cell of each pixel column (row); a last pixel lying exactly on the last node belongs
+        to the cell before it.
+    col_t, row_t : (W,), (H,) ndarray of float32
+        Its fraction of the way across that cell.
+    map_x, map_y : (H, W) ndarray of float32
+        Out: the sampling column and row ``u`` of every pixel.
+    valid : (H, W) ndarray of bool
+        Out: in a solved cell and ``-0.5 <= u <= size - 0.5`` (as :meth:`PinholeCamera.in_image`).
+    blank : (H, W) ndarray of uint8
+        Out: 1 where not valid (the mask that zeroes those pixels of the resampled image).
+
+    Returns
+    -------
+    n_valid : int
+        Valid pixels.
+    box : (4,) ndarray of int
+        Their bounding box: first and one past the last row, then column (empty: all 0).
+    """
+    h, w = map_x.shape
+    n_cols = disp_x.shape[1]
+    first = np.full(h, w, np.int64)
+    last = np.zeros(h, np.int64)
+    lo = np.float32(-0.5)
+    wx, hy = np.float32(w - 0.5), np.float32(h - 0.5)
+    per_row = np.zeros(h, np.int64)
+    for r in range(h):
+        iy, ty = row_i[r], row_t[r]
+        x0, x1, y0, y1 = disp_x[iy], disp_x[iy + 1], disp_y[iy], disp_y[iy + 1]
+        ok_row = cell_ok[iy]
+        n_ok, lo_c, hi_c = 0, w, 0
+        c = 0
+        for ix in range(n_cols - 1):
+            # The warp along this row at the cell's two node columns; linear in between.
+            lx = x0[ix] + ty * (x1[ix] - x0[ix])
+            ly = y0[ix] + ty * (y1[ix] - y0[ix])
+            sx = x0[ix + 1] + ty * (x1[ix + 1] - x0[ix + 1]) - lx
+            sy = y0[ix + 1] + ty * (y1[ix + 1] - y0[ix + 1]) - ly
+            cell = ok_row[ix]
+            while c < w and col_i[c] == ix:
+                tx = col_t[c]
+                mx = np.float32(c) + (lx + tx * sx)
+                my = np.float32(r) + (ly + tx * sy)
+                map_x[r, c], map_y[r, c] = mx, my
+                ok = cell & (mx >= lo) & (mx <= wx) & (my >= lo) & (my <= hy)
+                valid[r, c] = ok
+                blank[r, c] = not ok
+                n_ok += ok
+                if ok:
+                    lo_c = min(lo_c, c)
+                    hi_c = c + 1
+                c += 1
+        per_row[r], first[r], last[r] = n_ok, lo_c, hi_c
+    box = np.zeros(4, np.int64)
+    n_valid = 0
+    for r in range(h):
+        if per_row[r]:
+            if n_valid == 0:
+                box[0], box[2] = r, w
+            n_valid += per_row[r]
+            box[1] = r + 1
+            box[2] = min(box[2], first[r])
+            box[3] = max(box[3], last[r])
+    return n_valid, box

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.interpolate import BSpline
 
+from restoration.reverse_trace._kernels import cell_polynomials, spline_table
 from wai_core.heightfield import Heightfield
 
 Array = NDArray[np.float64]
@@ -34,38 +34,25 @@ class _FlatWater:
         return np.full(np.size(x), self.h0), zero, zero, zero, zero, zero
 
 
-def _interval_polynomials(knots: Array) -> tuple[Array, Array, Array]:
-    """Power-basis form of the four cubic B-splines active on each knot interval.
-
-    Returns
-    -------
-    starts : (k,) ndarray
-        Left end of each interval, mm.
-    widths : (k,) ndarray
-        Interval widths, mm.
-    poly : (k, 4, 4) ndarray
-        ``B_{i+j}(starts[i] + s widths[i]) = sum_a poly[i, a, j] s^a`` for ``s`` in [0, 1].
-    """
-    breaks = knots[3:-3]
-    starts, widths = breaks[:-1], np.diff(breaks)
-    # Any four distinct points of an interval fix the cubic pieces exactly.
-    frac = np.array([0.125, 0.375, 0.625, 0.875])
-    pts = (starts[:, None] + frac[None, :] * widths[:, None]).ravel()
-    basis = BSpline.design_matrix(pts, knots, 3).toarray().reshape(starts.size, 4, -1)
-    k = np.arange(starts.size)[:, None, None]
-    vals = basis[k, np.arange(4)[None, :, None], k + np.arange(4)]
-    vinv = np.linalg.inv(np.vander(frac, 4, increasing=True))
-    return starts, widths, vinv[None] @ vals
-
-
-_BINOMIAL = np.array([[1, 0, 0, 0], [1, 1, 0, 0], [1, 2, 1, 0], [1, 3, 3, 1]], dtype=float)
+# Points of a cell at which its cubics are sampled, and the inverse of their Vandermonde matrix:
+# any four distinct points fix a cubic exactly.
+_FRAC = np.array([0.125, 0.375, 0.625, 0.875])
+_VINV = np.linalg.inv(np.vander(_FRAC, 4, increasing=True))
 
 
 def _cell_polynomials(grid: Array, knots: Array) -> tuple[NDArray[np.intp], Array]:
     """The four cubic B-splines active on each cell of ``grid``, as cubics in mm from its start.
 
     Every cell ``[grid[c], grid[c + 1]]`` lies in one knot interval (the spline interpolates
-    at the grid points, so its knots are a subset of them).
+    at the grid points, so its knots are a subset of them). One compiled pass
+    (:func:`~restoration.reverse_trace._kernels.cell_polynomials`).
+
+    Parameters
+    ----------
+    grid : (n,) ndarray
+        Grid lines, mm, increasing.
+    knots : (m,) ndarray
+        The cubic spline's knots along that axis (4 repeated at each end), mm.
 
     Returns
     -------
@@ -74,14 +61,9 @@ def _cell_polynomials(grid: Array, knots: Array) -> tuple[NDArray[np.intp], Arra
     poly : (n - 1, 4, 4) ndarray
         ``B_{first[c] + j}(grid[c] + t) = sum_b poly[c, b, j] t^b``, ``t`` in mm.
     """
-    starts, widths, poly = _interval_polynomials(knots)
-    k = np.clip(np.searchsorted(starts, grid[:-1], side="right") - 1, 0, starts.size - 1)
-    # s = s0 + s1 t in the interval's unit variable, so s^a = sum_b C(a, b) s0^(a-b) s1^b t^b.
-    s0 = ((grid[:-1] - starts[k]) / widths[k])[:, None, None]
-    s1 = (1.0 / widths[k])[:, None, None]
-    a = np.arange(4)
-    shift = _BINOMIAL * s0 ** np.maximum(a[:, None] - a, 0) * s1 ** a  # (c, a, b)
-    return k, np.einsum("cab,caj->cbj", shift, poly[k])
+    return cell_polynomials(
+        np.ascontiguousarray(grid, dtype=float), np.ascontiguousarray(knots, dtype=float), _VINV
+    )
 
 
 _CELL_CACHE: dict[bytes, tuple[NDArray[np.intp], Array]] = {}
@@ -102,9 +84,10 @@ class _SplinePatches:
 
     The spline is ``sum_jl c[j, l] B_j(y) B_l(x)``; on each grid cell it is one bicubic
     polynomial, whose 16 power-basis coefficients (in mm from the cell's corner) are tabulated
-    once per surface by two small batched products. A point then costs a table lookup and a
-    few Horner steps: far cheaper than FITPACK point evaluation (which would dominate the
-    solver), and it gives the second derivatives that the Jacobian needs in the same pass.
+    once per surface by a compiled pass (:func:`~restoration.reverse_trace._kernels.spline_table`).
+    A point then costs a table lookup and a few Horner steps: far cheaper than FITPACK point
+    evaluation (which would dominate the solver), and it gives the second derivatives that the
+    Jacobian needs in the same pass.
     Cells with an unknown corner sample hold NaN, so points there (and outside the grid) get
     NaN, as :meth:`Heightfield.contains` says. Values equal ``Heightfield.height`` to rounding.
     """
@@ -117,17 +100,11 @@ class _SplinePatches:
         coeffs = spline.get_coeffs().reshape(ty.size - 4, tx.size - 4)
         ky, py = _cached_cell_polynomials(surface.y, ty)
         kx, px = _cached_cell_polynomials(surface.x, tx)
-        ncy, ncx = ky.size, kx.size
-        window = np.arange(4)
-        rows = py @ coeffs[ky[:, None] + window]  # (ncy, 4 powers of y, x coefficients)
-        # Per x cell: (4 powers of x, 4 B-splines) @ (4 B-splines, 4 powers of y x ncy cells).
-        cols = rows[:, :, kx[:, None] + window].transpose(2, 3, 1, 0).reshape(ncx, 4, 4 * ncy)
+        ncy = ky.size
         # table[ix, 4 * (power of x) + (power of y), iy]: the coefficients of cell (iy, ix),
         # laid out so that looking up N cells gives 16 contiguous rows of N; slab ncx is the
         # NaN entry of points off the known surface.
-        self.table = np.empty((ncx + 1, 16, ncy))
-        np.matmul(px, cols, out=self.table[:-1].reshape(ncx, 4, 4 * ncy))
-        self.table[-1] = np.nan
+        self.table = spline_table(kx, px, ky, py, np.ascontiguousarray(coeffs))
         known = np.isfinite(surface.z)
         cell_ok = known[:-1, :-1] & known[1:, :-1] & known[:-1, 1:] & known[1:, 1:]
         self.cell_ok = cell_ok.T.ravel()  # by cell ix * ncy + iy

@@ -4,8 +4,8 @@ The ground-truth view is camera v through *flat* water. For each truth pixel ``p
 ``P`` is the flat-water forward map of ``p``; the distorted image shows ``P`` at ``u =
 find_pixels(surface_est, P)``; so ``restored(p) = distorted(u)``. :func:`restore_view` solves the
 warp ``u(p)`` on a coarse grid (plans of the truth view are cached between calls), upsamples it
-bilinearly (the surface is smooth), applies it with one ``cv2.remap`` and reports the
-:class:`Restoration` with its validity mask and the cause of every unrestored pixel.
+bilinearly (the surface is smooth) and samples the image through it in one compiled pass, and
+reports the :class:`Restoration` with its validity mask and the cause of every unrestored pixel.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from restoration.reverse_trace._kernels import warp_maps
 from restoration.reverse_trace._surface import _surface_model
 from restoration.reverse_trace.inverse import _newton, _Optics
 from wai_core.errors import WaiInputError
@@ -51,8 +52,9 @@ class Restoration:
         A pixel takes the cause of the worst of the four warp nodes around it.
     timings_ms : dict of str to float
         Wall times of the stages, ms: ``plan`` (geometry of the truth view, cached between
-        calls), ``surface`` (spline tables), ``solve`` (warp on the coarse grid), ``upsample``,
-        ``remap`` and ``total``.
+        calls), ``surface`` (spline tables), ``solve`` (warp on the coarse grid), ``upsample``
+        (the warp at the nodes and their status), ``remap`` (upsampled to pixels and the image
+        sampled, one pass) and ``total``.
     step_px : int
         Spacing of the coarse warp grid, pixels.
     map_cols, map_rows : (H, W) ndarray of float32
@@ -93,8 +95,9 @@ class _Plan:
     targets: Array  # (K, 3) their object points, mm
     node_q0: Array  # (K, 2) where their rays cross flat water, mm: Newton's start
     truth_status: NDArray[np.int8]  # (rows, cols) status of every node in the truth view
-    base_x: NDArray[np.float32]  # (H, W) column of every pixel
-    base_y: NDArray[np.float32]  # (H, W) row of every pixel
+    image_shape: tuple[int, int]  # (H, W) pixels
+    # Cell and fraction across it of every pixel column, then row: (W,), (W,), (H,), (H,).
+    pixel_cells: tuple[NDArray[np.intp], NDArray[np.float32], NDArray[np.intp], NDArray[np.float32]]
     cell_area: NDArray[np.float64]  # (rows - 1, cols - 1) pixels in each coarse cell
 
 
@@ -128,7 +131,6 @@ def _make_plan(camera: PinholeCamera, h0: float, n: float, z: float, step: int) 
     ok = truth.ok.ravel()
     targets = truth.object_mm.reshape(-1, 3)[ok]
     q0 = truth.surface_mm.reshape(-1, 3)[ok, :2]
-    base_x, base_y = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     return _Plan(
         (nrow, ncol),
         np.column_stack([cols.ravel(), rows.ravel()])[ok],
@@ -136,10 +138,19 @@ def _make_plan(camera: PinholeCamera, h0: float, n: float, z: float, step: int) 
         targets,
         q0,
         truth.status,
-        base_x,
-        base_y,
+        (h, w),
+        _pixel_cells(w, ncol, step) + _pixel_cells(h, nrow, step),
         np.outer(_cell_sizes(h, nrow, step), _cell_sizes(w, ncol, step)),
     )
+
+
+def _pixel_cells(
+    n_px: int, n_nodes: int, step: int
+) -> tuple[NDArray[np.intp], NDArray[np.float32]]:
+    """Cell (n_px,) of each pixel along an axis and its fraction of the way across it; a last
+    pixel lying exactly on the last node belongs to the cell before it."""
+    i = np.minimum(np.arange(n_px) // step, n_nodes - 2)
+    return i, ((np.arange(n_px) - i * step) / step).astype(np.float32)
 
 
 def _cell_sizes(n_px: int, n_nodes: int, step: int) -> NDArray[np.float64]:
@@ -219,51 +230,46 @@ def _node_warp(
 
 def _pixel_warp(
     plan: _Plan,
+    img: NDArray,
     disp_x: NDArray[np.float32],
     disp_y: NDArray[np.float32],
     node_status: NDArray[np.int8],
     step: int,
-) -> tuple[NDArray[np.float32], NDArray[np.float32], BoolArray, dict[str, int]]:
-    """Full-resolution sampling columns and rows (H, W), validity (H, W) and counts per cause.
+) -> tuple[NDArray, NDArray[np.float32], NDArray[np.float32], BoolArray, dict[str, int]]:
+    """The restored image (H, W[, C]), full-resolution sampling columns and rows (H, W),
+    validity (H, W) and counts per cause.
 
     A pixel is valid when the four nodes of its cell were solved and its sampling position
-    lies inside the distorted image.
+    lies inside the distorted image. One compiled pass
+    (:func:`~restoration.reverse_trace._kernels.warp_maps`) upsamples the warp and tests it;
+    ``cv2.remap`` samples the image in the valid pixels' bounding box (exact bilinear weights
+    on float maps since OpenCV 5; the fixed-point maps of ``cv2.convertMaps`` would round the
+    position to 1/32 px and measured no faster).
+    Displacements are interpolated, not positions: they vary slowly, so float32 costs nothing.
     """
-    h, w = plan.base_x.shape
-    # The node grid is a scaled copy of the pixel grid, so an affine warp reads it, one channel
-    # at a time: OpenCV's two-channel path is several times slower and rounds the read position
-    # to 1/32 of a cell (up to ~0.1 px of warp for steps that do not divide 32); this one is
-    # bilinear to ~1e-5 px for any step. Displacements are interpolated, not positions: they
-    # vary slowly, so float32 costs nothing.
-    scale = np.array([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
-    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-
-    def positions(disp: NDArray[np.float32], base: NDArray[np.float32]) -> NDArray[np.float32]:
-        full = cv2.warpAffine(disp, scale, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        return cv2.add(full, base, dst=full)
-
-    map_x, map_y = positions(disp_x, plan.base_x), positions(disp_y, plan.base_y)
+    h, w = plan.image_shape
     cell = _cell_status(node_status)
-    # Each cell's flag over its step x step pixels; a last pixel lying exactly on the last node
-    # belongs to the cell before it.
-    cell_ok = (cell == RayStatus.OK).view(np.uint8) * np.uint8(255)
-    cell_ok = cv2.resize(
-        cell_ok, (cell.shape[1] * step, cell.shape[0] * step), interpolation=cv2.INTER_NEAREST
+    map_x = np.empty((h, w), np.float32)
+    map_y = np.empty((h, w), np.float32)
+    valid = np.empty((h, w), bool)
+    blank = np.empty((h, w), np.uint8)
+    n_valid, (r0, r1, c0, c1) = warp_maps(
+        disp_x, disp_y, cell == RayStatus.OK, *plan.pixel_cells, map_x, map_y, valid, blank
     )
-    pad = (max(0, h - cell_ok.shape[0]), max(0, w - cell_ok.shape[1]))
-    if any(pad):
-        cell_ok = cv2.copyMakeBorder(cell_ok, 0, pad[0], 0, pad[1], cv2.BORDER_REPLICATE)
-    cell_ok = cell_ok[:h, :w]
-    # 255 inside the image (as PinholeCamera.in_image) and in a solved cell.
-    valid = cv2.inRange(map_x, -0.5, w - 0.5)
-    cv2.bitwise_and(valid, cv2.inRange(map_y, -0.5, h - 0.5), dst=valid)
-    cv2.bitwise_and(valid, cell_ok, dst=valid)
+    # Only the valid pixels' bounding box is sampled (views: cv2 writes into the result); the
+    # rest stays 0. Half-pixel border: replicate rather than blend with black. Invalid pixels
+    # inside the box are then zeroed (x - x under the mask; the image is finite).
+    out = np.zeros(img.shape, dtype=img.dtype)
+    if n_valid:
+        box = out[r0:r1, c0:c1]
+        cv2.remap(img, map_x[r0:r1, c0:c1], map_y[r0:r1, c0:c1], cv2.INTER_LINEAR, dst=box,
+                  borderMode=cv2.BORDER_REPLICATE)
+        cv2.subtract(box, box, dst=box, mask=blank[r0:r1, c0:c1])
     hist = np.bincount(cell.ravel(), weights=plan.cell_area.ravel(), minlength=len(RayStatus))
     counts = {s.name.lower(): int(round(hist[s])) for s in RayStatus}
-    n_valid = cv2.countNonZero(valid)
-    counts["out_of_view"] += counts["ok"] - n_valid
-    counts["ok"] = n_valid
-    return map_x, map_y, valid.view(bool), counts
+    counts["out_of_view"] += counts["ok"] - int(n_valid)
+    counts["ok"] = int(n_valid)
+    return out, map_x, map_y, valid, counts
 
 
 def restore_view(
@@ -322,14 +328,9 @@ def restore_view(
         camera, model, optics, plan.targets[:, :2], plan.node_q0, _WARP_TOL_PX, _WARP_ITER
     )
     t["upsample"] = time.perf_counter()
-    map_x, map_y, valid, counts = _pixel_warp(plan, *_node_warp(plan, px, st), step)
+    disp_x, disp_y, node_status = _node_warp(plan, px, st)
     t["remap"] = time.perf_counter()
-    # Half-pixel border: replicate rather than blend with black. Sampled straight into the
-    # result, whose invalid pixels are then zeroed (x - x under the mask; the image is finite):
-    # one full-size array less to allocate and fault in.
-    out = np.empty(img.shape, dtype=img.dtype)
-    cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, dst=out, borderMode=cv2.BORDER_REPLICATE)
-    cv2.subtract(out, out, dst=out, mask=cv2.bitwise_not(valid.view(np.uint8)))
+    out, map_x, map_y, valid, counts = _pixel_warp(plan, img, disp_x, disp_y, node_status, step)
     t["end"] = time.perf_counter()
     names = list(t)
     timings = {a: 1e3 * (t[b] - t[a]) for a, b in zip(names[:-1], names[1:], strict=True)}

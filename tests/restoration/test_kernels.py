@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.interpolate import BSpline
 from scipy.spatial import cKDTree
 
 from restoration.features._kernels import nearest_two, spot_cells, weighted_sums
@@ -17,7 +18,9 @@ from restoration.normals import (
     slopes_from_normals,
 )
 from restoration.reverse_trace import _SplinePatches
-from restoration.reverse_trace._kernels import spline_jet
+from restoration.reverse_trace._kernels import spline_jet, warp_maps
+from restoration.reverse_trace._surface import _cell_polynomials
+from restoration.reverse_trace.warp import _pixel_cells
 from restoration.surface import _TrapezoidSystem
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
@@ -122,3 +125,76 @@ def test_windowed_centroid_matches_a_direct_evaluation():
         s = s + np.clip(_WINDOW_GAIN * (m - s), -1.0, 1.0)
     np.testing.assert_allclose(got[0], s + base, atol=1e-10)
     assert np.abs(got[0] - centre).max() < 0.01
+
+
+def _numpy_cell_polynomials(grid, knots):
+    """The former NumPy construction: interval polynomials from scipy's design matrix, shifted
+    to each cell's start."""
+    breaks = knots[3:-3]
+    starts, widths = breaks[:-1], np.diff(breaks)
+    frac = np.array([0.125, 0.375, 0.625, 0.875])
+    pts = (starts[:, None] + frac[None, :] * widths[:, None]).ravel()
+    basis = BSpline.design_matrix(pts, knots, 3).toarray().reshape(starts.size, 4, -1)
+    k = np.arange(starts.size)[:, None, None]
+    vals = basis[k, np.arange(4)[None, :, None], k + np.arange(4)]
+    poly = np.linalg.inv(np.vander(frac, 4, increasing=True))[None] @ vals
+    k = np.clip(np.searchsorted(starts, grid[:-1], side="right") - 1, 0, starts.size - 1)
+    s0 = ((grid[:-1] - starts[k]) / widths[k])[:, None, None]
+    s1 = (1.0 / widths[k])[:, None, None]
+    a = np.arange(4)
+    binom = np.array([[1, 0, 0, 0], [1, 1, 0, 0], [1, 2, 1, 0], [1, 3, 3, 1]], dtype=float)
+    shift = binom * s0 ** np.maximum(a[:, None] - a, 0) * s1**a
+    return k, np.einsum("cab,caj->cbj", shift, poly[k])
+
+
+def test_cell_polynomials_match_scipy_b_splines():
+    x = np.r_[0.0, 7.0, np.linspace(15.0, 300.0, 40)]
+    y = np.linspace(-100.0, 120.0, 31)
+    z = 150.0 + np.sin(x[None, :] / 23.0) * np.cos(y[:, None] / 17.0)
+    ty, tx = Heightfield(x, y, z)._spline.get_knots()
+    for grid, knots in ((x, tx), (y, ty)):
+        first, poly = _cell_polynomials(grid, knots)
+        want_first, want = _numpy_cell_polynomials(grid, knots)
+        np.testing.assert_array_equal(first, want_first)
+        np.testing.assert_allclose(poly, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+        # And the cubics are the B-splines themselves, at points inside each cell.
+        t = 0.3 * np.diff(grid)
+        basis = BSpline.design_matrix(grid[:-1] + t, knots, 3).toarray()
+        got = np.einsum("cbj,cb->cj", poly, t[:, None] ** np.arange(4))
+        want_b = basis[np.arange(t.size)[:, None], first[:, None] + np.arange(4)]
+        np.testing.assert_allclose(got, want_b, atol=1e-12)
+
+
+def test_warp_maps_are_the_bilinear_upsampling():
+    rng = np.random.default_rng(6)
+    h, w, step = 37, 53, 8
+    n_rows, n_cols = -(-(h - 1) // step) + 1, -(-(w - 1) // step) + 1
+    dx = rng.normal(0, 3, (n_rows, n_cols)).astype(np.float32)
+    dy = rng.normal(0, 3, (n_rows, n_cols)).astype(np.float32)
+    dx[0, :] -= 5.0  # some pixels sample outside the image
+    cell_ok = rng.random((n_rows - 1, n_cols - 1)) > 0.2
+    map_x, map_y = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
+    valid, blank = np.empty((h, w), bool), np.empty((h, w), np.uint8)
+    n_valid, box = warp_maps(
+        dx, dy, cell_ok, *_pixel_cells(w, n_cols, step), *_pixel_cells(h, n_rows, step),
+        map_x, map_y, valid, blank,
+    )
+    # Oracle: bilinear interpolation of the node grid, pixel by pixel.
+    rows, cols = np.mgrid[0:h, 0:w]
+    iy, ix = np.minimum(rows // step, n_rows - 2), np.minimum(cols // step, n_cols - 2)
+    ty, tx = (rows - iy * step) / step, (cols - ix * step) / step
+
+    def bilinear(d):
+        return ((1 - ty) * ((1 - tx) * d[iy, ix] + tx * d[iy, ix + 1])
+                + ty * ((1 - tx) * d[iy + 1, ix] + tx * d[iy + 1, ix + 1]))
+
+    want_x, want_y = cols + bilinear(dx), rows + bilinear(dy)
+    np.testing.assert_allclose(map_x, want_x, atol=1e-4)
+    np.testing.assert_allclose(map_y, want_y, atol=1e-4)
+    inside = (map_x >= -0.5) & (map_x <= w - 0.5) & (map_y >= -0.5) & (map_y <= h - 0.5)
+    want_valid = cell_ok[iy, ix] & inside
+    np.testing.assert_array_equal(valid, want_valid)
+    np.testing.assert_array_equal(blank, ~want_valid)
+    assert n_valid == want_valid.sum()
+    r, c = np.flatnonzero(want_valid.any(axis=1)), np.flatnonzero(want_valid.any(axis=0))
+    np.testing.assert_array_equal(box, [r[0], r[-1] + 1, c[0], c[-1] + 1])
