@@ -10,7 +10,9 @@ A frame in memory, or a render folder on disk::
     mw.render_folder(cfg, "renders/f1")         # what ``wai render`` writes
 
 The Mitsuba variant is chosen on first use (:func:`select_variant`: ``cuda_ad_rgb`` with a
-GPU, else ``llvm_ad_rgb``, else ``scalar_rgb``); importing this package loads no renderer.
+GPU, else ``llvm_ad_rgb``; neither is an error in one line); importing this package loads no
+renderer. Renders are reproducible bit for bit for a seed: the particle-traced images (patterns,
+sun spots) come from :mod:`mitsuba_wai.particles`, which sums in a fixed order.
 """
 
 from mitsuba_wai.frame import Frame, render_frame

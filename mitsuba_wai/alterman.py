@@ -58,8 +58,10 @@ from numpy.typing import NDArray
 
 from mitsuba_wai import mesh as meshes
 from mitsuba_wai.render import (
+    OUTPUT_COMMAND,
     FrameRenderer,
     file_surface,
+    labelled,
     render_image,
     render_seed,
     scene_record,
@@ -81,8 +83,9 @@ from wai_core.alterman import (
 from wai_core.errors import WaiInputError
 from wai_core.geometry import critical_angle_rad
 from wai_core.heightfield import Heightfield, grid_faces
-from wai_core.io import atomic_dir, write_json
+from wai_core.io import atomic_dir, check_output_dir, raise_if_interrupted, write_json
 from wai_core.layout import surface_extent
+from wai_core.rig_checks import check_surface_in_rig
 
 SCENE_A_DEPTH = 3
 # Margin (mm) between the top of the sun's emitting rectangle and the highest crest allowed.
@@ -386,7 +389,8 @@ class SunRenderer:
             vertices = hole_beam_vertices(self.system, self.layout, rays)
             self._params["sun.vertex_positions"] = mi.Float(vertices.astype(np.float32).ravel())
             self._params.update()
-        img, bad = render_image(self._scene, self.system.sensor.render.spp, seed)
+        # The deterministic particle tracer: the same seed gives the same image, bit for bit.
+        img, bad = render_image(self._scene, self.system.sensor.render.spp, seed, SCENE_A_DEPTH)
         self.nonfinite_pixels += bad
         return img
 
@@ -430,14 +434,21 @@ def render_alterman_folder(
     views: dict[str, NDArray] | None = None,
     renderer: SunRenderer | None = None,
     progress: bool = True,
+    *,
+    overwrite: bool = False,
+    surface_label: str | None = None,
 ) -> dict[str, Any]:
     """Render one frame of system A (wavy and flat) and camera v's view; write the folder.
+
+    The surface (against the base rig and the sensor) and the output location are checked
+    before anything is rendered, as in :func:`~mitsuba_wai.render.render_folder`.
 
     Parameters
     ----------
     system : AltermanSystem
     out_dir : path
-        Folder to create (replaced, only once everything is written).
+        Folder to create. An existing one is replaced (once everything is written) only if it
+        is a previous render folder, unless ``overwrite``; a file there is always refused.
     heightfield : Heightfield, optional
         A surface to use instead of the wave model.
     views : dict, optional
@@ -447,6 +458,10 @@ def render_alterman_folder(
         A loaded renderer of this system (sweeps reuse it); its grid must match the surface's.
     progress : bool
         Show a progress bar over the steps.
+    overwrite : bool
+        Replace an existing folder at ``out_dir`` that is not a previous render folder.
+    surface_label : str, optional
+        How errors about the surface name its origin (default ``heightfield`` or ``[waves]``).
 
     Returns
     -------
@@ -461,12 +476,21 @@ def render_alterman_folder(
 
     def tick(name: str) -> None:
         nonlocal t0
+        raise_if_interrupted()
         timings[name] = time.perf_counter() - t0
         t0 = time.perf_counter()
         bar.update(1)
 
-    surface = alterman_surface(system, heightfield)
+    label = surface_label or ("[waves]" if heightfield is None else "heightfield")
+    with labelled(label):
+        surface = alterman_surface(system, heightfield)
     source = "waves" if heightfield is None else "file"
+    check_surface_in_rig(system.base, surface, label)
+    try:
+        check_surface(system, sensor_layout(system), surface)
+    except WaiInputError as exc:
+        raise WaiInputError(f"{label}: {exc}") from None
+    check_output_dir(out_dir, OUTPUT_COMMAND, overwrite)
     renderer = renderer if renderer is not None else SunRenderer(system, surface)
     zeroed_before = renderer.nonfinite_pixels
     tick("surface and scene")
@@ -488,7 +512,7 @@ def render_alterman_folder(
     images.update({k: views[k] for k in ("view", "view_truth")})
     tick("render view")
     record = alterman_record(system, renderer, surface, source)
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, command=OUTPUT_COMMAND, overwrite=overwrite) as tmp:
         write_images(tmp, images, view_gain=system.base.water.n_water**2)
         write_surface(tmp, surface)
         tick("write")

@@ -18,8 +18,10 @@ Each image also gets a PNG preview. The folder appears atomically when complete.
 
 from __future__ import annotations
 
+import contextlib
 import platform
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mitsuba_wai import mesh as meshes
+from mitsuba_wai.particles import pass_split, render_particles
 from mitsuba_wai.scenes import (
     SCENE_S_DEPTH,
     SCENE_V_DEPTH,
@@ -41,16 +44,31 @@ from mitsuba_wai.waves import mesh_spacing_mm, sea_surface
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
-from wai_core.io import atomic_dir, write_exr, write_json, write_png
+from wai_core.io import (
+    atomic_dir,
+    check_output_dir,
+    raise_if_interrupted,
+    write_exr,
+    write_json,
+    write_png,
+)
 from wai_core.layout import diffuser_rect, object_plane_center, observed_patch, surface_extent
+from wai_core.rig_checks import check_surface_in_rig
 
 # Largest mesh the renderer builds: ~1 M vertices keeps a frame's memory and time bounded.
 MAX_MESH_VERTICES = 1_000_000
+# Most samples Mitsuba takes in one wavefront (2^32 - 1); more spp are rendered in passes.
+MAX_WAVEFRONT = 0xFFFFFFFF
+OUTPUT_COMMAND = "render"
+"""Command named in a render folder's output marker (:mod:`wai_core.io`)."""
+
+
+def _axis_size(lo: float, hi: float, spacing: float) -> int:
+    return max(int(np.ceil((hi - lo) / spacing)) + 1, 5) if spacing > 0 else 5
 
 
 def _axis(lo: float, hi: float, spacing: float) -> NDArray:
-    n = max(int(np.ceil((hi - lo) / spacing)) + 1, 5)
-    return np.linspace(lo, hi, n)
+    return np.linspace(lo, hi, _axis_size(lo, hi, spacing))
 
 
 def wave_surface(cfg: SystemConfig, extent: NDArray | None = None) -> Heightfield:
@@ -62,11 +80,15 @@ def wave_surface(cfg: SystemConfig, extent: NDArray | None = None) -> Heightfiel
     spacing = mesh_spacing_mm(
         sea, cfg.waves.mesh_points_per_wavelength, float(np.max(ext[:, 1] - ext[:, 0]))
     )
-    x, y = _axis(*ext[0], spacing), _axis(*ext[1], spacing)
-    if x.size * y.size > MAX_MESH_VERTICES:
+    # Count before allocating: a light wind's millimetre waves would ask for billions.
+    nx, ny = _axis_size(*ext[0], spacing), _axis_size(*ext[1], spacing)
+    if nx * ny > MAX_MESH_VERTICES:
         raise WaiInputError(
-            f"mesh of {x.size}x{y.size} vertices is too large: lower mesh_points_per_wavelength"
+            f"[waves]: wind {cfg.waves.wind_speed_m_s:g} m/s makes waves as short as "
+            f"{sea.shortest_wavelength_mm:.3g} mm, a mesh of {nx}x{ny} vertices (at most "
+            f"{MAX_MESH_VERTICES}): raise the wind or lower mesh_points_per_wavelength"
         )
+    x, y = _axis(*ext[0], spacing), _axis(*ext[1], spacing)
     return sea.grid(x, y, cfg.waves.time_s, mean_level_mm=cfg.water.h0_mm)
 
 
@@ -87,7 +109,7 @@ def file_surface(
         or given.y[-1] < patch[1, 1]
     ):
         raise WaiInputError(
-            "heightfield does not cover the observed patch "
+            "heightfield: does not cover the observed patch "
             f"x {patch[0, 0]:.0f}..{patch[0, 1]:.0f} mm, y {patch[1, 0]:.0f}..{patch[1, 1]:.0f} mm"
         )
     ext = surface_extent(cfg) if extent is None else np.asarray(extent, dtype=float)
@@ -99,8 +121,36 @@ def file_surface(
     return Heightfield(x, y, np.where(np.isfinite(z), z, cfg.water.h0_mm))
 
 
-def render_image(scene: object, spp: int, seed: int) -> tuple[NDArray[np.float32], int]:
+@contextlib.contextmanager
+def labelled(label: str) -> Iterator[None]:
+    """Errors about the surface inside the block start with ``label`` (the user's option or
+    file) instead of the generic ``[waves]`` / ``heightfield``."""
+    try:
+        yield
+    except WaiInputError as exc:
+        why = str(exc)
+        for generic in ("[waves]: ", "heightfield: "):
+            why = why.removeprefix(generic)
+        raise WaiInputError(f"{label}: {why}") from None
+
+
+def render_image(
+    scene: object, spp: int, seed: int, particle_depth: int | None = None
+) -> tuple[NDArray[np.float32], int]:
     """Render a loaded scene to linear RGB (H, W, 3); non-finite pixels are zeroed and counted.
+
+    Parameters
+    ----------
+    scene : mitsuba.Scene
+    spp : int
+        Samples per pixel, >= 1, any number: a camera-side render that would exceed Mitsuba's
+        wavefront (2^32 samples) runs in near-equal passes of whole samples per pixel, pass
+        ``k`` seeded ``seed + k``, averaged in float64.
+    seed : int
+        Sampler seed (0 .. 2^32 - 1); the same seed gives the same image, bit for bit.
+    particle_depth : int, optional
+        Render with the deterministic particle tracer (:mod:`mitsuba_wai.particles`) of this
+        ``max_depth`` instead of the scene's integrator: for the ``ptracer`` scenes.
 
     Returns
     -------
@@ -110,13 +160,24 @@ def render_image(scene: object, spp: int, seed: int) -> tuple[NDArray[np.float32
     """
     import drjit as dr
 
+    if particle_depth is not None:
+        return render_particles(scene, spp, seed, particle_depth)
     mi = mitsuba()
-    img = mi.render(scene, spp=spp, seed=seed)
-    dr.eval(img)
-    arr = np.asarray(img, dtype=np.float32)[..., :3]
-    bad = ~np.isfinite(arr).all(axis=2)
-    arr[bad] = 0.0
-    return arr, int(bad.sum())
+    size = scene.sensors()[0].film().crop_size()
+    passes = pass_split(spp, int(size[0]) * int(size[1]), MAX_WAVEFRONT)
+    total, bad = None, None
+    for k, spp_k in enumerate(passes):
+        img = mi.render(scene, spp=spp_k, seed=(int(seed) + k) % 2**32)
+        dr.eval(img)
+        arr = np.asarray(img, dtype=np.float32)[..., :3]
+        if len(passes) == 1:
+            total = arr
+        else:
+            total = (0.0 if total is None else total) + arr.astype(np.float64) * (spp_k / spp)
+        bad = ~np.isfinite(arr).all(axis=2) | (False if bad is None else bad)
+    out = np.asarray(total, dtype=np.float32)
+    out[bad] = 0.0
+    return out, int(bad.sum())
 
 
 @dataclass
@@ -177,8 +238,10 @@ class FrameRenderer:
             "pattern": spp or self.cfg.render.spp_pattern,
             "view": spp or self.cfg.render.spp_view,
         }
+        # The pattern by the deterministic particle tracer (same image for the same seed).
+        depth = {"pattern": SCENE_S_DEPTH, "view": None}
         for key in (k for k in ("pattern", "view") if k in which):
-            out[key], bad = render_image(self._scenes[key], spp[key], seed)
+            out[key], bad = render_image(self._scenes[key], spp[key], seed, depth[key])
             self.nonfinite_pixels[key] = self.nonfinite_pixels.get(key, 0) + bad
         return out
 
@@ -249,8 +312,9 @@ def write_surface(folder: Path, surface: Heightfield) -> None:
 
 
 def render_seed(cfg: SystemConfig) -> int:
-    """Mitsuba's sampler seed, derived from the scene seed so reruns are identical."""
-    return int(cfg.waves.seed) * 7919 + 17
+    """Mitsuba's sampler seed, derived from the scene seed so reruns are identical
+    (0 .. 2^32 - 1, Mitsuba's range)."""
+    return (int(cfg.waves.seed) * 7919 + 17) % 2**32
 
 
 def render_folder(
@@ -258,23 +322,41 @@ def render_folder(
     out_dir: str | Path,
     heightfield: Heightfield | None = None,
     progress: bool = True,
+    *,
+    overwrite: bool = False,
+    surface_label: str | None = None,
 ) -> dict[str, Any]:
     """Render one frame of both systems (wavy and flat) and write the render folder atomically.
+
+    Everything that can be checked is checked before the renders start: the surface against
+    the rig (:func:`~wai_core.rig_checks.check_surface_in_rig`) and the output location (the
+    output policy of :mod:`wai_core.io`).
 
     Parameters
     ----------
     cfg : SystemConfig
     out_dir : path
-        Folder to create (replaced if it exists, only once everything is written).
+        Folder to create. An existing one is replaced (once everything is written) only if it
+        is a previous render folder, unless ``overwrite``; a file there is always refused.
     heightfield : Heightfield, optional
         A surface to use instead of the wave model (``--heightfield``).
     progress : bool
         Show a progress bar over the render steps.
+    overwrite : bool
+        Replace an existing folder at ``out_dir`` that is not a previous render folder.
+    surface_label : str, optional
+        How errors about the surface name its origin (default ``heightfield`` for a given
+        surface, ``[waves]`` for the wave model).
 
     Returns
     -------
     dict
         The ``scene.json`` record, with ``timings_s`` per step.
+
+    Raises
+    ------
+    WaiInputError
+        A surface outside the rig, an output location that cannot or may not be written.
     """
     from tqdm import tqdm
 
@@ -285,15 +367,20 @@ def render_folder(
 
     def tick(name: str) -> None:
         nonlocal t0
+        raise_if_interrupted()
         timings[name] = time.perf_counter() - t0
         t0 = time.perf_counter()
         bar.update(1)
 
     bar.set_postfix_str("surface")
-    if heightfield is None:
-        surface, source = wave_surface(cfg), "waves"
-    else:
-        surface, source = file_surface(cfg, heightfield), "file"
+    label = surface_label or ("[waves]" if heightfield is None else "heightfield")
+    with labelled(label):
+        if heightfield is None:
+            surface, source = wave_surface(cfg), "waves"
+        else:
+            surface, source = file_surface(cfg, heightfield), "file"
+    check_surface_in_rig(cfg, surface, label)
+    check_output_dir(out_dir, OUTPUT_COMMAND, overwrite)
     tick("surface")
     renderer = FrameRenderer(cfg, surface)
     tick("load scenes")
@@ -303,7 +390,7 @@ def render_folder(
     flat = renderer.render(meshes.flat_like(surface, cfg.water.h0_mm), seed)
     tick("render flat")
     record = scene_record(cfg, renderer.variant, surface, source)
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(out_dir, command=OUTPUT_COMMAND, overwrite=overwrite) as tmp:
         images = {
             "pattern": wavy["pattern"],
             "pattern_flat": flat["pattern"],

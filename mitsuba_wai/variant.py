@@ -3,7 +3,9 @@
 Dr.Jit 1.5 emits ``llvm.minimum``/``llvm.maximum``, which Debian 12's libLLVM 15 cannot lower: the
 process aborts inside LLVM (no exception to catch). So the LLVM backend is only used with a libLLVM
 of version 16 or newer, pinned through ``DRJIT_LIBLLVM_PATH`` before ``drjit`` is imported. Without
-one, ``auto`` falls back to ``scalar_rgb`` with a one-line warning.
+one (and no GPU), no variant can render: ``auto`` says so in one line
+(:class:`~wai_core.errors.WaiInputError`). Scalar variants cannot run these renders (meshes,
+textures and the particle tracer need JIT arrays) and are refused, as are unknown names.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import os
 import re
 import sys
 from types import ModuleType
+
+from wai_core.errors import WaiInputError
 
 _MIN_LLVM = 16
 _LLVM_GLOBS = (
@@ -52,6 +56,23 @@ def _cuda_driver_present() -> bool:
     return ctypes.util.find_library("cuda") is not None or os.path.exists("/dev/nvidiactl")
 
 
+SUPPORTED = ("cuda_ad_rgb", "llvm_ad_rgb")
+"""Variants the renders run on: RGB, vectorised (the meshes, textures and the particle tracer
+need JIT arrays; scalar and spectral variants are refused)."""
+
+
+def _cuda_works() -> bool:
+    """A CUDA device that Dr.Jit can initialise (a driver alone is not enough)."""
+    if not _cuda_driver_present():
+        return False
+    try:
+        import drjit as dr
+
+        return bool(dr.has_backend(dr.JitBackend.CUDA))
+    except (ImportError, RuntimeError, AttributeError):
+        return False
+
+
 def select_variant(requested: str = "auto") -> str:
     """Set the Mitsuba variant for this process and return its name.
 
@@ -59,50 +80,58 @@ def select_variant(requested: str = "auto") -> str:
     ----------
     requested : str
         ``auto`` picks ``cuda_ad_rgb`` when a GPU works, else ``llvm_ad_rgb`` when a working
-        libLLVM is installed, else ``scalar_rgb``. Any other name is set as given (an LLVM variant
-        without a working libLLVM is refused rather than allowed to abort the process).
+        libLLVM is installed. Otherwise one of :data:`SUPPORTED`, set as given.
+
+    Raises
+    ------
+    WaiInputError
+        In one line starting with the variant's name: not a supported variant, or not usable
+        on this machine (no GPU for ``cuda_ad_rgb``, no libLLVM >= 16 for ``llvm_ad_rgb``);
+        for ``auto``, when neither works.
 
     Notes
     -----
     A process can hold one variant; asking again for the same one is a no-op, asking for another
-    raises ``RuntimeError``.
+    raises ``RuntimeError`` (a programming error, not bad input).
     """
     global _chosen
+    if requested != "auto" and requested not in SUPPORTED:
+        raise WaiInputError(
+            f"{requested}: not a variant these renders run on (use auto, {', '.join(SUPPORTED)})"
+        )
+    llvm = find_libllvm()
+    if requested.startswith("llvm") and not llvm:
+        raise WaiInputError(
+            f"{requested}: needs libLLVM >= {_MIN_LLVM} (apt-get install libllvm19)"
+        )
+    if llvm and "drjit" not in sys.modules:
+        os.environ["DRJIT_LIBLLVM_PATH"] = llvm
+    if requested.startswith("cuda") and not _cuda_works():
+        raise WaiInputError(f"{requested}: needs a CUDA GPU, and none works on this machine")
     if _chosen is not None:
         if requested not in ("auto", _chosen):
             raise RuntimeError(f"variant already set to {_chosen}; cannot switch to {requested}")
         return _chosen
-    llvm = find_libllvm()
-    if llvm and "drjit" not in sys.modules:
-        os.environ["DRJIT_LIBLLVM_PATH"] = llvm
     import mitsuba as mi
 
     if requested == "auto":
-        candidates = (["cuda_ad_rgb"] if _cuda_driver_present() else []) + (
-            ["llvm_ad_rgb"] if llvm else []
-        )
-    else:
-        if requested.startswith("llvm") and not llvm:
-            raise RuntimeError(
-                f"variant {requested} needs libLLVM >= {_MIN_LLVM} (apt-get install libllvm19)"
+        candidates = (["cuda_ad_rgb"] if _cuda_works() else []) + (["llvm_ad_rgb"] if llvm else [])
+        if not candidates:
+            raise WaiInputError(
+                f"auto: no usable Mitsuba variant (no GPU, and no libLLVM >= {_MIN_LLVM}: "
+                "apt-get install libllvm19)"
             )
+    else:
         candidates = [requested]
+    errors = []
     for name in candidates:
         try:
             mi.set_variant(name)
             _chosen = name
             return name
         except (ImportError, RuntimeError, AttributeError) as exc:
-            if requested != "auto":
-                raise RuntimeError(f"variant {name} is not usable here: {exc}") from None
-    if requested == "auto":
-        print(
-            f"warning: no GPU and no libLLVM >= {_MIN_LLVM}; rendering with scalar_rgb (slow)",
-            file=sys.stderr,
-        )
-    mi.set_variant("scalar_rgb")
-    _chosen = "scalar_rgb"
-    return _chosen
+            errors.append(f"{name}: {exc}")
+    raise WaiInputError(f"{requested}: not usable here ({'; '.join(errors)})")
 
 
 def mitsuba(requested: str = "auto") -> ModuleType:

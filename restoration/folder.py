@@ -162,45 +162,65 @@ def write_outputs(
     scores: Scores | None,
     truth: Truth | None,
     metrics: dict[str, Any],
+    *,
+    figures: bool = True,
 ) -> None:
-    """The restore folder, atomically: surface, restored view, figures and ``metrics.json``;
-    only ``metrics.json`` when there is no restoration."""
+    """The restore folder, atomically: surface, restored view, figures (unless
+    ``figures=False``) and ``metrics.json``; only ``metrics.json`` when there is no
+    restoration."""
+    with atomic_dir(target, command="restore") as tmp:
+        _write_arrays(tmp, result)
+        if figures:
+            _write_figures(tmp, cal, images, result, scores, truth)
+        write_json(tmp / "metrics.json", metrics)
+
+
+def _write_arrays(tmp: Path, result: RestoreResult) -> None:
+    """The surface, the restored view, its mask and the confidence arrays."""
+    if not result.restored:
+        return
+    est = result.surface.heightfield
+    est.save(tmp / "heightfield_est.npz")
+    est.to_trimesh().export(tmp / "surface_est.ply")
+    write_exr(tmp / "restored.exr", result.view.image)
+    write_png(tmp / "restored.png", result.view.image, exposure=1.0)
+    write_png(tmp / "restored_mask.png", (result.view.valid * np.uint8(255)).astype(np.uint8))
+    if result.consistency is not None:
+        check = result.consistency
+        np.savez_compressed(
+            tmp / "confidence.npz", x=est.x, y=est.y,
+            residual_px=check.residual_map_px, confidence=check.confidence,
+        )
+
+
+def _write_figures(
+    tmp: Path, cal: RigCalibration, images: dict[str, Any], result: RestoreResult,
+    scores: Scores | None, truth: Truth | None,
+) -> None:
+    """The views with the mask, the confidence map and, with truth, error map, profile and
+    corners."""
     from restoration import figures
 
-    with atomic_dir(target) as tmp:
-        if result.restored:
-            est = result.surface.heightfield
-            est.save(tmp / "heightfield_est.npz")
-            est.to_trimesh().export(tmp / "surface_est.ply")
-            write_exr(tmp / "restored.exr", result.view.image)
-            write_png(tmp / "restored.png", result.view.image, exposure=1.0)
-            valid = result.view.valid
-            write_png(tmp / "restored_mask.png", (valid * np.uint8(255)).astype(np.uint8))
-            figures.views_figure(_view_panels(cal, images, result, scores, truth), valid,
-                                 tmp / "distorted_vs_restored.png")
-            if result.consistency is not None:
-                check = result.consistency
-                np.savez_compressed(
-                    tmp / "confidence.npz", x=est.x, y=est.y,
-                    residual_px=check.residual_map_px, confidence=check.confidence,
-                )
-                figures.confidence_figure(est, check.residual_map_px, check.threshold_px,
-                                          tmp / "confidence.png")
-        if scores is not None and scores.error_map_mm is not None:
-            est = result.surface.heightfield
-            figures.error_map_figure(est, scores.error_map_mm, tmp / "error_map.png")
-            y0 = float(np.nanmedian(result.surface.points_mm[:, 1]))
-            figures.profile_figure(
-                *surface_profile(est, truth.surface, y0), y0, tmp / "profile.png"
-            )
-        if scores is not None and scores.corner_points_px:
-            figures.corner_scatter_figure(
-                scores.corner_points_px,
-                {"distorted": scores.corner_std_distorted_px,
-                 "restored": scores.corner_std_restored_px},
-                tmp / "corners.png",
-            )
-        write_json(tmp / "metrics.json", metrics)
+    if not result.restored:
+        return
+    est = result.surface.heightfield
+    figures.views_figure(_view_panels(cal, images, result, scores, truth), result.view.valid,
+                         tmp / "distorted_vs_restored.png")
+    if result.consistency is not None:
+        check = result.consistency
+        figures.confidence_figure(est, check.residual_map_px, check.threshold_px,
+                                  tmp / "confidence.png")
+    if scores is not None and scores.error_map_mm is not None:
+        figures.error_map_figure(est, scores.error_map_mm, tmp / "error_map.png")
+        y0 = float(np.nanmedian(result.surface.points_mm[:, 1]))
+        figures.profile_figure(*surface_profile(est, truth.surface, y0), y0, tmp / "profile.png")
+    if scores is not None and scores.corner_points_px:
+        figures.corner_scatter_figure(
+            scores.corner_points_px,
+            {"distorted": scores.corner_std_distorted_px,
+             "restored": scores.corner_std_restored_px},
+            tmp / "corners.png",
+        )
 
 
 def _view_panels(

@@ -10,11 +10,17 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from wai.sweep import add_sweep_arguments
 from wai_core.errors import WaiInputError
 
 EXIT_BAD_INPUT = 2
 SCENE_HELP = "scene: a packaged name (paper, alterman) or a TOML file"
+
+
+class _Parser(argparse.ArgumentParser):
+    """A parser whose usage errors are bad input like any other: one line, exit code 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise WaiInputError(f"{self.prog}: {message} (see '{self.prog} --help')")
 
 
 class _Help(argparse.HelpFormatter):
@@ -101,6 +107,8 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
         "--seeds", type=int, default=None, help="seeds 0..K-1 (default: paper 10, alterman 3)"
     )
     p.add_argument("--quick", action="store_true", help="a small version (for CI)")
+    from wai.sweep import add_sweep_arguments
+
     add_sweep_arguments(p)
     p.set_defaults(func=_cmd_experiment)
 
@@ -117,7 +125,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="render both optical systems for one sea state")
-    p.add_argument("config", type=Path, help="scene TOML, e.g. scenes/paper.toml")
+    p.add_argument("config", help=SCENE_HELP)
     p.add_argument("--out", type=Path, default=Path("renders/latest"), help="output folder")
     p.add_argument("--wind", type=float, help="wind speed U at 19.5 m, m/s")
     p.add_argument("--time", type=float, help="time t, s")
@@ -125,7 +133,14 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--heightfield", type=Path, help="surface file (.npz with x, y, z in mm)")
     p.add_argument("--surface", choices=["dielectric", "mirror"], help="water surface material")
     p.add_argument("--spp", type=int, help="samples per pixel of both renders")
-    p.add_argument("--variant", default="auto", help="Mitsuba variant (auto, llvm_ad_rgb, ...)")
+    p.add_argument(
+        "--variant", default="auto", help="Mitsuba variant: auto, llvm_ad_rgb or cuda_ad_rgb"
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --out folder that is not a previous render (never a file)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_render)
 
@@ -197,7 +212,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``wai``."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="wai", description="Wavy water-air interface testbed (Jian et al. 2022)."
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
@@ -208,17 +223,32 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point; returns the exit code."""
-    args = build_parser().parse_args(argv)
-    func: Callable[[argparse.Namespace], int] = args.func
-    try:
-        return func(args)
-    except WaiInputError as exc:
-        print(f"wai: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("wai: interrupted", file=sys.stderr)
-        return 130
+    """Entry point; returns the exit code.
+
+    Bad input: one line on stderr, exit code 2. SIGINT / SIGTERM: one line, exit code 130 /
+    143, temporary outputs removed (:func:`wai_core.io.catch_signals` turns both into
+    exceptions); an error that follows a signal (a library that swallowed it) counts as it.
+    """
+    from wai_core.io import Terminated, catch_signals
+
+    with catch_signals() as caught:
+        try:
+            args = build_parser().parse_args(argv)
+            func: Callable[[argparse.Namespace], int] = args.func
+            code = func(args)
+            if caught.signum is None:
+                return code
+        except WaiInputError as exc:
+            if caught.signum is None:
+                print(f"wai: error: {exc}", file=sys.stderr)
+                return EXIT_BAD_INPUT
+        except (KeyboardInterrupt, Terminated):
+            pass
+        except Exception:
+            if caught.signum is None:
+                raise
+        print(f"wai: {caught.message}", file=sys.stderr)
+        return caught.exit_code
 
 
 if __name__ == "__main__":

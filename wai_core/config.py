@@ -248,6 +248,8 @@ def validate(cfg: SystemConfig) -> None:
         raise WaiInputError("config: [waves] needs wind_speed >= 0 and at least one component")
     if not 0 < wv.omega_min_rel < wv.omega_max_rel:
         raise WaiInputError("config: [waves] needs 0 < omega_min_rel < omega_max_rel")
+    if wv.seed < 0:
+        raise WaiInputError(f"config: [waves].seed must be >= 0, not {wv.seed}")
     if cfg.pattern.spacing_px <= 2 * cfg.pattern.sigma_px:
         raise WaiInputError("config: [pattern].spacing_px must exceed twice sigma_px")
     for name in ("projector", "camera_s", "camera_v"):

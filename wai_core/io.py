@@ -1,7 +1,28 @@
-"""Reading and writing images, render folders and JSON, atomically.
+"""Reading and writing images, render folders and JSON, atomically; the output policy.
 
 Outputs are written under a temporary sibling path and renamed into place when complete, so a
 crash or a bad input never leaves a half-written result behind.
+
+Output policy (:func:`atomic_dir` with ``command``, :func:`check_output_dir`)
+---------------------------------------------------------------------------
+- Every output folder holds a marker, :data:`OUTPUT_MARKER` (``.wai-output.json``), naming the
+  command that wrote it and the files it wrote. It is the first file of the temporary folder,
+  so even a killed run's leftover is recognisable as the tool's own.
+- An existing folder is replaced (atomically: rename aside, rename the new one in, delete the
+  old one) only when it is empty or a previous output of the same command holding nothing
+  else (the tool's outputs nested in it, e.g. ``DIR/restore/``, and the figures other commands
+  add, count as its own). Any other folder is refused
+  (:class:`~wai_core.errors.WaiInputError`) unless ``overwrite`` is set; a regular file, a
+  symbolic link, the current folder (or one above it) are always refused.
+- The location is checked before any work starts: every existing part of the path must be a
+  folder, and the folder the output goes in must be writable (probed with a temporary folder
+  that is removed at once).
+- Temporary folders are named ``.NAME.tmp-PID-XXXX`` (and ``.NAME.old-PID`` while swapping).
+  They are removed on any exception, ``KeyboardInterrupt`` included; a later run removes the
+  ones a killed run left (its process gone, the marker naming the same command), and only
+  those.
+- :func:`catch_signals` (used by the ``wai`` command) turns SIGINT / SIGTERM into exceptions so
+  that this clean-up also runs when the process is interrupted or terminated.
 """
 
 from __future__ import annotations
@@ -9,9 +30,14 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
+import signal
 import tempfile
+import threading
+import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,32 +46,417 @@ from numpy.typing import NDArray
 
 from wai_core.errors import WaiInputError
 
+OUTPUT_MARKER = ".wai-output.json"
+"""File inside every output folder written with a ``command``: who wrote the folder, and what."""
+
+_MARKER_FORMAT = "wai-output/1"
+_LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?:tmp|old)-(?P<pid>\d+)(?:-[A-Za-z0-9_]+)?$")
+# Folders written before markers existed, recognised by a file they must hold and the names
+# they may hold (None: any regular file).
+_RENDER_FILES = frozenset(
+    [f"{stem}.{ext}" for stem in ("pattern", "pattern_flat", "view", "view_truth", "sunspots",
+                                  "sunspots_flat") for ext in ("exr", "png")]
+    + ["heightfield.npz", "surface.ply", "scene.json"]
+)
+# Files other wai commands add to an output afterwards (the overview figures ``wai demo`` and
+# ``wai experiment paper`` draw into a render folder, ``wai bench`` its report into the one it
+# renders): the folder stays the tool's own. Code that adds others calls register_output_files.
+_ADDED_LATER: dict[str, frozenset[str]] = {
+    "render": frozenset({"fig10_surface.png", "pattern_flat_vs_wavy.png", "view_flat_vs_wavy.png",
+                         "bench.json", "bench.png"}),
+}
+_LEGACY_OUTPUTS: dict[str, tuple[str, frozenset[str] | None]] = {
+    "render": ("scene.json", _RENDER_FILES | _ADDED_LATER["render"]),
+    "restore": ("metrics.json", None),
+}
+
+
+# ----------------------------------------------------------------------------------------------
+# Signals: SIGINT and SIGTERM as exceptions, so that temporary outputs are cleaned up
+# ----------------------------------------------------------------------------------------------
+
+
+class Terminated(BaseException):
+    """Raised by :func:`catch_signals`' SIGTERM handler (like ``KeyboardInterrupt`` for SIGINT):
+    not an ``Exception``, so only clean-up code (``finally``, ``except BaseException``) sees it."""
+
+
+@dataclass
+class CaughtSignal:
+    """What :func:`catch_signals` caught: the signal number (None: none yet)."""
+
+    signum: int | None = None
+
+    @property
+    def exit_code(self) -> int:
+        """128 + the signal number (130 for SIGINT, 143 for SIGTERM)."""
+        return 128 + (self.signum or signal.SIGINT)
+
+    @property
+    def message(self) -> str:
+        """One word for the user: ``interrupted`` or ``terminated``."""
+        return "terminated" if self.signum == signal.SIGTERM else "interrupted"
+
+    def exception(self) -> BaseException:
+        """The exception the signal stands for."""
+        return Terminated() if self.signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+_CAUGHT: list[CaughtSignal] = []
+
+
+def raise_if_interrupted() -> None:
+    """Raise the caught signal's exception again if :func:`catch_signals` caught one.
+
+    Some libraries swallow ``KeyboardInterrupt`` (trimesh wraps its optional imports in
+    ``except BaseException``); checkpoints call this so that such a signal still stops the work
+    before anything is committed.
+    """
+    if _CAUGHT and _CAUGHT[-1].signum is not None:
+        raise _CAUGHT[-1].exception()
+
 
 @contextlib.contextmanager
-def atomic_dir(final: str | Path, replace: bool = True) -> Iterator[Path]:
+def catch_signals() -> Iterator[CaughtSignal]:
+    """Within the block, SIGINT raises ``KeyboardInterrupt`` and SIGTERM :class:`Terminated`,
+    and the signal is remembered (see :func:`raise_if_interrupted`); the previous handlers are
+    restored at the end. Outside the main thread it changes nothing."""
+    caught = CaughtSignal()
+    if threading.current_thread() is not threading.main_thread():
+        yield caught
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        caught.signum = signum
+        raise caught.exception()
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    _CAUGHT.append(caught)
+    try:
+        yield caught
+    finally:
+        _CAUGHT.remove(caught)
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back during a few file-system steps that must not be cut in
+    half (a rename pair, a clean-up); they are delivered at the end of the block."""
+    main = threading.current_thread() is threading.main_thread()
+    mask = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, mask) if main else None
+    try:
+        yield
+    finally:
+        if old is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+# ----------------------------------------------------------------------------------------------
+# Output policy
+# ----------------------------------------------------------------------------------------------
+
+
+def output_marker(folder: str | Path) -> dict[str, Any] | None:
+    """The marker of an output folder (command, files, pid, time), or None if it has none."""
+    path = Path(folder) / OUTPUT_MARKER
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) and data.get("format") == _MARKER_FORMAT else None
+
+
+def _write_marker(folder: Path, command: str, files: list[str] | None) -> None:
+    write_json(folder / OUTPUT_MARKER, {
+        "format": _MARKER_FORMAT,
+        "command": command,
+        "complete": files is not None,
+        "files": files,
+        "pid": os.getpid(),
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    })
+
+
+def _is_legacy_output(folder: Path, command: str) -> bool:
+    """An unmarked folder that an earlier version wrote for ``command``."""
+    if command not in _LEGACY_OUTPUTS:
+        return False
+    required, names = _LEGACY_OUTPUTS[command]
+    if not (folder / required).is_file():
+        return False
+    if command == "render":
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            fmt = json.loads((folder / required).read_text()).get("format", "")
+            return str(fmt).startswith("wai-render") and _holds_only(folder, names)
+        return False
+    return _holds_only(folder, names)
+
+
+def _is_nested_output(path: Path) -> bool:
+    """A folder inside an output that the tool wrote too (marked, or an unmarked restore)."""
+    if path.is_symlink() or not path.is_dir():
+        return False
+    marker = output_marker(path)
+    if marker is not None:
+        return _holds_only(path, _marked_names(marker))
+    return path.name == "restore" and _is_legacy_output(path, "restore")
+
+
+def _marked_names(marker: dict[str, Any]) -> frozenset[str]:
+    added = _ADDED_LATER.get(str(marker.get("command")), frozenset())
+    return frozenset(marker.get("files") or ()) | added | {OUTPUT_MARKER}
+
+
+def register_output_files(folder: str | Path, names: list[str]) -> None:
+    """Record in an output folder's marker files added to it after it was written (so that a
+    later run still recognises the folder as the tool's own and may replace it); a folder
+    without a complete marker is left alone."""
+    folder = Path(folder)
+    marker = output_marker(folder)
+    if marker is None or not marker.get("complete"):
+        return
+    files = sorted(set(marker.get("files") or ()) | set(names))
+    write_json(folder / OUTPUT_MARKER, {**marker, "files": files})
+
+
+def _holds_only(folder: Path, names: frozenset[str] | None) -> bool:
+    """Every entry of ``folder`` is one of ``names`` (None: any regular file) or a nested
+    output of the tool."""
+    for entry in folder.iterdir():
+        if entry.is_symlink():
+            return False
+        if entry.is_dir():
+            if (names is None or entry.name not in names) and not _is_nested_output(entry):
+                return False
+        elif not entry.is_file() or (names is not None and entry.name not in names):
+            return False
+    return True
+
+
+def is_output_of(folder: str | Path, command: str) -> bool:
+    """True when ``folder`` is a complete previous output of ``command`` that holds nothing
+    but what the tool wrote (its own files, nested outputs such as ``restore/``)."""
+    folder = Path(folder)
+    if folder.is_symlink() or not folder.is_dir():
+        return False
+    try:
+        marker = output_marker(folder)
+        if marker is None:
+            return _is_legacy_output(folder, command)
+        return (
+            marker.get("command") == command
+            and bool(marker.get("complete"))
+            and _holds_only(folder, _marked_names(marker))
+        )
+    except OSError:
+        return False
+
+
+def _is_empty(folder: Path) -> bool:
+    return next(folder.iterdir(), None) is None
+
+
+def _foreign_entries(folder: Path, limit: int = 3) -> str:
+    try:
+        names = sorted(p.name for p in folder.iterdir())
+    except OSError:
+        return ""
+    more = f", ... ({len(names)} entries)" if len(names) > limit else ""
+    return ", holding " + ", ".join(names[:limit]) + more
+
+
+def check_output_dir(
+    final: str | Path, command: str, overwrite: bool = False, label: str | None = None
+) -> Path:
+    """Check, before any work, that a new output of ``command`` may be written at ``final``.
+
+    Parameters
+    ----------
+    final : path
+        The output folder.
+    command : str
+        The command that writes it (``"render"``, ``"restore"``): a folder is replaced without
+        ``overwrite`` only if it is a previous output of this command.
+    overwrite : bool
+        Allow replacing an existing folder that is not such an output (never a file).
+    label : str, optional
+        How the message names the location (default ``output folder FINAL``), e.g.
+        ``--out renders/f1``.
+
+    Returns
+    -------
+    Path
+        ``final`` made absolute (``.`` and ``..`` resolved, symbolic links kept).
+
+    Raises
+    ------
+    WaiInputError
+        In one line, naming ``label``: the path is the current folder or above it, a part of
+        it is a file, it is a file or a symbolic link, it is a folder that is not a previous
+        output (without ``overwrite``), or its folder is not writable.
+    """
+    label = label or f"output folder {final}"
+    path = Path(os.path.abspath(final))
+    try:
+        cwd = Path(os.path.realpath(Path.cwd()))
+        real = Path(os.path.realpath(path))
+        if real == cwd or real in cwd.parents:
+            raise WaiInputError(f"{label}: is the current folder or contains it; name a new "
+                                "folder for the output")
+        anchor = path.parent
+        while not anchor.exists() and anchor != anchor.parent:
+            anchor = anchor.parent
+        if not anchor.is_dir():
+            raise WaiInputError(f"{label}: {anchor} is a file, not a folder")
+        if path.is_symlink():
+            raise WaiInputError(f"{label}: is a symbolic link; name the folder itself")
+        if path.exists():
+            if not path.is_dir():
+                raise WaiInputError(f"{label}: is an existing file; an output is a folder")
+            if not overwrite and not _is_empty(path) and not is_output_of(path, command):
+                raise WaiInputError(
+                    f"{label}: exists and is not a previous 'wai {command}' output"
+                    f"{_foreign_entries(path)}; choose a new folder or pass --overwrite"
+                )
+    except OSError as exc:
+        raise WaiInputError(f"{label}: {exc.strerror or exc}") from None
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".wai-probe-", dir=anchor))
+    except OSError as exc:
+        raise WaiInputError(f"{label}: cannot write in {anchor}: {exc.strerror or exc}") from None
+    return path
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def remove_leftovers(final: str | Path, command: str) -> list[Path]:
+    """Remove the temporary folders that killed runs of ``command`` left beside ``final``.
+
+    Only folders named as :func:`atomic_dir` names them (``.NAME.tmp-PID-*``,
+    ``.NAME.old-PID``) whose process is gone and whose marker names ``command``.
+
+    Returns
+    -------
+    list of Path
+        The folders removed.
+    """
+    final = Path(os.path.abspath(final))
+    removed = []
+    with contextlib.suppress(OSError):
+        for entry in final.parent.iterdir():
+            m = _LEFTOVER.match(entry.name)
+            if not m or m["name"] != final.name or entry.is_symlink() or not entry.is_dir():
+                continue
+            marker = output_marker(entry)
+            if marker is None or marker.get("command") != command or _pid_alive(int(m["pid"])):
+                continue
+            _remove_output(entry)
+            removed.append(entry)
+    return removed
+
+
+def _remove_output(folder: Path) -> None:
+    """Delete a folder the tool wrote, its marker last (a removal cut short stays
+    recognisable as the tool's own)."""
+    with _signals_deferred():
+        with contextlib.suppress(OSError):
+            for entry in folder.iterdir():
+                if entry.name == OUTPUT_MARKER:
+                    continue
+                if entry.is_dir() and not entry.is_symlink():
+                    shutil.rmtree(entry, ignore_errors=True)
+                else:
+                    entry.unlink(missing_ok=True)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_dir(
+    final: str | Path,
+    replace: bool = True,
+    *,
+    command: str | None = None,
+    overwrite: bool = False,
+) -> Iterator[Path]:
     """Yield a temporary folder that becomes ``final`` when the block ends without error.
 
-    On an exception the temporary folder is removed and ``final`` is left as it was.
+    On an exception (``KeyboardInterrupt`` and :class:`Terminated` included) the temporary
+    folder is removed and ``final`` is left as it was.
+
+    Parameters
+    ----------
+    final : path
+        The output folder.
+    replace : bool
+        Without ``command``: replace whatever is at ``final`` (the behaviour before the output
+        policy), else refuse when it exists.
+    command : str, optional
+        Apply the output policy (module notes) for this command: check ``final`` first
+        (:func:`check_output_dir`), remove killed runs' leftovers, mark the folder, and replace
+        an existing one only if it is a previous output of ``command`` (or ``overwrite``).
+    overwrite : bool
+        With ``command``: also replace an existing folder that is not such an output.
     """
     final = Path(final)
+    if command is not None:
+        final = check_output_dir(final, command, overwrite)
+        remove_leftovers(final, command)
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
-    tmp.chmod(0o755)  # mkdtemp makes it private; results are for everyone to read
+    with _signals_deferred():  # no signal between creating the folder and marking it
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-{os.getpid()}-", dir=final.parent))
+        try:
+            tmp.chmod(0o755)  # mkdtemp makes it private; results are for everyone to read
+            if command is not None:
+                _write_marker(tmp, command, None)
+        except BaseException:
+            _remove_output(tmp)
+            raise
     try:
         yield tmp
+        raise_if_interrupted()
+        if command is not None:
+            names = sorted(p.name for p in tmp.iterdir() if p.name != OUTPUT_MARKER)
+            _write_marker(tmp, command, names)
+            check_output_dir(final, command, overwrite)  # it may have changed meanwhile
+        _swap_in(tmp, final, replace)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _remove_output(tmp)
         raise
-    if final.exists():
-        if not replace:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise WaiInputError(f"output exists: {final}")
-        old = final.with_name(f".{final.name}.old-{os.getpid()}")
+
+
+def _swap_in(tmp: Path, final: Path, replace: bool) -> None:
+    """Rename ``tmp`` to ``final``, first moving an existing ``final`` aside (and deleting it
+    once the new one is in place); signals wait until both renames are done."""
+    if not (final.exists() or final.is_symlink()):
+        tmp.rename(final)
+        return
+    if not replace:
+        raise WaiInputError(f"output exists: {final}")
+    old = final.with_name(f".{final.name}.old-{os.getpid()}")
+    with _signals_deferred():
         final.rename(old)
-        tmp.rename(final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        tmp.rename(final)
+        try:
+            tmp.rename(final)
+        except BaseException:
+            old.rename(final)
+            raise
+        if old.is_dir() and not old.is_symlink():
+            _remove_output(old)
+        # Anything else stays aside, as before the output policy (callers with a command
+        # never get here with a file: check_output_dir refuses it).
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:

@@ -31,14 +31,15 @@ def test_overcast_frame_reports_no_sun_and_writes_no_surface(overcast_dir, capsy
     assert len(lines) == 1 and "no_sun" in lines[0]
     metrics = json.loads((overcast_dir / "restore" / "metrics.json").read_text())
     assert metrics["status"] == "no_sun" and metrics["method"] == "alterman"
-    assert sorted(p.name for p in (overcast_dir / "restore").iterdir()) == ["metrics.json"]
+    written = sorted(p.name for p in (overcast_dir / "restore").iterdir())
+    assert written == [".wai-output.json", "metrics.json"]  # the output marker, and no surface
 
 
 @pytest.mark.parametrize(
     "extra, needle",
     [
         (["--method", "alterman", "--anchor", "integrability"], "gauge"),
-        (["--method", "sonar"], "unknown method"),
+        (["--method", "sonar"], "--method"),
         (["--method", "structured-light"], "pattern.exr"),
     ],
 )

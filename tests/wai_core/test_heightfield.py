@@ -47,5 +47,17 @@ def test_bad_heightfields(tmp_path):
         load_heightfield(path)
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"not a zip")
-    with pytest.raises(WaiInputError, match="cannot be read"):
+    with pytest.raises(WaiInputError, match="not an .npz archive"):
         load_heightfield(junk)
+    broken = tmp_path / "broken.npz"
+    broken.write_bytes(b"PK\x03\x04 and then nothing")
+    with pytest.raises(WaiInputError, match="cannot be read"):
+        load_heightfield(broken)
+    words = tmp_path / "words.npz"
+    np.savez(words, x=np.arange(5.0), y=np.arange(5.0), z=np.full((5, 5), "a"))
+    with pytest.raises(WaiInputError, match="'z' is not numeric"):
+        load_heightfield(words)
+    short = tmp_path / "short.npz"
+    np.savez(short, x=np.arange(5.0), y=np.arange(5.0), z=np.zeros((4, 5)))
+    with pytest.raises(WaiInputError, match=r"short\.npz: z must have shape"):
+        load_heightfield(short)

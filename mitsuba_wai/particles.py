@@ -1,0 +1,203 @@
+"""A particle tracer whose image is the same, bit for bit, on every run with the same seed.
+
+Mitsuba's ``ptracer`` splats each light path's camera connections into the film with atomic
+float additions from all threads at once, so the order of the additions, and with it the last
+bits of a pixel, changes from run to run (two renders of the same seed differ by ~1e-8 in a few
+thousand pixels). This tracer follows Mitsuba's ``ptracer`` step by step (same emitter, sensor
+and BSDF sampling, same random numbers in the same order, same shading-normal corrections), but
+instead of splatting it returns each connection's pixel and value, and the image is summed on
+the CPU with :func:`numpy.bincount` in sample order, in float64: a fixed order, whatever the
+number of threads or the device.
+
+Only what the repository's particle-traced scenes use is supported: no media, no directly
+visible emitters (``hide_emitters``), a box reconstruction filter and ``max_depth`` up to
+``rr_depth + 1`` (no Russian roulette), as in systems S and A.
+
+Work is split into passes of at most :data:`MAX_PASS_SAMPLES` light paths (whole samples per
+pixel), which bounds memory and keeps every pass below Dr.Jit's 2^32 wavefront limit for any
+``spp``; pass ``k > 0`` seeds its sampler with ``seed + k * PASS_SEED_STRIDE``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mitsuba_wai.variant import mitsuba
+
+# Light paths per pass (the paper's 800 x 600 film at 8 spp is one pass): 16 bytes per path and
+# bounce come back to the CPU, ~0.2 GB at most.
+MAX_PASS_SAMPLES = 1 << 22
+# Seed offset between passes (an odd constant, so passes never reuse a sampler seed).
+PASS_SEED_STRIDE = 0x9E3779B1
+_RR_DEPTH = 5
+
+
+def pass_split(spp: int, pixels: int, max_samples: int | None = None) -> list[int]:
+    """Samples per pixel of each pass: ``spp`` split into near-equal whole counts, each pass at
+    most ``max_samples`` samples (or one sample per pixel, if a single one is already more).
+
+    Parameters
+    ----------
+    spp : int
+        Samples per pixel in all, >= 1.
+    pixels : int
+        Pixels of the film, >= 1.
+    max_samples : int, optional
+        Most samples (light paths) in one pass; default :data:`MAX_PASS_SAMPLES`.
+
+    Returns
+    -------
+    list of int
+        Positive counts summing to ``spp``; the larger ones first.
+    """
+    if spp < 1 or pixels < 1:
+        raise ValueError("spp and pixels must be at least 1")
+    limit = MAX_PASS_SAMPLES if max_samples is None else max_samples
+    per_pass = max(1, limit // pixels)
+    n = -(-spp // per_pass)
+    q, r = divmod(spp, n)
+    return [q + 1] * r + [q] * (n - r)
+
+
+def _trace_pass(
+    scene: Any, spp: int, spp_total: int, seed: int, max_depth: int
+) -> list[tuple[Any, Any, Any]]:
+    """One pass: for each bounce, the film pixel (``W * H`` where none), the RGB value and the
+    pixel of a non-finite value (``W * H`` where finite) of every path's camera connection, as
+    Dr.Jit arrays (evaluated)."""
+    import drjit as dr
+
+    mi = mitsuba()
+    sensor = scene.sensors()[0]
+    film = sensor.film()
+    width, height = (int(v) for v in film.crop_size())
+    n = width * height * spp
+    sampler = sensor.sampler().clone()
+    sampler.set_sample_count(spp)
+    sampler.set_samples_per_wavefront(spp)
+    sampler.seed(seed, n)
+    scale = 1.0 / spp_total
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+
+    time = sensor.shutter_open()
+    wavelength_sample = sampler.next_1d()
+    direction_sample, position_sample = sampler.next_2d(), sampler.next_2d()
+    ray, throughput, _ = scene.sample_emitter_ray(
+        time, wavelength_sample, direction_sample, position_sample, True
+    )
+    active = dr.max(throughput) != 0.0
+    si = scene.ray_intersect(ray, active)
+    active = active & si.is_valid() & (1 < max_depth)
+    splats = []
+    for depth in range(1, max_depth):
+        bsdf = si.bsdf(ray)
+        sensor_ds, sensor_weight = sensor.sample_direction(si, sampler.next_2d(), active)
+        splats.append(_connect(scene, si, sensor_ds, bsdf, throughput * sensor_weight,
+                               scale, (width, height), ctx, active))
+        if depth == max_depth - 1:
+            break
+        bs, bsdf_val = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active),
+                                   active)
+        wi_dot_n = dr.dot(si.n, -ray.d)
+        wo_world = si.to_world(bs.wo)
+        wo_dot_n = dr.dot(si.n, wo_world)
+        cos_wi, cos_wo = mi.Frame3f.cos_theta(si.wi), mi.Frame3f.cos_theta(bs.wo)
+        # Shading normals: no light leaks, and the adjoint correction (Veach, p. 155).
+        active = active & (wi_dot_n * cos_wi > 0.0) & (wo_dot_n * cos_wo > 0.0)
+        throughput = throughput * bsdf_val * dr.abs((cos_wi * wo_dot_n) / (cos_wo * wi_dot_n))
+        active = active & dr.any(throughput != 0.0)
+        ray = si.spawn_ray(wo_world)
+        si = scene.ray_intersect(ray, active)
+        active = active & si.is_valid()
+    dr.eval(*[v for splat in splats for v in splat])
+    return splats
+
+
+def _connect(
+    scene: Any, si: Any, sensor_ds: Any, bsdf: Any, weight: Any, scale: float,
+    size: tuple[int, int], ctx: Any, active: Any,
+) -> tuple[Any, Any, Any]:
+    """Mitsuba ptracer's ``connect_sensor`` for a surface vertex: the film pixel (``W * H``
+    where nothing lands), the RGB value of the connection and the pixel of a non-finite value
+    (``W * H`` where it is finite), as Dr.Jit arrays."""
+    import drjit as dr
+
+    mi = mitsuba()
+    width, height = size
+    active = active & (sensor_ds.pdf > 0.0) & dr.any(weight != 0.0)
+    sensor_ray = si.spawn_ray_to(sensor_ds.p)
+    active = active & ~scene.ray_test(sensor_ray, active)
+    local_d = si.to_local(sensor_ray.d)
+    wi_dot_n = dr.dot(si.n, si.to_world(si.wi))
+    wo_dot_n = dr.dot(si.n, sensor_ray.d)
+    cos_wi, cos_wo = mi.Frame3f.cos_theta(si.wi), mi.Frame3f.cos_theta(local_d)
+    valid = (wi_dot_n * cos_wi > 0.0) & (wo_dot_n * cos_wo > 0.0)
+    correction = dr.select(valid, dr.abs((cos_wi * wo_dot_n) / (cos_wo * wi_dot_n)), 0.0)
+    value = weight * correction * bsdf.eval(ctx, si, local_d, active) * scale
+    # Box filter: a splat lands in the one pixel that contains it; the others go to an extra
+    # pixel W * H, with value 0. A non-finite value (a degenerate connection) is zeroed and its
+    # pixel reported in ``bad`` (Mitsuba's film would hold it as NaN / inf).
+    pos = mi.Vector2i(dr.floor(sensor_ds.uv))
+    inside = (pos.x >= 0) & (pos.y >= 0) & (pos.x < width) & (pos.y < height)
+    active = active & inside & dr.any(value != 0.0)
+    finite = dr.all(dr.isfinite(value))
+    none = mi.UInt32(width * height)
+    pixel = dr.select(active, mi.UInt32(pos.y * width + pos.x), none)
+    rgb = dr.select(active & finite, mi.Color3f(value), 0.0)
+    bad = dr.select(active & ~finite, pixel, none)
+    return pixel, rgb, bad
+
+
+def render_particles(
+    scene: Any, spp: int, seed: int, max_depth: int
+) -> tuple[NDArray[np.float32], int]:
+    """Render a particle-traced scene (see the module notes) to linear RGB (H, W, 3).
+
+    Parameters
+    ----------
+    scene : mitsuba.Scene
+        Loaded scene; its one sensor's film (box filter) is the image.
+    spp : int
+        Light paths per pixel, >= 1.
+    seed : int
+        Sampler seed, 0 .. 2^32 - 1; the same seed gives the same image, bit for bit.
+    max_depth : int
+        Longest path, as the ``ptracer``'s ``max_depth`` (2 .. 6).
+
+    Returns
+    -------
+    image : (H, W, 3) ndarray of float32
+        The mean over paths (as ``mitsuba.render`` of the same scene with ``ptracer``).
+    n_nonfinite : int
+        Pixels that received a non-finite splat (rare degenerate camera connections): zeroed,
+        as :func:`mitsuba_wai.render.render_image` does with Mitsuba's image.
+    """
+    import drjit as dr
+
+    if not 2 <= max_depth <= _RR_DEPTH + 1:
+        raise ValueError(f"max_depth must be 2..{_RR_DEPTH + 1}, not {max_depth}")
+    film = scene.sensors()[0].film()
+    width, height = (int(v) for v in film.crop_size())
+    n_pix = width * height
+    if not scene.emitters():  # e.g. an overcast sky: no light, as Mitsuba's ptracer says
+        return np.zeros((height, width, 3), dtype=np.float32), 0
+    total = np.zeros((3, n_pix + 1))
+    bad = np.zeros(n_pix + 1, dtype=bool)
+    for k, spp_k in enumerate(pass_split(spp, n_pix)):
+        pass_seed = (int(seed) + k * PASS_SEED_STRIDE) % 2**32
+        for pixel, rgb, nonfinite in _trace_pass(scene, spp_k, spp, pass_seed, max_depth):
+            if dr.all(pixel == n_pix):  # a bounce that never reaches the camera (delta BSDFs)
+                continue
+            if not dr.all(nonfinite == n_pix):
+                bad[np.asarray(nonfinite)] = True
+            idx, values = np.asarray(pixel), np.asarray(rgb)
+            # bincount adds in array order (in float64): the same sum on every run.
+            for c in range(3):
+                total[c] += np.bincount(idx, weights=values[c], minlength=n_pix + 1)
+    total, bad = total[:, :n_pix], bad[:n_pix]
+    total[:, bad] = 0.0
+    image = total.T.reshape(height, width, 3).astype(np.float32)
+    return image, int(bad.sum())

@@ -1,0 +1,175 @@
+"""Sequences: frames of one sea state at ``t, t + 1/fps, ...`` sharing one flat-water reference.
+
+The scenes are loaded once (:class:`~mitsuba_wai.render.FrameRenderer`) and every frame only
+rewrites the water mesh, so Dr.Jit's compiled kernels serve the whole sequence. The folder
+layout is :mod:`wai_core.sequence`'s. Frames can be rendered by any runner that calls
+:func:`render_frames` on subsets of the frame indices (the CLI spreads them over Dask
+workers, each with its own loaded renderer).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from collections.abc import Callable, Sequence
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mitsuba_wai import mesh as meshes
+from mitsuba_wai.render import (
+    OUTPUT_COMMAND,
+    FrameRenderer,
+    render_seed,
+    scene_record,
+    wave_surface,
+    write_images,
+    write_surface,
+)
+from wai_core.config import SystemConfig, config_from_dict
+from wai_core.io import atomic_dir, check_output_dir, raise_if_interrupted, write_json
+from wai_core.optics import radiance_gain
+from wai_core.rig_checks import check_surface_in_rig
+from wai_core.sequence import SEQUENCE_FILE, frame_name, frame_times, link_reference
+
+__all__ = ["FrameRunner", "render_frames", "render_sequence"]
+
+FrameRunner = Callable[[SystemConfig, Sequence[float], Sequence[int], Path], list[dict]]
+"""Renders the frames with the given indices (of a sequence with these times) into a folder
+and returns one timing row per frame: :func:`render_frames`, or a parallel runner of it."""
+
+
+@lru_cache(maxsize=2)
+def _renderer(cfg_json: str) -> FrameRenderer:
+    """One loaded renderer per configuration and process (the time does not change the grid)."""
+    cfg = config_from_dict(json.loads(cfg_json))
+    return FrameRenderer(cfg, wave_surface(cfg))
+
+
+def renderer_for(cfg: SystemConfig) -> FrameRenderer:
+    """The process's loaded renderer of ``cfg`` (its scenes and kernels, reused)."""
+    return _renderer(json.dumps(cfg.to_dict(), sort_keys=True))
+
+
+def render_frames(
+    cfg: SystemConfig, times_s: Sequence[float], indices: Sequence[int], folder: Path
+) -> list[dict[str, Any]]:
+    """Render frames ``indices`` of the sequence into ``folder/frameNNN`` (the shared
+    reference must already be in ``folder``); one row per frame with its render time, s."""
+    renderer = renderer_for(cfg)
+    seed = render_seed(cfg)
+    rows = []
+    for k in indices:
+        raise_if_interrupted()
+        t0 = time.perf_counter()
+        frame_cfg = cfg.replace("waves", time_s=float(times_s[k]))
+        surface = wave_surface(frame_cfg)
+        images = renderer.render(surface, seed)
+        out = folder / frame_name(k)
+        out.mkdir()
+        write_images(out, images, view_gain=radiance_gain(cfg.water.n_water))
+        write_surface(out, surface)
+        link_reference(folder, out)
+        record = scene_record(frame_cfg, renderer.variant, surface, "waves")
+        record["sequence"] = {"index": int(k), "time_s": float(times_s[k]), "folder": ".."}
+        write_json(out / "scene.json", record)
+        rows.append({"frame": int(k), "render_s": time.perf_counter() - t0})
+    return rows
+
+
+def render_sequence(
+    cfg: SystemConfig,
+    out_dir: str | Path,
+    n_frames: int,
+    fps: float,
+    *,
+    progress: bool = True,
+    overwrite: bool = False,
+    runner: FrameRunner | None = None,
+) -> dict[str, Any]:
+    """Render ``n_frames`` frames of ``cfg``'s sea state, ``1/fps`` s apart from
+    ``cfg.waves.time_s``, into a sequence folder (atomically, as ``wai render``).
+
+    Parameters
+    ----------
+    cfg : SystemConfig
+    out_dir : path
+        The sequence folder (the output policy of :mod:`wai_core.io` applies).
+    n_frames : int
+        Frames, >= 1.
+    fps : float
+        Frames per second, > 0.
+    progress : bool
+        A progress bar over the frames (sequential runner only).
+    overwrite : bool
+        Replace an existing folder that is not a previous render.
+    runner : FrameRunner, optional
+        Renders subsets of the frames (default: all of them here, in order).
+
+    Returns
+    -------
+    dict
+        The ``sequence.json`` record, with each frame's render time.
+
+    Examples
+    --------
+    >>> from mitsuba_wai import render_sequence
+    >>> from wai_core import load_rig
+    >>> render_sequence(load_rig("paper"), "renders/seq", 3, 30.0)   # doctest: +SKIP
+    """
+    from tqdm import tqdm
+
+    times = frame_times(cfg.waves.time_s, fps, n_frames)
+    first = cfg.replace("waves", time_s=times[0])
+    # Every frame's surface is checked against the rig before any render starts.
+    for t in times:
+        check_surface_in_rig(cfg, wave_surface(cfg.replace("waves", time_s=t)), "[waves]")
+    check_output_dir(out_dir, OUTPUT_COMMAND, overwrite)
+    t0 = time.perf_counter()
+    renderer = renderer_for(cfg)
+    grid = wave_surface(first)
+    flat = renderer.render(meshes.flat_like(grid, cfg.water.h0_mm), render_seed(cfg))
+    with atomic_dir(out_dir, command=OUTPUT_COMMAND, overwrite=overwrite) as tmp:
+        write_images(tmp, {"pattern_flat": flat["pattern"], "view_truth": flat["view"]},
+                     view_gain=radiance_gain(cfg.water.n_water))
+        reference_s = time.perf_counter() - t0
+        if runner is None:
+            rows = []
+            for k in tqdm(range(n_frames), desc="frames", disable=not progress, leave=False):
+                rows += render_frames(cfg, times, [k], tmp)
+        else:
+            rows = runner(cfg, times, list(range(n_frames)), tmp)
+        rows = sorted(rows, key=lambda r: r["frame"])
+        record = _sequence_record(cfg, renderer.variant, fps, times, rows, reference_s)
+        write_json(tmp / SEQUENCE_FILE, record)
+    return record
+
+
+def _sequence_record(
+    cfg: SystemConfig, variant: str, fps: float, times: list[float], rows: list[dict],
+    reference_s: float,
+) -> dict[str, Any]:
+    import drjit
+    import mitsuba as mi
+
+    return {
+        "format": "wai-sequence/1",
+        "config": cfg.to_dict(),
+        "fps": float(fps),
+        "seed": cfg.waves.seed,
+        "render_seed": render_seed(cfg),
+        "variant": variant,
+        "reference": {"images": ["pattern_flat", "view_truth"], "render_s": reference_s},
+        "frames": [
+            {"name": frame_name(r["frame"]), "time_s": times[r["frame"]],
+             "render_s": r["render_s"]}
+            for r in rows
+        ],
+        "versions": {
+            "mitsuba": mi.__version__, "drjit": drjit.__version__, "numpy": np.__version__,
+            "python": platform.python_version(),
+        },
+    }

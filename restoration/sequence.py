@@ -1,0 +1,292 @@
+"""Restore a sequence folder: every frame with the level tracked, per-frame and temporal scores,
+the restored movie and a distorted/restored side-by-side one.
+
+One calibration serves the whole sequence (the flat-water reference is detected once); a
+:class:`~restoration.calibration.LevelTrack` starts each frame's level search at the previous
+frame's level. Temporal scores say whether the restoration is stable in time: the view of a
+still object should not move, so the mean absolute change between consecutive restored frames
+(on pixels restored in both) is compared with the same for the distorted frames.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
+from restoration.folder import folder_metrics, write_outputs
+from restoration.methods import Method, get_method
+from restoration.options import RestoreOptions
+from restoration.scoring import Truth, score
+from wai_core.io import atomic_dir, atomic_write_bytes, to_srgb8, write_json
+from wai_core.sequence import SequenceRecord, read_sequence
+
+__all__ = ["SequenceRestore", "frame_change", "load_sequence", "restore_sequence", "write_movie"]
+
+COLUMNS = (
+    "frame", "time_s", "status", "wai_rmse_mm", "wai_rmse_demeaned_mm", "distorted_ssim",
+    "restored_ssim", "corner_std_restored_px", "residual_median_px", "anchor_mm",
+    "features_used", "end_to_end_ms", "change_distorted", "change_restored",
+)
+"""Columns of ``frames.csv``: one row per frame (the change columns compare with the previous
+frame)."""
+
+
+@dataclass
+class SequenceRestore:
+    """A restored sequence.
+
+    Attributes
+    ----------
+    sequence : SequenceRecord
+    rows : list of dict
+        One per frame (see :data:`COLUMNS`).
+    summary : dict
+        Means over ``ok`` frames, status counts, temporal stability, timings.
+    out : Path or None
+        Where the outputs were written.
+    """
+
+    sequence: SequenceRecord
+    rows: list[dict[str, Any]]
+    summary: dict[str, Any]
+    out: Path | None
+
+    def summary_lines(self) -> list[str]:
+        """What a person reads first."""
+        s = self.summary
+        lines = [f"{s['frames']} frames at {s['fps']:g} fps: statuses {s['statuses']}"]
+        if s.get("wai_rmse_mm") is not None:
+            lines.append(f"surface RMSE {s['wai_rmse_mm']:.3f} mm, restored SSIM "
+                         f"{s['restored_ssim']:.4f} (means over ok frames)")
+        lines.append(
+            f"frame-to-frame change: distorted {s['change_distorted']:.4f}, restored "
+            f"{s['change_restored']:.4f} (mean |difference|, 1 = white)"
+        )
+        lines.append(f"restoration {s['end_to_end_ms']:.1f} ms per frame (median)")
+        return lines
+
+
+def frame_change(a: NDArray, b: NDArray, mask: NDArray | None = None) -> float:
+    """Mean absolute difference of two images (H, W, 3) over ``mask`` (H, W) (all pixels by
+    default), on the object's radiance scale; NaN when nothing is compared."""
+    diff = np.abs(np.asarray(a, float) - np.asarray(b, float)).mean(axis=-1)
+    sel = diff if mask is None else diff[mask]
+    return float(sel.mean()) if sel.size else float("nan")
+
+
+def restore_sequence(
+    folder: str | Path,
+    method: str | Method = "structured-light",
+    options: RestoreOptions | None = None,
+    *,
+    write: bool = True,
+    movie: bool = True,
+    progress: bool = False,
+) -> SequenceRestore:
+    """Restore every frame of a sequence folder (see :mod:`wai_core.sequence`).
+
+    Parameters
+    ----------
+    folder : str or Path
+        The sequence folder.
+    method, options
+        As :func:`restoration.restore_folder`.
+    write : bool
+        Write ``folder/restore/`` (``frames.csv``, ``summary.json``, ``temporal.png``, the
+        movies) and each frame's own ``restore/`` (surface, restored view, ``metrics.json``;
+        no per-frame figures).
+    movie : bool
+        Write ``restored.mp4`` and ``side_by_side.mp4`` (animated GIFs where no MP4 encoder
+        is present).
+    progress : bool
+        A progress bar over the frames.
+
+    Returns
+    -------
+    SequenceRestore
+    """
+    from tqdm import tqdm
+
+    seq = read_sequence(folder)
+    meth = get_method(method, options) if isinstance(method, str) else method
+    cal = meth.calibration_type.from_record(read_scene_record(seq.frame_dirs[0]))
+    track = LevelTrack()
+    rows, restored, distorted, masks = [], [], [], []
+    for k, frame_dir in enumerate(tqdm(seq.frame_dirs, desc="frames", disable=not progress,
+                                       leave=False)):
+        images = cal.load_images(frame_dir)
+        result = meth(images, cal, track)
+        view = cal.radiance(images["view"])
+        truth = Truth.from_folder(frame_dir, cal) if result.restored else None
+        scores = None if truth is None else score(result, view, cal, truth)
+        if write:
+            metrics = folder_metrics(frame_dir, meth, result, scores, True)
+            write_outputs(frame_dir / "restore", cal, images, result, scores, truth, metrics,
+                          figures=False)
+        image = result.view.image if result.restored else np.zeros_like(view)
+        valid = result.view.valid if result.restored else np.zeros(view.shape[:2], bool)
+        rows.append(_row(k, seq.times_s[k], result, scores, view, image, valid,
+                         distorted[-1:], restored[-1:], masks[-1:]))
+        distorted.append(view)
+        restored.append(image.astype(np.float32))
+        masks.append(valid)
+    summary = _summary(seq, rows)
+    out = None
+    if write:
+        out = seq.folder / "restore"
+        with atomic_dir(out, command="restore") as tmp:
+            atomic_write_bytes(tmp / "frames.csv", _csv(rows).encode())
+            write_json(tmp / "summary.json", summary)
+            _temporal_figure(rows, tmp / "temporal.png")
+            if movie:
+                write_movie(tmp / "restored", restored, seq.fps, masks)
+                sides = [np.concatenate([d, r], axis=1) for d, r in zip(distorted, restored,
+                                                                        strict=True)]
+                write_movie(tmp / "side_by_side", sides, seq.fps)
+    return SequenceRestore(seq, rows, summary, out)
+
+
+def _row(
+    k: int, time_s: float, result: Any, scores: Any, view: NDArray, image: NDArray,
+    valid: NDArray, prev_view: list, prev_image: list, prev_mask: list,
+) -> dict[str, Any]:
+    """One ``frames.csv`` row."""
+    row: dict[str, Any] = {c: None for c in COLUMNS}
+    row.update(frame=k, time_s=time_s, status=result.status)
+    if result.restored:
+        row.update(
+            anchor_mm=result.surface.anchor.get("anchor_mm"),
+            features_used=len(result.surface.ij),
+            end_to_end_ms=result.timings_ms.get("end_to_end"),
+        )
+        if result.consistency is not None:
+            row["residual_median_px"] = result.consistency.median_px
+    if scores is not None and scores.surface is not None:
+        row.update(wai_rmse_mm=scores.rmse_mm,
+                   wai_rmse_demeaned_mm=scores.surface["rmse_demeaned_mm"])
+    if scores is not None and scores.restored is not None:
+        row.update(distorted_ssim=scores.distorted["ssim"], restored_ssim=scores.restored["ssim"],
+                   corner_std_restored_px=scores.corner_std_restored_px)
+    if prev_view:
+        both = valid & prev_mask[0]
+        row["change_distorted"] = frame_change(view, prev_view[0], both)
+        row["change_restored"] = frame_change(image, prev_image[0], both)
+    return row
+
+
+def _mean(rows: list[dict], key: str) -> float | None:
+    vals = [float(r[key]) for r in rows if r.get(key) is not None]
+    vals = [v for v in vals if np.isfinite(v)]
+    return float(np.mean(vals)) if vals else None
+
+
+def _summary(seq: SequenceRecord, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    ok = [r for r in rows if r["status"] == "ok"]
+    statuses: dict[str, int] = {}
+    for r in rows:
+        statuses[r["status"]] = statuses.get(r["status"], 0) + 1
+    times = [r["end_to_end_ms"] for r in rows if r["end_to_end_ms"] is not None]
+    return {
+        "frames": len(rows), "fps": seq.fps, "statuses": statuses, "ok": len(ok),
+        "wai_rmse_mm": _mean(ok, "wai_rmse_mm"),
+        "wai_rmse_demeaned_mm": _mean(ok, "wai_rmse_demeaned_mm"),
+        "restored_ssim": _mean(ok, "restored_ssim"),
+        "distorted_ssim": _mean(ok, "distorted_ssim"),
+        "corner_std_restored_px": _mean(ok, "corner_std_restored_px"),
+        # Over every consecutive pair (a failed frame's black image counts: it is what a
+        # viewer would see).
+        "change_distorted": _mean(rows, "change_distorted") or float("nan"),
+        "change_restored": _mean(rows, "change_restored") or float("nan"),
+        "end_to_end_ms": float(np.median(times)) if times else float("nan"),
+        "seed": seq.record.get("seed"),
+    }
+
+
+def _csv(rows: list[dict[str, Any]]) -> str:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(COLUMNS))
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({k: "" if v is None else v for k, v in r.items()})
+    return buf.getvalue()
+
+
+def _temporal_figure(rows: list[dict[str, Any]], path: Path) -> None:
+    """Surface RMSE and restored SSIM against time, and the frame-to-frame change."""
+    from restoration.figures import plt, save_figure
+
+    t = [r["time_s"] for r in rows]
+
+    def col(key: str) -> list[float]:
+        return [np.nan if r[key] is None else float(r[key]) for r in rows]
+
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.6))
+    axes[0].plot(t, col("wai_rmse_mm"), "o-")
+    axes[0].set(xlabel="t (s)", ylabel="surface RMSE (mm)", title="surface error")
+    axes[1].plot(t, col("distorted_ssim"), "s--", label="distorted")
+    axes[1].plot(t, col("restored_ssim"), "o-", label="restored")
+    axes[1].set(xlabel="t (s)", ylabel="SSIM", title="view quality")
+    axes[1].legend(fontsize=8)
+    axes[2].plot(t, col("change_distorted"), "s--", label="distorted")
+    axes[2].plot(t, col("change_restored"), "o-", label="restored")
+    axes[2].set(xlabel="t (s)", ylabel="mean |frame - previous|",
+                title="stability in time (a still object)")
+    axes[2].legend(fontsize=8)
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def write_movie(
+    stem: Path, frames: list[NDArray], fps: float, masks: list[NDArray] | None = None
+) -> Path:
+    """Write linear frames (H, W, 3) as ``stem.mp4`` (OpenCV's MPEG-4 writer), or
+    ``stem.gif`` where no MP4 encoder is present; pixels outside ``masks`` are grey.
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    import cv2
+
+    frames8 = []
+    for k, f in enumerate(frames):
+        img = to_srgb8(f, 1.0)
+        if masks is not None:
+            img = np.where(masks[k][..., None], img, np.uint8(96))
+        frames8.append(img)
+    h, w = frames8[0].shape[:2]
+    path = stem.with_suffix(".mp4")
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+    if writer.isOpened():
+        for img in frames8:
+            writer.write(np.ascontiguousarray(img[..., ::-1]))
+        writer.release()
+        if path.is_file() and path.stat().st_size > 0:
+            return path
+    from PIL import Image
+
+    path = stem.with_suffix(".gif")
+    pics = [Image.fromarray(img) for img in frames8]
+    pics[0].save(path, save_all=True, append_images=pics[1:], duration=int(1000 / fps), loop=0)
+    return path
+
+
+def load_sequence(
+    folder: str | Path, method: str | Method = "structured-light"
+) -> tuple[RigCalibration, list[dict[str, NDArray]]]:
+    """The calibration and every frame's images of a sequence folder, in order (what a video
+    benchmark restores in a loop)."""
+    seq = read_sequence(folder)
+    meth = get_method(method) if isinstance(method, str) else method
+    cal = meth.calibration_type.from_record(read_scene_record(seq.frame_dirs[0]))
+    return cal, [cal.load_images(d) for d in seq.frame_dirs]
