@@ -124,7 +124,10 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("render", help="render both optical systems for one sea state")
+    p = sub.add_parser(
+        "render", help="render both optical systems for one sea state (or a sequence)",
+        formatter_class=_Help,
+    )
     p.add_argument("config", help=SCENE_HELP)
     p.add_argument("--out", type=Path, default=Path("renders/latest"), help="output folder")
     p.add_argument("--wind", type=float, help="wind speed U at 19.5 m, m/s")
@@ -140,6 +143,21 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
         "--overwrite",
         action="store_true",
         help="replace an existing --out folder that is not a previous render (never a file)",
+    )
+    p.add_argument(
+        "--frames", type=int, default=1,
+        help="frames of a sequence of the same sea state, 1/FPS s apart from --time; more "
+        "than 1 writes a sequence folder (one flat-water reference, a folder per frame)",
+    )
+    p.add_argument("--fps", type=float, default=30.0, help="frames per second of a sequence")
+    p.add_argument(
+        "--workers", type=int, default=0,
+        help="sequence: Dask worker processes rendering frames (0: here, in order)",
+    )
+    p.add_argument(
+        "--scheduler", metavar="ADDRESS",
+        help="sequence: a running Dask scheduler (tcp://host:8786) whose workers share --out's "
+        "file system",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_render)

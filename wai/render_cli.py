@@ -89,14 +89,21 @@ def _prepare(args: argparse.Namespace) -> tuple[Heightfield | None, str]:
 
 
 def run_render(args: argparse.Namespace) -> None:
-    """Render the configured frame into ``args.out`` and print a one-line summary."""
+    """Render the configured frame (or ``--frames`` of them) into ``args.out`` and print a
+    one-line summary."""
     from mitsuba_wai.render import render_folder
 
     scene = resolve_scene(args.config)  # a packaged scene's name, or a TOML file
+    sequence = getattr(args, "frames", 1) != 1
     if scene.is_file() and is_alterman_file(scene):
+        if sequence:
+            raise WaiInputError("--frames: sequences of the sun sensor are not supported")
         run_render_alterman(args)
         return
     cfg = apply_overrides(load_config(scene), args)
+    if sequence:
+        run_render_sequence(cfg, args)
+        return
     given, variant = _prepare(args)
     record = render_folder(
         cfg,
@@ -140,3 +147,81 @@ def run_render_alterman(args: argparse.Namespace) -> None:
         f"rendered {args.out} (sun sensor, {state}, {variant}, "
         f"U={system.base.waves.wind_speed_m_s} m/s, seed={system.base.waves.seed}) in {total:.1f} s"
     )
+
+
+def _check_sequence(args: argparse.Namespace) -> None:
+    """``--frames``, ``--fps`` and the runner options of a sequence, before any work."""
+    if args.frames < 1:
+        raise WaiInputError(f"--frames must be at least 1, not {args.frames}")
+    _check_number("--fps", args.fps, "frames/s", None)
+    if not args.fps > 0:
+        raise WaiInputError(f"--fps must be > 0, not {args.fps:g}")
+    if args.heightfield is not None:
+        raise WaiInputError("--heightfield: a sequence moves the sea state; give no surface file")
+    if args.workers < 0:
+        raise WaiInputError(f"--workers must be >= 0, not {args.workers}")
+
+
+def run_render_sequence(cfg: SystemConfig, args: argparse.Namespace) -> None:
+    """``--frames N --fps F``: a sequence folder (:mod:`wai_core.sequence`), its frames
+    rendered here or on Dask workers (``--workers``, ``--scheduler``)."""
+    from mitsuba_wai.sequence import render_sequence
+
+    _check_sequence(args)
+    _, variant = _prepare(args)
+    use_dask = args.scheduler is not None or args.workers > 0
+    runner = _dask_runner(args) if use_dask else None
+    record = render_sequence(
+        cfg, args.out, args.frames, args.fps, progress=not args.quiet,
+        overwrite=getattr(args, "overwrite", False), runner=runner,
+    )
+    total = record["reference"]["render_s"] + sum(f["render_s"] for f in record["frames"])
+    print(
+        f"rendered {args.out}: {args.frames} frames at {args.fps:g} fps from t = "
+        f"{cfg.waves.time_s} s ({variant}, U={cfg.waves.wind_speed_m_s} m/s, "
+        f"seed={cfg.waves.seed}) in {total:.1f} s of rendering"
+    )
+
+
+def _dask_runner(args: argparse.Namespace):  # -> mitsuba_wai.sequence.FrameRunner
+    """A runner that spreads a sequence's frames over the sweep runner's Dask workers, each
+    rendering with its own loaded scenes into the sequence's temporary folder."""
+    import json
+    import tempfile
+    from pathlib import Path
+
+    from wai.sweep import run_sweep
+
+    def runner(cfg: SystemConfig, times: list[float], indices: list[int], folder: Path) -> list:
+        points = [
+            {"frame": int(k), "config": json.dumps(cfg.to_dict()), "times": json.dumps(times),
+             "folder": str(folder)}
+            for k in indices
+        ]
+        with tempfile.TemporaryDirectory(prefix="wai-frames-") as tmp:
+            rows = run_sweep(
+                points, render_frame_point, Path(tmp) / "frames.csv", scheduler=args.scheduler,
+                workers=max(args.workers, 1), progress=not args.quiet, key=["frame"],
+            )
+        bad = [r for r in rows if r.get("status") != "ok"]
+        if bad or len(rows) != len(points):
+            why = bad[0].get("status") if bad else "a frame did not finish"
+            raise RuntimeError(f"sequence frame failed: {why}")
+        return [{"frame": int(r["frame"]), "render_s": float(r["render_s"])} for r in rows]
+
+    return runner
+
+
+def render_frame_point(point: dict) -> dict:
+    """One sequence frame on a worker (a sweep point: frame index, configuration, times and
+    the sequence's folder); its render time."""
+    import json
+    from pathlib import Path
+
+    from mitsuba_wai.sequence import render_frames
+    from wai_core.config import config_from_dict
+
+    cfg = config_from_dict(json.loads(point["config"]))
+    row = render_frames(cfg, json.loads(point["times"]), [int(point["frame"])],
+                        Path(point["folder"]))[0]
+    return {"render_s": row["render_s"]}

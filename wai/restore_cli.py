@@ -19,6 +19,11 @@ def run_restore(args: argparse.Namespace) -> None:
     # The structured light finds the height from integrability; the sun sensor cannot.
     anchor = args.anchor or ("gauge" if args.method == "alterman" else "integrability")
     options = RestoreOptions(integrator=args.integrator, n_refine=args.refine, anchor=anchor)
+    from wai_core.sequence import is_sequence
+
+    if is_sequence(args.dir):
+        run_restore_sequence(args, options)
+        return
     done = restore_folder(args.dir, args.method, options, progress=not args.quiet)
     for line in done.summary_lines():
         print(line)
@@ -26,3 +31,16 @@ def run_restore(args: argparse.Namespace) -> None:
     if status != "ok":
         print(f"wai: warning: {args.dir}: frame status {status}: {done.result.message}",
               file=sys.stderr)
+
+
+def run_restore_sequence(args: argparse.Namespace, options: RestoreOptions) -> None:
+    """A sequence folder: every frame, the per-frame table, the movies and temporal scores."""
+    from restoration.sequence import restore_sequence
+
+    done = restore_sequence(args.dir, args.method, options, progress=not args.quiet)
+    for line in done.summary_lines():
+        print(line)
+    print(f"per-frame table, movies and figures: {done.out}")
+    bad = {k: v for k, v in done.summary["statuses"].items() if k != "ok"}
+    if bad:
+        print(f"wai: warning: {args.dir}: frames with status {bad}", file=sys.stderr)

@@ -147,7 +147,7 @@ def test_bench_video_reports_latency_and_throughput(quick_toml, tmp_path, capsys
     (one,) = res["throughput"]
     assert one["workers"] == 1 and one["frames"] == 3
     assert one["fps"] <= 1e3 / one["worker_ms_median"] * 1.05
-    assert (tmp_path / "v" / "frame00" / "scene.json").is_file()
+    assert (tmp_path / "v" / "sequence" / "frame000" / "scene.json").is_file()
     assert main([*args[:-1]]) == 0  # a rerun renders nothing new and prints the report
     assert "throughput, 1 worker(s)" in capsys.readouterr().out
 

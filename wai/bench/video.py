@@ -24,35 +24,33 @@ from wai.bench.timing import machine, reference_workload, summarize
 from wai.sweep import THREAD_VARIABLES, limit_native_threads, scoped_environ
 from wai_core.errors import WaiInputError
 
-FRAME_INTERVAL_S = 1.0 / 30.0
+FPS = 30.0
+"""Frame rate of the rendered sequence."""
 
 # Per worker process: the calibration and the frames' images, loaded by _init_worker.
 _STATE: dict[str, Any] = {}
 
 
-def render_sequence(config: Path, out: Path, n_frames: int) -> list[Path]:
-    """Render (once) ``n_frames`` consecutive frames into ``out/frameNN``; returns the folders."""
-    from mitsuba_wai.render import render_folder
+def sequence_folder(config: str, out: Path, n_frames: int) -> Path:
+    """The sequence of ``n_frames`` frames at :data:`FPS` in ``out/sequence``, rendered once
+    (by :func:`mitsuba_wai.sequence.render_sequence`, what ``wai render --frames`` runs)."""
+    from mitsuba_wai.sequence import render_sequence
+    from wai_core.sequence import is_sequence, read_sequence
     from wai_core.system import load_rig
 
-    cfg = load_rig(config)
-    folders = []
-    for k in range(n_frames):
-        folder = out / f"frame{k:02d}"
-        if not (folder / "scene.json").is_file():
-            t = cfg.waves.time_s + k * FRAME_INTERVAL_S
-            render_folder(cfg.replace("waves", time_s=t), folder, progress=False)
-        folders.append(folder)
-    return folders
+    folder = out / "sequence"
+    if not (is_sequence(folder) and len(read_sequence(folder).frames) == n_frames):
+        render_sequence(load_rig(config), folder, n_frames, FPS, progress=False)
+    return folder
 
 
-def _init_worker(folders: list[str]) -> None:
+def _init_worker(folder: str) -> None:
     """Load the calibration and every frame's images; prepare the reference; warm up."""
-    from restoration import Calibration, LevelTrack, StructuredLight
+    from restoration import LevelTrack, StructuredLight
+    from restoration.sequence import load_sequence
 
     limit_native_threads(1)
-    cal = Calibration.from_folder(folders[0])
-    frames = [cal.load_images(f) for f in folders]
+    cal, frames = load_sequence(folder)
     restore = StructuredLight()
     restore(frames[0], cal)  # prepares the reference and warms every code path
     _STATE.update(cal=cal, frames=frames, restore=restore, track=LevelTrack())
@@ -68,12 +66,12 @@ def _restore_frame(index: int) -> tuple[np.ndarray, float]:
     return img8, ms
 
 
-def throughput(folders: list[Path], workers: int, n_frames: int) -> dict[str, Any]:
+def throughput(folder: Path, workers: int, n_frames: int) -> dict[str, Any]:
     """Frames per second over ``n_frames`` restorations spread over ``workers`` processes."""
     # Spawned workers load OpenBLAS before any task: they must inherit one thread each.
     with scoped_environ({name: "1" for name in THREAD_VARIABLES}):
         ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, _init_worker, ([str(f) for f in folders],)) as pool:
+        with ctx.Pool(workers, _init_worker, (str(folder),)) as pool:
             pool.map(_restore_frame, range(workers), chunksize=1)  # every worker is ready
             t0 = time.perf_counter()
             worker_ms = [ms for _, ms in pool.imap(_restore_frame, range(n_frames), chunksize=1)]
@@ -93,11 +91,11 @@ def bench_video(args: argparse.Namespace) -> dict[str, Any]:
         if getattr(args, name) < 1:
             raise WaiInputError(f"--{name} must be at least 1, got {getattr(args, name)}")
     out = Path(args.out or "renders/bench_video")
-    folders = render_sequence(args.config, out, args.sequence)
-    from restoration import Calibration, LevelTrack, StructuredLight
+    folder = sequence_folder(args.config, out, args.sequence)
+    from restoration import LevelTrack, StructuredLight
+    from restoration.sequence import load_sequence
 
-    cal = Calibration.from_folder(folders[0])
-    frames = [cal.load_images(f) for f in folders]
+    cal, frames = load_sequence(folder)
     restore, track = StructuredLight(), LevelTrack()
     restore(frames[0], cal, track)
     reference = reference_workload()
@@ -110,9 +108,10 @@ def bench_video(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "machine": machine(),
         "reference": reference,
-        "sequence": [str(f) for f in folders],
+        "sequence": str(folder),
+        "frames_in_sequence": len(frames),
         "latency": summarize(samples),
-        "throughput": [throughput(folders, w, args.frames) for w in counts],
+        "throughput": [throughput(folder, w, args.frames) for w in counts],
     }
 
 
@@ -122,7 +121,7 @@ def print_video(res: dict[str, Any]) -> None:
     print(
         f"latency (one process): median {lat['median_ms']:.1f} ms "
         f"({1e3 / lat['median_ms']:.1f} frames/s), IQR {lat['iqr_ms']:.1f} ms, "
-        f"{lat['runs']} restorations of {len(res['sequence'])} frames, "
+        f"{lat['runs']} restorations of {res['frames_in_sequence']} frames, "
         f"{res['machine']['cores']} cores"
     )
     ref = res["reference"]
