@@ -321,6 +321,7 @@ class StructuredLight:
                 features, surface = resolve_label_shift(
                     features, surface, reference, cfg, options
                 )
+            surface.heightfield  # noqa: B018  (gridded here: a patch too small to grid fails)
         except WaiInputError as exc:
             return RestoreResult(self.name, "failed", str(exc))
         if track is not None:

@@ -23,6 +23,8 @@ Point keys (all optional except ``config`` and ``seed``)
     Comma-separated integrator names: each is run on the same frame, columns get a suffix.
 ``warp_steps`` (str)
     Comma-separated warp steps (px): the reverse trace is run at each on the same surface.
+``refinements`` (str)
+    Comma-separated names of :data:`REFINEMENTS` run on the same frame (columns get a suffix).
 ``repeats`` (int, default 3)
     Timed restorations per variant; the median is reported.
 
@@ -197,19 +199,23 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     base = RestoreOptions()
     integrators = _names(point.get("integrators"), base.integrator)
     steps = [int(s) for s in _names(point.get("warp_steps"), str(base.warp_step_px))]
+    refinements = _names(point.get("refinements"), "default")
     repeats = int(point.get("repeats", 3))
     try:
         cal.prepare(images["pattern_flat"])
         for name in integrators:
             for step in steps:
-                options = replace(base, integrator=name, warp_step_px=step)
-                result, ms = _timed_restore(images, cal, options, repeats)
-                if result.status == "failed":
-                    raise WaiInputError(result.message)
-                suffix = _suffix(name, step, integrators, steps)
-                scores = _scores(result, images, cal, surface)
-                row.update({f"{k}{suffix}": v for k, v in scores.items()})
-                row.update({f"ms_{k}{suffix}": v for k, v in ms.items()})
+                for ref in refinements:
+                    options = replace(base, integrator=name, warp_step_px=step,
+                                      **REFINEMENTS[ref])
+                    result, ms = _timed_restore(images, cal, options, repeats)
+                    if result.status == "failed":
+                        raise WaiInputError(result.message)
+                    suffix = _suffix(name, step, integrators, steps)
+                    suffix += f"_{ref}" if len(refinements) > 1 else ""
+                    scores = _scores(result, images, cal, surface)
+                    row.update({f"{k}{suffix}": v for k, v in scores.items()})
+                    row.update({f"ms_{k}{suffix}": v for k, v in ms.items()})
         row.update(correspondence_counts(cfg, surface, result.features))
         row.update({f"count_{k}": v for k, v in result.features.counts.items()})
     except WaiInputError as exc:
@@ -221,6 +227,16 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     row["method_status"] = result.status
     row["frame_status"] = "wrong_labels" if wrong else result.status
     return row
+
+
+REFINEMENTS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "converged": {"converge_mm": 0.0},
+    "fit": {"fit_spots": True},
+}
+"""Surface refinements a point may compare (``refinements``): the default (3 passes, more
+only when they leave heights moving by ``converge_mm``), the fixed point always converged,
+and the Gauss-Newton fit to the spots (:mod:`restoration.fit`)."""
 
 
 def _suffix(name: str, step: int, names: list[str], steps: list[int]) -> str:

@@ -9,7 +9,10 @@ Four charts, each point the mean over seeds of frames rendered and restored by
 - pattern samples per pixel: spot-centre error against the geometric model against the
   pattern's render time;
 - warp step of the reverse trace (the resolution at which rays are traced exactly before the
-  restored image is interpolated): restored SSIM and corner STD against reverse-trace time.
+  restored image is interpolated): restored SSIM and corner STD against reverse-trace time;
+- surface refinement: the default fixed point, the fixed point always converged, and the
+  Gauss-Newton fit to the spots (:mod:`restoration.fit`): surface RMSE against the surface
+  stage's time.
 
 Each chart marks the default configuration. Timings are taken inside the sweep's workers, one
 thread each: compare them with each other, and take absolute speed from ``wai bench``.
@@ -28,7 +31,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from wai.experiments.frame_eval import evaluate_frame  # noqa: E402
+from wai.experiments.frame_eval import REFINEMENTS, evaluate_frame  # noqa: E402
 from wai.figures import save_figure  # noqa: E402
 from wai.sweep import run_sweep, sweep_kwargs  # noqa: E402
 from wai_core.io import atomic_write_bytes, write_json  # noqa: E402
@@ -61,6 +64,8 @@ def tradeoff_points(config: Path, seeds: list[int], quick: bool) -> list[dict[st
         points.append(
             {**base, "chart": "warp", "seed": seed, "warp_steps": ",".join(map(str, steps))}
         )
+        points.append({**base, "chart": "refinement", "seed": seed,
+                       "refinements": ",".join(REFINEMENTS)})
     return points
 
 
@@ -72,7 +77,7 @@ def _mean(rows: list[dict], key: str) -> float:
 
 def chart_series(rows: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
     """Per chart, one entry per configuration: its label, x (time) and y (accuracy) means."""
-    charts = ("spacing", "integrator", "spp", "warp")
+    charts = ("spacing", "integrator", "spp", "warp", "refinement")
     by = {c: [r for r in rows if r.get("chart") == c] for c in charts}
     out: dict[str, list[dict[str, Any]]] = {}
     out["spacing"] = [
@@ -122,6 +127,17 @@ def chart_series(rows: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
         }
         for k in steps
     ]
+    out["refinement"] = [
+        {
+            "label": name,
+            "value": name,
+            "ms": _mean(by["refinement"], f"ms_surface_{name}"),
+            "rmse_mm": _mean(by["refinement"], f"wai_rmse_mm_{name}"),
+            "rmse_demeaned_mm": _mean(by["refinement"], f"wai_rmse_demeaned_mm_{name}"),
+            "n": len(by["refinement"]),
+        }
+        for name in REFINEMENTS
+    ]
     return out
 
 
@@ -144,8 +160,8 @@ def _panel(ax: Any, series: list[dict], y: str, default: Any, xlabel: str, ylabe
 
 
 def tradeoff_figure(series: dict[str, list[dict]], defaults: dict[str, Any], path: Path) -> None:
-    """The four speed-accuracy charts in one figure, defaults starred."""
-    fig, axes = plt.subplots(2, 2, figsize=(11, 8.5))
+    """The five speed-accuracy charts in one figure, defaults starred."""
+    fig, axes = plt.subplots(2, 3, figsize=(16, 8.5))
     _panel(axes[0, 0], series["spacing"], "rmse_mm", defaults["spacing"],
            "restoration end to end (ms)", "surface RMSE (mm)", "Pattern spacing D", logy=True)
     _panel(axes[0, 1], series["integrator"], "rmse_mm", defaults["integrator"],
@@ -155,6 +171,9 @@ def tradeoff_figure(series: dict[str, list[dict]], defaults: dict[str, Any], pat
            "pattern render (ms)", "spot-centre error, median (px)", "Pattern samples per pixel")
     _panel(axes[1, 1], series["warp"], "ssim", defaults["warp"],
            "reverse trace (ms)", "restored SSIM", "Warp step (exactly traced grid)")
+    _panel(axes[0, 2], series["refinement"], "rmse_mm", defaults["refinement"],
+           "surface stage (ms)", "surface RMSE (mm)", "Surface refinement", ordered=False)
+    axes[1, 2].set_visible(False)
     fig.tight_layout()
     save_figure(fig, path)
 
@@ -168,6 +187,7 @@ def report_markdown(series: dict[str, list[dict]], defaults: dict[str, Any], com
         "integrator": ("Integrator", ["ms", "rmse_mm", "rmse_demeaned_mm", "n"]),
         "spp": ("Pattern samples per pixel", ["ms", "spot_px", "n"]),
         "warp": ("Warp step (px)", ["ms", "ssim", "corner_px", "n"]),
+        "refinement": ("Surface refinement", ["ms", "rmse_mm", "rmse_demeaned_mm", "n"]),
     }
     for name, (title, cols) in tables.items():
         lines += [f"## {title} (default: {defaults[name]})", "",
@@ -178,7 +198,7 @@ def report_markdown(series: dict[str, list[dict]], defaults: dict[str, Any], com
         lines.append("")
     lines += ["## The defaults against the alternatives", ""]
     for name, key in (("spacing", "rmse_mm"), ("integrator", "rmse_mm"), ("spp", "spot_px"),
-                      ("warp", "ssim")):
+                      ("warp", "ssim"), ("refinement", "rmse_mm")):
         lines.append(f"- {name}: " + _verdict(series[name], key, defaults[name],
                                                higher_is_better=(key == "ssim")))
     lines += [
@@ -225,6 +245,7 @@ def run_tradeoffs(args: argparse.Namespace) -> dict[str, Any]:
         "integrator": opts.integrator,
         "spp": cfg.render.spp_pattern,
         "warp": opts.warp_step_px,
+        "refinement": "fit" if opts.fit_spots else "default",
     }
     series = chart_series(rows)
     tradeoff_figure(series, defaults, out / "tradeoffs.png")
