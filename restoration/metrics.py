@@ -396,6 +396,30 @@ def predict_corners(
     return px, ok
 
 
+CORNER_REF_FOCAL_PX = 480.0
+"""Focal length, px, of the camera v the corner statistics were tuned on (the paper's: 3 mm
+over 6.25 um pixels, 800 x 600): corner windows scale with a camera's focal length over this,
+and :func:`angular_px` expresses offsets in its pixels."""
+
+_CORNER_WIN_REF_PX = 5
+"""cornerSubPix half window at :data:`CORNER_REF_FOCAL_PX`, px (about 0.6 degrees)."""
+
+
+def corner_window_px(camera: PinholeCamera) -> int:
+    """Half window of the corner detector for ``camera``, px: 5 px at the paper's 800 x 600
+    camera v (:data:`CORNER_REF_FOCAL_PX`), the same angle for any other, at least 2 px."""
+    return max(int(round(_CORNER_WIN_REF_PX * camera.focal_px / CORNER_REF_FOCAL_PX)), 2)
+
+
+def angular_px(value_px: float | None, camera: PinholeCamera) -> float | None:
+    """A length in ``camera``'s pixels as pixels of the reference camera v (focal length
+    :data:`CORNER_REF_FOCAL_PX`): the same angle, so that cameras of any resolution compare
+    (at the paper's 5 mm sensor width, ``value_px x 800 / width_px``)."""
+    if value_px is None:
+        return None
+    return float(value_px) * CORNER_REF_FOCAL_PX / float(camera.focal_px)
+
+
 def _window_valid(valid: BoolArray, px: Array, win: int) -> BoolArray:
     """True where the (2 win + 1)^2 window around each corner is valid."""
     inner = binary_erosion(valid, np.ones((2 * win + 1, 2 * win + 1), bool), border_value=0)
@@ -415,7 +439,7 @@ def score_corners(
     restored_img: ArrayLike,
     true_surface: Heightfield,
     restored_valid: ArrayLike | None = None,
-    win: int = 5,
+    win: int | None = None,
     camera: PinholeCamera | None = None,
 ) -> dict:
     """Fig. 15: checkerboard corners in the truth, distorted and restored views.
@@ -426,6 +450,11 @@ def score_corners(
     found in the truth image, so the detector's own bias cancels. Corners beyond Snell's window,
     out of view, not found, or (restored view) near an invalid pixel are lost, never averaged.
 
+    ``win`` is :func:`refine_corners`'s half window, px; by default :func:`corner_window_px`
+    of the camera (5 px at 800 x 600, 10 px at 1600 x 1200: the same angle, so a finer camera
+    is measured over the same part of the board). Offsets stay in the camera's own pixels
+    (:func:`angular_px` converts them).
+
     Returns
     -------
     dict
@@ -434,6 +463,8 @@ def score_corners(
         :func:`corner_spread` against the truth corners; ``points_px``: (K, 2) arrays per view
         (NaN where lost) for a scatter plot.
     """
+    if win is None:
+        win = corner_window_px(_camera_v(cfg) if camera is None else camera)
     margin = win + 1
     pred, pred_ok = predict_corners(cfg, None, camera=camera, margin_px=margin)
     truth_px, truth_ok = refine_corners(truth_img, pred, win)

@@ -16,7 +16,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.calibration import RigCalibration
-from restoration.metrics import corner_spread, image_metrics, score_corners, surface_errors
+from restoration.metrics import (
+    angular_px,
+    corner_spread,
+    image_metrics,
+    score_corners,
+    surface_errors,
+)
 from restoration.result import RestoreResult
 from wai_core.heightfield import Heightfield, load_heightfield
 from wai_core.images import locate_image, read_image
@@ -70,7 +76,12 @@ class Scores:
     distorted, restored : dict or None
         ``mse``, ``psnr_db``, ``ssim`` (and pixel counts) of the views against the truth.
     corner_std_distorted_px, corner_std_restored_px : float or None
-        The paper's corner STD on the corners found in truth, distorted and restored views.
+        The paper's corner STD on the corners found in truth, distorted and restored views,
+        in camera v's own pixels.
+    corner_std_restored_px800 : float or None
+        ``corner_std_restored_px`` in pixels of the paper's 800 x 600 camera v (the same angle:
+        :func:`restoration.metrics.angular_px`, ``x 800 / width`` at its sensor width), so
+        that cameras of different resolutions compare.
     corners_common : int
         How many corners that is.
     corners : dict
@@ -89,6 +100,7 @@ class Scores:
     restored: dict[str, float] | None = None
     corner_std_distorted_px: float | None = None
     corner_std_restored_px: float | None = None
+    corner_std_restored_px800: float | None = None
     corners_common: int = 0
     corners: dict[str, Any] = field(default_factory=dict)
     view_pixels_with_object: int = 0
@@ -124,6 +136,7 @@ class Scores:
             out.update(
                 corner_std_distorted_px=self.corner_std_distorted_px,
                 corner_std_restored_px=self.corner_std_restored_px,
+                corner_std_restored_px800=self.corner_std_restored_px800,
                 corners_common=self.corners_common,
                 corners=self.corners,
             )
@@ -181,6 +194,9 @@ def score(
         same = {v: corner_spread(pts[v] - pts["truth"], common) for v in ("distorted", "restored")}
         out.corner_std_distorted_px = same["distorted"]["std_px"]
         out.corner_std_restored_px = same["restored"]["std_px"]
+        out.corner_std_restored_px800 = angular_px(
+            out.corner_std_restored_px, cal.cfg.camera_v.camera()
+        )
         out.corners_common = int(common.sum())
         out.corners = {k: v for k, v in corners.items() if k != "points_px"}
         out.corner_points_px = pts

@@ -9,7 +9,8 @@ correspondence. The stage's modules:
   (:func:`detect_spots`).
 - :mod:`~restoration.features.reference`: predict the flat-water spots from calibration
   (:func:`predict_flat_spots`) and label the flat-water spots with grid indices
-  (:func:`match_reference`, :func:`prepare_reference`).
+  (:func:`match_reference`, :func:`prepare_reference`); the calibrated spot size that
+  sets every pixel-scale constant (:func:`spot_sigma_px`).
 - :mod:`~restoration.features.match`: label the wavy-water spots by region growing, the
   ordering check and anchoring (:func:`match_distorted`); per frame
   (:func:`features_from_reference`) or all steps at once (:func:`find_features`).
@@ -38,6 +39,7 @@ from restoration.features.reference import (
     match_reference,
     predict_flat_spots,
     prepare_reference,
+    spot_sigma_px,
 )
 
 __all__ = [
@@ -54,4 +56,5 @@ __all__ = [
     "order_violations",
     "predict_flat_spots",
     "prepare_reference",
+    "spot_sigma_px",
 ]

@@ -24,6 +24,15 @@ from restoration.features._kernels import (
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from wai_core.errors import WaiInputError
 
+# The pixel-scale constants of detection (the defaults of detect_spots, _segment's wide test)
+# were tuned on the paper's rig with an 800 x 600 camera s, where a dot's spot has the
+# calibrated standard deviation _TUNED_SIGMA_PX (restoration.features.reference.spot_sigma_px:
+# the panel dot's sigma times the panel -> camera-s magnification). Given another spot size they
+# scale with it (areas with its square), so a finer camera sees the same spot the same way.
+# Constants tied to the pixel grid itself (pixelisation limits, numerical floors, the 4x coarse
+# grids of slowly varying maps) stay in pixels.
+_TUNED_SIGMA_PX = 1.517788
+
 # Centroid window: covariance _WINDOW_VAR x the segment's second moments, which hold 0.55-0.85 of
 # the spot's variance, so k^2 ~ 1.75 (k ~ 1.3) and the step gain is 1 + 1 / k^2.
 _WINDOW_VAR = 2.5
@@ -165,13 +174,15 @@ def _segment(
     work: NDArray[np.float32],
     wide_px: int = 40,
     wide_level: float = 0.005,
+    wide_blur_px: float = 4.0,
 ) -> tuple[int, NDArray[np.int32], BoolArray]:
     """Label pixels above ``rel_level`` x their local maximum (and above ``floor``).
 
     The max filter's radius is under half the spot spacing, so a pixel is compared with its own
     dot's peak: a dim dot next to a bright one is segmented like the bright one. On a wide spot
     that test holds far into the tails (the slope there is gentle), so pixels must also exceed
-    ``wide_level`` x the maximum within ``wide_px`` of a copy blurred by a 4 px Gaussian. A wide
+    ``wide_level`` x the maximum within ``wide_px`` of a copy blurred by a ``wide_blur_px``
+    Gaussian (both scale with the spot size: :func:`_pixel_scales`). A wide
     spot keeps its peak under that blur, so its segment ends at ~3.5 sigma, short of its
     neighbours; a small bright dot loses most of its peak, so a small dim neighbour survives.
 
@@ -184,10 +195,11 @@ def _segment(
     level = cv2.dilate(smooth, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)), dst=work)
     level *= rel_level
     mask = smooth > level
-    # On a 4x coarser grid: a 4 x 4 block average and a 1 px blur there make the ~4 px blur.
+    # On a 4x coarser grid: a 4 x 4 block average and a wide_blur_px / 4 blur there make the
+    # ~wide_blur_px blur.
     h, w = smooth.shape
     small = cv2.resize(smooth, (w // 4, h // 4), interpolation=cv2.INTER_AREA)
-    small = cv2.GaussianBlur(small, (0, 0), 1.0, borderType=cv2.BORDER_REFLECT)
+    small = cv2.GaussianBlur(small, (0, 0), wide_blur_px / 4.0, borderType=cv2.BORDER_REFLECT)
     k = 2 * (wide_px // 4) + 1
     level = _upsample(cv2.dilate(small, np.ones((k, k), np.uint8)), smooth.shape, work)
     level *= wide_level
@@ -314,8 +326,8 @@ def _typical_flux(flux: FloatArray) -> float:
     return float(f[np.searchsorted(cum, 0.5 * cum[-1])])
 
 
-# Half widths of the centroid boxes: multiples of 3 px, up to _BOX_MAX (the frame of zeros
-# around the image in detect_spots).
+# Half widths of the centroid boxes: multiples of 3 px, up to _BOX_MAX at the tuned spot size
+# (scaled with it: _Scales.box_max_px), the frame of zeros around the image in detect_spots.
 _BOX_MAX = 48
 
 
@@ -327,6 +339,7 @@ def _refine_centres(
     start: FloatArray,
     cov: FloatArray,
     n_iter: int = 2,
+    box_max: int = _BOX_MAX,
 ) -> FloatArray:
     """Gaussian-windowed centres (P, 2) of the kept segments ``keep`` (of ``n`` labels), from
     ``start`` (P, 2), px (as SExtractor's ``XWIN``).
@@ -343,36 +356,69 @@ def _refine_centres(
     sigmas: beyond it the spot times the window is below 0.5 %), centred on ``start`` rounded
     to a pixel. It holds the raw image there with the pixels of the other kept segments
     blanked, so a much brighter neighbour cannot pull the centre. ``padded`` is the raw image
-    with ``_BOX_MAX`` zeros around it; it is used up (blanked). One compiled loop over the
-    spots (:func:`restoration.features._kernels.windowed_centroids`).
+    with ``box_max`` zeros around it (a multiple of 3 px); it is used up (blanked). One
+    compiled loop over the spots (:func:`restoration.features._kernels.windowed_centroids`).
     """
     if len(keep) == 0:
         return np.zeros((0, 2))
     sd = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], axis=1))
-    half = np.clip(np.ceil(3.5 * sd + 1.0), 3, _BOX_MAX).astype(np.int64)
+    half = np.clip(np.ceil(3.5 * sd + 1.0), 3, box_max).astype(np.int64)
     half = 3 * ((half + 2) // 3)
     det = _WINDOW_VAR * (cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] ** 2)
     inv_win = np.stack([cov[:, 1, 1] / det, -cov[:, 0, 1] / det, cov[:, 0, 0] / det], axis=1)
     spot_of = np.full(n, -1, np.int64)
     spot_of[keep] = np.arange(len(keep))
     return windowed_centroids(
-        padded, _BOX_MAX, px.rows, px.cols, spot_of[px.lab], px.raw,
+        padded, box_max, px.rows, px.cols, spot_of[px.lab], px.raw,
         np.rint(start).astype(np.int64), half, inv_win, np.ascontiguousarray(start, float),
         _WINDOW_GAIN, n_iter,
+    )
+
+
+@dataclass(frozen=True)
+class _Scales:
+    """Pixel-scale parameters of the detection for one spot size (see :func:`_pixel_scales`)."""
+
+    smooth_px: float
+    local_radius_px: int
+    min_area_px: int
+    background_px: int
+    wide_px: int
+    wide_blur_px: float
+    box_max_px: int
+
+
+@functools.lru_cache(maxsize=16)
+def _pixel_scales(spot_sigma_px: float | None) -> _Scales:
+    """The detection's pixel-scale parameters for spots of standard deviation ``spot_sigma_px``
+    (None: the tuned ones, :data:`_TUNED_SIGMA_PX`). Lengths scale with the spot, the smallest
+    area with its square; integers are rounded, and stay at least what a pixel grid needs."""
+    k = 1.0 if spot_sigma_px is None else float(spot_sigma_px) / _TUNED_SIGMA_PX
+    if not (np.isfinite(k) and k > 0):
+        raise WaiInputError(f"spot_sigma_px must be positive, got {spot_sigma_px!r}")
+    return _Scales(
+        smooth_px=1.0 * k,
+        local_radius_px=max(int(round(3 * k)), 1),
+        min_area_px=max(int(round(3 * k * k)), 3),
+        background_px=max(int(round(25 * k)), 5),
+        wide_px=max(int(round(40 * k)), 8),
+        wide_blur_px=4.0 * k,
+        box_max_px=max(3 * int(np.ceil(_BOX_MAX / 3 * k - 1e-9)), _BOX_MAX),
     )
 
 
 def detect_spots(
     image: NDArray,
     *,
-    smooth_px: float = 1.0,
-    local_radius_px: int = 3,
+    spot_sigma_px: float | None = None,
+    smooth_px: float | None = None,
+    local_radius_px: int | None = None,
     rel_level: float = 0.25,
     snr_min: float = 6.0,
     rel_flux: float = 5e-3,
-    min_area_px: int = 3,
+    min_area_px: int | None = None,
     merge_kurtosis: float = 2.15,
-    background_px: int = 25,
+    background_px: int | None = None,
     saturation: float | None = None,
 ) -> Spots:
     """Detect the pattern's spots and measure their sub-pixel centres.
@@ -391,9 +437,16 @@ def detect_spots(
     ----------
     image : (h, w) or (h, w, 3) array_like
         Linear intensity (the channels are summed).
-    smooth_px : float
+    spot_sigma_px : float, optional
+        Expected standard deviation of a spot, px, from calibration
+        (:func:`restoration.features.reference.spot_sigma_px`). The pixel-scale parameters
+        left at None (``smooth_px``, ``local_radius_px``, ``min_area_px``, ``background_px``
+        and the segmentation's wide-spot test) follow from it: their tuned values (1.0, 3, 3,
+        25 px at a spot sigma of 1.518 px, the paper's rig at 800 x 600) scale with it, areas
+        with its square. None: the tuned values.
+    smooth_px : float, optional
         Standard deviation of the Gaussian that suppresses pixel noise before segmentation, px.
-    local_radius_px : int
+    local_radius_px : int, optional
         Radius of the local maximum filter, px; keep it under half the smallest spot spacing.
     rel_level : float
         Segment level relative to the local maximum (0-1).
@@ -403,14 +456,14 @@ def detect_spots(
         Minimum flux relative to the typical bright spot's (flux-weighted median of all
         segments): rejects Monte Carlo speckle and stray fragments of a spot's skirt while keeping
         dots up to 1 / ``rel_flux`` times dimmer than the bright ones.
-    min_area_px : int
+    min_area_px : int, optional
         Smallest segment kept, pixels.
     merge_kurtosis : float
         A spot is flagged ``merged`` when the kurtosis of its profile along its major axis is
         below this: 2.2-2.45 for a single Gaussian spot, below 2.15 for two equal dots more than
         ~3 sigma apart (closer pairs look like one dot and are caught by the matching as a spot
         claimed twice). Segments narrower than 1.3 px (second moment) are never flagged.
-    background_px : int
+    background_px : int, optional
         Window of the background estimate, px; wider than a spot's short axis.
     saturation : float, optional
         Level at or above which the raw peak is flagged ``saturated`` (None: float images never
@@ -426,9 +479,15 @@ def detect_spots(
     WaiInputError
         On a wrong shape or non-finite values.
     """
+    sc = _pixel_scales(spot_sigma_px)
+    smooth_px = sc.smooth_px if smooth_px is None else smooth_px
+    local_radius_px = sc.local_radius_px if local_radius_px is None else local_radius_px
+    min_area_px = sc.min_area_px if min_area_px is None else min_area_px
+    background_px = sc.background_px if background_px is None else background_px
     # The image sits in a frame of zeros, where the centroid boxes may reach past its edge.
-    padded = _luminance(image, _BOX_MAX)
-    lum = padded[_BOX_MAX:-_BOX_MAX, _BOX_MAX:-_BOX_MAX]
+    pad = sc.box_max_px
+    padded = _luminance(image, pad)
+    lum = padded[pad:-pad, pad:-pad]
     h, w = lum.shape
     smooth = cv2.GaussianBlur(lum, (0, 0), smooth_px, borderType=cv2.BORDER_REFLECT)
     noise = _noise_sigma(lum, smooth, smooth_px)
@@ -443,8 +502,11 @@ def detect_spots(
     lum -= bg  # now the raw, background-subtracted image
     tiny = 1e-6 * max(float(smooth.max()), 1e-30)  # keeps a noiseless zero background out
     # bg, no longer needed, is the scratch space (and then the labels).
-    n, labels, mask = _segment(smooth, local_radius_px, rel_level, max(2.0 * noise, tiny), bg)
-    px = _Pixels.of(labels, smooth, padded, _BOX_MAX)
+    n, labels, mask = _segment(
+        smooth, local_radius_px, rel_level, max(2.0 * noise, tiny), bg, sc.wide_px,
+        wide_blur_px=sc.wide_blur_px,
+    )
+    px = _Pixels.of(labels, smooth, padded, pad)
     edge = np.zeros(n, bool)  # the segment has a pixel in the image's outer rows or columns
     edge[np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])] = True
     n_saturated = None if saturated_px is None else np.bincount(labels[saturated_px], minlength=n)
@@ -458,7 +520,7 @@ def detect_spots(
     idx = np.flatnonzero(good)
     saturated = np.zeros(idx.size, bool) if n_saturated is None else n_saturated[idx] > 0
     cov, major = _spot_covariance(seg.cov[idx])
-    centres = _refine_centres(padded, px, n, idx, seg.mean[idx], cov)
+    centres = _refine_centres(padded, px, n, idx, seg.mean[idx], cov, box_max=pad)
     # Too few pixels across to tell a shape (single spots of sigma <~ 1.2 px): never "merged".
     merged = (seg.kurtosis[idx] < merge_kurtosis) & (major >= 1.3**2)
     return Spots(

@@ -389,7 +389,7 @@ def match_distorted(
     *,
     accept: float = 0.35,
     ratio: float = 0.6,
-    order_margin_px: float = 0.5,
+    order_margin_px: float | None = None,
     visible_px: FloatArray | None = None,
     prior_px: FloatArray | None = None,
     anchor: bool = True,
@@ -416,8 +416,10 @@ def match_distorted(
         Acceptance radius, in units of the local spot spacing.
     ratio : float
         Largest allowed ratio of nearest to second-nearest spot distance.
-    order_margin_px : float
-        ``dp / 2`` of eq. 33, pixels.
+    order_margin_px : float, optional
+        ``dp / 2`` of eq. 33, pixels; default 0.5 px at the tuned spot size, scaled with the
+        reference's calibrated one (:attr:`ReferenceGrid.pixel_scale`): a spot's position
+        uncertainty grows with its size in pixels.
     visible_px : (M, 2) ndarray, optional
         Convex outline where a spot would be seen (diffuser within the image), pixels; default:
         the convex hull of the flat-water spots.
@@ -501,7 +503,8 @@ def match_distorted(
     for step in (0, 2):  # _DIRS4: (1, 0), (0, 1)
         nb = where[tab.nbrs4[kept, step]]
         pairs.append((np.flatnonzero(nb >= 0), nb[nb >= 0]))
-    bad = _order_violations(pairs, ref.ref_px[kept], spot_px, order_margin_px, tree)
+    margin = 0.5 * ref.pixel_scale if order_margin_px is None else order_margin_px
+    bad = _order_violations(pairs, ref.ref_px[kept], spot_px, margin, tree)
     reason[kept[bad]] = _ORDER
     unlit = ~ref.lit[kept] & ~bad
     reason[kept[unlit]] = _UNLIT
@@ -601,7 +604,9 @@ def features_from_reference(
             f"{cam.height_px}x{cam.width_px}"
         )
     t0 = time.perf_counter()
-    wavy = flag_diffuser_edge(detect_spots(pattern_img), _outline_px(cfg))
+    wavy = flag_diffuser_edge(
+        detect_spots(pattern_img, spot_sigma_px=ref.detect_sigma_px), _outline_px(cfg)
+    )
     t1 = time.perf_counter()
     matches = match_distorted(ref, wavy, visible_px=_visible_outline(cfg))
     t2 = time.perf_counter()

@@ -8,6 +8,7 @@ once per rig rather than per frame (:func:`prepare_reference`).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -18,7 +19,7 @@ from scipy.spatial import cKDTree
 from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
 from restoration.features._outline import _diffuser, _edge_distances, _outline_px
 from restoration.features._types import BoolArray, FloatArray, IntArray
-from restoration.features.detect import Spots, detect_spots
+from restoration.features.detect import _TUNED_SIGMA_PX, Spots, detect_spots
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.geometry import intersect_plane_z, reflect
@@ -54,6 +55,10 @@ class ReferenceGrid:
         ``predicted_in_view``, ``observed``, ``unmatched_predicted``, ``unassigned_spots``.
     rms_px : float
         RMS distance between detected and calibration-predicted centres, pixels.
+    spot_sigma_px : float
+        Calibrated spot standard deviation in camera s (:func:`spot_sigma_px`), pixels: the
+        length that the pixel-scale constants of detection and matching follow; NaN when the
+        grid was built without a configuration (the tuned constants then apply).
     """
 
     ij: IntArray
@@ -66,6 +71,7 @@ class ReferenceGrid:
     counts: dict[str, int]
     rms_px: float
     tables: _LatticeTables = field(init=False, repr=False, compare=False)
+    spot_sigma_px: float = float("nan")
 
     def __post_init__(self) -> None:
         # Neighbour tables for the per-frame matching: they depend on the lattice only.
@@ -75,6 +81,20 @@ class ReferenceGrid:
         """Whether each lattice index ``ij`` (K, 2) is a lit dot of this lattice."""
         node = self.tables.lat.lookup(ij)
         return (node >= 0) & self.lit[np.maximum(node, 0)]
+
+    @property
+    def pixel_scale(self) -> float:
+        """Calibrated spot size over the one the pixel constants were tuned at (1 when not
+        calibrated): multiply a tuned pixel constant by this."""
+        s = self.spot_sigma_px
+        return float(s / _TUNED_SIGMA_PX) if np.isfinite(s) and s > 0 else 1.0
+
+    @property
+    def detect_sigma_px(self) -> float | None:
+        """``spot_sigma_px`` for :func:`~restoration.features.detect.detect_spots` (None when
+        not calibrated)."""
+        s = self.spot_sigma_px
+        return float(s) if np.isfinite(s) and s > 0 else None
 
 
 def predict_flat_spots(
@@ -126,6 +146,42 @@ def predict_flat_spots(
             & cam.in_image(cols, rows, margin_px)
         )
     return ij.astype(np.int64), panel, spot_px, in_view
+
+
+@functools.lru_cache(maxsize=8)  # the config is immutable; the reference is per rig
+def spot_sigma_px(cfg: SystemConfig) -> float:
+    """Expected standard deviation of a dot's spot in camera s, pixels, from calibration alone.
+
+    Flat water makes panel -> camera s a plane projective map (:func:`predict_flat_spots`); the
+    panel dot's Gaussian sigma (``cfg.pattern.sigma_px``) times that map's local linear
+    magnification ``sqrt(|det J|)`` (the geometric mean over the spot's two axes), median over
+    the dots in view. It sets the scale of every pixel constant of spot detection and matching:
+    1.518 px for the paper's rig at 800 x 600, twice that at 1600 x 1200.
+
+    Parameters
+    ----------
+    cfg : SystemConfig
+
+    Returns
+    -------
+    float
+        Pixels; NaN when fewer than 4 dots reach camera s.
+    """
+    _, panel, spot, in_view = predict_flat_spots(cfg)
+    use = in_view if in_view.sum() >= 4 else np.isfinite(spot).all(axis=1)
+    if use.sum() < 4:
+        return float("nan")
+    hom, _ = cv2.findHomography(panel[use].astype(np.float64), spot[use].astype(np.float64), 0)
+    if hom is None:
+        return float("nan")
+    # Jacobian of p -> (H p)_xy / (H p)_z at every dot, in closed form.
+    q = np.c_[panel[use], np.ones(int(use.sum()))] @ hom.T
+    wq = q[:, 2:]
+    jac = (hom[None, :2, :2] * wq[:, :, None] - q[:, :2, None] * hom[None, 2:3, :2]) / wq[
+        :, :, None
+    ] ** 2
+    mag = np.sqrt(np.abs(np.linalg.det(jac)))
+    return float(cfg.pattern.sigma_px * np.median(mag))
 
 
 def flag_diffuser_edge(spots: Spots, outline_px: FloatArray, n_sigma: float = 2.5) -> Spots:
@@ -303,10 +359,18 @@ def prepare_reference(
     pattern_flat_img: NDArray, cfg: SystemConfig, *, lit: BoolArray | None = None,
     min_features: int = 16,
 ) -> ReferenceGrid:
-    """The flat-water reference grid: calibration, computed once per rig, not per frame."""
-    flat = flag_diffuser_edge(detect_spots(pattern_flat_img), _outline_px(cfg))
+    """The flat-water reference grid: calibration, computed once per rig, not per frame.
+
+    Spots are detected at the calibrated spot size (:func:`spot_sigma_px`), which the grid
+    keeps for the per-frame detection and matching."""
+    sigma = spot_sigma_px(cfg)
+    sigma_ok = float(sigma) if np.isfinite(sigma) and sigma > 0 else None
+    flat = flag_diffuser_edge(
+        detect_spots(pattern_flat_img, spot_sigma_px=sigma_ok), _outline_px(cfg)
+    )
     predicted = predict_flat_spots(cfg)
     ref = match_reference(flat, predicted, lit=lit_dots(cfg) if lit is None else lit)
+    ref = replace(ref, spot_sigma_px=float(sigma))
     if ref.counts["observed"] < min_features:
         raise WaiInputError(f"too few features on flat water: {ref.counts['observed']}")
     return ref

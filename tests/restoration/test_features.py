@@ -511,3 +511,56 @@ def test_a_second_seed_avoids_the_first_piece(flat_scene, reference):
     second = features._choose_seed(*args, exclude)
     assert second >= 0 and not exclude[second]
     assert features._choose_seed(*args, np.ones(len(reference.ij), bool)) == -1
+
+
+def test_detection_at_twice_the_resolution_sees_the_same_spots():
+    """Spots drawn twice as large on a twice finer grid, detected at twice the calibrated spot
+    size: the same spots, the same flags, centres at twice the coordinates."""
+    rng = np.random.default_rng(11)
+    c = jittered_grid(12.0, rng)
+    flux = rng.uniform(300.0, 3000.0, len(c))
+    cov = np.array([[1.2, 0.4], [0.4, 2.0]])  # elongated, as on the diffuser, px^2
+    rng_noise = np.random.default_rng(12)
+    coarse_img = draw_dots(c, flux, cov)
+    fine_img = draw_dots(2.0 * c + 0.5, flux, 4.0 * cov, shape=(2 * SHAPE[0], 2 * SHAPE[1]))
+    coarse_img += rng_noise.normal(0.0, 0.2, coarse_img.shape)
+    fine_img += rng_noise.normal(0.0, 0.1, fine_img.shape)  # the same noise per coarse pixel
+    sigma = features.detect._TUNED_SIGMA_PX
+    coarse = detect_spots(coarse_img.astype(np.float32), spot_sigma_px=sigma)
+    fine = detect_spots(fine_img.astype(np.float32), spot_sigma_px=2.0 * sigma)
+    assert len(fine) == len(coarse) == len(c)
+    assert fine.merged.sum() == coarse.merged.sum() == 0
+    err_coarse = nearest(coarse.centres_px, c)
+    err_fine = nearest((fine.centres_px - 0.5) / 2.0, c)  # in coarse pixels
+    assert np.median(err_fine) <= 1.1 * np.median(err_coarse)
+    # Without the scale the fine image is cut into the tuned (coarse) windows.
+    assert features.detect._pixel_scales(2.0 * sigma).local_radius_px == 6
+
+
+def test_pixel_scales_default_to_the_tuned_values():
+    tuned = features.detect._pixel_scales(None)
+    same = features.detect._pixel_scales(features.detect._TUNED_SIGMA_PX)
+    assert (tuned.smooth_px, tuned.local_radius_px, tuned.min_area_px) == (1.0, 3, 3)
+    assert (tuned.background_px, tuned.wide_px, tuned.box_max_px) == (25, 40, 48)
+    assert same.smooth_px == pytest.approx(1.0) and same.local_radius_px == 3
+    double = features.detect._pixel_scales(2.0 * features.detect._TUNED_SIGMA_PX)
+    assert (double.min_area_px, double.background_px, double.box_max_px) == (12, 50, 96)
+    with pytest.raises(WaiInputError):
+        features.detect._pixel_scales(-1.0)
+
+
+def test_reference_carries_the_calibrated_spot_scale(cfg):
+    """The paper's rig at 800 x 600 is the tuning: scale 1; a grid at twice the spot size
+    scales the per-frame constants (detection, order margin) by 2."""
+    sigma = features.spot_sigma_px(cfg)
+    assert sigma == pytest.approx(1.5178, abs=1e-3)
+    grid = ReferenceGrid(
+        np.zeros((1, 2), np.int64), np.zeros((1, 2)), np.ones(1, bool), np.ones(1, bool),
+        np.ones(1), np.full((1, 2, 2), np.nan), np.zeros((0, 2), np.int64), {}, 0.0,
+        spot_sigma_px=2.0 * sigma,
+    )
+    assert grid.pixel_scale == pytest.approx(2.0, rel=1e-4)
+    assert grid.detect_sigma_px == pytest.approx(2.0 * sigma)
+    assert ReferenceGrid(*[getattr(grid, f) for f in (
+        "ij", "ref_px", "observed", "lit", "spacing_px", "cov_px2", "unmatched_ij", "counts",
+        "rms_px")]).pixel_scale == 1.0  # not calibrated: the tuned constants

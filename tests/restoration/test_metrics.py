@@ -278,3 +278,19 @@ def test_fig15_statistic_on_geometric_renders(cfg):
     for view in ("distorted", "restored"):
         assert sc[view]["n_used"] + sc[view]["n_lost"] == 165
     assert sc["points_px"]["distorted"].shape == (165, 2)
+
+
+def test_corner_window_and_angular_pixels_follow_the_focal_length():
+    from restoration.metrics import CORNER_REF_FOCAL_PX, angular_px, corner_window_px
+
+    cfg = load_config(SCENE)
+    cam = cfg.camera_v.camera()
+    assert cam.focal_px == pytest.approx(CORNER_REF_FOCAL_PX)  # the tuning: 800 x 600
+    assert corner_window_px(cam) == 5
+    fine = cfg.replace("camera_v", width_px=1600, height_px=1200).camera_v.camera()
+    assert corner_window_px(fine) == 10
+    assert angular_px(0.3, fine) == pytest.approx(0.15)  # x 800 / 1600
+    assert angular_px(0.3, cam) == pytest.approx(0.3)
+    assert angular_px(None, cam) is None
+    small = cfg.replace("camera_v", width_px=200, height_px=150).camera_v.camera()
+    assert corner_window_px(small) == 2  # at least 2 px
