@@ -27,9 +27,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
-from restoration.surface import SurfaceEstimate, trapezoid_edges, trapezoid_steps
+from restoration.surface import SurfaceEstimate, trapezoid_edges
 
 N_SETS = 4
 """Interleaved edge sets whose separate minima measure the anchor's standard error."""
@@ -39,26 +40,47 @@ def edge_residuals_mm(est: SurfaceEstimate) -> tuple[NDArray, NDArray]:
     """Per grid edge: the mismatch (mm) between the height difference of neighbouring samples
     and the trapezoid rule on their slopes (zero for an integrable slope field), and the edge's
     set in ``0 .. N_SETS - 1`` (parity of its first dot's ``i`` and ``j``). Finite edges only."""
-    a, b = _edges(est.ij)
-    p = est.points_mm
-    r = p[b, 2] - p[a, 2] - trapezoid_steps(p[:, :2], est.slopes, a, b)
-    sets = (est.ij[a, 0] % 2) + 2 * (est.ij[a, 1] % 2)
-    ok = np.isfinite(r)
-    return r[ok], sets[ok]
+    a, b, sets = _edges(est.ij)
+    r, kept = np.empty(a.size), np.empty_like(sets)
+    n = _edge_residual_kernel(
+        np.ascontiguousarray(est.points_mm, dtype=float),
+        np.ascontiguousarray(est.slopes, dtype=float), a, b, sets, r, kept,
+    )
+    return r[:n], kept[:n]
 
 
-def _edges(ij: NDArray) -> tuple[NDArray, NDArray]:
-    """:func:`~restoration.surface.trapezoid_edges` of ``ij``, cached: a search evaluates
-    every probe on the same samples."""
+@njit(cache=True, nogil=True)
+def _edge_residual_kernel(points, slopes, a, b, sets, r, kept):  # pragma: no cover
+    """Write the finite residuals of edges ``a -> b`` (E,) and their sets into ``r``, ``kept``
+    (E,), in edge order; return how many. The arithmetic of
+    :func:`~restoration.surface.trapezoid_steps`."""
+    n = 0
+    for e in range(a.size):
+        i, j = a[e], b[e]
+        gx = 0.5 * (slopes[i, 0] + slopes[j, 0])
+        gy = 0.5 * (slopes[i, 1] + slopes[j, 1])
+        step = gx * (points[j, 0] - points[i, 0]) + gy * (points[j, 1] - points[i, 1])
+        value = points[j, 2] - points[i, 2] - step
+        if np.isfinite(value):
+            r[n] = value
+            kept[n] = sets[e]
+            n += 1
+    return n
+
+
+def _edges(ij: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """:func:`~restoration.surface.trapezoid_edges` of ``ij`` and each edge's set, cached: a
+    search evaluates every probe on the same samples."""
     key = (ij.shape, ij.tobytes())
     if key not in _EDGES:
         if len(_EDGES) >= 16:
             _EDGES.clear()
-        _EDGES[key] = trapezoid_edges(ij)
+        a, b = trapezoid_edges(ij)
+        _EDGES[key] = (a, b, ((ij[a, 0] % 2) + 2 * (ij[a, 1] % 2)).astype(np.int64))
     return _EDGES[key]
 
 
-_EDGES: dict[tuple, tuple[NDArray, NDArray]] = {}
+_EDGES: dict[tuple, tuple[NDArray, NDArray, NDArray]] = {}
 
 
 def integration_residual_mm(est: SurfaceEstimate) -> float:
@@ -71,11 +93,26 @@ def _mean_squares(est: SurfaceEstimate) -> tuple[float, NDArray]:
     """Mean squared edge residual over all edges (mm^2; NaN without edges) and of each edge
     set (N_SETS,)."""
     r, sets = edge_residuals_mm(est)
-    r2 = r**2
-    n = np.bincount(sets, minlength=N_SETS)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        per_set = np.bincount(sets, r2, minlength=N_SETS) / n
-    return (float(r2.mean()) if r.size else float("nan")), per_set
+    per_set = np.empty(N_SETS)
+    total = _set_means(np.ascontiguousarray(r, dtype=float), np.asarray(sets, np.int64), per_set)
+    return total, per_set
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _set_means(r, sets, per_set):  # pragma: no cover
+    """Mean of ``r**2`` (E,) overall (returned; NaN when empty) and per set into ``per_set``
+    (N_SETS,) (NaN for an empty set)."""
+    sums = np.zeros(per_set.size)
+    counts = np.zeros(per_set.size)
+    total = 0.0
+    for e in range(r.size):
+        r2 = r[e] * r[e]
+        total += r2
+        sums[sets[e]] += r2
+        counts[sets[e]] += 1.0
+    for k in range(per_set.size):
+        per_set[k] = sums[k] / counts[k] if counts[k] > 0 else np.nan
+    return total / r.size if r.size else np.nan
 
 
 def _parabola_vertex(x: NDArray, y: NDArray) -> float:

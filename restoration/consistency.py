@@ -24,16 +24,19 @@ sweep frame (docs/results.md).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from restoration.reverse_trace import _SplinePatches
-from wai_core.geometry import PinholeCamera, intersect_plane_z, reflect
+from restoration.reverse_trace._kernels import spline_jet
+from restoration.reverse_trace._surface import spline_patches
+from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 
 __all__ = ["INCONSISTENT_FRACTION", "Consistency", "spot_consistency"]
@@ -144,22 +147,59 @@ def predict_spots_px(
     (K, 2) ndarray
         ``(col, row)`` px; NaN where the ray leaves the known surface.
     """
-    patches = _SplinePatches(surface)  # the same spline as surface.height, by table lookup
-    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    t = (start_mm[:, 2] - origin_mm[2]) / d[:, 2]
-    for _ in range(_NEWTON_STEPS):
-        p = origin_mm + t[:, None] * d
-        h, gx, gy = patches.jet(p[:, 0], p[:, 1])[:3]
-        t = t - (p[:, 2] - h) / (d[:, 2] - gx * d[:, 0] - gy * d[:, 1])
-    p = origin_mm + t[:, None] * d
-    _, gx, gy = patches.jet(p[:, 0], p[:, 1])[:3]
-    normal = np.stack([-gx, -gy, np.ones_like(gx)], axis=1)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    s, _ = intersect_plane_z(p, reflect(d, normal), z_h_mm)
-    cols, rows, front = camera_s.project(s)
-    px = np.stack([cols, rows], axis=1)
-    px[~front] = np.nan
+    patches = spline_patches(surface)  # the view's table too: the same spline as .height
+    pose = camera_s.pose
+    camera = np.array([
+        *pose.R.ravel(), *pose.t_mm, camera_s.focal_px, (camera_s.width_px - 1) / 2.0,
+        (camera_s.height_px - 1) / 2.0,
+    ])
+    px = np.empty((len(dirs), 2))
+    _predict_kernel(
+        patches.table, patches.cell_ok, patches.x, patches.y,
+        np.ascontiguousarray(origin_mm, dtype=float), np.ascontiguousarray(dirs, dtype=float),
+        np.ascontiguousarray(start_mm, dtype=float), camera, float(z_h_mm), _NEWTON_STEPS, px,
+    )
     return px
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _predict_kernel(
+    table, cell_ok, gx, gy, origin, dirs, start, camera, z_h, n_steps, px
+):  # pragma: no cover
+    """:func:`predict_spots_px` one ray at a time into ``px`` (K, 2): the NumPy steps'
+    expressions in their order (ray-surface Newton on the spline table, reflection, diffuser
+    plane, pinhole projection). ``camera`` (15,): ``R`` (row-major), ``t`` (mm), focal length
+    and centre (px) of camera s."""
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    for k in range(dirs.shape[0]):
+        norm = math.sqrt(dirs[k, 0] * dirs[k, 0] + dirs[k, 1] * dirs[k, 1]
+                         + dirs[k, 2] * dirs[k, 2])
+        dx, dy, dz = dirs[k, 0] / norm, dirs[k, 1] / norm, dirs[k, 2] / norm
+        t = (start[k, 2] - oz) / dz
+        for _ in range(n_steps):
+            h, hx, hy = spline_jet(table, cell_ok, gx, gy, ox + t * dx, oy + t * dy)[:3]
+            t = t - ((oz + t * dz) - h) / (dz - hx * dx - hy * dy)
+        x, y, z = ox + t * dx, oy + t * dy, oz + t * dz
+        hx, hy = spline_jet(table, cell_ok, gx, gy, x, y)[1:3]
+        norm = math.sqrt(hx * hx + hy * hy + 1.0)
+        nx, ny, nz = -hx / norm, -hy / norm, 1.0 / norm
+        dot = 2.0 * (dx * nx + dy * ny + dz * nz)
+        rx, ry, rz = dx - dot * nx, dy - dot * ny, dz - dot * nz
+        # intersect_plane_z: hits behind the point, or none, are NaN.
+        s = (z_h - z) / rz
+        if not (np.isfinite(s) and s > 0.0):
+            s = np.nan
+        sx, sy, sz = x + s * rx, y + s * ry, z + s * rz
+        cx = sx * camera[0] + sy * camera[1] + sz * camera[2] + camera[9]
+        cy = sx * camera[3] + sy * camera[4] + sz * camera[5] + camera[10]
+        cz = sx * camera[6] + sy * camera[7] + sz * camera[8] + camera[11]
+        if cz > 0.0:
+            safe = cz if abs(cz) > 1e-12 else 1e-12
+            px[k, 0] = camera[12] * cx / safe + camera[13]
+            px[k, 1] = camera[12] * cy / safe + camera[14]
+        else:  # behind camera s (or NaN)
+            px[k, 0] = np.nan
+            px[k, 1] = np.nan
 
 
 def spot_consistency(

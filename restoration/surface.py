@@ -47,7 +47,15 @@ from restoration.integrate import (
     integrate,
     to_heightfield,
 )
-from restoration.normals import projector_rays, reflection_slopes, spots_on_diffuser
+from restoration.integrate.lattice import lu_solve
+from restoration.normals import (
+    _KERNEL_ERRORS,
+    _reflection_kernel,
+    points_on_rays,
+    projector_rays,
+    reflection_slopes,
+    spots_on_diffuser,
+)
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
@@ -75,9 +83,12 @@ class SurfaceEstimate:
     height_change_mm : float
         Largest height change of the last refinement pass, mm (NaN when none ran).
     timings_ms : dict of str to float
-        Wall time per stage, ms: ``rays`` (back-projection of spots and projector rays),
-        ``normals``, ``integrate`` (summed over passes) and ``total``; ``grid`` is added (and
-        counted in ``total``) when :attr:`heightfield` is first read.
+        Wall time per stage, ms: ``rays`` (back-projection of spots and projector rays,
+        cached for repeated reconstructions of the same features), ``normals``,
+        ``integrate`` (summed over passes) and ``total``; ``grid`` is added (and counted in
+        ``total``) when :attr:`heightfield` is first read. With the ``"trapezoid"``
+        integrator the passes run in one compiled call: ``integrate`` then holds the normals
+        too and ``normals`` is 0.
     grid_spacing_mm : float
         Node spacing of :attr:`heightfield`, mm.
     gridder : str
@@ -229,55 +240,24 @@ def reconstruct_surface(
     ij_arr = _check_inputs(
         ij, panel_px, spot_px, z_h_mm, h0_mm, integrator, n_refine, gridder, grid_spacing_mm
     )
-    spots = spots_on_diffuser(spot_px, camera_s, z_h_mm)
-    origin, v_p = projector_rays(panel_px, projector)
+    spots, origin, v_p = _rays(spot_px, camera_s, z_h_mm, panel_px, projector)
     timings = {"rays": _ms(t_start), "normals": 0.0, "integrate": 0.0}
 
-    heights = np.full(ij_arr.shape[0], float(h0_mm))  # pass 0: the paper's q on z = h0
     weight_xy: Array | None = None
     if weight_xy_mm is not None:
         weight_xy = np.asarray(weight_xy_mm, dtype=float)
         if weight_xy.shape != (ij_arr.shape[0], 2):
             raise WaiInputError("reconstruct_surface: weight_xy_mm must be (K, 2)")
-    system: _TrapezoidSystem | None = None
-    previous: tuple[Array, Array] | None = None
-    change = np.nan
-    for it in range(int(n_refine) + 1):
-        t0 = time.perf_counter()
-        q, normals, slopes = reflection_slopes(origin, v_p, spots, heights)
-        t1 = time.perf_counter()
-        # Every pass weighs the differences by the first pass's geometry: the passes then
-        # share one factorisation, and their samples move by only ~mm along the rays.
-        weight_xy = q[:, :2] if weight_xy is None else weight_xy
-        if integrator != "trapezoid":
-            relative = integrate(ij_arr, q[:, :2], slopes, integrator, weight_xy)
-        else:  # the level search's integrator: its system is prepared once per sample set
-            if system is None:
-                check_samples(ij_arr, q[:, :2], slopes)
-                system = _TrapezoidSystem.of(ij_arr, weight_xy)
-            relative = system.graph.solve(system.steps(q[:, :2], slopes), system.weights)
-        integrated = _anchored(relative, h0_mm)
-        timings["normals"] += _ms(t0, t1)
-        timings["integrate"] += _ms(t1)
-        # Samples the integrator could not tie to the rest (NaN) leave for good.
-        keep = np.isfinite(integrated)
-        if not keep.all():
-            ij_arr, v_p, spots, q, normals, slopes, heights, integrated, weight_xy = (
-                a[keep]
-                for a in (ij_arr, v_p, spots, q, normals, slopes, heights, integrated, weight_xy)
-            )
-            system = None
-            if previous is not None:
-                previous = (previous[0][keep], previous[1][keep])
-        residual = integrated - heights
-        if it > 0:
-            change = float(np.max(np.abs(residual)))
-            if change < tol_mm:
-                break
-        step = _anderson_step(heights, residual, previous) if accelerate else integrated
-        previous = (heights, residual)
-        heights = step
-
+    args = (ij_arr, origin, v_p, spots, h0_mm, int(n_refine), tol_mm, accelerate)
+    if integrator == "trapezoid":  # the level search's: all passes in one compiled call
+        # Default weights: the first pass's reflection points (q on z = h0), as the loop's.
+        wxy = points_on_rays(origin, v_p, h0_mm)[:, :2] if weight_xy is None else weight_xy
+        ij_arr, q, normals, slopes, integrated, it, change = _compiled_refinement(*args, wxy)
+        timings["integrate"] = _ms(t_start) - timings["rays"]
+    else:
+        ij_arr, q, normals, slopes, integrated, it, change = _refinement(
+            *args, weight_xy, integrator, timings
+        )
     timings["total"] = _ms(t_start)
     return SurfaceEstimate(
         ij=ij_arr,
@@ -290,6 +270,285 @@ def reconstruct_surface(
         grid_spacing_mm=float(grid_spacing_mm),
         gridder=gridder,
     )
+
+
+def _refinement(
+    ij_arr: NDArray[np.int64],
+    origin: Array,
+    v_p: Array,
+    spots: Array,
+    h0_mm: float,
+    n_refine: int,
+    tol_mm: float,
+    accelerate: bool,
+    weight_xy: Array | None,
+    integrator: str,
+    timings: dict[str, float],
+) -> tuple[NDArray[np.int64], Array, Array, Array, Array, int, float]:
+    """The passes of :func:`reconstruct_surface` as NumPy steps around
+    :func:`~restoration.integrate.integrate`, for any integrator (the ``"trapezoid"`` one runs
+    compiled instead, :func:`_compiled_refinement`, to the same result). Adds each pass's
+    ``normals`` and ``integrate`` times to ``timings``.
+
+    Returns
+    -------
+    ij, q, normals, slopes, integrated, iterations, change
+        As :func:`_compiled_refinement`.
+    """
+    heights = np.full(ij_arr.shape[0], float(h0_mm))  # pass 0: the paper's q on z = h0
+    previous: tuple[Array, Array] | None = None
+    change = np.nan
+    for it in range(int(n_refine) + 1):
+        t0 = time.perf_counter()
+        q, normals, slopes = reflection_slopes(origin, v_p, spots, heights)
+        t1 = time.perf_counter()
+        # Every pass weighs the differences by the first pass's geometry: the passes then
+        # share one factorisation, and their samples move by only ~mm along the rays.
+        weight_xy = q[:, :2] if weight_xy is None else weight_xy
+        relative = integrate(ij_arr, q[:, :2], slopes, integrator, weight_xy)
+        integrated = _anchored(relative, h0_mm)
+        timings["normals"] += _ms(t0, t1)
+        timings["integrate"] += _ms(t1)
+        # Samples the integrator could not tie to the rest (NaN) leave for good.
+        keep = np.isfinite(integrated)
+        if not keep.all():
+            ij_arr, v_p, spots, q, normals, slopes, heights, integrated, weight_xy = (
+                a[keep]
+                for a in (ij_arr, v_p, spots, q, normals, slopes, heights, integrated, weight_xy)
+            )
+            if previous is not None:
+                previous = (previous[0][keep], previous[1][keep])
+        residual = integrated - heights
+        if it > 0:
+            change = float(np.max(np.abs(residual)))
+            if change < tol_mm:
+                break
+        step = _anderson_step(heights, residual, previous) if accelerate else integrated
+        previous = (heights, residual)
+        heights = step
+    return ij_arr, q, normals, slopes, integrated, it, change
+
+
+def _camera_key(camera: PinholeCamera) -> tuple:
+    """What a pinhole device's rays depend on, as a hashable key."""
+    pose = camera.pose
+    return (
+        camera.width_px, camera.height_px, camera.focal_mm, camera.pixel_pitch_mm,
+        pose.R.tobytes(), pose.t_mm.tobytes(),
+    )
+
+
+def _rays(
+    spot_px: ArrayLike,
+    camera_s: PinholeCamera,
+    z_h_mm: float,
+    panel_px: ArrayLike,
+    projector: PinholeCamera,
+) -> tuple[Array, Array, Array]:
+    """Spots on the diffuser (K, 3) mm, the projector centre (3,) mm and the unit projector
+    rays (K, 3) (:func:`spots_on_diffuser`, :func:`projector_rays`), cached by value: the
+    level search reconstructs the same features 7-11 times a frame."""
+    spot = np.asarray(spot_px)
+    panel = np.asarray(panel_px)
+    key = (
+        spot.dtype.str, spot.shape, spot.tobytes(), panel.dtype.str, panel.shape,
+        panel.tobytes(), float(z_h_mm), _camera_key(camera_s), _camera_key(projector),
+    )
+    found = _RAYS.get(key)
+    if found is None:
+        spots = spots_on_diffuser(spot_px, camera_s, z_h_mm)
+        origin, v_p = projector_rays(panel_px, projector)
+        found = (spots, origin, v_p)  # shared by the reconstructions: never written
+        if len(_RAYS) >= 4:
+            _RAYS.clear()
+        _RAYS[key] = found
+    return found
+
+
+_RAYS: dict[tuple, tuple[Array, Array, Array]] = {}
+
+
+def _prepared(ij: NDArray[np.int64], weight_xy: Array) -> tuple:
+    """What :func:`_refine_kernel` needs of a sample set and its weights, cached (one lookup
+    per reconstruction instead of the system's, the weights' and the factors').
+
+    Returns
+    -------
+    keep : (K,) ndarray of bool or None
+        The samples in the largest connected piece, None when that is all of them.
+    ea, eb, w : (E,) ndarray
+        The piece's edges (positions among the kept samples) and weights.
+    factors : tuple
+        :attr:`~restoration.integrate.lattice.TriangularFactors.arrays` of its pinned
+        Laplacian.
+    """
+    weight_xy = np.ascontiguousarray(weight_xy, dtype=float)
+    key = (ij.shape, ij.tobytes(), weight_xy.shape, weight_xy.tobytes())
+    found = _PREPARED.get(key)
+    if found is None:
+        system = _TrapezoidSystem.of(ij, weight_xy, checked=True)
+        keep = system.graph.keep
+        if keep.all():
+            keep = None
+        else:
+            system = _TrapezoidSystem.of(ij[keep], weight_xy[keep], checked=True)
+        graph = system.graph
+        w = system.weights[graph.edges]
+        found = (keep, graph.ea, graph.eb, w, graph.triangular(w).arrays)
+        if len(_PREPARED) >= 8:
+            _PREPARED.clear()
+        _PREPARED[key] = found
+    return found
+
+
+_PREPARED: dict[tuple, tuple] = {}
+
+
+# Why _refine_kernel stopped, beyond the reflection's codes (restoration.normals).
+_REFINE_ERRORS = {
+    5: "integrate: xy_mm or slopes hold NaN or inf",
+    6: "integrate: the samples do not determine the surface (singular fit)",
+}
+
+
+def _compiled_refinement(
+    ij: NDArray[np.int64],
+    origin: Array,
+    v_p: Array,
+    spots: Array,
+    h0_mm: float,
+    n_refine: int,
+    tol_mm: float,
+    accelerate: bool,
+    weight_xy: Array,
+) -> tuple[NDArray[np.int64], Array, Array, Array, Array, int, float]:
+    """The passes of :func:`reconstruct_surface` with the ``"trapezoid"`` integrator in one
+    compiled call (:func:`_refine_kernel`).
+
+    The level search runs ~30 passes a frame: as NumPy steps each cost ~0.15 ms of call
+    overhead around ~0.03 ms of arithmetic. Same arithmetic, in the same order, as the loop
+    (the factorisation's triangular solves, sums and dot products differ only in rounding).
+    Samples outside the largest connected piece are dropped first: the loop drops them after
+    its first pass, whose results on the piece do not depend on them (same edges, same pinned
+    sample, same matrix); that pass's checks are run on them here.
+
+    Returns
+    -------
+    ij, q, normals, slopes, integrated, iterations, change
+        The samples kept (K', 2), the last pass's reflection points (K', 3) mm, normals
+        (K', 3), slopes (K', 2), anchored heights (K',) mm, passes run after the first, and
+        the last pass's largest height change (mm; NaN when none ran).
+    """
+    keep, ea, eb, w, factors = _prepared(ij, weight_xy)
+    if keep is not None:
+        _, _, slopes = reflection_slopes(origin, v_p, spots, np.full(len(ij), float(h0_mm)))
+        if not np.all(np.isfinite(slopes)):
+            raise WaiInputError(_REFINE_ERRORS[5])
+        ij, v_p, spots = ij[keep], v_p[keep], spots[keep]
+    k = ij.shape[0]
+    q, normals, slopes = np.empty((k, 3)), np.empty((k, 3)), np.empty((k, 2))
+    integrated, out = np.empty(k), np.empty(2)
+    code = _refine_kernel(
+        np.ascontiguousarray(origin, dtype=float), np.ascontiguousarray(v_p, dtype=float),
+        np.ascontiguousarray(spots, dtype=float), float(h0_mm), n_refine, float(tol_mm),
+        bool(accelerate), ea, eb, w, *factors, q, normals, slopes, integrated, out,
+    )
+    if code:
+        raise WaiInputError(_KERNEL_ERRORS.get(code) or _REFINE_ERRORS[code])
+    return ij, q, normals, slopes, integrated, int(out[0]), float(out[1])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _refine_kernel(
+    origin, dirs, spots, h0, n_refine, tol, accelerate, ea, eb, w,
+    l_ptr, l_idx, l_val, l_diag, u_ptr, u_idx, u_val, u_diag, perm_r, perm_c,
+    q, normals, slopes, integrated, out,
+):  # pragma: no cover
+    """All passes of the trapezoid refinement (see :func:`_compiled_refinement`).
+
+    ``ea, eb`` (E,) are the edges (every sample kept, sample 0 pinned), ``w`` (E,) their
+    weights, then the factors of the pinned Laplacian (:class:`TriangularFactors`). Fills
+    ``q``, ``normals``, ``slopes``, ``integrated`` and ``out = (iterations, change)``;
+    returns 0 or an error code (:data:`_KERNEL_ERRORS`, :data:`_REFINE_ERRORS`).
+    """
+    k = dirs.shape[0]
+    n_edges = ea.size
+    heights = np.full(k, h0)  # pass 0: the paper's q on z = h0
+    prev_h, prev_r = np.empty(k), np.empty(k)
+    residual, step = np.empty(k), np.empty(k)
+    plus, minus = np.zeros(k), np.zeros(k)
+    rhs, sol = np.empty(k - 1), np.empty(k - 1)
+    has_previous = False
+    change = np.nan
+    it = 0
+    for it in range(n_refine + 1):
+        code = _reflection_kernel(origin, dirs, spots, heights, q, normals, slopes)
+        if code:
+            return code
+        if it == 0:
+            for i in range(k):
+                if not (np.isfinite(q[i, 0]) and np.isfinite(q[i, 1])
+                        and np.isfinite(slopes[i, 0]) and np.isfinite(slopes[i, 1])):
+                    return 5
+        # DifferenceGraph.solve: right-hand side as two sums in edge order, pinned solve.
+        plus[:] = 0.0
+        minus[:] = 0.0
+        for e in range(n_edges):
+            i, j = ea[e], eb[e]
+            gx = 0.5 * (slopes[i, 0] + slopes[j, 0])
+            gy = 0.5 * (slopes[i, 1] + slopes[j, 1])
+            wd = w[e] * (gx * (q[j, 0] - q[i, 0]) + gy * (q[j, 1] - q[i, 1]))
+            plus[j] += wd
+            minus[i] += wd
+        for i in range(k - 1):
+            rhs[i] = plus[i + 1] - minus[i + 1]
+        lu_solve(l_ptr, l_idx, l_val, l_diag, u_ptr, u_idx, u_val, u_diag, perm_r, perm_c,
+                 rhs, sol)
+        total = 0.0
+        for i in range(k - 1):
+            if not np.isfinite(sol[i]):
+                return 6
+            total += sol[i]
+        mean = total / k  # of (0, sol): zero-mean heights, then anchored at h0
+        integrated[0] = -mean
+        for i in range(k - 1):
+            integrated[i + 1] = sol[i] - mean
+        total = 0.0
+        for i in range(k):
+            total += integrated[i]
+        mean = total / k
+        for i in range(k):
+            integrated[i] = integrated[i] - mean + h0
+            residual[i] = integrated[i] - heights[i]
+        if it > 0:
+            change = 0.0
+            for i in range(k):
+                change = max(change, abs(residual[i]))
+            if change < tol:
+                break
+        # _anderson_step
+        gamma = 0.0
+        if accelerate and has_previous:
+            denom, num, rr, pp = 0.0, 0.0, 0.0, 0.0
+            for i in range(k):
+                df = residual[i] - prev_r[i]
+                denom += df * df
+                num += df * residual[i]
+                rr += residual[i] * residual[i]
+                pp += prev_r[i] * prev_r[i]
+            if denom != 0.0 and not rr > pp:
+                gamma = num / denom
+        for i in range(k):
+            plain = heights[i] + residual[i]
+            if gamma != 0.0:
+                plain = plain - gamma * ((heights[i] - prev_h[i]) + (residual[i] - prev_r[i]))
+            step[i] = plain
+        for i in range(k):
+            prev_h[i], prev_r[i], heights[i] = heights[i], residual[i], step[i]
+        has_previous = True
+    out[0] = it
+    out[1] = change
+    return 0
 
 
 @njit(cache=True, nogil=True)
@@ -348,10 +607,17 @@ class _TrapezoidSystem:
     graph: DifferenceGraph
 
     @classmethod
-    def of(cls, ij: NDArray[np.int64], weight_xy: Array) -> _TrapezoidSystem:
+    def of(
+        cls, ij: NDArray[np.int64], weight_xy: Array, checked: bool = False
+    ) -> _TrapezoidSystem:
+        """The system of grid indices ``ij`` (K, 2) weighted by positions ``weight_xy``
+        (K, 2) mm; ``checked`` runs :func:`check_samples` on ``ij`` first (once per index set:
+        the compiled passes check their own positions and slopes)."""
         key = (ij.shape, ij.tobytes())
         found = _GRAPHS.get(key)
         if found is None:
+            if checked:
+                check_samples(ij, weight_xy, np.zeros_like(weight_xy))
             a, b = trapezoid_edges(ij)
             found = (a, b, DifferenceGraph.build(ij.shape[0], a, b))
             if len(_GRAPHS) >= 16:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from wai_core.optics import RayStatus
 
@@ -173,11 +173,10 @@ def _project(camera, x, y, z):
 
 @njit(**_JIT)
 def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs, tol,
-               max_iter, tx, ty, q0x, q0y, px_out, q_out, t):
+               max_iter, tx, ty, q0x, q0y, px_out, q_out, t, state, trial):
     """Newton for target ``t``; writes ``px_out[t]`` and ``q_out[t]`` when it converges and
-    returns ``(status, iterations run)``."""
-    state = np.empty(11)
-    trial = np.empty(11)
+    returns ``(status, iterations run)``. ``state``, ``trial`` (11,): scratch (the caller's,
+    reused across targets: two allocations per target cost as much as a Newton step)."""
     status = _evaluate(flat, h0, table, cell_ok, gx, gy, optics, fd, q0x, q0y, tx, ty, state)
     if status == _TIR or status == _MISSED_OBJECT:
         # Beyond the edge of Snell's window: pull towards the nadir, the mildest pull first.
@@ -227,7 +226,11 @@ def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, frac
     return _NOT_CONVERGED, max_iter
 
 
-@njit(parallel=True, **_JIT)
+# Serial on purpose: on the shared 2-core machine the parallel loop (2 numba threads) solved
+# in 1.6 ms against 3.4 ms when quiet, but in 14-21 ms against 3.5 ms when other processes
+# loaded it (a descheduled thread stalls the whole loop), and 2 worker processes
+# (`wai bench video --workers 2`) always load it.
+@njit(**_JIT)
 def newton_solve(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs, tol,
                  max_iter, targets, q0):
     """Solve every target (N, 2) mm from surface points ``q0`` (N, 2) mm.
@@ -267,10 +270,11 @@ def newton_solve(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fr
     q = np.full((n, 3), np.nan)
     status = np.empty(n, np.int8)
     iters = np.zeros(n, np.int64)
-    for t in prange(n):
+    state, trial = np.empty(11), np.empty(11)
+    for t in range(n):
         s, it = _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs,
                            tol, max_iter, targets[t, 0], targets[t, 1], q0[t, 0], q0[t, 1],
-                           px, q, t)
+                           px, q, t, state, trial)
         status[t] = s
         iters[t] = it
     return px, status, q, (int(iters.max()) if n else 0)

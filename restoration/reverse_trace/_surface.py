@@ -8,6 +8,8 @@ Newton step of :mod:`restoration.reverse_trace.inverse` needs; :func:`_surface_m
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -141,5 +143,27 @@ class _SplinePatches:
         return h, hx, hy, hxx, hxy, hyy
 
 
+def spline_patches(surface: Heightfield) -> _SplinePatches:
+    """The :class:`_SplinePatches` of ``surface``, kept while the surface lives: a frame's
+    consistency check and its view both evaluate the one restored surface."""
+    key = id(surface)
+    found = _PATCHES.get(key)
+    if found is not None and found[0]() is surface:
+        return found[1]
+    patches = _SplinePatches(surface)
+    try:  # forgotten with the surface (the id may then be reused)
+        ref = weakref.ref(surface, lambda _, key=key: _PATCHES.pop(key, None))
+    except TypeError:  # not weakly referable: no caching
+        return patches
+    if len(_PATCHES) >= 8:
+        _PATCHES.clear()
+    _PATCHES[key] = (ref, patches)
+    return patches
+
+
+# By id of the Heightfield, with a weak reference to check it is still that object.
+_PATCHES: dict[int, tuple[weakref.ref, _SplinePatches]] = {}
+
+
 def _surface_model(surface: Heightfield | None, h0_mm: float) -> _FlatWater | _SplinePatches:
-    return _FlatWater(h0_mm) if surface is None else _SplinePatches(surface)
+    return _FlatWater(h0_mm) if surface is None else spline_patches(surface)

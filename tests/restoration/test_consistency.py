@@ -63,3 +63,56 @@ def test_the_confidence_map_follows_the_residuals(paper_cfg):
     known = np.isfinite(good.confidence)
     assert known.any() and np.nanmin(good.confidence) > 0.99
     assert np.nanmedian(bad.confidence) < 0.5
+
+
+def _numpy_prediction(surface, origin, dirs, start, camera_s, z_h_mm, steps=3):
+    """The forward prediction by NumPy steps (the oracle of the compiled kernel)."""
+    from restoration.reverse_trace import _SplinePatches
+    from wai_core.geometry import intersect_plane_z, reflect
+
+    patches = _SplinePatches(surface)
+    d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    t = (start[:, 2] - origin[2]) / d[:, 2]
+    for _ in range(steps):
+        p = origin + t[:, None] * d
+        h, gx, gy = patches.jet(p[:, 0], p[:, 1])[:3]
+        t = t - (p[:, 2] - h) / (d[:, 2] - gx * d[:, 0] - gy * d[:, 1])
+    p = origin + t[:, None] * d
+    _, gx, gy = patches.jet(p[:, 0], p[:, 1])[:3]
+    normal = np.stack([-gx, -gy, np.ones_like(gx)], axis=1)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    s, _ = intersect_plane_z(p, reflect(d, normal), z_h_mm)
+    cols, rows, front = camera_s.project(s)
+    px = np.stack([cols, rows], axis=1)
+    px[~front] = np.nan
+    return px
+
+
+def test_compiled_prediction_is_the_numpy_steps(paper_cfg):
+    from restoration.consistency import predict_spots_px
+
+    truth = _swell(paper_cfg)
+    z = truth.z.copy()
+    z[150:170, 200:230] = np.nan  # a hole: rays through it leave the known surface
+    surface = Heightfield(truth.x, truth.y, z)
+    ij = np.array([[i, j] for i in range(-14, 15) for j in range(-14, 15)])
+    origin, dirs = projector_rays(panel_positions(paper_cfg, ij), paper_cfg.projector.camera())
+    # Starts off the surface by up to 3 mm; unnormalised directions.
+    start = origin + ((paper_cfg.water.h0_mm - origin[2]) / dirs[:, 2])[:, None] * dirs
+    start[:, 2] += np.linspace(-3.0, 3.0, len(start))
+    args = (surface, origin, 2.0 * dirs, start, paper_cfg.camera_s.camera(),
+            paper_cfg.diffuser.z_mm)
+    got, want = predict_spots_px(*args), _numpy_prediction(*args)
+    assert np.isnan(want).any() and np.isfinite(want).sum() > 500
+    # The projection's 3 x 3 product may be summed in another order by NumPy's matmul.
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
+def test_the_view_and_the_check_share_one_spline_table():
+    from restoration.reverse_trace._surface import _surface_model, spline_patches
+
+    x, y = np.linspace(0.0, 100.0, 21), np.linspace(0.0, 80.0, 17)
+    surface = Heightfield(x, y, np.add.outer(0.01 * y, 0.02 * x))
+    patches = spline_patches(surface)
+    assert _surface_model(surface, 0.0) is patches
+    assert spline_patches(Heightfield(x, y, surface.z)) is not patches  # another surface

@@ -436,3 +436,51 @@ def test_tangent_blend_matches_node_by_node_reference():
         # at the hull, where the gap filter dropped one of them.
         assert (np.isfinite(hf.z) != np.isfinite(ref)).sum() <= 0.002 * hf.z.size
         np.testing.assert_allclose(hf.z[both], ref[both], atol=1e-10)
+
+
+def _numpy_blend(xy, z, g, spacing, max_edge_ratio):
+    """The tangent blend by the NumPy steps (gap filter, scan conversion, per-run quadratics)
+    that the compiled pass of :func:`to_heightfield` replaces."""
+    from restoration.integrate.gridding import _grid_axes, _scan_triangles, _tangent_blend
+
+    gx, gy = _grid_axes(xy, spacing)
+    simplices = gap_free_triangles(Delaunay(xy), max_edge_ratio)
+    spans = _scan_triangles(xy[simplices], gx, gy)
+    node, values = _tangent_blend(xy, z, g, simplices, spans, gx, gy)
+    out = np.full(gy.size * gx.size, np.nan)
+    out[node] = values
+    return out.reshape(gy.size, gx.size)
+
+
+@pytest.mark.parametrize("max_edge_ratio", [4.0, 1.5, None])
+def test_compiled_blend_is_the_numpy_steps_exactly(max_edge_ratio):
+    ij, xy = grid(jitter_mm=4.0, seed=7)
+    keep = holes(ij) & (xy[:, 0] + 0.5 * xy[:, 1] < 90)
+    z, g = sinusoid(xy[keep])
+    # Samples on whole grid lines too: nodes on triangle edges and corners, rows through
+    # vertices (the scan's tie-breaks).
+    for points in (xy[keep], np.round(xy[keep] / 2.0) * 2.0 + 0.1 * (ij[keep] % 2)):
+        for spacing in (1.3, 2.0, 5.0):
+            got = to_heightfield(points, z, g, spacing, max_edge_ratio=max_edge_ratio).z
+            np.testing.assert_array_equal(
+                got, _numpy_blend(points, z, g, spacing, max_edge_ratio)
+            )
+
+
+def test_lu_solve_is_superlu_to_rounding():
+    from restoration.integrate.lattice import TriangularFactors, lu_solve
+
+    ij, xy = grid(jitter_mm=2.0, seed=3)
+    keep = holes(ij)
+    nb = {tuple(p): k for k, p in enumerate(ij[keep])}
+    a, b = zip(*[(k, nb[(i + di, j + dj)]) for k, (i, j) in enumerate(ij[keep])
+                 for di, dj in ((1, 0), (0, 1)) if (i + di, j + dj) in nb], strict=True)
+    graph = DifferenceGraph.build(int(keep.sum()), np.array(a), np.array(b))
+    w = np.random.default_rng(4).uniform(0.5, 2.0, len(a))
+    factors = graph.triangular(w)
+    assert isinstance(factors, TriangularFactors) and graph.triangular(w) is factors
+    rhs = np.random.default_rng(5).normal(size=graph.node.size - 1)
+    got = np.empty_like(rhs)
+    lu_solve(*factors.arrays, rhs, got)
+    want = graph._factor(w).solve(rhs)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())

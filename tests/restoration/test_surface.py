@@ -231,3 +231,36 @@ def test_bad_input(plane_case):
         reconstruct_surface(ij[:3], panel[:3], spots[:3], PROJ, CAM, ZH, H0)
     with pytest.raises(WaiInputError, match="NaN"):
         reconstruct_surface(ij, panel, np.where(spots > 300, np.nan, spots), PROJ, CAM, ZH, H0)
+
+
+@pytest.mark.parametrize("accelerate", [True, False])
+@pytest.mark.parametrize("weights", [False, True])
+def test_compiled_refinement_is_the_numpy_loop(sine_case, accelerate, weights):
+    """The trapezoid passes in one compiled call give the NumPy loop's estimate to rounding
+    (the triangular solves and sums differ in order only), islands dropped alike."""
+    from restoration.normals import points_on_rays
+    from restoration.surface import _compiled_refinement, _rays, _refinement
+
+    ij, panel, spots = sine_case[:3]
+    s, o, d = _rays(spots, CAM, ZH, panel, PROJ)
+    wxy = points_on_rays(o, d, H0 + 2.0)[:, :2] if weights else None
+    args = (ij, o, d, s, H0, 6, 1e-4, accelerate)
+    timings = {"normals": 0.0, "integrate": 0.0}
+    loop = _refinement(*args, wxy, "trapezoid", timings)
+    fast = _compiled_refinement(*args, points_on_rays(o, d, H0)[:, :2] if wxy is None else wxy)
+    assert len(loop[0]) < len(ij)  # the sine case has samples cut off from the rest
+    np.testing.assert_array_equal(fast[0], loop[0])
+    for a, b in zip(fast[1:5], loop[1:5], strict=True):  # q, normals, slopes, heights
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
+    assert fast[5] == loop[5]
+    assert fast[6] == pytest.approx(loop[6], rel=1e-9, abs=1e-12)
+
+
+def test_compiled_refinement_leaves_islands_to_the_loop(sine_case):
+    """Samples cut off from the largest piece are dropped, as by the NumPy loop."""
+    ij, panel, spots = sine_case[:3]
+    far = np.array([[ij[:, 0].max() + 5, ij[:, 1].max() + 5]])
+    est = reconstruct_surface(
+        np.r_[ij, far], np.r_[panel, panel[:1]], np.r_[spots, spots[:1]], PROJ, CAM, ZH, H0
+    )
+    np.testing.assert_array_equal(est.ij, run(sine_case).ij)
