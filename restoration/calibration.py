@@ -69,7 +69,9 @@ class RigCalibration:
     @property
     def camera_v(self) -> PinholeCamera:
         """The observation camera."""
-        return self.cfg.camera_v.camera()
+        if getattr(self, "_camera_v", None) is None:  # built once: the view asks every frame
+            object.__setattr__(self, "_camera_v", self.cfg.camera_v.camera())
+        return self._camera_v
 
     def radiance(self, view: NDArray) -> NDArray:
         """A view image of this rig on the object's radiance scale: divided by

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,8 +25,9 @@ from restoration.normals import points_on_rays, projector_rays
 from restoration.options import RestoreOptions
 from restoration.result import SPARSE_FRACTION, RestoreResult
 from restoration.surface import SurfaceEstimate, reconstruct_surface
-from wai_core.config import SystemConfig
+from wai_core.config import DeviceConfig, PatternConfig, SystemConfig
 from wai_core.errors import WaiInputError
+from wai_core.geometry import PinholeCamera
 from wai_core.pattern import dot_grid
 
 __all__ = ["StructuredLight", "estimate_surface", "panel_positions", "view_has_signal"]
@@ -34,9 +36,20 @@ DARK_VIEW_CONTRAST = 1e-3
 """A view whose 1st-99th percentile spread (after the gain) is below this has no signal."""
 
 
+@lru_cache(maxsize=8)
+def camera_of(device: DeviceConfig) -> PinholeCamera:
+    """The pinhole model of a device, built once per configuration (a frame asks ~8 times)."""
+    return device.camera()
+
+
+@lru_cache(maxsize=8)
+def _dot_grid(pattern: PatternConfig, projector: DeviceConfig) -> tuple[NDArray, NDArray]:
+    return dot_grid(pattern, camera_of(projector))
+
+
 def panel_positions(cfg: SystemConfig, ij: NDArray) -> NDArray:
     """Projector panel ``(col, row)`` of the dots with grid indices ``ij`` (K, 2)."""
-    grid_ij, panel = dot_grid(cfg.pattern, cfg.projector.camera())
+    grid_ij, panel = _dot_grid(cfg.pattern, cfg.projector)
     side = int(grid_ij[:, 0].max()) * 2 + 1
     half = side // 2
     index = (np.asarray(ij)[:, 1] + half) * side + (np.asarray(ij)[:, 0] + half)
@@ -89,8 +102,8 @@ def _estimate_surface(
     keep = np.isfinite(spot_px).all(axis=1)
     ij, spot_px = ij[keep], spot_px[keep]
     panel = panel_positions(cfg, ij)
-    projector = cfg.projector.camera()
-    fixed = (ij, panel, spot_px, projector, cfg.camera_s.camera(), cfg.diffuser.z_mm)
+    projector = camera_of(cfg.projector)
+    fixed = (ij, panel, spot_px, projector, camera_of(cfg.camera_s), cfg.diffuser.z_mm)
     # Every reconstruction weighs its differences by the dots' spacing on z = h0: the anchor
     # search's reconstructions then share one factorisation.
     weight_xy = points_on_rays(*projector_rays(panel, projector), cfg.water.h0_mm)[:, :2]
@@ -214,7 +227,7 @@ def fit_to_spots(surface: SurfaceEstimate, spots_px: NDArray, cfg: SystemConfig)
     """``surface`` refitted to its samples' spots through the exact model (restoration.fit)."""
     fit = fit_surface(
         surface.points_mm, surface.slopes, panel_positions(cfg, surface.ij), spots_px,
-        cfg.projector.camera(), cfg.camera_s.camera(), cfg.diffuser.z_mm, surface.heightfield,
+        camera_of(cfg.projector), camera_of(cfg.camera_s), cfg.diffuser.z_mm, surface.heightfield,
     )
     est = surface.refitted(
         fit.heightfield, fit.points_mm, fit.slopes, fit_ms=fit.timings_ms["total"]
@@ -227,9 +240,9 @@ def consistency_of(
     surface: SurfaceEstimate, spots_px: NDArray, cfg: SystemConfig, reference: ReferenceGrid
 ) -> Consistency:
     """The forward check of ``surface`` against its samples' spots (restoration.consistency)."""
-    origin, dirs = projector_rays(panel_positions(cfg, surface.ij), cfg.projector.camera())
+    origin, dirs = projector_rays(panel_positions(cfg, surface.ij), camera_of(cfg.projector))
     return spot_consistency(
-        surface.heightfield, surface.points_mm, origin, dirs, spots_px, cfg.camera_s.camera(),
+        surface.heightfield, surface.points_mm, origin, dirs, spots_px, camera_of(cfg.camera_s),
         cfg.diffuser.z_mm, float(np.nanmedian(reference.spacing_px)),
     )
 
