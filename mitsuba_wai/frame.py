@@ -8,8 +8,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense
 from mitsuba_wai.mesh import flat_like
-from mitsuba_wai.render import FrameRenderer, file_surface, render_seed, wave_surface
+from mitsuba_wai.render import (
+    FrameRenderer,
+    file_surface,
+    moving_surface,
+    render_seed,
+    wave_surface,
+)
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.optics import radiance_gain
@@ -24,12 +31,14 @@ class Frame:
     Attributes
     ----------
     cfg : SystemConfig
-        The configuration rendered.
+        The configuration rendered (with the sensor's exposures resolved when it is on).
     surface : Heightfield
         The true surface on the mesh grid, absolute heights, mm, lab frame.
     images : dict of str to (H, W, 3) ndarray of float32
         ``pattern`` / ``pattern_flat`` (camera s, wavy / flat water) and ``view`` /
-        ``view_truth`` (camera v), linear radiance.
+        ``view_truth`` (camera v), linear radiance; with ``[sensor]`` on, the sensor's
+        reading ``DN / full scale`` (:mod:`mitsuba_wai.degrade`). With ``[motion]`` the wavy
+        images are blurred over the exposure (the wave model's surface only).
     view_gain : float
         The views carry this factor (n^2) over the object's radiance.
     render_s : dict of str to float
@@ -80,7 +89,8 @@ def render_frame(
     renderer = FrameRenderer(cfg, grid) if renderer is None else renderer
     seed = render_seed(cfg)
     t0 = time.perf_counter()
-    wavy = renderer.render(grid, seed, spp=spp)
+    surface_at = moving_surface(cfg) if surface is None else None
+    wavy = render_exposure(renderer, cfg, grid, seed, spp=spp, surface_at=surface_at)
     t1 = time.perf_counter()
     flat = renderer.render(flat_like(grid, cfg.water.h0_mm), seed, spp=spp)
     t2 = time.perf_counter()
@@ -90,6 +100,9 @@ def render_frame(
         "view": wavy["view"],
         "view_truth": flat["view"],
     }
+    if cfg.sensor.enabled:
+        cfg = resolve_exposure(cfg, images)
+        images = sense(cfg, images)
     return Frame(
         cfg, grid, images, radiance_gain(cfg.water.n_water), {"wavy": t1 - t0, "flat": t2 - t1}
     )

@@ -14,6 +14,12 @@ A render folder holds:
     Everything that made the renders: configuration, derived layout, seeds, variant, versions.
 
 Each image also gets a PNG preview. The folder appears atomically when complete.
+
+With ``[sensor]`` enabled (:mod:`mitsuba_wai.degrade`) the EXR holds the sensor's reading as
+``DN / full scale`` (linear, in [0, 1]) and ``NAME.png`` is no preview but the integer image
+the camera writes at the ADC depth (8-bit PNG, or 16-bit PNG for 9 to 16 bits, the DN stretched
+to 65535): a folder stripped of its EXRs reads the same. With ``[motion]`` the wavy images are
+blurred over the exposure and the surface files hold the surface at mid-exposure.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ from __future__ import annotations
 import contextlib
 import platform
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +36,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mitsuba_wai import mesh as meshes
+from mitsuba_wai.degrade import (
+    degradation_record,
+    render_exposure,
+    resolve_exposure,
+    sense,
+    subframe_plan,
+)
 from mitsuba_wai.particles import pass_split, render_particles
 from mitsuba_wai.scenes import (
     SCENE_S_DEPTH,
@@ -41,7 +54,7 @@ from mitsuba_wai.scenes import (
 from mitsuba_wai.textures import object_texture
 from mitsuba_wai.variant import mitsuba, select_variant
 from mitsuba_wai.waves import mesh_spacing_mm, sea_surface
-from wai_core.config import SystemConfig
+from wai_core.config import SensorConfig, SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
 from wai_core.io import (
@@ -54,6 +67,7 @@ from wai_core.io import (
 )
 from wai_core.layout import diffuser_rect, object_plane_center, observed_patch, surface_extent
 from wai_core.rig_checks import check_surface_in_rig
+from wai_core.sensor import integer_image
 
 # Largest mesh the renderer builds: ~1 M vertices keeps a frame's memory and time bounded.
 MAX_MESH_VERTICES = 1_000_000
@@ -119,6 +133,12 @@ def file_surface(
     xx, yy = np.meshgrid(x, y)
     z = given.height(xx, yy)
     return Heightfield(x, y, np.where(np.isfinite(z), z, cfg.water.h0_mm))
+
+
+def moving_surface(cfg: SystemConfig) -> Callable[[float], Heightfield]:
+    """The wave model's surface as a function of time, s, on the mesh grid of ``cfg`` (what
+    motion blur's sub-frames render)."""
+    return lambda t: wave_surface(cfg.replace("waves", time_s=float(t)))
 
 
 @contextlib.contextmanager
@@ -225,18 +245,20 @@ class FrameRenderer:
         surface: Heightfield,
         seed: int,
         which: tuple[str, ...] = ("pattern", "view"),
-        spp: int | None = None,
+        spp: int | dict[str, int] | None = None,
     ) -> dict[str, NDArray[np.float32]]:
         """Render the pattern (camera s) and/or the view (camera v) through ``surface``, with
-        the configuration's samples per pixel or, if given, ``spp`` for every image."""
+        the configuration's samples per pixel or, if given, ``spp`` for every image (an int)
+        or per image (a dict keyed ``pattern`` / ``view``)."""
         missing = set(which) - set(self._scenes)
         if missing:
             raise ValueError(f"renderer was not prepared for {sorted(missing)}")
         self._set_surface(surface)
         out = {}
+        given = spp if isinstance(spp, dict) else {"pattern": spp, "view": spp}
         spp = {
-            "pattern": spp or self.cfg.render.spp_pattern,
-            "view": spp or self.cfg.render.spp_view,
+            "pattern": given.get("pattern") or self.cfg.render.spp_pattern,
+            "view": given.get("view") or self.cfg.render.spp_view,
         }
         # The pattern by the deterministic particle tracer (same image for the same seed).
         depth = {"pattern": SCENE_S_DEPTH, "view": None}
@@ -246,8 +268,11 @@ class FrameRenderer:
         return out
 
 
-def scene_record(cfg: SystemConfig, variant: str, surface: Heightfield, source: str) -> dict:
-    """What ``scene.json`` holds: enough for the restoration to run from the folder alone."""
+def scene_record(
+    cfg: SystemConfig, variant: str, surface: Heightfield, source: str, amplitude: float = 1.0
+) -> dict:
+    """What ``scene.json`` holds: enough for the restoration to run from the folder alone
+    (and, when enabled, the degradations' derived values under ``degradations``)."""
     import drjit
     import mitsuba as mi
 
@@ -264,7 +289,7 @@ def scene_record(cfg: SystemConfig, variant: str, surface: Heightfield, source: 
             "fov_x_deg": cam.fov_x_deg,
             "sensor_size_mm": cam.sensor_size_mm,
         }
-    return {
+    record = {
         "format": "wai-render/1",
         "config": cfg.to_dict(),
         "derived": {
@@ -294,13 +319,29 @@ def scene_record(cfg: SystemConfig, variant: str, surface: Heightfield, source: 
             "python": platform.python_version(),
         },
     }
+    degradations = degradation_record(cfg, amplitude)
+    if degradations:
+        record["degradations"] = degradations
+    return record
 
 
-def write_images(folder: Path, images: dict[str, NDArray], view_gain: float) -> None:
+def write_images(
+    folder: Path, images: dict[str, NDArray], view_gain: float, sensor: SensorConfig | None = None
+) -> None:
     """Each image as ``NAME.exr`` and a ``NAME.png`` preview; views (``view*``) are shown at
-    the exposure that undoes the radiance gain, others at their own 99.5th percentile."""
+    the exposure that undoes the radiance gain, others at their own 99.5th percentile.
+
+    With an enabled ``sensor`` the images are ``DN / full scale`` and ``NAME.png`` is the
+    camera's integer image at the ADC depth (:func:`wai_core.sensor.integer_image`)."""
+    import cv2
+
     for name, img in images.items():
         write_exr(folder / f"{name}.exr", img)
+        if sensor is not None and sensor.enabled:
+            raw = integer_image(img, sensor)
+            if not cv2.imwrite(str(folder / f"{name}.png"), np.ascontiguousarray(raw[..., ::-1])):
+                raise OSError(f"could not write {folder / f'{name}.png'}")
+            continue
         exposure = 1.0 / view_gain if name.startswith("view") else None
         write_png(folder / f"{name}.png", img, exposure=exposure)
 
@@ -380,24 +421,33 @@ def render_folder(
         else:
             surface, source = file_surface(cfg, heightfield), "file"
     check_surface_in_rig(cfg, surface, label)
+    # Only the wave model moves; the exposure's first and last surfaces are checked too.
+    surface_at = moving_surface(cfg) if heightfield is None else None
+    plan = subframe_plan(cfg) if surface_at is not None else None
+    if plan is not None and plan.n > 1:
+        for t in (plan.times_s[0], plan.times_s[-1]):
+            check_surface_in_rig(cfg, surface_at(t), label)
     check_output_dir(out_dir, OUTPUT_COMMAND, overwrite)
     tick("surface")
     renderer = FrameRenderer(cfg, surface)
     tick("load scenes")
     seed = render_seed(cfg)
-    wavy = renderer.render(surface, seed)
+    wavy = render_exposure(renderer, cfg, surface, seed, surface_at=surface_at, plan=plan)
     tick("render wavy")
     flat = renderer.render(meshes.flat_like(surface, cfg.water.h0_mm), seed)
     tick("render flat")
+    images = {
+        "pattern": wavy["pattern"],
+        "pattern_flat": flat["pattern"],
+        "view": wavy["view"],
+        "view_truth": flat["view"],
+    }
+    if cfg.sensor.enabled:
+        cfg = resolve_exposure(cfg, images)
+        images = sense(cfg, images)
     record = scene_record(cfg, renderer.variant, surface, source)
     with atomic_dir(out_dir, command=OUTPUT_COMMAND, overwrite=overwrite) as tmp:
-        images = {
-            "pattern": wavy["pattern"],
-            "pattern_flat": flat["pattern"],
-            "view": wavy["view"],
-            "view_truth": flat["view"],
-        }
-        write_images(tmp, images, view_gain=cfg.water.n_water**2)
+        write_images(tmp, images, view_gain=cfg.water.n_water**2, sensor=cfg.sensor)
         write_surface(tmp, surface)
         tick("write")
         record["timings_s"] = timings

@@ -20,9 +20,11 @@ from typing import Any
 import numpy as np
 
 from mitsuba_wai import mesh as meshes
+from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense, subframe_plan
 from mitsuba_wai.render import (
     OUTPUT_COMMAND,
     FrameRenderer,
+    moving_surface,
     render_seed,
     scene_record,
     wave_surface,
@@ -50,15 +52,23 @@ def _renderer(cfg_json: str) -> FrameRenderer:
 
 
 def renderer_for(cfg: SystemConfig) -> FrameRenderer:
-    """The process's loaded renderer of ``cfg`` (its scenes and kernels, reused)."""
-    return _renderer(json.dumps(cfg.to_dict(), sort_keys=True))
+    """The process's loaded renderer of ``cfg`` (its scenes and kernels, reused); the sensor
+    does not change the scenes, so a configuration whose exposures were resolved shares it."""
+    data = cfg.to_dict()
+    data.pop("sensor", None)
+    return _renderer(json.dumps(data, sort_keys=True))
 
 
 def render_frames(
     cfg: SystemConfig, times_s: Sequence[float], indices: Sequence[int], folder: Path
 ) -> list[dict[str, Any]]:
     """Render frames ``indices`` of the sequence into ``folder/frameNNN`` (the shared
-    reference must already be in ``folder``); one row per frame with its render time, s."""
+    reference must already be in ``folder``); one row per frame with its render time, s.
+
+    ``[motion]`` blurs each frame over its exposure (centred on the frame's time); ``[sensor]``
+    reads each frame with its own noise (streams named ``frameNNN/pattern``, ``.../view``) at
+    the exposures resolved on the reference (:func:`render_sequence` passes them in ``cfg``).
+    """
     renderer = renderer_for(cfg)
     seed = render_seed(cfg)
     rows = []
@@ -67,10 +77,13 @@ def render_frames(
         t0 = time.perf_counter()
         frame_cfg = cfg.replace("waves", time_s=float(times_s[k]))
         surface = wave_surface(frame_cfg)
-        images = renderer.render(surface, seed)
+        images = render_exposure(renderer, frame_cfg, surface, seed,
+                                 surface_at=moving_surface(frame_cfg))
+        if cfg.sensor.enabled:
+            images = sense(frame_cfg, images, frame=frame_name(k))
         out = folder / frame_name(k)
         out.mkdir()
-        write_images(out, images, view_gain=radiance_gain(cfg.water.n_water))
+        write_images(out, images, view_gain=radiance_gain(cfg.water.n_water), sensor=cfg.sensor)
         write_surface(out, surface)
         link_reference(folder, out)
         record = scene_record(frame_cfg, renderer.variant, surface, "waves")
@@ -124,17 +137,24 @@ def render_sequence(
 
     times = frame_times(cfg.waves.time_s, fps, n_frames)
     first = cfg.replace("waves", time_s=times[0])
-    # Every frame's surface is checked against the rig before any render starts.
+    # Every frame's surface (and its exposure's ends) is checked before any render starts.
     for t in times:
-        check_surface_in_rig(cfg, wave_surface(cfg.replace("waves", time_s=t)), "[waves]")
+        plan = subframe_plan(cfg.replace("waves", time_s=t))
+        for tt in sorted({t, plan.times_s[0], plan.times_s[-1]}):
+            check_surface_in_rig(cfg, wave_surface(cfg.replace("waves", time_s=tt)), "[waves]")
     check_output_dir(out_dir, OUTPUT_COMMAND, overwrite)
     t0 = time.perf_counter()
     renderer = renderer_for(cfg)
     grid = wave_surface(first)
     flat = renderer.render(meshes.flat_like(grid, cfg.water.h0_mm), render_seed(cfg))
+    reference = {"pattern_flat": flat["pattern"], "view_truth": flat["view"]}
+    if cfg.sensor.enabled:
+        # The exposures are fixed on the reference and travel in cfg to every frame.
+        cfg = resolve_exposure(cfg, reference)
+        reference = sense(cfg, reference)
     with atomic_dir(out_dir, command=OUTPUT_COMMAND, overwrite=overwrite) as tmp:
-        write_images(tmp, {"pattern_flat": flat["pattern"], "view_truth": flat["view"]},
-                     view_gain=radiance_gain(cfg.water.n_water))
+        write_images(tmp, reference, view_gain=radiance_gain(cfg.water.n_water),
+                     sensor=cfg.sensor)
         reference_s = time.perf_counter() - t0
         if runner is None:
             rows = []

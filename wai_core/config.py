@@ -2,6 +2,9 @@
 
 Every section maps to a frozen dataclass. Unknown keys, missing keys and values of the wrong kind
 raise :class:`~wai_core.errors.WaiInputError` naming the key, so a typo never passes silently.
+Only ``[projector]``, ``[camera_s]`` and ``[camera_v]`` are required; every other section
+defaults. The field's degradations, ``[sensor]`` and ``[motion]``, are off by default and cost
+nothing then.
 """
 
 from __future__ import annotations
@@ -70,6 +73,11 @@ class PatternConfig:
     sigma_px: float = 3.0
     color: tuple[float, float, float] = (0.0, 0.75, 1.0)
     power: float = 2.0e5
+    # "none": every dot in ``color`` (the paper's pattern, matched by ordering); "colour": each
+    # dot one of four blue-green mixes whose 3 x 3 windows are locally unique
+    # (wai_core.pattern.dot_codes), decoded without ordering (restoration.features.decode).
+    code: str = "none"
+    code_seed: int = 0
 
 
 @dataclass(frozen=True)
@@ -98,6 +106,39 @@ class RenderConfig:
 
 
 @dataclass(frozen=True)
+class SensorConfig:
+    """Both cameras' sensor (:mod:`wai_core.sensor`): exposure, shot and read noise, full well,
+    ADC. Off by default: the renders are then noiseless linear radiance."""
+
+    enabled: bool = False
+    signal_level: float = 0.5
+    """Fraction of the full well reached by the 99.9th percentile of each camera's flat-water
+    reference (pattern_flat for camera s, view_truth for camera v): the exposure setting."""
+    electrons_per_unit_s: float = 0.0
+    """Camera s's exposure, e- per radiance unit of the render; 0: from ``signal_level``."""
+    electrons_per_unit_v: float = 0.0
+    """Camera v's exposure, e- per radiance unit; 0: from ``signal_level``."""
+    full_well_e: float = 10000.0
+    read_noise_e: float = 5.0
+    bits: int = 12
+    gain_e_per_dn: float = 0.0
+    """Conversion gain, e-/DN; 0: ``full_well_e / (2^bits - 1)`` (the ADC spans the well)."""
+    dark_level_dn: float = 0.0
+    reference_frames: int = 16
+    """Frames averaged into pattern_flat (a calibration); 0: a noiseless reference."""
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Motion blur: the surface moves during the exposure (:mod:`mitsuba_wai.degrade`)."""
+
+    exposure_s: float = 0.0
+    max_shift_px: float = 1.0
+    """Largest image shift between consecutive sub-frames, px (sets the sub-frame count)."""
+    max_subframes: int = 32
+
+
+@dataclass(frozen=True)
 class SystemConfig:
     """The whole sensing system: water, waves, projector, pattern, cameras, diffuser, object."""
 
@@ -110,6 +151,8 @@ class SystemConfig:
     diffuser: DiffuserConfig = field(default_factory=DiffuserConfig)
     object: ObjectConfig = field(default_factory=ObjectConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (JSON/TOML-able)."""
@@ -137,6 +180,8 @@ _SECTIONS = {
     "diffuser": DiffuserConfig,
     "object": ObjectConfig,
     "render": RenderConfig,
+    "sensor": SensorConfig,
+    "motion": MotionConfig,
 }
 
 
@@ -252,6 +297,12 @@ def validate(cfg: SystemConfig) -> None:
         raise WaiInputError(f"config: [waves].seed must be >= 0, not {wv.seed}")
     if cfg.pattern.spacing_px <= 2 * cfg.pattern.sigma_px:
         raise WaiInputError("config: [pattern].spacing_px must exceed twice sigma_px")
+    if cfg.pattern.code not in ("none", "colour"):
+        raise WaiInputError(
+            f"config: [pattern].code must be 'none' or 'colour', not {cfg.pattern.code!r}"
+        )
+    if cfg.pattern.code_seed < 0:
+        raise WaiInputError("config: [pattern].code_seed must be >= 0")
     for name in ("projector", "camera_s", "camera_v"):
         dev: DeviceConfig = getattr(cfg, name)
         if min(dev.width_px, dev.height_px) < 2 or dev.focal_mm <= 0 or dev.sensor_width_mm <= 0:
@@ -262,3 +313,33 @@ def validate(cfg: SystemConfig) -> None:
             raise WaiInputError(f"config: [{name}] {exc}") from None
     if cfg.render.spp_pattern < 1 or cfg.render.spp_view < 1:
         raise WaiInputError("config: [render] spp must be at least 1")
+    _validate_degradations(cfg.sensor, cfg.motion)
+
+
+def _validate_degradations(s: SensorConfig, m: MotionConfig) -> None:
+    """[sensor] and [motion]: checked even when disabled, so a typo'd value never waits."""
+    positive = {"full_well_e": s.full_well_e, "signal_level": s.signal_level}
+    for key, value in positive.items():
+        if value <= 0:
+            raise WaiInputError(f"config: [sensor].{key} must be positive, not {value:g}")
+    non_negative = {
+        "electrons_per_unit_s": s.electrons_per_unit_s,
+        "electrons_per_unit_v": s.electrons_per_unit_v, "read_noise_e": s.read_noise_e,
+        "gain_e_per_dn": s.gain_e_per_dn, "dark_level_dn": s.dark_level_dn,
+        "reference_frames": s.reference_frames,
+    }
+    for key, value in non_negative.items():
+        if value < 0:
+            raise WaiInputError(f"config: [sensor].{key} must be >= 0, not {value:g}")
+    if not 8 <= s.bits <= 16:
+        raise WaiInputError(f"config: [sensor].bits must be 8 .. 16, not {s.bits}")
+    if s.dark_level_dn >= 2**s.bits - 1:
+        raise WaiInputError("config: [sensor].dark_level_dn must lie below the ADC full scale")
+    if m.exposure_s < 0:
+        raise WaiInputError(f"config: [motion].exposure_s must be >= 0, not {m.exposure_s:g}")
+    if m.max_shift_px <= 0:
+        raise WaiInputError(
+            f"config: [motion].max_shift_px must be positive, not {m.max_shift_px:g}"
+        )
+    if m.max_subframes < 1:
+        raise WaiInputError(f"config: [motion].max_subframes must be >= 1, not {m.max_subframes}")

@@ -59,3 +59,39 @@ def test_summaries_count_failures_apart():
     ])
     (spacing,) = series["spacing"]
     assert (spacing["ok"], spacing["n"], spacing["rmse_mm"]) == (1, 2, 0.2)
+
+
+def test_degradation_fields_enable_the_sections():
+    from wai.experiments.frame_eval import frame_config
+
+    cfg = frame_config({"config": PAPER, "seed": 1, "signal_e": 30000.0, "read_noise_e": 3.0,
+                        "exposure_s": 0.004})
+    assert cfg.sensor.enabled and cfg.sensor.read_noise_e == 3.0
+    # the full well holds the signal: raised to twice it, the signal level is then one half
+    assert cfg.sensor.full_well_e == 60000.0 and cfg.sensor.signal_level == 0.5
+    assert cfg.motion.exposure_s == 0.004
+    plain = frame_config({"config": PAPER, "seed": 1})
+    assert not plain.sensor.enabled and plain.motion.exposure_s == 0.0
+
+
+def test_a_noisy_blurred_frame_is_still_restored():
+    # 3000 e- at the reference's p99.9 (shot-noise SNR ~ 55 at the dots) and a 1 ms exposure:
+    # both well inside what the method tolerates.
+    row = evaluate_frame({"config": PAPER, "seed": 0, "spp_pattern": 4, "repeats": 1,
+                          "signal_e": 3000.0, "exposure_s": 0.001})
+    assert row["subframes"] > 1
+    assert row["frame_status"] == "ok", row["frame_status"]
+    assert row["wai_rmse_mm"] < 0.5
+
+
+def test_the_failure_point_is_where_most_frames_stop_being_ok():
+    from wai.experiments.stability import failure_point
+
+    def entries(oks):
+        return [{"value": v, "frames": 2, "ok": ok} for v, ok in oks]
+
+    assert failure_point(entries([(1, 2), (2, 1), (3, 0)])) == 3  # 1 of 2 ok is half: ok
+    assert failure_point(entries([(1, 0), (2, 2), (3, 0), (4, 0)])) == 3  # calm start skipped
+    assert failure_point(entries([(1, 2), (2, 2)])) is None
+    # harsher towards smaller values (the sensor's signal): walked from the largest
+    assert failure_point(entries([(30, 0), (300, 2), (3000, 2)]), harsher=-1) == 30

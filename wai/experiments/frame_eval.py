@@ -15,10 +15,15 @@ Point keys (all optional except ``config`` and ``seed``)
     z_h (mm) and the pattern's samples per pixel.
 ``amplitude`` (float, default 1)
     Scales the wave heights about h0 at fixed U (steeper waves of the same shape).
-``noise_rel`` (float, default 0)
-    Sensor read noise added to both cameras' wavy-water images: Gaussian, standard deviation
-    this fraction of the image's 99.9th percentile. The flat-water reference is a calibration
-    (averaged over many frames), so it stays clean.
+``signal_e``, ``read_noise_e`` (float, e-), ``bits`` (int)
+    Any of them turns the scene's ``[sensor]`` on (:mod:`wai_core.sensor`: shot noise, read
+    noise, full well, ADC) with these overrides: ``signal_e`` electrons at the 99.9th
+    percentile of each camera's flat-water reference (the full well is raised to twice that
+    if it is smaller), ``read_noise_e`` the read noise, ``bits`` the ADC depth. The wavy
+    images get one frame's noise, the flat pattern the mean of ``reference_frames``, the view
+    truth none (:mod:`mitsuba_wai.degrade`).
+``exposure_s`` (float, s)
+    Motion blur: the scene's ``[motion].exposure_s`` (the surface moves during the exposure).
 ``integrators`` (str, default the pipeline's)
     Comma-separated integrator names: each is run on the same frame, columns get a suffix.
 ``warp_steps`` (str)
@@ -48,7 +53,6 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
@@ -72,6 +76,20 @@ def frame_config(point: dict[str, Any]) -> SystemConfig:
         cfg = cfg.replace("diffuser", z_mm=float(point["z_h_mm"]))
     if point.get("spp_pattern") is not None:
         cfg = cfg.replace("render", spp_pattern=int(point["spp_pattern"]))
+    if point.get("exposure_s") is not None:
+        cfg = cfg.replace("motion", exposure_s=float(point["exposure_s"]))
+    sensor = {k: point[k] for k in ("signal_e", "read_noise_e", "bits") if point.get(k) is not None}
+    if sensor:
+        changes: dict[str, Any] = {"enabled": True}
+        if "signal_e" in sensor:
+            full_well = max(cfg.sensor.full_well_e, 2.0 * float(sensor["signal_e"]))
+            changes.update(full_well_e=full_well,
+                           signal_level=float(sensor["signal_e"]) / full_well)
+        if "read_noise_e" in sensor:
+            changes["read_noise_e"] = float(sensor["read_noise_e"])
+        if "bits" in sensor:
+            changes["bits"] = int(sensor["bits"])
+        cfg = cfg.replace("sensor", **changes)
     return cfg
 
 
@@ -80,30 +98,38 @@ def scaled_surface(surface: Heightfield, h0_mm: float, amplitude: float) -> Heig
     return Heightfield(surface.x, surface.y, h0_mm + amplitude * (surface.z - h0_mm))
 
 
-def add_read_noise(image: NDArray, rel: float, rng: np.random.Generator) -> NDArray[np.float32]:
-    """``image`` plus Gaussian noise of ``rel`` x its 99.9th percentile (float32)."""
-    if rel <= 0:
-        return image
-    scale = rel * float(np.percentile(image, 99.9))
-    return (image + rng.normal(0.0, scale, image.shape)).astype(np.float32)
-
-
 def render_frame(cfg: SystemConfig, amplitude: float = 1.0) -> tuple[dict[str, Any], Any]:
-    """Render the four images of one frame in memory; returns them (with ``render_s_pattern``
-    and ``render_s_view``, the wavy renders' wall times) and the true surface."""
+    """Render the four images of one frame in memory, blurred (``[motion]``) and read by the
+    sensor (``[sensor]``) when enabled; returns them (with ``render_s_pattern`` and
+    ``render_s_view``, the wavy renders' wall times, and ``subframes``) and the true surface
+    (at mid-exposure)."""
+    from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense, subframe_plan
     from mitsuba_wai.mesh import flat_like
     from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
 
-    surface = scaled_surface(wave_surface(cfg), cfg.water.h0_mm, amplitude)
+    h0 = cfg.water.h0_mm
+
+    def surface_at(t: float) -> Heightfield:
+        return scaled_surface(wave_surface(cfg.replace("waves", time_s=t)), h0, amplitude)
+
+    surface = surface_at(cfg.waves.time_s)
     renderer = FrameRenderer(cfg, surface)
     seed = render_seed(cfg)
+    plan = subframe_plan(cfg, amplitude)
     images: dict[str, Any] = {}
     for system in ("pattern", "view"):
         t0 = time.perf_counter()
-        images[system] = renderer.render(surface, seed, (system,))[system]
+        images[system] = render_exposure(
+            renderer, cfg, surface, seed, (system,), surface_at=surface_at, plan=plan
+        )[system]
         images[f"render_s_{system}"] = time.perf_counter() - t0
-    flat = renderer.render(flat_like(surface, cfg.water.h0_mm), seed)
+    flat = renderer.render(flat_like(surface, h0), seed)
     images["pattern_flat"], images["view_truth"] = flat["pattern"], flat["view"]
+    if cfg.sensor.enabled:
+        names = ("pattern", "pattern_flat", "view", "view_truth")
+        cfg = resolve_exposure(cfg, images)
+        images.update(sense(cfg, {k: images[k] for k in names}))
+    images["subframes"] = plan.n
     return images, surface
 
 
@@ -188,11 +214,7 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     except (WaiInputError, ValueError) as exc:  # e.g. waves that reach the diffuser
         row["frame_status"] = f"failed: cannot render: {exc}"
         return row
-    rng = np.random.default_rng([int(point["seed"]), 2024])
-    noise = float(point.get("noise_rel", 0.0))
-    for key in ("pattern", "view"):
-        images[key] = add_read_noise(images[key], noise, rng)
-    for key in ("render_s_pattern", "render_s_view"):
+    for key in ("render_s_pattern", "render_s_view", "subframes"):
         row[key] = images.pop(key)
     row["phi_deg"] = effective_phi_deg(surface, cfg)
     cal = Calibration(cfg, radiance_gain(cfg.water.n_water))

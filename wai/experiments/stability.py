@@ -4,8 +4,15 @@ Sweeps, each over seeds (frames by :func:`wai.frame_eval.evaluate_frame`, on Das
 
 - sea state: wind speed U from calm to where everything fails, and the wave heights scaled at
   fixed U = 1 m/s (steeper waves of the same shape);
-- pattern spacing D, diffuser height z_h, sensor read noise;
+- pattern spacing D, diffuser height z_h;
+- the field's degradations: the sensor's signal (electrons at the flat reference's 99.9th
+  percentile; shot and read noise, full well, 12-bit ADC: ``[sensor]``) and the exposure time
+  (motion blur: ``[motion]``);
 - Alterman's sun sensor: the sun's zenith angle (:func:`evaluate_sun`).
+
+Each panel marks the sweep's failure point (:func:`failure_point`): walking from its mildest
+value to its harshest, the first value at which under half the frames end ok, after one at
+which at least half did.
 
 Every frame reports its fraction of correct correspondences (against the geometric model's
 spot for each label), surface RMSE, restored SSIM and a status; a failed frame is a row with
@@ -39,7 +46,8 @@ SWEEPS: dict[str, tuple[str, tuple[float, ...]]] = {
     "amplitude": ("amplitude", (0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0)),
     "spacing": ("spacing_px", (12.0, 16.0, 20.0, 28.0, 40.0, 56.0)),
     "z_h": ("z_h_mm", (20.0, 40.0, 60.0, 80.0, 100.0, 120.0)),
-    "noise": ("noise_rel", (0.0, 0.01, 0.03, 0.1, 0.2, 0.4)),
+    "noise": ("signal_e", (30000.0, 10000.0, 3000.0, 1000.0, 300.0, 100.0, 30.0)),
+    "exposure": ("exposure_s", (0.0, 0.002, 0.005, 0.01, 0.02, 0.04)),
     "sun": ("theta_sun_deg", (0.0, 15.0, 30.0, 45.0, 60.0)),
 }
 QUICK: dict[str, tuple[float, ...]] = {
@@ -47,9 +55,28 @@ QUICK: dict[str, tuple[float, ...]] = {
     "amplitude": (1.0, 4.0),
     "spacing": (16.0, 28.0),
     "z_h": (60.0,),
-    "noise": (0.0, 0.1),
+    "noise": (10000.0, 100.0),
+    "exposure": (0.0, 0.01),
     "sun": (0.0,),
 }
+HARSHER: dict[str, int] = {
+    "wind": 1, "amplitude": 1, "spacing": -1, "z_h": -1, "noise": -1, "exposure": 1, "sun": 1,
+}
+"""Which way each sweep gets harder: +1 towards larger values, -1 towards smaller (denser
+dots and a lower diffuser shrink eq. 35's bound; fewer electrons mean more noise)."""
+
+
+def failure_point(entries: list[dict[str, Any]], harsher: int = 1) -> float | None:
+    """The first value, from the mildest towards the harshest, at which under half the frames
+    ended ok after one at which at least half did; None when the sweep never breaks (or never
+    worked)."""
+    worked = False
+    for e in sorted(entries, key=lambda e: harsher * e["value"]):
+        ok = e["ok"] >= 0.5 * max(e["frames"], 1)
+        if worked and not ok:
+            return e["value"]
+        worked = worked or ok
+    return None
 
 
 def evaluate_sun(point: dict[str, Any]) -> dict[str, Any]:
@@ -224,7 +251,8 @@ def stability_figure(rows: list[dict], summary: dict[str, list[dict]], path: Pat
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     labels = {"wind": "U (m/s)", "amplitude": "height scale at U = 1", "spacing": "D (px)",
-              "z_h": "z_h (mm)", "noise": "read noise (x p99.9)", "sun": "sun zenith (deg)"}
+              "z_h": "z_h (mm)", "noise": "signal at the reference's p99.9 (e-)",
+              "exposure": "exposure (s)", "sun": "sun zenith (deg)"}
     for ax, sweep in zip(axes.ravel()[1:], SWEEPS, strict=False):
         ent = summary[sweep]
         if not ent:
@@ -233,7 +261,12 @@ def stability_figure(rows: list[dict], summary: dict[str, list[dict]], path: Pat
         x = [e["value"] for e in ent]
         ax.plot(x, [e["wai_rmse_mm"] for e in ent], "o-", label="surface RMSE (mm, ok frames)")
         ax.set_yscale("log")
+        if sweep == "noise":
+            ax.set_xscale("log")
         ax.set(xlabel=labels[sweep], title=sweep)
+        fail = failure_point(ent, HARSHER[sweep])
+        if fail is not None:
+            ax.axvline(fail, color="k", ls="-.", lw=1, label=f"fails at {fail:g}")
         tw = ax.twinx()
         tw.plot(x, [e["ok"] / max(e["frames"], 1) for e in ent], "s--", color="tab:red",
                 label="share of frames ok")
@@ -245,7 +278,6 @@ def stability_figure(rows: list[dict], summary: dict[str, list[dict]], path: Pat
         h1, l1 = ax.get_legend_handles_labels()
         h2, l2 = tw.get_legend_handles_labels()
         ax.legend(h1 + h2, l1 + l2, fontsize=6)
-    axes.ravel()[-1].set_visible(False)  # seven panels on a 2 x 4 grid
     fig.tight_layout()
     save_figure(fig, path)
 
@@ -274,7 +306,11 @@ def report_markdown(
              ""]
     for sweep, entries in summary.items():
         field = SWEEPS[sweep][0]
+        fail = failure_point(entries, HARSHER[sweep])
+        verdict = f"Fails at **{fail:g}**" if fail is not None else "No failure point"
         lines += [f"## {sweep} ({field})", "",
+                  f"{verdict} (the first value, mildest to harshest, with under half the "
+                  "frames ok).", "",
                   "| value | frames | statuses | fraction correct | Φ (deg) | Φ_max (deg) | "
                   "RMSE (mm) | SSIM |", "|" + " --- |" * 8]
         for e in entries:
