@@ -205,10 +205,11 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "what",
         nargs="?",
         default="all",
-        choices=["all", "render", "restore", "accuracy", "video"],
+        choices=["all", "render", "restore", "accuracy", "video", "surfaces"],
         help="all (default): time every stage, write bench.json and bench.png to --out; "
         "render/restore: wall time of one part, printed; "
         "accuracy: scores over seeds with an error budget; "
+        "surfaces: analytic steep and sharp-crested surfaces; "
         "video: latency and multi-process throughput over a rendered frame sequence",
     )
     p.add_argument("--config", default="paper", help=SCENE_HELP)
@@ -222,6 +223,12 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--wind", type=float, help="accuracy: wind speed U, m/s")
     p.add_argument("--surface", choices=["dielectric", "mirror"], help="accuracy: water surface")
+    p.add_argument("--camera", help="accuracy: both cameras' pixels, WIDTHxHEIGHT (same sensors)")
+    p.add_argument("--spp", type=int, help="accuracy: samples per pixel of both renders")
+    p.add_argument(
+        "--phi", type=float, default=0.8,
+        help="surfaces: scale each surface to at most this fraction of eq. 35's slope bound",
+    )
     p.add_argument("--workers", type=int, default=2, help="video: worker processes (and 1)")
     p.add_argument("--frames", type=int, default=60, help="video: frames restored per count")
     p.add_argument("--sequence", type=int, default=6, help="video: distinct frames rendered")

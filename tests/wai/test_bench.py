@@ -155,3 +155,11 @@ def test_bench_video_reports_latency_and_throughput(quick_toml, tmp_path, capsys
 def test_bench_video_rejects_zero_workers(tmp_path, capsys):
     assert main(["bench", "video", "--workers", "0", "--out", str(tmp_path)]) == 2
     assert "--workers" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("camera", ["abc", "800x", "8x8"])
+def test_a_bad_camera_size_is_one_line(camera, tmp_path, capsys):
+    assert main(["bench", "accuracy", "--camera", camera, "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--camera" in err[0]
+    assert not (tmp_path / "a").exists()

@@ -5,7 +5,8 @@ reported apart from the measured runs, and times a reference workload in the sam
 (:mod:`wai.bench.timing`). ``wai bench`` (``all``, :mod:`wai.bench.report`) times every stage,
 rendering and restoration, and writes ``bench.json`` and ``bench.png``; ``render``
 (:mod:`wai.bench.render`) and ``restore`` (:mod:`wai.bench.restore`) print their part only;
-``accuracy`` (:mod:`wai.bench.accuracy`) scores seeds with an error budget; ``video``
+``accuracy`` (:mod:`wai.bench.accuracy`) scores seeds with an error budget; ``surfaces``
+(:mod:`wai.bench.surfaces`) restores analytic surfaces; ``video``
 (:mod:`wai.bench.video`) measures latency and throughput over a sequence.
 """
 
@@ -23,6 +24,7 @@ DEFAULT_OUT = {
     "all": Path("renders/bench"),
     "accuracy": Path("renders/bench_accuracy"),
     "video": Path("renders/bench_video"),
+    "surfaces": Path("renders/bench_surfaces"),
 }
 """Output folder of the benchmarks that write files, when ``--out`` is not given."""
 
@@ -51,6 +53,11 @@ def run_bench(args: argparse.Namespace) -> None:
 
         res = run_accuracy(args)
         printer = print_accuracy
+    elif what == "surfaces":
+        from wai.bench.surfaces import bench_surfaces, print_surfaces
+
+        res = bench_surfaces(args)
+        printer = print_surfaces
     elif what == "video":
         from wai.bench.video import bench_video, print_video
 

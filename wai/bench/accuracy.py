@@ -168,11 +168,25 @@ def summarize_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "spot_noise_median_px": ("spot_noise", "median_px"),
         "corner_std_floor_px": ("corner_floor_px",),
     }
+    keys["corner_std_restored_px800"] = ("metrics", "corner_std_restored_px800")
     summary = {k: _mean_std(col(p)) for k, p in keys.items()}
     for v in VARIANTS:
         for m in ("rmse_mm", "rmse_demeaned_mm"):
             summary[f"budget.{v}.{m}"] = _mean_std(col(("error_budget", v, m)))
     return summary
+
+
+def parse_camera(text: str) -> tuple[int, int]:
+    """``"1600x1200"`` as (width, height) px; one-line error naming ``--camera`` otherwise."""
+    from wai_core.errors import WaiInputError
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise WaiInputError(f"--camera must be WIDTHxHEIGHT in pixels, not {text!r}") from None
+    if w < 16 or h < 16:
+        raise WaiInputError(f"--camera {text}: at least 16 x 16 pixels")
+    return w, h
 
 
 def run_accuracy(args: argparse.Namespace) -> dict[str, Any]:
@@ -182,12 +196,21 @@ def run_accuracy(args: argparse.Namespace) -> dict[str, Any]:
         cfg = cfg.replace("waves", wind_speed_m_s=args.wind)
     if args.surface:
         cfg = cfg.replace("water", surface=args.surface)
+    if getattr(args, "camera", None):
+        w, h = parse_camera(args.camera)
+        cfg = cfg.replace("camera_s", width_px=w, height_px=h).replace(
+            "camera_v", width_px=w, height_px=h
+        )
+    if getattr(args, "spp", None):
+        cfg = cfg.replace("render", spp_pattern=args.spp, spp_view=args.spp)
     out = Path(args.out)
     runs = [run_seed(cfg, s, out) for s in tqdm(range(args.seeds), desc="seeds", leave=False)]
     result = {
         "config": str(args.config),
         "wind_speed_m_s": cfg.waves.wind_speed_m_s,
         "surface": cfg.water.surface,
+        "camera_px": [cfg.camera_s.width_px, cfg.camera_s.height_px],
+        "spp": [cfg.render.spp_pattern, cfg.render.spp_view],
         "seeds": list(range(args.seeds)),
         "summary": summarize_runs(runs),
         "runs": runs,
