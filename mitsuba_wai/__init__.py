@@ -17,6 +17,7 @@ sun spots) come from :mod:`mitsuba_wai.particles`, which sums in a fixed order.
 
 from mitsuba_wai.frame import Frame, render_frame
 from mitsuba_wai.render import FrameRenderer, file_surface, render_folder, wave_surface
+from mitsuba_wai.sequence import render_sequence
 from mitsuba_wai.variant import select_variant
 from mitsuba_wai.waves import sea_surface
 
@@ -26,6 +27,7 @@ __all__ = [
     "file_surface",
     "render_folder",
     "render_frame",
+    "render_sequence",
     "sea_surface",
     "select_variant",
     "wave_surface",

@@ -25,11 +25,13 @@ match), :mod:`~restoration.normals`, :mod:`~restoration.surface` with
 
 from restoration.alterman import AltermanCalibration
 from restoration.calibration import Calibration, LevelTrack, RigCalibration
+from restoration.consistency import Consistency
 from restoration.folder import FolderRestore, restore_folder
 from restoration.methods import METHODS, Alterman, Method, get_method, load_calibration
 from restoration.options import ANCHORS, RestoreOptions
 from restoration.result import STATUSES, RestoreResult
 from restoration.scoring import Scores, Truth, score
+from restoration.sequence import SequenceRestore, restore_sequence
 from restoration.structured_light import StructuredLight
 
 __all__ = [
@@ -39,6 +41,7 @@ __all__ = [
     "Alterman",
     "AltermanCalibration",
     "Calibration",
+    "Consistency",
     "FolderRestore",
     "LevelTrack",
     "Method",
@@ -46,10 +49,12 @@ __all__ = [
     "RestoreResult",
     "RigCalibration",
     "Scores",
+    "SequenceRestore",
     "StructuredLight",
     "Truth",
     "get_method",
     "load_calibration",
     "restore_folder",
+    "restore_sequence",
     "score",
 ]
