@@ -66,6 +66,16 @@ HARSHER: dict[str, int] = {
 dots and a lower diffuser shrink eq. 35's bound; fewer electrons mean more noise)."""
 
 
+CODES = ("none", "colour")
+"""The patterns the "coded" sweep runs side by side on the same sea states: the paper's plain
+grid (ordering matcher) and the colour-coded one (:mod:`restoration.features.decode`)."""
+CODED: tuple[tuple[float, float], ...] = (
+    (1.0, 0.5), (1.0, 1.0), (1.0, 1.5), (1.0, 2.0), (1.0, 2.5), (1.0, 3.0), (0.5, 1.0),
+)
+"""The "coded" sweep's sea states, (U m/s, height scale): amplitude at U = 1, and U = 0.5."""
+CODED_QUICK: tuple[tuple[float, float], ...] = ((1.0, 1.0), (1.0, 2.0))
+
+
 def failure_point(entries: list[dict[str, Any]], harsher: int = 1) -> float | None:
     """The first value, from the mildest towards the harshest, at which under half the frames
     ended ok after one at which at least half did; None when the sweep never breaks (or never
@@ -124,6 +134,12 @@ def stability_points(
                 if sweep == "sun":
                     p["alterman"] = str(alterman)
                 points.append(p)
+    for wind, amplitude in CODED_QUICK if quick else CODED:
+        for code in CODES:
+            for seed in seeds:
+                points.append({"sweep": "coded", "config": str(config), "seed": seed,
+                               "code": code, "wind_mps": wind, "amplitude": amplitude,
+                               "repeats": 1})
     return points
 
 
@@ -205,13 +221,14 @@ def detection_rates(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def confidence_figure(rows: list[dict[str, Any]], rates: dict[str, Any], path: Path) -> None:
     """True surface RMSE against the truth-free residual (in units of each frame's threshold),
-    by status: the check works when bad frames sit right of 1 and good ones left."""
+    by the method's own status: the check works when bad frames sit right of 1 and good ones
+    left."""
     fig, ax = plt.subplots(figsize=(7, 5))
     pts: dict[str, tuple[list[float], list[float]]] = {}
     for r in rows:
         if r.get("sweep") == "sun" or r.get("residual_median_px") is None:
             continue
-        status = str(r.get("frame_status")).split(":")[0]
+        status = str(r.get("method_status") or r.get("frame_status")).split(":")[0]
         x = float(r["residual_median_px"]) / float(r["residual_threshold_px"])
         pts.setdefault(status, ([], []))
         pts[status][0].append(max(x, 1e-3))
@@ -335,11 +352,99 @@ def run_stability(args: argparse.Namespace) -> dict[str, Any]:
     summary = sweep_summary(rows)
     rates = detection_rates(rows)
     stability_figure(rows, summary, out / "stability.png")
+    coded = coded_summary(rows)
+    coded_figure(rows, out / "coded.png")
     confidence_figure(rows, rates, out / "confidence.png")
     command = f"wai experiment stability --seeds {args.seeds}" + (" --quick" if args.quick else "")
-    text = report_markdown(summary, command, rates)
+    text = report_markdown(summary, command, rates) + coded_markdown(coded)
     atomic_write_bytes(out / "stability.md", text.encode())
     # stability.json is the sweep's run record; the summary and the rates go beside it.
-    write_json(out / "stability_summary.json", {"sweeps": summary, "detection": rates})
+    write_json(out / "stability_summary.json",
+               {"sweeps": summary, "detection": rates, "coded": coded})
     print(text)
     return summary
+
+
+def coded_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The "coded" sweep per pattern and sea state: frames, statuses, Φ / Φ_max, the share of
+    kept labels that are correct (``label_precision``, over the frames that ran), the share of
+    the dots in view correctly labelled, and the surface RMSE over the ok frames."""
+    sel = [r for r in rows if r.get("sweep") == "coded"]
+    out = []
+    for key in sorted({(r["code"], r["wind_mps"], r["amplitude"]) for r in sel}):
+        group = [r for r in sel if (r["code"], r["wind_mps"], r["amplitude"]) == key]
+        good = [r for r in group if _ok(r)]
+
+        def mean(name: str, rows_: list[dict]) -> float:
+            vals = [float(r[name]) for r in rows_ if r.get(name) is not None]
+            vals = [v for v in vals if np.isfinite(v)]
+            return float(np.mean(vals)) if vals else float("nan")
+
+        statuses: dict[str, int] = {}
+        for r in group:
+            st = str(r.get("frame_status") if r.get("status") == "ok" else r.get("status"))
+            statuses[st.split(":")[0]] = statuses.get(st.split(":")[0], 0) + 1
+        out.append({
+            "code": key[0], "wind_mps": key[1], "amplitude": key[2], "frames": len(group),
+            "ok": len(good), "statuses": statuses,
+            "phi_ratio": mean("phi_deg", group) / mean("phi_max_deg", group),
+            "label_precision": mean("label_precision", group),
+            "fraction_correct": mean("fraction_correct", group),
+            "wai_rmse_mm": mean("wai_rmse_mm", good),
+            "wai_rmse_all_mm": mean("wai_rmse_mm", group),
+        })
+    return out
+
+
+def coded_figure(rows: list[dict[str, Any]], path: Path) -> None:
+    """Both patterns on the same sea states against Φ / Φ_max (eq. 35's bound at 1): the share
+    of kept labels correct, the share of dots in view correctly labelled, and the surface RMSE
+    (filled: frame ok, hollow: any other status)."""
+    sel = [r for r in rows if r.get("sweep") == "coded" and r.get("phi_deg") is not None
+           and r.get("phi_max_deg")]
+    if not sel:
+        return
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    style = {"none": ("o", "tab:blue", "plain grid (ordering)"),
+             "colour": ("s", "tab:orange", "colour code (decoded)")}
+    for code, (marker, colour, label) in style.items():
+        pts = [r for r in sel if r.get("code") == code]
+        if not pts:
+            continue
+        x = np.array([r["phi_deg"] / r["phi_max_deg"] for r in pts])
+        ok = np.array([_ok(r) for r in pts])
+        for ax, key in zip(axes, ("label_precision", "fraction_correct", "wai_rmse_mm"),
+                           strict=True):
+            y = np.array([np.nan if r.get(key) is None else float(r[key]) for r in pts])
+            for mask, face in ((ok, colour), (~ok, "none")):
+                ax.plot(x[mask], y[mask], marker, color=colour, mfc=face, ms=6, ls="none",
+                        label=label if face != "none" else None)
+    titles = ("share of kept labels correct", "dots in view correctly labelled",
+              "surface RMSE (mm)")
+    for ax, title in zip(axes, titles, strict=True):
+        ax.axvline(1.0, color="gray", ls="--", lw=1, label="eq. 35 bound")
+        ax.set(xlabel="Φ / Φ_max (eq. 35)", title=title)
+        ax.grid(alpha=0.3)
+    axes[0].axhline(0.99, color="tab:green", ls=":", lw=1, label="99 %")
+    axes[2].set_yscale("log")
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Coded pattern against the ordering limit (hollow: frame not ok)")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def coded_markdown(coded: list[dict[str, Any]]) -> str:
+    """The "coded" sweep's table."""
+    if not coded:
+        return ""
+    lines = ["", "## coded: plain grid against the colour code", "", "![coded](coded.png)", "",
+             "| pattern | U (m/s) | height scale | Φ/Φ_max | frames | statuses | kept labels "
+             "correct | dots correct | RMSE ok (mm) | RMSE all (mm) |", "|" + " --- |" * 10]
+    for e in coded:
+        st = ", ".join(f"{k} {v}" for k, v in sorted(e["statuses"].items()))
+        lines.append(
+            f"| {e['code']} | {e['wind_mps']:g} | {e['amplitude']:g} | {e['phi_ratio']:.2f} | "
+            f"{e['frames']} | {st} | {e['label_precision']:.4f} | {e['fraction_correct']:.3f} "
+            f"| {e['wai_rmse_mm']:.3g} | {e['wai_rmse_all_mm']:.3g} |"
+        )
+    return "\n".join(lines) + "\n"
