@@ -1,0 +1,50 @@
+"""The Gauss-Newton fit to the spots, on spots the exact geometric model puts there."""
+
+import numpy as np
+
+from restoration.fit import BSplineSurface, fit_surface
+from restoration.normals import projector_rays
+from restoration.structured_light import panel_positions
+from wai_core.forward import spots_through
+from wai_core.heightfield import Heightfield
+
+
+def _swell(h0, amplitude=1.5):
+    x, y = np.linspace(-100.0, 700.0, 401), np.linspace(-350.0, 350.0, 351)
+    xx, yy = np.meshgrid(x, y)
+    return Heightfield(x, y, h0 + amplitude * np.sin(2 * np.pi * (xx + 0.5 * yy) / 200.0))
+
+
+def test_a_bspline_reproduces_a_plane_and_its_slopes():
+    spline = BSplineSurface(0.0, 0.0, 10.0, np.zeros((12, 12)))
+    xx, yy = np.meshgrid(np.arange(12) * 10.0, np.arange(12) * 10.0)
+    spline.coeffs = 5.0 + 0.1 * (xx - 10.0) - 0.2 * (yy - 10.0)  # knots offset by one step
+    z, zx, zy, zxx, zxy, zyy = spline.evaluate(np.array([35.0, 52.0]), np.array([41.0, 47.0]))
+    np.testing.assert_allclose(zx, 0.1, atol=1e-12)
+    np.testing.assert_allclose(zy, -0.2, atol=1e-12)
+    np.testing.assert_allclose([zxx, zxy, zyy], 0.0, atol=1e-12)
+
+
+def test_the_fit_moves_a_wrong_start_towards_the_spots(paper_cfg):
+    cfg = paper_cfg
+    truth = _swell(cfg.water.h0_mm)
+    ij = np.array([[i, j] for i in range(-10, 11) for j in range(-10, 11)])
+    panel = panel_positions(cfg, ij)
+    spots = spots_through(cfg, truth, panel)
+    keep = np.isfinite(spots).all(axis=1)
+    ij, panel, spots = ij[keep], panel[keep], spots[keep]
+    origin, dirs = projector_rays(panel, cfg.projector.camera())
+    unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    hits, _ = truth.intersect(np.broadcast_to(origin, unit.shape), unit)
+    gx, gy = truth.gradient(hits[:, 0], hits[:, 1])
+    # A start 40 % too flat: heights and slopes both wrong, the level right.
+    start = hits.copy()
+    start[:, 2] = cfg.water.h0_mm + 0.6 * (hits[:, 2] - cfg.water.h0_mm)
+    like = Heightfield(truth.x, truth.y, truth.z)
+    fit = fit_surface(start, 0.6 * np.column_stack([gx, gy]), panel, spots,
+                      cfg.projector.camera(), cfg.camera_s.camera(), cfg.diffuser.z_mm, like)
+    assert fit.rms_mm[-1] < 0.2 * fit.rms_mm[0]
+    err_before = np.abs(start[:, 2] - hits[:, 2]).mean()
+    err_after = np.abs(fit.points_mm[:, 2] - truth.height(fit.points_mm[:, 0],
+                                                         fit.points_mm[:, 1])).mean()
+    assert err_after < 0.5 * err_before
