@@ -69,7 +69,7 @@ from mitsuba_wai.render import (
     write_images,
     write_surface,
 )
-from mitsuba_wai.scenes import rectangle_to_world, sensor_dict, water_bsdf
+from mitsuba_wai.scenes import rectangle_to_world, sensor_dict, sun_frame, water_bsdf
 from mitsuba_wai.variant import mitsuba, select_variant
 from wai_core.alterman import (
     AltermanSystem,
@@ -132,15 +132,6 @@ def water_extent(system: AltermanSystem, layout: SensorLayout) -> NDArray:
     margin = 2.0 * layout.pitch_mm
     return np.stack([np.minimum(ext[:, 0], beam[:, 0] - margin),
                      np.maximum(ext[:, 1], beam[:, 1] + margin)], axis=1)
-
-
-def sun_frame(sun_dir: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """Right-handed orthonormal frame ``(a, b, w)`` of the sun: ``w`` points towards the sun,
-    ``b`` is horizontal, ``a = b x w`` (it has ``a_z = -sin(theta_sun)``)."""
-    w = -np.asarray(sun_dir, dtype=float)
-    horiz = np.hypot(w[0], w[1])
-    b = np.array([-w[1], w[0], 0.0]) / horiz if horiz > 1e-12 else np.array([0.0, 1.0, 0.0])
-    return np.cross(b, w), b, w
 
 
 def _emitter_plane(system: AltermanSystem, layout: SensorLayout) -> tuple[NDArray, NDArray]:

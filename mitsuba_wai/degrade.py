@@ -1,5 +1,8 @@
 """The field's degradations of a render: motion blur (``[motion]``) and the sensor (``[sensor]``).
 
+Sea water (``[water_optics]``, :mod:`mitsuba_wai.seawater`) and daylight (``[ambient]``,
+:mod:`mitsuba_wai.ambient`) act inside the renders; this module records their derived values.
+
 Both are off by default and then cost nothing: :func:`render_exposure` is one
 :meth:`FrameRenderer.render <mitsuba_wai.render.FrameRenderer.render>` and :func:`sense` is
 not called.
@@ -303,4 +306,38 @@ def degradation_record(cfg: SystemConfig, amplitude: float = 1.0) -> dict[str, A
     if cfg.motion.exposure_s > 0:
         plan = subframe_plan(cfg, amplitude)
         out["motion"] = dataclasses.asdict(plan) | {"subframes": plan.n}
+    if cfg.water_optics.enabled:
+        out["water_optics"] = _water_record(cfg)
+    if cfg.ambient.enabled:
+        out["ambient"] = _ambient_record(cfg)
     return out
+
+
+def _water_record(cfg: SystemConfig) -> dict[str, Any]:
+    """The water's effective coefficients and what they do to system S's mean path."""
+    from mitsuba_wai.seawater import coefficients_per_mm, glow_sigma_px, pattern_path_lengths_mm
+
+    a, b = coefficients_per_mm(cfg.water_optics)
+    lengths = pattern_path_lengths_mm(cfg)
+    mean_mm = float(lengths.mean()) if lengths.size else float("nan")
+    return {
+        "absorption_per_m": (a * 1000).tolist(), "scattering_per_m": (b * 1000).tolist(),
+        "pattern_mean_path_mm": mean_mm,
+        "pattern_direct_transmittance": np.exp(-(a + b) * mean_mm).tolist(),
+        "glow_sigma_px": {"pattern": glow_sigma_px(cfg, "S"), "view": glow_sigma_px(cfg, "V")},
+        "model": "Beer-Lambert exp(-(a+b)L) per particle path (S) and per pixel (V), "
+                 "plus forward_fraction of the scattered light as a Gaussian glow",
+    }
+
+
+def _ambient_record(cfg: SystemConfig) -> dict[str, Any]:
+    """The daylight's derived values: sun direction, the sky's radiance on the diffuser."""
+    from mitsuba_wai.ambient import hemispherical_reflectance, sky_on_diffuser, sun_direction
+
+    return {
+        "sun_direction_lab": sun_direction(cfg.ambient).tolist(),
+        "sky_hemispherical_reflectance": hemispherical_reflectance(cfg.water.n_water),
+        "sky_on_diffuser": sky_on_diffuser(cfg).tolist(),
+        "model": "S: sun by particle tracing (directionalarea, refracting surface, flat skirt "
+                 "beyond the waves), sky analytic (uniform); V: constant sky, far sun disk",
+    }

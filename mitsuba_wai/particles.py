@@ -9,6 +9,12 @@ instead of splatting it returns each connection's pixel and value, and the image
 the CPU with :func:`numpy.bincount` in sample order, in float64: a fixed order, whatever the
 number of threads or the device.
 
+Water (:func:`render_particles_water`): no Mitsuba medium (``ptracer`` has none), but each
+path's length in the water is known, so every camera connection is weighted by Beer-Lambert's
+``exp(-(a + b) L)`` per channel (scattered light leaves the beam), ``L`` the path's length from
+its first underwater segment to the camera; the scattered share ``exp(-a L)(1 - exp(-b L))`` is
+summed into a second image for the caller's veiling glow (:mod:`mitsuba_wai.seawater`).
+
 Only what the repository's particle-traced scenes use is supported: no media, no directly
 visible emitters (``hide_emitters``), a box reconstruction filter and ``max_depth`` up to
 ``rr_depth + 1`` (no Russian roulette), as in systems S and A.
@@ -63,11 +69,12 @@ def pass_split(spp: int, pixels: int, max_samples: int | None = None) -> list[in
 
 
 def _trace_pass(
-    scene: Any, spp: int, spp_total: int, seed: int, max_depth: int
-) -> list[tuple[Any, Any, Any]]:
+    scene: Any, spp: int, spp_total: int, seed: int, max_depth: int, water: Any = None
+) -> list[tuple[Any, ...]]:
     """One pass: for each bounce, the film pixel (``W * H`` where none), the RGB value and the
     pixel of a non-finite value (``W * H`` where finite) of every path's camera connection, as
-    Dr.Jit arrays (evaluated)."""
+    Dr.Jit arrays (evaluated); with ``water`` (``(a, b, air_segments)``, 1/mm) the value is the
+    direct light and the scattered share follows as a fourth array."""
     import drjit as dr
 
     mi = mitsuba()
@@ -92,11 +99,16 @@ def _trace_pass(
     si = scene.ray_intersect(ray, active)
     active = active & si.is_valid() & (1 < max_depth)
     splats = []
+    length = mi.Float(0.0)  # path length in the water so far, mm
     for depth in range(1, max_depth):
         bsdf = si.bsdf(ray)
         sensor_ds, sensor_weight = sensor.sample_direction(si, sampler.next_2d(), active)
+        if water is not None:
+            if depth > water[2]:
+                length = length + dr.select(active, si.t, 0.0)
         splats.append(_connect(scene, si, sensor_ds, bsdf, throughput * sensor_weight,
-                               scale, (width, height), ctx, active))
+                               scale, (width, height), ctx, active,
+                               None if water is None else (water[0], water[1], length)))
         if depth == max_depth - 1:
             break
         bs, bsdf_val = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active),
@@ -118,11 +130,12 @@ def _trace_pass(
 
 def _connect(
     scene: Any, si: Any, sensor_ds: Any, bsdf: Any, weight: Any, scale: float,
-    size: tuple[int, int], ctx: Any, active: Any,
-) -> tuple[Any, Any, Any]:
+    size: tuple[int, int], ctx: Any, active: Any, water: Any = None,
+) -> tuple[Any, ...]:
     """Mitsuba ptracer's ``connect_sensor`` for a surface vertex: the film pixel (``W * H``
     where nothing lands), the RGB value of the connection and the pixel of a non-finite value
-    (``W * H`` where it is finite), as Dr.Jit arrays."""
+    (``W * H`` where it is finite), as Dr.Jit arrays; with ``water`` (``(a, b, L)``: 1/mm per
+    channel and the path's water length so far, mm) the direct value and the scattered one."""
     import drjit as dr
 
     mi = mitsuba()
@@ -148,7 +161,14 @@ def _connect(
     pixel = dr.select(active, mi.UInt32(pos.y * width + pos.x), none)
     rgb = dr.select(active & finite, mi.Color3f(value), 0.0)
     bad = dr.select(active & ~finite, pixel, none)
-    return pixel, rgb, bad
+    if water is None:
+        return pixel, rgb, bad
+    # The connection to the camera runs in the water too (the whole rig is submerged).
+    a, b, length = water
+    total = length + sensor_ds.dist
+    kept = dr.exp(-mi.Color3f(a) * total)
+    direct = dr.exp(-mi.Color3f(b) * total)
+    return pixel, rgb * kept * direct, rgb * kept * (1.0 - direct), bad
 
 
 def render_particles(
@@ -175,6 +195,46 @@ def render_particles(
         Pixels that received a non-finite splat (rare degenerate camera connections): zeroed,
         as :func:`mitsuba_wai.render.render_image` does with Mitsuba's image.
     """
+    images, n_bad = _render(scene, spp, seed, max_depth, None)
+    return images[0], n_bad
+
+
+def render_particles_water(
+    scene: Any, spp: int, seed: int, max_depth: int, absorption_per_mm: NDArray,
+    scattering_per_mm: NDArray, air_segments: int = 0,
+) -> tuple[NDArray[np.float32], NDArray[np.float32], int]:
+    """:func:`render_particles` with Beer-Lambert weights along each path (module notes).
+
+    Parameters
+    ----------
+    scene, spp, seed, max_depth
+        As :func:`render_particles`.
+    absorption_per_mm, scattering_per_mm : (3,) array_like
+        a and b per channel (R, G, B), 1/mm.
+    air_segments : int
+        Leading segments of each path that run in air (1 for light from the sky; 0 for the
+        projector, which is under water).
+
+    Returns
+    -------
+    direct : (H, W, 3) ndarray of float32
+        Light that was neither absorbed nor scattered, ``exp(-(a + b) L)``.
+    scattered : (H, W, 3) ndarray of float32
+        Light scattered out of the beam but not absorbed, ``exp(-a L)(1 - exp(-b L))``.
+    n_nonfinite : int
+    """
+    water = (
+        [float(v) for v in absorption_per_mm], [float(v) for v in scattering_per_mm],
+        int(air_segments),
+    )
+    images, n_bad = _render(scene, spp, seed, max_depth, water)
+    return images[0], images[1], n_bad
+
+
+def _render(
+    scene: Any, spp: int, seed: int, max_depth: int, water: Any
+) -> tuple[list[NDArray[np.float32]], int]:
+    """The images of :func:`render_particles` (one) or :func:`render_particles_water` (two)."""
     import drjit as dr
 
     if not 2 <= max_depth <= _RR_DEPTH + 1:
@@ -182,22 +242,29 @@ def render_particles(
     film = scene.sensors()[0].film()
     width, height = (int(v) for v in film.crop_size())
     n_pix = width * height
+    n_images = 1 if water is None else 2
     if not scene.emitters():  # e.g. an overcast sky: no light, as Mitsuba's ptracer says
-        return np.zeros((height, width, 3), dtype=np.float32), 0
-    total = np.zeros((3, n_pix + 1))
+        return [np.zeros((height, width, 3), dtype=np.float32)] * n_images, 0
+    totals = [np.zeros((3, n_pix + 1)) for _ in range(n_images)]
     bad = np.zeros(n_pix + 1, dtype=bool)
     for k, spp_k in enumerate(pass_split(spp, n_pix)):
         pass_seed = (int(seed) + k * PASS_SEED_STRIDE) % 2**32
-        for pixel, rgb, nonfinite in _trace_pass(scene, spp_k, spp, pass_seed, max_depth):
+        for pixel, *rgbs, nonfinite in _trace_pass(scene, spp_k, spp, pass_seed, max_depth,
+                                                   water):
             if dr.all(pixel == n_pix):  # a bounce that never reaches the camera (delta BSDFs)
                 continue
             if not dr.all(nonfinite == n_pix):
                 bad[np.asarray(nonfinite)] = True
-            idx, values = np.asarray(pixel), np.asarray(rgb)
-            # bincount adds in array order (in float64): the same sum on every run.
-            for c in range(3):
-                total[c] += np.bincount(idx, weights=values[c], minlength=n_pix + 1)
-    total, bad = total[:, :n_pix], bad[:n_pix]
-    total[:, bad] = 0.0
-    image = total.T.reshape(height, width, 3).astype(np.float32)
-    return image, int(bad.sum())
+            idx = np.asarray(pixel)
+            for total, rgb in zip(totals, rgbs, strict=True):
+                values = np.asarray(rgb)
+                # bincount adds in array order (in float64): the same sum on every run.
+                for c in range(3):
+                    total[c] += np.bincount(idx, weights=values[c], minlength=n_pix + 1)
+    bad = bad[:n_pix]
+    images = []
+    for total in totals:
+        total = total[:, :n_pix]
+        total[:, bad] = 0.0
+        images.append(total.T.reshape(height, width, 3).astype(np.float32))
+    return images, int(bad.sum())

@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mitsuba_wai import mesh as meshes
+from mitsuba_wai.ambient import SCENE_SUN_DEPTH, sky_image, smooth, sun_s_scene, view_emitters
 from mitsuba_wai.degrade import (
     degradation_record,
     render_exposure,
@@ -43,13 +44,20 @@ from mitsuba_wai.degrade import (
     sense,
     subframe_plan,
 )
-from mitsuba_wai.particles import pass_split, render_particles
+from mitsuba_wai.particles import pass_split, render_particles, render_particles_water
 from mitsuba_wai.scenes import (
     SCENE_S_DEPTH,
     SCENE_V_DEPTH,
     pattern_scene,
     view_scene,
     water_bsdf,
+)
+from mitsuba_wai.seawater import (
+    coefficients_per_mm,
+    glow,
+    glow_sigma_px,
+    view_path_lengths,
+    water_view,
 )
 from mitsuba_wai.textures import object_texture
 from mitsuba_wai.variant import mitsuba, select_variant
@@ -73,6 +81,8 @@ from wai_core.sensor import integer_image
 MAX_MESH_VERTICES = 1_000_000
 # Most samples Mitsuba takes in one wavefront (2^32 - 1); more spp are rendered in passes.
 MAX_WAVEFRONT = 0xFFFFFFFF
+# The sun's particles in system S are seeded this far from the projector's (independent noise).
+AMBIENT_SEED_OFFSET = 0x5BD1E995
 OUTPUT_COMMAND = "render"
 """Command named in a render folder's output marker (:mod:`wai_core.io`)."""
 
@@ -224,13 +234,22 @@ class FrameRenderer:
         self._scenes: dict[str, Any] = {}
         self._params: dict[str, Any] = {}
         # Each scene owns its mesh object: Mitsuba meshes cannot be shared between scenes.
+        ambient = self.cfg.ambient
         if "pattern" in self.systems:
             water_s = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "S"))
             self._scenes["pattern"] = mi.load_dict(pattern_scene(self.cfg, water_s))
+            if ambient.enabled and ambient.sun_irradiance > 0:
+                water_sun = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "A"))
+                self._scenes["pattern_sun"] = mi.load_dict(
+                    sun_s_scene(self.cfg, water_sun, self.grid)
+                )
         if "view" in self.systems:
             tex = self.texture if self.texture is not None else object_texture(self.cfg.object)
             water_v = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "V"))
-            self._scenes["view"] = mi.load_dict(view_scene(self.cfg, water_v, tex))
+            scene_v = view_scene(self.cfg, water_v, tex)
+            if ambient.enabled:
+                scene_v.update(view_emitters(self.cfg))
+            self._scenes["view"] = mi.load_dict(scene_v)
         self._params = {k: mi.traverse(scene) for k, scene in self._scenes.items()}
 
     def _set_surface(self, surface: Heightfield) -> None:
@@ -262,10 +281,45 @@ class FrameRenderer:
         }
         # The pattern by the deterministic particle tracer (same image for the same seed).
         depth = {"pattern": SCENE_S_DEPTH, "view": None}
+        lit = self.cfg.water_optics.enabled or self.cfg.ambient.enabled
         for key in (k for k in ("pattern", "view") if k in which):
-            out[key], bad = render_image(self._scenes[key], spp[key], seed, depth[key])
+            if key == "pattern" and lit:
+                out[key], bad = self._pattern_in_daylight_water(spp[key], seed)
+            else:
+                out[key], bad = render_image(self._scenes[key], spp[key], seed, depth[key])
+            if key == "view" and self.cfg.water_optics.enabled:
+                lengths = view_path_lengths(self._scenes["view"], self.cfg)
+                out[key] = water_view(out[key], lengths, self.cfg)
             self.nonfinite_pixels[key] = self.nonfinite_pixels.get(key, 0) + bad
         return out
+
+    def _particles(self, key: str, spp: int, seed: int, depth: int,
+                   air_segments: int) -> tuple[NDArray[np.float32], int]:
+        """One particle-traced image of system S, through the water when it is modelled."""
+        w = self.cfg.water_optics
+        if not w.enabled:
+            return render_particles(self._scenes[key], spp, seed, depth)
+        a, b = coefficients_per_mm(w)
+        direct, scattered, bad = render_particles_water(
+            self._scenes[key], spp, seed, depth, a, b, air_segments
+        )
+        return direct + glow(scattered, w.forward_fraction, glow_sigma_px(self.cfg, "S")), bad
+
+    def _pattern_in_daylight_water(self, spp: int, seed: int) -> tuple[NDArray[np.float32], int]:
+        """Camera s's image with ``[water_optics]`` and / or ``[ambient]``: the pattern, the
+        sun's caustics (their own particles, seeded apart) and the sky's constant light."""
+        image, bad = self._particles("pattern", spp, seed, SCENE_S_DEPTH, 0)
+        if self.cfg.ambient.enabled:
+            if "pattern_sun" in self._scenes:
+                sun_seed = (int(seed) + AMBIENT_SEED_OFFSET) % 2**32
+                sun, bad_sun = self._particles(
+                    "pattern_sun", self.cfg.ambient.sun_spp, sun_seed, SCENE_SUN_DEPTH, 1
+                )
+                # The particles' noise is no feature of the sunlight (a smooth caustic field).
+                sun = smooth(sun, self.cfg.ambient.sun_smooth_px)
+                image, bad = image + sun, bad + bad_sun
+            image = image + sky_image(self.cfg)
+        return image.astype(np.float32), bad
 
 
 def scene_record(

@@ -119,22 +119,36 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
     projector = cfg.projector.camera()
     rect = diffuser_rect(cfg)
     center = np.array([rect[0].mean(), rect[1].mean(), cfg.diffuser.z_mm])
+    panel = pattern_image(cfg.pattern, projector, dot_weights(cfg))
+
+    def projector_dict(image: NDArray) -> dict:
+        return {
+            "type": "projector",
+            "irradiance": {"type": "bitmap", "bitmap": mi.Bitmap(image), "raw": True},
+            "fov": projector.fov_x_deg,
+            "scale": cfg.pattern.power,
+            "to_world": device_to_world(projector),
+        }
+
+    if cfg.pattern.code != "none":
+        # The coded pattern as two projectors in one place, its green and its blue channel:
+        # Mitsuba draws a projector's particles by the image's luminance (Y weighs blue 0.07,
+        # green 0.72), so one RGB panel would give a blue dot a tenth of a green dot's
+        # particles and a noisier centre; per channel, every dot gets its share of its own
+        # channel's particles. Same irradiance (the two add up to the RGB panel).
+        lights = {}
+        for name, channel in (("projector", 1), ("projector_blue", 2)):
+            image = np.zeros_like(panel)
+            image[..., channel] = panel[..., channel]
+            lights[name] = projector_dict(image)
+    else:
+        lights = {"projector": projector_dict(panel)}
     return {
         "type": "scene",
         "integrator": {"type": "ptracer", "max_depth": SCENE_S_DEPTH, "hide_emitters": True},
         # Box filter: splats land in one pixel, so centroids stay unbiased and splatting is cheap.
         "sensor": sensor_dict(cfg.camera_s.camera(), rfilter="box"),
-        "projector": {
-            "type": "projector",
-            "irradiance": {
-                "type": "bitmap",
-                "bitmap": mi.Bitmap(pattern_image(cfg.pattern, projector, dot_weights(cfg))),
-                "raw": True,
-            },
-            "fov": projector.fov_x_deg,
-            "scale": cfg.pattern.power,
-            "to_world": device_to_world(projector),
-        },
+        **lights,
         "water": water_mesh,
         # Diffuse transmission from above, pass-through from below (see mitsuba_wai.bsdfs).
         "diffuser": {
@@ -170,3 +184,12 @@ def view_scene(cfg: SystemConfig, water_mesh: object, texture: NDArray) -> dict:
             },
         },
     }
+
+
+def sun_frame(sun_dir: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    """Right-handed orthonormal frame ``(a, b, w)`` of the sun: ``w`` points towards the sun,
+    ``b`` is horizontal, ``a = b x w`` (it has ``a_z = -sin(theta_sun)``)."""
+    w = -np.asarray(sun_dir, dtype=float)
+    horiz = np.hypot(w[0], w[1])
+    b = np.array([-w[1], w[0], 0.0]) / horiz if horiz > 1e-12 else np.array([0.0, 1.0, 0.0])
+    return np.cross(b, w), b, w

@@ -19,7 +19,12 @@ from numpy.typing import NDArray
 from restoration.anchor import find_anchor, integration_residual_mm
 from restoration.calibration import Calibration, LevelTrack
 from restoration.consistency import Consistency, spot_consistency
-from restoration.features import Matches, ReferenceGrid, features_from_reference
+from restoration.features import (
+    Matches,
+    ReferenceGrid,
+    features_from_code,
+    features_from_reference,
+)
 from restoration.fit import fit_surface
 from restoration.normals import points_on_rays, projector_rays
 from restoration.options import RestoreOptions
@@ -326,7 +331,9 @@ class StructuredLight:
         reference = cal.prepare(images["pattern_flat"])
         t0 = time.perf_counter()
         try:
-            features = features_from_reference(images["pattern"], reference, cfg)
+            # The coded pattern is decoded dot by dot; the plain one matched by ordering.
+            match = features_from_code if cfg.pattern.code != "none" else features_from_reference
+            features = match(images["pattern"], reference, cfg)
             t1 = time.perf_counter()
             start = None if track is None else track.start_mm
             surface = estimate_surface(features.ij, features.spot_px, cfg, options, start)

@@ -3,8 +3,8 @@
 Every section maps to a frozen dataclass. Unknown keys, missing keys and values of the wrong kind
 raise :class:`~wai_core.errors.WaiInputError` naming the key, so a typo never passes silently.
 Only ``[projector]``, ``[camera_s]`` and ``[camera_v]`` are required; every other section
-defaults. The field's degradations, ``[sensor]`` and ``[motion]``, are off by default and cost
-nothing then.
+defaults. The field's degradations, ``[sensor]``, ``[motion]``, ``[water_optics]`` and
+``[ambient]``, are off by default and cost nothing then.
 """
 
 from __future__ import annotations
@@ -138,6 +138,58 @@ class MotionConfig:
     max_subframes: int = 32
 
 
+# Clear ocean water, Smith & Baker (1981, Appl. Opt. 20, 177, Table I; the data of the seed
+# paper's Fig. 3) at the three channels' wavelengths, 600 / 530 / 460 nm (R, G, B), 1/m:
+# absorption a(600) = 0.244, a(530) = 0.0507, a(460) = 0.0150 (the "blue-green window");
+# scattering b = 0.0012 / 0.0022 / 0.0040 (pure sea water, Morel 1974, as Smith & Baker list).
+SMITH_BAKER_ABSORPTION_PER_M = (0.244, 0.0507, 0.0150)
+SMITH_BAKER_SCATTERING_PER_M = (0.0012, 0.0022, 0.0040)
+
+
+@dataclass(frozen=True)
+class WaterOpticsConfig:
+    """Sea water's absorption and scattering along every underwater path
+    (:mod:`mitsuba_wai.seawater`). Off by default: the water is then perfectly clear."""
+
+    enabled: bool = False
+    absorption_per_m: tuple[float, float, float] = SMITH_BAKER_ABSORPTION_PER_M
+    """Absorption coefficient a per channel (R, G, B), 1/m."""
+    scattering_per_m: tuple[float, float, float] = SMITH_BAKER_SCATTERING_PER_M
+    """Scattering coefficient b per channel (R, G, B), 1/m."""
+    turbidity: float = 1.0
+    """Scales b (suspended particles; 1: clear ocean, ~300: coastal, b(530) ~ 0.7 1/m)."""
+    absorption_scale: float = 1.0
+    """Scales a (dissolved matter)."""
+    forward_fraction: float = 0.0
+    """Share of the scattered light that still arrives, as a veiling glow (0: Beer-Lambert)."""
+    glow_sigma_deg: float = 5.0
+    """Angular spread (standard deviation) of the forward-scattered glow, deg."""
+
+
+@dataclass(frozen=True)
+class AmbientConfig:
+    """Daylight above the water, in both systems (:mod:`mitsuba_wai.ambient`). Off by default.
+
+    Radiances are in the renders' units: the object plane's white squares have radiance 1."""
+
+    enabled: bool = False
+    sky_radiance: float = 1.0
+    """Uniform sky radiance above the water (0: no sky)."""
+    sun_irradiance: float = 10.0
+    """Sun's irradiance on a plane facing it, radiance units x sr (0: no sun)."""
+    sun_zenith_deg: float = 30.0
+    sun_azimuth_deg: float = 0.0
+    """Azimuth of the sun, deg from lab +x towards +y."""
+    sun_color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    sky_color: tuple[float, float, float] = (0.6, 0.8, 1.0)
+    sun_spp: int = 64
+    """Particles per camera-s pixel for the sun's caustics on the diffuser (its own noise)."""
+    sun_smooth_px: float = 0.0
+    """Gaussian sigma, camera-s px, smoothing the sun's Monte Carlo noise on the diffuser
+    (0: raw particles). Noise correlated at the spots' scale (a sigma of 2 .. 6 px) misleads
+    the spot detector more than the raw noise does; 12 px or more is safe."""
+
+
 @dataclass(frozen=True)
 class SystemConfig:
     """The whole sensing system: water, waves, projector, pattern, cameras, diffuser, object."""
@@ -153,6 +205,8 @@ class SystemConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
+    water_optics: WaterOpticsConfig = field(default_factory=WaterOpticsConfig)
+    ambient: AmbientConfig = field(default_factory=AmbientConfig)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (JSON/TOML-able)."""
@@ -182,6 +236,8 @@ _SECTIONS = {
     "render": RenderConfig,
     "sensor": SensorConfig,
     "motion": MotionConfig,
+    "water_optics": WaterOpticsConfig,
+    "ambient": AmbientConfig,
 }
 
 
@@ -314,6 +370,7 @@ def validate(cfg: SystemConfig) -> None:
     if cfg.render.spp_pattern < 1 or cfg.render.spp_view < 1:
         raise WaiInputError("config: [render] spp must be at least 1")
     _validate_degradations(cfg.sensor, cfg.motion)
+    _validate_light(cfg.water_optics, cfg.ambient)
 
 
 def _validate_degradations(s: SensorConfig, m: MotionConfig) -> None:
@@ -343,3 +400,37 @@ def _validate_degradations(s: SensorConfig, m: MotionConfig) -> None:
         )
     if m.max_subframes < 1:
         raise WaiInputError(f"config: [motion].max_subframes must be >= 1, not {m.max_subframes}")
+
+
+def _validate_light(w: WaterOpticsConfig, a: AmbientConfig) -> None:
+    """[water_optics] and [ambient]: checked even when disabled."""
+    values = {
+        "absorption_per_m": min(w.absorption_per_m), "scattering_per_m": min(w.scattering_per_m),
+        "turbidity": w.turbidity, "absorption_scale": w.absorption_scale,
+        "glow_sigma_deg": w.glow_sigma_deg,
+    }
+    for key, value in values.items():
+        if value < 0:
+            raise WaiInputError(f"config: [water_optics].{key} must be >= 0, not {value:g}")
+    if not 0 <= w.forward_fraction <= 1:
+        raise WaiInputError(
+            f"config: [water_optics].forward_fraction must be 0 .. 1, not {w.forward_fraction:g}"
+        )
+    if w.glow_sigma_deg >= 45:
+        raise WaiInputError("config: [water_optics].glow_sigma_deg must be below 45")
+    for key in ("sky_radiance", "sun_irradiance"):
+        if getattr(a, key) < 0:
+            raise WaiInputError(f"config: [ambient].{key} must be >= 0, not {getattr(a, key):g}")
+    for key in ("sun_color", "sky_color"):
+        if min(getattr(a, key)) < 0:
+            raise WaiInputError(f"config: [ambient].{key} must be >= 0")
+    if a.sun_smooth_px < 0:
+        raise WaiInputError(
+            f"config: [ambient].sun_smooth_px must be >= 0, not {a.sun_smooth_px:g}"
+        )
+    if a.sun_spp < 1:
+        raise WaiInputError(f"config: [ambient].sun_spp must be >= 1, not {a.sun_spp}")
+    if not 0 <= a.sun_zenith_deg < 90:
+        raise WaiInputError(
+            f"config: [ambient].sun_zenith_deg must be 0 .. 90 (sun up), not {a.sun_zenith_deg:g}"
+        )

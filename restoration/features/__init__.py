@@ -14,10 +14,20 @@ correspondence. The stage's modules:
 - :mod:`~restoration.features.match`: label the wavy-water spots by region growing, the
   ordering check and anchoring (:func:`match_distorted`); per frame
   (:func:`features_from_reference`) or all steps at once (:func:`find_features`).
+- :mod:`~restoration.features.decode`: label the spots of the coded pattern
+  (``[pattern] code = "colour"``) by their colour windows, without ordering
+  (:func:`decode_distorted`, :func:`features_from_code`).
 - ``_lattice``, ``_outline``, ``_types``: private helpers shared by the above.
 """
 
 from restoration.features._lattice import _LatticeTables as _LatticeTables
+from restoration.features.decode import (
+    Decoded,
+    decode_distorted,
+    features_from_code,
+    node_symbols,
+    spot_symbols,
+)
 from restoration.features.detect import Spots, detect_spots
 from restoration.features.detect import _background as _background
 from restoration.features.detect import _minimum_bias as _minimum_bias
@@ -44,17 +54,22 @@ from restoration.features.reference import (
 
 __all__ = [
     "REGROW_BELOW",
+    "Decoded",
     "Matches",
     "ReferenceGrid",
     "Spots",
+    "decode_distorted",
     "detect_spots",
+    "features_from_code",
     "features_from_reference",
     "find_features",
     "flag_diffuser_edge",
     "match_distorted",
     "match_reference",
+    "node_symbols",
     "order_violations",
     "predict_flat_spots",
     "prepare_reference",
     "spot_sigma_px",
+    "spot_symbols",
 ]

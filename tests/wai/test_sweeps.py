@@ -95,3 +95,44 @@ def test_the_failure_point_is_where_most_frames_stop_being_ok():
     assert failure_point(entries([(1, 2), (2, 2)])) is None
     # harsher towards smaller values (the sensor's signal): walked from the largest
     assert failure_point(entries([(30, 0), (300, 2), (3000, 2)]), harsher=-1) == 30
+
+
+def test_daylight_and_water_fields_enable_their_sections():
+    from pathlib import Path
+
+    from wai.experiments.frame_eval import frame_config
+    from wai.experiments.stability import FIXED, HARSHER, QUICK, SWEEPS, stability_points
+
+    cfg = frame_config({"config": PAPER, "seed": 1, "ambient_level": 0.01, "turbidity": 300.0,
+                        "forward_fraction": 0.5})
+    assert cfg.ambient.enabled and cfg.ambient.sky_radiance == pytest.approx(0.01)
+    assert cfg.ambient.sun_irradiance == pytest.approx(0.1)
+    assert cfg.water_optics.enabled and cfg.water_optics.turbidity == 300.0
+    assert cfg.water_optics.forward_fraction == 0.5
+    plain = frame_config({"config": PAPER, "seed": 1, "ambient_level": 0.0})
+    assert not plain.ambient.enabled and not plain.water_optics.enabled
+    for sweep in ("ambient", "turbidity"):
+        assert sweep in SWEEPS and sweep in QUICK and HARSHER[sweep] == 1
+    points = stability_points(Path(PAPER), Path("scenes/alterman.toml"), [0], quick=True)
+    murky = [p for p in points if p["sweep"] == "turbidity"]
+    assert murky and all(p["signal_e"] == FIXED["turbidity"]["signal_e"] for p in murky)
+
+
+def test_a_frame_in_faint_daylight_and_murky_water_is_still_restored():
+    # A sky at 0.002 of the object's white (with a sun ten times it: a background near a fifth
+    # of a spot's peak) and coastal water's scattering, read by a 10000 e- sensor.
+    row = evaluate_frame({"config": PAPER, "seed": 0, "spp_pattern": 4, "repeats": 1,
+                          "ambient_level": 0.002, "turbidity": 300.0, "forward_fraction": 0.5,
+                          "signal_e": 10000.0})
+    assert row["frame_status"] == "ok", row["frame_status"]
+    assert row["wai_rmse_mm"] < 0.5
+
+
+def test_blue_green_spots_outlast_red_ones_in_sea_water():
+    from wai.experiments.seawater import format_snr, seawater_snr
+
+    out = seawater_snr(PAPER, distances_m=(0.0, 5.0), spp=2)
+    assert 600 < out["mean_path_mm"] < 800
+    assert out["snr_ratio"]["0"] == pytest.approx(1.0, abs=0.15)  # equal power, clear water
+    assert out["snr_ratio"]["5"] > 1.8  # red keeps exp(-0.245 x 5) = 0.29 of its light
+    assert "blue-green / red" in format_snr(out)

@@ -13,6 +13,9 @@ Point keys (all optional except ``config`` and ``seed``)
 ``wind_mps``, ``spacing_px``, ``z_h_mm``, ``spp_pattern``
     Override the wind speed U (m/s), the pattern spacing D (panel pixels), the diffuser height
     z_h (mm) and the pattern's samples per pixel.
+``code`` (str, default the scene's)
+    The pattern's ``[pattern].code``: ``"none"`` (matched by ordering) or ``"colour"``
+    (decoded, :mod:`restoration.features.decode`).
 ``amplitude`` (float, default 1)
     Scales the wave heights about h0 at fixed U (steeper waves of the same shape).
 ``signal_e``, ``read_noise_e`` (float, e-), ``bits`` (int)
@@ -24,6 +27,14 @@ Point keys (all optional except ``config`` and ``seed``)
     truth none (:mod:`mitsuba_wai.degrade`).
 ``exposure_s`` (float, s)
     Motion blur: the scene's ``[motion].exposure_s`` (the surface moves during the exposure).
+``turbidity``, ``forward_fraction`` (float)
+    Either turns the scene's ``[water_optics]`` on (sea water, :mod:`mitsuba_wai.seawater`)
+    with these values: ``turbidity`` scales the scattering, ``forward_fraction`` is the share
+    of the scattered light that arrives as a veiling glow.
+``ambient_level`` (float)
+    Above 0 turns the scene's ``[ambient]`` on (sky and sun, :mod:`mitsuba_wai.ambient`) with
+    its sky radiance and sun irradiance multiplied by this (the defaults: the level is the sky's
+    radiance, the object's white = 1, with a sun of 10 times it).
 ``integrators`` (str, default the pipeline's)
     Comma-separated integrator names: each is run on the same frame, columns get a suffix.
 ``warp_steps`` (str)
@@ -42,7 +53,8 @@ otherwise the restoration's own truth-free status: ``sparse``, ``inconsistent``,
 status alone, without the truth's ``wrong_labels``), the forward-consistency
 residual (``residual_median_px``, ``residual_p95_px``, ``residual_threshold_px``), the
 correspondence counts against the geometric model (``n_in_view``, ``n_matched``,
-``n_correct``, ``fraction_correct``), eq. 35's effective slope amplitude ``phi_deg``, the
+``n_correct``, ``fraction_correct`` of the dots in view, ``label_precision`` of the kept
+ones), eq. 35's effective slope amplitude ``phi_deg``, the
 surface and view scores and the timings.
 """
 
@@ -72,12 +84,22 @@ def frame_config(point: dict[str, Any]) -> SystemConfig:
         cfg = cfg.replace("waves", wind_speed_m_s=float(point["wind_mps"]))
     if point.get("spacing_px") is not None:
         cfg = cfg.replace("pattern", spacing_px=float(point["spacing_px"]))
+    if point.get("code"):
+        cfg = cfg.replace("pattern", code=str(point["code"]))
     if point.get("z_h_mm") is not None:
         cfg = cfg.replace("diffuser", z_mm=float(point["z_h_mm"]))
     if point.get("spp_pattern") is not None:
         cfg = cfg.replace("render", spp_pattern=int(point["spp_pattern"]))
     if point.get("exposure_s") is not None:
         cfg = cfg.replace("motion", exposure_s=float(point["exposure_s"]))
+    water = {k: float(point[k]) for k in ("turbidity", "forward_fraction")
+             if point.get(k) is not None}
+    if water:
+        cfg = cfg.replace("water_optics", enabled=True, **water)
+    if point.get("ambient_level"):
+        level, amb = float(point["ambient_level"]), cfg.ambient
+        cfg = cfg.replace("ambient", enabled=True, sky_radiance=level * amb.sky_radiance,
+                          sun_irradiance=level * amb.sun_irradiance)
     sensor = {k: point[k] for k in ("signal_e", "read_noise_e", "bits") if point.get(k) is not None}
     if sensor:
         changes: dict[str, Any] = {"enabled": True}
@@ -150,6 +172,7 @@ def correspondence_counts(cfg: SystemConfig, surface: Heightfield, features: Any
         "n_correct": n_correct,
         "n_wrong": int(len(rows) - n_correct),
         "fraction_correct": n_correct / max(len(px_true), 1),
+        "label_precision": n_correct / len(rows) if len(rows) else None,
         "spot_median_px": float(np.median(err[err < CORRECT_RADIUS_PX])) if n_correct else None,
     }
 

@@ -8,6 +8,10 @@ Sweeps, each over seeds (frames by :func:`wai.frame_eval.evaluate_frame`, on Das
 - the field's degradations: the sensor's signal (electrons at the flat reference's 99.9th
   percentile; shot and read noise, full well, 12-bit ADC: ``[sensor]``) and the exposure time
   (motion blur: ``[motion]``);
+- daylight on the structured light (``ambient_level``: sky radiance, object white = 1, and a sun
+  ten times brighter at 30 deg zenith: ``[ambient]``) and murky water (``turbidity``, the
+  scattering's scale, half of it arriving as a glow: ``[water_optics]``), both read by a
+  10000 e- sensor;
 - Alterman's sun sensor: the sun's zenith angle (:func:`evaluate_sun`).
 
 Each panel marks the sweep's failure point (:func:`failure_point`): walking from its mildest
@@ -48,6 +52,8 @@ SWEEPS: dict[str, tuple[str, tuple[float, ...]]] = {
     "z_h": ("z_h_mm", (20.0, 40.0, 60.0, 80.0, 100.0, 120.0)),
     "noise": ("signal_e", (30000.0, 10000.0, 3000.0, 1000.0, 300.0, 100.0, 30.0)),
     "exposure": ("exposure_s", (0.0, 0.002, 0.005, 0.01, 0.02, 0.04)),
+    "ambient": ("ambient_level", (0.0, 0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0)),
+    "turbidity": ("turbidity", (1.0, 30.0, 100.0, 300.0, 1000.0, 3000.0)),
     "sun": ("theta_sun_deg", (0.0, 15.0, 30.0, 45.0, 60.0)),
 }
 QUICK: dict[str, tuple[float, ...]] = {
@@ -57,13 +63,23 @@ QUICK: dict[str, tuple[float, ...]] = {
     "z_h": (60.0,),
     "noise": (10000.0, 100.0),
     "exposure": (0.0, 0.01),
+    "ambient": (0.0, 0.01, 0.1),
+    "turbidity": (1.0, 300.0),
     "sun": (0.0,),
 }
 HARSHER: dict[str, int] = {
-    "wind": 1, "amplitude": 1, "spacing": -1, "z_h": -1, "noise": -1, "exposure": 1, "sun": 1,
+    "wind": 1, "amplitude": 1, "spacing": -1, "z_h": -1, "noise": -1, "exposure": 1,
+    "ambient": 1, "turbidity": 1, "sun": 1,
 }
 """Which way each sweep gets harder: +1 towards larger values, -1 towards smaller (denser
 dots and a lower diffuser shrink eq. 35's bound; fewer electrons mean more noise)."""
+FIXED: dict[str, dict[str, float]] = {
+    "ambient": {"signal_e": 10000.0},
+    "turbidity": {"signal_e": 10000.0, "forward_fraction": 0.5},
+}
+"""Point fields a sweep holds fixed: daylight and murky water are seen by a real sensor
+(10000 e- at the flat reference's 99.9th percentile, so the background's shot noise counts),
+and half of the water's scattered light arrives as a veiling glow."""
 
 
 CODES = ("none", "colour")
@@ -130,7 +146,7 @@ def stability_points(
         for value in QUICK[sweep] if quick else values:
             for seed in seeds:
                 p = {"sweep": sweep, "config": str(config), "seed": seed, field: value,
-                     "repeats": 1}
+                     "repeats": 1, **FIXED.get(sweep, {})}
                 if sweep == "sun":
                     p["alterman"] = str(alterman)
                 points.append(p)
@@ -250,7 +266,7 @@ def confidence_figure(rows: list[dict[str, Any]], rates: dict[str, Any], path: P
 def stability_figure(rows: list[dict], summary: dict[str, list[dict]], path: Path) -> None:
     """Fraction correct against Φ / Φ_max (eq. 35) for every frame, and per sweep the surface
     RMSE and the share of frames that ended ok."""
-    fig, axes = plt.subplots(2, 4, figsize=(17, 8))
+    fig, axes = plt.subplots(2, 5, figsize=(21, 8))
     ax = axes[0, 0]
     markers = dict(zip(SWEEPS, "osD^vP", strict=False))
     for sweep in ("wind", "amplitude", "spacing", "z_h"):  # the geometry sweeps eq. 35 covers
@@ -269,7 +285,8 @@ def stability_figure(rows: list[dict], summary: dict[str, list[dict]], path: Pat
     ax.legend(fontsize=7)
     labels = {"wind": "U (m/s)", "amplitude": "height scale at U = 1", "spacing": "D (px)",
               "z_h": "z_h (mm)", "noise": "signal at the reference's p99.9 (e-)",
-              "exposure": "exposure (s)", "sun": "sun zenith (deg)"}
+              "exposure": "exposure (s)", "ambient": "sky radiance (object white = 1)",
+              "turbidity": "scattering x", "sun": "sun zenith (deg)"}
     for ax, sweep in zip(axes.ravel()[1:], SWEEPS, strict=False):
         ent = summary[sweep]
         if not ent:
@@ -278,8 +295,10 @@ def stability_figure(rows: list[dict], summary: dict[str, list[dict]], path: Pat
         x = [e["value"] for e in ent]
         ax.plot(x, [e["wai_rmse_mm"] for e in ent], "o-", label="surface RMSE (mm, ok frames)")
         ax.set_yscale("log")
-        if sweep == "noise":
+        if sweep in ("noise", "turbidity"):
             ax.set_xscale("log")
+        elif sweep == "ambient":
+            ax.set_xscale("symlog", linthresh=1e-3)
         ax.set(xlabel=labels[sweep], title=sweep)
         fail = failure_point(ent, HARSHER[sweep])
         if fail is not None:

@@ -1,0 +1,515 @@
+"""Coded-pattern correspondence: label the wavy-water spots by their colour code, with no
+ordering assumption (``[pattern] code = "colour"``; :func:`decode_distorted`, which returns the
+same :class:`~restoration.features.match.Matches` as the ordering matcher).
+
+Every dot carries one of four blue-green symbols (its green fraction ``G / (G + B)``,
+:data:`wai_core.pattern.CODE_LEVELS`) and every two 3 x 3 windows of the grid within
+:data:`~wai_core.pattern.CODE_REACH` dots differ in at least
+:data:`~wai_core.pattern.CODE_MIN_DISTANCE` symbols (:func:`wai_core.pattern.code_array`).
+Per frame:
+
+1. **Symbols.** Each detected spot's green fraction is read from the Gaussian-smoothed G and B
+   channels at its centre; four level centres are refined on the frame itself (1-D k-means
+   from the nominal levels: a camera's channel crosstalk or the water's colour shifts them
+   alike) and the spot takes the nearest, with a confidence (1 at a level, 0 half-way to the
+   next); spots under :data:`MIN_SYMBOL_CONFIDENCE` (two colours mixed: overlapping spots)
+   abstain.
+2. **Candidates.** Every lit dot of the spot's symbol whose flat-water spot lies within
+   ``reach`` spacings: a hypothesis "spot p is dot k", i.e. a displacement ``d = x_p - r_k``.
+3. **Window votes.** A hypothesis is voted for by each of the dot's 8 grid neighbours that has
+   a hypothesis of its own with nearly the same displacement (within ``tol`` of the local
+   spacing; a pair of opposite neighbours whose displacements are collinear with it within
+   ``tol_second`` also counts, for both): the neighbour's spot is where this labelling puts it
+   and shows the symbol the code puts there. The true label collects up to 8 votes; a label
+   shifted by any offset within reach agrees with the true window on at most 6 of 9 dots (the
+   code's distance), so it collects at most 5 on a smooth patch. Nothing assumes that
+   neighbouring spots keep their order: only that a dot and most of its neighbours move alike.
+4. **Decision.** A spot takes its best-voted label when the votes reach ``min_votes`` and beat
+   the runner-up by ``min_margin``; a dot claimed by two spots goes to the better-voted one
+   (neither on a tie).
+5. **Growth.** Where the pattern is stretched, a dot's displacement differs from its
+   neighbours' by more than ``tol``: wave by wave, an undecoded dot next to decoded ones takes
+   the hypothesis of its own symbol nearest to the displacement they predict (midpoints of
+   opposite pairs, straight-line extrapolations), within ``tol_grow`` spacings and clear of
+   its next hypothesis. The symbol makes each step 4x less ambiguous than the plain grid's.
+6. **Redundancy.** The decoded labels must form a consistent lattice: a label stays only while
+   at least ``min_consistent`` grid neighbours were decoded and the displacement they predict
+   (leaving it out) lies within ``2 tol_grow`` of its own; the others are counted
+   (``rejected_inconsistent``) and dropped, and so are pieces detached from the largest one.
+
+Per-dot confidence (:class:`Decoded`): the votes over 8, the margin over the runner-up, the
+symbol confidence, and the consistent neighbours.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from restoration.features._outline import _outline_px
+from restoration.features._types import FloatArray, IntArray
+from restoration.features.detect import Spots, detect_spots
+from restoration.features.match import Matches, _largest_component
+from restoration.features.reference import ReferenceGrid, flag_diffuser_edge
+from wai_core.config import SystemConfig
+from wai_core.errors import WaiInputError
+from wai_core.pattern import CODE_LEVELS, dot_codes, dot_grid
+
+__all__ = [
+    "MIN_SYMBOL_CONFIDENCE",
+    "Decoded",
+    "decode_distorted",
+    "features_from_code",
+    "node_symbols",
+    "spot_symbols",
+]
+
+MIN_SYMBOL_CONFIDENCE = 0.4
+"""A spot whose green fraction lies farther than 0.6 of the half-gap from its level (two
+colours mixed) casts and receives no vote."""
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """A decoded frame: the matches and each kept dot's confidence.
+
+    Attributes
+    ----------
+    matches : Matches
+        As :func:`~restoration.features.match.match_distorted` gives them; ``counts`` adds
+        ``decode_candidates`` (hypotheses), ``decoded`` (labels taken before the lattice
+        check), ``rejected_symbol`` (spots whose colour read as a mix), ``rejected_weak``
+        (best label under ``min_votes``), ``rejected_ambiguous`` (runner-up within
+        ``min_margin``, or a dot claimed by two spots), ``rejected_inconsistent`` (dropped by
+        the lattice check: the wrong decodes the redundancy caught), ``rejected_detached``
+        (decoded, but off the largest 4-connected piece, which alone the surface can level),
+        ``rejected_border``
+        (spots cut by the image or diffuser edge, merged or saturated).
+    votes : (K,) ndarray of int
+        Neighbour windows (of 8) that voted for each kept label.
+    margin : (K,) ndarray of int
+        Votes over the spot's runner-up label.
+    symbol_confidence : (K,) ndarray
+        Confidence of the spot's colour symbol, 0..1.
+    consistent : (K,) ndarray of int
+        Grid neighbours decoded independently with the same displacement.
+    green_fraction : (P,) ndarray
+        Measured ``G / (G + B)`` of every detected spot (NaN where dark).
+    levels : (4,) ndarray
+        The symbol levels refined on this frame.
+    """
+
+    matches: Matches
+    votes: IntArray
+    margin: IntArray
+    symbol_confidence: FloatArray
+    consistent: IntArray
+    green_fraction: FloatArray
+    levels: FloatArray
+
+    @property
+    def confidence(self) -> FloatArray:
+        """Per kept dot, 0..1: the share of its 8 neighbour windows that voted for it, times
+        its symbol's confidence."""
+        return self.votes / 8.0 * self.symbol_confidence
+
+
+def spot_symbols(
+    image: NDArray, centres_px: FloatArray, sigma_px: float, levels: FloatArray | None = None
+) -> tuple[IntArray, FloatArray, FloatArray, FloatArray]:
+    """Colour symbol of each spot from its green fraction ``G / (G + B)``.
+
+    Parameters
+    ----------
+    image : (H, W, 3) ndarray
+        Camera-s image, linear RGB.
+    centres_px : (P, 2) ndarray
+        Spot centres ``(col, row)``, pixels.
+    sigma_px : float
+        Spot standard deviation, pixels: the smoothing of the channels before sampling.
+    levels : (L,) ndarray, optional
+        Starting level centres (default :data:`~wai_core.pattern.CODE_LEVELS`), refined by
+        three 1-D k-means steps on the spots whose colour is clear.
+
+    Returns
+    -------
+    symbol : (P,) ndarray of int
+        Index of the nearest level, -1 where the confidence is under
+        :data:`MIN_SYMBOL_CONFIDENCE` or the spot is dark.
+    confidence : (P,) ndarray
+        ``1 - |g - level| / half-gap``, clipped to 0..1.
+    green : (P,) ndarray
+        The green fraction g (NaN where G + B is not positive).
+    levels : (L,) ndarray
+        The refined level centres.
+    """
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] < 3:
+        raise WaiInputError(
+            "the coded pattern needs an RGB pattern image (H, W, 3), got shape "
+            f"{np.shape(image)}"
+        )
+    s = max(float(sigma_px), 0.5)
+    g_img = cv2.GaussianBlur(np.ascontiguousarray(img[..., 1], np.float32), (0, 0), s)
+    b_img = cv2.GaussianBlur(np.ascontiguousarray(img[..., 2], np.float32), (0, 0), s)
+    c = np.asarray(centres_px, np.float32).reshape(-1, 2)
+    gs = cv2.remap(g_img, c[:, :1], c[:, 1:], cv2.INTER_LINEAR)[:, 0].astype(np.float64)
+    bs = cv2.remap(b_img, c[:, :1], c[:, 1:], cv2.INTER_LINEAR)[:, 0].astype(np.float64)
+    total = gs + bs
+    green = np.where(total > 0, gs / np.where(total > 0, total, 1.0), np.nan)
+    lev = np.asarray(CODE_LEVELS if levels is None else levels, np.float64).copy()
+    finite = np.isfinite(green)
+
+    def assign(lv: FloatArray) -> tuple[IntArray, FloatArray]:
+        dist = np.abs(np.where(finite, green, -10.0)[:, None] - lv[None, :])
+        sym = np.argmin(dist, axis=1)
+        # Half the gap to the neighbouring level on the side the value lies.
+        gaps = np.diff(lv)
+        half = 0.5 * np.concatenate([[gaps[0]], np.minimum(gaps[:-1], gaps[1:]), [gaps[-1]]])
+        conf = np.clip(1.0 - dist[np.arange(len(sym)), sym] / half[sym], 0.0, 1.0)
+        return sym, np.where(finite, conf, 0.0)
+
+    for _ in range(3):  # k-means on the clear spots; a level without any keeps its place
+        sym, conf = assign(lev)
+        clear = conf > 0.5
+        sums = np.bincount(sym[clear], green[clear], len(lev))
+        n = np.bincount(sym[clear], minlength=len(lev))
+        lev = np.where(n > 0, sums / np.maximum(n, 1), lev)
+    sym, conf = assign(lev)
+    sym = np.where(conf >= MIN_SYMBOL_CONFIDENCE, sym, -1)
+    return sym.astype(np.int64), conf, green, lev
+
+
+def node_symbols(ref: ReferenceGrid, cfg: SystemConfig) -> IntArray:
+    """Code symbol (G,) of every node of the reference lattice; -1 for virtual and unlit
+    nodes (no spot can show their symbol)."""
+    projector = cfg.projector.camera()
+    ij, _ = dot_grid(cfg.pattern, projector)
+    codes = dot_codes(cfg.pattern, projector).astype(np.int64)
+    lo = ij.min(axis=0)
+    side = ij.max(axis=0) - lo + 1
+    grid = np.full((side[1], side[0]), -1, np.int64)
+    grid[ij[:, 1] - lo[1], ij[:, 0] - lo[0]] = codes
+    q = ref.ij - lo
+    inside = (q >= 0).all(axis=1) & (q[:, 0] < side[0]) & (q[:, 1] < side[1])
+    out = np.full(len(ref.ij), -1, np.int64)
+    out[inside] = grid[q[inside, 1], q[inside, 0]]
+    return np.where(ref.lit, out, -1)
+
+
+# Opposite neighbour directions in _DIRS8 order ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1),
+# (1, -1), (-1, 1), (-1, -1)).
+_OPPOSITE = np.array([[0, 1], [2, 3], [4, 7], [5, 6]])
+
+
+@numba.njit(cache=True)
+def _votes(node: IntArray, disp: FloatArray, start: IntArray, nbrs8: IntArray,
+           opposite: IntArray, tol1: FloatArray, tol2: FloatArray, jump: FloatArray) -> IntArray:
+    """Neighbour votes (0..8) for each hypothesis (sorted by node; ``start`` (G + 1,) the first
+    hypothesis of each node).
+
+    A pair of opposite neighbours ``k + o``, ``k - o`` gives 2 votes when each has a hypothesis,
+    within ``jump`` of this one's displacement, whose displacements are collinear with this
+    one's: ``|d(k + o) + d(k - o) - 2 d(k)| < tol2`` (a second difference, blind to the local
+    stretch and rotation of the pattern, which first differences are not). Otherwise each of the
+    two gives 1 vote when it has a hypothesis within ``tol1`` of this one's displacement.
+    Tolerances are per node, px (``tol1``, ``tol2``, ``jump`` (G,), squared)."""
+    n_nodes = len(start) - 1
+    out = np.zeros(len(node), np.int64)
+    for a in range(len(node)):
+        k = node[a]
+        ax, ay = disp[a, 0], disp[a, 1]
+        for q in range(opposite.shape[0]):
+            kp, km = nbrs8[k, opposite[q, 0]], nbrs8[k, opposite[q, 1]]
+            near_p = False
+            near_m = False
+            pair = False
+            if kp < n_nodes:
+                for b in range(start[kp], start[kp + 1]):
+                    bx, by = disp[b, 0] - ax, disp[b, 1] - ay
+                    r2 = bx * bx + by * by
+                    if r2 < tol1[k]:
+                        near_p = True
+                    if pair or r2 >= jump[k] or km >= n_nodes:
+                        continue
+                    for c in range(start[km], start[km + 1]):
+                        cx, cy = disp[c, 0] - ax, disp[c, 1] - ay
+                        second = (bx + cx) ** 2 + (by + cy) ** 2
+                        if second < tol2[k] and cx * cx + cy * cy < jump[k]:
+                            pair = True
+                            break
+            if pair:
+                out[a] += 2
+                continue
+            if km < n_nodes:
+                for c in range(start[km], start[km + 1]):
+                    cx, cy = disp[c, 0] - ax, disp[c, 1] - ay
+                    if cx * cx + cy * cy < tol1[k]:
+                        near_m = True
+                        break
+            out[a] += int(near_p) + int(near_m)
+    return out
+
+
+def _best_per_group(group: IntArray, score: IntArray, n: int) -> tuple[IntArray, IntArray]:
+    """Per group id (0..n-1): the row with the highest score (-1 where the group is empty) and
+    the runner-up's score (0 where there is none)."""
+    order = np.lexsort((-score, group))
+    g_sorted = group[order]
+    first = np.searchsorted(g_sorted, np.arange(n))
+    count = np.bincount(group, minlength=n)
+    best = np.where(count > 0, order[np.minimum(first, len(order) - 1)], -1)
+    second_at = np.minimum(first + 1, len(order) - 1)
+    second = np.where(count > 1, score[order[second_at]], 0)
+    return best, second
+
+
+def _lattice_check(
+    nodes: IntArray, disp: FloatArray, n_nodes: int, tab: object, spacing: FloatArray
+) -> tuple[IntArray, FloatArray]:
+    """Per decoded dot: its decoded grid neighbours (of 8) and the distance, in local spacings,
+    from its displacement to the one they predict (:func:`_predicted`; inf with fewer than two
+    predictions)."""
+    at = np.full((n_nodes + 1, 2), np.nan)
+    at[nodes] = disp
+    n_nbrs = np.sum(np.isfinite(at[tab.nbrs8[nodes], 0]), axis=1)
+    pred, n_pred = _predicted(at, nodes, tab)
+    err = np.linalg.norm(disp - pred, axis=1) / spacing[nodes]
+    return n_nbrs, np.where((n_pred >= 2) & np.isfinite(err), err, np.inf)
+
+
+def _predicted(at: FloatArray, nodes: IntArray, tab: object) -> tuple[FloatArray, IntArray]:
+    """Displacement (K, 2) of ``nodes`` predicted from their decoded grid neighbours (``at``
+    (G + 1, 2), NaN where not decoded): the median of the midpoints of decoded opposite pairs
+    and of the straight-line extrapolations from two decoded dots in a row; and how many
+    predictions there were."""
+    one = at[tab.nbrs8[nodes]]  # (K, 8, 2)
+    two = at[tab.fwd[nodes, 8:16]]  # two steps along the same directions
+    mid = 0.5 * (one[:, _OPPOSITE[:, 0]] + one[:, _OPPOSITE[:, 1]])  # (K, 4, 2)
+    line = 2.0 * one - two  # (K, 8, 2)
+    preds = np.concatenate([mid, line], axis=1)
+    n = np.sum(np.isfinite(preds[..., 0]), axis=1)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: no prediction
+        med = np.nanmedian(preds, axis=1)
+    return med, n
+
+
+def _grow_decoded(
+    node: IntArray, spot: IntArray, disp: FloatArray, take: IntArray, n_nodes: int,
+    n_spots: int, tab: object, spacing: FloatArray, tol: float, min_predictions: int = 2,
+    max_waves: int = 64,
+) -> IntArray:
+    """Extend the decoded hypotheses ``take`` into their grid neighbours, wave by wave: a dot
+    takes the hypothesis (of its own symbol) nearest to the displacement its decoded neighbours
+    predict (:func:`_predicted`, from at least ``min_predictions``) when it lies within ``tol``
+    local spacings, the dot's next hypothesis lies farther than ``tol`` and twice as far, and
+    its spot is still free. Returns the grown ``take``."""
+    take = np.asarray(take, np.int64)
+    for _ in range(max_waves):
+        at = np.full((n_nodes + 1, 2), np.nan)
+        at[node[take]] = disp[take]
+        used_node = np.zeros(n_nodes + 1, bool)
+        used_node[node[take]] = True
+        used_spot = np.zeros(n_spots, bool)
+        used_spot[spot[take]] = True
+        free = ~used_node[node] & ~used_spot[spot]
+        # Only hypotheses of nodes next to a decoded dot.
+        free &= used_node[tab.nbrs8[node]].any(axis=1)
+        cand = np.flatnonzero(free)
+        if len(cand) == 0:
+            break
+        pred, n_pred = _predicted(at, node[cand], tab)
+        err = np.linalg.norm(disp[cand] - pred, axis=1) / spacing[node[cand]]
+        err = np.where((n_pred >= min_predictions) & np.isfinite(err), err, np.inf)
+        rank = -np.round(np.minimum(err, 1e3) * 1e6).astype(np.int64)
+        best, _ = _best_per_group(node[cand], rank, n_nodes)
+        has = np.flatnonzero(best >= 0)
+        b = best[has]
+        # Runner-up error of each node's hypotheses.
+        err2 = np.where(np.isin(np.arange(len(cand)), b), np.inf, err)
+        second = np.full(n_nodes, np.inf)
+        np.minimum.at(second, node[cand], err2)
+        ok = (err[b] < tol) & (second[node[cand[b]]] > np.maximum(2.0 * err[b], tol))
+        new = cand[b[ok]]
+        # A spot chosen by two dots goes to neither.
+        count = np.bincount(spot[new], minlength=n_spots)
+        new = new[count[spot[new]] == 1]
+        if len(new) == 0:
+            break
+        take = np.concatenate([take, new])
+    return take
+
+
+def decode_distorted(
+    ref: ReferenceGrid,
+    spots: Spots,
+    image: NDArray,
+    cfg: SystemConfig,
+    *,
+    reach: float = 6.0,
+    tol: float = 0.4,
+    tol_second: float = 0.25,
+    max_jump: float = 0.5,
+    min_votes: int = 5,
+    min_margin: int = 2,
+    min_consistent: int = 3,
+    tol_grow: float = 0.3,
+) -> Decoded:
+    """Label the wavy-water spots by the pattern's colour code (see the module notes).
+
+    Parameters
+    ----------
+    ref : ReferenceGrid
+        Flat-water lattice (:func:`~restoration.features.reference.prepare_reference`).
+    spots : Spots
+        Spots detected in the wavy-water image.
+    image : (H, W, 3) ndarray
+        The wavy-water camera-s image (linear RGB) the spots came from.
+    cfg : SystemConfig
+        The rig; ``cfg.pattern`` gives the code.
+    reach : float
+        Largest displacement from flat water considered, in local spacings.
+    tol : float
+        Largest displacement difference between a dot and a neighbour voting alone, in local
+        spacings.
+    tol_second : float
+        Largest second difference of the displacements of a dot and a voting pair of opposite
+        neighbours, in local spacings.
+    max_jump : float
+        Largest displacement difference between a dot and a voting pair's members, spacings.
+    min_votes, min_margin : int
+        Fewest neighbour votes for a label, and fewest over the runner-up.
+    min_consistent : int
+        Fewest neighbours decoded with the same displacement for a label to stay.
+
+    Returns
+    -------
+    Decoded
+    """
+    n_nodes = len(ref.ij)
+    sym, sym_conf, green, levels = spot_symbols(
+        image, spots.centres_px, ref.spot_sigma_px if np.isfinite(ref.spot_sigma_px) else 1.5
+    )
+    codes = node_symbols(ref, cfg)
+    tab = ref.tables
+    usable = ~spots.suspicious
+    counts = {
+        "detected": len(spots), "reference": int(ref.observed.sum()), "matched": 0,
+        "matched_unobserved": 0, "decode_candidates": 0, "decoded": 0,
+        "rejected_symbol": int(np.sum(usable & (sym < 0))), "rejected_weak": 0,
+        "rejected_ambiguous": 0, "rejected_inconsistent": 0,
+        "rejected_border": int(np.sum(~usable)), "unassigned_spots": len(spots),
+        "anchor_candidates": 1, "labels_ambiguous": 0,
+    }
+    spacing = np.where(np.isfinite(ref.spacing_px), ref.spacing_px, np.nanmedian(ref.spacing_px))
+    tols = ((tol * spacing) ** 2, (tol_second * spacing) ** 2, (max_jump * spacing) ** 2)
+    radius = reach * float(np.nanmedian(spacing))
+    # Hypotheses: (spot, node) pairs of the same symbol within the reach, all symbols at once
+    # (a symbol offset far larger than the image keeps symbols apart in one tree).
+    far = 1e6
+    node_ok = (codes >= 0) & np.isfinite(ref.ref_px).all(axis=1)
+    spot_ok = usable & (sym >= 0)
+    n_id, s_id = np.flatnonzero(node_ok), np.flatnonzero(spot_ok)
+    empty = Decoded(
+        Matches(np.zeros((0, 2), np.int64), np.zeros((0, 2)), np.zeros((0, 2)),
+                np.zeros(0, bool), counts),
+        np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64),
+        green, levels,
+    )
+    if len(n_id) == 0 or len(s_id) == 0:
+        return empty
+    tree_n = cKDTree(ref.ref_px[n_id] + far * codes[n_id, None])
+    tree_s = cKDTree(spots.centres_px[s_id] + far * sym[s_id, None])
+    pairs = tree_n.sparse_distance_matrix(tree_s, radius, output_type="ndarray")
+    node = n_id[pairs["i"].astype(np.int64)]
+    spot = s_id[pairs["j"].astype(np.int64)]
+    order = np.argsort(node, kind="stable")
+    node, spot = node[order], spot[order]
+    disp = spots.centres_px[spot] - ref.ref_px[node]
+    counts["decode_candidates"] = len(node)
+    if len(node) == 0:
+        return empty
+    start = np.searchsorted(node, np.arange(n_nodes + 1))
+    votes = _votes(node, np.ascontiguousarray(disp), start, tab.nbrs8, _OPPOSITE, *tols)
+
+    # Per spot: the best-voted label, if clear of the runner-up.
+    best, second = _best_per_group(spot, votes, len(spots))
+    has = best >= 0
+    b = best[has]
+    weak = votes[b] < min_votes
+    unclear = ~weak & (votes[b] - second[has] < min_margin)
+    counts["rejected_weak"] = int(weak.sum())
+    take = b[~weak & ~unclear]
+    # A dot claimed by two spots: the better-voted one, neither on a tie.
+    claim_best, claim_second = _best_per_group(node[take], votes[take], n_nodes)
+    owner = claim_best[node[take]]
+    tied = votes[take] <= claim_second[node[take]]
+    keep = (owner == np.arange(len(take))) & ~tied
+    counts["rejected_ambiguous"] = int(unclear.sum() + np.sum(~keep))
+    take = take[keep]
+    counts["decoded_windows"] = len(take)
+    take = _grow_decoded(node, spot, disp, take, n_nodes, len(spots), tab, spacing, tol_grow)
+    counts["decoded"] = len(take)
+
+    # The lattice check: every label must be confirmed by the labels decoded around it (each
+    # neighbour's window overlaps its own): the displacement its decoded neighbours predict
+    # (leaving it out) lies within 2 tol_grow of its own, from at least min_consistent of them.
+    for _ in range(8):
+        cons, resid = _lattice_check(node[take], disp[take], n_nodes, tab, spacing)
+        ok = (cons >= min_consistent) & (resid < 2.0 * tol_grow)
+        if ok.all():
+            break
+        take = take[ok]
+    counts["rejected_inconsistent"] = counts["decoded"] - len(take)
+    # The surface integrates slopes along the lattice: pieces that touch no other decoded dot
+    # have no height relative to the rest (their labels are right, their level is not known).
+    main = _largest_component(tab.lat, node[take])
+    counts["rejected_detached"] = int(np.sum(~main))
+    take = take[main]
+    cons, _ = _lattice_check(node[take], disp[take], n_nodes, tab, spacing)
+    k, p = node[take], spot[take]
+    counts.update(
+        matched=len(take), matched_unobserved=int(np.sum(~ref.observed[k])),
+        unassigned_spots=len(spots) - len(take),
+    )
+    margin = votes[take] - second[p]
+    matches = Matches(ref.ij[k], ref.ref_px[k], spots.centres_px[p], ref.observed[k], counts)
+    return Decoded(matches, votes[take], margin, sym_conf[p], cons, green, levels)
+
+
+def features_from_code(
+    pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig, *, min_features: int = 16
+) -> Matches:
+    """Detect the spots of one wavy frame and decode them (the coded pattern's counterpart of
+    :func:`~restoration.features.match.features_from_reference`).
+
+    Raises
+    ------
+    WaiInputError
+        On a wrongly sized or grey image, or fewer than ``min_features`` decoded dots.
+    """
+    cam = cfg.camera_s
+    if np.shape(pattern_img)[:2] != (cam.height_px, cam.width_px):
+        raise WaiInputError(
+            f"pattern image is {np.shape(pattern_img)[:2]}, camera s is "
+            f"{cam.height_px}x{cam.width_px}"
+        )
+    t0 = time.perf_counter()
+    wavy = flag_diffuser_edge(
+        detect_spots(pattern_img, spot_sigma_px=ref.detect_sigma_px), _outline_px(cfg)
+    )
+    t1 = time.perf_counter()
+    matches = decode_distorted(ref, wavy, pattern_img, cfg).matches
+    t2 = time.perf_counter()
+    if len(matches) < min_features:
+        raise WaiInputError(f"too few features decoded: {len(matches)} (need {min_features})")
+    matches.timings_ms.update({"detect": 1e3 * (t1 - t0), "match": 1e3 * (t2 - t1)})
+    return matches

@@ -1,0 +1,164 @@
+"""Tests of the coded pattern's decoding on synthetic camera-s images.
+
+The images are drawn here: each lit dot's spot where the geometric model puts it
+(:func:`wai_core.forward.predict_spots`) in its code colour, so every spot's true label is
+known without the renderer.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from restoration.features import (
+    decode_distorted,
+    detect_spots,
+    features_from_code,
+    flag_diffuser_edge,
+    node_symbols,
+    prepare_reference,
+    spot_sigma_px,
+    spot_symbols,
+)
+from restoration.features._outline import _outline_px
+from wai_core.config import load_config
+from wai_core.errors import WaiInputError
+from wai_core.forward import predict_spots
+from wai_core.heightfield import Heightfield
+from wai_core.layout import surface_extent
+from wai_core.limits import correspondence_limit
+from wai_core.pattern import CODE_LEVELS, dot_codes, dot_grid
+
+SCENE = "scenes/paper.toml"
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(SCENE).replace("pattern", code="colour")
+
+
+def draw(cfg, surface, symbols_of=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RGB image (H, W, 3) of the lit dots' spots through ``surface`` (None: flat), with the
+    grid indices (K, 2) and centres (K, 2) drawn."""
+    ij, px = predict_spots(cfg, surface)
+    all_ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
+    codes = dot_codes(cfg.pattern, cfg.projector.camera())
+    lut = {tuple(k): int(c) for k, c in zip(all_ij.tolist(), codes, strict=True)}
+    sym = np.array([lut[tuple(k)] for k in ij.tolist()]) if symbols_of is None else symbols_of
+    g = np.asarray(CODE_LEVELS)[sym]
+    h, w = cfg.camera_s.height_px, cfg.camera_s.width_px
+    img = np.zeros((h, w, 3), np.float32)
+    s = spot_sigma_px(cfg)
+    rows, cols = np.mgrid[0:h, 0:w]
+    for (c, r), gk in zip(px, g, strict=True):  # drawing only: a few hundred spots
+        r0, r1 = max(int(r) - 8, 0), min(int(r) + 9, h)
+        c0, c1 = max(int(c) - 8, 0), min(int(c) + 9, w)
+        blob = np.exp(-((cols[r0:r1, c0:c1] - c) ** 2 + (rows[r0:r1, c0:c1] - r) ** 2) / (2 * s**2))
+        img[r0:r1, c0:c1, 1] += gk * blob
+        img[r0:r1, c0:c1, 2] += (1 - gk) * blob
+    return img, ij, px
+
+
+def wavy(cfg, phi_ratio: float, wavelength_mm: float = 80.0) -> Heightfield:
+    """A sinusoid along x whose slope amplitude is ``phi_ratio`` times eq. 35's limit."""
+    ext = surface_extent(cfg)
+    x = np.linspace(ext[0, 0], ext[0, 1], 801)
+    y = np.linspace(ext[1, 0], ext[1, 1], 401)
+    phi = phi_ratio * correspondence_limit(cfg)["phi_max_rad"]
+    amp = phi * wavelength_mm / (2 * np.pi)
+    z = cfg.water.h0_mm + amp * np.sin(2 * np.pi * x / wavelength_mm)[None, :] + 0 * y[:, None]
+    return Heightfield(x, y, z)
+
+
+def precision(matches, ij_true, px_true) -> tuple[float, int]:
+    index = {tuple(k): n for n, k in enumerate(ij_true.tolist())}
+    ok = [
+        tuple(k) in index and np.linalg.norm(s - px_true[index[tuple(k)]]) < 1.0
+        for k, s in zip(matches.ij.tolist(), matches.spot_px, strict=True)
+    ]
+    return float(np.mean(ok)) if ok else 0.0, int(np.sum(ok))
+
+
+@pytest.fixture(scope="module")
+def reference(cfg):
+    flat, _, _ = draw(cfg, None)
+    return prepare_reference(flat, cfg)
+
+
+def test_symbols_read_from_colour(cfg):
+    img, _, px = draw(cfg, None)
+    sym, conf, green, levels = spot_symbols(img, px, spot_sigma_px(cfg))
+    ij, _ = predict_spots(cfg, None)
+    all_ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
+    codes = dot_codes(cfg.pattern, cfg.projector.camera())
+    lut = {tuple(k): int(c) for k, c in zip(all_ij.tolist(), codes, strict=True)}
+    truth = np.array([lut[tuple(k)] for k in ij.tolist()])
+    clear = sym >= 0
+    assert clear.mean() > 0.95
+    assert np.all(sym[clear] == truth[clear])
+    np.testing.assert_allclose(levels, CODE_LEVELS, atol=0.05)
+
+
+def test_node_symbols_match_the_panel(cfg, reference):
+    codes = node_symbols(reference, cfg)
+    assert np.all(codes[~reference.lit] == -1)
+    assert set(np.unique(codes[reference.lit])) <= {0, 1, 2, 3}
+
+
+@pytest.mark.parametrize("phi_ratio", [0.5, 2.0])
+def test_decodes_past_the_ordering_limit(cfg, reference, phi_ratio):
+    img, ij, px = draw(cfg, wavy(cfg, phi_ratio))
+    spots = flag_diffuser_edge(detect_spots(img, spot_sigma_px=reference.detect_sigma_px),
+                               _outline_px(cfg))
+    dec = decode_distorted(reference, spots, img, cfg)
+    frac, n_ok = precision(dec.matches, ij, px)
+    assert frac >= 0.99
+    assert n_ok > (0.5 if phi_ratio < 1 else 0.1) * len(ij)  # recall falls; precision not
+    assert np.all((dec.confidence >= 0) & (dec.confidence <= 1))
+    assert dec.matches.counts["matched"] == len(dec.matches)
+
+
+def test_wrong_symbols_are_dropped_not_used(cfg, reference):
+    """Misprinted dots (their symbol changed) must not come back with a wrong label."""
+    surface = wavy(cfg, 1.0)
+    ij, _ = predict_spots(cfg, surface)
+    all_ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
+    codes = dot_codes(cfg.pattern, cfg.projector.camera())
+    lut = {tuple(k): int(c) for k, c in zip(all_ij.tolist(), codes, strict=True)}
+    sym = np.array([lut[tuple(k)] for k in ij.tolist()])
+    rng = np.random.default_rng(0)
+    bad = rng.random(len(sym)) < 0.05
+    sym = np.where(bad, (sym + 1 + rng.integers(0, 3, len(sym))) % 4, sym)
+    img, ij, px = draw(cfg, surface, sym)
+    m = features_from_code(img, reference, cfg)
+    frac, _ = precision(m, ij, px)
+    assert frac >= 0.99
+    kept = {tuple(k) for k in m.ij.tolist()}
+    misprinted = {tuple(k) for k in ij[bad].tolist()}
+    assert len(kept & misprinted) <= 0.1 * len(misprinted)
+
+
+def test_grey_image_is_refused(cfg, reference):
+    img, _, _ = draw(cfg, None)
+    with pytest.raises(WaiInputError, match="RGB"):
+        features_from_code(img.sum(axis=2), reference, cfg)
+
+
+def test_structured_light_decodes_by_config(cfg):
+    """``[pattern] code = "colour"`` makes the pipeline decode (its counts say so) and the
+    surface follow; the plain pattern keeps the ordering matcher."""
+    from restoration import Calibration, StructuredLight
+    from wai_core.optics import radiance_gain
+
+    surface = wavy(cfg, 0.5)
+    flat, _, _ = draw(cfg, None)
+    img, _, _ = draw(cfg, surface)
+    view = np.random.default_rng(0).random((cfg.camera_v.height_px, cfg.camera_v.width_px, 3))
+    images = {"pattern": img, "pattern_flat": flat, "view": view.astype(np.float32)}
+    result = StructuredLight()(images, Calibration(cfg, radiance_gain(cfg.water.n_water)))
+    assert result.status != "failed", result.message
+    assert "decoded" in result.features.counts
+    ok = np.isfinite(result.surface.heightfield.z)
+    xx, yy = np.meshgrid(result.surface.heightfield.x, result.surface.heightfield.y)
+    err = result.surface.heightfield.z[ok] - surface.height(xx[ok], yy[ok])
+    assert np.sqrt(np.mean(err**2)) < 1.0
