@@ -98,8 +98,9 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "name",
-        choices=["validate", "paper", "alterman", "tradeoffs", "stability"],
-        help="which experiment (tradeoffs and stability are sweeps on Dask)",
+        choices=["validate", "paper", "alterman", "tradeoffs", "stability", "seawater"],
+        help="which experiment (tradeoffs and stability are sweeps on Dask; seawater: the "
+        "detected spot SNR of a blue-green and a red pattern after the same water)",
     )
     p.add_argument("--config", default="paper", help=SCENE_HELP)
     p.add_argument("--out", type=Path, help="output folder (default renders/<name>)")

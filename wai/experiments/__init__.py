@@ -6,7 +6,9 @@ import argparse
 from pathlib import Path
 
 # Seeds 0..K-1 when --seeds is not given: the sun sweep renders six sensors per seed.
-DEFAULT_SEEDS = {"validate": 10, "paper": 10, "alterman": 3, "tradeoffs": 2, "stability": 2}
+DEFAULT_SEEDS = {
+    "validate": 10, "paper": 10, "alterman": 3, "tradeoffs": 2, "stability": 2, "seawater": 1,
+}
 
 
 def run_experiment(args: argparse.Namespace) -> None:
@@ -35,3 +37,11 @@ def run_experiment(args: argparse.Namespace) -> None:
         from wai.experiments.stability import run_stability
 
         run_stability(args)
+    elif args.name == "seawater":
+        from wai.experiments.seawater import format_snr, seawater_snr
+        from wai_core.io import write_json
+
+        res = seawater_snr(args.config, seed=0, spp=4 if args.quick else None)
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_json(args.out / "seawater_snr.json", res)
+        print(format_snr(res))
