@@ -341,3 +341,34 @@ def _ambient_record(cfg: SystemConfig) -> dict[str, Any]:
         "model": "S: sun by particle tracing (directionalarea, refracting surface, flat skirt "
                  "beyond the waves), sky analytic (uniform); V: constant sky, far sun disk",
     }
+
+
+def render_frame_images(
+    renderer: FrameRenderer,
+    cfg: SystemConfig,
+    surface: Heightfield,
+    seed: int,
+    *,
+    spp: int | None = None,
+    surface_at: Callable[[float], Heightfield] | None = None,
+    plan: SubframePlan | None = None,
+) -> tuple[SystemConfig, dict[str, NDArray[np.float32]]]:
+    """The four images of a frame (``pattern``, ``pattern_flat``, ``view``, ``view_truth``):
+    the wavy ones over the exposure (:func:`render_exposure`), the flat ones sharp, then the
+    sensor when ``[sensor]`` is on. Returns the configuration with the exposure it resolved
+    (what ``scene.json`` records) and the images."""
+    from mitsuba_wai.mesh import flat_like
+
+    wavy = render_exposure(renderer, cfg, surface, seed, spp=spp, surface_at=surface_at,
+                           plan=plan)
+    flat = renderer.render(flat_like(surface, cfg.water.h0_mm), seed, spp=spp)
+    images = {
+        "pattern": wavy["pattern"],
+        "pattern_flat": flat["pattern"],
+        "view": wavy["view"],
+        "view_truth": flat["view"],
+    }
+    if cfg.sensor.enabled:
+        cfg = resolve_exposure(cfg, images)
+        images = sense(cfg, images)
+    return cfg, images

@@ -8,8 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense
-from mitsuba_wai.mesh import flat_like
+from mitsuba_wai.degrade import render_frame_images
 from mitsuba_wai.render import (
     FrameRenderer,
     file_surface,
@@ -42,7 +41,7 @@ class Frame:
     view_gain : float
         The views carry this factor (n^2) over the object's radiance.
     render_s : dict of str to float
-        Wall time of each render, s.
+        ``frame``: wall time of the four renders (and the sensor), s.
     """
 
     cfg: SystemConfig
@@ -90,19 +89,8 @@ def render_frame(
     seed = render_seed(cfg)
     t0 = time.perf_counter()
     surface_at = moving_surface(cfg) if surface is None else None
-    wavy = render_exposure(renderer, cfg, grid, seed, spp=spp, surface_at=surface_at)
+    cfg, images = render_frame_images(renderer, cfg, grid, seed, spp=spp, surface_at=surface_at)
     t1 = time.perf_counter()
-    flat = renderer.render(flat_like(grid, cfg.water.h0_mm), seed, spp=spp)
-    t2 = time.perf_counter()
-    images = {
-        "pattern": wavy["pattern"],
-        "pattern_flat": flat["pattern"],
-        "view": wavy["view"],
-        "view_truth": flat["view"],
-    }
-    if cfg.sensor.enabled:
-        cfg = resolve_exposure(cfg, images)
-        images = sense(cfg, images)
     return Frame(
-        cfg, grid, images, radiance_gain(cfg.water.n_water), {"wavy": t1 - t0, "flat": t2 - t1}
+        cfg, grid, images, radiance_gain(cfg.water.n_water), {"frame": t1 - t0}
     )

@@ -39,9 +39,7 @@ from mitsuba_wai import mesh as meshes
 from mitsuba_wai.ambient import SCENE_SUN_DEPTH, sky_image, smooth, sun_s_scene, view_emitters
 from mitsuba_wai.degrade import (
     degradation_record,
-    render_exposure,
-    resolve_exposure,
-    sense,
+    render_frame_images,
     subframe_plan,
 )
 from mitsuba_wai.particles import pass_split, render_particles, render_particles_water
@@ -455,7 +453,7 @@ def render_folder(
     """
     from tqdm import tqdm
 
-    steps = ["surface", "load scenes", "render wavy", "render flat", "write"]
+    steps = ["surface", "load scenes", "render wavy and flat", "write"]
     bar = tqdm(steps, desc="render", disable=not progress, unit="step", leave=False)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -486,19 +484,9 @@ def render_folder(
     renderer = FrameRenderer(cfg, surface)
     tick("load scenes")
     seed = render_seed(cfg)
-    wavy = render_exposure(renderer, cfg, surface, seed, surface_at=surface_at, plan=plan)
-    tick("render wavy")
-    flat = renderer.render(meshes.flat_like(surface, cfg.water.h0_mm), seed)
-    tick("render flat")
-    images = {
-        "pattern": wavy["pattern"],
-        "pattern_flat": flat["pattern"],
-        "view": wavy["view"],
-        "view_truth": flat["view"],
-    }
-    if cfg.sensor.enabled:
-        cfg = resolve_exposure(cfg, images)
-        images = sense(cfg, images)
+    cfg, images = render_frame_images(renderer, cfg, surface, seed, surface_at=surface_at,
+                                      plan=plan)
+    tick("render wavy and flat")
     record = scene_record(cfg, renderer.variant, surface, source)
     with atomic_dir(out_dir, command=OUTPUT_COMMAND, overwrite=overwrite) as tmp:
         write_images(tmp, images, view_gain=cfg.water.n_water**2, sensor=cfg.sensor)
