@@ -32,6 +32,11 @@ Per frame:
    the hypothesis of its own symbol nearest to the displacement they predict (midpoints of
    opposite pairs, straight-line extrapolations), within ``tol_grow`` spacings and clear of
    its next hypothesis. The symbol makes each step 4x less ambiguous than the plain grid's.
+   Before growing, the ordering matcher's labels may join (``ordering``; what
+   :func:`features_from_code` does): only where the spot shows the label's symbol and the
+   spot and dot are still free, and judged by step 6 like any other. Past eq. 35's bound the
+   ordering labels are often shifted: a shifted label shows the wrong symbol 3 times in 4,
+   and the few that survive disagree with the decoded neighbours, so step 6 drops them.
 6. **Redundancy.** The decoded labels must form a consistent lattice: a label stays only while
    at least ``min_consistent`` grid neighbours were decoded and the displacement they predict
    (leaving it out) lies within ``2 tol_grow`` of its own; the others are counted
@@ -53,10 +58,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from restoration.features._outline import _outline_px
+from restoration.features._outline import _outline_px, _visible_outline
 from restoration.features._types import FloatArray, IntArray
 from restoration.features.detect import Spots, detect_spots
-from restoration.features.match import Matches, _largest_component
+from restoration.features.match import Matches, _largest_component, match_distorted
 from restoration.features.reference import ReferenceGrid, flag_diffuser_edge
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
@@ -348,6 +353,30 @@ def _grow_decoded(
     return take
 
 
+def _from_ordering(
+    ordering: Matches, ref: ReferenceGrid, spots: Spots, node: IntArray, spot: IntArray,
+    take: IntArray,
+) -> IntArray:
+    """The hypotheses (indices into ``node``, ``spot``) that the ordering matcher's labels
+    name, where the spot's symbol is the dot's (a hypothesis exists only then) and neither the
+    spot nor the dot is already decoded."""
+    n_spots = len(spots)
+    k = ref.tables.lat.lookup(ordering.ij)
+    dist, p = cKDTree(spots.centres_px).query(ordering.spot_px)
+    ok = (k >= 0) & (dist < 1e-6)
+    keys = node.astype(np.int64) * n_spots + spot
+    order = np.argsort(keys)
+    want = k[ok].astype(np.int64) * n_spots + p[ok]
+    at = np.minimum(np.searchsorted(keys, want, sorter=order), len(keys) - 1)
+    hyp = order[at][keys[order[at]] == want]
+    free_node = np.ones(len(ref.ij), bool)
+    free_node[node[take]] = False
+    free_spot = np.ones(n_spots, bool)
+    free_spot[spot[take]] = False
+    return hyp[free_node[node[hyp]] & free_spot[spot[hyp]]]
+
+
+
 def decode_distorted(
     ref: ReferenceGrid,
     spots: Spots,
@@ -362,6 +391,7 @@ def decode_distorted(
     min_margin: int = 2,
     min_consistent: int = 3,
     tol_grow: float = 0.3,
+    ordering: Matches | None = None,
 ) -> Decoded:
     """Label the wavy-water spots by the pattern's colour code (see the module notes).
 
@@ -389,6 +419,14 @@ def decode_distorted(
         Fewest neighbour votes for a label, and fewest over the runner-up.
     min_consistent : int
         Fewest neighbours decoded with the same displacement for a label to stay.
+    tol_grow : float
+        Largest distance of a grown label's displacement from its neighbours' prediction,
+        local spacings.
+    ordering : Matches, optional
+        The ordering matcher's labels of the same spots: those whose spot shows the code's
+        symbol for the label, and whose spot and dot no decoded label holds, join the decoded
+        ones before the growth; the lattice check then judges all alike. Where ordering holds
+        (below eq. 35's bound) it labels the steep patches that the window votes miss.
 
     Returns
     -------
@@ -456,6 +494,9 @@ def decode_distorted(
     counts["rejected_ambiguous"] = int(unclear.sum() + np.sum(~keep))
     take = take[keep]
     counts["decoded_windows"] = len(take)
+    if ordering is not None and len(ordering):
+        take = np.concatenate([take, _from_ordering(ordering, ref, spots, node, spot, take)])
+    counts["from_ordering"] = len(take) - counts["decoded_windows"]
     take = _grow_decoded(node, spot, disp, take, n_nodes, len(spots), tab, spacing, tol_grow)
     counts["decoded"] = len(take)
 
@@ -507,7 +548,9 @@ def features_from_code(
         detect_spots(pattern_img, spot_sigma_px=ref.detect_sigma_px), _outline_px(cfg)
     )
     t1 = time.perf_counter()
-    matches = decode_distorted(ref, wavy, pattern_img, cfg).matches
+    visible = _visible_outline(cfg)
+    ordering = match_distorted(ref, wavy, visible_px=visible)
+    matches = decode_distorted(ref, wavy, pattern_img, cfg, ordering=ordering).matches
     t2 = time.perf_counter()
     if len(matches) < min_features:
         raise WaiInputError(f"too few features decoded: {len(matches)} (need {min_features})")
