@@ -58,11 +58,16 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from restoration.features._outline import _outline_px, _visible_outline
+from restoration.features._outline import _visible_outline
 from restoration.features._types import FloatArray, IntArray
-from restoration.features.detect import Spots, detect_spots
-from restoration.features.match import Matches, _largest_component, match_distorted
-from restoration.features.reference import ReferenceGrid, flag_diffuser_edge
+from restoration.features.detect import Spots
+from restoration.features.match import (
+    Matches,
+    _largest_component,
+    detect_frame,
+    match_distorted,
+)
+from restoration.features.reference import ReferenceGrid
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.pattern import CODE_LEVELS, dot_codes, dot_grid
@@ -537,19 +542,10 @@ def features_from_code(
     WaiInputError
         On a wrongly sized or grey image, or fewer than ``min_features`` decoded dots.
     """
-    cam = cfg.camera_s
-    if np.shape(pattern_img)[:2] != (cam.height_px, cam.width_px):
-        raise WaiInputError(
-            f"pattern image is {np.shape(pattern_img)[:2]}, camera s is "
-            f"{cam.height_px}x{cam.width_px}"
-        )
     t0 = time.perf_counter()
-    wavy = flag_diffuser_edge(
-        detect_spots(pattern_img, spot_sigma_px=ref.detect_sigma_px), _outline_px(cfg)
-    )
+    wavy = detect_frame(pattern_img, ref, cfg)
     t1 = time.perf_counter()
-    visible = _visible_outline(cfg)
-    ordering = match_distorted(ref, wavy, visible_px=visible)
+    ordering = match_distorted(ref, wavy, visible_px=_visible_outline(cfg))
     matches = decode_distorted(ref, wavy, pattern_img, cfg, ordering=ordering).matches
     t2 = time.perf_counter()
     if len(matches) < min_features:

@@ -593,20 +593,26 @@ def find_features(
     return matches
 
 
-def features_from_reference(
-    pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig, *, min_features: int = 16
-) -> Matches:
-    """Detect the spots of one wavy frame and match them to a prepared reference grid."""
+def detect_frame(pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig) -> Spots:
+    """The spots of one wavy frame (sized as camera s, checked), at the reference's spot scale,
+    those cut by the diffuser's edge flagged: what either matcher starts from."""
     cam = cfg.camera_s
     if np.shape(pattern_img)[:2] != (cam.height_px, cam.width_px):
         raise WaiInputError(
             f"pattern image is {np.shape(pattern_img)[:2]}, camera s is "
             f"{cam.height_px}x{cam.width_px}"
         )
-    t0 = time.perf_counter()
-    wavy = flag_diffuser_edge(
+    return flag_diffuser_edge(
         detect_spots(pattern_img, spot_sigma_px=ref.detect_sigma_px), _outline_px(cfg)
     )
+
+
+def features_from_reference(
+    pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig, *, min_features: int = 16
+) -> Matches:
+    """Detect the spots of one wavy frame and match them to a prepared reference grid."""
+    t0 = time.perf_counter()
+    wavy = detect_frame(pattern_img, ref, cfg)
     t1 = time.perf_counter()
     matches = match_distorted(ref, wavy, visible_px=_visible_outline(cfg))
     t2 = time.perf_counter()
