@@ -9,6 +9,7 @@ cached on it. Per-sequence state (a video's level) is not: see :class:`LevelTrac
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -66,12 +67,10 @@ class RigCalibration:
     IMAGES: ClassVar[tuple[str, ...]] = ("view",)
     """Stems of the images a frame of this method needs."""
 
-    @property
+    @cached_property
     def camera_v(self) -> PinholeCamera:
-        """The observation camera."""
-        if getattr(self, "_camera_v", None) is None:  # built once: the view asks every frame
-            object.__setattr__(self, "_camera_v", self.cfg.camera_v.camera())
-        return self._camera_v
+        """The observation camera (built once: the view asks for it every frame)."""
+        return self.cfg.camera_v.camera()
 
     def radiance(self, view: NDArray) -> NDArray:
         """A view image of this rig on the object's radiance scale: divided by

@@ -313,21 +313,21 @@ def fit_surface(
         cvec = spline.coeffs.ravel()
         step = spsolve(lhs.tocsc(), -(jac.T @ r) - smoothness * scale * (rtr @ cvec))
         spline.coeffs = (cvec + step).reshape(ny, nx)
-        rms_now = _rms(spline, o, d, t, target, z_h_mm)
-        rms.append(rms_now)
+        last = _predict(spline, o, d, t, target, z_h_mm)
+        rms.append(last.rms_mm)
         if np.max(np.abs(step)) < tol_mm:
             break
-    t = _hits(spline, o, d, t)
-    p = o + t[:, None] * d
-    z, gx, gy = spline.evaluate(p[:, 0], p[:, 1])[:3]
-    residual = np.linalg.norm(_forward(o, d, t, gx, gy, z_h_mm) - target, axis=1)
+    if done == 0:  # no iteration asked: the warm start as it is
+        last = _predict(spline, o, d, t, target, z_h_mm)
+    p, gx, gy = last.points_mm, last.gx, last.gy
+    residual = np.linalg.norm(last.residual_mm, axis=1)
     t1 = time.perf_counter()
     heightfield = spline.to_heightfield(like)
     t2 = time.perf_counter()
     return FitResult(
         spline=spline,
         heightfield=heightfield,
-        points_mm=np.column_stack([p[:, :2], z]),
+        points_mm=p,
         slopes=np.column_stack([gx, gy]),
         residual_mm=residual,
         rms_mm=rms,
@@ -337,11 +337,25 @@ def fit_surface(
     )
 
 
-def _rms(spline: BSplineSurface, o: Array, d: Array, t: Array, target: Array, z_h: float) -> float:
-    """RMS spot residual on the diffuser, mm, of the dots whose rays meet ``spline``."""
+@dataclass
+class _Prediction:
+    """Where the rays meet a spline and where their reflections land."""
+
+    points_mm: Array  # (K, 3) hits on the spline
+    gx: Array  # (K,) slopes there
+    gy: Array
+    residual_mm: Array  # (K, 2) predicted minus detected spot on the diffuser
+    rms_mm: float  # over the rays that meet the spline
+
+
+def _predict(
+    spline: BSplineSurface, o: Array, d: Array, t: Array, target: Array, z_h: float
+) -> _Prediction:
+    """Rays ``o + t d`` (Newton from ``t``) against ``spline``: hits, slopes, spot residuals."""
     t = _hits(spline, o, d, t)
     p = o + t[:, None] * d
-    _, gx, gy = spline.evaluate(p[:, 0], p[:, 1])[:3]
+    z, gx, gy = spline.evaluate(p[:, 0], p[:, 1])[:3]
     res = _forward(o, d, t, gx, gy, z_h) - target
     ok = np.isfinite(res).all(axis=1)
-    return float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1))))
+    rms = float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1))))
+    return _Prediction(np.column_stack([p[:, :2], z]), gx, gy, res, rms)

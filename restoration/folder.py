@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
-from restoration.methods import Method, get_method
+from restoration.methods import Method, as_method
 from restoration.options import RestoreOptions
 from restoration.result import RestoreResult
 from restoration.scoring import Scores, Truth, score, surface_profile
@@ -58,12 +58,6 @@ class FolderRestore:
     def summary_lines(self) -> list[str]:
         """The figures a person reads first, one line each."""
         return summary_lines(self.metrics)
-
-
-def _method(method: str | Method, options: RestoreOptions | None) -> Method:
-    if isinstance(method, str):
-        return get_method(method, options)
-    return method
 
 
 def restore_folder(
@@ -113,9 +107,10 @@ def restore_folder(
     from tqdm import tqdm
 
     folder = Path(folder)
-    meth = _method(method, options)
+    meth = as_method(method, options)
     bar = tqdm(total=3, desc="restore", disable=not progress, leave=False, unit="step")
-    cal = meth.calibration_type.from_record(read_scene_record(folder))
+    record = read_scene_record(folder)
+    cal = meth.calibration_type.from_record(record)
     images = cal.load_images(folder)
     result = meth(images, cal, track)
     bar.update(1)
@@ -123,7 +118,7 @@ def restore_folder(
     truth = Truth.from_folder(folder, cal) if scored and result.restored else None
     scores = None if truth is None else score(result, distorted, cal, truth)
     bar.update(1)
-    metrics = folder_metrics(folder, meth, result, scores, scored)
+    metrics = folder_metrics(meth, result, scores, scored, record.get("seed"))
     target = None
     if write:
         target = Path(out) if out is not None else folder / "restore"
@@ -134,10 +129,10 @@ def restore_folder(
 
 
 def folder_metrics(
-    folder: Path, method: Method, result: RestoreResult, scores: Scores | None, scored: bool
+    method: Method, result: RestoreResult, scores: Scores | None, scored: bool, seed: Any
 ) -> dict[str, Any]:
     """``metrics.json``: the truth-free summary, the scores (or why there are none), the
-    options and the render's seed."""
+    options and the render's ``seed`` (from its ``scene.json``)."""
     metrics = result.summary()
     if scores is not None:
         metrics.update(scores.to_dict())
@@ -149,8 +144,7 @@ def folder_metrics(
             else "no truth in the folder (heightfield.npz, view_truth.*)"
         )
     metrics["options"] = method.options.to_dict()
-    record = read_scene_record(folder)
-    metrics["seed"] = record.get("seed")
+    metrics["seed"] = seed
     return metrics
 
 

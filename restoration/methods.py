@@ -20,7 +20,7 @@ from restoration.result import RestoreResult
 from restoration.structured_light import StructuredLight
 from wai_core.errors import WaiInputError
 
-__all__ = ["METHODS", "Alterman", "Method", "get_method", "load_calibration"]
+__all__ = ["METHODS", "Alterman", "Method", "as_method", "get_method", "load_calibration"]
 
 
 class Method(Protocol):
@@ -83,6 +83,12 @@ def get_method(name: str, options: RestoreOptions | None = None) -> Method:
     if name not in METHODS:
         raise WaiInputError(f"unknown method {name!r} (known: {', '.join(METHODS)})")
     return METHODS[name](options)
+
+
+def as_method(method: str | Method, options: RestoreOptions | None = None) -> Method:
+    """``method`` itself when it is a configured method object, else :func:`get_method`
+    ``(method, options)``."""
+    return get_method(method, options) if isinstance(method, str) else method
 
 
 def load_calibration(folder: str | Path) -> RigCalibration:

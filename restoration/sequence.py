@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
 from restoration.folder import folder_metrics, write_outputs
-from restoration.methods import Method, get_method
+from restoration.methods import Method, as_method
 from restoration.options import RestoreOptions
 from restoration.scoring import Truth, score
 from wai_core.io import atomic_dir, atomic_write_bytes, to_srgb8, write_json
@@ -115,8 +115,8 @@ def restore_sequence(
     from tqdm import tqdm
 
     seq = read_sequence(folder)
-    meth = get_method(method, options) if isinstance(method, str) else method
-    cal = meth.calibration_type.from_record(read_scene_record(seq.frame_dirs[0]))
+    meth = as_method(method, options)
+    cal = _calibration(seq, meth)
     track = LevelTrack()
     rows, restored, distorted, masks = [], [], [], []
     for k, frame_dir in enumerate(tqdm(seq.frame_dirs, desc="frames", disable=not progress,
@@ -127,7 +127,7 @@ def restore_sequence(
         truth = Truth.from_folder(frame_dir, cal) if result.restored else None
         scores = None if truth is None else score(result, view, cal, truth)
         if write:
-            metrics = folder_metrics(frame_dir, meth, result, scores, True)
+            metrics = folder_metrics(meth, result, scores, True, seq.record.get("seed"))
             write_outputs(frame_dir / "restore", cal, images, result, scores, truth, metrics,
                           figures=False)
         image = result.view.image if result.restored else np.zeros_like(view)
@@ -287,6 +287,10 @@ def load_sequence(
     """The calibration and every frame's images of a sequence folder, in order (what a video
     benchmark restores in a loop)."""
     seq = read_sequence(folder)
-    meth = get_method(method) if isinstance(method, str) else method
-    cal = meth.calibration_type.from_record(read_scene_record(seq.frame_dirs[0]))
+    cal = _calibration(seq, as_method(method))
     return cal, [cal.load_images(d) for d in seq.frame_dirs]
+
+
+def _calibration(seq: SequenceRecord, method: Method) -> RigCalibration:
+    """The one calibration of a sequence (every frame's ``scene.json`` has the same rig)."""
+    return method.calibration_type.from_record(read_scene_record(seq.frame_dirs[0]))
