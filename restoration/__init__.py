@@ -27,7 +27,7 @@ from restoration.alterman import AltermanCalibration
 from restoration.calibration import Calibration, LevelTrack, RigCalibration
 from restoration.consistency import Consistency
 from restoration.folder import FolderRestore, restore_folder
-from restoration.methods import METHODS, Alterman, Method, get_method, load_calibration
+from restoration.methods import METHODS, Alterman, Method, as_method, get_method, load_calibration
 from restoration.options import ANCHORS, RestoreOptions
 from restoration.result import STATUSES, RestoreResult
 from restoration.scoring import Scores, Truth, score
@@ -52,6 +52,7 @@ __all__ = [
     "SequenceRestore",
     "StructuredLight",
     "Truth",
+    "as_method",
     "get_method",
     "load_calibration",
     "restore_folder",
