@@ -46,6 +46,7 @@ from mitsuba_wai.particles import pass_split, render_particles, render_particles
 from mitsuba_wai.scenes import (
     SCENE_S_DEPTH,
     SCENE_V_DEPTH,
+    VIEW_SAMPLERS,
     pattern_scene,
     view_scene,
     water_bsdf,
@@ -163,7 +164,8 @@ def labelled(label: str) -> Iterator[None]:
 
 
 def render_image(
-    scene: object, spp: int, seed: int, particle_depth: int | None = None
+    scene: object, spp: int, seed: int, particle_depth: int | None = None,
+    stratified: bool = False,
 ) -> tuple[NDArray[np.float32], int]:
     """Render a loaded scene to linear RGB (H, W, 3); non-finite pixels are zeroed and counted.
 
@@ -179,6 +181,9 @@ def render_image(
     particle_depth : int, optional
         Render with the deterministic particle tracer (:mod:`mitsuba_wai.particles`) of this
         ``max_depth`` instead of the scene's integrator: for the ``ptracer`` scenes.
+    stratified : bool
+        The particle tracer's stratified emission (:func:`mitsuba_wai.particles.emitter_samples`);
+        camera-side renders take the sampler of the scene's sensor.
 
     Returns
     -------
@@ -189,7 +194,7 @@ def render_image(
     import drjit as dr
 
     if particle_depth is not None:
-        return render_particles(scene, spp, seed, particle_depth)
+        return render_particles(scene, spp, seed, particle_depth, stratified)
     mi = mitsuba()
     size = scene.sensors()[0].film().crop_size()
     passes = pass_split(spp, int(size[0]) * int(size[1]), MAX_WAVEFRONT)
@@ -227,6 +232,7 @@ class FrameRenderer:
 
     def __post_init__(self) -> None:
         self.variant = select_variant()
+        self._stratified = self.cfg.render.sampling == "stratified"
         mi = mitsuba()
         tm = meshes.heightfield_mesh(self.grid)
         self._scenes: dict[str, Any] = {}
@@ -284,7 +290,8 @@ class FrameRenderer:
             if key == "pattern" and lit:
                 out[key], bad = self._pattern_in_daylight_water(spp[key], seed)
             else:
-                out[key], bad = render_image(self._scenes[key], spp[key], seed, depth[key])
+                out[key], bad = render_image(self._scenes[key], spp[key], seed, depth[key],
+                                             self._stratified)
             if key == "view" and self.cfg.water_optics.enabled:
                 lengths = view_path_lengths(self._scenes["view"], self.cfg)
                 out[key] = water_view(out[key], lengths, self.cfg)
@@ -296,10 +303,10 @@ class FrameRenderer:
         """One particle-traced image of system S, through the water when it is modelled."""
         w = self.cfg.water_optics
         if not w.enabled:
-            return render_particles(self._scenes[key], spp, seed, depth)
+            return render_particles(self._scenes[key], spp, seed, depth, self._stratified)
         a, b = coefficients_per_mm(w)
         direct, scattered, bad = render_particles_water(
-            self._scenes[key], spp, seed, depth, a, b, air_segments
+            self._scenes[key], spp, seed, depth, a, b, air_segments, self._stratified
         )
         return direct + glow(scattered, w.forward_fraction, glow_sigma_px(self.cfg, "S")), bad
 
@@ -361,8 +368,10 @@ def scene_record(
         "render_seed": render_seed(cfg),
         "variant": variant,
         "integrators": {
-            "pattern": {"type": "ptracer", "max_depth": SCENE_S_DEPTH},
-            "view": {"type": "path", "max_depth": SCENE_V_DEPTH},
+            "pattern": {"type": "ptracer", "max_depth": SCENE_S_DEPTH,
+                        "emitter_samples": cfg.render.sampling},
+            "view": {"type": "path", "max_depth": SCENE_V_DEPTH,
+                     "sampler": VIEW_SAMPLERS[cfg.render.sampling]},
         },
         "versions": {
             "mitsuba": mi.__version__,

@@ -30,9 +30,10 @@ def test_spot_centres_agree_with_the_chief_rays(frames, case):
     cfg, surface, images = frames
     agree = spot_agreement(cfg, surface if case == "wavy" else None, images[case]["pattern"])
     assert agree["n_found"] > 0.95 * agree["n_predicted"]
-    # Measured 0.05-0.07 px at 8 spp (docs/results.md); noise and the oblique spots' skew.
-    assert agree["median_px"] < 0.1
-    assert agree["p95_px"] < 0.7
+    # Measured 0.025-0.05 px at the default 4 stratified spp (docs/results.md): what is left
+    # is mostly the oblique spots' skew.
+    assert agree["median_px"] < 0.07
+    assert agree["p95_px"] < 0.45
 
 
 @pytest.mark.parametrize("case", ["flat", "wavy"])

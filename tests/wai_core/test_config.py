@@ -37,6 +37,13 @@ def test_impossible_geometry(paper_cfg):
         config_from_dict(data)
 
 
+def test_unknown_sampling_is_named(paper_cfg):
+    data = paper_cfg.to_dict()
+    data["render"]["sampling"] = "sobol"
+    with pytest.raises(WaiInputError, match=r"\[render\]\.sampling.*'sobol'"):
+        config_from_dict(data)
+
+
 def test_missing_and_corrupt_files(tmp_path):
     with pytest.raises(WaiInputError, match="not found"):
         load_config(tmp_path / "none.toml")

@@ -7,8 +7,9 @@ Two comparisons, for flat water and for waves at several wind speeds and seeds:
 - the path-traced view against the geometric view (:func:`wai.forward.predict_view`): SSIM on
   the pixels whose rays reach the object (TIR and off-board pixels masked).
 
-Then the testbed's own speed against accuracy: spot agreement against samples per pixel and
-render time, from which the default ``spp_pattern`` is picked.
+Then the testbed's own speed against accuracy, for both ``[render].sampling`` choices: spot
+agreement against samples per pixel and render time (camera s), and the view's noise against a
+256-spp render (camera v), from which the defaults ``spp_pattern`` / ``spp_view`` are picked.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from wai_core.config import SystemConfig
+from wai_core.config import SAMPLINGS, SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import atomic_write_bytes, write_json
 from wai_core.system import load_rig
@@ -107,60 +108,114 @@ def agreement_table(cfg: SystemConfig, quick: bool) -> list[dict[str, Any]]:
 
 
 def spp_sweep(cfg: SystemConfig, spps: list[int], runs: int = 2) -> list[dict[str, Any]]:
-    """Spot agreement and render time of the pattern against spp (U from cfg, seed 0)."""
+    """Spot agreement and render time of the pattern against spp, for each ``[render].sampling``
+    (U from cfg, seed 0)."""
     from mitsuba_wai.render import FrameRenderer, wave_surface
 
     surface = wave_surface(cfg)
-    renderer = FrameRenderer(cfg, surface, systems=("pattern",))
-    renderer.render(surface, 0, ("pattern",), spp=1)  # compile the kernels before timing
     rows = []
-    for spp in tqdm(spps, desc="spp", leave=False):
-        times, medians, p95s = [], [], []
-        for run in range(runs):
-            t0 = time.perf_counter()
-            img = renderer.render(surface, 1000 + run, ("pattern",), spp=spp)["pattern"]
-            times.append(time.perf_counter() - t0)
-            agree = spot_agreement(cfg, surface, img)
-            medians.append(agree["median_px"])
-            p95s.append(agree["p95_px"])
-        rows.append(
-            {
-                "spp": spp,
-                "render_s": float(np.median(times)),
-                "spot_median_px": float(np.median(medians)),
-                "spot_p95_px": float(np.median(p95s)),
-            }
-        )
+    for sampling in SAMPLINGS:
+        c = cfg.replace("render", sampling=sampling)
+        renderer = FrameRenderer(c, surface, systems=("pattern",))
+        renderer.render(surface, 0, ("pattern",), spp=1)  # compile the kernels before timing
+        for spp in tqdm(spps, desc=f"spp ({sampling})", leave=False):
+            times, medians, p95s = [], [], []
+            for run in range(runs):
+                t0 = time.perf_counter()
+                img = renderer.render(surface, 1000 + run, ("pattern",), spp=spp)["pattern"]
+                times.append(time.perf_counter() - t0)
+                agree = spot_agreement(c, surface, img)
+                medians.append(agree["median_px"])
+                p95s.append(agree["p95_px"])
+            rows.append(
+                {
+                    "sampling": sampling,
+                    "spp": spp,
+                    "render_s": float(np.median(times)),
+                    "spot_median_px": float(np.median(medians)),
+                    "spot_p95_px": float(np.median(p95s)),
+                }
+            )
     return rows
 
 
-def spp_chart(rows: list[dict[str, Any]], default_spp: int, path: Path) -> None:
-    """Spot agreement against render time, one point per spp, the default marked."""
+def view_spp_sweep(
+    cfg: SystemConfig, spps: list[int], reference_spp: int = 256, runs: int = 2
+) -> list[dict[str, Any]]:
+    """The view's noise against spp, for each ``[render].sampling``: RMS difference from a
+    ``reference_spp`` render (two independent ones averaged), on the radiance scale (1 = white),
+    and render time (U from cfg, seed 0)."""
+    from mitsuba_wai.render import FrameRenderer, wave_surface
+
+    surface = wave_surface(cfg)
+    reference = None
+    rows = []
+    for sampling in ("independent", "stratified"):
+        c = cfg.replace("render", sampling=sampling)
+        renderer = FrameRenderer(c, surface, systems=("view",))
+        if reference is None:
+            reference = np.mean(
+                [renderer.render(surface, 500 + k, ("view",), spp=reference_spp)["view"]
+                 for k in range(2)], axis=0)
+        renderer.render(surface, 0, ("view",), spp=1)
+        for spp in tqdm(spps, desc=f"view spp ({sampling})", leave=False):
+            times, errors = [], []
+            for run in range(runs):
+                t0 = time.perf_counter()
+                img = renderer.render(surface, 1000 + run, ("view",), spp=spp)["view"]
+                times.append(time.perf_counter() - t0)
+                errors.append(float(np.sqrt(np.mean((img - reference) ** 2))))
+            rows.append({"sampling": sampling, "spp": spp, "render_s": float(np.median(times)),
+                         "rms_vs_reference": float(np.mean(errors))})
+    return rows
+
+
+def spp_chart(rows: list[dict[str, Any]], view_rows: list[dict[str, Any]], cfg: SystemConfig,
+              path: Path) -> None:
+    """Spot agreement (left) and view noise (right) against render time, one point per spp and
+    one line per sampling; the defaults starred."""
     from wai.figures import plt, save_figure
 
-    fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    t = [r["render_s"] for r in rows]
-    ax.plot(t, [r["spot_median_px"] for r in rows], "o-", label="median")
-    ax.plot(t, [r["spot_p95_px"] for r in rows], "s--", label="95th percentile")
-    for r in rows:
-        ax.annotate(
-            f"{r['spp']} spp",
-            (r["render_s"], r["spot_median_px"]),
-            fontsize=8,
-            xytext=(4, 4),
-            textcoords="offset points",
-        )
-    d = next((r for r in rows if r["spp"] == default_spp), None)
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.4))
+    styles = {"stratified": ("o-", "tab:blue"), "independent": ("s--", "tab:gray")}
+    r_ = cfg.render
+    for sampling, (style, colour) in styles.items():
+        sel = [r for r in rows if r["sampling"] == sampling]
+        t = [r["render_s"] for r in sel]
+        ax.plot(t, [r["spot_median_px"] for r in sel], style, color=colour,
+                label=f"{sampling}: median")
+        ax.plot(t, [r["spot_p95_px"] for r in sel], style, color=colour, alpha=0.45,
+                label=f"{sampling}: 95th percentile")
+        for r in sel:
+            ax.annotate(f"{r['spp']}", (r["render_s"], r["spot_median_px"]), fontsize=7,
+                        xytext=(3, 3), textcoords="offset points")
+        vsel = [r for r in view_rows if r["sampling"] == sampling]
+        bx.plot([r["render_s"] for r in vsel], [r["rms_vs_reference"] for r in vsel], style,
+                color=colour, label=sampling)
+        for r in vsel:
+            bx.annotate(f"{r['spp']}", (r["render_s"], r["rms_vs_reference"]), fontsize=7,
+                        xytext=(3, 3), textcoords="offset points")
+    d = next((r for r in rows if r["spp"] == r_.spp_pattern and r["sampling"] == r_.sampling),
+             None)
     if d is not None:
-        label = f"default ({default_spp} spp)"
-        ax.plot([d["render_s"]], [d["spot_median_px"]], "r*", ms=16, label=label)
+        ax.plot([d["render_s"]], [d["spot_median_px"]], "r*", ms=16,
+                label=f"default ({r_.spp_pattern} spp, {r_.sampling})")
+    v = next((r for r in view_rows if r["spp"] == r_.spp_view and r["sampling"] == r_.sampling),
+             None)
+    if v is not None:
+        bx.plot([v["render_s"]], [v["rms_vs_reference"]], "r*", ms=16,
+                label=f"default ({r_.spp_view} spp, {r_.sampling})")
     ax.axhline(0.05, color="gray", lw=0.8, ls=":", label="goal 0.05 px")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
+    for a in (ax, bx):
+        a.set_xscale("log")
+        a.set_yscale("log")
+        a.legend(fontsize=7)
     ax.set_xlabel("pattern render time per frame (s)")
     ax.set_ylabel("spot offset, render vs geometric model (px)")
-    ax.set_title("Testbed speed vs accuracy (camera s, 800x600)")
-    ax.legend(fontsize=8)
+    ax.set_title("Camera s: spot agreement vs time (labels: spp)")
+    bx.set_xlabel("view render time per frame (s)")
+    bx.set_ylabel("RMS difference from a 256-spp render")
+    bx.set_title("Camera v: view noise vs time (labels: spp)")
     save_figure(fig, path)
 
 
@@ -181,12 +236,18 @@ def run_validate(args: argparse.Namespace) -> dict[str, Any]:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     table = agreement_table(cfg, args.quick)
-    spps = [2, 8, 32] if args.quick else [2, 4, 8, 16, 32, 64, 128]
-    sweep = spp_sweep(cfg, spps, runs=1 if args.quick else 3)
+    spps = [2, 8, 32] if args.quick else [1, 2, 3, 4, 8, 16, 32, 64]
+    runs = 1 if args.quick else 3
+    sweep = spp_sweep(cfg, spps, runs=runs)
+    view_sweep = view_spp_sweep(cfg, [1, 4] if args.quick else [1, 2, 4, 8, 16, 32],
+                                reference_spp=64 if args.quick else 256, runs=runs)
     write_csv(out / "agreement.csv", table)
     write_csv(out / "spp_sweep.csv", sweep)
-    spp_chart(sweep, cfg.render.spp_pattern, out / "spp_tradeoff.png")
-    result = {"agreement": table, "spp_sweep": sweep, "default_spp": cfg.render.spp_pattern}
+    write_csv(out / "view_spp_sweep.csv", view_sweep)
+    spp_chart(sweep, view_sweep, cfg, out / "spp_tradeoff.png")
+    result = {"agreement": table, "spp_sweep": sweep, "view_spp_sweep": view_sweep,
+              "default_spp": [cfg.render.spp_pattern, cfg.render.spp_view],
+              "sampling": cfg.render.sampling}
     write_json(out / "validate.json", result)
     return result
 
@@ -200,9 +261,13 @@ def print_validate(res: dict[str, Any]) -> None:
             f"{r['spot_p95_px']:7.3f} px  {r['spot_n_found']:5d}/{r['spot_n_predicted']:<5d}"
             f"     {r['view_ssim']:.4f}"
         )
-    print("spp   render s  spot median  spot p95")
+    print("pattern: sampling      spp   render s  spot median  spot p95")
     for r in res["spp_sweep"]:
         print(
-            f"{r['spp']:4d} {r['render_s']:9.2f}  {r['spot_median_px']:9.3f} px "
-            f"{r['spot_p95_px']:7.3f} px"
+            f"         {r['sampling']:12s} {r['spp']:4d} {r['render_s']:9.2f}  "
+            f"{r['spot_median_px']:9.3f} px {r['spot_p95_px']:7.3f} px"
         )
+    print("view:    sampling      spp   render s  RMS vs reference")
+    for r in res["view_spp_sweep"]:
+        print(f"         {r['sampling']:12s} {r['spp']:4d} {r['render_s']:9.2f}  "
+              f"{r['rms_vs_reference']:.4f}")
