@@ -34,9 +34,14 @@ Per frame:
    its next hypothesis. The symbol makes each step 4x less ambiguous than the plain grid's.
    Before growing, the ordering matcher's labels may join (``ordering``; what
    :func:`features_from_code` does): only where the spot shows the label's symbol and the
-   spot and dot are still free, and judged by step 6 like any other. Past eq. 35's bound the
+   spot and dot are still free, and judged by step 6 like any other. They join also beyond
+   ``reach`` (a long wave's tilt moves whole patches 6-12 spacings at U = 1 m/s, where no
+   window can be decoded), and where the plain grid leaves the labelling's lattice shift open
+   the shift whose labels show their dots' symbols is applied. Past eq. 35's bound the
    ordering labels are often shifted: a shifted label shows the wrong symbol 3 times in 4,
    and the few that survive disagree with the decoded neighbours, so step 6 drops them.
+   Steps 5 and 6 run twice: a wrong window label that step 6 drops frees the spot or dot
+   of a right ordering label, which the second round lets join.
 6. **Redundancy.** The decoded labels must form a consistent lattice: a label stays only while
    at least ``min_consistent`` grid neighbours were decoded and the displacement they predict
    (leaving it out) lies within ``2 tol_grow`` of its own; the others are counted
@@ -96,7 +101,8 @@ class Decoded:
         As :func:`~restoration.features.match.match_distorted` gives them; ``counts`` adds
         ``decode_candidates`` (hypotheses), ``decoded`` (labels taken before the lattice
         check), ``rejected_symbol`` (spots whose colour read as a mix), ``rejected_weak``
-        (best label under ``min_votes``), ``rejected_ambiguous`` (runner-up within
+        (best label under ``min_votes``), ``ordering_beyond_reach`` (ordering labels added as
+        hypotheses beyond ``reach``), ``rejected_ambiguous`` (runner-up within
         ``min_margin``, or a dot claimed by two spots), ``rejected_inconsistent`` (dropped by
         the lattice check: the wrong decodes the redundancy caught), ``rejected_detached``
         (decoded, but off the largest 4-connected piece, which alone the surface can level),
@@ -271,6 +277,8 @@ def _votes(node: IntArray, disp: FloatArray, start: IntArray, nbrs8: IntArray,
 def _best_per_group(group: IntArray, score: IntArray, n: int) -> tuple[IntArray, IntArray]:
     """Per group id (0..n-1): the row with the highest score (-1 where the group is empty) and
     the runner-up's score (0 where there is none)."""
+    if len(group) == 0:  # no row at all (e.g. no window decoded): every group is empty
+        return np.full(n, -1, np.int64), np.zeros(n, np.int64)
     order = np.lexsort((-score, group))
     g_sorted = group[order]
     first = np.searchsorted(g_sorted, np.arange(n))
@@ -358,28 +366,55 @@ def _grow_decoded(
     return take
 
 
-def _from_ordering(
-    ordering: Matches, ref: ReferenceGrid, spots: Spots, node: IntArray, spot: IntArray,
-    take: IntArray,
-) -> IntArray:
-    """The hypotheses (indices into ``node``, ``spot``) that the ordering matcher's labels
-    name, where the spot's symbol is the dot's (a hypothesis exists only then) and neither the
-    spot nor the dot is already decoded."""
-    n_spots = len(spots)
-    k = ref.tables.lat.lookup(ordering.ij)
+def _ordering_pairs(
+    ordering: Matches, ref: ReferenceGrid, spots: Spots, node_ok: NDArray, spot_ok: NDArray,
+    codes: IntArray, sym: IntArray,
+) -> tuple[IntArray, IntArray]:
+    """The ordering matcher's labels as (node, spot) pairs, where the spot shows the dot's
+    symbol and both are usable (``node_ok``, ``spot_ok``): the hypotheses it adds.
+
+    Where the plain grid leaves the labelling's lattice shift open (``ordering.alt_shifts``:
+    the lit/unlit evidence fits several), the symbols settle it: the labels of the right shift
+    show their dots' symbols (all but the misread), those of any other shift about 1 in 4
+    (chance). The shift whose labels agree most is applied ([0, 0] on a tie)."""
     dist, p = cKDTree(spots.centres_px).query(ordering.spot_px)
-    ok = (k >= 0) & (dist < 1e-6)
-    keys = node.astype(np.int64) * n_spots + spot
-    order = np.argsort(keys)
-    want = k[ok].astype(np.int64) * n_spots + p[ok]
-    at = np.minimum(np.searchsorted(keys, want, sorter=order), len(keys) - 1)
-    hyp = order[at][keys[order[at]] == want]
-    free_node = np.ones(len(ref.ij), bool)
+    shifts = np.asarray(ordering.alt_shifts, np.int64).reshape(-1, 2)
+    shifts = np.concatenate([np.zeros((1, 2), np.int64), shifts[np.any(shifts != 0, axis=1)]])
+    k = ref.tables.lat.lookup(ordering.ij[None, :, :] + shifts[:, None, :])  # (C, N)
+    ok = (k >= 0) & (dist < 1e-6)[None, :] & spot_ok[p][None, :]
+    ok &= node_ok[np.maximum(k, 0)]
+    agree = ok & (codes[np.maximum(k, 0)] == sym[p][None, :])
+    best = int(np.argmax(agree.sum(axis=1)))  # the first (no shift) on a tie
+    return k[best, agree[best]].astype(np.int64), p[agree[best]].astype(np.int64)
+
+
+def _from_ordering(
+    hyp: IntArray, node: IntArray, spot: IntArray, take: IntArray, n_nodes: int, n_spots: int,
+) -> IntArray:
+    """Of the ordering matcher's hypotheses ``hyp`` (indices into ``node``, ``spot``), those
+    whose spot and dot no label in ``take`` holds."""
+    free_node = np.ones(n_nodes, bool)
     free_node[node[take]] = False
     free_spot = np.ones(n_spots, bool)
     free_spot[spot[take]] = False
     return hyp[free_node[node[hyp]] & free_spot[spot[hyp]]]
 
+
+def _consistent(
+    take: IntArray, node: IntArray, disp: FloatArray, n_nodes: int, tab: object,
+    spacing: FloatArray, min_consistent: int, tol_grow: float,
+) -> IntArray:
+    """The lattice check: the labels ``take`` that the labels decoded around them confirm
+    (each neighbour's window overlaps its own): the displacement their decoded neighbours
+    predict (leaving each out) lies within ``2 tol_grow`` of its own, from at least
+    ``min_consistent`` of them; repeated while it drops any (at most 8 times)."""
+    for _ in range(8):
+        cons, resid = _lattice_check(node[take], disp[take], n_nodes, tab, spacing)
+        ok = (cons >= min_consistent) & (resid < 2.0 * tol_grow)
+        if ok.all():
+            break
+        take = take[ok]
+    return take
 
 
 def decode_distorted(
@@ -431,7 +466,9 @@ def decode_distorted(
         The ordering matcher's labels of the same spots: those whose spot shows the code's
         symbol for the label, and whose spot and dot no decoded label holds, join the decoded
         ones before the growth; the lattice check then judges all alike. Where ordering holds
-        (below eq. 35's bound) it labels the steep patches that the window votes miss.
+        (below eq. 35's bound) it labels the steep patches that the window votes miss, and the
+        spots moved beyond ``reach``. Of its ``alt_shifts``, the one whose labels show their
+        dots' symbols is applied.
 
     Returns
     -------
@@ -478,10 +515,28 @@ def decode_distorted(
     node, spot = node[order], spot[order]
     disp = spots.centres_px[spot] - ref.ref_px[node]
     counts["decode_candidates"] = len(node)
-    if len(node) == 0:
-        return empty
     start = np.searchsorted(node, np.arange(n_nodes + 1))
     votes = _votes(node, np.ascontiguousarray(disp), start, tab.nbrs8, _OPPOSITE, *tols)
+    # The ordering labels farther than the reach from flat water (a long wave's tilt moves
+    # whole patches 6-12 spacings at U = 1 m/s) join as hypotheses of their own: beyond the
+    # reach no window can be compared with its rivals, so they neither vote nor are voted for,
+    # and only the join, the symbol and the lattice check admit them.
+    hyp_ord = np.zeros(0, np.int64)
+    if ordering is not None and len(ordering):
+        k_ord, p_ord = _ordering_pairs(ordering, ref, spots, node_ok, spot_ok, codes, sym)
+        keys = node * len(spots) + spot
+        want = k_ord * len(spots) + p_ord
+        srt = np.argsort(keys)
+        at = np.minimum(np.searchsorted(keys, want, sorter=srt), max(len(keys) - 1, 0))
+        found = (keys[srt[at]] == want) if len(keys) else np.zeros(len(want), bool)
+        hyp_ord = np.concatenate([srt[at[found]], len(node) + np.arange(int(np.sum(~found)))])
+        node = np.concatenate([node, k_ord[~found]])
+        spot = np.concatenate([spot, p_ord[~found]])
+        disp = spots.centres_px[spot] - ref.ref_px[node]
+        votes = np.concatenate([votes, np.zeros(int(np.sum(~found)), np.int64)])
+    counts["ordering_beyond_reach"] = len(node) - counts["decode_candidates"]
+    if len(node) == 0:
+        return empty
 
     # Per spot: the best-voted label, if clear of the runner-up.
     best, second = _best_per_group(spot, votes, len(spots))
@@ -499,21 +554,21 @@ def decode_distorted(
     counts["rejected_ambiguous"] = int(unclear.sum() + np.sum(~keep))
     take = take[keep]
     counts["decoded_windows"] = len(take)
-    if ordering is not None and len(ordering):
-        take = np.concatenate([take, _from_ordering(ordering, ref, spots, node, spot, take)])
-    counts["from_ordering"] = len(take) - counts["decoded_windows"]
-    take = _grow_decoded(node, spot, disp, take, n_nodes, len(spots), tab, spacing, tol_grow)
-    counts["decoded"] = len(take)
-
-    # The lattice check: every label must be confirmed by the labels decoded around it (each
-    # neighbour's window overlaps its own): the displacement its decoded neighbours predict
-    # (leaving it out) lies within 2 tol_grow of its own, from at least min_consistent of them.
-    for _ in range(8):
-        cons, resid = _lattice_check(node[take], disp[take], n_nodes, tab, spacing)
-        ok = (cons >= min_consistent) & (resid < 2.0 * tol_grow)
-        if ok.all():
+    # Join, grow, check; twice: a wrong window label the check drops may have held the spot or
+    # the dot of a right ordering label, which the second round lets join.
+    ever = np.zeros(len(node), bool)
+    joined = 0
+    for round_ in range(2):
+        new = _from_ordering(hyp_ord, node, spot, take, n_nodes, len(spots))
+        if round_ and not len(new):
             break
-        take = take[ok]
+        joined += len(new)
+        take = np.concatenate([take, new])
+        take = _grow_decoded(node, spot, disp, take, n_nodes, len(spots), tab, spacing, tol_grow)
+        ever[take] = True
+        take = _consistent(take, node, disp, n_nodes, tab, spacing, min_consistent, tol_grow)
+    counts["from_ordering"] = joined
+    counts["decoded"] = int(ever.sum())
     counts["rejected_inconsistent"] = counts["decoded"] - len(take)
     # The surface integrates slopes along the lattice: pieces that touch no other decoded dot
     # have no height relative to the rest (their labels are right, their level is not known).

@@ -7,6 +7,8 @@ known without the renderer.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -20,7 +22,8 @@ from restoration.features import (
     spot_sigma_px,
     spot_symbols,
 )
-from restoration.features._outline import _outline_px
+from restoration.features._outline import _outline_px, _visible_outline
+from restoration.features.match import match_distorted
 from wai_core.config import load_config
 from wai_core.errors import WaiInputError
 from wai_core.forward import predict_spots
@@ -136,6 +139,65 @@ def test_wrong_symbols_are_dropped_not_used(cfg, reference):
     kept = {tuple(k) for k in m.ij.tolist()}
     misprinted = {tuple(k) for k in ij[bad].tolist()}
     assert len(kept & misprinted) <= 0.1 * len(misprinted)
+
+
+def swell(cfg, slope: float, wavelength_mm: float = 600.0) -> Heightfield:
+    """A long sinusoid along x of slope amplitude ``slope``: it moves whole patches of spots
+    far from flat water (up to about 10 spacings at 0.1) while keeping their order."""
+    ext = surface_extent(cfg)
+    x = np.linspace(ext[0, 0], ext[0, 1], 801)
+    y = np.linspace(ext[1, 0], ext[1, 1], 401)
+    amp = slope * wavelength_mm / (2 * np.pi)
+    z = cfg.water.h0_mm + amp * np.sin(2 * np.pi * x / wavelength_mm)[None, :] + 0 * y[:, None]
+    return Heightfield(x, y, z)
+
+
+@pytest.fixture(scope="module")
+def swell_frame(cfg, reference):
+    img, ij, px = draw(cfg, swell(cfg, 0.1))
+    spots = flag_diffuser_edge(detect_spots(img, spot_sigma_px=reference.detect_sigma_px),
+                               _outline_px(cfg))
+    ordering = match_distorted(reference, spots, visible_px=_visible_outline(cfg))
+    return img, ij, px, spots, ordering
+
+
+def test_keeps_the_ordering_labels_beyond_the_reach(cfg, reference, swell_frame):
+    """Where ordering holds, the coded pattern keeps at least the ordering matcher's right
+    labels, also those of spots moved farther than the windows' reach from flat water."""
+    img, ij, px, spots, ordering = swell_frame
+    spacing = float(np.nanmedian(reference.spacing_px))
+    ij0, px0 = predict_spots(cfg, None)
+    flat_at = {tuple(k): c for k, c in zip(ij0.tolist(), px0, strict=True)}
+    far = [np.linalg.norm(c - flat_at[tuple(k)]) > 6.0 * spacing
+           for k, c in zip(ij.tolist(), px, strict=True) if tuple(k) in flat_at]
+    assert np.sum(far) > 50  # the frame does test the reach
+    frac_o, n_ordering = precision(ordering, ij, px)
+    dec = decode_distorted(reference, spots, img, cfg, ordering=ordering)
+    frac, n_ok = precision(dec.matches, ij, px)
+    assert frac >= 0.99
+    assert n_ok >= n_ordering
+    assert n_ok > n_ok_windows(reference, spots, img, cfg, ij, px)  # the join is what adds them
+
+
+def n_ok_windows(reference, spots, img, cfg, ij, px) -> int:
+    """Right labels decoded from the windows alone (no ordering labels)."""
+    return precision(decode_distorted(reference, spots, img, cfg).matches, ij, px)[1]
+
+
+def test_symbols_settle_the_ordering_shift(cfg, reference, swell_frame):
+    """Ordering labels shifted by whole grid steps, with the shift among the ones the plain
+    grid could not rule out, are put back by the symbols: the same labels as unshifted."""
+    img, ij, px, spots, ordering = swell_frame
+    shifted = replace(ordering, ij=ordering.ij + np.array([4, 0]),
+                      alt_shifts=np.array([[0, 0], [-1, 0], [-4, 0]]))
+    right = decode_distorted(reference, spots, img, cfg, ordering=ordering).matches
+    fixed = decode_distorted(reference, spots, img, cfg, ordering=shifted).matches
+    assert {tuple(k) for k in fixed.ij.tolist()} == {tuple(k) for k in right.ij.tolist()}
+    # Without the alternative, the shifted labels show the wrong symbols and stay out.
+    alone = replace(shifted, alt_shifts=np.zeros((1, 2), np.int64))
+    frac, _ = precision(decode_distorted(reference, spots, img, cfg, ordering=alone).matches,
+                        ij, px)
+    assert frac >= 0.99
 
 
 def test_grey_image_is_refused(cfg, reference):
