@@ -16,8 +16,12 @@ only matters where no dot constrains a coefficient). Each Gauss-Newton step line
 in the height and slopes at the ray's hit point, including the hit's own move along the ray
 (``dt = dz / (d_z - grad z . d_xy)``) and the slope change that move brings (the Hessian):
 the Jacobian is sparse (16 coefficients per dot) and the normal equations are solved directly.
-Levenberg-Marquardt damping keeps a step from growing where the fit is flat (the level over
-calm water).
+Levenberg-Marquardt damping keeps a step from growing where the fit is flat.
+
+The level is the fit's nearly flat direction (the depth-normal ambiguity: raise the surface,
+re-bend it, and every ray lands within microns of the same spot), so no damped step finds it;
+:func:`fit_level` searches it explicitly, fitting the shape at fixed level offsets and taking
+the minimum of the residual's profile.
 """
 
 from __future__ import annotations
@@ -28,18 +32,27 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
+from scipy.linalg import solveh_banded
 from scipy.sparse.linalg import spsolve
 
 from restoration.normals import projector_rays, spots_on_diffuser
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 
-__all__ = ["BSplineSurface", "FitResult", "fit_surface"]
+__all__ = ["BSplineSurface", "FitResult", "LevelFit", "fit_level", "fit_surface"]
 
 Array = NDArray[np.float64]
 
+DAMPING = 1e-5
+"""Levenberg-Marquardt damping relative to the diagonal of J^T J: small, so that a step can
+follow the compensating bend of a level change (larger damping leaves each probe of
+:func:`fit_level` unconverged and biases its profile)."""
 SMOOTHNESS = 1e-3
 """Weight of the second-difference penalty relative to the mean diagonal of J^T J."""
+POLISH_MM = 0.01
+"""A level search stops polishing once its minimum moves by less than this, mm."""
+POLISH_STEPS = 2
+"""Most polishing fits after the first fit at the profile's minimum."""
 _FD_T_MM = 1e-3  # finite-difference steps of the per-dot forward model: along the ray, mm
 _FD_SLOPE = 1e-6  # and in slope
 
@@ -86,8 +99,10 @@ class BSplineSurface:
         gx = (np.asarray(x, float) - self.x0_mm) / self.step_mm
         gy = (np.asarray(y, float) - self.y0_mm) / self.step_mm
         ny, nx = self.coeffs.shape
+        finite = np.isfinite(gx) & np.isfinite(gy)  # a ray that missed: outside, no warning
+        gx, gy = np.where(finite, gx, -1.0), np.where(finite, gy, -1.0)
         ix, iy = np.floor(gx).astype(int), np.floor(gy).astype(int)
-        inside = (ix >= 0) & (iy >= 0) & (ix <= nx - 4) & (iy <= ny - 4)
+        inside = finite & (ix >= 0) & (iy >= 0) & (ix <= nx - 4) & (iy <= ny - 4)
         ix, iy = np.clip(ix, 0, nx - 4), np.clip(iy, 0, ny - 4)
         return ix, iy, gx - ix, gy - iy, inside
 
@@ -178,6 +193,22 @@ def _hits(spline: BSplineSurface, o: Array, d: Array, t: Array, n_iter: int = 6)
     return t
 
 
+def _solve_spd(lhs: sp.spmatrix, rhs: Array) -> Array:
+    """Solve a symmetric positive definite banded system: the coefficients couple only within
+    a 4 x 4 support, so in grid order the matrix is a band of ~3 rows of the grid, and a banded
+    Cholesky is several times faster than a general sparse LU."""
+    coo = lhs.tocoo()
+    upper = coo.col >= coo.row
+    rows, cols, vals = coo.row[upper], coo.col[upper], coo.data[upper]
+    width = int((cols - rows).max()) if rows.size else 0
+    band = np.zeros((width + 1, lhs.shape[0]))
+    np.add.at(band, (width + rows - cols, cols), vals)
+    try:
+        return solveh_banded(band, rhs, check_finite=False)
+    except np.linalg.LinAlgError:  # not positive definite (a degenerate fit): general solver
+        return spsolve(lhs.tocsc(), rhs)
+
+
 def _second_differences(ny: int, nx: int) -> sp.csr_matrix:
     """Rows of second differences of a (ny, nx) coefficient grid along x and along y."""
     def along(n: int) -> sp.csr_matrix:
@@ -209,7 +240,7 @@ def _initial_spline(
     ata = (a.T @ a).tocsc()
     mu = lam * float(ata.diagonal().mean())
     lhs = ata + mu * (reg.T @ reg) + 1e-9 * mu * sp.eye(ny * nx)
-    spline.coeffs = spsolve(lhs.tocsc(), a.T @ b).reshape(ny, nx)
+    spline.coeffs = _solve_spd(lhs, a.T @ b).reshape(ny, nx)
     return spline
 
 
@@ -274,7 +305,7 @@ def fit_surface(
     rtr = (reg.T @ reg).tocsc()
     k = len(xy)
     rows = np.repeat(np.arange(k), 16)
-    rms, done, damping = [], 0, 1e-3
+    rms, done, damping = [], 0, DAMPING
     t0 = time.perf_counter()
     while done < int(iterations):
         done += 1
@@ -311,7 +342,7 @@ def fit_surface(
         scale = float(jtj.diagonal().mean())
         lhs = jtj + smoothness * scale * rtr + damping * sp.diags(jtj.diagonal() + 1e-9 * scale)
         cvec = spline.coeffs.ravel()
-        step = spsolve(lhs.tocsc(), -(jac.T @ r) - smoothness * scale * (rtr @ cvec))
+        step = _solve_spd(lhs, -(jac.T @ r) - smoothness * scale * (rtr @ cvec))
         spline.coeffs = (cvec + step).reshape(ny, nx)
         last = _predict(spline, o, d, t, target, z_h_mm)
         rms.append(last.rms_mm)
@@ -359,3 +390,156 @@ def _predict(
     ok = np.isfinite(res).all(axis=1)
     rms = float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1))))
     return _Prediction(np.column_stack([p[:, :2], z]), gx, gy, res, rms)
+
+
+@dataclass
+class LevelFit:
+    """:func:`fit_level`'s result: the fit at the chosen level and the level's profile.
+
+    Attributes
+    ----------
+    fit : FitResult
+        The fit at the chosen level.
+    offsets_mm : (P,) ndarray
+        Level offsets of the probes from the warm start, mm.
+    sum_squares_mm2 : (P,) ndarray
+        Each probe's sum of squared spot residuals over the rays every probe keeps, mm^2.
+    offset_mm : float
+        The chosen level offset (the profile's minimum), mm.
+    sigma_mm : float
+        Its standard error, mm, from the spread of interleaved subsets' own minima.
+    """
+
+    fit: FitResult
+    offsets_mm: Array
+    sum_squares_mm2: Array
+    offset_mm: float
+    sigma_mm: float
+
+
+def _shifted(fit: FitResult, dz_mm: float, fallback: tuple[Array, Array]) -> tuple[Array, Array]:
+    """A fit's samples raised by ``dz_mm``: the warm start of the next probe (a ray that
+    missed the fitted spline keeps the ``fallback`` sample and slopes)."""
+    hit = np.isfinite(fit.points_mm).all(axis=1) & np.isfinite(fit.slopes).all(axis=1)
+    p = np.where(hit[:, None], fit.points_mm, fallback[0])
+    p[:, 2] += np.where(hit, dz_mm, 0.0)
+    return p, np.where(hit[:, None], fit.slopes, fallback[1])
+
+
+def fit_level(
+    points_mm: Array,
+    slopes: Array,
+    panel_px: Array,
+    spot_px: Array,
+    projector: PinholeCamera,
+    camera_s: PinholeCamera,
+    z_h_mm: float,
+    like: Heightfield,
+    *,
+    probe_mm: float = 0.15,
+    iterations: int = 3,
+    max_probes: int = 7,
+) -> LevelFit:
+    """:func:`fit_surface` with the level found by a search along the fit's flat direction.
+
+    Raising the surface and re-bending it sends every ray to nearly the same spot (the
+    depth-normal ambiguity): the spot residual changes by microns per 0.1 mm of level, far
+    less than Gauss-Newton's damping lets one step move along it, so the fit keeps the level
+    it starts from. This search fits the shape at fixed level offsets (the probes, each warm
+    started from the last), takes the minimum of the parabola through their sums of squared
+    residuals (the profile), and fits there. With the renders' exact spots the profile's
+    minimum is the true level within 0.01 mm where the integrability level is off by 0.1-0.3
+    mm (docs/results.md).
+
+    Parameters
+    ----------
+    points_mm, slopes, panel_px, spot_px, projector, camera_s, z_h_mm, like
+        As :func:`fit_surface`.
+    probe_mm : float
+        Spacing of the first three probes around the warm start's level, mm.
+    iterations : int
+        Gauss-Newton steps per probe and for the final fit.
+    max_probes : int
+        Most probes; the search walks on while the minimum lies outside the probed range.
+
+    Returns
+    -------
+    LevelFit
+    """
+    from scipy.spatial import cKDTree
+
+    t0 = time.perf_counter()
+    args = (panel_px, spot_px, projector, camera_s, z_h_mm, like)
+    # One knot layout for every probe, or their residuals would not compare.
+    step_mm = float(np.median(cKDTree(points_mm[:, :2]).query(points_mm[:, :2], k=2)[0][:, 1]))
+
+    def probe(start: FitResult | None, dz_mm: float) -> FitResult:
+        p, g = (points_mm, slopes) if start is None else _shifted(start, dz_mm,
+                                                                  (points_mm, slopes))
+        return fit_surface(p, g, *args, step_mm=step_mm, iterations=iterations)
+
+    base = probe(None, 0.0)
+    fits = {0.0: base}
+    for off in (-probe_mm, probe_mm):
+        fits[off] = probe(base, off)
+    while True:
+        offsets, ss, _ = _profile(fits)
+        vertex = _parabola_min(offsets, ss)
+        if offsets[0] <= vertex <= offsets[-1] or len(fits) >= max_probes:
+            break
+        # Walk downhill: one probe a step beyond the lowest end.
+        end = offsets[int(np.argmin(ss))]
+        step = probe_mm if end == offsets[-1] else -probe_mm
+        fits[end + step] = probe(fits[end], step)
+    if not np.isfinite(vertex):
+        vertex = float(offsets[int(np.argmin(ss))])
+    vertex = float(np.clip(vertex, offsets[0], offsets[-1]))
+    # Polish: fit at the minimum, then take the minimum of the three probes nearest to it
+    # (the first probes' shapes are the least converged); fit again where it moved.
+    for polish in range(POLISH_STEPS + 1):
+        nearest = min(fits, key=lambda o: abs(o - vertex))
+        fits[vertex] = final = probe(fits[nearest], vertex - nearest)
+        near = dict(sorted(fits.items(), key=lambda kv: abs(kv[0] - vertex))[:3])
+        x_near, ss_near, _ = _profile(near)
+        moved = _parabola_min(x_near, ss_near)
+        if polish == POLISH_STEPS or not abs(moved - vertex) >= POLISH_MM:
+            break
+        vertex = float(np.clip(moved, offsets[0], offsets[-1]))
+    sigma = _profile_sigma(fits)
+    final.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
+    offsets, ss, _ = _profile(fits)
+    return LevelFit(final, offsets, ss, vertex, sigma)
+
+
+def _profile(fits: dict[float, FitResult]) -> tuple[Array, Array, int]:
+    """Probe offsets (sorted, mm), their sums of squared spot residuals over the rays all of
+    them keep (mm^2), and how many rays that is."""
+    offsets = np.array(sorted(fits))
+    residuals = np.stack([fits[o].residual_mm for o in offsets])
+    common = np.isfinite(residuals).all(axis=0)
+    return offsets, np.sum(residuals[:, common] ** 2, axis=1), int(common.sum())
+
+
+def _parabola_min(x: Array, y: Array) -> float:
+    """Abscissa of the minimum of the least-squares parabola through ``(x, y)`` (NaN if it
+    opens downwards)."""
+    a, b, _ = np.polyfit(x - x.mean(), y, 2)
+    return float(x.mean() - b / (2 * a)) if a > 0 else float("nan")
+
+
+def _profile_sigma(fits: dict[float, FitResult], n_sets: int = 4) -> float:
+    """Standard error of the profile's minimum, mm, from the spread of the minima that
+    ``n_sets`` interleaved subsets of the rays find on their own (each holds 1/n_sets of the
+    data, so its minimum scatters sqrt(n_sets) times more than the whole's); inf when a subset
+    finds no minimum."""
+    offsets = np.array(sorted(fits))
+    residuals = np.stack([fits[o].residual_mm for o in offsets])
+    common = np.isfinite(residuals).all(axis=0)
+    sets = np.arange(residuals.shape[1]) % n_sets
+    minima = np.array([
+        _parabola_min(offsets, np.sum(residuals[:, common & (sets == k)] ** 2, axis=1))
+        for k in range(n_sets)
+    ])
+    if not np.isfinite(minima).all():
+        return float("inf")
+    return float(np.std(minima, ddof=1) / np.sqrt(n_sets))

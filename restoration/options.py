@@ -50,9 +50,9 @@ class RestoreOptions:
     max_refine : int
         Most refinement passes of that second search (it stops earlier once converged).
     fit_spots : bool
-        After the reconstruction, fit a smooth surface to the detected spots through the
-        exact reflection model (:mod:`restoration.fit`); off by default (see docs/results.md
-        for its cost and gain).
+        After the reconstruction, fit a smooth surface and its level to the detected spots
+        through the exact reflection model (:func:`restoration.fit.fit_level`): absolute RMSE
+        ~5x smaller at ~1 s per frame, so off by default (real time); docs/results.md.
 
     Examples
     --------

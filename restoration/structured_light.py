@@ -25,7 +25,7 @@ from restoration.features import (
     features_from_code,
     features_from_reference,
 )
-from restoration.fit import fit_surface
+from restoration.fit import fit_level
 from restoration.normals import points_on_rays, projector_rays
 from restoration.options import RestoreOptions
 from restoration.result import SPARSE_FRACTION, RestoreResult
@@ -218,7 +218,7 @@ def view_has_signal(view: NDArray) -> bool:
     return bool(hi - lo > DARK_VIEW_CONTRAST)
 
 
-def _spots_of(features: Matches, ij: NDArray) -> NDArray:
+def spots_of(features: Matches, ij: NDArray) -> NDArray:
     """The detected spots (K, 2) px of the samples with grid indices ``ij`` (K, 2), which are
     a subset of the features' (the integrator may drop some)."""
     base = int(np.abs(features.ij).max()) + 1 if len(features) else 1
@@ -229,15 +229,21 @@ def _spots_of(features: Matches, ij: NDArray) -> NDArray:
 
 
 def fit_to_spots(surface: SurfaceEstimate, spots_px: NDArray, cfg: SystemConfig) -> SurfaceEstimate:
-    """``surface`` refitted to its samples' spots through the exact model (restoration.fit)."""
-    fit = fit_surface(
+    """``surface`` refitted to its samples' spots through the exact model, its level included
+    (:func:`restoration.fit.fit_level`)."""
+    level = fit_level(
         surface.points_mm, surface.slopes, panel_positions(cfg, surface.ij), spots_px,
         camera_of(cfg.projector), camera_of(cfg.camera_s), cfg.diffuser.z_mm, surface.heightfield,
     )
+    fit = level.fit
     est = surface.refitted(
         fit.heightfield, fit.points_mm, fit.slopes, fit_ms=fit.timings_ms["total"]
     )
-    est.anchor.update(fit_rms_mm=fit.rms_mm, fit_iterations=fit.iterations)
+    est.anchor.update(
+        fit_rms_mm=fit.rms_mm, fit_iterations=fit.iterations,
+        fit_level_offset_mm=level.offset_mm, fit_level_sigma_mm=level.sigma_mm,
+        fit_level_probes=len(level.offsets_mm),
+    )
     return est
 
 
@@ -346,7 +352,7 @@ class StructuredLight:
             return RestoreResult(self.name, "failed", str(exc))
         if track is not None:
             track.update(surface.anchor)
-        spots = _spots_of(features, surface.ij)
+        spots = spots_of(features, surface.ij)
         if options.fit_spots:
             surface = fit_to_spots(surface, spots, cfg)
         t2 = time.perf_counter()

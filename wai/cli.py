@@ -196,6 +196,11 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         help="absolute height: from the slopes' integrability (structured light's default), or "
         "the gauge's h0 (the paper; alterman's only anchor); default: the method's",
     )
+    p.add_argument(
+        "--fit", action="store_true",
+        help="structured light: fit the surface and its level to the spots through the exact "
+        "model (restoration.fit.fit_level): ~5x smaller absolute error, ~1 s more per frame",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_restore)
 

@@ -18,7 +18,8 @@ def run_restore(args: argparse.Namespace) -> None:
         raise WaiInputError(f"restore folder not found: {args.dir}")
     # The structured light finds the height from integrability; the sun sensor cannot.
     anchor = args.anchor or ("gauge" if args.method == "alterman" else "integrability")
-    options = RestoreOptions(integrator=args.integrator, n_refine=args.refine, anchor=anchor)
+    options = RestoreOptions(integrator=args.integrator, n_refine=args.refine, anchor=anchor,
+                             fit_spots=args.fit)
     from wai_core.sequence import is_sequence
 
     if is_sequence(args.dir):

@@ -48,3 +48,42 @@ def test_the_fit_moves_a_wrong_start_towards_the_spots(paper_cfg):
     err_after = np.abs(fit.points_mm[:, 2] - truth.height(fit.points_mm[:, 0],
                                                          fit.points_mm[:, 1])).mean()
     assert err_after < 0.5 * err_before
+
+
+def _exact_samples(cfg, truth, n=10):
+    ij = np.array([[i, j] for i in range(-n, n + 1) for j in range(-n, n + 1)])
+    panel = panel_positions(cfg, ij)
+    spots = spots_through(cfg, truth, panel)
+    keep = np.isfinite(spots).all(axis=1)
+    panel, spots = panel[keep], spots[keep]
+    origin, dirs = projector_rays(panel, cfg.projector.camera())
+    unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    hits, _ = truth.intersect(np.broadcast_to(origin, unit.shape), unit)
+    ok = np.isfinite(hits).all(axis=1)
+    panel, spots, hits = panel[ok], spots[ok], hits[ok]
+    return panel, spots, hits, np.column_stack(truth.gradient(hits[:, 0], hits[:, 1]))
+
+
+def test_the_level_search_finds_the_height_a_damped_fit_keeps(paper_cfg):
+    # Exact spots of a swell, a start 0.3 mm too high with the right shape: the plain fit
+    # keeps most of the offset (the depth-normal ambiguity), the level search removes it.
+    from restoration.fit import fit_level
+
+    cfg = paper_cfg
+    truth = _swell(cfg.water.h0_mm, amplitude=3.0)
+    panel, spots, hits, slopes = _exact_samples(cfg, truth)
+    start = hits.copy()
+    start[:, 2] += 0.3
+    like = Heightfield(truth.x, truth.y, truth.z)
+    args = (panel, spots, cfg.projector.camera(), cfg.camera_s.camera(), cfg.diffuser.z_mm, like)
+
+    def level_error(points):
+        return float(np.nanmean(points[:, 2] - truth.height(points[:, 0], points[:, 1])))
+
+    plain = fit_surface(start, slopes, *args, iterations=4)
+    found = fit_level(start, slopes, *args)
+    assert abs(level_error(found.fit.points_mm)) < 0.03
+    assert abs(level_error(found.fit.points_mm)) < 0.3 * abs(level_error(plain.points_mm))
+    # The search stopped at the lowest point of its profile.
+    chosen = found.sum_squares_mm2[found.offsets_mm == found.offset_mm]
+    assert chosen.size == 1 and chosen[0] == found.sum_squares_mm2.min()
