@@ -115,7 +115,7 @@ def _set_means(r, sets, per_set):  # pragma: no cover
     return total / r.size if r.size else np.nan
 
 
-def _parabola_vertex(x: NDArray, y: NDArray) -> float:
+def parabola_vertex(x: NDArray, y: NDArray) -> float:
     """Abscissa of the minimum of the least-squares parabola through ``(x, y)``; NaN when the
     parabola opens downwards or the fit is undetermined."""
     if x.size < 3 or not np.isfinite(y).all():
@@ -142,7 +142,7 @@ def anchor_sigma_mm(anchors_mm: NDArray, set_ms: NDArray, reach_mm: float) -> fl
         ``std(minima) / sqrt(N_SETS)``, mm; infinite when any set has no minimum in reach (the
         data do not pin the anchor).
     """
-    vertices = np.array([_parabola_vertex(anchors_mm, set_ms[:, k]) for k in range(N_SETS)])
+    vertices = np.array([parabola_vertex(anchors_mm, set_ms[:, k]) for k in range(N_SETS)])
     lo, hi = anchors_mm.min() - reach_mm, anchors_mm.max() + reach_mm
     if not (np.isfinite(vertices).all() and np.all((vertices >= lo) & (vertices <= hi))):
         return float("inf")

@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 from scipy.sparse.linalg import spsolve
 
+from restoration.anchor import N_SETS, anchor_sigma_mm, parabola_vertex
 from restoration.normals import projector_rays, spots_on_diffuser
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
@@ -401,13 +402,15 @@ class LevelFit:
     fit : FitResult
         The fit at the chosen level.
     offsets_mm : (P,) ndarray
-        Level offsets of the probes from the warm start, mm.
+        The probes' levels against the first fit's (per ray), mm.
     sum_squares_mm2 : (P,) ndarray
         Each probe's sum of squared spot residuals over the rays every probe keeps, mm^2.
     offset_mm : float
-        The chosen level offset (the profile's minimum), mm.
+        The chosen level (the profile's minimum) against the first fit's, mm.
     sigma_mm : float
-        Its standard error, mm, from the spread of interleaved subsets' own minima.
+        The minimum's standard error, mm, from the spread of interleaved subsets' own minima
+        (noise only: the remaining error can be several times larger, and a nearly flat
+        surface's profile can mislead it; docs/results.md).
     """
 
     fit: FitResult
@@ -479,29 +482,39 @@ def fit_level(
         return fit_surface(p, g, *args, step_mm=step_mm, iterations=iterations)
 
     base = probe(None, 0.0)
+
+    def level(fit: FitResult) -> float:
+        # A probe's actual level against the base's, per ray: Gauss-Newton moves it a little
+        # from the offset it started at, and the profile must be read at the actual one.
+        return float(np.nanmean(fit.points_mm[:, 2] - base.points_mm[:, 2]))
+
     fits = {0.0: base}
     for off in (-probe_mm, probe_mm):
-        fits[off] = probe(base, off)
+        fit = probe(base, off)
+        fits[level(fit)] = fit
     while True:
         offsets, ss, _ = _profile(fits)
-        vertex = _parabola_min(offsets, ss)
+        vertex = parabola_vertex(offsets, ss)
         if offsets[0] <= vertex <= offsets[-1] or len(fits) >= max_probes:
             break
         # Walk downhill: one probe a step beyond the lowest end.
         end = offsets[int(np.argmin(ss))]
         step = probe_mm if end == offsets[-1] else -probe_mm
-        fits[end + step] = probe(fits[end], step)
+        fit = probe(fits[end], step)
+        fits[level(fit)] = fit
     if not np.isfinite(vertex):
         vertex = float(offsets[int(np.argmin(ss))])
     vertex = float(np.clip(vertex, offsets[0], offsets[-1]))
-    # Polish: fit at the minimum, then take the minimum of the three probes nearest to it
-    # (the first probes' shapes are the least converged); fit again where it moved.
+    # Polish: fit at the minimum, then take the minimum of the three probes nearest to it;
+    # fit again where it moved.
     for polish in range(POLISH_STEPS + 1):
         nearest = min(fits, key=lambda o: abs(o - vertex))
-        fits[vertex] = final = probe(fits[nearest], vertex - nearest)
+        final = probe(fits[nearest], vertex - nearest)
+        vertex = level(final)
+        fits[vertex] = final
         near = dict(sorted(fits.items(), key=lambda kv: abs(kv[0] - vertex))[:3])
         x_near, ss_near, _ = _profile(near)
-        moved = _parabola_min(x_near, ss_near)
+        moved = parabola_vertex(x_near, ss_near)
         if polish == POLISH_STEPS or not abs(moved - vertex) >= POLISH_MM:
             break
         vertex = float(np.clip(moved, offsets[0], offsets[-1]))
@@ -512,7 +525,7 @@ def fit_level(
 
 
 def _profile(fits: dict[float, FitResult]) -> tuple[Array, Array, int]:
-    """Probe offsets (sorted, mm), their sums of squared spot residuals over the rays all of
+    """Probe levels (sorted, mm), their sums of squared spot residuals over the rays all of
     them keep (mm^2), and how many rays that is."""
     offsets = np.array(sorted(fits))
     residuals = np.stack([fits[o].residual_mm for o in offsets])
@@ -520,26 +533,14 @@ def _profile(fits: dict[float, FitResult]) -> tuple[Array, Array, int]:
     return offsets, np.sum(residuals[:, common] ** 2, axis=1), int(common.sum())
 
 
-def _parabola_min(x: Array, y: Array) -> float:
-    """Abscissa of the minimum of the least-squares parabola through ``(x, y)`` (NaN if it
-    opens downwards)."""
-    a, b, _ = np.polyfit(x - x.mean(), y, 2)
-    return float(x.mean() - b / (2 * a)) if a > 0 else float("nan")
-
-
-def _profile_sigma(fits: dict[float, FitResult], n_sets: int = 4) -> float:
-    """Standard error of the profile's minimum, mm, from the spread of the minima that
-    ``n_sets`` interleaved subsets of the rays find on their own (each holds 1/n_sets of the
-    data, so its minimum scatters sqrt(n_sets) times more than the whole's); inf when a subset
-    finds no minimum."""
-    offsets = np.array(sorted(fits))
+def _profile_sigma(fits: dict[float, FitResult]) -> float:
+    """Standard error of the profile's minimum, mm: :func:`restoration.anchor.anchor_sigma_mm`
+    on the sums of squared residuals of interleaved subsets of the rays (inf when a subset
+    finds no minimum within the probed span of the probes)."""
+    offsets, _, _ = _profile(fits)
     residuals = np.stack([fits[o].residual_mm for o in offsets])
     common = np.isfinite(residuals).all(axis=0)
-    sets = np.arange(residuals.shape[1]) % n_sets
-    minima = np.array([
-        _parabola_min(offsets, np.sum(residuals[:, common & (sets == k)] ** 2, axis=1))
-        for k in range(n_sets)
-    ])
-    if not np.isfinite(minima).all():
-        return float("inf")
-    return float(np.std(minima, ddof=1) / np.sqrt(n_sets))
+    sets = np.arange(residuals.shape[1]) % N_SETS
+    set_ss = np.stack([np.sum(residuals[:, common & (sets == k)] ** 2, axis=1)
+                       for k in range(N_SETS)], axis=1)
+    return anchor_sigma_mm(offsets, set_ss, float(np.ptp(offsets)))
