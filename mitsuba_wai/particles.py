@@ -213,7 +213,7 @@ def _connect(
     # pixel reported in ``bad`` (Mitsuba's film would hold it as NaN / inf).
     pos = mi.Vector2i(dr.floor(sensor_ds.uv))
     inside = (pos.x >= 0) & (pos.y >= 0) & (pos.x < width) & (pos.y < height)
-    active = active & inside & dr.any(value != 0.0)
+    active = active & inside
     finite = dr.all(dr.isfinite(value))
     none = mi.UInt32(width * height)
     pixel = dr.select(active, mi.UInt32(pos.y * width + pos.x), none)

@@ -35,7 +35,10 @@ from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.pattern import dot_grid
 
-__all__ = ["StructuredLight", "estimate_surface", "panel_positions", "view_has_signal"]
+__all__ = [
+    "StructuredLight", "estimate_surface", "fit_to_spots", "panel_positions", "spots_of",
+    "view_has_signal",
+]
 
 DARK_VIEW_CONTRAST = 1e-3
 """A view whose 1st-99th percentile spread (after the gain) is below this has no signal."""
