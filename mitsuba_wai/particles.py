@@ -87,7 +87,9 @@ def emitter_samples(n: int, seed: int) -> tuple[Any, Any]:
 
     def coordinate(k: int) -> Any:
         # frac(i * alpha + shift) in 32-bit fixed point: the product wraps modulo 2^32 exactly.
-        bits = index * mi.UInt32(_KRONECKER[k]) + mi.UInt32(int(shifts[k]))
+        # The shift is opaque (a kernel parameter, not a literal): one compiled kernel serves
+        # every seed, where a literal would recompile the whole path kernel per frame.
+        bits = index * mi.UInt32(_KRONECKER[k]) + dr.opaque(mi.UInt32, int(shifts[k]))
         return mi.Float(bits >> 8) * (1.0 / 2**24)  # 24 bits: a float32 below 1
 
     return coordinate(2), mi.Point2f(coordinate(0), coordinate(1))
