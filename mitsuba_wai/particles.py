@@ -21,7 +21,9 @@ Stratified emission (``stratified=True``, the default of the repository's render
 over it. In systems S and A the emitter's sample is the only random choice of a path (the
 water and the pass-through are deterministic, the camera a pinhole), so the image is then a
 quasi-Monte Carlo estimate: same expectation, and spot centres as good at 4 paths per pixel as
-with 32 independent ones.
+with 32 independent ones. The repository's pattern renders go one step further and draw the
+projector's dots directly (``emitter``: :class:`mitsuba_wai.dots.DotEmitter`), each dot a
+stratified point set of its own, for half the time of the projector's image sampling.
 
 Only what the repository's particle-traced scenes use is supported: no media, no directly
 visible emitters (``hide_emitters``), a box reconstruction filter and ``max_depth`` up to
@@ -85,14 +87,33 @@ def emitter_samples(n: int, seed: int) -> tuple[Any, Any]:
     shifts = np.random.default_rng([int(seed), 0x5EED]).integers(0, 2**32, 3, dtype=np.uint64)
     index = dr.arange(mi.UInt32, n)
 
-    def coordinate(k: int) -> Any:
-        # frac(i * alpha + shift) in 32-bit fixed point: the product wraps modulo 2^32 exactly.
-        # The shift is opaque (a kernel parameter, not a literal): one compiled kernel serves
-        # every seed, where a literal would recompile the whole path kernel per frame.
-        bits = index * mi.UInt32(_KRONECKER[k]) + dr.opaque(mi.UInt32, int(shifts[k]))
-        return mi.Float(bits >> 8) * (1.0 / 2**24)  # 24 bits: a float32 below 1
+    # The shift is opaque (a kernel parameter, not a literal): one compiled kernel serves every
+    # seed, where a literal would recompile the whole path kernel per frame.
+    select, x, y = (kronecker(index, k, dr.opaque(mi.UInt32, int(shifts[k]))) for k in (2, 0, 1))
+    return select, mi.Point2f(x, y)
 
-    return coordinate(2), mi.Point2f(coordinate(0), coordinate(1))
+
+def kronecker(index: Any, k: int, shift: Any) -> Any:
+    """Coordinate ``k`` (0, 1: the R2 sequence's two; 2: the emitter pick) of the shifted
+    Kronecker points ``index``: ``frac(index * alpha_k + shift / 2^32)``, in 32-bit fixed point
+    (the product wraps modulo 2^32 exactly), as a float32 in [0, 1).
+
+    Parameters
+    ----------
+    index : mitsuba.UInt32, (n,)
+        Point numbers.
+    k : int
+        Coordinate, 0 .. 2.
+    shift : mitsuba.UInt32, (n,) or (1,)
+        Cranley-Patterson shift, in units of 2^-32.
+
+    Returns
+    -------
+    mitsuba.Float, (n,)
+    """
+    mi = mitsuba()
+    bits = index * mi.UInt32(_KRONECKER[k]) + shift
+    return mi.Float(bits >> 8) * (1.0 / 2**24)  # 24 bits: a float32 below 1
 
 
 def pass_split(spp: int, pixels: int, max_samples: int | None = None) -> list[int]:
@@ -124,7 +145,7 @@ def pass_split(spp: int, pixels: int, max_samples: int | None = None) -> list[in
 
 def _trace_pass(
     scene: Any, spp: int, spp_total: int, seed: int, max_depth: int, water: Any = None,
-    stratified: bool = False,
+    stratified: bool = False, emitter: Any = None,
 ) -> list[tuple[Any, ...]]:
     """One pass: for each bounce, the film pixel (``W * H`` where none), the RGB value and the
     pixel of a non-finite value (``W * H`` where finite) of every path's camera connection, as
@@ -147,16 +168,20 @@ def _trace_pass(
     time = sensor.shutter_open()
     wavelength_sample = sampler.next_1d()
     direction_sample, position_sample = sampler.next_2d(), sampler.next_2d()
-    if stratified:
-        wavelength_sample, position_sample = emitter_samples(n, seed)
-    ray, throughput, _ = scene.sample_emitter_ray(
-        time, wavelength_sample, direction_sample, position_sample, True
-    )
+    length = mi.Float(0.0)  # path length in the water so far, mm
+    if emitter is not None:
+        ray, throughput, length = emitter(time, n, seed)
+        max_depth -= emitter.skipped_vertices
+    else:
+        if stratified:
+            wavelength_sample, position_sample = emitter_samples(n, seed)
+        ray, throughput, _ = scene.sample_emitter_ray(
+            time, wavelength_sample, direction_sample, position_sample, True
+        )
     active = dr.max(throughput) != 0.0
     si = scene.ray_intersect(ray, active)
     active = active & si.is_valid() & (1 < max_depth)
     splats = []
-    length = mi.Float(0.0)  # path length in the water so far, mm
     for depth in range(1, max_depth):
         bsdf = si.bsdf(ray)
         sensor_ds, sensor_weight = sensor.sample_direction(si, sampler.next_2d(), active)
@@ -232,7 +257,8 @@ def _connect(
 
 
 def render_particles(
-    scene: Any, spp: int, seed: int, max_depth: int, stratified: bool = False
+    scene: Any, spp: int, seed: int, max_depth: int, stratified: bool = False,
+    emitter: Any = None,
 ) -> tuple[NDArray[np.float32], int]:
     """Render a particle-traced scene (see the module notes) to linear RGB (H, W, 3).
 
@@ -249,6 +275,12 @@ def render_particles(
     stratified : bool
         Emitter samples from :func:`emitter_samples` instead of the sampler (the same
         expectation, far less noise in the spots); False: Mitsuba's ``ptracer`` image.
+    emitter : callable, optional
+        Draws the particles in place of the scene's emitters and of ``stratified``,
+        ``emitter(time, n, seed) -> (ray, weight, travelled_mm)``, its rays starting past
+        ``emitter.skipped_vertices`` vertices of no effect (:class:`mitsuba_wai.dots.DotEmitter`:
+        the projector's dots, each a stratified point set of its own); default: Mitsuba's
+        ``Scene.sample_emitter_ray``.
 
     Returns
     -------
@@ -258,19 +290,20 @@ def render_particles(
         Pixels that received a non-finite splat (rare degenerate camera connections): zeroed,
         as :func:`mitsuba_wai.render.render_image` does with Mitsuba's image.
     """
-    images, n_bad = _render(scene, spp, seed, max_depth, None, stratified)
+    images, n_bad = _render(scene, spp, seed, max_depth, None, stratified, emitter)
     return images[0], n_bad
 
 
 def render_particles_water(
     scene: Any, spp: int, seed: int, max_depth: int, absorption_per_mm: NDArray,
     scattering_per_mm: NDArray, air_segments: int = 0, stratified: bool = False,
+    emitter: Any = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], int]:
     """:func:`render_particles` with Beer-Lambert weights along each path (module notes).
 
     Parameters
     ----------
-    scene, spp, seed, max_depth, stratified
+    scene, spp, seed, max_depth, stratified, emitter
         As :func:`render_particles`.
     absorption_per_mm, scattering_per_mm : (3,) array_like
         a and b per channel (R, G, B), 1/mm.
@@ -290,12 +323,13 @@ def render_particles_water(
         [float(v) for v in absorption_per_mm], [float(v) for v in scattering_per_mm],
         int(air_segments),
     )
-    images, n_bad = _render(scene, spp, seed, max_depth, water, stratified)
+    images, n_bad = _render(scene, spp, seed, max_depth, water, stratified, emitter)
     return images[0], images[1], n_bad
 
 
 def _render(
-    scene: Any, spp: int, seed: int, max_depth: int, water: Any, stratified: bool
+    scene: Any, spp: int, seed: int, max_depth: int, water: Any, stratified: bool,
+    emitter: Any = None,
 ) -> tuple[list[NDArray[np.float32]], int]:
     """The images of :func:`render_particles` (one) or :func:`render_particles_water` (two)."""
     import drjit as dr
@@ -313,7 +347,7 @@ def _render(
     for k, spp_k in enumerate(pass_split(spp, n_pix)):
         pass_seed = (int(seed) + k * PASS_SEED_STRIDE) % 2**32
         for pixel, *rgbs, nonfinite in _trace_pass(scene, spp_k, spp, pass_seed, max_depth,
-                                                   water, stratified):
+                                                   water, stratified, emitter):
             if dr.all(pixel == n_pix):  # a bounce that never reaches the camera (delta BSDFs)
                 continue
             if not dr.all(nonfinite == n_pix):

@@ -42,6 +42,7 @@ from mitsuba_wai.degrade import (
     render_frame_images,
     subframe_plan,
 )
+from mitsuba_wai.dots import DotEmitter
 from mitsuba_wai.particles import pass_split, render_particles, render_particles_water
 from mitsuba_wai.scenes import (
     SCENE_S_DEPTH,
@@ -165,7 +166,7 @@ def labelled(label: str) -> Iterator[None]:
 
 def render_image(
     scene: object, spp: int, seed: int, particle_depth: int | None = None,
-    stratified: bool = False,
+    stratified: bool = False, emitter: object = None,
 ) -> tuple[NDArray[np.float32], int]:
     """Render a loaded scene to linear RGB (H, W, 3); non-finite pixels are zeroed and counted.
 
@@ -184,6 +185,8 @@ def render_image(
     stratified : bool
         The particle tracer's stratified emission (:func:`mitsuba_wai.particles.emitter_samples`);
         camera-side renders take the sampler of the scene's sensor.
+    emitter : callable, optional
+        The particle tracer's emitter in place of the scene's (``render_particles``'s).
 
     Returns
     -------
@@ -194,7 +197,7 @@ def render_image(
     import drjit as dr
 
     if particle_depth is not None:
-        return render_particles(scene, spp, seed, particle_depth, stratified)
+        return render_particles(scene, spp, seed, particle_depth, stratified, emitter)
     mi = mitsuba()
     size = scene.sensors()[0].film().crop_size()
     passes = pass_split(spp, int(size[0]) * int(size[1]), MAX_WAVEFRONT)
@@ -255,6 +258,12 @@ class FrameRenderer:
                 scene_v.update(view_emitters(self.cfg))
             self._scenes["view"] = mi.load_dict(scene_v)
         self._params = {k: mi.traverse(scene) for k, scene in self._scenes.items()}
+        # Stratified: the projector's dots drawn directly (mitsuba_wai.dots), same emission as
+        # the scene's projector at a fraction of its cost; independent: Mitsuba's projector.
+        self._emitters = (
+            {"pattern": DotEmitter(self.cfg)}
+            if self._stratified and "pattern" in self._scenes else {}
+        )
 
     def _set_surface(self, surface: Heightfield) -> None:
         if surface.z.shape != self.grid.z.shape:
@@ -291,7 +300,7 @@ class FrameRenderer:
                 out[key], bad = self._pattern_in_daylight_water(spp[key], seed)
             else:
                 out[key], bad = render_image(self._scenes[key], spp[key], seed, depth[key],
-                                             self._stratified)
+                                             self._stratified, self._emitters.get(key))
             if key == "view" and self.cfg.water_optics.enabled:
                 lengths = view_path_lengths(self._scenes["view"], self.cfg)
                 out[key] = water_view(out[key], lengths, self.cfg)
@@ -303,10 +312,12 @@ class FrameRenderer:
         """One particle-traced image of system S, through the water when it is modelled."""
         w = self.cfg.water_optics
         if not w.enabled:
-            return render_particles(self._scenes[key], spp, seed, depth, self._stratified)
+            return render_particles(self._scenes[key], spp, seed, depth, self._stratified,
+                                    self._emitters.get(key))
         a, b = coefficients_per_mm(w)
         direct, scattered, bad = render_particles_water(
-            self._scenes[key], spp, seed, depth, a, b, air_segments, self._stratified
+            self._scenes[key], spp, seed, depth, a, b, air_segments, self._stratified,
+            self._emitters.get(key),
         )
         return direct + glow(scattered, w.forward_fraction, glow_sigma_px(self.cfg, "S")), bad
 
