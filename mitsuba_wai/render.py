@@ -61,6 +61,7 @@ from mitsuba_wai.seawater import (
 )
 from mitsuba_wai.textures import object_texture
 from mitsuba_wai.variant import mitsuba, select_variant
+from mitsuba_wai.view_tracer import render_view
 from mitsuba_wai.waves import mesh_spacing_mm, sea_surface
 from wai_core.config import SensorConfig, SystemConfig
 from wai_core.errors import WaiInputError
@@ -298,6 +299,11 @@ class FrameRenderer:
         for key in (k for k in ("pattern", "view") if k in which):
             if key == "pattern" and lit:
                 out[key], bad = self._pattern_in_daylight_water(spp[key], seed)
+            elif key == "view" and self._stratified and not self.cfg.ambient.enabled:
+                # The three steps system V needs, traced directly (mitsuba_wai.view_tracer):
+                # Mitsuba's path integrator's image at half its cost; with the ambient sun and
+                # sky (emitter sampling) and for "independent", Mitsuba's own integrator.
+                out[key], bad = render_view(self._scenes[key], spp[key], seed)
             else:
                 out[key], bad = render_image(self._scenes[key], spp[key], seed, depth[key],
                                              self._stratified, self._emitters.get(key))
