@@ -20,8 +20,9 @@ Levenberg-Marquardt damping keeps a step from growing where the fit is flat.
 
 The level is the fit's nearly flat direction (the depth-normal ambiguity: raise the surface,
 re-bend it, and every ray lands within microns of the same spot), so no damped step finds it;
-:func:`fit_level` searches it explicitly, fitting the shape at fixed level offsets and taking
-the minimum of the residual's profile.
+:func:`fit_level` searches it explicitly, fitting the shape with the level held at fixed
+offsets (a linear constraint on the coefficients) and taking the minimum of the residual's
+profile.
 """
 
 from __future__ import annotations
@@ -34,8 +35,9 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 from scipy.sparse.linalg import spsolve
+from threadpoolctl import threadpool_limits
 
-from restoration.anchor import N_SETS, anchor_sigma_mm, parabola_vertex
+from restoration.anchor import N_SETS, anchor_sigma_mm
 from restoration.normals import projector_rays, spots_on_diffuser
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
@@ -48,12 +50,24 @@ DAMPING = 1e-5
 """Levenberg-Marquardt damping relative to the diagonal of J^T J: small, so that a step can
 follow the compensating bend of a level change (larger damping leaves each probe of
 :func:`fit_level` unconverged and biases its profile)."""
-SMOOTHNESS = 1e-3
-"""Weight of the second-difference penalty relative to the mean diagonal of J^T J."""
+SMOOTHNESS = 1e-4
+"""Weight of the second-difference penalty relative to the mean diagonal of J^T J (1e-3 kept
+the fit from following sharp crests, and the rays there then pulled the level 0.15 mm off on
+a nearly flat trochoid)."""
+CAUCHY_SCALE = 2.385
+"""Scale of :func:`fit_level`'s Cauchy loss in standard deviations of the spot residual (the
+loss's 95 % efficiency constant for Gaussian noise)."""
+_MEDIAN_NORM = 1.1774  # median norm of a 2-D Gaussian of unit variance per axis: sqrt(2 ln 2)
 POLISH_MM = 0.01
-"""A level search stops polishing once its minimum moves by less than this, mm."""
-POLISH_STEPS = 2
-"""Most polishing fits after the first fit at the profile's minimum."""
+"""A level search stops once its parabola's vertex lies this close to a probe, mm."""
+PROBE_STEPS = 8
+"""Most Gauss-Newton steps per probe of :func:`fit_level`."""
+PROBE_TOL_MM = 1e-4
+"""A probe has converged once a step changes no coefficient by more than this, mm."""
+PROBE_COST_TOL = 1e-4
+"""... or once a step lowers its cost by less than this fraction of it."""
+MAX_PROBES = 9
+"""Most probes of :func:`fit_level`, its start included."""
 _FD_T_MM = 1e-3  # finite-difference steps of the per-dot forward model: along the ray, mm
 _FD_SLOPE = 1e-6  # and in slope
 
@@ -162,6 +176,8 @@ class FitResult:
     rms_mm : list of float
         RMS residual before the fit and after each iteration, mm.
     iterations : int
+    converged : bool
+        Whether the last step changed no coefficient by more than the tolerance.
     timings_ms : dict
     """
 
@@ -172,6 +188,7 @@ class FitResult:
     residual_mm: Array
     rms_mm: list[float]
     iterations: int
+    converged: bool
     timings_ms: dict[str, float]
 
 
@@ -192,6 +209,11 @@ def _hits(spline: BSplineSurface, o: Array, d: Array, t: Array, n_iter: int = 6)
         z, zx, zy = spline.evaluate(p[:, 0], p[:, 1])[:3]
         t = t - (p[:, 2] - z) / (d[:, 2] - zx * d[:, 0] - zy * d[:, 1])
     return t
+
+
+# The fit's banded solves are small (~1e4 unknowns, bandwidth ~100): OpenBLAS's threads gain
+# nothing there and, on a busy 2-core machine, made each solve 50x slower (10 ms -> 500 ms).
+_ONE_BLAS_THREAD = threadpool_limits.wrap(limits=1, user_api="blas")
 
 
 def _solve_spd(lhs: sp.spmatrix, rhs: Array) -> Array:
@@ -245,6 +267,189 @@ def _initial_spline(
     return spline
 
 
+@dataclass
+class _Rays:
+    """The dots' projector rays and their detected spots, as the fit uses them."""
+
+    o: Array  # (K, 3) origins, mm
+    d: Array  # (K, 3) unit directions
+    target: Array  # (K, 2) detected spots on the diffuser plane, mm
+    z_h: float  # the diffuser plane's height, mm
+
+    @classmethod
+    def of(cls, panel_px: Array, spot_px: Array, projector: PinholeCamera,
+           camera_s: PinholeCamera, z_h_mm: float) -> _Rays:
+        o, d = projector_rays(panel_px, projector)
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        target = spots_on_diffuser(spot_px, camera_s, z_h_mm)[:, :2]
+        return cls(np.broadcast_to(o, d.shape), d, target, float(z_h_mm))
+
+    def t_at(self, z_mm: Array) -> Array:
+        """Ray parameters where the rays reach heights ``z_mm`` (K,)."""
+        return (z_mm - self.o[:, 2]) / self.d[:, 2]
+
+
+@dataclass
+class _Prediction:
+    """Where the rays meet a spline and where their reflections land."""
+
+    t: Array  # (K,) ray parameters of the hits
+    points_mm: Array  # (K, 3) hits on the spline
+    gx: Array  # (K,) slopes there
+    gy: Array
+    residual_mm: Array  # (K, 2) predicted minus detected spot on the diffuser
+    rms_mm: float  # over the rays that meet the spline
+
+
+def _predict(spline: BSplineSurface, rays: _Rays, t: Array) -> _Prediction:
+    """The rays (Newton from ``t``) against ``spline``: hits, slopes, spot residuals."""
+    t = _hits(spline, rays.o, rays.d, t)
+    p = rays.o + t[:, None] * rays.d
+    z, gx, gy = spline.evaluate(p[:, 0], p[:, 1])[:3]
+    res = _forward(rays.o, rays.d, t, gx, gy, rays.z_h) - rays.target
+    ok = np.isfinite(res).all(axis=1)
+    rms = float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1))))
+    return _Prediction(t, np.column_stack([p[:, :2], z]), gx, gy, res, rms)
+
+
+@dataclass
+class _Fit:
+    """One Gauss-Newton fit: the spline, its prediction, and how it converged."""
+
+    spline: BSplineSurface
+    prediction: _Prediction
+    rms_mm: list[float]  # before the first step and after each
+    iterations: int
+    converged: bool  # the last step changed no coefficient by more than the tolerance
+
+
+def _gauss_newton(
+    spline: BSplineSurface,
+    rays: _Rays,
+    t: Array,
+    *,
+    iterations: int,
+    tol_mm: float,
+    smoothness: float,
+    level: tuple[Array, float] | None = None,
+    scale_mm: float | None = None,
+) -> _Fit:
+    """Damped Gauss-Newton on the spot residuals from ``spline`` (left unchanged).
+
+    ``level = (a, value)`` holds ``a . c = value`` (``c`` the flattened coefficients) at every
+    step: each step is the damped step projected onto the constraint (one more solve with the
+    same factorisation, a Lagrange multiplier). ``scale_mm`` weighs each ray by the Cauchy
+    loss of that scale (iteratively reweighted least squares). Stops after ``iterations``
+    steps, or once a step moves no coefficient by more than ``tol_mm`` or lowers the cost by
+    less than :data:`PROBE_COST_TOL` of it (converged).
+    """
+    spline = BSplineSurface(spline.x0_mm, spline.y0_mm, spline.step_mm, spline.coeffs.copy())
+    o, d = rays.o, rays.d
+    ny, nx = spline.coeffs.shape
+    rtr = (_second_differences(ny, nx).T @ _second_differences(ny, nx)).tocsc()
+    k = len(d)
+    rows = np.repeat(np.arange(k), 16)
+    pred = _predict(spline, rays, t)
+    cost = _total_cost(pred, scale_mm)
+    rms, done, converged = [pred.rms_mm], 0, False
+    while done < int(iterations) and not converged:
+        done += 1
+        t = pred.t
+        p = o + t[:, None] * d
+        index, w, inside = spline.rows(p[:, 0], p[:, 1])
+        c = spline.coeffs.ravel()[index]
+        z, gx, gy, gxx, gxy, gyy = (np.sum(wi * c, axis=1) for wi in w)
+        x_pred = _forward(o, d, t, gx, gy, rays.z_h)
+        res = x_pred - rays.target
+        ok = inside & np.isfinite(res).all(axis=1)
+        # The forward model's partials in (t, g_x, g_y), by finite differences per dot.
+        f_t = (_forward(o, d, t + _FD_T_MM, gx, gy, rays.z_h) - x_pred) / _FD_T_MM
+        f_x = (_forward(o, d, t, gx + _FD_SLOPE, gy, rays.z_h) - x_pred) / _FD_SLOPE
+        f_y = (_forward(o, d, t, gx, gy + _FD_SLOPE, rays.z_h) - x_pred) / _FD_SLOPE
+        # A coefficient change dz, dz_x, dz_y at the hit moves the hit by dt along the ray,
+        # and the slopes there follow the move (Hessian).
+        denom = d[:, 2] - gx * d[:, 0] - gy * d[:, 1]
+        w_t = w[0] / denom[:, None]
+        w_gx = w[1] + (gxx * d[:, 0] + gxy * d[:, 1])[:, None] * w_t
+        w_gy = w[2] + (gxy * d[:, 0] + gyy * d[:, 1])[:, None] * w_t
+        blocks = []
+        for comp in (0, 1):
+            vals = (f_t[:, comp, None] * w_t + f_x[:, comp, None] * w_gx
+                    + f_y[:, comp, None] * w_gy)
+            vals[~ok] = 0.0
+            blocks.append(sp.csr_matrix((vals.ravel(), (rows, index.ravel())),
+                                        shape=(k, ny * nx)))
+        jac = sp.vstack(blocks).tocsr()
+        if scale_mm is not None:
+            root = np.sqrt(_cauchy_weights(np.linalg.norm(np.where(ok[:, None], res, 0.0),
+                                                           axis=1), scale_mm))
+            res = res * root[:, None]
+            jac = sp.diags(np.concatenate([root, root])) @ jac
+        r = np.where(ok[:, None], res, 0.0).T.ravel()
+        jtj = (jac.T @ jac).tocsc()
+        scale = float(jtj.diagonal().mean())
+        lhs = jtj + smoothness * scale * rtr + DAMPING * sp.diags(jtj.diagonal() + 1e-9 * scale)
+        cvec = spline.coeffs.ravel()
+        rhs = -(jac.T @ r) - smoothness * scale * (rtr @ cvec)
+        if level is None:
+            step = _solve_spd(lhs, rhs)
+        else:
+            a, value = level
+            free, along = _solve_spd(lhs, np.column_stack([rhs, a])).T
+            step = free - along * ((a @ (cvec + free) - value) / (a @ along))
+        spline.coeffs = (cvec + step).reshape(ny, nx)
+        pred = _predict(spline, rays, t)
+        rms.append(pred.rms_mm)
+        before, cost = cost, _total_cost(pred, scale_mm)
+        converged = bool(np.max(np.abs(step)) < tol_mm or before - cost < PROBE_COST_TOL * cost)
+    return _Fit(spline, pred, rms, done, converged)
+
+
+def _cauchy_weights(r: Array, scale: float) -> Array:
+    """IRLS weights of the Cauchy loss at residual norms ``r``."""
+    return 1.0 / (1.0 + (r / scale) ** 2)
+
+
+def _cost(r2: Array, scale: float | None) -> Array:
+    """Each ray's cost from its squared residual norm ``r2``: the square itself, or the Cauchy
+    loss ``s^2 log(1 + r2 / s^2)`` for a scale ``s``, mm."""
+    return r2 if scale is None else scale**2 * np.log1p(r2 / scale**2)
+
+
+def _total_cost(pred: _Prediction, scale: float | None) -> float:
+    """The summed :func:`_cost` of the rays that meet the spline."""
+    r2 = np.sum(pred.residual_mm ** 2, axis=1)
+    return float(np.sum(_cost(r2[np.isfinite(r2)], scale)))
+
+
+def _result(fit: _Fit, like: Heightfield, timings_ms: dict[str, float]) -> FitResult:
+    """The public result of a fit, gridded on ``like``."""
+    t0 = time.perf_counter()
+    heightfield = fit.spline.to_heightfield(like)
+    pred = fit.prediction
+    timings_ms = {**timings_ms, "grid": 1e3 * (time.perf_counter() - t0)}
+    timings_ms["total"] = sum(timings_ms.values())
+    return FitResult(
+        spline=fit.spline,
+        heightfield=heightfield,
+        points_mm=pred.points_mm,
+        slopes=np.column_stack([pred.gx, pred.gy]),
+        residual_mm=np.linalg.norm(pred.residual_mm, axis=1),
+        rms_mm=fit.rms_mm,
+        iterations=fit.iterations,
+        converged=fit.converged,
+        timings_ms=timings_ms,
+    )
+
+
+def _knot_step(xy: Array) -> float:
+    """The samples' median nearest-neighbour spacing, mm: the default knot spacing."""
+    from scipy.spatial import cKDTree
+
+    return float(np.median(cKDTree(xy).query(xy, k=2)[0][:, 1]))
+
+
+@_ONE_BLAS_THREAD
 def fit_surface(
     points_mm: Array,
     slopes: Array,
@@ -288,109 +493,16 @@ def fit_surface(
     -------
     FitResult
     """
-    from scipy.spatial import cKDTree
-
-    t_start = time.perf_counter()
-    xy = points_mm[:, :2]
-    if step_mm is None:
-        dist = cKDTree(xy).query(xy, k=2)[0][:, 1]
-        step_mm = float(np.median(dist))
-    spline = _initial_spline(xy, points_mm[:, 2], slopes, step_mm, smoothness)
-    o, d = projector_rays(panel_px, projector)
-    o = np.broadcast_to(o, d.shape)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    target = spots_on_diffuser(spot_px, camera_s, z_h_mm)[:, :2]
-    t = (points_mm[:, 2] - o[:, 2]) / d[:, 2]
-    ny, nx = spline.coeffs.shape
-    reg = _second_differences(ny, nx)
-    rtr = (reg.T @ reg).tocsc()
-    k = len(xy)
-    rows = np.repeat(np.arange(k), 16)
-    rms, done, damping = [], 0, DAMPING
     t0 = time.perf_counter()
-    while done < int(iterations):
-        done += 1
-        t = _hits(spline, o, d, t)
-        p = o + t[:, None] * d
-        index, w, inside = spline.rows(p[:, 0], p[:, 1])
-        c = spline.coeffs.ravel()[index]
-        z, gx, gy, gxx, gxy, gyy = (np.sum(wi * c, axis=1) for wi in w)
-        x_pred = _forward(o, d, t, gx, gy, z_h_mm)
-        res = x_pred - target
-        ok = inside & np.isfinite(res).all(axis=1)
-        if not rms:
-            rms.append(float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1)))))
-        # The forward model's partials in (t, g_x, g_y), by finite differences per dot.
-        f_t = (_forward(o, d, t + _FD_T_MM, gx, gy, z_h_mm) - x_pred) / _FD_T_MM
-        f_x = (_forward(o, d, t, gx + _FD_SLOPE, gy, z_h_mm) - x_pred) / _FD_SLOPE
-        f_y = (_forward(o, d, t, gx, gy + _FD_SLOPE, z_h_mm) - x_pred) / _FD_SLOPE
-        # A coefficient change dz, dz_x, dz_y at the hit moves the hit by dt along the ray,
-        # and the slopes there follow the move (Hessian).
-        denom = d[:, 2] - gx * d[:, 0] - gy * d[:, 1]
-        w_t = w[0] / denom[:, None]
-        w_gx = w[1] + (gxx * d[:, 0] + gxy * d[:, 1])[:, None] * w_t
-        w_gy = w[2] + (gxy * d[:, 0] + gyy * d[:, 1])[:, None] * w_t
-        blocks = []
-        for comp in (0, 1):
-            vals = (f_t[:, comp, None] * w_t + f_x[:, comp, None] * w_gx
-                    + f_y[:, comp, None] * w_gy)
-            vals[~ok] = 0.0
-            blocks.append(sp.csr_matrix((vals.ravel(), (rows, index.ravel())),
-                                        shape=(k, ny * nx)))
-        jac = sp.vstack(blocks).tocsr()
-        r = np.where(ok[:, None], res, 0.0).T.ravel()
-        jtj = (jac.T @ jac).tocsc()
-        scale = float(jtj.diagonal().mean())
-        lhs = jtj + smoothness * scale * rtr + damping * sp.diags(jtj.diagonal() + 1e-9 * scale)
-        cvec = spline.coeffs.ravel()
-        step = _solve_spd(lhs, -(jac.T @ r) - smoothness * scale * (rtr @ cvec))
-        spline.coeffs = (cvec + step).reshape(ny, nx)
-        last = _predict(spline, o, d, t, target, z_h_mm)
-        rms.append(last.rms_mm)
-        if np.max(np.abs(step)) < tol_mm:
-            break
-    if done == 0:  # no iteration asked: the warm start as it is
-        last = _predict(spline, o, d, t, target, z_h_mm)
-    p, gx, gy = last.points_mm, last.gx, last.gy
-    residual = np.linalg.norm(last.residual_mm, axis=1)
+    xy = points_mm[:, :2]
+    step_mm = _knot_step(xy) if step_mm is None else float(step_mm)
+    start = _initial_spline(xy, points_mm[:, 2], slopes, step_mm, smoothness)
+    rays = _Rays.of(panel_px, spot_px, projector, camera_s, z_h_mm)
     t1 = time.perf_counter()
-    heightfield = spline.to_heightfield(like)
+    fit = _gauss_newton(start, rays, rays.t_at(points_mm[:, 2]), iterations=iterations,
+                        tol_mm=tol_mm, smoothness=smoothness)
     t2 = time.perf_counter()
-    return FitResult(
-        spline=spline,
-        heightfield=heightfield,
-        points_mm=p,
-        slopes=np.column_stack([gx, gy]),
-        residual_mm=residual,
-        rms_mm=rms,
-        iterations=done,
-        timings_ms={"warm_start": 1e3 * (t0 - t_start), "gauss_newton": 1e3 * (t1 - t0),
-                    "grid": 1e3 * (t2 - t1), "total": 1e3 * (t2 - t_start)},
-    )
-
-
-@dataclass
-class _Prediction:
-    """Where the rays meet a spline and where their reflections land."""
-
-    points_mm: Array  # (K, 3) hits on the spline
-    gx: Array  # (K,) slopes there
-    gy: Array
-    residual_mm: Array  # (K, 2) predicted minus detected spot on the diffuser
-    rms_mm: float  # over the rays that meet the spline
-
-
-def _predict(
-    spline: BSplineSurface, o: Array, d: Array, t: Array, target: Array, z_h: float
-) -> _Prediction:
-    """Rays ``o + t d`` (Newton from ``t``) against ``spline``: hits, slopes, spot residuals."""
-    t = _hits(spline, o, d, t)
-    p = o + t[:, None] * d
-    z, gx, gy = spline.evaluate(p[:, 0], p[:, 1])[:3]
-    res = _forward(o, d, t, gx, gy, z_h) - target
-    ok = np.isfinite(res).all(axis=1)
-    rms = float(np.sqrt(np.mean(np.sum(res[ok] ** 2, axis=1))))
-    return _Prediction(np.column_stack([p[:, :2], z]), gx, gy, res, rms)
+    return _result(fit, like, {"warm_start": 1e3 * (t1 - t0), "gauss_newton": 1e3 * (t2 - t1)})
 
 
 @dataclass
@@ -402,33 +514,45 @@ class LevelFit:
     fit : FitResult
         The fit at the chosen level.
     offsets_mm : (P,) ndarray
-        The probes' levels against the first fit's (per ray), mm.
-    sum_squares_mm2 : (P,) ndarray
-        Each probe's sum of squared spot residuals over the rays every probe keeps, mm^2.
+        The probes' levels (the spline's mean height at the samples) against the warm start's,
+        sorted, mm.
+    cost_mm2 : (P,) ndarray
+        Each probe's summed Cauchy loss of the spot residuals over the rays every probe
+        keeps, mm^2 (the profile).
+    iterations : (P,) ndarray of int
+        Gauss-Newton steps each probe took.
+    converged : (P,) ndarray of bool
+        Whether each probe met the step tolerance within its steps.
     offset_mm : float
-        The chosen level (the profile's minimum) against the first fit's, mm.
+        The chosen level against the warm start's, mm (0 when the start's level was kept).
     sigma_mm : float
         The minimum's standard error, mm, from the spread of interleaved subsets' own minima
-        (noise only: the remaining error can be several times larger, and a nearly flat
-        surface's profile can mislead it; docs/results.md).
+        (noise only: the remaining error can be several times larger; docs/results.md).
+    kept_start : bool
+        True when the profile did not pin a minimum and the warm start's level was kept.
+    reason : str
+        Why the start's level was kept ("" when the profile's minimum was used).
     """
 
     fit: FitResult
     offsets_mm: Array
-    sum_squares_mm2: Array
+    cost_mm2: Array
+    iterations: NDArray
+    converged: NDArray
     offset_mm: float
     sigma_mm: float
+    kept_start: bool
+    reason: str
 
 
-def _shifted(fit: FitResult, dz_mm: float, fallback: tuple[Array, Array]) -> tuple[Array, Array]:
-    """A fit's samples raised by ``dz_mm``: the warm start of the next probe (a ray that
-    missed the fitted spline keeps the ``fallback`` sample and slopes)."""
-    hit = np.isfinite(fit.points_mm).all(axis=1) & np.isfinite(fit.slopes).all(axis=1)
-    p = np.where(hit[:, None], fit.points_mm, fallback[0])
-    p[:, 2] += np.where(hit, dz_mm, 0.0)
-    return p, np.where(hit[:, None], fit.slopes, fallback[1])
+def _level_weights(spline: BSplineSurface, xy: Array) -> Array:
+    """``a`` such that ``a . c`` is the spline's mean height at the points ``xy`` (K, 2)."""
+    index, w, inside = spline.rows(xy[:, 0], xy[:, 1])
+    a = np.bincount(index[inside].ravel(), w[0][inside].ravel(), spline.coeffs.size)
+    return a / max(int(inside.sum()), 1)
 
 
+@_ONE_BLAS_THREAD
 def fit_level(
     points_mm: Array,
     slopes: Array,
@@ -440,107 +564,120 @@ def fit_level(
     like: Heightfield,
     *,
     probe_mm: float = 0.15,
-    iterations: int = 3,
-    max_probes: int = 7,
+    iterations: int = PROBE_STEPS,
+    max_probes: int = MAX_PROBES,
 ) -> LevelFit:
     """:func:`fit_surface` with the level found by a search along the fit's flat direction.
 
     Raising the surface and re-bending it sends every ray to nearly the same spot (the
     depth-normal ambiguity): the spot residual changes by microns per 0.1 mm of level, far
-    less than Gauss-Newton's damping lets one step move along it, so the fit keeps the level
-    it starts from. This search fits the shape at fixed level offsets (the probes, each warm
-    started from the last), takes the minimum of the parabola through their sums of squared
-    residuals (the profile), and fits there. With the renders' exact spots the profile's
-    minimum is the true level within 0.01 mm where the integrability level is off by 0.1-0.3
-    mm (docs/results.md).
+    less than Gauss-Newton's damping lets one step move along it, so a free fit keeps the
+    level it starts from (and creeps along the valley, which makes its residual depend on how
+    many steps it took). Each probe therefore fits the shape with the level held fixed (the
+    spline's mean height at the samples), from the same start (the fit at the warm start's
+    level, shifted) and with the same bounded steps, so that the profile (the spot
+    residuals' summed Cauchy loss over the level) is a smooth function of the level alone.
+    The search brackets the profile's minimum (walking downhill from three probes around the
+    start) and refines it by successive parabolas through the lowest probe and its two
+    neighbours. With the renders' exact spots the minimum is the true level within 0.01 mm
+    where the integrability level is off by 0.1-0.3 mm (docs/results.md). Where the walk
+    finds no minimum within ``max_probes``, the start's level is kept and the result says so.
 
     Parameters
     ----------
     points_mm, slopes, panel_px, spot_px, projector, camera_s, z_h_mm, like
         As :func:`fit_surface`.
     probe_mm : float
-        Spacing of the first three probes around the warm start's level, mm.
+        Spacing of the first three probes around the warm start's level and of the walk, mm.
     iterations : int
-        Gauss-Newton steps per probe and for the final fit.
+        Most Gauss-Newton steps per probe (each stops earlier once converged).
     max_probes : int
-        Most probes; the search walks on while the minimum lies outside the probed range.
+        Most probes (the start's included).
 
     Returns
     -------
     LevelFit
     """
-    from scipy.spatial import cKDTree
-
     t0 = time.perf_counter()
-    args = (panel_px, spot_px, projector, camera_s, z_h_mm, like)
+    xy = points_mm[:, :2]
     # One knot layout for every probe, or their residuals would not compare.
-    step_mm = float(np.median(cKDTree(points_mm[:, :2]).query(points_mm[:, :2], k=2)[0][:, 1]))
-
-    def probe(start: FitResult | None, dz_mm: float) -> FitResult:
-        p, g = (points_mm, slopes) if start is None else _shifted(start, dz_mm,
-                                                                  (points_mm, slopes))
-        return fit_surface(p, g, *args, step_mm=step_mm, iterations=iterations)
-
-    base = probe(None, 0.0)
-
-    def level(fit: FitResult) -> float:
-        # A probe's actual level against the base's, per ray: Gauss-Newton moves it a little
-        # from the offset it started at, and the profile must be read at the actual one.
-        return float(np.nanmean(fit.points_mm[:, 2] - base.points_mm[:, 2]))
-
+    start = _initial_spline(xy, points_mm[:, 2], slopes, _knot_step(xy), SMOOTHNESS)
+    rays = _Rays.of(panel_px, spot_px, projector, camera_s, z_h_mm)
+    a = _level_weights(start, xy)
+    level0 = float(a @ start.coeffs.ravel())
+    gn = {"iterations": iterations, "tol_mm": PROBE_TOL_MM, "smoothness": SMOOTHNESS}
+    base = _gauss_newton(start, rays, rays.t_at(points_mm[:, 2]), level=(a, level0), **gn)
+    # A few spots far off the rest (a detection error, a crest the spline cannot follow)
+    # can outweigh every other ray's preference for a level: the profile is of the Cauchy
+    # loss, its scale fixed from the plain fit's median residual so all probes compare.
+    r = np.linalg.norm(base.prediction.residual_mm, axis=1)
+    scale = CAUCHY_SCALE * max(float(np.nanmedian(r)), 1e-6) / _MEDIAN_NORM  # exact spots
+    gn["scale_mm"] = scale
+    base = _gauss_newton(base.spline, rays, base.prediction.t, level=(a, level0), **gn)
     fits = {0.0: base}
-    for off in (-probe_mm, probe_mm):
-        fit = probe(base, off)
-        fits[level(fit)] = fit
+
+    def probe(offset: float) -> None:
+        # The same start for every probe: the base moved by the offset (a's weights sum to
+        # one, so adding the offset to every coefficient moves the level by exactly that).
+        shifted = BSplineSurface(start.x0_mm, start.y0_mm, start.step_mm,
+                                 base.spline.coeffs + offset)
+        t = base.prediction.t + offset / rays.d[:, 2]
+        fits[offset] = _gauss_newton(shifted, rays, t, level=(a, level0 + offset), **gn)
+
+    for offset in (-probe_mm, probe_mm):
+        probe(offset)
+    reason = ""
     while True:
-        offsets, ss, _ = _profile(fits)
-        vertex = parabola_vertex(offsets, ss)
-        if offsets[0] <= vertex <= offsets[-1] or len(fits) >= max_probes:
+        offsets, cost, _ = _profile(fits, scale)
+        low = int(np.argmin(cost))
+        if 0 < low < len(offsets) - 1:  # bracketed: refine by the parabola through three
+            vertex = _vertex3(offsets[low - 1:low + 2], cost[low - 1:low + 2])
+            if np.min(np.abs(offsets - vertex)) < POLISH_MM or len(fits) >= max_probes:
+                break
+            probe(vertex)
+        elif len(fits) >= max_probes:
+            reason = (f"the level's profile has no minimum within {offsets[0]:+.2f} to "
+                      f"{offsets[-1]:+.2f} mm of the start")
             break
-        # Walk downhill: one probe a step beyond the lowest end.
-        end = offsets[int(np.argmin(ss))]
-        step = probe_mm if end == offsets[-1] else -probe_mm
-        fit = probe(fits[end], step)
-        fits[level(fit)] = fit
-    if not np.isfinite(vertex):
-        vertex = float(offsets[int(np.argmin(ss))])
-    vertex = float(np.clip(vertex, offsets[0], offsets[-1]))
-    # Polish: fit at the minimum, then take the minimum of the three probes nearest to it;
-    # fit again where it moved.
-    for polish in range(POLISH_STEPS + 1):
-        nearest = min(fits, key=lambda o: abs(o - vertex))
-        final = probe(fits[nearest], vertex - nearest)
-        vertex = level(final)
-        fits[vertex] = final
-        near = dict(sorted(fits.items(), key=lambda kv: abs(kv[0] - vertex))[:3])
-        x_near, ss_near, _ = _profile(near)
-        moved = parabola_vertex(x_near, ss_near)
-        if polish == POLISH_STEPS or not abs(moved - vertex) >= POLISH_MM:
-            break
-        vertex = float(np.clip(moved, offsets[0], offsets[-1]))
-    sigma = _profile_sigma(fits)
-    final.timings_ms["total"] = 1e3 * (time.perf_counter() - t0)
-    offsets, ss, _ = _profile(fits)
-    return LevelFit(final, offsets, ss, vertex, sigma)
+        else:  # walk downhill
+            probe(float(offsets[low] + (probe_mm if low else -probe_mm)))
+    chosen = 0.0 if reason else float(offsets[low])
+    timings = {"gauss_newton": 1e3 * (time.perf_counter() - t0)}
+    sigma = _profile_sigma(fits, scale)
+    return LevelFit(
+        _result(fits[chosen], like, timings), offsets, cost,
+        np.array([fits[o].iterations for o in offsets]),
+        np.array([fits[o].converged for o in offsets]),
+        chosen, sigma, bool(reason), reason,
+    )
 
 
-def _profile(fits: dict[float, FitResult]) -> tuple[Array, Array, int]:
-    """Probe levels (sorted, mm), their sums of squared spot residuals over the rays all of
-    them keep (mm^2), and how many rays that is."""
+def _vertex3(x: Array, y: Array) -> float:
+    """Abscissa of the vertex of the parabola through three points whose middle is lowest."""
+    d0, d1 = (y[1] - y[0]) / (x[1] - x[0]), (y[2] - y[1]) / (x[2] - x[1])
+    curvature = (d1 - d0) / (x[2] - x[0])
+    return float(0.5 * (x[0] + x[1]) - d0 / (2 * curvature)) if curvature > 0 else float(x[1])
+
+
+def _profile(fits: dict[float, _Fit], scale: float | None) -> tuple[Array, Array, int]:
+    """Probe levels (sorted, mm), their summed :func:`_cost` over the rays all of them keep
+    (mm^2), and how many rays that is."""
     offsets = np.array(sorted(fits))
-    residuals = np.stack([fits[o].residual_mm for o in offsets])
+    residuals = np.stack([_cost(np.sum(fits[o].prediction.residual_mm ** 2, axis=1), scale)
+                          for o in offsets])
     common = np.isfinite(residuals).all(axis=0)
-    return offsets, np.sum(residuals[:, common] ** 2, axis=1), int(common.sum())
+    return offsets, np.sum(residuals[:, common], axis=1), int(common.sum())
 
 
-def _profile_sigma(fits: dict[float, FitResult]) -> float:
+def _profile_sigma(fits: dict[float, _Fit], scale: float | None) -> float:
     """Standard error of the profile's minimum, mm: :func:`restoration.anchor.anchor_sigma_mm`
-    on the sums of squared residuals of interleaved subsets of the rays (inf when a subset
-    finds no minimum within the probed span of the probes)."""
-    offsets, _, _ = _profile(fits)
-    residuals = np.stack([fits[o].residual_mm for o in offsets])
+    on the summed :func:`_cost` of interleaved subsets of the rays (inf when a subset finds no
+    minimum within the probed span of the probes)."""
+    offsets = np.array(sorted(fits))
+    residuals = np.stack([_cost(np.sum(fits[o].prediction.residual_mm ** 2, axis=1), scale)
+                          for o in offsets])
     common = np.isfinite(residuals).all(axis=0)
     sets = np.arange(residuals.shape[1]) % N_SETS
-    set_ss = np.stack([np.sum(residuals[:, common & (sets == k)] ** 2, axis=1)
+    set_ss = np.stack([np.sum(residuals[:, common & (sets == k)], axis=1)
                        for k in range(N_SETS)], axis=1)
     return anchor_sigma_mm(offsets, set_ss, float(np.ptp(offsets)))

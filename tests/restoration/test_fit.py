@@ -84,6 +84,44 @@ def test_the_level_search_finds_the_height_a_damped_fit_keeps(paper_cfg):
     found = fit_level(start, slopes, *args)
     assert abs(level_error(found.fit.points_mm)) < 0.03
     assert abs(level_error(found.fit.points_mm)) < 0.3 * abs(level_error(plain.points_mm))
-    # The search stopped at the lowest point of its profile.
-    chosen = found.sum_squares_mm2[found.offsets_mm == found.offset_mm]
-    assert chosen.size == 1 and chosen[0] == found.sum_squares_mm2.min()
+    # The search stopped at the lowest point of its profile, every probe within its steps.
+    chosen = found.cost_mm2[found.offsets_mm == found.offset_mm]
+    assert chosen.size == 1 and chosen[0] == found.cost_mm2.min()
+    assert not found.kept_start and found.reason == ""
+    assert found.iterations.max() <= 8
+
+
+def test_the_level_profile_is_unimodal_for_exact_spots(paper_cfg):
+    # Every probe fits from the same start with the level held, so the profile is a function
+    # of the level alone: on exact spots it falls to one minimum, at the true level, and
+    # rises after it (no probe's warm start makes a dip of its own).
+    from restoration.fit import fit_level
+
+    cfg = paper_cfg
+    truth = _swell(cfg.water.h0_mm, amplitude=3.0)
+    panel, spots, hits, slopes = _exact_samples(cfg, truth)
+    start = hits.copy()
+    start[:, 2] += 0.2
+    like = Heightfield(truth.x, truth.y, truth.z)
+    found = fit_level(start, slopes, panel, spots, cfg.projector.camera(),
+                      cfg.camera_s.camera(), cfg.diffuser.z_mm, like, probe_mm=0.1)
+    x, y = found.offsets_mm, found.cost_mm2
+    low = int(np.argmin(y))
+    assert np.all(np.diff(y[:low + 1]) < 0) and np.all(np.diff(y[low:]) > 0)
+    assert abs(x[low] + 0.2) < 0.03 and found.offset_mm == x[low]
+
+
+def test_a_nearly_flat_surface_keeps_its_level(paper_cfg):
+    # A swell of 0.1 mm (nearly flat: the level's profile is shallow) started at the right
+    # level: the search must not walk away from it.
+    from restoration.fit import fit_level
+
+    cfg = paper_cfg
+    truth = _swell(cfg.water.h0_mm, amplitude=0.1)
+    panel, spots, hits, slopes = _exact_samples(cfg, truth)
+    like = Heightfield(truth.x, truth.y, truth.z)
+    found = fit_level(hits, slopes, panel, spots, cfg.projector.camera(),
+                      cfg.camera_s.camera(), cfg.diffuser.z_mm, like)
+    err = found.fit.points_mm[:, 2] - truth.height(found.fit.points_mm[:, 0],
+                                                   found.fit.points_mm[:, 1])
+    assert abs(float(np.nanmean(err))) < 0.03
