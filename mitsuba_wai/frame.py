@@ -57,6 +57,7 @@ def render_frame(
     *,
     spp: int | None = None,
     renderer: FrameRenderer | None = None,
+    seed: int | None = None,
 ) -> Frame:
     """Render both systems through wavy and flat water, in memory.
 
@@ -71,6 +72,9 @@ def render_frame(
         Samples per pixel of every render (default: the configuration's).
     renderer : FrameRenderer, optional
         A renderer already loaded for this configuration and grid, reused across frames.
+    seed : int, optional
+        Sampler seed of the renders (0 .. 2^32 - 1); default: derived from ``cfg.waves.seed``
+        (:func:`mitsuba_wai.render.render_seed`), as ``wai render`` does.
 
     Returns
     -------
@@ -86,7 +90,7 @@ def render_frame(
     """
     grid = wave_surface(cfg) if surface is None else file_surface(cfg, surface)
     renderer = FrameRenderer(cfg, grid) if renderer is None else renderer
-    seed = render_seed(cfg)
+    seed = render_seed(cfg) if seed is None else int(seed)
     t0 = time.perf_counter()
     surface_at = moving_surface(cfg) if surface is None else None
     cfg, images = render_frame_images(renderer, cfg, grid, seed, spp=spp, surface_at=surface_at)

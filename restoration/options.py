@@ -93,3 +93,4 @@ class RestoreOptions:
     def to_dict(self) -> dict[str, Any]:
         """The options as plain values (what ``metrics.json`` records)."""
         return asdict(self)
+

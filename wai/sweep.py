@@ -45,7 +45,9 @@ IN_PROCESS = "in-process"
 MAX_MESSAGE = 400  # characters of an error message kept in a row's status
 
 # Native thread pools that read their size from the environment when they are loaded.
-THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+THREAD_VARIABLES = (
+    "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS",
+)
 
 # What the table's text cells parse back into (repr() of Python floats, ints and bools).
 _INT = re.compile(r"[+-]?\d+")
@@ -183,8 +185,8 @@ def limit_native_threads(threads: int) -> None:
 
     OpenBLAS and OpenMP read the environment when loaded, which in a local cluster's workers is
     before any task (see :func:`scoped_environ`); setting it here covers libraries loaded
-    later. Dr.Jit (Mitsuba's LLVM backend) and OpenCV otherwise start one thread per core in
-    every worker.
+    later. Dr.Jit (Mitsuba's LLVM backend), OpenCV and numba otherwise start one thread per core
+    in every worker.
     """
     os.environ.update({name: str(threads) for name in THREAD_VARIABLES})
     if importlib.util.find_spec("drjit") is not None:
@@ -195,6 +197,10 @@ def limit_native_threads(threads: int) -> None:
         import cv2
 
         cv2.setNumThreads(threads)
+    if importlib.util.find_spec("numba") is not None:  # the restoration's chunked kernels
+        import numba
+
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
 
 
 # --- the table ---------------------------------------------------------------------------------

@@ -286,30 +286,33 @@ def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal
 
 
 @njit(**_JIT)
-def segment_pixels(labels, smooth, padded, pad):  # pragma: no cover
-    """The labelled pixels (label > 0) in raster order: rows, columns and labels (N,) int32,
-    smoothed values (N,) float64 and raw values (N,) float32 (from ``padded``, the image
-    inside a frame of ``pad`` pixels)."""
+def count_rows(chunk, n_chunks, labels, count):  # pragma: no cover
+    """Labelled pixels (label > 0) of rows ``chunk, chunk + n_chunks, ...`` of ``labels``:
+    row ``r``'s into ``count[r + 1]``."""
     h, w = labels.shape
-    n = 0
-    for r in range(h):
+    for r in range(chunk, h, n_chunks):
+        n = 0
         for c in range(w):
             if labels[r, c] > 0:
                 n += 1
-    rows = np.empty(n, np.int32)
-    cols = np.empty(n, np.int32)
-    lab = np.empty(n, np.int32)
-    val = np.empty(n)
-    raw = np.empty(n, np.float32)
-    k = 0
-    for r in range(h):
+        count[r + 1] = n
+
+
+@njit(**_JIT)
+def fill_rows(chunk, n_chunks, labels, smooth, padded, pad, start, rows, cols, lab, val,
+              raw):  # pragma: no cover
+    """The labelled pixels of rows ``chunk, chunk + n_chunks, ...``, row ``r``'s from
+    ``start[r]`` on, in raster order: row, column and label (int32), smoothed value (float64)
+    and raw value (float32, from ``padded``, the image inside a frame of ``pad`` pixels)."""
+    h, w = labels.shape
+    for r in range(chunk, h, n_chunks):
+        k = start[r]
         for c in range(w):
             if labels[r, c] > 0:
                 rows[k], cols[k], lab[k] = r, c, labels[r, c]
                 val[k] = smooth[r, c]
                 raw[k] = padded[r + pad, c + pad]
                 k += 1
-    return rows, cols, lab, val, raw
 
 
 @njit(**_JIT)
@@ -398,33 +401,12 @@ def _window_sums(box, hx, hy, a, b, c, sx, sy, decay):  # pragma: no cover
 
 
 @njit(**_JIT)
-def windowed_centroids(padded, pad, rows, cols, spot, raw, base, half, inv_win, start, gain,
-                       n_iter):  # pragma: no cover
-    """Gaussian-windowed centroids (P, 2) px of P spots; see
-    :func:`restoration.features.detect._refine_centres` for the method.
-
-    Parameters
-    ----------
-    padded : (H + 2 pad, W + 2 pad) ndarray of float32
-        The raw image in a frame of zeros; used up (the spots' pixels are blanked).
-    pad : int
-        Frame width, px (at least the largest half width).
-    rows, cols, spot, raw : (N,) ndarray
-        The segmented pixels: position, the spot whose segment holds them (-1: a dropped
-        segment) and raw value.
-    base, half : (P, 2) ndarray of int
-        Box centre ``(col, row)`` and half widths ``(hx, hy)`` of each spot, px.
-    inv_win : (P, 3) ndarray
-        The window's inverse covariance ``a, b, c`` (``[[a, b], [b, c]]``), 1/px^2.
-    start : (P, 2) ndarray
-        First centres, px.
-    gain : float
-        Step gain ``1 + 1 / k^2``.
-    n_iter : int
-        Window steps.
-    """
-    p = start.shape[0]
-    # Blank every kept segment; each box gets its own segment back below.
+def spot_boxes(padded, pad, rows, cols, spot, p):  # pragma: no cover
+    """Blank every kept segment of ``padded`` (each of :func:`centroid_chunk`'s boxes gets
+    its own back) and list the kept pixels by spot: spot ``s`` holds pixels ``own[first[s] :
+    first[s + 1]]``. Returns ``first`` (P + 1,) and ``own``; arguments as
+    :func:`centroid_chunk`'s, ``spot`` (N,) the spot whose segment holds each pixel (-1: a
+    dropped segment) and ``p`` the number of spots."""
     count = np.zeros(p + 1, np.int64)
     for k in range(spot.size):
         if spot[k] >= 0:
@@ -437,9 +419,43 @@ def windowed_centroids(padded, pad, rows, cols, spot, raw, base, half, inv_win, 
         if spot[k] >= 0:
             own[fill[spot[k]]] = k
             fill[spot[k]] += 1
-    out = np.empty((p, 2))
+    return first, own
+
+
+@njit(**_JIT)
+def centroid_chunk(chunk, n_chunks, padded, pad, rows, cols, raw, base, half, inv_win, start,
+                   gain, n_iter, first, own, out):  # pragma: no cover
+    """Gaussian-windowed centroids of spots ``chunk, chunk + n_chunks, ...`` of P into ``out``
+    (P, 2) px; see :func:`restoration.features.detect._refine_centres` for the method. The
+    spots are independent: any thread may run any chunk.
+
+    Parameters
+    ----------
+    chunk, n_chunks : int
+        This chunk, and how many there are.
+    padded : (H + 2 pad, W + 2 pad) ndarray of float32
+        The raw image in a frame of zeros, the kept segments blanked (:func:`spot_boxes`).
+    pad : int
+        Frame width, px (at least the largest half width).
+    rows, cols, raw : (N,) ndarray
+        The segmented pixels: position and raw value.
+    base, half : (P, 2) ndarray of int
+        Box centre ``(col, row)`` and half widths ``(hx, hy)`` of each spot, px.
+    inv_win : (P, 3) ndarray
+        The window's inverse covariance ``a, b, c`` (``[[a, b], [b, c]]``), 1/px^2.
+    start : (P, 2) ndarray
+        First centres, px.
+    gain : float
+        Step gain ``1 + 1 / k^2``.
+    n_iter : int
+        Window steps.
+    first, own : ndarray
+        Each spot's pixels (:func:`spot_boxes`).
+    out : (P, 2) ndarray
+        Out: the centres, px.
+    """
     box = np.empty((2 * pad + 1, 2 * pad + 1))
-    for s in range(p):
+    for s in range(chunk, start.shape[0], n_chunks):
         hx, hy = half[s, 0], half[s, 1]
         bx, by = base[s, 0], base[s, 1]
         for r in range(2 * hy + 1):
@@ -460,4 +476,3 @@ def windowed_centroids(padded, pad, rows, cols, spot, raw, base, half, inv_win, 
                 sx += min(max(gain * (mx / tot - sx), -1.0), 1.0)
                 sy += min(max(gain * (my / tot - sy), -1.0), 1.0)
         out[s, 0], out[s, 1] = sx + bx, sy + by
-    return out

@@ -14,12 +14,15 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from restoration._threads import restore_threads, run_beside, run_chunks
 from restoration.features._kernels import (
     axis_moments,
-    segment_pixels,
+    centroid_chunk,
+    count_rows,
+    fill_rows,
     segment_sums,
+    spot_boxes,
     weighted_sums,
-    windowed_centroids,
 )
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from wai_core.errors import WaiInputError
@@ -252,6 +255,12 @@ def _major_axis_kurtosis(px: _Pixels, peak: FloatArray, centre: FloatArray) -> F
     return np.where(np.isfinite(kurt), kurt, 3.0)
 
 
+def _chunks(n: int) -> int:
+    """Chunks of ``n`` independent items for :func:`~restoration._threads.run_chunks`: a few
+    per thread (their costs vary), none empty."""
+    return max(min(4 * restore_threads(), n), 1)
+
+
 @dataclass(frozen=True)
 class _Pixels:
     """The segmented pixels (N,) in raster order: row, column, label, smoothed (float64) and
@@ -268,8 +277,17 @@ class _Pixels:
         cls, labels: NDArray[np.int32], smooth: NDArray, padded: NDArray, pad: int
     ) -> _Pixels:
         """Pixels of ``labels`` > 0; raw values from ``padded``, the image in a frame of
-        ``pad`` pixels."""
-        return cls(*segment_pixels(labels, smooth, padded, pad))
+        ``pad`` pixels. Rows are counted, then copied, in chunks shared by the restoration's
+        threads."""
+        h = labels.shape[0]
+        start = np.zeros(h + 1, np.int64)
+        run_chunks(count_rows, _chunks(h), labels, start)
+        start = np.cumsum(start)  # row r's pixels from start[r]
+        n = int(start[-1])
+        out = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n, np.int32),
+               np.empty(n), np.empty(n, np.float32))
+        run_chunks(fill_rows, _chunks(h), labels, smooth, padded, pad, start, *out)
+        return cls(*out)
 
 
 @dataclass(frozen=True)
@@ -356,8 +374,9 @@ def _refine_centres(
     sigmas: beyond it the spot times the window is below 0.5 %), centred on ``start`` rounded
     to a pixel. It holds the raw image there with the pixels of the other kept segments
     blanked, so a much brighter neighbour cannot pull the centre. ``padded`` is the raw image
-    with ``box_max`` zeros around it (a multiple of 3 px); it is used up (blanked). One
-    compiled loop over the spots (:func:`restoration.features._kernels.windowed_centroids`).
+    with ``box_max`` zeros around it (a multiple of 3 px); it is used up (blanked). Compiled
+    loops over the spots, in chunks shared by the restoration's threads
+    (:func:`restoration.features._kernels.centroid_chunk`).
     """
     if len(keep) == 0:
         return np.zeros((0, 2))
@@ -368,11 +387,14 @@ def _refine_centres(
     inv_win = np.stack([cov[:, 1, 1] / det, -cov[:, 0, 1] / det, cov[:, 0, 0] / det], axis=1)
     spot_of = np.full(n, -1, np.int64)
     spot_of[keep] = np.arange(len(keep))
-    return windowed_centroids(
-        padded, box_max, px.rows, px.cols, spot_of[px.lab], px.raw,
+    first, own = spot_boxes(padded, box_max, px.rows, px.cols, spot_of[px.lab], len(keep))
+    out = np.empty((len(keep), 2))
+    run_chunks(
+        centroid_chunk, _chunks(len(keep)), padded, box_max, px.rows, px.cols, px.raw,
         np.rint(start).astype(np.int64), half, inv_win, np.ascontiguousarray(start, float),
-        _WINDOW_GAIN, n_iter,
+        _WINDOW_GAIN, n_iter, first, own, out,
     )
+    return out
 
 
 @dataclass(frozen=True)
@@ -490,12 +512,15 @@ def detect_spots(
     lum = padded[pad:-pad, pad:-pad]
     h, w = lum.shape
     smooth = cv2.GaussianBlur(lum, (0, 0), smooth_px, borderType=cv2.BORDER_REFLECT)
-    noise = _noise_sigma(lum, smooth, smooth_px)
+    # The noise (two selections over a sample) beside the background (filters): both only
+    # read lum and smooth, which change below.
+    noise_of = run_beside(functools.partial(_noise_sigma, lum, smooth, smooth_px))
     bg = _background(smooth, background_px)
     # A local minimum sits below the mean of noise: without this, read noise would lift every
     # pixel above the floor. Capped by the lower quartile of what remains, which is ~0 where
     # there is no noise (there the noise estimate is only the dots' sharpness).
     lifted = float(np.percentile(smooth[::4, ::4] - bg[::4, ::4], 25.0))
+    noise = noise_of()
     bg += min(noise * _minimum_bias(smooth_px, background_px), max(lifted, 0.0))
     smooth -= bg
     saturated_px = None if saturation is None else lum >= saturation

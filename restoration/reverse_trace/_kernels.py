@@ -3,10 +3,11 @@
 
 Every target's iteration is independent, so the solver is a loop over targets with the whole
 Newton iteration inside (no per-iteration array passes: ~10x fewer memory sweeps than the
-vectorised form). Arithmetic follows the expressions of the former NumPy implementation term
-by term (no fast-math, no fused multiply-adds), so results match it to the last bit wherever
-the same libm is used. ``error_model="numpy"``: a singular Jacobian gives inf/NaN, as in NumPy,
-not an exception.
+vectorised form), in chunks that the restoration's threads share
+(:func:`restoration._threads.run_chunks`). Arithmetic follows the expressions of the former
+NumPy implementation term by term (no fast-math, no fused multiply-adds), so results match it
+to the last bit wherever the same libm is used. ``error_model="numpy"``: a singular Jacobian
+gives inf/NaN, as in NumPy, not an exception.
 """
 
 from __future__ import annotations
@@ -226,17 +227,16 @@ def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, frac
     return _NOT_CONVERGED, max_iter
 
 
-# Serial on purpose: on the shared 2-core machine the parallel loop (2 numba threads) solved
-# in 1.6 ms against 3.4 ms when quiet, but in 14-21 ms against 3.5 ms when other processes
-# loaded it (a descheduled thread stalls the whole loop), and 2 worker processes
-# (`wai bench video --workers 2`) always load it.
 @njit(**_JIT)
-def newton_solve(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs, tol,
-                 max_iter, targets, q0):
-    """Solve every target (N, 2) mm from surface points ``q0`` (N, 2) mm.
+def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls,
+                 fracs, tol, max_iter, targets, q0, px, status, q, iters):  # pragma: no cover
+    """Solve targets ``chunk, chunk + n_chunks, ...`` of the N targets (N, 2) mm from surface
+    points ``q0`` (N, 2) mm. The targets are independent: any thread may run any chunk.
 
     Parameters
     ----------
+    chunk, n_chunks : int
+        This chunk, and how many there are.
     flat : bool
         Flat water at ``h0`` mm (the table arguments are then ignored).
     table, cell_ok, gx, gy : ndarray
@@ -253,32 +253,22 @@ def newton_solve(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fr
         Convergence threshold on the pixel step, px.
     max_iter : int
         Newton iterations at most.
-
-    Returns
-    -------
     px : (N, 2) ndarray
-        Pixels ``(col, row)``; NaN unless converged.
+        Out: pixels ``(col, row)``; left as they are (NaN) unless converged.
     status : (N,) ndarray of int8
-        :class:`RayStatus` codes.
+        Out: :class:`RayStatus` codes.
     q : (N, 3) ndarray
-        Surface points, mm; NaN unless converged.
-    iterations : int
-        Iterations of the slowest target.
+        Out: surface points, mm; left as they are (NaN) unless converged.
+    iters : (N,) ndarray of int
+        Out: iterations run.
     """
-    n = targets.shape[0]
-    px = np.full((n, 2), np.nan)
-    q = np.full((n, 3), np.nan)
-    status = np.empty(n, np.int8)
-    iters = np.zeros(n, np.int64)
     state, trial = np.empty(11), np.empty(11)
-    for t in range(n):
+    for t in range(chunk, targets.shape[0], n_chunks):
         s, it = _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs,
                            tol, max_iter, targets[t, 0], targets[t, 1], q0[t, 0], q0[t, 1],
                            px, q, t, state, trial)
         status[t] = s
         iters[t] = it
-    return px, status, q, (int(iters.max()) if n else 0)
-
 
 
 # --- spline tables ----------------------------------------------------------------------------
@@ -373,12 +363,15 @@ def spline_table(first_x, poly_x, first_y, poly_y, coeffs):  # pragma: no cover
 
 
 @njit(**_JIT)
-def warp_maps(disp_x, disp_y, cell_ok, col_i, col_t, row_i, row_t, map_x, map_y, valid,
-              blank):  # pragma: no cover
-    """Upsample a coarse warp to every pixel, with its validity, in one pass.
+def warp_rows(chunk, n_chunks, disp_x, disp_y, cell_ok, col_i, col_t, row_i, row_t, map_x,
+              map_y, valid, blank, per_row, first, last):  # pragma: no cover
+    """Upsample a coarse warp to the pixels of rows ``chunk, chunk + n_chunks, ...``, with its
+    validity. The rows are independent: any thread may run any chunk.
 
     Parameters
     ----------
+    chunk, n_chunks : int
+        This chunk, and how many there are.
     disp_x, disp_y : (rows, cols) ndarray of float32
         Warp displacement ``u - p`` at the coarse nodes, px; interpolated bilinearly.
     cell_ok : (rows - 1, cols - 1) ndarray of bool
@@ -394,22 +387,15 @@ def warp_maps(disp_x, disp_y, cell_ok, col_i, col_t, row_i, row_t, map_x, map_y,
         Out: in a solved cell and ``-0.5 <= u <= size - 0.5`` (as :meth:`PinholeCamera.in_image`).
     blank : (H, W) ndarray of uint8
         Out: 1 where not valid (the mask that zeroes those pixels of the resampled image).
-
-    Returns
-    -------
-    n_valid : int
-        Valid pixels.
-    box : (4,) ndarray of int
-        Their bounding box: first and one past the last row, then column (empty: all 0).
+    per_row, first, last : (H,) ndarray of int
+        Out: each row's valid pixels, and the first and one past the last valid column (``W``
+        and 0 where none): :func:`valid_box` reduces them.
     """
     h, w = map_x.shape
     n_cols = disp_x.shape[1]
-    first = np.full(h, w, np.int64)
-    last = np.zeros(h, np.int64)
     lo = np.float32(-0.5)
     wx, hy = np.float32(w - 0.5), np.float32(h - 0.5)
-    per_row = np.zeros(h, np.int64)
-    for r in range(h):
+    for r in range(chunk, h, n_chunks):
         iy, ty = row_i[r], row_t[r]
         x0, x1, y0, y1 = disp_x[iy], disp_x[iy + 1], disp_y[iy], disp_y[iy + 1]
         ok_row = cell_ok[iy]
@@ -436,9 +422,15 @@ def warp_maps(disp_x, disp_y, cell_ok, col_i, col_t, row_i, row_t, map_x, map_y,
                     hi_c = c + 1
                 c += 1
         per_row[r], first[r], last[r] = n_ok, lo_c, hi_c
+
+
+@njit(**_JIT)
+def valid_box(per_row, first, last, w):  # pragma: no cover
+    """Valid pixels in all and their bounding box (4,): first and one past the last row, then
+    column (empty: all 0), from :func:`warp_rows`' per-row figures of an image ``w`` wide."""
     box = np.zeros(4, np.int64)
     n_valid = 0
-    for r in range(h):
+    for r in range(per_row.size):
         if per_row[r]:
             if n_valid == 0:
                 box[0], box[2] = r, w
@@ -447,3 +439,18 @@ def warp_maps(disp_x, disp_y, cell_ok, col_i, col_t, row_i, row_t, map_x, map_y,
             box[2] = min(box[2], first[r])
             box[3] = max(box[3], last[r])
     return n_valid, box
+
+
+@njit(**_JIT)
+def finish_rows(chunk, n_chunks, box, blank, gain):  # pragma: no cover
+    """Rows ``chunk, chunk + n_chunks, ...`` of the resampled ``box`` (h, w, C) divided by
+    ``gain`` (of its type), and 0 where ``blank`` (h, w) is set."""
+    h, w, n_ch = box.shape
+    for r in range(chunk, h, n_chunks):
+        for c in range(w):
+            if blank[r, c]:
+                for k in range(n_ch):
+                    box[r, c, k] = 0.0
+            else:
+                for k in range(n_ch):
+                    box[r, c, k] = box[r, c, k] / gain

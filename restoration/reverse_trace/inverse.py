@@ -1,14 +1,14 @@
 """The inverse map: which pixel of camera v sees a given object point through a given surface.
 
 :func:`solve_pixels` (and :func:`find_pixels`, its pixels and success mask only) solves it by
-Newton's method, one compiled loop over the targets
-(:mod:`restoration.reverse_trace._kernels`). The unknown is the surface point ``q = (x, y)`` where
-the ray crosses the water rather than the pixel itself: for a candidate ``q`` the ray from the
-camera centre to ``(x, y, h(x, y))`` and the normal there are explicit, so each Newton step needs
-one surface evaluation instead of a nested ray-surface intersection; the pixel is the projection
-of ``q``. Newton drives the angle between the refracted ray and the direction to the target to
-zero (``_kernels._residual``); its Jacobian is a forward finite difference in ``q``. It inverts
-:func:`wai_core.optics.trace_to_object`.
+Newton's method, one compiled loop over the targets in chunks that the restoration's threads
+share (:mod:`restoration.reverse_trace._kernels`). The unknown is the surface point ``q = (x,
+y)`` where the ray crosses the water rather than the pixel itself: for a candidate ``q`` the
+ray from the camera centre to ``(x, y, h(x, y))`` and the normal there are explicit, so each
+Newton step needs one surface evaluation instead of a nested ray-surface intersection; the
+pixel is the projection of ``q``. Newton drives the angle between the refracted ray and the
+direction to the target to zero (``_kernels._residual``); its Jacobian is a forward finite
+difference in ``q``. It inverts :func:`wai_core.optics.trace_to_object`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from restoration.reverse_trace._kernels import newton_solve
+from restoration._threads import restore_threads, run_chunks
+from restoration.reverse_trace._kernels import newton_chunk
 from restoration.reverse_trace._surface import _FlatWater, _SplinePatches, _surface_model
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera, intersect_plane_z
@@ -62,7 +63,8 @@ def _newton(
 ) -> tuple[Array, NDArray[np.int8], Array, int]:
     """Solve targets (N, 2) mm from surface points ``q0`` (N, 2) mm; see :func:`solve_pixels`.
 
-    Per target (the compiled loop of :func:`~restoration.reverse_trace._kernels.newton_solve`):
+    Per target (the compiled loop of :func:`~restoration.reverse_trace._kernels.newton_chunk`,
+    in chunks shared by the restoration's threads):
     a start beyond the edge of Snell's window (TIR, or an air ray below the horizon) is first
     pulled towards the nadir, the mildest of :data:`_MAX_PULLS` pulls that gets out kept. Each
     Newton step must then land on the known surface, without TIR, and shrink ``|r|``, else the
@@ -83,11 +85,18 @@ def _newton(
         pose.R.ravel(), pose.t_mm, camera.focal_px,
         (camera.width_px - 1) / 2.0, (camera.height_px - 1) / 2.0,
     ]
-    return newton_solve(
-        flat, h0, *surf, np.r_[optics.center, optics.n_water, optics.z_object], proj,
-        _FD_STEP_MM, _PULLS, _FRACS, float(tol_px), int(max_iter),
-        np.ascontiguousarray(targets, dtype=float), np.ascontiguousarray(q0, dtype=float),
+    targets = np.ascontiguousarray(targets, dtype=float)
+    n = len(targets)
+    px, q = np.full((n, 2), np.nan), np.full((n, 3), np.nan)
+    status, iters = np.empty(n, np.int8), np.zeros(n, np.int64)
+    # A few chunks per thread: targets near the edge of Snell's window take more steps.
+    run_chunks(
+        newton_chunk, max(min(4 * restore_threads(), n), 1), flat, h0, *surf,
+        np.r_[optics.center, optics.n_water, optics.z_object], proj, _FD_STEP_MM, _PULLS,
+        _FRACS, float(tol_px), int(max_iter), targets, np.ascontiguousarray(q0, dtype=float),
+        px, status, q, iters,
     )
+    return px, status, q, (int(iters.max()) if n else 0)
 
 
 @dataclass(frozen=True)

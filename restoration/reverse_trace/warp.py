@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration.reverse_trace._kernels import warp_maps
+from restoration._threads import restore_threads, run_chunks
+from restoration.reverse_trace._kernels import finish_rows, valid_box, warp_rows
 from restoration.reverse_trace._surface import _surface_model
 from restoration.reverse_trace.inverse import _newton, _Optics
 from wai_core.errors import WaiInputError
@@ -234,17 +235,19 @@ def _pixel_warp(
     disp_x: NDArray[np.float32],
     disp_y: NDArray[np.float32],
     node_status: NDArray[np.int8],
-    step: int,
+    gain: float,
 ) -> tuple[NDArray, NDArray[np.float32], NDArray[np.float32], BoolArray, dict[str, int]]:
-    """The restored image (H, W[, C]), full-resolution sampling columns and rows (H, W),
-    validity (H, W) and counts per cause.
+    """The restored image (H, W[, C]) over ``gain``, full-resolution sampling columns and rows
+    (H, W), validity (H, W) and counts per cause.
 
     A pixel is valid when the four nodes of its cell were solved and its sampling position
-    lies inside the distorted image. One compiled pass
-    (:func:`~restoration.reverse_trace._kernels.warp_maps`) upsamples the warp and tests it;
-    ``cv2.remap`` samples the image in the valid pixels' bounding box (exact bilinear weights
-    on float maps since OpenCV 5; the fixed-point maps of ``cv2.convertMaps`` would round the
-    position to 1/32 px and measured no faster).
+    lies inside the distorted image. One compiled pass over the rows, in chunks shared by the
+    restoration's threads (:func:`~restoration.reverse_trace._kernels.warp_rows`), upsamples
+    the warp and tests it; ``cv2.remap`` samples the image in the valid pixels' bounding box
+    (exact bilinear weights on float maps since OpenCV 5; the fixed-point maps of
+    ``cv2.convertMaps`` would round the position to 1/32 px and measured no faster); the box
+    is then divided by the gain, and its invalid pixels zeroed, in chunks of rows
+    (:func:`~restoration.reverse_trace._kernels.finish_rows`).
     Displacements are interpolated, not positions: they vary slowly, so float32 costs nothing.
     """
     h, w = plan.image_shape
@@ -253,18 +256,24 @@ def _pixel_warp(
     map_y = np.empty((h, w), np.float32)
     valid = np.empty((h, w), bool)
     blank = np.empty((h, w), np.uint8)
-    n_valid, (r0, r1, c0, c1) = warp_maps(
-        disp_x, disp_y, cell == RayStatus.OK, *plan.pixel_cells, map_x, map_y, valid, blank
+    per_row, first, last = (np.empty(h, np.int64) for _ in range(3))
+    run_chunks(
+        warp_rows, 4 * restore_threads(), disp_x, disp_y, cell == RayStatus.OK,
+        *plan.pixel_cells, map_x, map_y, valid, blank, per_row, first, last,
     )
+    n_valid, (r0, r1, c0, c1) = valid_box(per_row, first, last, w)
     # Only the valid pixels' bounding box is sampled (views: cv2 writes into the result); the
-    # rest stays 0. Half-pixel border: replicate rather than blend with black. Invalid pixels
-    # inside the box are then zeroed (x - x under the mask; the image is finite).
+    # rest stays 0. Half-pixel border: replicate rather than blend with black. The box is then
+    # divided by the gain and its invalid pixels zeroed, in one pass over its rows.
     out = np.zeros(img.shape, dtype=img.dtype)
     if n_valid:
         box = out[r0:r1, c0:c1]
         cv2.remap(img, map_x[r0:r1, c0:c1], map_y[r0:r1, c0:c1], cv2.INTER_LINEAR, dst=box,
                   borderMode=cv2.BORDER_REPLICATE)
-        cv2.subtract(box, box, dst=box, mask=blank[r0:r1, c0:c1])
+        run_chunks(
+            finish_rows, 4 * restore_threads(), box.reshape(r1 - r0, c1 - c0, -1),
+            blank[r0:r1, c0:c1], img.dtype.type(gain),
+        )
     hist = np.bincount(cell.ravel(), weights=plan.cell_area.ravel(), minlength=len(RayStatus))
     counts = {s.name.lower(): int(round(hist[s])) for s in RayStatus}
     counts["out_of_view"] += counts["ok"] - int(n_valid)
@@ -280,6 +289,7 @@ def restore_view(
     n_water: float,
     z_object_mm: float,
     warp_step_px: int = 8,
+    gain: float = 1.0,
 ) -> Restoration:
     """Undo the refraction of ``surface_est``: resample the distorted view into the flat-water view.
 
@@ -305,6 +315,10 @@ def restore_view(
         Spacing of the coarse warp grid, pixels. On the paper's rig (800 x 600) 8 px is the
         sweet spot: 4 px solves 4x the nodes for no smaller corner spread, 16 px halves the
         solve but doubles the corner spread.
+    gain : float
+        The restored image is the sampled one divided by it (a camera's gain, e.g.
+        :attr:`~restoration.calibration.RigCalibration.view_gain`): sampling is linear, so
+        this is ``distorted / gain`` restored, to rounding, without a divided copy of it.
 
     Returns
     -------
@@ -317,6 +331,8 @@ def restore_view(
             f"restore_view: warp_step_px must be a positive integer, got {warp_step_px!r}"
         )
     step = int(warp_step_px)
+    if not (np.isfinite(gain) and gain > 0):
+        raise WaiInputError(f"restore_view: gain must be finite and positive, got {gain!r}")
     _check_system(h0_mm, n_water, z_object_mm)
     t = {"plan": time.perf_counter()}
     plan = _plan(camera, h0_mm, n_water, z_object_mm, step)
@@ -330,7 +346,7 @@ def restore_view(
     t["upsample"] = time.perf_counter()
     disp_x, disp_y, node_status = _node_warp(plan, px, st)
     t["remap"] = time.perf_counter()
-    out, map_x, map_y, valid, counts = _pixel_warp(plan, img, disp_x, disp_y, node_status, step)
+    out, map_x, map_y, valid, counts = _pixel_warp(plan, img, disp_x, disp_y, node_status, gain)
     t["end"] = time.perf_counter()
     names = list(t)
     timings = {a: 1e3 * (t[b] - t[a]) for a, b in zip(names[:-1], names[1:], strict=True)}

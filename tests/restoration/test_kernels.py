@@ -3,13 +3,22 @@ the kernel promises it."""
 
 from __future__ import annotations
 
+import contextlib
+
+import numba
 import numpy as np
 import pytest
 from scipy.interpolate import BSpline
 from scipy.spatial import cKDTree
 
 from restoration.features._kernels import nearest_two, spot_cells, weighted_sums
-from restoration.features.detect import _WINDOW_GAIN, _WINDOW_VAR, _Pixels, _refine_centres
+from restoration.features.detect import (
+    _WINDOW_GAIN,
+    _WINDOW_VAR,
+    _Pixels,
+    _refine_centres,
+    detect_spots,
+)
 from restoration.integrate import integrate_trapezoid
 from restoration.normals import (
     points_on_rays,
@@ -18,12 +27,25 @@ from restoration.normals import (
     slopes_from_normals,
 )
 from restoration.reverse_trace import _SplinePatches
-from restoration.reverse_trace._kernels import spline_jet, warp_maps
+from restoration.reverse_trace._kernels import spline_jet, valid_box, warp_rows
 from restoration.reverse_trace._surface import _cell_polynomials
-from restoration.reverse_trace.warp import _pixel_cells
+from restoration.reverse_trace.warp import _pixel_cells, restore_view
 from restoration.surface import _TrapezoidSystem
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
+from wai_core.system import load_rig
+
+
+@contextlib.contextmanager
+def _threads(n):
+    """The restoration's threads (numba's count) limited to ``n`` inside the block: the
+    kernels it runs in chunks must not depend on how many there are."""
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
 
 
 def test_reflection_slopes_are_the_numpy_steps_exactly():
@@ -165,7 +187,7 @@ def test_cell_polynomials_match_scipy_b_splines():
         np.testing.assert_allclose(got, want_b, atol=1e-12)
 
 
-def test_warp_maps_are_the_bilinear_upsampling():
+def test_warp_rows_are_the_bilinear_upsampling():
     rng = np.random.default_rng(6)
     h, w, step = 37, 53, 8
     n_rows, n_cols = -(-(h - 1) // step) + 1, -(-(w - 1) // step) + 1
@@ -175,10 +197,12 @@ def test_warp_maps_are_the_bilinear_upsampling():
     cell_ok = rng.random((n_rows - 1, n_cols - 1)) > 0.2
     map_x, map_y = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
     valid, blank = np.empty((h, w), bool), np.empty((h, w), np.uint8)
-    n_valid, box = warp_maps(
-        dx, dy, cell_ok, *_pixel_cells(w, n_cols, step), *_pixel_cells(h, n_rows, step),
-        map_x, map_y, valid, blank,
-    )
+    per_row, first, last = np.empty(h, np.int64), np.empty(h, np.int64), np.empty(h, np.int64)
+    cells = (*_pixel_cells(w, n_cols, step), *_pixel_cells(h, n_rows, step))
+    for k in range(3):  # in 3 chunks of rows
+        warp_rows(k, 3, dx, dy, cell_ok, *cells, map_x, map_y, valid, blank, per_row, first,
+                  last)
+    n_valid, box = valid_box(per_row, first, last, w)
     # Oracle: bilinear interpolation of the node grid, pixel by pixel.
     rows, cols = np.mgrid[0:h, 0:w]
     iy, ix = np.minimum(rows // step, n_rows - 2), np.minimum(cols // step, n_cols - 2)
@@ -198,3 +222,36 @@ def test_warp_maps_are_the_bilinear_upsampling():
     assert n_valid == want_valid.sum()
     r, c = np.flatnonzero(want_valid.any(axis=1)), np.flatnonzero(want_valid.any(axis=0))
     np.testing.assert_array_equal(box, [r[0], r[-1] + 1, c[0], c[-1] + 1])
+
+
+def test_restore_view_does_not_depend_on_the_thread_count():
+    """The Newton chunks and the warp's rows, whichever thread runs them."""
+    cfg = load_rig("paper")
+    cam = cfg.camera_v.camera()
+    x = y = np.linspace(-1500.0, 1500.0, 151)
+    z = cfg.water.h0_mm + 3.0 * np.sin(x[None, :] / 41.0) * np.cos(y[:, None] / 29.0)
+    surface = Heightfield(x, y, z)
+    img = np.random.default_rng(8).random((cam.height_px, cam.width_px, 3)).astype(np.float32)
+    args = (img, cam, surface, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm)
+    with _threads(1):
+        want = restore_view(*args, warp_step_px=16, gain=1.5)
+    got = restore_view(*args, warp_step_px=16, gain=1.5)
+    assert want.counts["ok"] > 0 and got.counts == want.counts
+    for name in ("image", "valid", "map_cols", "map_rows"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+
+
+def test_detect_spots_does_not_depend_on_the_thread_count():
+    """The segmented pixels' rows and the centroid chunks, whichever thread runs them."""
+    rng = np.random.default_rng(9)
+    yy, xx = np.mgrid[0:240, 0:320].astype(float)
+    img = np.zeros(yy.shape)
+    for cx, cy in rng.uniform(10, [310, 230], (150, 2)):
+        img += rng.uniform(0.2, 1.0) * np.exp(-0.5 * ((xx - cx) ** 2 + (yy - cy) ** 2) / 2.3)
+    img += rng.normal(0, 0.002, img.shape)
+    with _threads(1):
+        want = detect_spots(img)
+    got = detect_spots(img)
+    assert len(want) > 50
+    for name in ("centres_px", "flux", "peak", "area_px", "cov_px2", "merged", "border"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))

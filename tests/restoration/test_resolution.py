@@ -50,6 +50,7 @@ def runs(paper_cfg):
     out = {}
     for width, height, spp in (COARSE, FINE):
         cfg = _sized(paper_cfg.replace("waves", seed=0), width, height)
+        cfg = cfg.replace("render", spp_pattern=spp, spp_view=spp)
         frame = mw.render_frame(cfg, spp=spp)
         cal = Calibration(cfg, frame.view_gain)
         result = StructuredLight()(frame.images, cal)
@@ -69,10 +70,18 @@ def test_spot_scale_follows_the_camera(paper_cfg):
 
 
 def test_finer_camera_matches_as_many_dots(runs):
-    (_, _, cal_c, res_c, _), (_, _, _, res_f, _) = runs[COARSE[0]], runs[FINE[0]]
-    n_ref = cal_c.reference.counts["observed"]
-    assert res_f.counts["matched"] >= res_c.counts["matched"] - 0.02 * n_ref
-    assert res_f.counts["rejected_order"] <= res_c.counts["rejected_order"] + 0.02 * n_ref
+    # Order rejections of one frame scatter with the render's noise (25-68 at either
+    # resolution over four sampler seeds), so they are summed over two renders of each camera.
+    counts = {}
+    for width, (cfg, frame, cal, result, _) in runs.items():
+        again = mw.render_frame(cfg, frame.surface, spp=cfg.render.spp_pattern, seed=99)
+        second = StructuredLight()(again.images, cal)
+        counts[width] = {k: result.counts[k] + second.counts[k]
+                         for k in ("matched", "rejected_order")}
+    coarse, fine = counts[COARSE[0]], counts[FINE[0]]
+    n_ref = 2 * runs[COARSE[0]][2].reference.counts["observed"]
+    assert fine["matched"] >= coarse["matched"] - 0.02 * n_ref
+    assert fine["rejected_order"] <= coarse["rejected_order"] + 0.02 * n_ref
 
 
 def test_finer_camera_centroids_no_worse(runs):

@@ -87,6 +87,8 @@ NOTES = {
     "surface": "the pipeline's surface stage: anchor search with its reconstructions",
     "grid": "heightfield gridding, timed when the view stage first reads the heightfield",
     "view": "the pipeline's reverse_trace stage: grid + reverse_trace + resampling",
+    "consistency": "the forward check of the surface; runs beside the view (on a second thread "
+    "when there is one), so the two overlap",
 }
 
 ORDER = (
@@ -288,7 +290,8 @@ def print_restore(res: dict[str, Any]) -> None:
         f"restore {res['render_dir']}: end to end median {e['median_ms']:.1f} ms "
         f"({res['fps']:.1f} frames/s; min {e['min_ms']:.1f}, max {e['max_ms']:.1f}, "
         f"{e['runs']} runs, {res['machine']['cores']} cores, "
-        f"{rt.get('opencv_threads')} OpenCV threads; warm-up {res['warmup_ms']:.0f} ms)"
+        f"{rt.get('opencv_threads')} OpenCV threads, {rt.get('numba_threads')} restoration "
+        f"threads; warm-up {res['warmup_ms']:.0f} ms)"
     )
     ref = res["reference"]
     print(

@@ -83,6 +83,8 @@ def runtime() -> dict[str, Any]:
             out["drjit_threads"] = int(dr.thread_count())
     if "cv2" in sys.modules:
         out["opencv_threads"] = int(sys.modules["cv2"].getNumThreads())
+    if "numba" in sys.modules:  # the restoration's threads (restoration._threads.run_chunks)
+        out["numba_threads"] = int(sys.modules["numba"].get_num_threads())
     # BLAS pools are sized by these when set (threadpoolctl would ask BLAS itself; not a dep).
     out["thread_env"] = {k: os.environ[k] for k in _THREAD_ENV if k in os.environ}
     return out

@@ -3,8 +3,10 @@
 A video restorer sees one frame after another. Latency is the time one process takes per frame
 (what ``wai bench restore`` measures); throughput is how many frames per second the machine
 restores when frames are spread over worker processes, one per core, each holding the
-calibration (the flat-water reference is prepared once per worker, not per frame). The
-restored frame travels back to the parent as 8-bit RGB (what a display or an encoder takes).
+calibration (the flat-water reference is prepared once per worker, not per frame) and
+restoring with one thread: the restoration's parallel kernels would otherwise run one thread
+per core in every worker. The restored frame travels back to the parent as 8-bit RGB (what a
+display or an encoder takes).
 
 The sequence is rendered once into ``--out`` (default ``renders/bench_video``): consecutive
 frames 1/30 s apart, so the waves move as in a real recording.
@@ -18,6 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 from wai.bench.timing import machine, reference_workload, summarize
@@ -50,6 +53,9 @@ def _init_worker(folder: str) -> None:
     from restoration.sequence import load_sequence
 
     limit_native_threads(1)
+    # The restoration's parallel kernels too: the workers are the parallelism here (one per
+    # core), and two threads per worker would oversubscribe the cores.
+    numba.set_num_threads(1)
     cal, frames = load_sequence(folder)
     restore = StructuredLight()
     restore(frames[0], cal)  # prepares the reference and warms every code path
@@ -68,8 +74,9 @@ def _restore_frame(index: int) -> tuple[np.ndarray, float]:
 
 def throughput(folder: Path, workers: int, n_frames: int) -> dict[str, Any]:
     """Frames per second over ``n_frames`` restorations spread over ``workers`` processes."""
-    # Spawned workers load OpenBLAS before any task: they must inherit one thread each.
-    with scoped_environ({name: "1" for name in THREAD_VARIABLES}):
+    # Spawned workers load OpenBLAS and numba's pool before any task: they must inherit one
+    # thread each.
+    with scoped_environ({name: "1" for name in (*THREAD_VARIABLES, "NUMBA_NUM_THREADS")}):
         ctx = mp.get_context("spawn")
         with ctx.Pool(workers, _init_worker, (str(folder),)) as pool:
             pool.map(_restore_frame, range(workers), chunksize=1)  # every worker is ready
