@@ -108,9 +108,12 @@ class RenderConfig:
     spp_pattern: int = 4
     spp_view: int = 4
     sampling: str = "stratified"
-    """``"stratified"``: the pattern's particles leave the projector as a shifted Kronecker
-    sequence and the view's pixel samples are multi-jittered, so 4 samples per pixel beat 8 and
-    16 independent ones (docs/results.md); ``"independent"``: Mitsuba's independent sampler."""
+    """``"stratified"``: the testbed's own renderers, the projector's dots drawn directly
+    (every dot its share of the particles, each a shifted R2 point set; ``mitsuba_wai.dots``)
+    and the view traced in its three steps with multi-jittered pixel samples
+    (``mitsuba_wai.view_tracer``), so 4 samples per pixel beat 8 and 16 independent ones
+    (docs/results.md); ``"independent"``: Mitsuba's own projector, ``path`` integrator and
+    independent sampler."""
 
 
 @dataclass(frozen=True)

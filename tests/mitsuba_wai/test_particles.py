@@ -185,6 +185,7 @@ def test_dot_emitter_gives_every_dot_its_share(paper_cfg):
     from mitsuba_wai.dots import DotEmitter
     from mitsuba_wai.variant import select_variant
     from wai_core.layout import dot_weights
+    from wai_core.pattern import dot_grid
 
     select_variant()
     emitter = DotEmitter(paper_cfg)
@@ -201,8 +202,7 @@ def test_dot_emitter_gives_every_dot_its_share(paper_cfg):
     centre = paper_cfg.projector.camera().pose.center_lab_mm
     assert np.allclose(np.linalg.norm(o.T - centre, axis=1), t, rtol=1e-5)
     # Count particles per dot by their nearest dot direction.
-    _, panel = __import__("wai_core.pattern", fromlist=["dot_grid"]).dot_grid(
-        paper_cfg.pattern, paper_cfg.projector.camera())
+    _, panel = dot_grid(paper_cfg.pattern, paper_cfg.projector.camera())
     _, dirs = paper_cfg.projector.camera().pixel_rays(panel[:, 0], panel[:, 1])
     dirs = dirs[dot_weights(paper_cfg) > 0]
     nearest = np.argmax(d.T @ dirs.T, axis=1)
