@@ -253,6 +253,8 @@ def fit_to_spots(surface: SurfaceEstimate, spots_px: NDArray, cfg: SystemConfig)
         fit_rms_mm=fit.rms_mm, fit_iterations=fit.iterations,
         fit_level_offset_mm=level.offset_mm, fit_level_sigma_mm=level.sigma_mm,
         fit_level_probes=len(level.offsets_mm),
+        fit_level_probes_converged=int(level.converged.sum()),
+        fit_level_kept_start=bool(level.kept_start), fit_level_reason=str(level.reason),
     )
     return est
 
