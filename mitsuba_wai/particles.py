@@ -169,6 +169,7 @@ def _trace_pass(
     wavelength_sample = sampler.next_1d()
     direction_sample, position_sample = sampler.next_2d(), sampler.next_2d()
     length = mi.Float(0.0)  # path length in the water so far, mm
+    shadow = emitter is None or not emitter.camera_unoccluded
     if emitter is not None:
         ray, throughput, length = emitter(time, n, seed)
         max_depth -= emitter.skipped_vertices
@@ -190,7 +191,7 @@ def _trace_pass(
                 length = length + dr.select(active, si.t, 0.0)
         splats.append(_connect(scene, si, sensor_ds, bsdf, throughput * sensor_weight,
                                scale, (width, height), ctx, active,
-                               None if water is None else (water[0], water[1], length)))
+                               None if water is None else (water[0], water[1], length), shadow))
         if depth == max_depth - 1:
             break
         bs, bsdf_val = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active),
@@ -212,12 +213,13 @@ def _trace_pass(
 
 def _connect(
     scene: Any, si: Any, sensor_ds: Any, bsdf: Any, weight: Any, scale: float,
-    size: tuple[int, int], ctx: Any, active: Any, water: Any = None,
+    size: tuple[int, int], ctx: Any, active: Any, water: Any = None, shadow: bool = True,
 ) -> tuple[Any, ...]:
     """Mitsuba ptracer's ``connect_sensor`` for a surface vertex: the film pixel (``W * H``
     where nothing lands), the RGB value of the connection and the pixel of a non-finite value
     (``W * H`` where it is finite), as Dr.Jit arrays; with ``water`` (``(a, b, L)``: 1/mm per
-    channel and the path's water length so far, mm) the direct value and the scattered one."""
+    channel and the path's water length so far, mm) the direct value and the scattered one;
+    ``shadow=False`` skips the shadow ray (nothing can lie between the vertex and the camera)."""
     import drjit as dr
 
     mi = mitsuba()
@@ -234,7 +236,8 @@ def _connect(
     # The shadow ray last, and only where light would arrive: a delta BSDF's vertex (the water,
     # the diffuser's pass-through) connects to nothing, and its test would be wasted work.
     active = active & dr.any(value != 0.0)
-    active = active & ~scene.ray_test(sensor_ray, active)
+    if shadow:
+        active = active & ~scene.ray_test(sensor_ray, active)
     # Box filter: a splat lands in the one pixel that contains it; the others go to an extra
     # pixel W * H, with value 0. A non-finite value (a degenerate connection) is zeroed and its
     # pixel reported in ``bad`` (Mitsuba's film would hold it as NaN / inf).
@@ -278,7 +281,8 @@ def render_particles(
     emitter : callable, optional
         Draws the particles in place of the scene's emitters and of ``stratified``,
         ``emitter(time, n, seed) -> (ray, weight, travelled_mm)``, its rays starting past
-        ``emitter.skipped_vertices`` vertices of no effect (:class:`mitsuba_wai.dots.DotEmitter`:
+        ``emitter.skipped_vertices`` vertices of no effect, no shadow rays where
+        ``emitter.camera_unoccluded`` (:class:`mitsuba_wai.dots.DotEmitter`:
         the projector's dots, each a stratified point set of its own); default: Mitsuba's
         ``Scene.sample_emitter_ray``.
 

@@ -208,3 +208,17 @@ def test_dot_emitter_gives_every_dot_its_share(paper_cfg):
     nearest = np.argmax(d.T @ dirs.T, axis=1)
     counts = np.bincount(nearest, minlength=len(w))
     assert np.abs(counts - n * w / w.sum()).max() <= 2.0
+
+
+def test_no_shadow_rays_needed_between_diffuser_and_camera(tiny):
+    # The dot emitter lets the tracer skip shadow rays: in system S nothing lies between the
+    # diffuser and camera s. Casting them must change no bit of the image.
+    from mitsuba_wai.dots import DotEmitter
+
+    cfg, renderer = tiny
+    scene = renderer._scenes["pattern"]
+    emitter = DotEmitter(cfg)
+    fast, _ = render_particles(scene, 4, 8, SCENE_S_DEPTH, emitter=emitter)
+    emitter.camera_unoccluded = False
+    checked, _ = render_particles(scene, 4, 8, SCENE_S_DEPTH, emitter=emitter)
+    assert fast.sum() > 0 and fast.tobytes() == checked.tobytes()
