@@ -78,15 +78,21 @@ class RigCalibration:
         return view / self.view_gain
 
     def restore_view(
-        self, distorted: NDArray, surface: Heightfield, warp_step_px: int = 8
+        self, distorted: NDArray, surface: Heightfield, warp_step_px: int = 8,
+        gain: float = 1.0,
     ) -> Restoration:
-        """The view ``distorted`` ((H, W, 3), already divided by :attr:`view_gain`) restored
-        into the flat-water view's geometry by reverse ray tracing through ``surface``
-        (absolute heights, mm), solving every ``warp_step_px``-th pixel."""
+        """The view ``distorted`` ((H, W, 3)) restored into the flat-water view's geometry by
+        reverse ray tracing through ``surface`` (absolute heights, mm), solving every
+        ``warp_step_px``-th pixel, on the radiance scale: ``gain`` is divided out of the
+        restored pixels (:attr:`view_gain` for a raw view; 1 for one already divided).
+        Resampling is linear, so this equals dividing first, without a copy of the view."""
         cfg = self.cfg
+        distorted = np.asarray(distorted)
+        if not np.issubdtype(distorted.dtype, np.floating):  # integer captures
+            distorted = distorted.astype(np.float64)
         return restore_view(
             distorted, self.camera_v, surface, cfg.water.h0_mm, cfg.water.n_water,
-            cfg.object_z_mm, warp_step_px=warp_step_px,
+            cfg.object_z_mm, warp_step_px=warp_step_px, gain=gain,
         )
 
     def image_size(self, name: str) -> tuple[int, int]:

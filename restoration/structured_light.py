@@ -32,7 +32,6 @@ from restoration.fit import fit_level
 from restoration.normals import points_on_rays, projector_rays
 from restoration.options import RestoreOptions
 from restoration.result import SPARSE_FRACTION, RestoreResult
-from restoration.reverse_trace import Restoration, restore_view
 from restoration.reverse_trace._surface import spline_patches
 from restoration.surface import SurfaceEstimate, reconstruct_surface
 from wai_core.config import DeviceConfig, PatternConfig, SystemConfig
@@ -302,25 +301,6 @@ def _timed(fn: Callable[..., T], *args: Any) -> tuple[T, float]:
     return out, 1e3 * (time.perf_counter() - t0)
 
 
-def _restored_view(
-    raw: NDArray, cal: Calibration, surface: SurfaceEstimate, options: RestoreOptions
-) -> Restoration:
-    """The view ``raw`` restored through ``surface``, on the radiance scale (over the gain).
-
-    Resampling is linear, so the view is resampled as it is and the gain divided out of the
-    sampled pixels (the same to rounding): dividing the whole view first made a new 6 MB
-    image every frame, whose page faults cost several times the division.
-    """
-    cfg = cal.cfg
-    raw = np.asarray(raw)
-    if not np.issubdtype(raw.dtype, np.floating):  # integer captures: as dividing made them
-        raw = raw.astype(np.float64)
-    return restore_view(
-        raw, cal.camera_v, surface.heightfield, cfg.water.h0_mm, cfg.water.n_water,
-        cfg.object_z_mm, warp_step_px=options.warp_step_px, gain=cal.view_gain,
-    )
-
-
 class StructuredLight:
     """The paper's structured-light method, configured once and applied to frames.
 
@@ -398,7 +378,8 @@ class StructuredLight:
         # check then runs beside the view (it reads neither the view nor its results).
         spline_patches(surface.heightfield)
         checked = run_beside(lambda: _timed(consistency_of, surface, spots, cfg, reference))
-        view = _restored_view(images["view"], cal, surface, options)
+        view = cal.restore_view(images["view"], surface.heightfield, options.warp_step_px,
+                                gain=cal.view_gain)
         check, check_ms = checked()
         t4 = time.perf_counter()
         status, message = frame_status(
