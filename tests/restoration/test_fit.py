@@ -64,18 +64,24 @@ def _exact_samples(cfg, truth, n=10):
     return panel, spots, hits, np.column_stack(truth.gradient(hits[:, 0], hits[:, 1]))
 
 
+def _exact_case(cfg, amplitude, start_mm):
+    """A swell, its exact samples and spots, the samples started ``start_mm`` too high, and
+    the rest of the fit's arguments: ``(truth, start, slopes, args)``."""
+    truth = _swell(cfg.water.h0_mm, amplitude=amplitude)
+    panel, spots, hits, slopes = _exact_samples(cfg, truth)
+    start = hits.copy()
+    start[:, 2] += start_mm
+    like = Heightfield(truth.x, truth.y, truth.z)
+    args = (panel, spots, cfg.projector.camera(), cfg.camera_s.camera(), cfg.diffuser.z_mm, like)
+    return truth, start, slopes, args
+
+
 def test_the_level_search_finds_the_height_a_damped_fit_keeps(paper_cfg):
     # Exact spots of a swell, a start 0.3 mm too high with the right shape: the plain fit
     # keeps most of the offset (the depth-normal ambiguity), the level search removes it.
     from restoration.fit import fit_level
 
-    cfg = paper_cfg
-    truth = _swell(cfg.water.h0_mm, amplitude=3.0)
-    panel, spots, hits, slopes = _exact_samples(cfg, truth)
-    start = hits.copy()
-    start[:, 2] += 0.3
-    like = Heightfield(truth.x, truth.y, truth.z)
-    args = (panel, spots, cfg.projector.camera(), cfg.camera_s.camera(), cfg.diffuser.z_mm, like)
+    truth, start, slopes, args = _exact_case(paper_cfg, amplitude=3.0, start_mm=0.3)
 
     def level_error(points):
         return float(np.nanmean(points[:, 2] - truth.height(points[:, 0], points[:, 1])))
@@ -97,14 +103,8 @@ def test_the_level_profile_is_unimodal_for_exact_spots(paper_cfg):
     # rises after it (no probe's warm start makes a dip of its own).
     from restoration.fit import fit_level
 
-    cfg = paper_cfg
-    truth = _swell(cfg.water.h0_mm, amplitude=3.0)
-    panel, spots, hits, slopes = _exact_samples(cfg, truth)
-    start = hits.copy()
-    start[:, 2] += 0.2
-    like = Heightfield(truth.x, truth.y, truth.z)
-    found = fit_level(start, slopes, panel, spots, cfg.projector.camera(),
-                      cfg.camera_s.camera(), cfg.diffuser.z_mm, like, probe_mm=0.1)
+    _, start, slopes, args = _exact_case(paper_cfg, amplitude=3.0, start_mm=0.2)
+    found = fit_level(start, slopes, *args, probe_mm=0.1)
     x, y = found.offsets_mm, found.cost_mm2
     low = int(np.argmin(y))
     assert np.all(np.diff(y[:low + 1]) < 0) and np.all(np.diff(y[low:]) > 0)
@@ -116,12 +116,8 @@ def test_a_nearly_flat_surface_keeps_its_level(paper_cfg):
     # level: the search must not walk away from it.
     from restoration.fit import fit_level
 
-    cfg = paper_cfg
-    truth = _swell(cfg.water.h0_mm, amplitude=0.1)
-    panel, spots, hits, slopes = _exact_samples(cfg, truth)
-    like = Heightfield(truth.x, truth.y, truth.z)
-    found = fit_level(hits, slopes, panel, spots, cfg.projector.camera(),
-                      cfg.camera_s.camera(), cfg.diffuser.z_mm, like)
+    truth, start, slopes, args = _exact_case(paper_cfg, amplitude=0.1, start_mm=0.0)
+    found = fit_level(start, slopes, *args)
     err = found.fit.points_mm[:, 2] - truth.height(found.fit.points_mm[:, 0],
                                                    found.fit.points_mm[:, 1])
     assert abs(float(np.nanmean(err))) < 0.03

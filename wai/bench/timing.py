@@ -85,7 +85,7 @@ def runtime() -> dict[str, Any]:
         out["opencv_threads"] = int(sys.modules["cv2"].getNumThreads())
     if "numba" in sys.modules:  # the restoration's threads (restoration._threads.run_chunks)
         out["numba_threads"] = int(sys.modules["numba"].get_num_threads())
-    # BLAS pools are sized by these when set (threadpoolctl would ask BLAS itself; not a dep).
+    # BLAS pools are sized by these when set.
     out["thread_env"] = {k: os.environ[k] for k in _THREAD_ENV if k in os.environ}
     return out
 

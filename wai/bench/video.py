@@ -20,7 +20,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numba
 import numpy as np
 
 from wai.bench.timing import machine, reference_workload, summarize
@@ -52,10 +51,7 @@ def _init_worker(folder: str) -> None:
     from restoration import LevelTrack, StructuredLight
     from restoration.sequence import load_sequence
 
-    limit_native_threads(1)
-    # The restoration's parallel kernels too: the workers are the parallelism here (one per
-    # core), and two threads per worker would oversubscribe the cores.
-    numba.set_num_threads(1)
+    limit_native_threads(1)  # numba's pool too: the workers are the parallelism here
     cal, frames = load_sequence(folder)
     restore = StructuredLight()
     restore(frames[0], cal)  # prepares the reference and warms every code path
@@ -76,7 +72,7 @@ def throughput(folder: Path, workers: int, n_frames: int) -> dict[str, Any]:
     """Frames per second over ``n_frames`` restorations spread over ``workers`` processes."""
     # Spawned workers load OpenBLAS and numba's pool before any task: they must inherit one
     # thread each.
-    with scoped_environ({name: "1" for name in (*THREAD_VARIABLES, "NUMBA_NUM_THREADS")}):
+    with scoped_environ({name: "1" for name in THREAD_VARIABLES}):
         ctx = mp.get_context("spawn")
         with ctx.Pool(workers, _init_worker, (str(folder),)) as pool:
             pool.map(_restore_frame, range(workers), chunksize=1)  # every worker is ready
