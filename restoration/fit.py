@@ -2,7 +2,7 @@
 
 The reconstruction (:mod:`restoration.surface`) integrates slopes found at reflection points
 that are themselves estimated (the paper's ``q_k`` on ``z = h0``, then a fixed-point
-refinement along the rays), with the trapezoid rule between samples. This fit removes both
+refinement along the rays), with a quadrature rule between samples. This fit removes both
 approximations instead of correcting them: the surface is a smooth cubic B-spline
 ``z(x, y) = sum_j c_j B_j(x, y)`` whose coefficients (absolute heights, so the level too) are
 adjusted until every dot's projector ray, intersected with the spline and reflected about its

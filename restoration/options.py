@@ -28,8 +28,8 @@ class RestoreOptions:
     Attributes
     ----------
     integrator : str
-        A name in :data:`restoration.integrate.INTEGRATORS` (``trapezoid``, ``paper``,
-        ``spline``, ``frankot_chellappa``, ``dct_poisson``).
+        A name in :data:`restoration.integrate.INTEGRATORS` (``fourth_order``, ``trapezoid``,
+        ``paper``, ``spline``, ``frankot_chellappa``, ``dct_poisson``).
     n_refine : int
         Refinement passes of the reflection points after the paper's pass (0: the paper).
     gridder : str
@@ -58,12 +58,12 @@ class RestoreOptions:
     --------
     >>> from restoration import RestoreOptions
     >>> RestoreOptions().integrator
-    'trapezoid'
+    'fourth_order'
     >>> RestoreOptions(integrator="paper", n_refine=0, anchor="gauge").n_refine
     0
     """
 
-    integrator: str = "trapezoid"
+    integrator: str = "fourth_order"
     n_refine: int = 3
     gridder: str = "tangent_blend"
     grid_spacing_mm: float = 2.0

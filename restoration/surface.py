@@ -47,7 +47,8 @@ from restoration.integrate import (
     integrate,
     to_heightfield,
 )
-from restoration.integrate.lattice import lu_solve
+from restoration.integrate.lattice import line_neighbours, lu_solve
+from restoration.integrate.rules import edge_step
 from restoration.normals import (
     _KERNEL_ERRORS,
     _reflection_kernel,
@@ -61,6 +62,9 @@ from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 
 Array = NDArray[np.float64]
+
+COMPILED_INTEGRATORS = ("fourth_order", "trapezoid")
+"""Integrators whose refinement passes run in one compiled call (:func:`_compiled_refinement`)."""
 
 
 @dataclass(frozen=True)
@@ -86,17 +90,20 @@ class SurfaceEstimate:
         Wall time per stage, ms: ``rays`` (back-projection of spots and projector rays,
         cached for repeated reconstructions of the same features), ``normals``,
         ``integrate`` (summed over passes) and ``total``; ``grid`` is added (and counted in
-        ``total``) when :attr:`heightfield` is first read. With the ``"trapezoid"``
-        integrator the passes run in one compiled call: ``integrate`` then holds the normals
-        too and ``normals`` is 0.
+        ``total``) when :attr:`heightfield` is first read. With the integrators of
+        :data:`COMPILED_INTEGRATORS` the passes run in one compiled call: ``integrate`` then
+        holds the normals too and ``normals`` is 0.
     grid_spacing_mm : float
         Node spacing of :attr:`heightfield`, mm.
     gridder : str
         ``method`` of :func:`restoration.integrate.to_heightfield` that builds it.
     anchor : dict
         How the absolute level was set (filled by the caller, e.g.
-        :func:`restoration.pipeline.estimate_surface`): ``method``, ``anchor_mm`` and, after an
-        integrability search, ``searched_mm``, ``sigma_mm``, ``evaluations``.
+        :func:`restoration.structured_light.estimate_surface`): ``method``, ``anchor_mm`` and,
+        after an integrability search, ``searched_mm``, ``sigma_mm``, ``evaluations``.
+    integrator : str
+        The integrator that made the heights (its rule also measures their integrability,
+        :func:`restoration.anchor.edge_residuals_mm`).
     """
 
     ij: NDArray[np.int64]
@@ -109,6 +116,7 @@ class SurfaceEstimate:
     grid_spacing_mm: float = 5.0
     gridder: str = "tangent_blend"
     anchor: dict[str, Any] = field(default_factory=dict)
+    integrator: str = "fourth_order"
     _heightfield: Heightfield | None = field(default=None, init=False, repr=False, compare=False)
 
     def refitted(self, heightfield: Heightfield, points_mm: Array, slopes: Array,
@@ -249,10 +257,12 @@ def reconstruct_surface(
         if weight_xy.shape != (ij_arr.shape[0], 2):
             raise WaiInputError("reconstruct_surface: weight_xy_mm must be (K, 2)")
     args = (ij_arr, origin, v_p, spots, h0_mm, int(n_refine), tol_mm, accelerate)
-    if integrator == "trapezoid":  # the level search's: all passes in one compiled call
+    if integrator in COMPILED_INTEGRATORS:  # the level search's: all passes in one call
         # Default weights: the first pass's reflection points (q on z = h0), as the loop's.
         wxy = points_on_rays(origin, v_p, h0_mm)[:, :2] if weight_xy is None else weight_xy
-        ij_arr, q, normals, slopes, integrated, it, change = _compiled_refinement(*args, wxy)
+        ij_arr, q, normals, slopes, integrated, it, change = _compiled_refinement(
+            *args, wxy, integrator == "fourth_order"
+        )
         timings["integrate"] = _ms(t_start) - timings["rays"]
     else:
         ij_arr, q, normals, slopes, integrated, it, change = _refinement(
@@ -269,6 +279,7 @@ def reconstruct_surface(
         timings_ms=timings,
         grid_spacing_mm=float(grid_spacing_mm),
         gridder=gridder,
+        integrator=integrator,
     )
 
 
@@ -368,9 +379,9 @@ def _rays(
 _RAYS: dict[tuple, tuple[Array, Array, Array]] = {}
 
 
-def _prepared(ij: NDArray[np.int64], weight_xy: Array) -> tuple:
-    """What :func:`_refine_kernel` needs of a sample set and its weights, cached (one lookup
-    per reconstruction instead of the system's, the weights' and the factors').
+def _prepared(ij: NDArray[np.int64], weight_xy: Array, fourth_order: bool) -> tuple:
+    """What :func:`_refine_kernel` needs of a sample set, its weights and its rule, cached (one
+    lookup per reconstruction instead of the system's, the weights' and the factors').
 
     Returns
     -------
@@ -378,12 +389,16 @@ def _prepared(ij: NDArray[np.int64], weight_xy: Array) -> tuple:
         The samples in the largest connected piece, None when that is all of them.
     ea, eb, w : (E,) ndarray
         The piece's edges (positions among the kept samples) and weights.
+    before, after : (E,) ndarray of int
+        The fourth-order rule's samples before and after each edge among the kept ones
+        (:func:`~restoration.integrate.line_neighbours`), -1 where absent; all -1 for the
+        trapezoid rule.
     factors : tuple
         :attr:`~restoration.integrate.lattice.TriangularFactors.arrays` of its pinned
         Laplacian.
     """
     weight_xy = np.ascontiguousarray(weight_xy, dtype=float)
-    key = (ij.shape, ij.tobytes(), weight_xy.shape, weight_xy.tobytes())
+    key = (ij.shape, ij.tobytes(), weight_xy.shape, weight_xy.tobytes(), fourth_order)
     found = _PREPARED.get(key)
     if found is None:
         system = _TrapezoidSystem.of(ij, weight_xy, checked=True)
@@ -394,7 +409,13 @@ def _prepared(ij: NDArray[np.int64], weight_xy: Array) -> tuple:
             system = _TrapezoidSystem.of(ij[keep], weight_xy[keep], checked=True)
         graph = system.graph
         w = system.weights[graph.edges]
-        found = (keep, graph.ea, graph.eb, w, graph.triangular(w).arrays)
+        if fourth_order:
+            before, after = line_neighbours(
+                ij if keep is None else ij[keep], graph.ea, graph.eb
+            )
+        else:
+            before = after = np.full(graph.ea.size, -1, np.int64)
+        found = (keep, graph.ea, graph.eb, before, after, w, graph.triangular(w).arrays)
         if len(_PREPARED) >= 8:
             _PREPARED.clear()
         _PREPARED[key] = found
@@ -421,9 +442,11 @@ def _compiled_refinement(
     tol_mm: float,
     accelerate: bool,
     weight_xy: Array,
+    fourth_order: bool = True,
 ) -> tuple[NDArray[np.int64], Array, Array, Array, Array, int, float]:
-    """The passes of :func:`reconstruct_surface` with the ``"trapezoid"`` integrator in one
-    compiled call (:func:`_refine_kernel`).
+    """The passes of :func:`reconstruct_surface` with the ``"fourth_order"`` (or, with
+    ``fourth_order=False``, the ``"trapezoid"``) integrator in one compiled call
+    (:func:`_refine_kernel`).
 
     The level search runs ~30 passes a frame: as NumPy steps each cost ~0.15 ms of call
     overhead around ~0.03 ms of arithmetic. Same arithmetic, in the same order, as the loop
@@ -439,7 +462,7 @@ def _compiled_refinement(
         (K', 3), slopes (K', 2), anchored heights (K',) mm, passes run after the first, and
         the last pass's largest height change (mm; NaN when none ran).
     """
-    keep, ea, eb, w, factors = _prepared(ij, weight_xy)
+    keep, ea, eb, before, after, w, factors = _prepared(ij, weight_xy, fourth_order)
     if keep is not None:
         _, _, slopes = reflection_slopes(origin, v_p, spots, np.full(len(ij), float(h0_mm)))
         if not np.all(np.isfinite(slopes)):
@@ -451,7 +474,8 @@ def _compiled_refinement(
     code = _refine_kernel(
         np.ascontiguousarray(origin, dtype=float), np.ascontiguousarray(v_p, dtype=float),
         np.ascontiguousarray(spots, dtype=float), float(h0_mm), n_refine, float(tol_mm),
-        bool(accelerate), ea, eb, w, *factors, q, normals, slopes, integrated, out,
+        bool(accelerate), ea, eb, before, after, w, *factors, q, normals, slopes, integrated,
+        out,
     )
     if code:
         raise WaiInputError(_KERNEL_ERRORS.get(code) or _REFINE_ERRORS[code])
@@ -460,7 +484,7 @@ def _compiled_refinement(
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _refine_kernel(
-    origin, dirs, spots, h0, n_refine, tol, accelerate, ea, eb, w,
+    origin, dirs, spots, h0, n_refine, tol, accelerate, ea, eb, before, after, w,
     l_ptr, l_idx, l_val, l_diag, u_ptr, u_idx, u_val, u_diag, perm_r, perm_c,
     q, normals, slopes, integrated, out,
 ):  # pragma: no cover
@@ -495,9 +519,7 @@ def _refine_kernel(
         minus[:] = 0.0
         for e in range(n_edges):
             i, j = ea[e], eb[e]
-            gx = 0.5 * (slopes[i, 0] + slopes[j, 0])
-            gy = 0.5 * (slopes[i, 1] + slopes[j, 1])
-            wd = w[e] * (gx * (q[j, 0] - q[i, 0]) + gy * (q[j, 1] - q[i, 1]))
+            wd = w[e] * edge_step(q, slopes, before[e], i, j, after[e])
             plus[j] += wd
             minus[i] += wd
         for i in range(k - 1):

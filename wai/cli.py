@@ -175,7 +175,7 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("dir", type=Path, help="the folder to restore")
     p.add_argument(
-        "--integrator", default="trapezoid", choices=_integrators(),
+        "--integrator", default="fourth_order", choices=_integrators(),
         help="slope integrator (paper: the paper's central differences, eq. 10-13)",
     )
     p.add_argument(

@@ -8,8 +8,10 @@ regular :class:`~wai_core.heightfield.Heightfield`.
 Modules
 -------
 :mod:`~restoration.integrate.lattice`
-    Integrators on the dot lattice (``"paper"``, ``"trapezoid"``): input checks, grid
-    neighbours, connected pieces, sparse least squares over height differences.
+    Integrators on the dot lattice (``"paper"``, ``"trapezoid"``, ``"fourth_order"``): input
+    checks, grid neighbours, connected pieces, sparse least squares over height differences.
+:mod:`~restoration.integrate.rules`
+    The compiled fourth-order rule for one edge's height step (:func:`edge_step`).
 :mod:`~restoration.integrate.spline`
     The ``"spline"`` integrator and its uniform bicubic B-spline (:class:`SplineGrid`).
 :mod:`~restoration.integrate.fourier`
@@ -39,13 +41,16 @@ from restoration.integrate.lattice import (
     DifferenceGraph,
     check_samples,
     grid_neighbours,
+    integrate_fourth_order,
     integrate_paper,
     integrate_trapezoid,
     largest_grid_piece,
     largest_piece,
+    line_neighbours,
     solve_differences,
     spd_solve,
 )
+from restoration.integrate.rules import edge_step, edge_steps
 from restoration.integrate.spline import SplineGrid, integrate_spline
 
 __all__ = [
@@ -57,17 +62,21 @@ __all__ = [
     "SlopeGrid",
     "SplineGrid",
     "check_samples",
+    "edge_step",
+    "edge_steps",
     "frankot_chellappa",
     "gap_free_triangles",
     "grid_neighbours",
     "integrate",
     "integrate_dct_poisson",
+    "integrate_fourth_order",
     "integrate_frankot_chellappa",
     "integrate_paper",
     "integrate_spline",
     "integrate_trapezoid",
     "largest_grid_piece",
     "largest_piece",
+    "line_neighbours",
     "poisson_dct",
     "resample_slopes",
     "sample_heights",

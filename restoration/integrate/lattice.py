@@ -1,7 +1,8 @@
 """Integrators on the dot lattice: the samples' own ``(i, j)`` grid, with height differences
-between lattice neighbours fitted by sparse least squares (``"paper"``, eq. 10-13, and
-``"trapezoid"``; see :data:`restoration.integrate.INTEGRATORS`), plus the input checks, grid
-neighbours, connected pieces and SPD solves that the other integrators reuse."""
+between lattice neighbours fitted by sparse least squares (``"paper"``, eq. 10-13,
+``"trapezoid"`` and ``"fourth_order"``; see :data:`restoration.integrate.INTEGRATORS`), plus
+the input checks, grid neighbours, connected pieces and SPD solves that the other integrators
+reuse."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU, splu
 
 from restoration.integrate._common import _MAX_GRID_NODES, MIN_SAMPLES, Array, IntArray
+from restoration.integrate.rules import edge_steps
 from wai_core.errors import WaiInputError
 
 # --------------------------------------------------------------------------------------------
@@ -82,6 +84,15 @@ def grid_neighbours(ij: IntArray, offsets: ArrayLike) -> IntArray:
     local = ij - lo
     table[local[:, 1], local[:, 0]] = np.arange(ij.shape[0])
     return table[local[None, :, 1] + off[:, 1:2], local[None, :, 0] + off[:, 0:1]]
+
+
+def line_neighbours(ij: IntArray, a: IntArray, b: IntArray) -> tuple[IntArray, IntArray]:
+    """The sample before ``a`` and the one after ``b`` on the lattice line of each edge
+    ``a -> b`` (E,) between 4-neighbours of ``ij`` (K, 2): (E,) each, -1 where absent (what
+    the fourth-order rule reads, :func:`restoration.integrate.rules.edge_step`)."""
+    nb = grid_neighbours(ij, [(-1, 0), (0, -1), (1, 0), (0, 1)])
+    along_j = (ij[b, 1] != ij[a, 1]).astype(np.int64)  # 0: the edge runs along i, 1: along j
+    return nb[along_j, a], nb[2 + along_j, b]
 
 
 def largest_piece(n: int, a: IntArray, b: IntArray) -> NDArray[np.bool_]:
@@ -374,13 +385,18 @@ class _EdgePlan:
     """Edges of one finite-difference scheme on one set of grid indices, with their solver.
 
     Edge ``e`` states ``h[b_e] - h[a_e] = s . (xy[b_e] - xy[a_e])`` with the slope ``s`` the
-    mean of the end points' (trapezoid) or that of sample ``slope_at[e]`` (central).
+    mean of the end points' (trapezoid) or that of sample ``slope_at[e]`` (central); the
+    fourth-order scheme's steps also read the samples ``before[e]`` and ``after[e]`` on the
+    edge's lattice line (:func:`~restoration.integrate.rules.edge_steps`; -1 where absent or
+    outside the graph's largest piece).
     """
 
     a: IntArray
     b: IntArray
     slope_at: IntArray | None
     graph: DifferenceGraph
+    before: IntArray | None = None
+    after: IntArray | None = None
 
 
 # Plans by (scheme, grid indices): the refinement passes of one frame, and the anchor search's
@@ -389,7 +405,8 @@ _EDGE_PLANS: dict[tuple, _EdgePlan] = {}
 
 
 def _edge_plan(ij: IntArray, scheme: str) -> _EdgePlan:
-    """The :class:`_EdgePlan` of ``scheme`` (``"central"`` or ``"trapezoid"``) on ``ij``, cached.
+    """The :class:`_EdgePlan` of ``scheme`` (``"central"``, ``"trapezoid"`` or
+    ``"fourth_order"``, the last two on the same edges) on ``ij``, cached.
 
     ``"central"`` is eq. 10: central where both neighbours exist, else forward or backward
     (slope at the centre).
@@ -402,7 +419,7 @@ def _edge_plan(ij: IntArray, scheme: str) -> _EdgePlan:
     neighbours = grid_neighbours(ij, [(1, 0), (-1, 0), (0, 1), (0, -1)])
     parts = []
     for plus, minus in (neighbours[:2], neighbours[2:]):
-        if scheme == "trapezoid":
+        if scheme != "central":
             on = plus >= 0
             parts.append((centre[on], plus[on], centre[on]))
         else:
@@ -412,7 +429,10 @@ def _edge_plan(ij: IntArray, scheme: str) -> _EdgePlan:
             parts.append((a[on], b[on], centre[on]))
     a, b, at = (np.concatenate(p) for p in zip(*parts, strict=True))
     graph = DifferenceGraph.build(ij.shape[0], a, b)
-    plan = _EdgePlan(a, b, None if scheme == "trapezoid" else at, graph)
+    plan = _EdgePlan(a, b, at if scheme == "central" else None, graph)
+    if scheme == "fourth_order":
+        before, after = (np.where(graph.keep[k], k, -1) for k in line_neighbours(ij, a, b))
+        plan = _EdgePlan(a, b, None, graph, before, after)
     if len(_EDGE_PLANS) >= 16:
         _EDGE_PLANS.clear()
     _EDGE_PLANS[key] = plan
@@ -434,7 +454,6 @@ def _integrate_scheme(
     ij_a, xy, g = check_samples(ij, xy_mm, slopes)
     plan = _edge_plan(ij_a, scheme)
     a, b = plan.a, plan.b
-    slope = 0.5 * (g[a] + g[b]) if plan.slope_at is None else g[plan.slope_at]
     step = xy[b] - xy[a]
     if weight_xy_mm is not None:
         wxy = np.asarray(weight_xy_mm, dtype=float)
@@ -445,7 +464,12 @@ def _integrate_scheme(
         length2 = np.einsum("ij,ij->i", step, step)
     if not np.all(length2 > 0):
         raise WaiInputError("integrate: two neighbouring samples sit at the same position")
-    return plan.graph.solve(np.einsum("ij,ij->i", slope, step), 1.0 / length2)
+    if plan.before is not None:
+        diff = edge_steps(xy, g, a, b, plan.before, plan.after)
+    else:
+        slope = 0.5 * (g[a] + g[b]) if plan.slope_at is None else g[plan.slope_at]
+        diff = np.einsum("ij,ij->i", slope, step)
+    return plan.graph.solve(diff, 1.0 / length2)
 
 
 def integrate_paper(
@@ -468,6 +492,17 @@ def integrate_paper(
         Zero-mean heights, mm; NaN for samples cut off from the largest connected piece.
     """
     return _integrate_scheme(ij, xy_mm, slopes, "central", weight_xy_mm)
+
+
+def integrate_fourth_order(
+    ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike, weight_xy_mm: ArrayLike | None = None
+) -> Array:
+    """Least squares over the trapezoid integrator's edges, each step by the fourth-order rule
+    (see :data:`INTEGRATORS` and :mod:`restoration.integrate.rules`).
+
+    Parameters and return as :func:`integrate_paper`.
+    """
+    return _integrate_scheme(ij, xy_mm, slopes, "fourth_order", weight_xy_mm)
 
 
 def integrate_trapezoid(

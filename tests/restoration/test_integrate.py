@@ -63,12 +63,13 @@ def errors(name, ij, xy, surface):
 
 
 def test_registry_names():
-    assert {"paper", "trapezoid", "spline", "frankot_chellappa", "dct_poisson"} <= set(INTEGRATORS)
+    assert {"fourth_order", "paper", "trapezoid", "spline", "frankot_chellappa",
+            "dct_poisson"} <= set(INTEGRATORS)
 
 
 # Integrators exact for quadratic surfaces on irregular samples (the paper's central differences
 # are not; Frankot-Chellappa comes close, see test_grid_integrators_on_plane_and_paraboloid).
-EXACT_FOR_QUADRATICS = ("trapezoid", "spline", "dct_poisson")
+EXACT_FOR_QUADRATICS = ("fourth_order", "trapezoid", "spline", "dct_poisson")
 GRID_INTEGRATORS = ("frankot_chellappa", "dct_poisson")
 
 # Frankot-Chellappa's error on the paraboloid, mm: the even mirror at the grid's borders makes
@@ -87,7 +88,9 @@ def test_tilted_plane_is_exact(name):
 
 @pytest.mark.parametrize("name", EXACT_FOR_QUADRATICS)
 def test_paraboloid_on_irregular_grid_is_exact(name):
-    # The trapezoid rule is exact for quadratics along any edge; the spline holds quadratics
+    # The trapezoid rule is exact for quadratics along any edge, and so is the fourth-order
+    # rule (its neighbours' slopes are corrected for their offset across the edge by the
+    # Hessian that the edge's own slopes give, constant here); the spline holds quadratics
     # and its third-difference penalty ignores them; dct_poisson interpolates the (linear)
     # slopes exactly, extends them with the exact curvature, solves the trapezoid rule on its
     # grid and reads back with trapezoid steps.
@@ -122,6 +125,48 @@ def test_sinusoid_error_bounds():
     assert np.max(np.abs(errors("trapezoid", ij, xy, sinusoid))) < A * (K * d_max) ** 2 / 12
 
 
+def test_fourth_order_sinusoid_error_bound():
+    """The same sinusoid with the fourth-order rule: inside the grid its steps err by
+    O(d^5); an edge at the border has one neighbour, a quadratic interpolant of the slope,
+    whose step errs by d^4 h_4 / 24 (h_4 the fourth derivative) -> a height error of at most
+    A (k d)^3 / 24. Measured 0.0032 mm against the trapezoid's 0.050 on the regular grid,
+    0.019 against 0.11 on the keystone."""
+    kd = K * D
+    ij, xy = grid()
+    fourth = np.max(np.abs(errors("fourth_order", ij, xy, sinusoid)))
+    assert fourth < A * kd**3 / 24
+    assert fourth < 0.1 * np.max(np.abs(errors("trapezoid", ij, xy, sinusoid)))
+    ij, xy = keystone()
+    assert np.max(np.abs(errors("fourth_order", ij, xy, sinusoid))) < 0.3 * np.max(
+        np.abs(errors("trapezoid", ij, xy, sinusoid))
+    )
+
+
+def test_fourth_order_steps_are_exact_for_quartics_along_a_line():
+    """Unevenly spaced samples on a line: with both neighbours the step of h = s^4 is exact,
+    with one that of h = s^3, with none the trapezoid rule's (exact for s^2 only)."""
+    from restoration.integrate import edge_steps
+
+    x = np.array([-1.3, 0.0, 0.8, 2.1])
+    xy = np.column_stack([x, 0.5 * x])  # along a slanted line: steps are along it
+    s = x * np.hypot(1.0, 0.5)  # arc length from sample 1
+
+    def slopes(power):  # h = s^power: (dh/dx, dh/dy)
+        g = power * s ** (power - 1) / np.hypot(1.0, 0.5)
+        return np.column_stack([g, 0.5 * g])
+
+    a, b, none = np.array([1]), np.array([2]), np.array([-1])
+    exact = {p: s[2] ** p - s[1] ** p for p in (2, 3, 4)}
+    both = edge_steps(xy, slopes(4), a, b, np.array([0]), np.array([3]))
+    assert both[0] == pytest.approx(exact[4], abs=1e-12)
+    for before, after in ((np.array([0]), none), (none, np.array([3]))):
+        assert edge_steps(xy, slopes(3), a, b, before, after)[0] == pytest.approx(
+            exact[3], abs=1e-12
+        )
+    assert edge_steps(xy, slopes(2), a, b, none, none)[0] == pytest.approx(exact[2], abs=1e-12)
+    assert abs(edge_steps(xy, slopes(3), a, b, none, none)[0] - exact[3]) > 1e-3
+
+
 def holes(ij):
     """Drop scattered single nodes and a 3 x 4 block inside the grid."""
     rng = np.random.default_rng(5)
@@ -135,6 +180,7 @@ def holes(ij):
     [
         ("paper", plane),
         ("trapezoid", paraboloid),
+        ("fourth_order", paraboloid),
         ("spline", paraboloid),
         ("frankot_chellappa", plane),
         ("dct_poisson", paraboloid),

@@ -9,6 +9,8 @@ the truth and never feed the restoration):
 ``no_refine``   our integrator and gridding, q_k ≈ h0 kept, gauge anchor;
 ``gauge_anchor``  ours with refinement, but anchored at the gauge's h0 as in the paper;
 ``ours``        the default restoration (anchored by integrability);
+``trapezoid``   ours with the trapezoid rule instead of the fourth-order one, in the level
+                search and the integration (the default before session 20);
 ``fit``         ours, then the surface and its level fitted to the spots through the exact model
                 (``RestoreOptions(fit_spots=True)``, :func:`restoration.fit.fit_level`);
 ``oracle_spots``  the default, fed the exact spot positions ray-traced through the true surface
@@ -67,6 +69,8 @@ def _surface_variant(
         options = replace(options, n_refine=0, anchor="gauge")
     elif name == "gauge_anchor":
         options = replace(options, anchor="gauge")
+    elif name == "trapezoid":
+        options = replace(options, integrator="trapezoid")
     elif name == "oracle_spots":
         spots = true_spots(cfg, truth, panel_positions(cfg, features.ij))
     elif name == "oracle_anchor":
@@ -87,7 +91,8 @@ def _surface_variant(
 
 
 VARIANTS = (
-    "paper", "no_refine", "gauge_anchor", "ours", "fit", "oracle_spots", "oracle_anchor",
+    "paper", "no_refine", "gauge_anchor", "trapezoid", "ours", "fit", "oracle_spots",
+    "oracle_anchor",
 )
 
 
