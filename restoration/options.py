@@ -52,7 +52,7 @@ class RestoreOptions:
     fit_spots : bool
         After the reconstruction, fit a smooth surface and its level to the detected spots
         through the exact reflection model (:func:`restoration.fit.fit_level`): absolute RMSE
-        ~5x smaller at ~1 s per frame, so off by default (real time); docs/results.md.
+        ~2x smaller at ~0.3-1 s per frame, so off by default (real time); docs/results.md.
 
     Examples
     --------

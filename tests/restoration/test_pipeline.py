@@ -4,6 +4,8 @@ Paper resolution is kept (the dots must be resolved) with few samples per pixel,
 takes a second or two.
 """
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -124,6 +126,32 @@ def test_anchor_search_finds_a_parabola_minimum(monkeypatch):
     # The noise is the same at every anchor, so it shifts no set's minimum: each is at 3.
     assert res.anchor_mm == pytest.approx(3.0, abs=0.05)
     assert res.sigma_mm < 0.05
+
+
+class _OutlierEstimate(_FakeEstimate):
+    """Four of the 400 edges are a wrong label's: residuals ``300 + 10 (a - 3)`` mm, whose
+    squares alone would put the minimum at ``a = -27``."""
+
+    def residuals(self):
+        r, sets = super().residuals()
+        r = r.copy()
+        r[::100] = 300.0 + 10.0 * (self.a - 3.0)
+        return r, sets
+
+
+def test_anchor_search_is_robust_to_a_few_wrong_labels(monkeypatch):
+    # Least squares: 400 (a - 3)^2 against 4 (300 + 10 (a - 3))^2 puts the level near -12;
+    # the Cauchy loss caps the four edges' pull (scale: twice the robust spread of the first
+    # probe's residuals, ~9 mm here), and the level stays within the search's tolerance (0.1)
+    # of 3 (measured 2.93).
+    import restoration.anchor as anchor
+
+    monkeypatch.setattr(anchor, "edge_residuals_mm", lambda est: est.residuals())
+    search = functools.partial(
+        find_anchor, lambda a: _OutlierEstimate(a, 1.0), start_mm=0.0, step_mm=2.0
+    )
+    assert search(cauchy_scale=0.0).anchor_mm < -5.0
+    assert search().anchor_mm == pytest.approx(3.0, abs=0.1)
 
 
 def test_anchor_search_says_when_the_data_do_not_pin_the_level(monkeypatch):
