@@ -129,6 +129,7 @@ def _estimate_surface(
             anchor_mm,
             integrator=integrator,
             n_refine=n_refine,
+            tol_mm=options.refine_tol_mm,
             grid_spacing_mm=options.grid_spacing_mm,
             gridder=options.gridder,
             weight_xy_mm=weight_xy,

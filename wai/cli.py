@@ -179,8 +179,9 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         help="slope integrator (paper: the paper's central differences, eq. 10-13)",
     )
     p.add_argument(
-        "--refine", type=int, default=3,
-        help="refinement passes of the reflection points (0 = the paper's q on z = h0)",
+        "--refine", type=int, default=8,
+        help="most refinement passes of the reflection points, stopping once converged "
+        "(0 = the paper's q on z = h0; RestoreOptions.n_refine)",
     )
     p.add_argument(
         "--method",

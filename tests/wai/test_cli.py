@@ -49,3 +49,14 @@ def test_console_script_exit_code(tmp_path):
     )
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0
+
+
+def test_restore_defaults_are_the_librarys():
+    """The CLI's restore options default to what a script gets from RestoreOptions()."""
+    from restoration import RestoreOptions
+    from wai.cli import build_parser
+
+    args = build_parser().parse_args(["restore", "somewhere"])
+    defaults = RestoreOptions()
+    assert args.refine == defaults.n_refine
+    assert args.integrator == defaults.integrator

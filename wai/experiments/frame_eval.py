@@ -279,9 +279,10 @@ REFINEMENTS: dict[str, dict[str, Any]] = {
     "converged": {"converge_mm": 0.0},
     "fit": {"fit_spots": True},
 }
-"""Surface refinements a point may compare (``refinements``): the default (3 passes, more
-only when they leave heights moving by ``converge_mm``), the fixed point always converged,
-and the Gauss-Newton fit to the spots (:mod:`restoration.fit`)."""
+"""Surface refinements a point may compare (``refinements``): the default (up to 8 passes
+until converged to ``refine_tol_mm``, more only when they leave heights moving by
+``converge_mm``), the fixed point always converged to 40 passes, and the Gauss-Newton fit to
+the spots (:mod:`restoration.fit`)."""
 
 
 def _suffix(name: str, step: int, names: list[str], steps: list[int]) -> str:
