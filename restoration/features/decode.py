@@ -13,7 +13,9 @@ Per frame:
    from the nominal levels: a camera's channel crosstalk or the water's colour shifts them
    alike) and the spot takes the nearest, with a confidence (1 at a level, 0 half-way to the
    next); spots under :data:`MIN_SYMBOL_CONFIDENCE` (two colours mixed: overlapping spots)
-   abstain.
+   abstain. Specks, spots under :data:`MIN_DOT_FLUX` of a typical spot's flux (Monte Carlo
+   fireflies, stray light), vote in step 3 but take no label: in a bright spot's skirt a speck
+   shows that spot's colour, and as its label it would put the dot 7-19 px off its spot.
 2. **Candidates.** Every lit dot of the spot's symbol whose flat-water spot lies within
    ``reach`` spacings: a hypothesis "spot p is dot k", i.e. a displacement ``d = x_p - r_k``.
 3. **Window votes.** A hypothesis is voted for by each of the dot's 8 grid neighbours that has
@@ -45,7 +47,15 @@ Per frame:
 6. **Redundancy.** The decoded labels must form a consistent lattice: a label stays only while
    at least ``min_consistent`` grid neighbours were decoded and the displacement they predict
    (leaving it out) lies within ``2 tol_grow`` of its own; the others are counted
-   (``rejected_inconsistent``) and dropped, and so are pieces detached from the largest one.
+   (``rejected_inconsistent``) and dropped. The lattice alone passes a patch decoded one dot
+   or more off where the pattern is folded (columns squeezed together, a neighbour's spot
+   moved a whole dot), as its displacements vary more smoothly there than the true ones; the
+   code does not. The labelling puts each undecoded neighbour of a label somewhere: when that
+   is the label's own spot (two dots on one spot), or when at least ``min_mismatch`` of the
+   spots met first on the way there (a fold squeezes a neighbour towards the label) show
+   another symbol than the code's, and more than show the code's, the label is dropped
+   (``rejected_window``) and both checks repeat. Last, pieces detached from the largest one
+   are dropped.
 
 Per-dot confidence (:class:`Decoded`): the votes over 8, the margin over the runner-up, the
 symbol confidence, and the consistent neighbours.
@@ -54,7 +64,6 @@ symbol confidence, and the consistent neighbours.
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -64,8 +73,8 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from restoration.features._outline import _visible_outline
-from restoration.features._types import FloatArray, IntArray
-from restoration.features.detect import Spots
+from restoration.features._types import BoolArray, FloatArray, IntArray
+from restoration.features.detect import Spots, _typical_flux
 from restoration.features.match import (
     Matches,
     _largest_component,
@@ -90,6 +99,12 @@ MIN_SYMBOL_CONFIDENCE = 0.4
 """A spot whose green fraction lies farther than 0.6 of the half-gap from its level (two
 colours mixed) casts and receives no vote."""
 
+MIN_DOT_FLUX = 0.03
+"""A spot with less than this share of a typical spot's flux (the detector's flux-weighted
+median) is a speck, not a dot's spot: it votes but takes no label. On the paper's rig 2 of
+about 9200 dots' spots lie under it, and the Monte Carlo specks that the detector keeps (about
+220 a frame) carry 0.005-0.02."""
+
 
 @dataclass(frozen=True)
 class Decoded:
@@ -100,11 +115,15 @@ class Decoded:
     matches : Matches
         As :func:`~restoration.features.match.match_distorted` gives them; ``counts`` adds
         ``decode_candidates`` (hypotheses), ``decoded`` (labels taken before the lattice
-        check), ``rejected_symbol`` (spots whose colour read as a mix), ``rejected_weak``
+        check), ``rejected_symbol`` (spots whose colour read as a mix), ``rejected_faint``
+        (specks: spots under :data:`MIN_DOT_FLUX` of a typical spot's flux, which vote but take
+        no label), ``rejected_weak``
         (best label under ``min_votes``), ``ordering_beyond_reach`` (ordering labels added as
         hypotheses beyond ``reach``), ``rejected_ambiguous`` (runner-up within
         ``min_margin``, or a dot claimed by two spots), ``rejected_inconsistent`` (dropped by
-        the lattice check: the wrong decodes the redundancy caught), ``rejected_detached``
+        the lattice check: the wrong decodes the redundancy caught), ``rejected_window``
+        (consistent with the lattice but contradicted by the symbols of their windows'
+        undecoded dots, or sharing their spot with one), ``rejected_detached``
         (decoded, but off the largest 4-connected piece, which alone the surface can level),
         ``rejected_border``
         (spots cut by the image or diffuser edge, merged or saturated).
@@ -314,10 +333,13 @@ def _predicted(at: FloatArray, nodes: IntArray, tab: object) -> tuple[FloatArray
     line = 2.0 * one - two  # (K, 8, 2)
     preds = np.concatenate([mid, line], axis=1)
     n = np.sum(np.isfinite(preds[..., 0]), axis=1)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: no prediction
-        med = np.nanmedian(preds, axis=1)
-    return med, n
+    # The median of the n finite ones, which sorting puts first (np.nanmedian's value, several
+    # times faster on these short rows); all-NaN rows stay NaN.
+    srt = np.sort(preds, axis=1)
+    lo = np.broadcast_to((np.maximum(n - 1, 0) // 2)[:, None, None], (len(n), 1, 2))
+    hi = np.broadcast_to((n // 2)[:, None, None], (len(n), 1, 2))
+    med = 0.5 * (np.take_along_axis(srt, lo, axis=1) + np.take_along_axis(srt, hi, axis=1))
+    return med[:, 0], n
 
 
 def _grow_decoded(
@@ -400,21 +422,132 @@ def _from_ordering(
     return hyp[free_node[node[hyp]] & free_spot[spot[hyp]]]
 
 
+@dataclass(frozen=True)
+class _Window:
+    """What :func:`_contradicted` reads of a frame: the flat-water spots (G, 2) and local
+    spacings (G,), px, and the code (G,) of the lattice; the wavy spots' centres (P, 2), their
+    symbols (P,) and whether those can be read (P,: clear, bright, not suspicious); the
+    tolerance, local spacings, and the fewest disagreeing symbols that drop a label."""
+
+    ref_px: FloatArray
+    spacing: FloatArray
+    codes: IntArray
+    centres_px: FloatArray
+    sym: IntArray
+    readable: BoolArray
+    tol: float
+    min_mismatch: int
+
+
+_RAY_REACH = 1.5
+"""How far along the ray to where the labelling puts a neighbour :func:`_contradicted` looks
+for its spot, in multiples of that distance: a squeezed neighbour lies nearer, a stretched
+one farther, and the neighbour after it twice as far."""
+
+_RAY_CANDIDATES = 12
+"""Spots nearest to a ray's middle that :func:`_contradicted` considers."""
+
+
+def _contradicted(
+    take: IntArray, node: IntArray, spot: IntArray, disp: FloatArray, tab: object, win: _Window
+) -> BoolArray:
+    """Per label of ``take``: whether its 3 x 3 window contradicts it where the window's dots
+    were not decoded.
+
+    The labelling puts each undecoded lit grid neighbour of a label where the displacement its
+    decoded neighbours predict (:func:`_predicted`; the label's own with fewer than two) takes
+    it. When that lies within ``win.tol`` local spacings of the label's own spot, the lattice
+    puts two dots on one spot, as in a fold's overlap where the labelling one dot over fits
+    the displacements as well (the lattice check passes both): the label is ambiguous.
+    Otherwise the neighbour's spot is the first spot along the ray from the label's spot to
+    there (within ``win.tol`` spacings of the ray, up to :data:`_RAY_REACH` times as far): a fold
+    squeezes the neighbour towards the label, so the spot nearest to the predicted place may
+    be the next dot's. A readable spot that no label holds shows the code's symbol for the
+    neighbour or another; a held spot, a speck or a mixed colour is no evidence. The spots
+    around a label shifted by whole dots show their own dots' window, which differs from the
+    label's in at least :data:`~wai_core.pattern.CODE_MIN_DISTANCE` of 9 symbols; its decoded
+    neighbours show the label's by construction, so the differences lie where the window was
+    not decoded.
+
+    A label is contradicted when ambiguous, or when at least ``win.min_mismatch`` of its
+    neighbours' spots show another symbol than the code's and they outnumber those that show
+    the code's.
+    """
+    if len(take) == 0:
+        return np.zeros(0, bool)
+    n_nodes = len(win.codes)
+    k = node[take]
+    at = np.full((n_nodes + 1, 2), np.nan)
+    at[k] = disp[take]
+    nb = tab.nbrs8[k]  # (K, 8), n_nodes where there is none
+    nbc = np.minimum(nb, n_nodes - 1)
+    open_ = (nb < n_nodes) & np.isnan(at[nb, 0]) & (win.codes[nbc] >= 0)
+    # Each undecoded neighbour once: most border several labels.
+    uniq, inv = np.unique(np.where(open_, nbc, 0), return_inverse=True)
+    pred_u, n_u = _predicted(at, uniq, tab)
+    inv = inv.reshape(nb.shape)
+    n_pred = np.where(open_, n_u[inv], 0)
+    pred = np.where((n_pred >= 2)[..., None], pred_u[inv], disp[take][:, None, :])
+    own = win.centres_px[spot[take]]
+    ray = win.ref_px[nbc] + pred - own[:, None, :]  # (K, 8, 2)
+    width = win.tol * win.spacing[nbc]
+    length2 = np.sum(ray**2, axis=2)
+    length2 = np.where(np.isfinite(length2), length2, 0.0)
+    twice = open_ & (n_pred >= 2) & (length2 < width**2) & np.isfinite(ray[..., 0])
+    # The first spot along each ray; spots that labels hold block it without evidence.
+    held = np.zeros(len(win.centres_px), bool)
+    held[spot[take]] = True
+    cand = np.flatnonzero(win.readable | held)
+    lab, o = np.nonzero(open_ & ~twice & (length2 > 0))  # the rays to follow, (M,)
+    if len(lab) == 0:
+        return twice.any(axis=1)
+    r, r2, origin = ray[lab, o], length2[lab, o], own[lab]
+    _, q = cKDTree(win.centres_px[cand]).query(
+        origin + 0.5 * _RAY_REACH * r, k=min(_RAY_CANDIDATES, len(cand))
+    )
+    q = cand[np.reshape(q, (len(lab), -1))]  # (M, C)
+    rel = win.centres_px[q] - origin[:, None, :]
+    t = np.sum(rel * r[:, None, :], axis=2) / r2[:, None]
+    off = np.linalg.norm(rel - t[..., None] * r[:, None, :], axis=2)
+    on_ray = ((t > 0) & (t <= _RAY_REACH) & (off < width[lab, o][:, None])
+              & (q != spot[take][lab][:, None]))
+    first = q[np.arange(len(lab)), np.argmin(np.where(on_ray, t, np.inf), axis=1)]
+    found = on_ray.any(axis=1) & win.readable[first] & ~held[first]
+    same = win.sym[first] == win.codes[nbc[lab, o]]
+    agree = np.bincount(lab[found & same], minlength=len(take))
+    disagree = np.bincount(lab[found & ~same], minlength=len(take))
+    return twice.any(axis=1) | ((disagree >= win.min_mismatch) & (disagree > agree))
+
+
 def _consistent(
-    take: IntArray, node: IntArray, disp: FloatArray, n_nodes: int, tab: object,
-    spacing: FloatArray, min_consistent: int, tol_grow: float,
-) -> IntArray:
+    take: IntArray, node: IntArray, spot: IntArray, disp: FloatArray, n_nodes: int,
+    tab: object, spacing: FloatArray, min_consistent: int, tol_grow: float,
+    win: _Window | None = None,
+) -> tuple[IntArray, IntArray]:
     """The lattice check: the labels ``take`` that the labels decoded around them confirm
     (each neighbour's window overlaps its own): the displacement their decoded neighbours
     predict (leaving each out) lies within ``2 tol_grow`` of its own, from at least
-    ``min_consistent`` of them; repeated while it drops any (at most 8 times)."""
+    ``min_consistent`` of them; repeated while it drops any (at most 8 times). Then (``win``)
+    the code must not contradict them where their windows were not decoded
+    (:func:`_contradicted`): the labels it drops change their neighbours' windows and lattice,
+    so both checks are repeated while it drops any (at most 8 times). Returns the labels kept
+    and those the code contradicted."""
+    dropped = [np.zeros(0, np.int64)]
     for _ in range(8):
-        cons, resid = _lattice_check(node[take], disp[take], n_nodes, tab, spacing)
-        ok = (cons >= min_consistent) & (resid < 2.0 * tol_grow)
-        if ok.all():
+        for _ in range(8):
+            cons, resid = _lattice_check(node[take], disp[take], n_nodes, tab, spacing)
+            ok = (cons >= min_consistent) & (resid < 2.0 * tol_grow)
+            if ok.all():
+                break
+            take = take[ok]
+        if win is None:
             break
-        take = take[ok]
-    return take
+        bad = _contradicted(take, node, spot, disp, tab, win)
+        if not bad.any():
+            break
+        dropped.append(take[bad])
+        take = take[~bad]
+    return take, np.concatenate(dropped)
 
 
 def decode_distorted(
@@ -431,6 +564,9 @@ def decode_distorted(
     min_margin: int = 2,
     min_consistent: int = 3,
     tol_grow: float = 0.3,
+    min_flux: float = MIN_DOT_FLUX,
+    tol_window: float = 0.35,
+    min_mismatch: int = 2,
     ordering: Matches | None = None,
 ) -> Decoded:
     """Label the wavy-water spots by the pattern's colour code (see the module notes).
@@ -462,6 +598,16 @@ def decode_distorted(
     tol_grow : float
         Largest distance of a grown label's displacement from its neighbours' prediction,
         local spacings.
+    min_flux : float
+        Least flux of a labelled spot, as a share of a typical spot's (:data:`MIN_DOT_FLUX`).
+    tol_window : float
+        The window check's tolerance, local spacings: a label whose undecoded neighbour the
+        labelling puts this near its own spot is ambiguous, and a spot this far from the ray
+        to where it puts the neighbour is not the neighbour's (:func:`_contradicted`).
+    min_mismatch : int
+        Fewest spots of a label's undecoded neighbours showing another symbol than the code's
+        that drop it (when they also outnumber those that agree): 2, so that one misread
+        symbol (about 1 spot in 500 of the paper's rig) does not drop the 8 labels around it.
     ordering : Matches, optional
         The ordering matcher's labels of the same spots: those whose spot shows the code's
         symbol for the label, and whose spot and dot no decoded label holds, join the decoded
@@ -481,10 +627,14 @@ def decode_distorted(
     codes = node_symbols(ref, cfg)
     tab = ref.tables
     usable = ~spots.suspicious
+    # Specks (Monte Carlo fireflies, stray light: ~1 % of a dot's flux) often sit in a bright
+    # spot's skirt and show its colour: as a label they put the dot 7-19 px off its spot.
+    bright = spots.flux >= min_flux * _typical_flux(spots.flux)
     counts = {
         "detected": len(spots), "reference": int(ref.observed.sum()), "matched": 0,
         "matched_unobserved": 0, "decode_candidates": 0, "decoded": 0,
-        "rejected_symbol": int(np.sum(usable & (sym < 0))), "rejected_weak": 0,
+        "rejected_symbol": int(np.sum(usable & (sym < 0))),
+        "rejected_faint": int(np.sum(usable & (sym >= 0) & ~bright)), "rejected_weak": 0,
         "rejected_ambiguous": 0, "rejected_inconsistent": 0,
         "rejected_border": int(np.sum(~usable)), "unassigned_spots": len(spots),
         "anchor_candidates": 1, "labels_ambiguous": 0,
@@ -514,9 +664,14 @@ def decode_distorted(
     order = np.argsort(node, kind="stable")
     node, spot = node[order], spot[order]
     disp = spots.centres_px[spot] - ref.ref_px[node]
-    counts["decode_candidates"] = len(node)
     start = np.searchsorted(node, np.arange(n_nodes + 1))
     votes = _votes(node, np.ascontiguousarray(disp), start, tab.nbrs8, _OPPOSITE, *tols)
+    # A speck votes (beside a dot's spot it shows that dot's symbol about where the dot is) but
+    # takes no label: its centre is not the dot's.
+    dot_like = bright[spot]
+    node, spot, disp, votes = node[dot_like], spot[dot_like], disp[dot_like], votes[dot_like]
+    spot_ok &= bright
+    counts["decode_candidates"] = len(node)
     # The ordering labels farther than the reach from flat water (a long wave's tilt moves
     # whole patches 6-12 spacings at U = 1 m/s) join as hypotheses of their own: beyond the
     # reach no window can be compared with its rivals, so they neither vote nor are voted for,
@@ -557,6 +712,9 @@ def decode_distorted(
     # Join, grow, check; twice: a wrong window label the check drops may have held the spot or
     # the dot of a right ordering label, which the second round lets join.
     ever = np.zeros(len(node), bool)
+    contradicted = np.zeros(len(node), bool)
+    win = _Window(ref.ref_px, spacing, codes, spots.centres_px, sym, spot_ok, tol_window,
+                  min_mismatch)
     joined = 0
     for round_ in range(2):
         new = _from_ordering(hyp_ord, node, spot, take, n_nodes, len(spots))
@@ -566,10 +724,14 @@ def decode_distorted(
         take = np.concatenate([take, new])
         take = _grow_decoded(node, spot, disp, take, n_nodes, len(spots), tab, spacing, tol_grow)
         ever[take] = True
-        take = _consistent(take, node, disp, n_nodes, tab, spacing, min_consistent, tol_grow)
+        take, dropped = _consistent(take, node, spot, disp, n_nodes, tab, spacing,
+                                    min_consistent, tol_grow, win)
+        contradicted[dropped] = True
+    contradicted[take] = False
     counts["from_ordering"] = joined
     counts["decoded"] = int(ever.sum())
-    counts["rejected_inconsistent"] = counts["decoded"] - len(take)
+    counts["rejected_window"] = int(contradicted.sum())
+    counts["rejected_inconsistent"] = counts["decoded"] - len(take) - counts["rejected_window"]
     # The surface integrates slopes along the lattice: pieces that touch no other decoded dot
     # have no height relative to the rest (their labels are right, their level is not known).
     main = _largest_component(tab.lat, node[take])

@@ -40,26 +40,38 @@ def cfg():
     return load_config(SCENE).replace("pattern", code="colour")
 
 
-def draw(cfg, surface, symbols_of=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def draw(cfg, surface, symbols_of=None, keep=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """RGB image (H, W, 3) of the lit dots' spots through ``surface`` (None: flat), with the
-    grid indices (K, 2) and centres (K, 2) drawn."""
+    grid indices (K, 2) and centres (K, 2) of all (``keep``: a mask of those drawn)."""
     ij, px = predict_spots(cfg, surface)
+    sym = true_symbols(cfg, ij) if symbols_of is None else symbols_of
+    h, w = cfg.camera_s.height_px, cfg.camera_s.width_px
+    img = np.zeros((h, w, 3), np.float32)
+    drawn = np.ones(len(ij), bool) if keep is None else keep
+    for c, k in zip(px[drawn], sym[drawn], strict=True):  # drawing only: a few hundred spots
+        add_spot(img, c, k, spot_sigma_px(cfg))
+    return img, ij, px
+
+
+def true_symbols(cfg, ij) -> np.ndarray:
+    """The code's symbol (K,) of the dots ``ij`` (K, 2)."""
     all_ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
     codes = dot_codes(cfg.pattern, cfg.projector.camera())
     lut = {tuple(k): int(c) for k, c in zip(all_ij.tolist(), codes, strict=True)}
-    sym = np.array([lut[tuple(k)] for k in ij.tolist()]) if symbols_of is None else symbols_of
-    g = np.asarray(CODE_LEVELS)[sym]
-    h, w = cfg.camera_s.height_px, cfg.camera_s.width_px
-    img = np.zeros((h, w, 3), np.float32)
-    s = spot_sigma_px(cfg)
-    rows, cols = np.mgrid[0:h, 0:w]
-    for (c, r), gk in zip(px, g, strict=True):  # drawing only: a few hundred spots
-        r0, r1 = max(int(r) - 8, 0), min(int(r) + 9, h)
-        c0, c1 = max(int(c) - 8, 0), min(int(c) + 9, w)
-        blob = np.exp(-((cols[r0:r1, c0:c1] - c) ** 2 + (rows[r0:r1, c0:c1] - r) ** 2) / (2 * s**2))
-        img[r0:r1, c0:c1, 1] += gk * blob
-        img[r0:r1, c0:c1, 2] += (1 - gk) * blob
-    return img, ij, px
+    return np.array([lut[tuple(k)] for k in ij.tolist()])
+
+
+def add_spot(img, centre, symbol, sigma, amplitude=1.0) -> None:
+    """Add a Gaussian spot of ``symbol``'s colour at ``centre`` (col, row) to ``img``."""
+    h, w = img.shape[:2]
+    c, r = centre
+    r0, r1 = max(int(r) - 8, 0), min(int(r) + 9, h)
+    c0, c1 = max(int(c) - 8, 0), min(int(c) + 9, w)
+    rows, cols = np.mgrid[r0:r1, c0:c1]
+    blob = amplitude * np.exp(-((cols - c) ** 2 + (rows - r) ** 2) / (2 * sigma**2))
+    g = CODE_LEVELS[symbol]
+    img[r0:r1, c0:c1, 1] += g * blob
+    img[r0:r1, c0:c1, 2] += (1 - g) * blob
 
 
 def wavy(cfg, phi_ratio: float, wavelength_mm: float = 80.0) -> Heightfield:
@@ -119,6 +131,44 @@ def test_decodes_past_the_ordering_limit(cfg, reference, phi_ratio):
     assert n_ok > (0.5 if phi_ratio < 1 else 0.1) * len(ij)  # recall falls; precision not
     assert np.all((dec.confidence >= 0) & (dec.confidence <= 1))
     assert dec.matches.counts["matched"] == len(dec.matches)
+
+
+def test_specks_take_no_label(cfg, reference):
+    """A speck (Monte Carlo firefly, stray light) in a dot's colour, 5 px from where the dot's
+    spot would be, takes no label, also where the dot's own spot is missing: the window votes
+    would give it one (5 px is within their tolerance), 5 px off the dot."""
+    surface = wavy(cfg, 0.5)
+    ij, px = predict_spots(cfg, surface)
+    h, w = cfg.camera_s.height_px, cfg.camera_s.width_px
+    gone = np.zeros(len(ij), bool)
+    gone[np.flatnonzero(np.linalg.norm(px - [w / 2, h / 2], axis=1) < 0.35 * h)[::7]] = True
+    img, _, _ = draw(cfg, surface, keep=~gone)
+    s = spot_sigma_px(cfg)
+    for c, k in zip(px[gone] + [5.0, 0.0], true_symbols(cfg, ij[gone]), strict=True):
+        add_spot(img, c, k, 1.0, amplitude=0.015 * s**2)  # 1.5 % of a spot's flux
+    spots = flag_diffuser_edge(detect_spots(img, spot_sigma_px=reference.detect_sigma_px),
+                               _outline_px(cfg))
+    specks = np.linalg.norm(spots.centres_px[:, None] - (px[gone] + [5.0, 0.0]), axis=2) < 1.0
+    assert specks.any(axis=0).mean() > 0.5  # the detector keeps them
+    dec = decode_distorted(reference, spots, img, cfg)
+    frac, n_ok = precision(dec.matches, ij, px)
+    assert frac == 1.0
+    assert not {tuple(k) for k in dec.matches.ij.tolist()} & {tuple(k) for k in ij[gone].tolist()}
+    assert n_ok > 0.7 * len(ij)
+    assert dec.matches.counts["rejected_faint"] > 0
+
+
+def test_fold_is_not_decoded_one_dot_off(cfg, reference):
+    """Past eq. 35's bound a fold squeezes columns of spots together, where a column labelled
+    one dot over varies more smoothly than the right labels and passes the lattice check (8
+    labels at 1.5x the bound here, with the ordering labels); the symbols of the spots next
+    to it, where its window was not decoded, drop it."""
+    img, ij, px = draw(cfg, wavy(cfg, 1.5))
+    m = features_from_code(img, reference, cfg)
+    frac, n_ok = precision(m, ij, px)
+    assert frac == 1.0
+    assert n_ok > 0.5 * len(ij)
+    assert m.counts["rejected_window"] > 0
 
 
 def test_wrong_symbols_are_dropped_not_used(cfg, reference):
