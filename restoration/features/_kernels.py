@@ -316,14 +316,53 @@ def fill_rows(chunk, n_chunks, labels, smooth, padded, pad, start, rows, cols, l
 
 
 @njit(**_JIT)
-def weighted_sums(lab, w, x, y, n):  # pragma: no cover
-    """Per label (n,): sums of ``w``, ``w x``, ``w y`` (first (n, 3)) and of ``w x^2``,
-    ``w x y``, ``w y^2`` (second (n, 3)) over the pixels (N,), accumulated in pixel order (as
-    a labels x pixels sparse product does)."""
+def segment_moments(lab, smooth, raw, cols, rows, cx, cy, n):  # pragma: no cover
+    """Per label (n,), over the pixels (N,) in pixel order, with weights ``w = max(smooth,
+    0)`` at offsets ``(x, y) = (cols - cx, rows - cy)``: sums of ``w``, ``w x``, ``w y``
+    (``first`` (n, 3)) and of ``w x^2``, ``w x y``, ``w y^2`` (``second`` (n, 3)), the peak of
+    ``smooth`` (-inf without pixels), the sum of ``raw`` (float64) and the pixel count. One
+    pass that makes the weights and offsets as it goes (no pixel-sized temporaries). Returns
+    ``first, second, peak, flux, area``."""
+    first = np.zeros((n, 3))
+    second = np.zeros((n, 3))
+    peak = np.full(n, -np.inf)
+    flux = np.zeros(n)
+    area = np.zeros(n, np.int64)
+    for k in range(lab.size):
+        i, sk = lab[k], smooth[k]
+        wk = max(sk, 0.0)
+        xk = np.float64(cols[k]) - cx
+        yk = np.float64(rows[k]) - cy
+        first[i, 0] += wk * 1.0
+        first[i, 1] += wk * xk
+        first[i, 2] += wk * yk
+        second[i, 0] += wk * (xk * xk)
+        second[i, 1] += wk * (xk * yk)
+        second[i, 2] += wk * (yk * yk)
+        peak[i] = max(peak[i], sk)
+        flux[i] += np.float64(raw[k])
+        area[i] += 1
+    return first, second, peak, flux, area
+
+
+@njit(**_JIT)
+def _above_peak(k, i, lab, smooth, cols, rows, peak, origin):  # pragma: no cover
+    """Pixel ``k`` (of label ``i``) for the kurtosis: its weight ``max(smooth - 0.2 peak, 0)``
+    and its offsets from the label's ``origin`` (n, 2) pixel, as exact small integers."""
+    wk = max(smooth[k] - 0.2 * peak[i], 0.0)
+    return wk, np.float64(cols[k] - origin[i, 0]), np.float64(rows[k] - origin[i, 1])
+
+
+@njit(**_JIT)
+def peak_moments(lab, smooth, cols, rows, peak, origin, n):  # pragma: no cover
+    """``first`` and ``second`` as :func:`segment_moments` gives them, of the part of each
+    segment above 0.2 x its peak, offsets from ``origin`` (:func:`_above_peak`), made pixel by
+    pixel (no pixel-sized temporaries)."""
     first = np.zeros((n, 3))
     second = np.zeros((n, 3))
     for k in range(lab.size):
-        i, wk, xk, yk = lab[k], w[k], x[k], y[k]
+        i = lab[k]
+        wk, xk, yk = _above_peak(k, i, lab, smooth, cols, rows, peak, origin)
         first[i, 0] += wk * 1.0
         first[i, 1] += wk * xk
         first[i, 2] += wk * yk
@@ -334,32 +373,20 @@ def weighted_sums(lab, w, x, y, n):  # pragma: no cover
 
 
 @njit(**_JIT)
-def segment_sums(lab, smooth, raw, n):  # pragma: no cover
-    """Per label (n,): peak of ``smooth`` (-inf without pixels), sum of ``raw`` (float64) and
-    pixel count."""
-    peak = np.full(n, -np.inf)
-    flux = np.zeros(n)
-    area = np.zeros(n, np.int64)
-    for k in range(lab.size):
-        i = lab[k]
-        peak[i] = max(peak[i], smooth[k])
-        flux[i] += np.float64(raw[k])
-        area[i] += 1
-    return peak, flux, area
-
-
-@njit(**_JIT)
-def axis_moments(lab, w, x, y, mean, cos, sin, n):  # pragma: no cover
+def peak_axis_moments(lab, smooth, cols, rows, peak, origin, mean, cos, sin,
+                      n):  # pragma: no cover
     """Per label (n,): sums of ``w p^2`` and ``w p^4`` with ``p = (x - mean_x) cos + (y -
-    mean_y) sin`` the offset along the label's axis."""
+    mean_y) sin`` the offset along the label's axis, over the part of each segment above 0.2 x
+    its peak (weights ``w`` and offsets ``(x, y)`` as :func:`peak_moments`)."""
     m2 = np.zeros(n)
     m4 = np.zeros(n)
     for k in range(lab.size):
         i = lab[k]
-        p = (x[k] - mean[i, 0]) * cos[i] + (y[k] - mean[i, 1]) * sin[i]
+        wk, xk, yk = _above_peak(k, i, lab, smooth, cols, rows, peak, origin)
+        p = (xk - mean[i, 0]) * cos[i] + (yk - mean[i, 1]) * sin[i]
         p2 = p * p
-        m2[i] += w[k] * p2
-        m4[i] += w[k] * (p2 * p2)
+        m2[i] += wk * p2
+        m4[i] += wk * (p2 * p2)
     return m2, m4
 
 

@@ -16,13 +16,13 @@ from numpy.typing import NDArray
 
 from restoration._threads import restore_threads, run_beside, run_chunks
 from restoration.features._kernels import (
-    axis_moments,
     centroid_chunk,
     count_rows,
     fill_rows,
-    segment_sums,
+    peak_axis_moments,
+    peak_moments,
+    segment_moments,
     spot_boxes,
-    weighted_sums,
 )
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from wai_core.errors import WaiInputError
@@ -214,13 +214,11 @@ def _segment(
     return n, labels, mask
 
 
-def _moments(
-    px: _Pixels, w: FloatArray, x: FloatArray, y: FloatArray, n: int
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Per-label total (n,), mean (n, 2) and covariance (n, 2, 2) of the pixels ``px`` at ``(x,
-    y)`` (N,), px, with weights ``w`` (N,): one compiled pass over the pixels. Raw moments:
-    keep ``x, y`` small against the image size."""
-    first, second = weighted_sums(px.lab, w, x, y, n)
+def _moments(first: FloatArray, second: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per-label total (n,), mean (n, 2) and covariance (n, 2, 2) from the weighted sums
+    ``first`` (n, 3: ``w``, ``w x``, ``w y``) and ``second`` (n, 3: ``w x^2``, ``w x y``,
+    ``w y^2``) of a compiled pass over the pixels. Raw moments: keep ``x, y`` small against
+    the image size. ``second`` is overwritten."""
     tot = first[:, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         mean = first[:, 1:] / tot[:, None]
@@ -239,17 +237,17 @@ def _major_axis_kurtosis(px: _Pixels, peak: FloatArray, centre: FloatArray) -> F
     spot, whatever its size, elongation or brightness (2.2-2.45 after the smoothing, the spread
     from pixelisation of the smallest), and falls as two spots run together into a flat-topped
     or two-humped blob (below 2.15 once they are more than ~3 sigma apart). Pixel offsets are
-    taken from the segment's ``centre`` (n, 2) rounded to a pixel: exact small integers.
+    taken from the segment's ``centre`` (n, 2) rounded to a pixel: exact small integers. Two
+    compiled passes over the pixels, which make the weights and offsets as they go.
     """
-    lab, n = px.lab, len(peak)
+    n = len(peak)
     origin = np.rint(np.nan_to_num(centre)).astype(np.int32)  # NaN: no weight at all
-    x = (px.cols - origin[lab, 0]).astype(np.float64)
-    y = (px.rows - origin[lab, 1]).astype(np.float64)
-    w = np.clip(px.smooth - 0.2 * peak[lab], 0.0, None)
-    tot, mean, cov = _moments(px, w, x, y, n)
+    tot, mean, cov = _moments(*peak_moments(px.lab, px.smooth, px.cols, px.rows, peak, origin, n))
     # Major-axis direction of each 2 x 2 covariance, in closed form.
     angle = 0.5 * np.arctan2(2.0 * cov[:, 0, 1], cov[:, 0, 0] - cov[:, 1, 1])
-    m2, m4 = axis_moments(lab, w, x, y, mean, np.cos(angle), np.sin(angle), n)
+    m2, m4 = peak_axis_moments(
+        px.lab, px.smooth, px.cols, px.rows, peak, origin, mean, np.cos(angle), np.sin(angle), n
+    )
     with np.errstate(divide="ignore", invalid="ignore"):
         kurt = m4 * tot / m2**2
     return np.where(np.isfinite(kurt), kurt, 3.0)
@@ -307,11 +305,12 @@ def _segment_stats(px: _Pixels, n: int, shape: tuple[int, ...]) -> _Segments:
     """Moments of every segment at once, from the list of segmented pixels (no segment loop)."""
     h, w = shape
     # Coordinates from the image centre: the raw second moments lose < 1e-10 px^2 that way.
-    tot, mean, cov = _moments(
-        px, np.clip(px.smooth, 0.0, None), px.cols - 0.5 * (w - 1), px.rows - 0.5 * (h - 1), n
+    # Weights max(smooth, 0); peak, flux and area in the same pass.
+    first, second, peak, flux, area = segment_moments(
+        px.lab, px.smooth, px.raw, px.cols, px.rows, 0.5 * (w - 1), 0.5 * (h - 1), n
     )
+    tot, mean, cov = _moments(first, second)
     mean += [0.5 * (w - 1), 0.5 * (h - 1)]
-    peak, flux, area = segment_sums(px.lab, px.smooth, px.raw, n)
     return _Segments(tot, mean, cov, peak, flux, area, _major_axis_kurtosis(px, peak, mean))
 
 

@@ -395,32 +395,46 @@ def warp_rows(chunk, n_chunks, disp_x, disp_y, cell_ok, col_i, col_t, row_i, row
     n_cols = disp_x.shape[1]
     lo = np.float32(-0.5)
     wx, hy = np.float32(w - 0.5), np.float32(h - 0.5)
+    # The warp along a row at every node column: the pixel loop then only gathers from it
+    # (no per-cell inner loop), which the compiler vectorises; same float32 operations as
+    # interpolating cell by cell.
+    node_x = np.empty(n_cols, np.float32)
+    node_y = np.empty(n_cols, np.float32)
+    cell_flag = np.empty(n_cols, np.int32)  # cell_ok's row as words: bytes cannot be gathered
     for r in range(chunk, h, n_chunks):
         iy, ty = row_i[r], row_t[r]
         x0, x1, y0, y1 = disp_x[iy], disp_x[iy + 1], disp_y[iy], disp_y[iy + 1]
+        for ix in range(n_cols):
+            node_x[ix] = x0[ix] + ty * (x1[ix] - x0[ix])
+            node_y[ix] = y0[ix] + ty * (y1[ix] - y0[ix])
         ok_row = cell_ok[iy]
-        n_ok, lo_c, hi_c = 0, w, 0
-        c = 0
         for ix in range(n_cols - 1):
-            # The warp along this row at the cell's two node columns; linear in between.
-            lx = x0[ix] + ty * (x1[ix] - x0[ix])
-            ly = y0[ix] + ty * (y1[ix] - y0[ix])
-            sx = x0[ix + 1] + ty * (x1[ix + 1] - x0[ix + 1]) - lx
-            sy = y0[ix + 1] + ty * (y1[ix + 1] - y0[ix + 1]) - ly
-            cell = ok_row[ix]
-            while c < w and col_i[c] == ix:
-                tx = col_t[c]
-                mx = np.float32(c) + (lx + tx * sx)
-                my = np.float32(r) + (ly + tx * sy)
-                map_x[r, c], map_y[r, c] = mx, my
-                ok = cell & (mx >= lo) & (mx <= wx) & (my >= lo) & (my <= hy)
-                valid[r, c] = ok
-                blank[r, c] = not ok
-                n_ok += ok
-                if ok:
-                    lo_c = min(lo_c, c)
-                    hi_c = c + 1
-                c += 1
+            cell_flag[ix] = ok_row[ix]
+        mx_row, my_row, valid_row, blank_row = map_x[r], map_y[r], valid[r], blank[r]
+        fr = np.float32(r)
+        for c in range(w):
+            # Unsigned: no negative-index wraparound in the loop, which would stop vectorising.
+            ix = np.uint64(col_i[c])
+            lx, ly = node_x[ix], node_y[ix]
+            sx, sy = node_x[ix + np.uint64(1)] - lx, node_y[ix + np.uint64(1)] - ly
+            tx = col_t[c]
+            mx = np.float32(c) + (lx + tx * sx)
+            my = fr + (ly + tx * sy)
+            mx_row[c], my_row[c] = mx, my
+            ok = (cell_flag[ix] != 0) & (mx >= lo) & (mx <= wx) & (my >= lo) & (my <= hy)
+            valid_row[c] = ok
+            blank_row[c] = not ok
+        n_ok = 0
+        for c in range(w):
+            n_ok += valid_row[c]
+        lo_c, hi_c = w, 0
+        if n_ok:
+            lo_c = 0
+            while not valid_row[lo_c]:
+                lo_c += 1
+            hi_c = w
+            while not valid_row[hi_c - 1]:
+                hi_c -= 1
         per_row[r], first[r], last[r] = n_ok, lo_c, hi_c
 
 
@@ -442,15 +456,25 @@ def valid_box(per_row, first, last, w):  # pragma: no cover
 
 
 @njit(**_JIT)
-def finish_rows(chunk, n_chunks, box, blank, gain):  # pragma: no cover
-    """Rows ``chunk, chunk + n_chunks, ...`` of the resampled ``box`` (h, w, C) divided by
-    ``gain`` (of its type), and 0 where ``blank`` (h, w) is set."""
-    h, w, n_ch = box.shape
+def finish_rows(chunk, n_chunks, out, blank, box, gain):  # pragma: no cover
+    """Rows ``chunk, chunk + n_chunks, ...`` of the resampled image ``out`` (H, W, C): inside
+    ``box`` (4,) (first and one past the last row, then column, where ``cv2.remap`` wrote)
+    divided by ``gain`` (of its type), and 0 where ``blank`` (H, W) is set; 0 outside it
+    (``out`` comes uninitialised, which spares a pass zeroing the whole image)."""
+    h, w, n_ch = out.shape
+    r0, r1, c0, c1 = box[0], box[1], box[2], box[3]
     for r in range(chunk, h, n_chunks):
-        for c in range(w):
-            if blank[r, c]:
+        row = out[r].reshape(-1)  # contiguous: the division vectorises
+        if r < r0 or r >= r1:
+            row[:] = 0.0
+            continue
+        row[: c0 * n_ch] = 0.0
+        row[c1 * n_ch :] = 0.0
+        part = row[c0 * n_ch : c1 * n_ch]
+        for j in range(part.size):  # from 0: no negative-index check, so it vectorises
+            part[j] = part[j] / gain
+        blank_row = blank[r]
+        for c in range(c0, c1):
+            if blank_row[c]:
                 for k in range(n_ch):
-                    box[r, c, k] = 0.0
-            else:
-                for k in range(n_ch):
-                    box[r, c, k] = box[r, c, k] / gain
+                    row[c * n_ch + k] = 0.0

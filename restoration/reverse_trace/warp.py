@@ -246,8 +246,8 @@ def _pixel_warp(
     the warp and tests it; ``cv2.remap`` samples the image in the valid pixels' bounding box
     (exact bilinear weights on float maps since OpenCV 5; the fixed-point maps of
     ``cv2.convertMaps`` would round the position to 1/32 px and measured no faster); the box
-    is then divided by the gain, and its invalid pixels zeroed, in chunks of rows
-    (:func:`~restoration.reverse_trace._kernels.finish_rows`).
+    is then divided by the gain, and its invalid pixels and everything outside it zeroed, in
+    chunks of rows (:func:`~restoration.reverse_trace._kernels.finish_rows`).
     Displacements are interpolated, not positions: they vary slowly, so float32 costs nothing.
     """
     h, w = plan.image_shape
@@ -261,24 +261,33 @@ def _pixel_warp(
         warp_rows, 4 * restore_threads(), disp_x, disp_y, cell == RayStatus.OK,
         *plan.pixel_cells, map_x, map_y, valid, blank, per_row, first, last,
     )
-    n_valid, (r0, r1, c0, c1) = valid_box(per_row, first, last, w)
+    n_valid, box = valid_box(per_row, first, last, w)
+    r0, r1, c0, c1 = (int(v) for v in box)
     # Only the valid pixels' bounding box is sampled (views: cv2 writes into the result); the
-    # rest stays 0. Half-pixel border: replicate rather than blend with black. The box is then
-    # divided by the gain and its invalid pixels zeroed, in one pass over its rows.
-    out = np.zeros(img.shape, dtype=img.dtype)
-    if n_valid:
-        box = out[r0:r1, c0:c1]
-        cv2.remap(img, map_x[r0:r1, c0:c1], map_y[r0:r1, c0:c1], cv2.INTER_LINEAR, dst=box,
-                  borderMode=cv2.BORDER_REPLICATE)
-        run_chunks(
-            finish_rows, 4 * restore_threads(), box.reshape(r1 - r0, c1 - c0, -1),
-            blank[r0:r1, c0:c1], img.dtype.type(gain),
-        )
+    # rest is zeroed. Half-pixel border: replicate rather than blend with black. The box is
+    # then divided by the gain, its invalid pixels and everything outside it zeroed, in one
+    # pass over the rows (so the result is not zeroed first: a full pass less).
+    if not n_valid:
+        return np.zeros(img.shape, dtype=img.dtype), map_x, map_y, valid, _counts(cell, plan, 0)
+    out = np.empty(img.shape, dtype=img.dtype)
+    cv2.remap(img, map_x[r0:r1, c0:c1], map_y[r0:r1, c0:c1], cv2.INTER_LINEAR,
+              dst=out[r0:r1, c0:c1], borderMode=cv2.BORDER_REPLICATE)
+    run_chunks(
+        finish_rows, 4 * restore_threads(), out.reshape(h, w, -1), blank, box,
+        img.dtype.type(gain),
+    )
+    return out, map_x, map_y, valid, _counts(cell, plan, int(n_valid))
+
+
+def _counts(cell: NDArray[np.int8], plan: _Plan, n_valid: int) -> dict[str, int]:
+    """Restored pixels (``ok``: the ``n_valid`` valid ones) and the others by cause: the
+    coarse cells' statuses weighed by their pixel areas, solved cells' pixels sampling
+    outside the image counted ``out_of_view``."""
     hist = np.bincount(cell.ravel(), weights=plan.cell_area.ravel(), minlength=len(RayStatus))
     counts = {s.name.lower(): int(round(hist[s])) for s in RayStatus}
-    counts["out_of_view"] += counts["ok"] - int(n_valid)
-    counts["ok"] = int(n_valid)
-    return out, map_x, map_y, valid, counts
+    counts["out_of_view"] += counts["ok"] - n_valid
+    counts["ok"] = n_valid
+    return counts
 
 
 def restore_view(

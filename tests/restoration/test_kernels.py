@@ -11,7 +11,7 @@ import pytest
 from scipy.interpolate import BSpline
 from scipy.spatial import cKDTree
 
-from restoration.features._kernels import nearest_two, spot_cells, weighted_sums
+from restoration.features._kernels import nearest_two, segment_moments, spot_cells
 from restoration.features.detect import (
     _WINDOW_GAIN,
     _WINDOW_VAR,
@@ -27,7 +27,7 @@ from restoration.normals import (
     slopes_from_normals,
 )
 from restoration.reverse_trace import _SplinePatches
-from restoration.reverse_trace._kernels import spline_jet, valid_box, warp_rows
+from restoration.reverse_trace._kernels import finish_rows, spline_jet, valid_box, warp_rows
 from restoration.reverse_trace._surface import _cell_polynomials
 from restoration.reverse_trace.warp import _pixel_cells, restore_view
 from restoration.surface import _TrapezoidSystem
@@ -107,15 +107,22 @@ def test_nearest_two_is_the_kd_tree_answer():
         assert best == (iq[0] if np.isfinite(dq[0]) else len(pts) - 1)
 
 
-def test_weighted_sums_are_bincounts():
+def test_segment_moments_are_bincounts():
     rng = np.random.default_rng(6)
     lab = rng.integers(0, 7, 1000).astype(np.int32)
-    w, x, y = rng.random(1000), rng.normal(size=1000), rng.normal(size=1000)
-    first, second = weighted_sums(lab, w, x, y, 7)
+    smooth, raw = rng.normal(size=1000), rng.random(1000).astype(np.float32)
+    cols, rows = rng.integers(0, 50, 1000).astype(np.int32), rng.integers(0, 40, 1000)
+    first, second, peak, flux, area = segment_moments(
+        lab, smooth, raw, cols, rows.astype(np.int32), 24.5, 19.5, 7
+    )
+    w, x, y = np.clip(smooth, 0.0, None), cols - 24.5, rows - 19.5
     for col, v in enumerate((np.ones(1000), x, y)):
         np.testing.assert_allclose(first[:, col], np.bincount(lab, w * v, 7), rtol=1e-12)
     for col, v in enumerate((x * x, x * y, y * y)):
         np.testing.assert_allclose(second[:, col], np.bincount(lab, w * v, 7), rtol=1e-12)
+    np.testing.assert_allclose(flux, np.bincount(lab, raw.astype(float), 7), rtol=1e-12)
+    np.testing.assert_array_equal(area, np.bincount(lab, minlength=7))
+    np.testing.assert_array_equal(peak, [smooth[lab == i].max() for i in range(7)])
 
 
 def test_windowed_centroid_matches_a_direct_evaluation():
@@ -222,6 +229,23 @@ def test_warp_rows_are_the_bilinear_upsampling():
     assert n_valid == want_valid.sum()
     r, c = np.flatnonzero(want_valid.any(axis=1)), np.flatnonzero(want_valid.any(axis=0))
     np.testing.assert_array_equal(box, [r[0], r[-1] + 1, c[0], c[-1] + 1])
+
+
+def test_finish_rows_divides_the_box_and_zeroes_the_rest():
+    """Inside the box: divided by the gain, 0 where blank; outside it: 0 (the image comes
+    uninitialised)."""
+    rng = np.random.default_rng(9)
+    h, w, box = 11, 17, np.array([2, 9, 3, 14])
+    for n_ch in (1, 3):
+        out = rng.random((h, w, n_ch)).astype(np.float32) + 1.0
+        blank = (rng.random((h, w)) > 0.7).astype(np.uint8)
+        gain = np.float32(1.7)
+        want = np.zeros_like(out)
+        inner = (slice(box[0], box[1]), slice(box[2], box[3]))
+        want[inner] = np.where(blank[inner][..., None] > 0, 0.0, out[inner] / gain)
+        for k in range(3):  # in 3 chunks of rows
+            finish_rows(k, 3, out, blank, box, gain)
+        np.testing.assert_array_equal(out, want)
 
 
 def test_restore_view_does_not_depend_on_the_thread_count():
