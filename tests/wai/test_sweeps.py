@@ -1,6 +1,7 @@
 """Sweep experiments: one frame per point, failures reported, summaries that never average a
 failed frame in."""
 
+import numpy as np
 import pytest
 
 from wai.experiments.frame_eval import evaluate_frame
@@ -59,6 +60,19 @@ def test_summaries_count_failures_apart():
     ])
     (spacing,) = series["spacing"]
     assert (spacing["ok"], spacing["n"], spacing["rmse_mm"]) == (1, 2, 0.2)
+
+    # One point runs every integrator on a frame: each is averaged by its own status, so an
+    # integrator that leaves its frame inconsistent (here the last one, whose status the row's
+    # frame_status carries) does not blank the others.
+    names = [entry["value"] for entry in chart_series([])["integrator"]]
+    row = {"chart": "integrator", "status": "ok", "frame_status": "inconsistent"}
+    for k, name in enumerate(names):
+        ok = name != names[-1]
+        row.update({f"variant_status_{name}": "ok" if ok else "inconsistent",
+                    f"wai_rmse_mm_{name}": 0.1 * (k + 1), f"ms_surface_{name}": 5.0})
+    by_name = {entry["value"]: entry for entry in chart_series([row])["integrator"]}
+    assert by_name[names[0]]["rmse_mm"] == pytest.approx(0.1) and by_name[names[0]]["ok"] == 1
+    assert np.isnan(by_name[names[-1]]["rmse_mm"]) and by_name[names[-1]]["ok"] == 0
 
 
 def test_degradation_fields_enable_the_sections():

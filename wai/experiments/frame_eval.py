@@ -55,7 +55,10 @@ residual (``residual_median_px``, ``residual_p95_px``, ``residual_threshold_px``
 correspondence counts against the geometric model (``n_in_view``, ``n_matched``,
 ``n_correct``, ``fraction_correct`` of the dots in view, ``label_precision`` of the kept
 ones), eq. 35's effective slope amplitude ``phi_deg``, the
-surface and view scores and the timings.
+surface and view scores and the timings. A point that runs several variants
+(``integrators``, ``warp_steps``, ``refinements``) has their scores and timings under suffixed
+names, each with its own truth-free status (``variant_status_<suffix>``); ``frame_status`` and
+``method_status`` are the last variant's.
 """
 
 from __future__ import annotations
@@ -208,6 +211,7 @@ def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[s
         Truth(surface, images["view_truth"] / cal.view_gain),
     )
     return {
+        "variant_status": result.status,
         "wai_rmse_mm": s.surface["rmse_mm"],
         "wai_rmse_demeaned_mm": s.surface["rmse_demeaned_mm"],
         "wai_max_abs_mm": s.surface["max_abs_mm"],

@@ -69,8 +69,12 @@ def tradeoff_points(config: Path, seeds: list[int], quick: bool) -> list[dict[st
     return points
 
 
-def _mean(rows: list[dict], key: str) -> float:
-    vals = [r.get(key) for r in rows if r.get("frame_status") == "ok"]
+def _mean(rows: list[dict], key: str, suffix: str | None = None) -> float:
+    """Mean of ``key`` over the frames that ended ``ok``: by the variant's own status for a
+    variant's column (``suffix``; e.g. an integrator that makes its frame inconsistent counts
+    only against itself), by the frame's otherwise."""
+    status = "frame_status" if suffix is None else f"variant_status_{suffix}"
+    vals = [r.get(key) for r in rows if r.get(status, r.get("frame_status")) == "ok"]
     vals = [float(v) for v in vals if v is not None and np.isfinite(v)]
     return float(np.mean(vals)) if vals else float("nan")
 
@@ -96,9 +100,10 @@ def chart_series(rows: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
         {
             "label": name,
             "value": name,
-            "ms": _mean(by["integrator"], f"ms_surface_{name}"),
-            "rmse_mm": _mean(by["integrator"], f"wai_rmse_mm_{name}"),
-            "rmse_demeaned_mm": _mean(by["integrator"], f"wai_rmse_demeaned_mm_{name}"),
+            "ms": _mean(by["integrator"], f"ms_surface_{name}", name),
+            "rmse_mm": _mean(by["integrator"], f"wai_rmse_mm_{name}", name),
+            "rmse_demeaned_mm": _mean(by["integrator"], f"wai_rmse_demeaned_mm_{name}", name),
+            "ok": sum(r.get(f"variant_status_{name}") == "ok" for r in by["integrator"]),
             "n": len(by["integrator"]),
         }
         for name in integrator_names()
@@ -120,9 +125,9 @@ def chart_series(rows: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
         {
             "label": f"step {k}",
             "value": k,
-            "ms": _mean(by["warp"], f"ms_reverse_trace_step{k}"),
-            "ssim": _mean(by["warp"], f"restored_ssim_step{k}"),
-            "corner_px": _mean(by["warp"], f"corner_std_restored_px_step{k}"),
+            "ms": _mean(by["warp"], f"ms_reverse_trace_step{k}", f"step{k}"),
+            "ssim": _mean(by["warp"], f"restored_ssim_step{k}", f"step{k}"),
+            "corner_px": _mean(by["warp"], f"corner_std_restored_px_step{k}", f"step{k}"),
             "n": len(by["warp"]),
         }
         for k in steps
@@ -131,9 +136,10 @@ def chart_series(rows: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
         {
             "label": name,
             "value": name,
-            "ms": _mean(by["refinement"], f"ms_surface_{name}"),
-            "rmse_mm": _mean(by["refinement"], f"wai_rmse_mm_{name}"),
-            "rmse_demeaned_mm": _mean(by["refinement"], f"wai_rmse_demeaned_mm_{name}"),
+            "ms": _mean(by["refinement"], f"ms_surface_{name}", name),
+            "rmse_mm": _mean(by["refinement"], f"wai_rmse_mm_{name}", name),
+            "rmse_demeaned_mm": _mean(by["refinement"], f"wai_rmse_demeaned_mm_{name}", name),
+            "ok": sum(r.get(f"variant_status_{name}") == "ok" for r in by["refinement"]),
             "n": len(by["refinement"]),
         }
         for name in REFINEMENTS
@@ -184,10 +190,10 @@ def report_markdown(series: dict[str, list[dict]], defaults: dict[str, Any], com
              "![tradeoffs](tradeoffs.png)", ""]
     tables = {
         "spacing": ("Pattern spacing D (panel px)", ["ms", "rmse_mm", "ok", "n"]),
-        "integrator": ("Integrator", ["ms", "rmse_mm", "rmse_demeaned_mm", "n"]),
+        "integrator": ("Integrator", ["ms", "rmse_mm", "rmse_demeaned_mm", "ok", "n"]),
         "spp": ("Pattern samples per pixel", ["ms", "spot_px", "n"]),
         "warp": ("Warp step (px)", ["ms", "ssim", "corner_px", "n"]),
-        "refinement": ("Surface refinement", ["ms", "rmse_mm", "rmse_demeaned_mm", "n"]),
+        "refinement": ("Surface refinement", ["ms", "rmse_mm", "rmse_demeaned_mm", "ok", "n"]),
     }
     for name, (title, cols) in tables.items():
         lines += [f"## {title} (default: {defaults[name]})", "",
