@@ -316,6 +316,18 @@ def fill_rows(chunk, n_chunks, labels, smooth, padded, pad, start, rows, cols, l
 
 
 @njit(**_JIT)
+def _accumulate(first, second, i, wk, xk, yk):  # pragma: no cover
+    """Add pixel weight ``wk`` at offsets ``(xk, yk)`` to label ``i``'s sums of ``w``, ``w x``,
+    ``w y`` (``first``) and ``w x^2``, ``w x y``, ``w y^2`` (``second``)."""
+    first[i, 0] += wk * 1.0
+    first[i, 1] += wk * xk
+    first[i, 2] += wk * yk
+    second[i, 0] += wk * (xk * xk)
+    second[i, 1] += wk * (xk * yk)
+    second[i, 2] += wk * (yk * yk)
+
+
+@njit(**_JIT)
 def segment_moments(lab, smooth, raw, cols, rows, cx, cy, n):  # pragma: no cover
     """Per label (n,), over the pixels (N,) in pixel order, with weights ``w = max(smooth,
     0)`` at offsets ``(x, y) = (cols - cx, rows - cy)``: sums of ``w``, ``w x``, ``w y``
@@ -333,12 +345,7 @@ def segment_moments(lab, smooth, raw, cols, rows, cx, cy, n):  # pragma: no cove
         wk = max(sk, 0.0)
         xk = np.float64(cols[k]) - cx
         yk = np.float64(rows[k]) - cy
-        first[i, 0] += wk * 1.0
-        first[i, 1] += wk * xk
-        first[i, 2] += wk * yk
-        second[i, 0] += wk * (xk * xk)
-        second[i, 1] += wk * (xk * yk)
-        second[i, 2] += wk * (yk * yk)
+        _accumulate(first, second, i, wk, xk, yk)
         peak[i] = max(peak[i], sk)
         flux[i] += np.float64(raw[k])
         area[i] += 1
@@ -363,12 +370,7 @@ def peak_moments(lab, smooth, cols, rows, peak, origin, n):  # pragma: no cover
     for k in range(lab.size):
         i = lab[k]
         wk, xk, yk = _above_peak(k, i, lab, smooth, cols, rows, peak, origin)
-        first[i, 0] += wk * 1.0
-        first[i, 1] += wk * xk
-        first[i, 2] += wk * yk
-        second[i, 0] += wk * (xk * xk)
-        second[i, 1] += wk * (xk * yk)
-        second[i, 2] += wk * (yk * yk)
+        _accumulate(first, second, i, wk, xk, yk)
     return first, second
 
 
