@@ -10,7 +10,12 @@ residual that grows with the anchor error. Minimising that residual over the one
 parameter recovers the absolute height from the data alone.
 
 The squared residual is close to a parabola in the anchor (the residual is nearly linear in
-it), so a few evaluations and a parabola fit find the minimum.
+it), so a few evaluations and a parabola fit find the minimum. Two things keep that minimum
+where the data put it: each edge's step comes from the fourth-order rule
+(:mod:`restoration.integrate.rules`; the trapezoid rule's own error, a few microns, moved the
+flat valley's minimum by ~0.1 mm), and the residuals are weighed by a Cauchy loss
+(:data:`CAUCHY_SCALE`), so a few wrong labels, whose edges' residuals are 10-100x the others',
+cannot place it.
 
 The information comes from the surface's curvature: over flat or nearly flat water a wrong
 anchor tilts the normals almost exactly like a plane seen from a shifted height would (a mirror
