@@ -16,6 +16,8 @@ def run_restore(args: argparse.Namespace) -> None:
 
     if not args.dir.is_dir():
         raise WaiInputError(f"restore folder not found: {args.dir}")
+    if args.refine < 0:
+        raise WaiInputError(f"--refine must be 0 or more passes, got {args.refine}")
     # The structured light finds the height from integrability; the sun sensor cannot.
     anchor = args.anchor or ("gauge" if args.method == "alterman" else "integrability")
     options = RestoreOptions(integrator=args.integrator, n_refine=args.refine, anchor=anchor,

@@ -60,3 +60,9 @@ def test_restore_defaults_are_the_librarys():
     defaults = RestoreOptions()
     assert args.refine == defaults.n_refine
     assert args.integrator == defaults.integrator
+
+
+def test_negative_refine_names_the_option(capsys, tmp_path):
+    assert main(["restore", str(tmp_path), "--refine", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert "--refine" in err and len(err.strip().splitlines()) == 1
