@@ -114,18 +114,17 @@ def integration_residual_mm(est: SurfaceEstimate) -> float:
     return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
 
 
-def robust_scale_mm(est: SurfaceEstimate) -> float:
-    """1.4826 x the median absolute edge residual of ``est``, mm: the standard deviation of
-    its residuals were they Gaussian, which a few outliers do not move."""
-    r, _ = edge_residuals_mm(est)
+def robust_scale_mm(r: NDArray) -> float:
+    """1.4826 x the median absolute value of the residuals ``r`` (E,), mm: their standard
+    deviation were they Gaussian, which a few outliers do not move."""
     return 1.4826 * float(np.median(np.abs(r))) if r.size else 0.0
 
 
-def _mean_squares(est: SurfaceEstimate, scale_mm: float = 0.0) -> tuple[float, NDArray]:
-    """Mean Cauchy loss ``c^2 log(1 + r^2 / c^2)`` of the edge residuals ``r`` over all edges
-    (mm^2; NaN without edges) and of each edge set (N_SETS,), with ``c = scale_mm``; the mean
-    squared residual when ``scale_mm`` is 0 (the loss tends to ``r^2`` for ``r << c``)."""
-    r, sets = edge_residuals_mm(est)
+def _mean_squares(r: NDArray, sets: NDArray, scale_mm: float = 0.0) -> tuple[float, NDArray]:
+    """Mean Cauchy loss ``c^2 log(1 + r^2 / c^2)`` of the edge residuals ``r`` (E,) over all
+    edges (mm^2; NaN without edges) and over each edge set of ``sets`` (E,) (N_SETS,), with
+    ``c = scale_mm``; the mean squared residual when ``scale_mm`` is 0 (the loss tends to
+    ``r^2`` for ``r << c``)."""
     r = np.ascontiguousarray(r, dtype=float)
     if scale_mm > 0:
         r = scale_mm * np.sqrt(np.log1p((r / scale_mm) ** 2))
@@ -288,9 +287,10 @@ def find_anchor(
         if anchor not in cache:
             est = reconstruct(anchor)
             evaluations += 1
+            r, sets = edge_residuals_mm(est)
             if not scale_mm:
-                scale_mm.append(cauchy_scale * robust_scale_mm(est))
-            cache[anchor] = (*_mean_squares(est, scale_mm[0]), est)
+                scale_mm.append(cauchy_scale * robust_scale_mm(r))
+            cache[anchor] = (*_mean_squares(r, sets, scale_mm[0]), est)
         return cache[anchor][0]
 
     found = _bracket(residual2, start_mm, step_mm, max_shift_mm)

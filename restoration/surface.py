@@ -48,7 +48,7 @@ from restoration.integrate import (
     to_heightfield,
 )
 from restoration.integrate.lattice import line_neighbours, lu_solve
-from restoration.integrate.rules import edge_step
+from restoration.integrate.rules import edge_step, edge_steps
 from restoration.normals import (
     _KERNEL_ERRORS,
     _reflection_kernel,
@@ -574,36 +574,12 @@ def _refine_kernel(
 
 
 @njit(cache=True, nogil=True)
-def _trapezoid_kernel(xy, slopes, a, b, out):  # pragma: no cover
-    """``out[e] = (slopes[a] + slopes[b]) / 2 . (xy[b] - xy[a])`` for every edge ``e``."""
-    for e in range(a.size):
-        i, j = a[e], b[e]
-        gx = 0.5 * (slopes[i, 0] + slopes[j, 0])
-        gy = 0.5 * (slopes[i, 1] + slopes[j, 1])
-        out[e] = gx * (xy[j, 0] - xy[i, 0]) + gy * (xy[j, 1] - xy[i, 1])
-
-
-@njit(cache=True, nogil=True)
 def _length2_kernel(xy, a, b, out):  # pragma: no cover
     """``out[e] = |xy[b] - xy[a]|^2`` for every edge ``e``."""
     for e in range(a.size):
         dx = xy[b[e], 0] - xy[a[e], 0]
         dy = xy[b[e], 1] - xy[a[e], 1]
         out[e] = dx * dx + dy * dy
-
-
-def trapezoid_steps(
-    xy_mm: Array, slopes: Array, a: NDArray[np.int64], b: NDArray[np.int64]
-) -> Array:
-    """Height differences (E,) mm that the trapezoid rule predicts along edges ``a -> b``
-    (E,) from positions ``xy_mm`` (K, 2) mm and slopes (K, 2): the ``"trapezoid"``
-    integrator's differences (:data:`restoration.integrate.INTEGRATORS`), compiled."""
-    out = np.empty(a.size)
-    _trapezoid_kernel(
-        np.ascontiguousarray(xy_mm, dtype=float), np.ascontiguousarray(slopes, dtype=float),
-        a, b, out,
-    )
-    return out
 
 
 def trapezoid_edges(ij: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -653,8 +629,10 @@ class _TrapezoidSystem:
         return cls(a, b, 1.0 / length2, graph)
 
     def steps(self, xy: Array, slopes: Array) -> Array:
-        """The measured differences (E,) mm (:func:`trapezoid_steps`)."""
-        return trapezoid_steps(xy, slopes, self.a, self.b)
+        """The measured differences (E,) mm: the trapezoid rule's steps
+        (:func:`~restoration.integrate.edge_steps` without neighbours)."""
+        none = np.full(self.a.size, -1, np.int64)
+        return edge_steps(xy, slopes, self.a, self.b, none, none)
 
 
 # Edges and graphs by grid indices: a frame's anchor probes all integrate the same samples
