@@ -6,9 +6,13 @@ their own captures reads the same verdict as a sweep does:
 ``ok``
     the frame was restored and nothing truth-free says it is wrong;
 ``sparse``
-    fewer than :data:`SPARSE_FRACTION` of the features the calibration puts in view were
-    matched (a lost pattern, swapped reference and frame, or waves past the correspondence
-    limit): the surface covers too little to trust;
+    the flat-water reference shows fewer than :data:`SPARSE_FRACTION` of the features the
+    calibration puts in view (a lost pattern, swapped reference and frame), or fewer than that
+    were matched (waves past the correspondence limit) and nothing in the pattern pins their
+    labels: a small patch labelled by ordering alone may be shifted by whole dots and still
+    integrate, so it cannot be trusted. A small patch whose labels are pinned (decoded by the
+    coded pattern, or a unique lattice anchor at the pattern's edge or markers) is judged by
+    the checks below like any other;
 ``inconsistent``
     the surface does not reproduce the detected spots through the exact geometric model
     (:mod:`restoration.consistency`): its level or shape cannot be right;
@@ -37,7 +41,8 @@ STATUSES = (
     "sun_out_of_view", "too_few_spots",
 )
 SPARSE_FRACTION = 0.25
-"""Fewer matches than this fraction of the features in view make a frame ``sparse``."""
+"""Fewer dots seen in the flat reference, or fewer matches with unpinned labels, than this
+fraction of the features in view make a frame ``sparse``."""
 
 
 @dataclass

@@ -333,7 +333,8 @@ def report_markdown(
             f"(statuses {rates['bad_statuses']}), **{rates['false_alarm_rate']:.1%}** of the "
             f"good (statuses {rates['good_statuses']}).", ""]
     lines += ["Status counts per value: `ok`; `wrong_labels` (over 5 % of kept correspondences "
-             "wrong); `sparse` (under a quarter of the dots in view matched); "
+             "wrong); `sparse` (under a quarter of the dots in view matched, their labels "
+             "not pinned by the pattern); "
              "`inconsistent` (the surface does not reproduce the spots); "
              "`gauge_level` (integrability did not pin the level: the gauge's h0 was "
              "used, and scores are not averaged in); `failed` (the restoration refused the "
