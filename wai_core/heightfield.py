@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import RectBivariateSpline
@@ -202,43 +203,48 @@ def continue_surface(x: Array, y: Array, z: Array, valid: NDArray[np.bool_]) -> 
     from scipy.ndimage import distance_transform_edt
 
     dist, (jn, inn) = distance_transform_edt(~valid, return_indices=True)
-    hole = ~valid
-    gx = _slopes(z, valid, x, axis=1)
-    gy = _slopes(z, valid, y, axis=0)
-    jj, ii = np.nonzero(hole)
-    j0, i0 = jn[hole], inn[hole]
-    near = z[j0, i0]
-    plane = near + gx[j0, i0] * (x[ii] - x[i0]) + gy[j0, i0] * (y[jj] - y[j0])
-    fade = FILL_BAND_NODES - FILL_EXACT_NODES
-    w = np.clip((FILL_BAND_NODES - dist[hole]) / fade, 0.0, 1.0)
-    out = z.copy()
-    out[hole] = w * plane + (1.0 - w) * near
+    out = np.array(z, dtype=float)
+    _fill_holes(
+        np.asarray(x, float), np.asarray(y, float), np.ascontiguousarray(valid), dist, jn, inn,
+        float(FILL_EXACT_NODES), float(FILL_BAND_NODES), out,
+    )
     return out
 
 
-def _slopes(z: Array, valid: NDArray[np.bool_], axis_mm: Array, axis: int) -> Array:
-    """dz/d(axis) at the known nodes: central where both neighbours are known, one-sided where
-    one is, 0 where none is (an isolated node)."""
-    zf = np.where(valid, z, 0.0)
-    pad = [(0, 0), (0, 0)]
-    pad[axis] = (1, 1)
-    zp, vp = np.pad(zf, pad), np.pad(valid, pad)
-    a = np.pad(axis_mm, (1, 1), mode="edge")
-    shape = [1, 1]
-    shape[axis] = -1
-    a = a.reshape(shape)
+@numba.njit(cache=True, nogil=True)
+def _slope(z, valid, a, j, i, dj, di):  # pragma: no cover
+    """dz/da at known node (j, i) along (dj, di) with node coordinates ``a``: central where
+    both neighbours are known, one-sided where one is, 0 where none is (an isolated node)."""
+    m, n = z.shape
+    k = i if di else j
+    lo_ok = k > 0 and valid[j - dj, i - di]
+    hi_ok = k < (n if di else m) - 1 and valid[j + dj, i + di]
+    if lo_ok and hi_ok:
+        return (z[j + dj, i + di] - z[j - dj, i - di]) / (a[k + 1] - a[k - 1])
+    if hi_ok:
+        return (z[j + dj, i + di] - z[j, i]) / (a[k + 1] - a[k])
+    if lo_ok:
+        return (z[j, i] - z[j - dj, i - di]) / (a[k] - a[k - 1])
+    return 0.0
 
-    def sl(k: int) -> tuple[slice, ...]:
-        n = z.shape[axis]
-        return tuple(slice(k, k + n) if d == axis else slice(None) for d in range(2))
 
-    lo, mid, hi = sl(0), sl(1), sl(2)
-    both = vp[lo] & vp[hi]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        central = (zp[hi] - zp[lo]) / (a[hi] - a[lo])
-        ahead = (zp[hi] - zp[mid]) / (a[hi] - a[mid])
-        behind = (zp[mid] - zp[lo]) / (a[mid] - a[lo])
-    return np.where(both, central, np.where(vp[hi], ahead, np.where(vp[lo], behind, 0.0)))
+@numba.njit(cache=True, nogil=True)
+def _fill_holes(x, y, valid, dist, jn, inn, exact, band, z):  # pragma: no cover
+    """Fill the unknown nodes of ``z`` (m, n) in place as :func:`continue_surface` says: the
+    tangent plane of the nearest known node ``(jn, inn)``, at ``dist`` nodes from it, faded
+    into its height between ``exact`` and ``band`` nodes."""
+    m, n = z.shape
+    for j in range(m):
+        for i in range(n):
+            if valid[j, i]:
+                continue
+            j0, i0 = jn[j, i], inn[j, i]
+            near = z[j0, i0]
+            gx = _slope(z, valid, x, j0, i0, 0, 1)
+            gy = _slope(z, valid, y, j0, i0, 1, 0)
+            plane = near + gx * (x[i] - x[i0]) + gy * (y[j] - y[j0])
+            w = min(max((band - dist[j, i]) / (band - exact), 0.0), 1.0)
+            z[j, i] = w * plane + (1.0 - w) * near
 
 
 def grid_faces(n_rows: int, n_cols: int) -> NDArray[np.int64]:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from wai_core.errors import WaiInputError
-from wai_core.heightfield import Heightfield, load_heightfield
+from wai_core.heightfield import Heightfield, continue_surface, load_heightfield
 
 
 def _plane(ax=0.1, ay=-0.05, c=150.0):
@@ -61,3 +61,25 @@ def test_bad_heightfields(tmp_path):
     np.savez(short, x=np.arange(5.0), y=np.arange(5.0), z=np.zeros((4, 5)))
     with pytest.raises(WaiInputError, match=r"short\.npz: z must have shape"):
         load_heightfield(short)
+
+
+def test_holes_are_continued_by_the_nearest_known_tangent_plane():
+    # A tilted plane z = 1 + 0.3 x - 0.2 y on an uneven grid, with a hole in the middle and a
+    # missing border: next to the known nodes (within FILL_EXACT_NODES) the continuation is the
+    # plane itself (central or one-sided differences are exact on a plane), and far out it
+    # fades into the nearest known height, never running away.
+    x = np.cumsum(np.linspace(0.8, 1.6, 30))
+    y = np.cumsum(np.linspace(1.2, 0.7, 25))
+    z = 1.0 + 0.3 * x[None, :] - 0.2 * y[:, None]
+    valid = np.ones(z.shape, bool)
+    valid[10:14, 12:17] = False
+    valid[:, 20:] = False
+    filled = continue_surface(x, y, np.where(valid, z, np.nan), valid)
+    assert np.array_equal(filled[valid], z[valid])
+    assert np.allclose(filled[10:14, 12:17], z[10:14, 12:17], atol=1e-12)
+    assert np.allclose(filled[:, 20:22], z[:, 20:22], atol=1e-12)
+    edge = z[:, 19]  # the nearest known heights of the far columns
+    assert np.allclose(filled[:, 26:], edge[:, None], atol=1e-12)
+    between = filled[:, 22:26]
+    assert np.all((between >= np.minimum(edge, z[:, 22])[:, None] - 1e-12)
+                  & (between <= np.maximum(edge[:, None], z[:, 22:26]) + 1e-12))
