@@ -134,7 +134,8 @@ class SurfaceEstimate:
     @property
     def heightfield(self) -> Heightfield:
         """Absolute heights on a regular grid, mm; NaN outside the samples' convex hull and over
-        gaps between them (see :func:`restoration.integrate.to_heightfield`).
+        gaps between them, by distance and on the dot lattice (see
+        :func:`restoration.integrate.to_heightfield`).
 
         Built on first access and kept: only the estimate that is used for reverse tracing needs
         it, while a search over anchors (:mod:`restoration.anchor`) makes several and reads only
@@ -143,7 +144,8 @@ class SurfaceEstimate:
         if self._heightfield is None:
             t0 = time.perf_counter()
             xy, z = self.points_mm[:, :2], self.points_mm[:, 2]
-            grid = to_heightfield(xy, z, self.slopes, self.grid_spacing_mm, method=self.gridder)
+            grid = to_heightfield(xy, z, self.slopes, self.grid_spacing_mm, method=self.gridder,
+                                  lattice_ij=self.ij)
             object.__setattr__(self, "_heightfield", grid)  # a cache: frozen otherwise
             self.timings_ms["grid"] = _ms(t0)
             self.timings_ms["total"] = self.timings_ms.get("total", 0.0) + self.timings_ms["grid"]

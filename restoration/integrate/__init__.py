@@ -36,7 +36,13 @@ from restoration.integrate.fourier import (
     resample_slopes,
     sample_heights,
 )
-from restoration.integrate.gridding import GRIDDERS, gap_free_triangles, to_heightfield
+from restoration.integrate.gridding import (
+    GRIDDERS,
+    MAX_LATTICE_STEP,
+    gap_free_triangles,
+    lattice_bridges,
+    to_heightfield,
+)
 from restoration.integrate.lattice import (
     DifferenceGraph,
     check_samples,
@@ -55,6 +61,7 @@ from restoration.integrate.spline import SplineGrid, integrate_spline
 
 __all__ = [
     "GRIDDERS",
+    "MAX_LATTICE_STEP",
     "INTEGRATORS",
     "MIN_SAMPLES",
     "DifferenceGraph",
@@ -66,6 +73,7 @@ __all__ = [
     "edge_steps",
     "frankot_chellappa",
     "gap_free_triangles",
+    "lattice_bridges",
     "grid_neighbours",
     "integrate",
     "integrate_dct_poisson",

@@ -17,7 +17,13 @@ from numpy.typing import ArrayLike
 from scipy.interpolate import CloughTocher2DInterpolator
 from scipy.spatial import Delaunay, QhullError
 
-from restoration.integrate._common import _MAX_GRID_NODES, MIN_SAMPLES, Array, IntArray
+from restoration.integrate._common import (
+    _MAX_GRID_NODES,
+    MIN_SAMPLES,
+    Array,
+    BoolArray,
+    IntArray,
+)
 from restoration.integrate.spline import (
     _SPLINE_SMOOTHING,
     _SPLINE_STEP,
@@ -209,8 +215,32 @@ def _tangent_blend(
     return node, a[run] + k * (b[run] + c2[run] * k)
 
 
-def gap_free_triangles(tri: Delaunay, max_edge_ratio: float | None) -> IntArray:
-    """Delaunay triangles (T, 3) less those that bridge gaps in the samples.
+MAX_LATTICE_STEP = 2
+"""Farthest apart, in dots along either lattice axis, that a gridding triangle's corners may be
+(:func:`lattice_bridges`): 2 bridges a single missing dot, as the edge ratio does."""
+
+
+def lattice_bridges(simplices: IntArray, lattice_ij: ArrayLike, max_step: int) -> BoolArray:
+    """Which triangles (T, 3) of samples with lattice indices ``lattice_ij`` (K, 2) join
+    corners more than ``max_step`` dots apart along either lattice axis (T,).
+
+    Such a triangle bridges a gap of at least ``max_step`` missing dots. The edge ratio of
+    :func:`gap_free_triangles` cannot always tell: the dots' spacing on the water varies
+    3x across the paper's patch (keystone), so a gap in the dense part can be as short as
+    an ordinary edge of the sparse part. Over such a gap the blend extrapolates the slopes
+    of its corners for 2-3 spacings (slope errors of ~0.01, restored corners moved by 3-5 px
+    on a 1600 x 1200 frame: docs/results.md, session 21).
+    """
+    corners = np.asarray(lattice_ij)[simplices]  # (T, 3, 2)
+    step = np.abs(corners - np.roll(corners, -1, axis=1)).max(axis=(1, 2))
+    return step > max_step
+
+
+def gap_free_triangles(
+    tri: Delaunay, max_edge_ratio: float | None, keep: BoolArray | None = None
+) -> IntArray:
+    """Delaunay triangles (T, 3) less those that bridge gaps in the samples (and, if given,
+    those not in ``keep`` (T,)).
 
     A triangle is dropped when its longest edge exceeds ``max_edge_ratio`` times the largest
     nearest-neighbour distance among its vertices. Such triangles span concave bays of the
@@ -221,17 +251,18 @@ def gap_free_triangles(tri: Delaunay, max_edge_ratio: float | None) -> IntArray:
     """
     simplices = tri.simplices
     if max_edge_ratio is None:
-        return simplices
+        return simplices if keep is None else simplices[keep]
     corners = tri.points[simplices]
     length = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=2)  # (T, 3)
     # The Delaunay graph holds every nearest neighbour: the shortest edge at each vertex.
     nearest = np.full(tri.points.shape[0], np.inf)
     np.minimum.at(nearest, simplices.ravel(), np.minimum(length, np.roll(length, 1, 1)).ravel())
-    return simplices[length.max(axis=1) <= max_edge_ratio * nearest[simplices].max(axis=1)]
+    short = length.max(axis=1) <= max_edge_ratio * nearest[simplices].max(axis=1)
+    return simplices[short if keep is None else short & keep]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _blend_kernel(xy, heights, slopes, simplices, ratio, gx, gy, z):  # pragma: no cover
+def _blend_kernel(xy, heights, slopes, simplices, keep, ratio, gx, gy, z):  # pragma: no cover
     """:func:`gap_free_triangles`, :func:`_scan_triangles` and :func:`_tangent_blend` in one
     pass over the triangles, writing the blend into ``z`` (m * n,) (NaN elsewhere untouched).
 
@@ -245,6 +276,8 @@ def _blend_kernel(xy, heights, slopes, simplices, ratio, gx, gy, z):  # pragma: 
         Samples (mm, mm, dimensionless).
     simplices : (T, 3) ndarray of int
         Delaunay triangles.
+    keep : (T,) ndarray of bool
+        Triangles that may be blended (the others still give the nearest-neighbour distances).
     ratio : float
         The gap threshold of :func:`gap_free_triangles`.
     gx, gy : (n,), (m,) ndarray
@@ -274,7 +307,7 @@ def _blend_kernel(xy, heights, slopes, simplices, ratio, gx, gy, z):  # pragma: 
         longest = max(length[t, 0], max(length[t, 1], length[t, 2]))
         near = max(nearest[simplices[t, 0]],
                    max(nearest[simplices[t, 1]], nearest[simplices[t, 2]]))
-        if not longest <= ratio * near:
+        if not (keep[t] and longest <= ratio * near):
             continue
         for k in range(3):
             px[k], py[k] = xy[simplices[t, k], 0], xy[simplices[t, k], 1]
@@ -361,12 +394,15 @@ def to_heightfield(
     spacing_mm: float,
     method: str = "tangent_blend",
     max_edge_ratio: float | None = 4.0,
+    lattice_ij: ArrayLike | None = None,
+    max_lattice_step: int = MAX_LATTICE_STEP,
 ) -> Heightfield:
     """Grid scattered surface samples onto a regular :class:`Heightfield`.
 
     The grid has nodes every ``spacing_mm`` from the samples' minimum x and y, covering their
     bounding box. Nodes outside the samples' convex hull are NaN, and so are nodes in Delaunay
-    triangles that bridge gaps in the samples (see :func:`gap_free_triangles`).
+    triangles that bridge gaps in the samples (see :func:`gap_free_triangles`; with
+    ``lattice_ij``, also :func:`lattice_bridges`).
 
     Parameters
     ----------
@@ -390,6 +426,12 @@ def to_heightfield(
         estimates its own gradients), the paper's "bicubic interpolation" baseline.
     max_edge_ratio : float or None
         Gap threshold of :func:`gap_free_triangles`; None masks only outside the convex hull.
+    lattice_ij : (K, 2) array_like of int, optional
+        The samples' dot indices on the projector lattice, when they have them: triangles whose
+        corners lie more than ``max_lattice_step`` dots apart are dropped too
+        (:func:`lattice_bridges`).
+    max_lattice_step : int
+        See ``lattice_ij``.
 
     Returns
     -------
@@ -410,12 +452,15 @@ def to_heightfield(
     except QhullError:
         raise WaiInputError("to_heightfield: samples are collinear (no area to grid)") from None
     z = np.full(gy.size * gx.size, np.nan)
+    keep = None if lattice_ij is None else ~lattice_bridges(tri.simplices, lattice_ij,
+                                                             max_lattice_step)
     if method == "tangent_blend":  # gaps, scan and blend in one compiled pass
         ratio = np.inf if max_edge_ratio is None else float(max_edge_ratio)
-        _blend_kernel(xy, h, np.ascontiguousarray(g), tri.simplices.astype(np.int64), ratio,
+        _blend_kernel(xy, h, np.ascontiguousarray(g), tri.simplices.astype(np.int64),
+                      np.ones(len(tri.simplices), bool) if keep is None else keep, ratio,
                       gx, gy, z)
     else:
-        simplices = gap_free_triangles(tri, max_edge_ratio)
+        simplices = gap_free_triangles(tri, max_edge_ratio, keep)
         spans = _scan_triangles(xy[simplices], gx, gy)
         node, _, _ = spans.nodes(gx.size)
         if method == "clough_tocher":

@@ -426,6 +426,35 @@ def test_gridding_is_nan_outside_convex_hull():
     np.testing.assert_allclose(hf_ct.z, hf.z, atol=1e-5)
 
 
+def test_gridding_drops_triangles_that_bridge_missing_dots_on_the_lattice():
+    # Rows 2x farther apart than the dots along a row (a keystone's far field): with two dots
+    # missing along some rows, the triangles across the slit are only ~3.6x the dots' spacing,
+    # which the edge ratio (4) keeps; their corners are 3 dots apart on the lattice.
+    jj, ii = np.mgrid[-6:7, -12:13]
+    ij = np.column_stack([ii.ravel(), jj.ravel()])
+    xy = ij * [4.0, 8.0]
+    slit = (np.abs(ij[:, 1]) <= 3) & np.isin(ij[:, 0], [0, 1])
+    ij, xy = ij[~slit], xy[~slit]
+    z, g = plane(xy)
+    by_distance = to_heightfield(xy, z, g, 1.0)
+    on_lattice = to_heightfield(xy, z, g, 1.0, lattice_ij=ij)
+    x, y = np.meshgrid(on_lattice.x, on_lattice.y)
+    middle = (np.abs(x - 2.0) < 1.5) & (np.abs(y) < 20.0)
+    assert np.isfinite(by_distance.z[middle]).all()  # bridged by the edge ratio alone
+    assert np.isnan(on_lattice.z[middle]).all()
+    # Everywhere else the two agree (to rounding on shared edges), and the plane is exact.
+    known = np.isfinite(on_lattice.z)
+    assert known.mean() > 0.8
+    np.testing.assert_allclose(on_lattice.z[known], by_distance.z[known], atol=1e-9)
+    np.testing.assert_allclose(on_lattice.z[known], (0.1 * x - 0.2 * y)[known], atol=1e-9)
+    # A single missing dot is still bridged (its neighbours are 2 dots apart).
+    hole = np.flatnonzero((ij == [5, 0]).all(axis=1))
+    keep = np.ones(len(ij), bool)
+    keep[hole] = False
+    one = to_heightfield(xy[keep], z[keep], g[keep], 1.0, lattice_ij=ij[keep])
+    assert np.isfinite(one.z[np.argmin(np.abs(one.y)), np.argmin(np.abs(one.x - 20.0))])
+
+
 def test_gridding_bad_input():
     ij, xy = grid()
     z, g = plane(xy)
