@@ -9,8 +9,9 @@ across the patch in a way no surface can follow, so the least-squares integratio
 residual that grows with the anchor error. Minimising that residual over the one anchor
 parameter recovers the absolute height from the data alone.
 
-The squared residual is close to a parabola in the anchor (the residual is nearly linear in
-it), so a few evaluations and a parabola fit find the minimum. Two things keep that minimum
+Each edge's residual is nearly linear in the anchor, so two reconstructions give every edge's
+residual as a line, the minimum of their loss follows without reconstructing, and secant steps
+refine it (:func:`find_anchor`: 3-5 reconstructions a frame). Two things keep that minimum
 where the data put it: each edge's step comes from the fourth-order rule
 (:mod:`restoration.integrate.rules`; the trapezoid rule's own error, a few microns, moved the
 flat valley's minimum by ~0.1 mm), and the residuals are weighed by a Cauchy loss
@@ -22,8 +23,9 @@ anchor tilts the normals almost exactly like a plane seen from a shifted height 
 images a point source onto a point), the residual no longer has a minimum above the noise, and
 the search would wander. So each search also reports how well the data pin the anchor: the
 edges are split into four interleaved sets (by the parity of the dot indices), each set's
-parabola gives its own minimum, and their spread gives a standard error. A search whose sets
-find no minimum, or disagree, is not reliable, and the caller falls back to the gauge.
+linear residuals give their own minimum, and their spread gives a standard error. A search
+whose sets find no minimum, or disagree, is not reliable, and the caller falls back to the
+gauge.
 """
 
 from __future__ import annotations
@@ -43,48 +45,43 @@ N_SETS = 4
 
 CAUCHY_SCALE = 2.0
 """Scale of the search's Cauchy loss, in robust standard deviations (1.4826 x the median
-absolute value) of the first probe's edge residuals.
+absolute value) of the edge residuals of the latest reconstruction, i.e. at the level once the
+search has converged.
 
 A few wrong labels (a decoded pattern keeps ~0.4 % of them) give their edges residuals 10-100x
 the others', and in a least-squares objective those edges alone placed the level: 1-2 mm off
 on three of ten coded frames of the paper's rig. Under the Cauchy loss an edge's weight falls
-as its residual passes the scale, so they no longer count; on the plain pattern's frames,
-without such outliers, the level moved by 0.01 mm at most (docs/results.md)."""
+as its residual passes the scale, so they no longer count. Taking the scale at the level rather
+than at a probe a few millimetres off (session 20) also discounts the edges across sharp crests,
+whose steps the rule gets least right: docs/results.md, session 21."""
 
 
 def edge_residuals_mm(est: SurfaceEstimate) -> tuple[NDArray, NDArray]:
     """Per grid edge: the mismatch (mm) between the height difference of neighbouring samples
     and the step their slopes give (zero for an integrable slope field, to the rule's error),
     and the edge's set in ``0 .. N_SETS - 1`` (parity of its first dot's ``i`` and ``j``).
-    Finite edges only.
+    Every edge of the samples' lattice, in one order for one sample set (so the residuals of
+    reconstructions at different anchors line up); NaN where not finite.
 
     The step is the fourth-order rule's (:func:`~restoration.integrate.edge_step`), or the
     trapezoid rule's for an estimate the ``"trapezoid"`` integrator made: the reconstruction's
     own least-squares misfit. (The trapezoid rule's error, ~2 um rms on the paper's rig, is
     systematic and biased the level by ~0.1 mm; docs/results.md.)"""
     a, b, before, after, sets = _edges(est.ij, est.integrator == "trapezoid")
-    r, kept = np.empty(a.size), np.empty_like(sets)
-    n = _edge_residual_kernel(
+    r = np.empty(a.size)
+    _edge_residual_kernel(
         np.ascontiguousarray(est.points_mm, dtype=float),
-        np.ascontiguousarray(est.slopes, dtype=float), a, b, before, after, sets, r, kept,
+        np.ascontiguousarray(est.slopes, dtype=float), a, b, before, after, r,
     )
-    return r[:n], kept[:n]
+    return r, sets
 
 
 @njit(cache=True, nogil=True)
-def _edge_residual_kernel(points, slopes, a, b, before, after, sets, r, kept):  # pragma: no cover
-    """Write the finite residuals of edges ``a -> b`` (E,) and their sets into ``r``, ``kept``
-    (E,), in edge order; return how many."""
-    n = 0
+def _edge_residual_kernel(points, slopes, a, b, before, after, r):  # pragma: no cover
+    """Write the residuals of edges ``a -> b`` (E,) into ``r`` (E,)."""
     for e in range(a.size):
         i, j = a[e], b[e]
-        step = edge_step(points, slopes, before[e], i, j, after[e])
-        value = points[j, 2] - points[i, 2] - step
-        if np.isfinite(value):
-            r[n] = value
-            kept[n] = sets[e]
-            n += 1
-    return n
+        r[e] = points[j, 2] - points[i, 2] - edge_step(points, slopes, before[e], i, j, after[e])
 
 
 def _edges(ij: NDArray, trapezoid: bool = False) -> tuple[NDArray, ...]:
@@ -109,45 +106,17 @@ _EDGES: dict[tuple, tuple[NDArray, NDArray, NDArray]] = {}
 
 
 def integration_residual_mm(est: SurfaceEstimate) -> float:
-    """RMS of :func:`edge_residuals_mm` over all edges, mm (NaN when there are none)."""
+    """RMS of :func:`edge_residuals_mm` over the finite edges, mm (NaN when there are none)."""
     r, _ = edge_residuals_mm(est)
+    r = r[np.isfinite(r)]
     return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
 
 
 def robust_scale_mm(r: NDArray) -> float:
-    """1.4826 x the median absolute value of the residuals ``r`` (E,), mm: their standard
-    deviation were they Gaussian, which a few outliers do not move."""
+    """1.4826 x the median absolute value of the finite residuals ``r`` (E,), mm: their
+    standard deviation were they Gaussian, which a few outliers do not move."""
+    r = r[np.isfinite(r)]
     return 1.4826 * float(np.median(np.abs(r))) if r.size else 0.0
-
-
-def _mean_squares(r: NDArray, sets: NDArray, scale_mm: float = 0.0) -> tuple[float, NDArray]:
-    """Mean Cauchy loss ``c^2 log(1 + r^2 / c^2)`` of the edge residuals ``r`` (E,) over all
-    edges (mm^2; NaN without edges) and over each edge set of ``sets`` (E,) (N_SETS,), with
-    ``c = scale_mm``; the mean squared residual when ``scale_mm`` is 0 (the loss tends to
-    ``r^2`` for ``r << c``)."""
-    r = np.ascontiguousarray(r, dtype=float)
-    if scale_mm > 0:
-        r = scale_mm * np.sqrt(np.log1p((r / scale_mm) ** 2))
-    per_set = np.empty(N_SETS)
-    total = _set_means(r, np.asarray(sets, np.int64), per_set)
-    return total, per_set
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _set_means(r, sets, per_set):  # pragma: no cover
-    """Mean of ``r**2`` (E,) overall (returned; NaN when empty) and per set into ``per_set``
-    (N_SETS,) (NaN for an empty set)."""
-    sums = np.zeros(per_set.size)
-    counts = np.zeros(per_set.size)
-    total = 0.0
-    for e in range(r.size):
-        r2 = r[e] * r[e]
-        total += r2
-        sums[sets[e]] += r2
-        counts[sets[e]] += 1.0
-    for k in range(per_set.size):
-        per_set[k] = sums[k] / counts[k] if counts[k] > 0 else np.nan
-    return total / r.size if r.size else np.nan
 
 
 def parabola_vertex(x: NDArray, y: NDArray) -> float:
@@ -193,13 +162,15 @@ class AnchorSearch:
     anchor_mm : float
         Mean height of the samples that makes the slopes most integrable, mm.
     residual_mm : float
-        Integration residual at that anchor, mm.
+        Integration residual at that anchor: the root of the edges' mean loss, mm.
     curvature : float
-        Second derivative of the squared residual (mm^2 per mm^2): how sharply the data pin the
-        anchor; small values mean a weakly determined height.
+        Second derivative of the mean loss in the anchor (its Gauss-Newton value, mm^2 per
+        mm^2): how sharply the data pin the anchor; small values mean a weakly determined
+        height.
     sigma_mm : float
-        Standard error of ``anchor_mm`` (:func:`anchor_sigma_mm`), mm; infinite when the data do
-        not pin it (flat or nearly flat water).
+        Standard error of ``anchor_mm``: the spread of the edge sets' own minima over
+        ``sqrt(N_SETS)``, mm; infinite when the data do not pin it (flat or nearly flat water:
+        a set without a minimum within two steps, or no convergence).
     evaluations : int
         Surface reconstructions run.
     estimate : SurfaceEstimate
@@ -214,47 +185,65 @@ class AnchorSearch:
     estimate: SurfaceEstimate
 
 
-def _bracket(
-    f: Callable[[float], float], start: float, step: float, max_shift: float
-) -> tuple[float, float, float] | None:
-    """Three anchors ``lo < mid < hi`` with ``f(mid)`` the lowest, found by walking downhill
-    from ``start`` with doubling strides; None when the walk leaves ``start +- max_shift``."""
-    lo, mid, hi = start - step, start, start + step
-    while max(start - lo, hi - start) <= max_shift:
-        flo, fmid, fhi = f(lo), f(mid), f(hi)
-        if fmid <= flo and fmid <= fhi:
-            return lo, mid, hi
-        if flo < fhi:
-            lo, mid, hi = lo - 2.0 * (mid - lo), lo, mid
-        else:
-            lo, mid, hi = mid, hi, hi + 2.0 * (hi - mid)
-    return None
-
-
-def _clipped_vertex(xs: NDArray, ys: NDArray) -> float:
-    """Minimum of the parabola through three points ``xs`` (ascending), kept within them; the
-    lowest point when the parabola opens downwards."""
-    a, b, _ = np.polyfit(xs - xs[1], ys, 2)
-    if a <= 0 or not np.isfinite(a):
-        return float(xs[np.argmin(ys)])
-    return float(np.clip(xs[1] - b / (2 * a), xs[0], xs[2]))
+@njit(cache=True, nogil=True, error_model="numpy")
+def _linear_minima(r, g, sets, scale, out):  # pragma: no cover
+    """Offsets ``t`` minimising the mean Cauchy loss (scale ``scale``; squares when 0) of the
+    linear residuals ``r + g t`` (E,), over all finite edges and over each set of ``sets``,
+    by iteratively reweighted least squares. Writes ``out`` (N_SETS + 1, 3): per problem (all
+    edges first) the offset, the weighted ``sum g^2 / n`` at it (the loss's half curvature)
+    and the mean loss at ``t = 0``; an offset is NaN when its edges carry no slope."""
+    k = out.shape[0]
+    t = np.zeros(k)
+    for p in range(k):
+        out[p, 2] = 0.0
+    count = np.zeros(k)
+    for e in range(r.size):
+        if np.isfinite(r[e]) and np.isfinite(g[e]):
+            loss = r[e] * r[e] if scale <= 0 else scale * scale * np.log1p((r[e] / scale) ** 2)
+            for p in (0, sets[e] + 1):
+                out[p, 2] += loss
+                count[p] += 1.0
+    for _ in range(100):
+        num, den = np.zeros(k), np.zeros(k)
+        for e in range(r.size):
+            if not (np.isfinite(r[e]) and np.isfinite(g[e])):
+                continue
+            for p in (0, sets[e] + 1):
+                res = r[e] + g[e] * t[p]
+                w = 1.0 if scale <= 0 else 1.0 / (1.0 + (res / scale) ** 2)
+                num[p] += w * res * g[e]
+                den[p] += w * g[e] * g[e]
+        moved = 0.0
+        for p in range(k):
+            step = -num[p] / den[p] if den[p] > 0 else np.nan
+            t[p] += step
+            moved = max(moved, abs(step)) if np.isfinite(step) else np.inf
+            out[p, 1] = den[p] / count[p] if count[p] > 0 else 0.0
+        if moved < 1e-7 or not np.isfinite(moved):
+            break
+    for p in range(k):
+        out[p, 0] = t[p]
+        out[p, 2] = out[p, 2] / count[p] if count[p] > 0 else np.nan
 
 
 def find_anchor(
     reconstruct: Callable[[float], SurfaceEstimate],
     start_mm: float,
     step_mm: float = 2.0,
-    rounds: int = 2,
     max_shift_mm: float = 60.0,
-    tol_mm: float = 0.1,
-    max_rounds: int = 5,
+    tol_mm: float = 0.02,
+    max_evaluations: int = 12,
     cauchy_scale: float = CAUCHY_SCALE,
 ) -> AnchorSearch:
     """Minimise the integration residual over the anchor height.
 
-    The minimum is first bracketed by walking downhill from ``start_mm`` with doubling strides
-    (the mean level of a patch smaller than the waves can sit 10-20 mm off h0 at U = 1 m/s),
-    then located by parabola fits on brackets that halve each round.
+    Each edge's residual is nearly linear in the anchor, so the residuals of the last two
+    reconstructions give each edge's slope, and the minimum of the loss of those linear
+    residuals (a one-dimensional reweighted least-squares problem, no reconstruction) is where
+    the next reconstruction goes: secant steps, from ``start_mm - step_mm`` and ``start_mm``,
+    until a step is shorter than ``tol_mm``. On the paper's rig that takes 3-5 reconstructions
+    where parabola fits on halving brackets took 7-10. Each edge set's own minimum of the same
+    linear model gives the anchor's standard error.
 
     Parameters
     ----------
@@ -264,72 +253,67 @@ def find_anchor(
     start_mm : float
         First guess, mm (the gauge's h0, or the previous frame's anchor).
     step_mm : float
-        Half-width of the first bracket, mm.
-    rounds : int
-        Fewest parabola fits after bracketing (2 new reconstructions each); more follow, up to
-        ``max_rounds``, while a fit still moves the level by ``tol_mm`` or more.
+        How far below ``start_mm`` the first reconstruction is, mm; one step moves at most 8
+        times this.
     max_shift_mm : float
         Farthest from ``start_mm`` the search looks, mm; a minimum beyond it is not found: the
         start is kept and ``sigma_mm`` is infinite.
-    tol_mm, max_rounds : float, int
-        See ``rounds``.
+    tol_mm : float
+        Step below which the search has converged, mm.
+    max_evaluations : int
+        Most reconstructions; a search that has not converged by then keeps the start, with
+        an infinite ``sigma_mm``.
     cauchy_scale : float
         The objective is the mean Cauchy loss of the edge residuals with this scale in robust
-        standard deviations of the first probe's residuals (:data:`CAUCHY_SCALE`; fixed for
-        the whole search, so every probe is weighed alike); 0: the mean squared residual.
+        standard deviations of the first reconstruction's residuals, ``step_mm`` below the
+        start (:data:`CAUCHY_SCALE`;
+        fixed for the whole search, so every reconstruction is weighed alike); 0: the mean
+        squared residual.
     """
-    evaluations = 0
-    scale_mm: list[float] = []  # set by the first probe
-    cache: dict[float, tuple[float, NDArray, SurfaceEstimate]] = {}
+    anchors: list[float] = []
+    residuals: list[NDArray] = []
+    estimates: list[SurfaceEstimate] = []
+    sets = np.zeros(0, np.int64)
 
-    def residual2(anchor: float) -> float:
-        nonlocal evaluations
-        if anchor not in cache:
-            est = reconstruct(anchor)
-            evaluations += 1
-            r, sets = edge_residuals_mm(est)
-            if not scale_mm:
-                scale_mm.append(cauchy_scale * robust_scale_mm(r))
-            cache[anchor] = (*_mean_squares(r, sets, scale_mm[0]), est)
-        return cache[anchor][0]
+    def probe(anchor: float) -> None:
+        nonlocal sets
+        est = reconstruct(anchor)
+        r, sets = edge_residuals_mm(est)
+        anchors.append(anchor)
+        residuals.append(np.asarray(r, dtype=float))
+        estimates.append(est)
 
-    found = _bracket(residual2, start_mm, step_mm, max_shift_mm)
-    if found is None:
-        r2 = residual2(start_mm)
-        return AnchorSearch(
-            start_mm, float(np.sqrt(r2)), float("nan"), float("inf"), evaluations,
-            cache[start_mm][2],
-        )
-    lo, centre, hi = found
-    if hi - lo > 2.0 * step_mm:
-        # A walk's bracket is wide: its parabola places the first refined bracket, whose
-        # half-width is the first step again, so every search ends on the same fine scale.
-        centre = _clipped_vertex(np.array(found), np.array([residual2(x) for x in found]))
-    step = step_mm
-    curvature = float("nan")
-    for k in range(max_rounds):
-        xs = np.array([centre - step, centre, centre + step])
-        ys = np.array([residual2(float(x)) for x in xs])
-        a = np.polyfit(xs - centre, ys, 2)[0]
-        curvature = 2.0 * a
-        moved = _clipped_vertex(xs, ys) - centre
-        centre += moved
-        step /= 2.0
-        if k + 1 >= rounds and abs(moved) < tol_mm:
+    probe(start_mm - step_mm)
+    probe(start_mm)
+    minima = np.full((N_SETS + 1, 3), np.nan)
+    converged = False
+    while True:
+        slope = (residuals[-1] - residuals[-2]) / (anchors[-1] - anchors[-2])
+        # The scale is the latest residuals' spread, i.e. the spread at the level once the
+        # search has converged (an M-estimate with its scale estimated along).
+        scale = cauchy_scale * robust_scale_mm(residuals[-1])
+        _linear_minima(residuals[-1], slope, np.asarray(sets, np.int64), scale, minima)
+        step = float(np.clip(minima[0, 0], -8.0 * step_mm, 8.0 * step_mm))
+        if not np.isfinite(step) or abs(anchors[-1] + step - start_mm) > max_shift_mm:
             break
-    r2 = residual2(centre)
-    # The sets' parabolas are fitted near the minimum, where the squared residual is one.
-    near = np.array(sorted(a for a in cache if abs(a - centre) <= 2.0 * step_mm))
-    sigma = anchor_sigma_mm(near, np.array([cache[a][1] for a in near]), step_mm)
-    if not curvature > 0:
+        if abs(step) < tol_mm:
+            converged = True
+            break
+        if len(anchors) >= max_evaluations:
+            break
+        probe(anchors[-1] + step)
+    if not converged:
+        return AnchorSearch(
+            start_mm, float(np.sqrt(minima[0, 2])), float("nan"), float("inf"), len(anchors),
+            estimates[1],
+        )
+    offsets = minima[1:, 0]
+    reach = 2.0 * abs(step_mm)
+    if np.isfinite(offsets).all() and np.all(np.abs(offsets) <= reach):
+        sigma = float(np.std(offsets, ddof=1) / np.sqrt(N_SETS))
+    else:
         sigma = float("inf")
     return AnchorSearch(
-        centre, float(np.sqrt(r2)), curvature, sigma, evaluations, cache[centre][2]
+        anchors[-1], float(np.sqrt(minima[0, 2])), 2.0 * float(minima[0, 1]), sigma,
+        len(anchors), estimates[-1],
     )
-
-
-def anchor_residual_curve(
-    reconstruct: Callable[[float], SurfaceEstimate], anchors_mm: NDArray
-) -> NDArray:
-    """Integration residual (mm) for each anchor height: the curve behind :func:`find_anchor`."""
-    return np.array([integration_residual_mm(reconstruct(float(a))) for a in anchors_mm])

@@ -274,9 +274,10 @@ def test_compiled_refinement_leaves_islands_to_the_loop(sine_case):
 def test_level_from_integrability_on_exact_spots(integrator, bound_mm, monkeypatch):
     """The level search on exact spots of a 2 mm, 200 mm swell whose samples average h0.
 
-    With the fourth-order rule the level comes out within 0.05 mm (measured 0.002); the
+    With the fourth-order rule the level comes out within 0.05 mm (measured 0.0003); the
     trapezoid rule's systematic step error (L^3 h_3 / 12 per edge, a few um) moves the flat
-    valley's minimum by a millimetre (measured 1.00): the reason the default changed.
+    valley's minimum by tenths of a millimetre (measured 0.29; 1.00 with session 20's search,
+    whose Cauchy scale came from a probe 3 mm lower): the reason the default changed.
     """
     import restoration.structured_light as sl
     from restoration import RestoreOptions
@@ -287,7 +288,7 @@ def test_level_from_integrability_on_exact_spots(integrator, bound_mm, monkeypat
     est = sl.estimate_surface(ij, spots, CFG, RestoreOptions(integrator=integrator))
     level_error = est.anchor["anchor_mm"] - H0  # the samples' true mean height is h0
     if bound_mm is None:
-        assert abs(level_error) > 0.5
+        assert abs(level_error) > 0.2
     else:
         assert abs(level_error) < bound_mm
         assert np.sqrt(np.mean(height_errors(est, surface, offset) ** 2)) < bound_mm
