@@ -242,7 +242,7 @@ def find_anchor(
     residuals (a one-dimensional reweighted least-squares problem, no reconstruction) is where
     the next reconstruction goes: secant steps, from ``start_mm - step_mm`` and ``start_mm``,
     until a step is shorter than ``tol_mm``. On the paper's rig that takes 3-5 reconstructions
-    where parabola fits on halving brackets took 7-10. Each edge set's own minimum of the same
+    where parabola fits on halving brackets took 7-14. Each edge set's own minimum of the same
     linear model gives the anchor's standard error.
 
     Parameters

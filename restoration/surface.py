@@ -360,7 +360,7 @@ def _rays(
 ) -> tuple[Array, Array, Array]:
     """Spots on the diffuser (K, 3) mm, the projector centre (3,) mm and the unit projector
     rays (K, 3) (:func:`spots_on_diffuser`, :func:`projector_rays`), cached by value: the
-    level search reconstructs the same features 7-11 times a frame."""
+    level search reconstructs the same features 3-5 times a frame."""
     spot = np.asarray(spot_px)
     panel = np.asarray(panel_px)
     key = (
@@ -450,7 +450,7 @@ def _compiled_refinement(
     ``fourth_order=False``, the ``"trapezoid"``) integrator in one compiled call
     (:func:`_refine_kernel`).
 
-    The level search runs ~30 passes a frame: as NumPy steps each cost ~0.15 ms of call
+    The level search runs ~20 passes a frame: as NumPy steps each cost ~0.15 ms of call
     overhead around ~0.03 ms of arithmetic. Same arithmetic, in the same order, as the loop
     (the factorisation's triangular solves, sums and dot products differ only in rounding).
     Samples outside the largest connected piece are dropped first: the loop drops them after

@@ -154,6 +154,36 @@ def test_anchor_search_is_robust_to_a_few_wrong_labels(monkeypatch):
     assert search().anchor_mm == pytest.approx(3.0, abs=0.1)
 
 
+class _CurvedEstimate(_FakeEstimate):
+    """Residuals ``s (a - 3) + 0.01 s (a - 3)^2`` plus the noise, ``s`` differing per edge: not
+    linear in the anchor, so the secant steps must converge rather than land in one."""
+
+    gain = 1.0 + 0.5 * np.sin(np.arange(400))
+
+    def residuals(self):
+        d = self.a - 3.0
+        return self.gain * (d + 0.01 * d * d) + self.noise, self.sets
+
+
+@pytest.mark.parametrize("start_mm", [-20.0, 0.0, 2.9, 25.0])
+def test_anchor_search_converges_from_far_starts(monkeypatch, start_mm):
+    # The minimum of the curved residuals' loss is at a = 3 (the noise is the same at every
+    # anchor; the residuals' other common zero, a = -97, is out of reach); a start 23 mm off
+    # still finds it, in a handful of reconstructions.
+    import restoration.anchor as anchor
+
+    monkeypatch.setattr(anchor, "edge_residuals_mm", lambda est: est.residuals())
+    res = find_anchor(lambda a: _CurvedEstimate(a, 1.0), start_mm=start_mm, step_mm=2.0)
+    assert res.anchor_mm == pytest.approx(3.0, abs=0.03)
+    assert res.sigma_mm < 0.05
+    assert res.evaluations <= 8
+
+
+def test_anchor_search_needs_three_reconstructions_when_residuals_are_linear(monkeypatch):
+    res = _patched_search(monkeypatch, slope=1.0)
+    assert res.evaluations == 3  # two for the lines, one at their minimum, which confirms it
+
+
 def test_anchor_search_says_when_the_data_do_not_pin_the_level(monkeypatch):
     # No curvature (a flat surface): the residual does not depend on the anchor.
     res = _patched_search(monkeypatch, slope=0.0)
