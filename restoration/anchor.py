@@ -265,10 +265,8 @@ def find_anchor(
         an infinite ``sigma_mm``.
     cauchy_scale : float
         The objective is the mean Cauchy loss of the edge residuals with this scale in robust
-        standard deviations of the first reconstruction's residuals, ``step_mm`` below the
-        start (:data:`CAUCHY_SCALE`;
-        fixed for the whole search, so every reconstruction is weighed alike); 0: the mean
-        squared residual.
+        standard deviations of the latest reconstruction's residuals (:data:`CAUCHY_SCALE`);
+        0: the mean squared residual.
     """
     anchors: list[float] = []
     residuals: list[NDArray] = []

@@ -61,8 +61,8 @@ from restoration.integrate.spline import SplineGrid, integrate_spline
 
 __all__ = [
     "GRIDDERS",
-    "MAX_LATTICE_STEP",
     "INTEGRATORS",
+    "MAX_LATTICE_STEP",
     "MIN_SAMPLES",
     "DifferenceGraph",
     "Integrator",
@@ -73,7 +73,6 @@ __all__ = [
     "edge_steps",
     "frankot_chellappa",
     "gap_free_triangles",
-    "lattice_bridges",
     "grid_neighbours",
     "integrate",
     "integrate_dct_poisson",
@@ -84,6 +83,7 @@ __all__ = [
     "integrate_trapezoid",
     "largest_grid_piece",
     "largest_piece",
+    "lattice_bridges",
     "line_neighbours",
     "poisson_dct",
     "resample_slopes",
