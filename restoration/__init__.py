@@ -33,6 +33,7 @@ from restoration.result import STATUSES, RestoreResult
 from restoration.scoring import Scores, Truth, score
 from restoration.sequence import SequenceRestore, restore_sequence
 from restoration.structured_light import StructuredLight
+from restoration.view_check import ViewMatch
 
 __all__ = [
     "ANCHORS",
@@ -52,6 +53,7 @@ __all__ = [
     "SequenceRestore",
     "StructuredLight",
     "Truth",
+    "ViewMatch",
     "as_method",
     "get_method",
     "load_calibration",

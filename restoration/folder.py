@@ -19,9 +19,12 @@ from restoration.methods import Method, as_method
 from restoration.options import RestoreOptions
 from restoration.result import RestoreResult
 from restoration.scoring import Scores, Truth, score, surface_profile
+from restoration.view_check import match_flat_view
+from wai_core.errors import WaiInputError
+from wai_core.images import image_conflict, locate_image, read_image
 from wai_core.io import atomic_dir, write_exr, write_json, write_png
 
-__all__ = ["FolderRestore", "restore_folder"]
+__all__ = ["FolderRestore", "check_inputs", "restore_folder"]
 
 
 @dataclass
@@ -112,7 +115,9 @@ def restore_folder(
     record = read_scene_record(folder)
     cal = meth.calibration_type.from_record(record)
     images = cal.load_images(folder)
+    view_flat = load_view_flat(cal, folder)
     result = meth(images, cal, track)
+    check_inputs(folder, cal, images, result, view_flat)
     bar.update(1)
     distorted = images["view"] / cal.view_gain
     truth = Truth.from_folder(folder, cal) if scored and result.restored else None
@@ -126,6 +131,43 @@ def restore_folder(
     bar.update(1)
     bar.close()
     return FolderRestore(folder, target, cal, images, result, truth, scores, metrics)
+
+
+def load_view_flat(cal: RigCalibration, *folders: str | Path) -> Any:
+    """The rig's flat-water view (``view_flat.*``, optional) from the first of ``folders``
+    holding one, or None; its size is checked like the view's."""
+    for folder in folders:
+        path = locate_image(folder, "view_flat")
+        if path is None:
+            continue
+        img = read_image(path)
+        h, w = cal.image_size("view")
+        if img.shape[:2] != (h, w):
+            raise WaiInputError(
+                f"{path} is {img.shape[1]}x{img.shape[0]} but the calibration says {w}x{h}"
+            )
+        return img
+    return None
+
+
+def check_inputs(
+    folder: str | Path, cal: RigCalibration, images: dict[str, Any], result: RestoreResult,
+    view_flat: Any = None,
+) -> None:
+    """Flag ``result`` by what the folder shows beyond the frame's own images: two differing
+    files of one image (``ambiguous_input``), and a restored view that disagrees with the
+    rig's flat-water view (``view_mismatch``, see :mod:`restoration.view_check`)."""
+    for name in cal.IMAGES:
+        conflict = image_conflict(folder, name, images[name])
+        if conflict is not None:
+            result.warnings.append(conflict)
+            result.flag("ambiguous_input", conflict)
+    if view_flat is not None and result.restored:
+        match = match_flat_view(result.view.image, result.view.valid,
+                                cal.radiance(images["view"]), view_flat)
+        result.view_match = match
+        if not match.consistent:
+            result.flag("view_mismatch", match.message)
 
 
 def folder_metrics(
@@ -163,10 +205,25 @@ def write_outputs(
     ``figures=False``) and ``metrics.json``; only ``metrics.json`` when there is no
     restoration."""
     with atomic_dir(target, command="restore") as tmp:
-        _write_arrays(tmp, result)
-        if figures:
-            _write_figures(tmp, cal, images, result, scores, truth)
-        write_json(tmp / "metrics.json", metrics)
+        write_restore_files(tmp, cal, images, result, scores, truth, metrics, figures=figures)
+
+
+def write_restore_files(
+    tmp: Path,
+    cal: RigCalibration,
+    images: dict[str, Any],
+    result: RestoreResult,
+    scores: Scores | None,
+    truth: Truth | None,
+    metrics: dict[str, Any],
+    *,
+    figures: bool = True,
+) -> None:
+    """What :func:`write_outputs` writes, into an open temporary folder ``tmp``."""
+    _write_arrays(tmp, result)
+    if figures:
+        _write_figures(tmp, cal, images, result, scores, truth)
+    write_json(tmp / "metrics.json", metrics)
 
 
 def _write_arrays(tmp: Path, result: RestoreResult) -> None:

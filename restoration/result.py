@@ -5,6 +5,10 @@ their own captures reads the same verdict as a sweep does:
 
 ``ok``
     the frame was restored and nothing truth-free says it is wrong;
+``bad_reference``
+    the flat-water reference is not flat water for this rig: its spots lie further from the
+    calibrated flat-water positions than :data:`REFERENCE_RMS_FRACTION` of their spacing (the
+    pattern images swapped, or the rig moved since it was calibrated);
 ``sparse``
     the flat-water reference shows fewer than :data:`SPARSE_FRACTION` of the features the
     calibration puts in view (a lost pattern, swapped reference and frame), or fewer than that
@@ -21,6 +25,14 @@ their own captures reads the same verdict as a sweep does:
     fine, the level is the gauge's);
 ``dark_view``
     the view image holds no signal (lens cap, wrong file): nothing to restore;
+``view_mismatch``
+    the restored view does not show what the rig sees through flat water
+    (:mod:`restoration.view_check`): it disagrees with a flat-water view (``view_flat``) or,
+    in a sequence, with the other frames' restored views (a still object stays still); the
+    view is of another moment or camera, or turned;
+``ambiguous_input``
+    the folder holds two files of one image (``pattern.exr`` and ``pattern.png``) with
+    different content; the first of :data:`~wai_core.images.IMAGE_SUFFIXES` was used;
 ``failed``
     the method could not build a surface (``message`` says why);
 ``no_sun``, ``sun_out_of_view``, ``too_few_spots``
@@ -34,15 +46,20 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SPARSE_FRACTION", "STATUSES", "RestoreResult"]
+__all__ = ["REFERENCE_RMS_FRACTION", "SPARSE_FRACTION", "STATUSES", "RestoreResult"]
 
 STATUSES = (
-    "ok", "sparse", "inconsistent", "gauge_level", "dark_view", "failed", "no_sun",
-    "sun_out_of_view", "too_few_spots",
+    "ok", "bad_reference", "sparse", "inconsistent", "gauge_level", "dark_view", "view_mismatch",
+    "ambiguous_input", "failed", "no_sun", "sun_out_of_view", "too_few_spots",
 )
 SPARSE_FRACTION = 0.25
 """Fewer dots seen in the flat reference, or fewer matches with unpinned labels, than this
 fraction of the features in view make a frame ``sparse``."""
+REFERENCE_RMS_FRACTION = 0.15
+"""A flat-water reference whose detected spots lie further (RMS) than this fraction of the spot
+spacing from the calibrated flat-water prediction makes a frame ``bad_reference``. A flat-water
+render of the paper's rig lies 0.02 spacings from it; the wavy pattern taken for the reference
+0.3 (a proximity match cannot exceed about 0.5)."""
 
 
 @dataclass
@@ -70,6 +87,12 @@ class RestoreResult:
         The features' counts (detected, matched, rejections by cause).
     consistency : Consistency or None
         The forward check of the surface against the spots (structured light).
+    view_match : ViewMatch or None
+        The restored view against a flat-water view or the sequence's other frames
+        (:mod:`restoration.view_check`), when either was available.
+    warnings : list of str
+        What the input's folder said that the status reflects (e.g. two differing files of
+        one image).
     """
 
     method: str
@@ -81,11 +104,21 @@ class RestoreResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     consistency: Any = None
+    view_match: Any = None
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
         """True when the status is ``ok``."""
         return self.status == "ok"
+
+    def flag(self, status: str, message: str) -> None:
+        """Mark a frame that a later check found wrong: an ``ok`` frame takes ``status``; a
+        frame already flagged keeps its status and gains ``message``."""
+        if self.status == "ok":
+            self.status, self.message = status, message
+        elif message not in self.message:
+            self.message = f"{self.message}; {message}" if self.message else message
 
     @property
     def restored(self) -> bool:
@@ -118,6 +151,10 @@ class RestoreResult:
             )
         if self.consistency is not None:
             out["consistency"] = self.consistency.summary()
+        if self.view_match is not None:
+            out["view_match"] = self.view_match.summary()
+        if self.warnings:
+            out["warnings"] = list(self.warnings)
         if self.timings_ms:
             out["timings_ms"] = self.timings_ms_all()
         return out

@@ -10,6 +10,7 @@ still object should not move, so the mean absolute change between consecutive re
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 from dataclasses import dataclass
@@ -20,11 +21,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
-from restoration.folder import folder_metrics, write_outputs
+from restoration.folder import check_inputs, folder_metrics, load_view_flat, write_restore_files
 from restoration.methods import Method, as_method
 from restoration.options import RestoreOptions
 from restoration.scoring import Truth, score
-from wai_core.io import atomic_dir, atomic_write_bytes, to_srgb8, write_json
+from restoration.view_check import match_sequence
+from wai_core.io import atomic_dir, atomic_write_bytes, check_output_dir, to_srgb8, write_json
 from wai_core.sequence import SequenceRecord, read_sequence
 
 __all__ = ["SequenceRestore", "frame_change", "load_sequence", "restore_sequence", "write_movie"]
@@ -32,10 +34,11 @@ __all__ = ["SequenceRestore", "frame_change", "load_sequence", "restore_sequence
 COLUMNS = (
     "frame", "time_s", "status", "wai_rmse_mm", "wai_rmse_demeaned_mm", "distorted_ssim",
     "restored_ssim", "corner_std_restored_px", "residual_median_px", "anchor_mm",
-    "features_used", "end_to_end_ms", "change_distorted", "change_restored",
+    "features_used", "end_to_end_ms", "change_distorted", "change_restored", "view_ncc",
 )
 """Columns of ``frames.csv``: one row per frame (the change columns compare with the previous
-frame)."""
+frame; ``view_ncc`` is the restored view's agreement with ``view_flat`` or the sequence's median
+restored view, see :mod:`restoration.view_check`)."""
 
 
 @dataclass
@@ -117,31 +120,42 @@ def restore_sequence(
     seq = read_sequence(folder)
     meth = as_method(method, options)
     cal = _calibration(seq, meth)
+    out = seq.folder / "restore"
+    if write:  # every output checked before the first frame is restored
+        for target in (out, *(d / "restore" for d in seq.frame_dirs)):
+            check_output_dir(target, "restore", label=f"{target} (the sequence's restore)")
     track = LevelTrack()
-    rows, restored, distorted, masks = [], [], [], []
-    for k, frame_dir in enumerate(tqdm(seq.frame_dirs, desc="frames", disable=not progress,
-                                       leave=False)):
-        images = cal.load_images(frame_dir)
-        result = meth(images, cal, track)
-        view = cal.radiance(images["view"])
-        truth = Truth.from_folder(frame_dir, cal) if result.restored else None
-        scores = None if truth is None else score(result, view, cal, truth)
-        if write:
+    rows, restored, distorted, masks, results, staged = [], [], [], [], [], []
+    # Each frame's restore/ is written to a temporary folder and all are renamed into place
+    # together at the end: an interrupted run leaves every old output as it was.
+    with contextlib.ExitStack() as stack:
+        for k, frame_dir in enumerate(tqdm(seq.frame_dirs, desc="frames", disable=not progress,
+                                           leave=False)):
+            images = cal.load_images(frame_dir)
+            result = meth(images, cal, track)
+            check_inputs(frame_dir, cal, images, result,
+                         load_view_flat(cal, frame_dir, seq.folder))
+            view = cal.radiance(images["view"])
+            truth = Truth.from_folder(frame_dir, cal) if result.restored else None
+            scores = None if truth is None else score(result, view, cal, truth)
             metrics = folder_metrics(meth, result, scores, True, seq.record.get("seed"))
-            write_outputs(frame_dir / "restore", cal, images, result, scores, truth, metrics,
-                          figures=False)
-        image = result.view.image if result.restored else np.zeros_like(view)
-        valid = result.view.valid if result.restored else np.zeros(view.shape[:2], bool)
-        rows.append(_row(k, seq.times_s[k], result, scores, view, image, valid,
-                         distorted[-1:], restored[-1:], masks[-1:]))
-        distorted.append(view)
-        restored.append(image.astype(np.float32))
-        masks.append(valid)
-    summary = _summary(seq, rows)
-    out = None
-    if write:
-        out = seq.folder / "restore"
-        with atomic_dir(out, command="restore") as tmp:
+            if write:
+                tmp = stack.enter_context(atomic_dir(frame_dir / "restore", command="restore"))
+                write_restore_files(tmp, cal, images, result, scores, truth, metrics,
+                                    figures=False)
+                staged.append((tmp, metrics))
+            image = result.view.image if result.restored else np.zeros_like(view)
+            valid = result.view.valid if result.restored else np.zeros(view.shape[:2], bool)
+            rows.append(_row(k, seq.times_s[k], result, scores, view, image, valid,
+                             distorted[-1:], restored[-1:], masks[-1:]))
+            distorted.append(view)
+            restored.append(image.astype(np.float32))
+            masks.append(valid)
+            results.append(result)
+        _flag_moving_views(results, rows, restored, masks, distorted, staged)
+        summary = _summary(seq, rows)
+        if write:
+            tmp = stack.enter_context(atomic_dir(out, command="restore"))
             atomic_write_bytes(tmp / "frames.csv", _csv(rows).encode())
             write_json(tmp / "summary.json", summary)
             _temporal_figure(rows, tmp / "temporal.png")
@@ -150,7 +164,32 @@ def restore_sequence(
                 sides = [np.concatenate([d, r], axis=1) for d, r in zip(distorted, restored,
                                                                         strict=True)]
                 write_movie(tmp / "side_by_side", sides, seq.fps)
-    return SequenceRestore(seq, rows, summary, out)
+    return SequenceRestore(seq, rows, summary, out if write else None)
+
+
+def _flag_moving_views(
+    results: list[Any], rows: list[dict[str, Any]], restored: list[NDArray],
+    masks: list[NDArray], distorted: list[NDArray], staged: list[tuple[Path, dict]],
+) -> None:
+    """A still object's restored views agree from frame to frame: frames without a
+    flat-water view's verdict are compared with the sequence's median restored view
+    (:func:`~restoration.view_check.match_sequence`), and those that disagree become
+    ``view_mismatch`` (their staged ``metrics.json`` rewritten)."""
+    for k, match in enumerate(match_sequence(restored, masks, distorted)):
+        result = results[k]
+        if match is None or result.view_match is not None:
+            continue
+        result.view_match = match
+        rows[k]["view_ncc"] = match.ncc_restored
+        if match.consistent:
+            continue
+        result.flag("view_mismatch", match.message)
+        rows[k]["status"] = result.status
+        if staged:
+            tmp, metrics = staged[k]
+            metrics.update(status=result.status, message=result.message,
+                           view_match=match.summary())
+            write_json(tmp / "metrics.json", metrics)
 
 
 def _row(
@@ -168,6 +207,8 @@ def _row(
         )
         if result.consistency is not None:
             row["residual_median_px"] = result.consistency.median_px
+        if result.view_match is not None:
+            row["view_ncc"] = result.view_match.ncc_restored
     if scores is not None and scores.surface is not None:
         row.update(wai_rmse_mm=scores.rmse_mm,
                    wai_rmse_demeaned_mm=scores.surface["rmse_demeaned_mm"])

@@ -31,7 +31,7 @@ from restoration.features import (
 from restoration.fit import fit_level
 from restoration.normals import points_on_rays, projector_rays
 from restoration.options import RestoreOptions
-from restoration.result import SPARSE_FRACTION, RestoreResult
+from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, RestoreResult
 from restoration.reverse_trace._surface import spline_patches
 from restoration.surface import COMPILED_INTEGRATORS, SurfaceEstimate, reconstruct_surface
 from wai_core.config import DeviceConfig, PatternConfig, SystemConfig
@@ -283,6 +283,14 @@ def frame_status(
     """The truth-free verdict on a restored frame (see :mod:`restoration.result`)."""
     in_view = max(int(reference.counts.get("predicted_in_view", 0)), 1)
     seen = int(reference.counts.get("observed", 0))
+    spacing = float(np.nanmedian(reference.spacing_px))
+    if reference.rms_px > REFERENCE_RMS_FRACTION * spacing:
+        return "bad_reference", (
+            f"pattern_flat is not flat water for this rig: its {seen} spots lie "
+            f"{reference.rms_px:.2f} px (RMS, {reference.rms_px / spacing:.0%} of their "
+            "spacing) from the calibrated flat-water positions: pattern and pattern_flat "
+            "swapped, or the rig moved since calibration?"
+        )
     if seen < SPARSE_FRACTION * in_view:
         return "sparse", (
             f"the flat-water reference shows only {seen} of the {in_view} dots in view"

@@ -16,10 +16,15 @@ from numpy.typing import NDArray
 from wai_core.errors import WaiInputError
 from wai_core.io import read_exr
 
-__all__ = ["IMAGE_SUFFIXES", "find_image", "locate_image", "read_image"]
+__all__ = ["IMAGE_SUFFIXES", "find_image", "image_conflict", "locate_image", "read_image"]
 
 IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff")
 """Suffixes tried, in order, for an image named by its stem (``pattern`` -> ``pattern.exr``)."""
+
+SAME_IMAGE_CORRELATION = 0.98
+"""Two files of one stem hold the same image when their correlation, under the encodings a
+preview may use (linear; sRGB; sRGB clipped at the 99.5th percentile), reaches this. A render's
+own previews reach 0.996-1.0; another frame of the same rig 0.09 (patterns) to 0.69 (views)."""
 
 
 def read_image(path: str | Path) -> NDArray[np.float32]:
@@ -102,3 +107,71 @@ def find_image(folder: str | Path, stem: str) -> Path:
         return path
     tried = ", ".join(f"{stem}{s}" for s in IMAGE_SUFFIXES)
     raise WaiInputError(f"image not found in {folder}: tried {tried}")
+
+
+def _correlation(a: NDArray, b: NDArray) -> float:
+    a, b = a - a.mean(), b - b.mean()
+    den = float(np.sqrt((a * a).sum() * (b * b).sum()))
+    return float((a * b).sum() / den) if den > 0 else 0.0
+
+
+def _srgb_to_linear(x: NDArray) -> NDArray:
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def image_conflict(folder: str | Path, stem: str, image: NDArray) -> str | None:
+    """Say so when ``folder`` holds another file of image ``stem`` whose content differs from
+    ``image`` (the one :func:`find_image` chose), e.g. ``pattern.exr`` beside a
+    ``pattern.png`` of another frame.
+
+    A preview of the same image (a render's ``NAME.png``: sRGB at its own exposure, or a
+    sensor's integer counts) is not a conflict; see :data:`SAME_IMAGE_CORRELATION`.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The frame's folder.
+    stem : str
+        The image's name without suffix.
+    image : (H, W) or (H, W, 3) ndarray
+        The image read from the chosen file.
+
+    Returns
+    -------
+    str or None
+        One line naming both files, or None when there is no other file or it agrees.
+
+    Examples
+    --------
+    >>> import numpy as np, tempfile, cv2, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> ramp = np.tile(np.arange(0, 256, 4, dtype=np.uint8), (8, 1))
+    >>> _ = cv2.imwrite(str(d / "view.png"), ramp)
+    >>> _ = cv2.imwrite(str(d / "view.tif"), ramp[:, ::-1])
+    >>> image_conflict(d, "view", read_image(d / "view.png")) is not None
+    True
+    """
+    chosen = find_image(folder, stem)
+    others = [p for s in IMAGE_SUFFIXES if (p := Path(folder) / f"{stem}{s}").is_file()
+              and p != chosen]
+    if not others:
+        return None
+    used = np.asarray(image, np.float64)
+    used = (used.mean(axis=-1) if used.ndim == 3 else used)[::4, ::4]
+    top = float(np.percentile(used, 99.5))
+    clipped = np.clip(used / top, 0.0, 1.0) if top > 0 else used
+    for other in others:
+        img = read_image(other)
+        if img.shape[:2] != np.shape(image)[:2]:
+            return (f"{chosen.name} and {other.name} in {folder} are different images "
+                    f"({np.shape(image)[1]}x{np.shape(image)[0]} and {img.shape[1]}x"
+                    f"{img.shape[0]}); {chosen.name} was used")
+        alt = np.asarray(img, np.float64)
+        alt = (alt.mean(axis=-1) if alt.ndim == 3 else alt)[::4, ::4]
+        lin = _srgb_to_linear(alt)
+        r = max(_correlation(alt, used), _correlation(lin, used), _correlation(lin, clipped))
+        if r < SAME_IMAGE_CORRELATION:
+            return (f"{chosen.name} and {other.name} in {folder} hold different images "
+                    f"(correlation {r:.2f}); {chosen.name} was used: remove the one that is "
+                    "not this frame's")
+    return None

@@ -3,10 +3,11 @@
 
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from restoration import RestoreOptions
-from restoration.result import SPARSE_FRACTION, STATUSES
+from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, STATUSES
 from restoration.structured_light import frame_status
 
 
@@ -15,9 +16,10 @@ class _Features(SimpleNamespace):
         return self.n
 
 
-def _status(n_matched, ambiguous, observed=1000, in_view=1000, median_px=0.2):
+def _status(n_matched, ambiguous, observed=1000, in_view=1000, median_px=0.2, rms_px=0.3):
     features = _Features(n=n_matched, counts={"labels_ambiguous": int(ambiguous)})
-    reference = SimpleNamespace(counts={"predicted_in_view": in_view, "observed": observed})
+    reference = SimpleNamespace(counts={"predicted_in_view": in_view, "observed": observed},
+                                rms_px=rms_px, spacing_px=np.full(in_view, 13.0))
     surface = SimpleNamespace(anchor={"method": "integrability"})
     check = SimpleNamespace(consistent=median_px <= 1.0, median_px=median_px, threshold_px=1.0)
     return frame_status(features, reference, surface, check, True, RestoreOptions())
@@ -46,6 +48,13 @@ def test_a_reference_that_shows_few_dots_is_sparse_whatever_the_labels():
     status, message = _status(800, ambiguous=False, observed=int(0.5 * SPARSE_FRACTION * 1000))
     assert status == "sparse"
     assert "reference" in message
+
+
+def test_a_reference_off_the_flat_water_prediction_is_bad_whatever_else_holds():
+    # Spots a third of a spacing from where flat water puts them: not a flat-water image.
+    far = 1.01 * REFERENCE_RMS_FRACTION * 13.0
+    assert _status(800, ambiguous=False, rms_px=far)[0] == "bad_reference"
+    assert _status(800, ambiguous=False, rms_px=0.99 * REFERENCE_RMS_FRACTION * 13.0)[0] == "ok"
 
 
 def test_statuses_are_listed():

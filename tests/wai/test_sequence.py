@@ -71,3 +71,50 @@ def test_bad_sequence_options_are_one_line(tmp_path, capsys, extra, needle):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0]
     assert not (tmp_path / "s").exists()
+
+
+@pytest.fixture
+def sequence_copy(sequence_dir, tmp_path):
+    """A copy of the test sequence to change (its files copied, not linked)."""
+    import shutil
+
+    copy = tmp_path / "seq"
+    shutil.copytree(sequence_dir, copy, ignore=shutil.ignore_patterns("restore"))
+    return copy
+
+
+def test_a_turned_view_in_a_sequence_is_a_view_mismatch(sequence_copy):
+    from restoration import restore_sequence
+    from wai_core.io import write_exr
+
+    frame = sequence_copy / "frame001"
+    write_exr(frame / "view.exr", read_exr(frame / "view.exr")[::-1, ::-1])
+    (frame / "view.png").unlink()  # else the preview disagrees: ambiguous_input
+    done = restore_sequence(sequence_copy, write=False)
+    # A still checkerboard: the other frames' restored views agree, this one does not.
+    assert [r["status"] for r in done.rows] == ["ok", "view_mismatch", "ok"]
+    assert done.rows[0]["view_ncc"] > 0.9 > done.rows[1]["view_ncc"]
+
+
+def test_an_interrupted_sequence_restore_keeps_every_old_output(sequence_copy, monkeypatch):
+    from restoration import RestoreOptions, StructuredLight, restore_sequence
+
+    restore_sequence(sequence_copy, movie=False)
+    outputs = sorted(sequence_copy.rglob("restore/*"))
+    before = {p: p.read_bytes() for p in outputs if p.is_file()}
+    calls = []
+    real = StructuredLight.__call__
+
+    def interrupted(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == FRAMES:
+            raise KeyboardInterrupt
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(StructuredLight, "__call__", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        restore_sequence(sequence_copy, options=RestoreOptions(integrator="trapezoid"),
+                         movie=False)
+    after = {p: p.read_bytes() for p in sorted(sequence_copy.rglob("restore/*")) if p.is_file()}
+    assert after == before
+    assert not [p for p in sequence_copy.rglob(".*") if ".tmp-" in p.name or ".old-" in p.name]

@@ -1,0 +1,96 @@
+"""Wrong inputs that restore without an error must not say ``ok``: a swapped pair of patterns,
+two differing files of one image, a view of another moment or turned (seen against a
+flat-water view). Renders of the paper's rig at two moments of the same sea."""
+
+import shutil
+
+import numpy as np
+import pytest
+
+from mitsuba_wai.render import render_folder
+from restoration import restore_folder
+from restoration.view_check import VIEW_MATCH_MIN_NCC, match_sequence, ncc
+from wai_core.io import read_exr, write_exr, write_png
+
+FILES = ("scene.json", "pattern.exr", "pattern_flat.exr", "view.exr", "view_truth.exr")
+
+
+@pytest.fixture(scope="module")
+def quick_cfg(paper_cfg):
+    return paper_cfg.replace("render", spp_pattern=4, spp_view=4)
+
+
+@pytest.fixture(scope="module")
+def frames(quick_cfg, tmp_path_factory):
+    """Two render folders of one sea 0.5 s apart."""
+    out = []
+    for t in (10.0, 10.5):
+        folder = tmp_path_factory.mktemp("moment") / "frame"
+        render_folder(quick_cfg.replace("waves", time_s=t), folder, progress=False)
+        out.append(folder)
+    return out
+
+
+def _case(frames, tmp_path, flat_view=True):
+    """A folder of one's own images (no truth), from the first render."""
+    folder = tmp_path / "case"
+    folder.mkdir()
+    for name in FILES[:-1]:
+        shutil.copy(frames[0] / name, folder / name)
+    if flat_view:  # what the rig sees through flat water, captured once
+        shutil.copy(frames[0] / "view_truth.exr", folder / "view_flat.exr")
+    return folder
+
+
+def test_the_right_images_are_ok_and_match_the_flat_view(frames, tmp_path):
+    done = restore_folder(_case(frames, tmp_path), write=False)
+    assert done.result.status == "ok"
+    match = done.result.view_match
+    assert match.ncc_restored > VIEW_MATCH_MIN_NCC > match.ncc_distorted
+
+
+def test_swapped_patterns_are_a_bad_reference(frames, tmp_path):
+    folder = _case(frames, tmp_path, flat_view=False)
+    (folder / "pattern.exr").rename(folder / "wavy.exr")
+    (folder / "pattern_flat.exr").rename(folder / "pattern.exr")
+    (folder / "wavy.exr").rename(folder / "pattern_flat.exr")
+    result = restore_folder(folder, write=False).result
+    assert result.status == "bad_reference"
+    assert "swapped" in result.message and "\n" not in result.message
+
+
+def test_a_png_that_differs_from_the_exr_is_ambiguous(frames, tmp_path):
+    folder = _case(frames, tmp_path, flat_view=False)
+    write_png(folder / "pattern.png", read_exr(frames[1] / "pattern.exr"))
+    result = restore_folder(folder, write=False).result
+    assert result.status == "ambiguous_input"
+    assert "pattern.exr" in result.message and "pattern.png" in result.message
+
+
+def test_a_png_preview_of_the_same_exr_is_not_ambiguous(frames, tmp_path):
+    folder = _case(frames, tmp_path, flat_view=False)
+    shutil.copy(frames[0] / "pattern.png", folder / "pattern.png")  # the render's preview
+    assert restore_folder(folder, write=False).result.status == "ok"
+
+
+@pytest.mark.parametrize("wrong", ["turned", "other moment"])
+def test_a_wrong_view_is_a_view_mismatch_against_the_flat_view(frames, tmp_path, wrong):
+    folder = _case(frames, tmp_path)
+    view = read_exr(frames[0] / "view.exr")
+    write_exr(folder / "view.exr",
+              view[::-1, ::-1] if wrong == "turned" else read_exr(frames[1] / "view.exr"))
+    result = restore_folder(folder, write=False).result
+    assert result.status == "view_mismatch"
+    assert result.view_match.ncc_restored < VIEW_MATCH_MIN_NCC
+
+
+def test_a_sequence_median_singles_out_the_turned_frame():
+    # A still random texture seen in five frames; frame 3's view is turned.
+    rng = np.random.default_rng(3)
+    still = rng.random((60, 80, 3))
+    views = [still + 0.02 * rng.standard_normal(still.shape) for _ in range(5)]
+    views[3] = views[3][::-1, ::-1]
+    masks = [np.ones((60, 80), bool)] * 5
+    matches = match_sequence(views, masks, views, step=1)
+    assert [m.consistent for m in matches] == [True, True, True, False, True]
+    assert ncc(views[0], still, masks[0]) > 0.99
