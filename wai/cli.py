@@ -45,9 +45,11 @@ def _version() -> str:
 
 
 def _integrators() -> list[str]:
-    from restoration.integrate import INTEGRATORS
+    """The integrators ``wai restore`` offers: those that restore the paper's frames ``ok``
+    (the grid integrators stay in the library and the sweeps, for comparison)."""
+    from restoration.integrate import COMPARISON_INTEGRATORS, INTEGRATORS
 
-    return list(INTEGRATORS)
+    return [name for name in INTEGRATORS if name not in COMPARISON_INTEGRATORS]
 
 
 def _methods() -> list[str]:

@@ -26,7 +26,12 @@ Modules
 """
 
 from restoration.integrate._common import MIN_SAMPLES
-from restoration.integrate.dispatch import INTEGRATORS, Integrator, integrate
+from restoration.integrate.dispatch import (
+    COMPARISON_INTEGRATORS,
+    INTEGRATORS,
+    Integrator,
+    integrate,
+)
 from restoration.integrate.fourier import (
     SlopeGrid,
     frankot_chellappa,
@@ -60,6 +65,7 @@ from restoration.integrate.rules import edge_step, edge_steps
 from restoration.integrate.spline import SplineGrid, integrate_spline
 
 __all__ = [
+    "COMPARISON_INTEGRATORS",
     "GRIDDERS",
     "INTEGRATORS",
     "MAX_LATTICE_STEP",

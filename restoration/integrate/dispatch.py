@@ -86,6 +86,12 @@ Integrators
     edge, they err more than the lattice integrators; they cost a fixed ~10 ms per call.
 """
 
+COMPARISON_INTEGRATORS = ("frankot_chellappa", "dct_poisson")
+"""Integrators kept for comparison (sweeps, benchmarks) but not offered by ``wai restore``: on
+the paper's scene every frame they restore is ``inconsistent`` (surface RMSE 0.15-0.32 mm where
+the lattice integrators reach 0.02 mm in ``wai experiment tradeoffs --quick``): resampling the
+dots' slopes onto a grid costs more than the level search and the forward check allow."""
+
 
 def integrate(
     ij: ArrayLike,

@@ -94,3 +94,16 @@ def test_a_sequence_median_singles_out_the_turned_frame():
     matches = match_sequence(views, masks, views, step=1)
     assert [m.consistent for m in matches] == [True, True, True, False, True]
     assert ncc(views[0], still, masks[0]) > 0.99
+
+
+def test_every_integrator_wai_restore_offers_restores_the_paper_frame_ok(frames, tmp_path):
+    from restoration import RestoreOptions
+    from wai.cli import build_parser
+
+    parser = build_parser()
+    restore = parser._subparsers._group_actions[0].choices["restore"]
+    offered = next(a.choices for a in restore._actions if a.dest == "integrator")
+    folder = _case(frames, tmp_path, flat_view=False)
+    for name in offered:
+        result = restore_folder(folder, options=RestoreOptions(integrator=name), write=False)
+        assert result.result.status == "ok", (name, result.result.message)
