@@ -22,7 +22,11 @@ from restoration.scoring import Scores, Truth, score, surface_profile
 from restoration.view_check import match_flat_view
 from wai_core.errors import WaiInputError
 from wai_core.images import image_conflict, locate_image, read_image
-from wai_core.io import atomic_dir, write_exr, write_json, write_png
+from wai_core.io import atomic_dir, check_output_dir, write_exr, write_json, write_png
+
+RESTORE_REMEDY = "move what is not the tool's elsewhere: a restore replaces only its own outputs"
+"""What a refused restore folder's message tells the user (``wai restore`` has no --overwrite:
+it never replaces a folder it did not write)."""
 
 __all__ = ["FolderRestore", "check_inputs", "restore_folder"]
 
@@ -113,6 +117,9 @@ def restore_folder(
     meth = as_method(method, options)
     bar = tqdm(total=3, desc="restore", disable=not progress, leave=False, unit="step")
     record = read_scene_record(folder)
+    target = (Path(out) if out is not None else folder / "restore") if write else None
+    if target is not None:  # refused before any work
+        check_output_dir(target, "restore", remedy=RESTORE_REMEDY)
     cal = meth.calibration_type.from_record(record)
     images = cal.load_images(folder)
     view_flat = load_view_flat(cal, folder)
@@ -124,9 +131,7 @@ def restore_folder(
     scores = None if truth is None else score(result, distorted, cal, truth)
     bar.update(1)
     metrics = folder_metrics(meth, result, scores, scored, record.get("seed"))
-    target = None
-    if write:
-        target = Path(out) if out is not None else folder / "restore"
+    if target is not None:
         write_outputs(target, cal, images, result, scores, truth, metrics)
     bar.update(1)
     bar.close()
@@ -204,7 +209,7 @@ def write_outputs(
     """The restore folder, atomically: surface, restored view, figures (unless
     ``figures=False``) and ``metrics.json``; only ``metrics.json`` when there is no
     restoration."""
-    with atomic_dir(target, command="restore") as tmp:
+    with atomic_dir(target, command="restore", remedy=RESTORE_REMEDY) as tmp:
         write_restore_files(tmp, cal, images, result, scores, truth, metrics, figures=figures)
 
 

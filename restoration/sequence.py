@@ -21,7 +21,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
-from restoration.folder import check_inputs, folder_metrics, load_view_flat, write_restore_files
+from restoration.folder import (
+    RESTORE_REMEDY,
+    check_inputs,
+    folder_metrics,
+    load_view_flat,
+    write_restore_files,
+)
 from restoration.methods import Method, as_method
 from restoration.options import RestoreOptions
 from restoration.scoring import Truth, score
@@ -123,7 +129,7 @@ def restore_sequence(
     out = seq.folder / "restore"
     if write:  # every output checked before the first frame is restored
         for target in (out, *(d / "restore" for d in seq.frame_dirs)):
-            check_output_dir(target, "restore", label=f"{target} (the sequence's restore)")
+            check_output_dir(target, "restore", remedy=RESTORE_REMEDY)
     track = LevelTrack()
     rows, restored, distorted, masks, results, staged = [], [], [], [], [], []
     # Each frame's restore/ is written to a temporary folder and all are renamed into place
@@ -140,7 +146,8 @@ def restore_sequence(
             scores = None if truth is None else score(result, view, cal, truth)
             metrics = folder_metrics(meth, result, scores, True, seq.record.get("seed"))
             if write:
-                tmp = stack.enter_context(atomic_dir(frame_dir / "restore", command="restore"))
+                tmp = stack.enter_context(atomic_dir(frame_dir / "restore", command="restore",
+                                                        remedy=RESTORE_REMEDY))
                 write_restore_files(tmp, cal, images, result, scores, truth, metrics,
                                     figures=False)
                 staged.append((tmp, metrics))
@@ -155,7 +162,7 @@ def restore_sequence(
         _flag_moving_views(results, rows, restored, masks, distorted, staged)
         summary = _summary(seq, rows)
         if write:
-            tmp = stack.enter_context(atomic_dir(out, command="restore"))
+            tmp = stack.enter_context(atomic_dir(out, command="restore", remedy=RESTORE_REMEDY))
             atomic_write_bytes(tmp / "frames.csv", _csv(rows).encode())
             write_json(tmp / "summary.json", summary)
             _temporal_figure(rows, tmp / "temporal.png")

@@ -51,13 +51,6 @@ OUTPUT_MARKER = ".wai-output.json"
 
 _MARKER_FORMAT = "wai-output/1"
 _LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?:tmp|old)-(?P<pid>\d+)(?:-[A-Za-z0-9_]+)?$")
-# Folders written before markers existed, recognised by a file they must hold and the names
-# they may hold (None: any regular file).
-_RENDER_FILES = frozenset(
-    [f"{stem}.{ext}" for stem in ("pattern", "pattern_flat", "view", "view_truth", "sunspots",
-                                  "sunspots_flat") for ext in ("exr", "png")]
-    + ["heightfield.npz", "surface.ply", "scene.json"]
-)
 # Files other wai commands add to an output afterwards (the overview figures ``wai demo`` and
 # ``wai experiment paper`` draw into a render folder, ``wai bench`` its report into the one it
 # renders): the folder stays the tool's own. Code that adds others calls register_output_files.
@@ -65,11 +58,6 @@ _ADDED_LATER: dict[str, frozenset[str]] = {
     "render": frozenset({"fig10_surface.png", "pattern_flat_vs_wavy.png", "view_flat_vs_wavy.png",
                          "bench.json", "bench.png"}),
 }
-_LEGACY_OUTPUTS: dict[str, tuple[str, frozenset[str] | None]] = {
-    "render": ("scene.json", _RENDER_FILES | _ADDED_LATER["render"]),
-    "restore": ("metrics.json", None),
-}
-
 
 # ----------------------------------------------------------------------------------------------
 # Signals: SIGINT and SIGTERM as exceptions, so that temporary outputs are cleaned up
@@ -180,29 +168,12 @@ def _write_marker(folder: Path, command: str, files: list[str] | None) -> None:
     })
 
 
-def _is_legacy_output(folder: Path, command: str) -> bool:
-    """An unmarked folder that an earlier version wrote for ``command``."""
-    if command not in _LEGACY_OUTPUTS:
-        return False
-    required, names = _LEGACY_OUTPUTS[command]
-    if not (folder / required).is_file():
-        return False
-    if command == "render":
-        with contextlib.suppress(OSError, ValueError, AttributeError):
-            fmt = json.loads((folder / required).read_text()).get("format", "")
-            return str(fmt).startswith("wai-render") and _holds_only(folder, names)
-        return False
-    return _holds_only(folder, names)
-
-
 def _is_nested_output(path: Path) -> bool:
-    """A folder inside an output that the tool wrote too (marked, or an unmarked restore)."""
+    """A folder inside an output that the tool wrote too (it holds a marker)."""
     if path.is_symlink() or not path.is_dir():
         return False
     marker = output_marker(path)
-    if marker is not None:
-        return _holds_only(path, _marked_names(marker))
-    return path.name == "restore" and _is_legacy_output(path, "restore")
+    return marker is not None and _holds_only(path, _marked_names(marker))
 
 
 def _marked_names(marker: dict[str, Any]) -> frozenset[str]:
@@ -244,8 +215,10 @@ def is_output_of(folder: str | Path, command: str) -> bool:
         return False
     try:
         marker = output_marker(folder)
+        # Only the marker says a folder is the tool's: an unmarked one that holds a render's
+        # names (a user's captures beside a copied scene.json) is the user's.
         if marker is None:
-            return _is_legacy_output(folder, command)
+            return False
         return (
             marker.get("command") == command
             and bool(marker.get("complete"))
@@ -269,7 +242,11 @@ def _foreign_entries(folder: Path, limit: int = 3) -> str:
 
 
 def check_output_dir(
-    final: str | Path, command: str, overwrite: bool = False, label: str | None = None
+    final: str | Path,
+    command: str,
+    overwrite: bool = False,
+    label: str | None = None,
+    remedy: str = "choose a new folder or pass --overwrite",
 ) -> Path:
     """Check, before any work, that a new output of ``command`` may be written at ``final``.
 
@@ -285,6 +262,9 @@ def check_output_dir(
     label : str, optional
         How the message names the location (default ``output folder FINAL``), e.g.
         ``--out renders/f1``.
+    remedy : str
+        What the message for a foreign folder tells the user to do (a command without
+        ``--overwrite`` says something else).
 
     Returns
     -------
@@ -313,13 +293,17 @@ def check_output_dir(
             raise WaiInputError(f"{label}: {anchor} is a file, not a folder")
         if path.is_symlink():
             raise WaiInputError(f"{label}: is a symbolic link; name the folder itself")
+        _check_name_length(path, anchor, label)
         if path.exists():
             if not path.is_dir():
                 raise WaiInputError(f"{label}: is an existing file; an output is a folder")
+            if _rename_blocked(path):
+                raise WaiInputError(f"{label}: is immutable or append-only (chattr), so a new "
+                                    "output cannot replace it")
             if not overwrite and not _is_empty(path) and not is_output_of(path, command):
                 raise WaiInputError(
                     f"{label}: exists and is not a previous 'wai {command}' output"
-                    f"{_foreign_entries(path)}; choose a new folder or pass --overwrite"
+                    f"{_foreign_entries(path)}; {remedy}"
                 )
     except OSError as exc:
         raise WaiInputError(f"{label}: {exc.strerror or exc}") from None
@@ -328,6 +312,45 @@ def check_output_dir(
     except OSError as exc:
         raise WaiInputError(f"{label}: cannot write in {anchor}: {exc.strerror or exc}") from None
     return path
+
+
+# Longest suffix atomic_dir adds to a name: ".NAME.tmp-PID-XXXXXXXX" (PIDs up to 2^22).
+_TEMP_NAME_EXTRA = len(".") + len(".tmp-4194304-") + 8
+_FS_IOC_GETFLAGS = 0x80086601  # Linux: the inode flags chattr sets
+_RENAME_BLOCKING_FLAGS = 0x10 | 0x20  # FS_IMMUTABLE_FL, FS_APPEND_FL
+
+
+def _check_name_length(path: Path, anchor: Path, label: str) -> None:
+    """Refuse a name too long for the temporary folder beside it (checked before the work,
+    not when ``mkdtemp`` fails after it)."""
+    try:
+        name_max = os.pathconf(anchor, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    size = len(os.fsencode(path.name))
+    if size + _TEMP_NAME_EXTRA > name_max:
+        raise WaiInputError(f"{label}: its name is {size} bytes long; at most "
+                            f"{name_max - _TEMP_NAME_EXTRA} fit (the output is first written "
+                            "beside it under a longer temporary name)")
+
+
+def _rename_blocked(path: Path) -> bool:
+    """Whether the folder's inode flags forbid renaming it (Linux; False where unknown)."""
+    import array
+    import fcntl
+
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return False
+    try:
+        flags = array.array("l", [0])
+        fcntl.ioctl(fd, _FS_IOC_GETFLAGS, flags, True)
+        return bool(flags[0] & _RENAME_BLOCKING_FLAGS)
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -390,6 +413,7 @@ def atomic_dir(
     *,
     command: str | None = None,
     overwrite: bool = False,
+    remedy: str = "choose a new folder or pass --overwrite",
 ) -> Iterator[Path]:
     """Yield a temporary folder that becomes ``final`` when the block ends without error.
 
@@ -409,10 +433,12 @@ def atomic_dir(
         an existing one only if it is a previous output of ``command`` (or ``overwrite``).
     overwrite : bool
         With ``command``: also replace an existing folder that is not such an output.
+    remedy : str
+        As :func:`check_output_dir`.
     """
     final = Path(final)
     if command is not None:
-        final = check_output_dir(final, command, overwrite)
+        final = check_output_dir(final, command, overwrite, remedy=remedy)
         remove_leftovers(final, command)
     final.parent.mkdir(parents=True, exist_ok=True)
     with _signals_deferred():  # no signal between creating the folder and marking it
@@ -430,8 +456,12 @@ def atomic_dir(
         if command is not None:
             names = sorted(p.name for p in tmp.iterdir() if p.name != OUTPUT_MARKER)
             _write_marker(tmp, command, names)
-            check_output_dir(final, command, overwrite)  # it may have changed meanwhile
-        _swap_in(tmp, final, replace)
+            check_output_dir(final, command, overwrite, remedy=remedy)  # it may have changed
+        try:
+            _swap_in(tmp, final, replace)
+        except PermissionError as exc:
+            raise WaiInputError(f"cannot put the output at {final}: {exc.strerror or exc} "
+                                "(the new output was not kept)") from None
     except BaseException:
         _remove_output(tmp)
         raise

@@ -9,6 +9,7 @@ most cases fail before anything is rendered.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import signal
 import subprocess
@@ -87,6 +88,13 @@ def inputs(tmp_path):
     files["file"] = tmp_path / "file.txt"
     files["file"].write_text("keep me too")
     files["tiny"] = tiny_scene(tmp_path)
+    # One's own captures made the README's way: a render's scene.json beside one's images.
+    files["captures"] = tmp_path / "captures"
+    files["captures"].mkdir()
+    (files["captures"] / "scene.json").write_text(
+        json.dumps({"format": "wai-render/1", "config": {}}))
+    for name in ("pattern.png", "pattern_flat.png", "view.png"):
+        (files["captures"] / name).write_bytes(b"my capture")
     return files
 
 
@@ -100,6 +108,10 @@ def _cuda_works() -> bool:
 BAD = [
     ("out-foreign-folder", lambda f, t: [f["tiny"], "--out", f["foreign"]],
      "not a previous 'wai render' output, holding notes.txt"),
+    ("out-own-captures", lambda f, t: [f["tiny"], "--out", f["captures"]],
+     "not a previous 'wai render' output, holding pattern.png"),
+    ("out-name-too-long", lambda f, t: [f["tiny"], "--out", t / ("n" * 240)],
+     "bytes long; at most"),
     ("out-file", lambda f, t: [f["tiny"], "--out", f["file"]], "is an existing file"),
     ("out-file-overwrite", lambda f, t: [f["tiny"], "--out", f["file"], "--overwrite"],
      "is an existing file"),
@@ -203,6 +215,46 @@ def test_read_only_location_is_refused_before_rendering(capfd, tmp_path, monkeyp
     code, err, _ = run(capfd, "render", inputs["tiny"], "--out", tmp_path / "ro" / "out")
     assert (code, len(err)) == (2, 1) and "Read-only file system" in err[0]
     assert "--out " in err[0] and snapshot(tmp_path) == before
+
+
+def test_an_immutable_output_is_refused_before_rendering(capfd, tmp_path, inputs):
+    out = tmp_path / "frozen"
+    out.mkdir()
+    if subprocess.run(["chattr", "+i", str(out)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not allowed here")
+    try:
+        before = snapshot(tmp_path)
+        code, err, _ = run(capfd, "render", inputs["tiny"], "--out", out, "--quiet")
+        assert (code, len(err)) == (2, 1) and "immutable" in err[0]
+        assert snapshot(tmp_path) == before
+    finally:
+        subprocess.run(["chattr", "-i", str(out)], check=True)
+
+
+def test_a_rename_refused_at_the_end_is_one_line_and_keeps_nothing(capfd, tmp_path, inputs,
+                                                                monkeypatch):
+    from wai_core import io
+
+    def refused(tmp, final, replace):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(io, "_swap_in", refused)
+    code, err, _ = run(capfd, "render", inputs["tiny"], "--out", tmp_path / "o", "--spp", "1",
+                       "--quiet")
+    assert (code, len(err)) == (2, 1) and "Operation not permitted" in err[0]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_restore_refusing_a_foreign_restore_folder_names_no_missing_option(capfd, tmp_path,
+                                                                          inputs):
+    out = tmp_path / "frame"
+    assert run(capfd, "render", inputs["tiny"], "--out", out, "--spp", "1", "--quiet")[0] == 0
+    (out / "restore").mkdir()
+    (out / "restore" / "notes.txt").write_text("mine")
+    before = snapshot(tmp_path)
+    code, err, _ = run(capfd, "restore", out, "--quiet")
+    assert (code, len(err)) == (2, 1) and "notes.txt" in err[0]
+    assert "--overwrite" not in err[0] and snapshot(tmp_path) == before
 
 
 def test_outputs_replace_only_their_own(capfd, tmp_path, inputs):

@@ -83,20 +83,23 @@ def test_output_with_foreign_file_inside_is_refused(tmp_path):
     assert is_output_of(out, "render")
 
 
-def test_nested_and_legacy_outputs_are_the_tools_own(tmp_path):
+def test_nested_outputs_are_the_tools_own_and_unmarked_look_alikes_are_not(tmp_path):
     out = tmp_path / "out"
     _write(out)
     _write(out / "restore", command="restore", files=("metrics.json",))
     (out / "fig10_surface.png").write_bytes(b"png")  # drawn by wai demo afterwards
     assert is_output_of(out, "render")
-    legacy = tmp_path / "legacy"
-    (legacy / "restore").mkdir(parents=True)
-    (legacy / "scene.json").write_text(json.dumps({"format": "wai-render/1"}))
-    (legacy / "pattern.exr").write_bytes(b"exr")
-    (legacy / "restore" / "metrics.json").write_text("{}")
-    assert is_output_of(legacy, "render")
-    (legacy / "scene.json").write_text(json.dumps({"format": "something else"}))
-    assert not is_output_of(legacy, "render")
+    # One's own captures beside a render's scene.json, made the README's way: the user's.
+    own = tmp_path / "own"
+    (own / "restore").mkdir(parents=True)
+    (own / "scene.json").write_text(json.dumps({"format": "wai-render/1"}))
+    for name in ("pattern.png", "pattern_flat.png", "view.png"):
+        (own / name).write_bytes(b"png")
+    (own / "restore" / "metrics.json").write_text("{}")
+    assert not is_output_of(own, "render")
+    assert not is_output_of(own / "restore", "restore")
+    with pytest.raises(WaiInputError, match="--overwrite"):
+        _write(own)
 
 
 def test_unwritable_location_is_refused_before_work(tmp_path, monkeypatch):
