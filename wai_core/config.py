@@ -2,9 +2,12 @@
 
 Every section maps to a frozen dataclass. Unknown keys, missing keys and values of the wrong kind
 raise :class:`~wai_core.errors.WaiInputError` naming the key, so a typo never passes silently.
-Only ``[projector]``, ``[camera_s]`` and ``[camera_v]`` are required; every other section
-defaults. The field's degradations, ``[sensor]``, ``[motion]``, ``[water_optics]`` and
-``[ambient]``, are off by default and cost nothing then.
+One rule for what may be left out: the rig's devices, ``[projector]``, ``[camera_s]`` and
+``[camera_v]``, have no default (no pose fits every rig) and are required; every other section,
+and every key of a section that has a default, takes the default its dataclass gives when
+omitted, and ``scene.json`` records every value used. The field's degradations,
+``[sensor]``, ``[motion]``, ``[water_optics]`` and ``[ambient]``, are off by default and cost
+nothing then.
 """
 
 from __future__ import annotations
@@ -313,14 +316,29 @@ def parse_section(cls: type, data: Any, name: str) -> Any:
         raise WaiInputError(f"config: missing key [{name}].{missing[0]}") from None
 
 
+DEVICE_SECTIONS = ("projector", "camera_s", "camera_v")
+"""The sections a configuration must give (see the module notes)."""
+
+MAX_WAVE_COMPONENTS = 200_000
+"""Most harmonics (``n_frequencies * n_directions``) a sea state may sum (the paper's 64 x 24
+is 1536): each costs ~80 bytes per array set and its share of every height evaluated."""
+MAX_REFERENCE_FRAMES = 1024
+"""Most noisy frames averaged into a simulated flat-water reference (each is simulated)."""
+ROTATION_TOLERANCE = 1e-3
+"""Largest |R^T R - I| entry accepted for a device's rotation (Table 1's rounding is 5e-5)."""
+
+
 def config_from_dict(data: dict[str, Any]) -> SystemConfig:
     """Build and check a :class:`SystemConfig` from nested dicts."""
     unknown = sorted(set(data) - set(_SECTIONS))
     if unknown:
         raise WaiInputError(f"config: unknown section [{unknown[0]}]")
-    for name in ("projector", "camera_s", "camera_v"):
+    for name in DEVICE_SECTIONS:
         if name not in data:
-            raise WaiInputError(f"config: missing section [{name}]")
+            raise WaiInputError(
+                f"config: missing section [{name}] (the devices [projector], [camera_s] and "
+                "[camera_v] have no default; every other section defaults)"
+            )
     cfg = SystemConfig(**{k: parse_section(_SECTIONS[k], v, k) for k, v in data.items()})
     validate(cfg)
     return cfg
@@ -358,6 +376,13 @@ def validate(cfg: SystemConfig) -> None:
     wv = cfg.waves
     if wv.wind_speed_m_s < 0 or wv.n_frequencies < 1 or wv.n_directions < 1:
         raise WaiInputError("config: [waves] needs wind_speed >= 0 and at least one component")
+    components = wv.n_frequencies * wv.n_directions
+    if components > MAX_WAVE_COMPONENTS:
+        raise WaiInputError(
+            f"config: [waves] n_frequencies x n_directions = {components:.3g} harmonics would "
+            f"need about {components * 80 / 2**30:.3g} GiB before any height is evaluated; at "
+            f"most {MAX_WAVE_COMPONENTS} are accepted"
+        )
     if not 0 < wv.omega_min_rel < wv.omega_max_rel:
         raise WaiInputError("config: [waves] needs 0 < omega_min_rel < omega_max_rel")
     if wv.seed < 0:
@@ -374,6 +399,7 @@ def validate(cfg: SystemConfig) -> None:
         dev: DeviceConfig = getattr(cfg, name)
         if min(dev.width_px, dev.height_px) < 2 or dev.focal_mm <= 0 or dev.sensor_width_mm <= 0:
             raise WaiInputError(f"config: [{name}] needs positive size, focal length and sensor")
+        _check_rotation(dev.rotation, name)
         try:
             dev.camera()
         except (ValueError, np.linalg.LinAlgError) as exc:
@@ -387,6 +413,20 @@ def validate(cfg: SystemConfig) -> None:
         )
     _validate_degradations(cfg.sensor, cfg.motion)
     _validate_light(cfg.water_optics, cfg.ambient)
+
+
+def _check_rotation(rotation: Any, name: str) -> None:
+    """A device's rotation must be one: 3 x 3, orthonormal to :data:`ROTATION_TOLERANCE`,
+    determinant +1 (a zero or scaled matrix is refused, not re-orthonormalised)."""
+    r = np.asarray(rotation, dtype=float)
+    if r.shape != (3, 3) or not np.all(np.isfinite(r)):
+        raise WaiInputError(f"config: [{name}].rotation must be a finite 3 x 3 matrix")
+    error = float(np.abs(r.T @ r - np.eye(3)).max())
+    if error > ROTATION_TOLERANCE or np.linalg.det(r) <= 0:
+        raise WaiInputError(
+            f"config: [{name}].rotation is not a rotation (|R^T R - I| up to {error:.3g}, "
+            f"det {np.linalg.det(r):.3g}; it must be orthonormal with det +1)"
+        )
 
 
 def _validate_degradations(s: SensorConfig, m: MotionConfig) -> None:
@@ -404,6 +444,12 @@ def _validate_degradations(s: SensorConfig, m: MotionConfig) -> None:
     for key, value in non_negative.items():
         if value < 0:
             raise WaiInputError(f"config: [sensor].{key} must be >= 0, not {value:g}")
+    if s.reference_frames > MAX_REFERENCE_FRAMES:
+        raise WaiInputError(
+            f"config: [sensor].reference_frames = {s.reference_frames}: each frame is simulated, "
+            f"so at most {MAX_REFERENCE_FRAMES} are accepted (the mean of N frames has 1/sqrt(N) "
+            "of one frame's noise)"
+        )
     if not 8 <= s.bits <= 16:
         raise WaiInputError(f"config: [sensor].bits must be 8 .. 16, not {s.bits}")
     if s.dark_level_dn >= 2**s.bits - 1:

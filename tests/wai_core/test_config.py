@@ -51,3 +51,32 @@ def test_missing_and_corrupt_files(tmp_path):
     bad.write_text("[water\nh0 = ")
     with pytest.raises(WaiInputError, match="TOML"):
         load_config(bad)
+
+
+@pytest.mark.parametrize(
+    "section, key, value, needle",
+    [
+        ("waves", "n_frequencies", 10**9, "harmonics would need about"),
+        ("sensor", "reference_frames", 10**6, "reference_frames = 1000000"),
+        ("camera_v", "rotation", [[0.0] * 3] * 3, r"\[camera_v\]\.rotation is not a rotation"),
+        ("camera_s", "rotation", [[2.0, 0, 0], [0, 2.0, 0], [0, 0, 2.0]], "not a rotation"),
+        # A reflection is orthonormal but not a rotation (det -1).
+        ("projector", "rotation", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]], "det -1"),
+    ],
+)
+def test_values_that_cannot_be_right_or_cannot_fit_are_refused(paper_cfg, section, key, value,
+                                                                needle):
+    data = paper_cfg.to_dict()
+    data[section][key] = value
+    with pytest.raises(WaiInputError, match=needle):
+        config_from_dict(data)
+
+
+def test_only_the_devices_are_required_and_the_message_says_so(paper_cfg):
+    data = paper_cfg.to_dict()
+    for optional in ("water", "render", "waves", "pattern", "diffuser", "object"):
+        del data[optional]
+    assert config_from_dict(data).water == type(paper_cfg.water)()
+    del data["camera_s"]
+    with pytest.raises(WaiInputError, match=r"missing section \[camera_s\].*every other"):
+        config_from_dict(data)
