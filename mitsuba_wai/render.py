@@ -480,7 +480,7 @@ def render_folder(
     from tqdm import tqdm
 
     steps = ["surface", "load scenes", "render wavy and flat", "write"]
-    bar = tqdm(steps, desc="render", disable=not progress, unit="step", leave=False)
+    bar = tqdm(total=len(steps), desc="render", disable=not progress, unit="step", leave=False)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -489,9 +489,13 @@ def render_folder(
         raise_if_interrupted()
         timings[name] = time.perf_counter() - t0
         t0 = time.perf_counter()
+        # The label names the step now running (the last one: what just finished).
+        following = steps.index(name) + 1
+        bar.set_postfix_str(steps[following] if following < len(steps) else "done",
+                            refresh=False)
         bar.update(1)
 
-    bar.set_postfix_str("surface")
+    bar.set_postfix_str(steps[0])
     label = surface_label or ("[waves]" if heightfield is None else "heightfield")
     with labelled(label):
         if heightfield is None:

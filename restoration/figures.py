@@ -22,6 +22,7 @@ __all__ = [
     "confidence_figure",
     "corner_scatter_figure",
     "error_map_figure",
+    "mark_not_restored",
     "plt",
     "profile_figure",
     "save_figure",
@@ -79,8 +80,9 @@ def profile_figure(
 
 
 def corner_scatter_figure(points_px: dict[str, NDArray], stds: dict[str, float], path) -> None:
-    """Checkerboard corners in the truth, distorted and restored views (the paper's Fig. 15d)."""
-    fig, ax = plt.subplots(figsize=(7, 5.5))
+    """Checkerboard corners in the truth, distorted and restored views (the paper's Fig. 15d);
+    the legend sits below the axes, clear of the corners."""
+    fig, ax = plt.subplots(figsize=(7, 6.2))
     style = {"truth": ("r", "o"), "distorted": ("m", "x"), "restored": ("b", "+")}
     for name, pts in points_px.items():
         color, marker = style[name]
@@ -90,16 +92,46 @@ def corner_scatter_figure(points_px: dict[str, NDArray], stds: dict[str, float],
     ax.set_aspect("equal")
     ax.set_xlabel("column (px)")
     ax.set_ylabel("row (px)")
-    ax.legend(loc="best")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3, fontsize=8,
+              frameon=False)
     ax.set_title("Checkerboard corners")
     save_figure(fig, path)
 
 
+NOT_RESTORED_GREY = (150, 110)
+"""The two 8-bit greys of the stripes that mark pixels not restored: light and dark, both
+distinct from the black background and from the object's own levels."""
+
+
+def mark_not_restored(rgb8: NDArray, valid: NDArray, period_px: int = 8) -> NDArray:
+    """``rgb8`` with the pixels outside ``valid`` hatched in two greys (diagonal stripes).
+
+    Parameters
+    ----------
+    rgb8 : (H, W, 3) ndarray of uint8
+        A displayed image.
+    valid : (H, W) ndarray of bool
+        Pixels restored (kept as they are).
+    period_px : int
+        The stripes' period, pixels.
+
+    Returns
+    -------
+    (H, W, 3) ndarray of uint8
+    """
+    h, w = valid.shape
+    rows, cols = np.ogrid[:h, :w]
+    light, dark = NOT_RESTORED_GREY
+    stripes = np.where((rows + cols) % period_px < period_px // 2, light, dark).astype(np.uint8)
+    return np.where(valid[..., None], rgb8, stripes[..., None])
+
+
 def views_figure(
-    panels: list[tuple[str, NDArray | None]], mask: NDArray, path: str | Path
+    panels: list[tuple[str, NDArray | None]], mask: NDArray, path: str | Path,
+    object_fraction: float | None = None,
 ) -> None:
     """Views side by side, the restored one shown only where it was restored (hatched grey
-    elsewhere), and the mask of restored pixels last.
+    elsewhere, :func:`mark_not_restored`), and the mask of restored pixels last.
 
     Parameters
     ----------
@@ -109,20 +141,36 @@ def views_figure(
     mask : (H, W) ndarray of bool
         Pixels restored.
     path : str or Path
+    object_fraction : float, optional
+        Of the object's pixels in the flat-water view (the truth), the fraction restored: the
+        pixels the scores are computed on (``Scores.view_restored_fraction``); shown beside
+        the mask's share of the whole image.
     """
     shown = [(t, im) for t, im in panels if im is not None]
-    fig, axes = plt.subplots(1, len(shown) + 1, figsize=(4.6 * (len(shown) + 1), 4))
+    aspect = mask.shape[0] / mask.shape[1]
+    fig, axes = plt.subplots(1, len(shown) + 1,
+                             figsize=(4.6 * (len(shown) + 1), 4.6 * aspect + 0.9))
     for ax, (title, img) in zip(axes, shown, strict=False):
         rgb = to_srgb8(img, 1.0)
         if title.startswith("restored"):
-            grey = np.full_like(rgb, 96)
-            rgb = np.where(mask[..., None], rgb, grey)
+            rgb = mark_not_restored(rgb, mask)
         ax.imshow(rgb)
         ax.set_title(title, fontsize=9)
         ax.set_axis_off()
-    axes[-1].imshow(mask, cmap="gray", vmin=0, vmax=1)
-    axes[-1].set_title(f"restored pixels ({mask.mean():.0%}); black: not restored", fontsize=9)
+    white = np.full(mask.shape + (3,), 255, np.uint8)
+    axes[-1].imshow(mark_not_restored(white, mask))
+    share = f"restored pixels: {mask.mean():.0%} of the image"
+    if object_fraction is not None:
+        share += f",\n{object_fraction:.0%} of the object's pixels (the scored ones)"
+    axes[-1].set_title(share, fontsize=9)
     axes[-1].set_axis_off()
+    fig.canvas.draw()  # the images' drawn boxes (equal aspect) place the note just below them
+    bottom = min(ax.get_window_extent().y0 for ax in axes) / fig.bbox.height
+    fig.text(0.5, bottom - 0.02, "hatched grey: not restored (no estimated surface, or no ray "
+             "to the object: metrics.json's view_status_counts); white in the last panel: "
+             "restored.\n"
+             "The scores compare the views on the restored pixels where the flat-water view "
+             "sees the object.", ha="center", va="top", fontsize=9)
     save_figure(fig, path)
 
 

@@ -116,6 +116,7 @@ def restore_folder(
     folder = Path(folder)
     meth = as_method(method, options)
     bar = tqdm(total=3, desc="restore", disable=not progress, leave=False, unit="step")
+    bar.set_postfix_str("surface and view")
     record = read_scene_record(folder)
     target = (Path(out) if out is not None else folder / "restore") if write else None
     if target is not None:  # refused before any work
@@ -125,14 +126,17 @@ def restore_folder(
     view_flat = load_view_flat(cal, folder)
     result = meth(images, cal, track)
     check_inputs(folder, cal, images, result, view_flat)
+    bar.set_postfix_str("score" if scored else "score (skipped)", refresh=False)
     bar.update(1)
     distorted = images["view"] / cal.view_gain
     truth = Truth.from_folder(folder, cal) if scored and result.restored else None
     scores = None if truth is None else score(result, distorted, cal, truth)
+    bar.set_postfix_str("write" if write else "write (skipped)", refresh=False)
     bar.update(1)
     metrics = folder_metrics(meth, result, scores, scored, record.get("seed"))
     if target is not None:
         write_outputs(target, cal, images, result, scores, truth, metrics)
+    bar.set_postfix_str("done", refresh=False)
     bar.update(1)
     bar.close()
     return FolderRestore(folder, target, cal, images, result, truth, scores, metrics)
@@ -261,7 +265,8 @@ def _write_figures(
         return
     est = result.surface.heightfield
     figures.views_figure(_view_panels(cal, images, result, scores, truth), result.view.valid,
-                         tmp / "distorted_vs_restored.png")
+                         tmp / "distorted_vs_restored.png",
+                         None if scores is None else scores.view_restored_fraction)
     if result.consistency is not None:
         check = result.consistency
         figures.confidence_figure(est, check.residual_map_px, check.threshold_px,
@@ -334,8 +339,9 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
         lines.append(
             f"SSIM {_num(d['ssim'], '.4f')} -> {_num(r['ssim'], '.4f')}, "
             f"PSNR {_num(d['psnr_db'], '.2f')} -> {_num(r['psnr_db'], '.2f')} dB, "
-            f"MSE {_num(d['mse'], '.4f')} -> {_num(r['mse'], '.4f')} on "
-            f"{m['view_restored_fraction']:.0%} of the view"
+            f"MSE {_num(d['mse'], '.4f')} -> {_num(r['mse'], '.4f')} on the restored "
+            f"{m['view_restored_fraction']:.0%} of the object's pixels (those the flat-water "
+            "view sees)"
         )
     lines.append(anchor_line(m.get("anchor", {})))
     lines.append(f"end to end {m['timings_ms']['end_to_end']:.1f} ms")

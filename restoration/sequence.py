@@ -135,8 +135,9 @@ def restore_sequence(
     # Each frame's restore/ is written to a temporary folder and all are renamed into place
     # together at the end: an interrupted run leaves every old output as it was.
     with contextlib.ExitStack() as stack:
-        for k, frame_dir in enumerate(tqdm(seq.frame_dirs, desc="frames", disable=not progress,
-                                           leave=False)):
+        bar = tqdm(seq.frame_dirs, desc="restore frames", disable=not progress, leave=False,
+                   unit="frame")
+        for k, frame_dir in enumerate(bar):
             images = cal.load_images(frame_dir)
             result = meth(images, cal, track)
             check_inputs(frame_dir, cal, images, result,
@@ -159,6 +160,8 @@ def restore_sequence(
             restored.append(image.astype(np.float32))
             masks.append(valid)
             results.append(result)
+            bar.set_postfix_str(f"frame {k}: {result.status}", refresh=False)
+        bar.close()
         _flag_moving_views(results, rows, restored, masks, distorted, staged)
         summary = _summary(seq, rows)
         if write:
@@ -168,8 +171,8 @@ def restore_sequence(
             _temporal_figure(rows, tmp / "temporal.png")
             if movie:
                 write_movie(tmp / "restored", restored, seq.fps, masks)
-                sides = [np.concatenate([d, r], axis=1) for d, r in zip(distorted, restored,
-                                                                        strict=True)]
+                sides = [side_by_side_frame(d, r, m)
+                         for d, r, m in zip(distorted, restored, masks, strict=True)]
                 write_movie(tmp / "side_by_side", sides, seq.fps)
     return SequenceRestore(seq, rows, summary, out if write else None)
 
@@ -293,11 +296,59 @@ def _temporal_figure(rows: list[dict[str, Any]], path: Path) -> None:
     save_figure(fig, path)
 
 
+def side_by_side_frame(distorted: NDArray, restored: NDArray, valid: NDArray) -> NDArray:
+    """One frame of ``side_by_side.mp4``: the distorted and the restored view, each under its
+    label, the pixels not restored hatched grey, and a legend line saying so.
+
+    Parameters
+    ----------
+    distorted, restored : (H, W, 3) ndarray
+        Linear views on the object's radiance scale (1 = white).
+    valid : (H, W) ndarray of bool
+        The restored pixels.
+
+    Returns
+    -------
+    (H', W', 3) ndarray of uint8
+        sRGB, taller than the views by a label strip above and a legend strip below.
+    """
+    import cv2
+
+    from restoration.figures import mark_not_restored
+
+    left = to_srgb8(distorted, 1.0)
+    right = mark_not_restored(to_srgb8(restored, 1.0), valid)
+    h, w = left.shape[:2]
+    scale = max(0.4, w / 800)  # text in proportion to the view
+    strip = int(round(28 * scale)) & ~1  # even heights keep the MPEG-4 encoder happy
+    thick = max(1, int(round(scale)))
+    font = cv2.FONT_HERSHEY_SIMPLEX
+
+    def labelled(img: NDArray, text: str) -> NDArray:
+        top = np.full((strip, w, 3), 255, np.uint8)
+        cv2.putText(top, text, (int(8 * scale), int(strip * 0.72)), font, 0.7 * scale,
+                    (0, 0, 0), thick, cv2.LINE_AA)
+        return np.concatenate([top, img], axis=0)
+
+    body = np.concatenate([labelled(left, "distorted"), labelled(right, "restored")], axis=1)
+    legend = np.full((strip, 2 * w, 3), 255, np.uint8)
+    swatch = mark_not_restored(legend[: strip - 8, : strip * 2], np.zeros((strip - 8,
+                                                                          strip * 2), bool))
+    x0 = int(8 * scale)
+    legend[4: strip - 4, x0: x0 + strip * 2] = swatch
+    cv2.putText(legend, "hatched grey: not restored; black: no object seen",
+                (x0 + strip * 2 + x0, int(strip * 0.72)), font, 0.55 * scale, (0, 0, 0), thick,
+                cv2.LINE_AA)
+    return np.concatenate([body, legend], axis=0)
+
+
 def write_movie(
     stem: Path, frames: list[NDArray], fps: float, masks: list[NDArray] | None = None
 ) -> Path:
-    """Write linear frames (H, W, 3) as ``stem.mp4`` (OpenCV's MPEG-4 writer), or
-    ``stem.gif`` where no MP4 encoder is present; pixels outside ``masks`` are grey.
+    """Write frames (H, W, 3) as ``stem.mp4`` (OpenCV's MPEG-4 writer), or ``stem.gif`` where
+    no MP4 encoder is present: linear frames are tone-mapped, 8-bit ones (already drawn, as by
+    :func:`side_by_side_frame`) written as they are; pixels outside ``masks`` are hatched
+    grey (:func:`restoration.figures.mark_not_restored`).
 
     Returns
     -------
@@ -306,11 +357,13 @@ def write_movie(
     """
     import cv2
 
+    from restoration.figures import mark_not_restored
+
     frames8 = []
     for k, f in enumerate(frames):
-        img = to_srgb8(f, 1.0)
+        img = f if f.dtype == np.uint8 else to_srgb8(f, 1.0)
         if masks is not None:
-            img = np.where(masks[k][..., None], img, np.uint8(96))
+            img = mark_not_restored(img, masks[k])
         frames8.append(img)
     h, w = frames8[0].shape[:2]
     path = stem.with_suffix(".mp4")

@@ -22,16 +22,20 @@ from wai_core.io import to_srgb8
 
 def surface_figure(surface: Heightfield, h0_mm: float, title: str, path: str | Path) -> None:
     """3-D view and height map of a surface (the paper's Fig. 10), heights relative to h0."""
-    fig = plt.figure(figsize=(11, 4.2))
-    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    fig = plt.figure(figsize=(12, 4.8))
+    # The 3-D axes get the wider share and padded labels: in a tight layout their z label
+    # otherwise lands on the height map's y label.
+    grid = fig.add_gridspec(1, 2, width_ratios=(1.15, 1.0), wspace=0.3)
+    ax = fig.add_subplot(grid[0, 0], projection="3d")
     step = max(1, surface.x.size // 120)
     xx, yy = np.meshgrid(surface.x[::step], surface.y[::step])
     eta = surface.z[::step, ::step] - h0_mm
     ax.plot_surface(xx, yy, eta, cmap="viridis", linewidth=0, antialiased=True)
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_zlabel("η (mm)")
-    ax2 = fig.add_subplot(1, 2, 2)
+    ax.set_xlabel("x (mm)", labelpad=8)
+    ax.set_ylabel("y (mm)", labelpad=8)
+    ax.set_zlabel("η (mm)", labelpad=4)
+    ax.set_box_aspect(None, zoom=0.85)
+    ax2 = fig.add_subplot(grid[0, 1])
     im = ax2.pcolormesh(surface.x, surface.y, surface.z - h0_mm, cmap="viridis", shading="auto")
     ax2.set_aspect("equal")
     ax2.set_xlabel("x (mm)")
@@ -44,8 +48,18 @@ def surface_figure(surface: Heightfield, h0_mm: float, title: str, path: str | P
 def deflection_figure(curves: dict[str, tuple[NDArray, NDArray]], path: str | Path) -> None:
     """Deflection ψ of the reflected ray against the surface inclination θ (the paper's Fig. 8)."""
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    for label, (theta_deg, psi_deg) in curves.items():
-        ax.plot(theta_deg, psi_deg, label=label)
+    # Curves can coincide (both meridional ones have slope 2): the first drawn is broad and
+    # pale, each later one narrower, dashed and marked, so every curve stays visible.
+    styles = [
+        {"lw": 5.0, "alpha": 0.45, "ls": "-"},
+        {"lw": 2.0, "ls": "--", "marker": "o", "markevery": 20, "ms": 4},
+        {"lw": 1.5, "ls": "-.", "marker": "s", "markevery": (10, 20), "ms": 4},
+        {"lw": 1.2, "ls": ":", "marker": "^", "markevery": (5, 20), "ms": 4},
+    ]
+    meridional = sorted(curves, key=lambda label: "meridional" not in label)
+    for k, label in enumerate(meridional):
+        theta_deg, psi_deg = curves[label]
+        ax.plot(theta_deg, psi_deg, label=label, zorder=2 + k, **styles[k % len(styles)])
     ax.set_xlabel("surface inclination θ (deg)")
     ax.set_ylabel("deflection ψ of the reflected ray (deg)")
     ax.legend(fontsize=8)

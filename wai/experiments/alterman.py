@@ -156,7 +156,7 @@ def structured_light_rows(
     from restoration import RestoreOptions, restore_folder
 
     rows, restored = [], {}
-    for seed in tqdm(seeds, desc="structured light", leave=False):
+    for seed in tqdm(seeds, desc="alterman: structured light, per seed", leave=True):
         frame = out / f"seed{seed:03d}" / "paper"
         t0 = time.perf_counter()
         render_folder(system.base.replace("waves", seed=seed), frame, progress=False)
@@ -185,7 +185,7 @@ def sun_rows(
     from restoration import Alterman, RestoreOptions, restore_folder
 
     rows = []
-    for theta in tqdm(angles, desc="sun angles", leave=False):
+    for theta in tqdm(angles, desc="alterman: sun angles", leave=True):
         # One loaded scene per angle; every seed's surface has the same grid.
         first = at(system, seeds[0], theta)
         renderer = SunRenderer(first, alterman_surface(first, None))

@@ -133,7 +133,7 @@ def run_seeds(cfg: SystemConfig, seeds: list[int], out: Path) -> list[SeedRun]:
     textures = {n: object_texture(cfg.replace("object", texture=n).object) for n in DATASETS[1:]}
     renderers = {n: FrameRenderer(cfg, grid, texture=t) for n, t in textures.items()}
     runs = []
-    for seed in tqdm(seeds, desc="seeds", leave=False):
+    for seed in tqdm(seeds, desc="paper: seeds rendered, restored, scored", leave=True):
         frame = out / f"seed{seed:03d}"
         render_folder(cfg.replace("waves", seed=seed), frame, progress=False)
         done = restore_folder(frame)
@@ -165,7 +165,7 @@ def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> l
     flat_img = renderer.render(flat_like(base, h0), render_seed(c), which=("pattern",))
     reference = prepare_reference(flat_img["pattern"], c)
     rows = []
-    for a in tqdm(factors, desc="amplitude", leave=False):
+    for a in tqdm(factors, desc="paper: amplitude sweep", leave=True):
         surface = Heightfield(base.x, base.y, h0 + a * (base.z - h0))
         img = renderer.render(surface, render_seed(c), which=("pattern",))["pattern"]
         try:
@@ -270,7 +270,8 @@ def report_markdown(
         f"{_ms(col('corner_std_distorted_px'), 3)} |",
         f"| corner STD, restored (px) | {PAPER['corner_std_restored_px']} | "
         f"{_ms(col('corner_std_restored_px'), 3)} |",
-        f"| fraction of the view restored | — | {_ms(col('view_restored_fraction'), 3)} |",
+        "| fraction of the object's pixels (flat-water view) restored | — | "
+        f"{_ms(col('view_restored_fraction'), 3)} |",
         "",
         "The distorted corner STD depends on the sea state the paper did not fully specify "
         "(band of the spectrum, patch); ours is for the band [0.5, 2.5] ω_p (scenes/paper.toml).",

@@ -84,7 +84,7 @@ def agreement_table(cfg: SystemConfig, quick: bool) -> list[dict[str, Any]]:
     default_grid = wave_surface(cfg)
     renderers: dict[tuple[int, ...], FrameRenderer] = {}
     rows = []
-    for wind, seed in tqdm(_cases(quick), desc="validate", leave=False):
+    for wind, seed in tqdm(_cases(quick), desc="validate: model against render", leave=True):
         c = cfg.replace("waves", wind_speed_m_s=wind, seed=seed)
         surface = wave_surface(c) if wind > 0 else None
         grid = default_grid if surface is None else surface
@@ -118,7 +118,7 @@ def spp_sweep(cfg: SystemConfig, spps: list[int], runs: int = 2) -> list[dict[st
         c = cfg.replace("render", sampling=sampling)
         renderer = FrameRenderer(c, surface, systems=("pattern",))
         renderer.render(surface, 0, ("pattern",), spp=1)  # compile the kernels before timing
-        for spp in tqdm(spps, desc=f"spp ({sampling})", leave=False):
+        for spp in tqdm(spps, desc=f"validate: pattern spp ({sampling})", leave=True):
             times, medians, p95s = [], [], []
             for run in range(runs):
                 t0 = time.perf_counter()
@@ -158,7 +158,7 @@ def view_spp_sweep(
                 [renderer.render(surface, 500 + k, ("view",), spp=reference_spp)["view"]
                  for k in range(2)], axis=0)
         renderer.render(surface, 0, ("view",), spp=1)
-        for spp in tqdm(spps, desc=f"view spp ({sampling})", leave=False):
+        for spp in tqdm(spps, desc=f"validate: view spp ({sampling})", leave=True):
             times, errors = [], []
             for run in range(runs):
                 t0 = time.perf_counter()
