@@ -24,14 +24,21 @@ class _Parser(argparse.ArgumentParser):
 
 
 class _Help(argparse.HelpFormatter):
-    """Help that shows each option's default (where it has a value to show)."""
+    """Help that shows each option's default (where it has a value to show: 0 is one, an
+    unset flag is not)."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        shown = action.default not in (None, False, argparse.SUPPRESS) and action.option_strings
-        if shown and "%(default)" not in text and "(default" not in text:
+        default = action.default
+        unset = default is None or default is False or default is argparse.SUPPRESS
+        if (not unset and action.option_strings and "%(default)" not in text
+                and "default" not in text):
             text += " (default: %(default)s)"
         return text
+
+
+class _DescribedHelp(_Help, argparse.RawDescriptionHelpFormatter):
+    """:class:`_Help` that keeps a description's paragraphs as written."""
 
 
 def _version() -> str:
@@ -94,26 +101,31 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def _add_experiment(sub: argparse._SubParsersAction) -> None:
+    """``wai experiment NAME``: one subcommand per experiment, each with only its own options
+    (:data:`wai.experiments.EXPERIMENTS`)."""
+    from wai.experiments import EXPERIMENTS, describe
+
     p = sub.add_parser(
         "experiment", formatter_class=_Help,
         help="experiments that write reports, tables and charts",
+        description="Experiments that write reports, tables and charts; 'wai experiment NAME "
+        "--help' says what NAME writes and how long it takes.",
     )
-    p.add_argument(
-        "name",
-        choices=["validate", "paper", "alterman", "tradeoffs", "stability", "seawater"],
-        help="which experiment (tradeoffs and stability are sweeps on Dask; seawater: the "
-        "detected spot SNR of a blue-green and a red pattern after the same water)",
-    )
-    p.add_argument("--config", default="paper", help=SCENE_HELP)
-    p.add_argument("--out", type=Path, help="output folder (default renders/<name>)")
-    p.add_argument(
-        "--seeds", type=int, default=None, help="seeds 0..K-1 (default: paper 10, alterman 3)"
-    )
-    p.add_argument("--quick", action="store_true", help="a small version (for CI)")
-    from wai.sweep import add_sweep_arguments
+    names = p.add_subparsers(dest="name", required=True, metavar="NAME")
+    for name, exp in EXPERIMENTS.items():
+        q = names.add_parser(name, help=exp.summary, description=describe(name),
+                             formatter_class=_DescribedHelp)
+        q.add_argument("--config", default="paper", help=SCENE_HELP)
+        q.add_argument("--out", type=Path, default=Path("renders") / name, help="output folder")
+        if exp.seeds is not None:
+            q.add_argument("--seeds", type=int, default=exp.seeds, help="seeds 0..K-1")
+        q.add_argument("--quick", action="store_true",
+                       help=f"a small version, for CI and a first look: {exp.quick}")
+        if exp.sweep:
+            from wai.sweep import add_sweep_arguments
 
-    add_sweep_arguments(p)
-    p.set_defaults(func=_cmd_experiment)
+            add_sweep_arguments(q)
+        q.set_defaults(func=_cmd_experiment)
 
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:
@@ -131,14 +143,32 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
         "render", help="render both optical systems for one sea state (or a sequence)",
         formatter_class=_Help,
     )
+    from wai_core.config import load_config
+    from wai_core.scenes import scene_path
+
+    # Options left out keep the scene's values; the help quotes the packaged paper scene's.
+    paper = load_config(scene_path("paper"))
     p.add_argument("config", help=SCENE_HELP)
     p.add_argument("--out", type=Path, default=Path("renders/latest"), help="output folder")
-    p.add_argument("--wind", type=float, help="wind speed U at 19.5 m, m/s")
-    p.add_argument("--time", type=float, help="time t, s")
-    p.add_argument("--seed", type=int, help="random seed of the wave phases and the renders")
-    p.add_argument("--heightfield", type=Path, help="surface file (.npz with x, y, z in mm)")
-    p.add_argument("--surface", choices=["dielectric", "mirror"], help="water surface material")
-    p.add_argument("--spp", type=int, help="samples per pixel of both renders")
+    p.add_argument("--wind", type=float,
+                   help="wind speed U at 19.5 m, m/s (default: the scene's [waves] "
+                   f"wind_speed_m_s; paper: {paper.waves.wind_speed_m_s:g})")
+    p.add_argument("--time", type=float,
+                   help="time t, s (default: the scene's [waves] time_s; paper: "
+                   f"{paper.waves.time_s:g})")
+    p.add_argument("--seed", type=int,
+                   help="random seed of the wave phases and the renders (default: the scene's "
+                   f"[waves] seed; paper: {paper.waves.seed})")
+    p.add_argument("--heightfield", type=Path,
+                   help="surface file (.npz with x, y, z in mm; default: none, the scene's "
+                   "[waves] model makes the surface)")
+    p.add_argument("--surface", choices=["dielectric", "mirror"],
+                   help="water surface material (default: the scene's [water] surface; paper: "
+                   f"{paper.water.surface})")
+    p.add_argument("--spp", type=int,
+                   help="samples per pixel of both renders (default: the scene's [render] "
+                   f"spp_pattern and spp_view; paper: {paper.render.spp_pattern} and "
+                   f"{paper.render.spp_view})")
     p.add_argument(
         "--variant", default="auto", help="Mitsuba variant: auto, llvm_ad_rgb or cuda_ad_rgb"
     )
@@ -155,12 +185,12 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fps", type=float, default=30.0, help="frames per second of a sequence")
     p.add_argument(
         "--workers", type=int, default=0,
-        help="sequence: Dask worker processes rendering frames (0: here, in order)",
+        help="sequence: Dask worker processes rendering frames (0: here, in order; default: 0)",
     )
     p.add_argument(
         "--scheduler", metavar="ADDRESS",
         help="sequence: a running Dask scheduler (tcp://host:8786) whose workers share --out's "
-        "file system",
+        "file system (default: none; --workers decides)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_render)
@@ -231,10 +261,14 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", type=Path, help="all: renders/bench (default); accuracy: renders/bench_accuracy"
     )
-    p.add_argument("--wind", type=float, help="accuracy: wind speed U, m/s")
-    p.add_argument("--surface", choices=["dielectric", "mirror"], help="accuracy: water surface")
-    p.add_argument("--camera", help="accuracy: both cameras' pixels, WIDTHxHEIGHT (same sensors)")
-    p.add_argument("--spp", type=int, help="accuracy: samples per pixel of both renders")
+    scenes = " (default: the scene's)"
+    p.add_argument("--wind", type=float, help="accuracy: wind speed U, m/s" + scenes)
+    p.add_argument("--surface", choices=["dielectric", "mirror"],
+                   help="accuracy: water surface" + scenes)
+    p.add_argument("--camera",
+                   help="accuracy: both cameras' pixels, WIDTHxHEIGHT (same sensors)" + scenes)
+    p.add_argument("--spp", type=int,
+                   help="accuracy: samples per pixel of both renders" + scenes)
     p.add_argument(
         "--phi", type=float, default=0.8,
         help="surfaces: scale each surface to at most this fraction of eq. 35's slope bound",

@@ -124,3 +124,55 @@ def test_side_by_side_frame_labels_halves_and_marks_unrestored_pixels():
     assert np.all(right[:, : w // 2] == 0)  # restored black stays black
     assert set(np.unique(right[:, w // 2:])) <= set(NOT_RESTORED_GREY)  # not black
     assert (frame[:strip] < 128).any() and (frame[strip + h:] < 128).any()  # text drawn
+
+
+def _subparsers(parser):
+    """Every (name, parser) below ``parser``, depth first."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield name, sub
+                yield from ((f"{name} {n}", p) for n, p in _subparsers(sub))
+
+
+def test_every_option_that_takes_a_value_says_its_default():
+    from wai.cli import build_parser
+
+    commands = dict(_subparsers(build_parser()))
+    assert {"render", "restore", "experiment paper", "experiment tradeoffs"} <= set(commands)
+    missing = []
+    for name, parser in commands.items():
+        formatter = parser._get_formatter()
+        for action in parser._actions:
+            if not action.option_strings or action.nargs == 0 or action.dest == "help":
+                continue
+            text = formatter._get_help_string(action) or ""
+            if "default" not in text:
+                missing.append(f"{name} {action.option_strings[0]}")
+    assert not missing
+
+
+def test_each_experiment_offers_only_its_own_options():
+    from wai.cli import build_parser, main
+    from wai.experiments import EXPERIMENTS
+
+    commands = dict(_subparsers(build_parser()))
+    for name, exp in EXPERIMENTS.items():
+        options = {o for a in commands[f"experiment {name}"]._actions for o in a.option_strings}
+        assert ("--workers" in options) == ("--scheduler" in options) == exp.sweep, name
+        assert ("--seeds" in options) == (exp.seeds is not None), name
+        text = commands[f"experiment {name}"].format_help()
+        assert "Writes" in text and "--quick" in text and "Takes" in text, name
+    assert "--workers" not in commands["experiment paper"].format_help()
+    assert main(["experiment", "paper", "--workers", "2"]) == 2
+
+
+def test_experiment_offers_seeds_exactly_when_its_code_reads_them():
+    from tests.conftest import ROOT
+    from wai.experiments import EXPERIMENTS
+
+    for name, exp in EXPERIMENTS.items():
+        source = (ROOT / "wai" / "experiments" / f"{name}.py").read_text()
+        assert ("args.seeds" in source) == (exp.seeds is not None), name

@@ -1,22 +1,162 @@
-"""Dispatch of ``wai experiment NAME``."""
+"""Dispatch of ``wai experiment NAME``, and what each experiment offers on its command line.
+
+:data:`EXPERIMENTS` holds every experiment's help (what it does, the files it writes, how long
+it takes) and which of the shared options apply to it; ``wai experiment NAME --help`` shows
+only those. It is plain data, so building the command line imports no experiment.
+"""
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
-# Seeds 0..K-1 when --seeds is not given: the sun sweep renders six sensors per seed.
-DEFAULT_SEEDS = {
-    "validate": 10, "paper": 10, "alterman": 3, "tradeoffs": 2, "stability": 2, "seawater": 1,
+
+@dataclass(frozen=True)
+class Experiment:
+    """One ``wai experiment NAME``: its help and its options.
+
+    Attributes
+    ----------
+    summary : str
+        One line, in ``wai experiment --help``.
+    description : str
+        ``wai experiment NAME --help``: what it does, what it writes, how long it takes.
+    quick : str
+        What ``--quick`` makes smaller.
+    seeds : int or None
+        The default of ``--seeds`` (seeds 0..K-1); None: the experiment has no ``--seeds``.
+    sweep : bool
+        A sweep on the Dask runner (:mod:`wai.sweep`): the runner's options apply.
+    """
+
+    summary: str
+    description: str
+    quick: str
+    seeds: int | None = None
+    sweep: bool = False
+
+
+# Durations: measured on a 2-core machine (CPU rendering, llvm_ad_rgb) with --quick; the full
+# runs are estimated from the quick ones by their number and size of frames.
+EXPERIMENTS: dict[str, Experiment] = {
+    "validate": Experiment(
+        summary="the geometric model against the physically based render; spp defaults",
+        description=(
+            "Spot centres of the pattern render against the geometric model's chief rays, and "
+            "the path-traced view against the geometric view (flat water and waves at several "
+            "wind speeds), then spot error and view noise against samples per pixel for both "
+            "[render].sampling choices.\n\n"
+            "Writes agreement.csv, spp_sweep.csv, view_spp_sweep.csv, spp_tradeoff.png and "
+            "validate.json into --out, and prints the tables.\n\n"
+            "Takes (2 cores): {validate}."
+        ),
+        quick="2 wave cases, spp 2/8/32 and 1/4, one run each",
+    ),
+    "paper": Experiment(
+        summary="the paper's figures and tables (Fig. 8-15, Table 2) from fresh runs",
+        description=(
+            "Renders, restores and scores the paper's configuration for each seed (the "
+            "checkerboard and two natural images), Fig. 8's deflection curves, eq. 35's "
+            "correspondence limit and a wave-amplitude sweep against it.\n\n"
+            "Writes report.md, report.html (figures inline), paper.json, fig8_deflection.png, "
+            "fig10_surface.png, fig11_features.png, fig11_surfaces.png, fig11f_profile.png, "
+            "fig12_error_map.png, fig15_views.png, fig15d_corners.png, sweep_amplitude.png and "
+            "one render folder per seed (seedNNN/, with restore/) into --out.\n\n"
+            "Takes (2 cores): {paper}."
+        ),
+        quick="2 seeds, 3 amplitude factors",
+        seeds=10,
+    ),
+    "alterman": Experiment(
+        summary="Alterman's sun sensor beside the structured light (Fig. 13-14, Table 2)",
+        description=(
+            "For each seed: the paper's system restored by the structured light (both "
+            "anchors), then the sun sensor rendered through the same surface at each sun "
+            "zenith angle and restored by Alterman's method, and one overcast frame.\n\n"
+            "Writes report.md, results.csv (every number), fig13_error_maps.png, "
+            "fig14_rmse_vs_sun.png and the render folders (seedNNN/) into --out.\n\n"
+            "Takes (2 cores): {alterman}."
+        ),
+        quick="seed 0 only, sun at 15 and 60 deg",
+        seeds=3,
+    ),
+    "tradeoffs": Experiment(
+        summary="speed against accuracy of each choice (spacing, integrator, spp, warp step)",
+        description=(
+            "A sweep: frames rendered and restored for each pattern spacing, integrator, "
+            "pattern spp, warp step and surface refinement, on every seed; each chart marks "
+            "the default, with min-max bars over seeds.\n\n"
+            "Writes tradeoffs.csv (one row per frame; a rerun skips the rows it holds), "
+            "tradeoffs.parquet, tradeoffs.json (the run record), tradeoffs.png, tradeoffs.md "
+            "and tradeoffs_series.json into --out, and prints the report.\n\n"
+            "Takes (2 cores): {tradeoffs}."
+        ),
+        quick="3 spacings, 2 spp, 3 warp steps, one timed restoration per variant",
+        seeds=2,
+        sweep=True,
+    ),
+    "stability": Experiment(
+        summary="where each method breaks (sea state, geometry, noise, blur, daylight, murk)",
+        description=(
+            "Sweeps over seeds: wind speed and wave height, pattern spacing, diffuser height, "
+            "sensor signal, exposure time, daylight, turbidity, the sun sensor's sun angle, "
+            "and the plain against the colour-coded pattern; each sweep's failure point "
+            "against eq. 35's bound.\n\n"
+            "Writes stability.csv (one row per frame; a rerun skips the rows it holds), "
+            "stability.parquet, stability.json (the run record), stability.png, coded.png, "
+            "confidence.png, stability.md and stability_summary.json into --out, and prints "
+            "the report.\n\n"
+            "Takes (2 cores): {stability}."
+        ),
+        quick="2-3 values per sweep, 2 sea states of the coded sweep",
+        seeds=2,
+        sweep=True,
+    ),
+    "seawater": Experiment(
+        summary="spot SNR of a blue-green and a red pattern after the same sea water",
+        description=(
+            "The seed paper's blue-green argument in numbers: camera s's flat-water pattern "
+            "in each colour, dimmed by 0, 1 and 5 m of sea water and read by one noisy "
+            "sensor; the detected spots' SNR.\n\n"
+            "Writes seawater_snr.json into --out and prints the table.\n\n"
+            "Takes (2 cores): {seawater}."
+        ),
+        quick="4 samples per pixel (the packaged paper scene's own count)",
+    ),
 }
+
+DURATIONS = {
+    "validate": "about 80 s with --quick; roughly 15 min without (3 times the cases, spp up "
+                "to 64 and a 256-spp reference, 3 runs each)",
+    "paper": "about 35 s with --quick; roughly 2 min without (10 seeds, 8 amplitudes)",
+    "alterman": "about 50 s with --quick; roughly 5 min without (3 seeds, 6 sun angles)",
+    "tradeoffs": "about 85 s with --quick --workers 0; roughly 5 min without --quick (28 "
+                 "frames, spp up to 32, 3 timed restorations per variant)",
+    "stability": "about 7 min with --quick; roughly 25 min without (144 frames against 44)",
+    "seawater": "about 15 s, with or without --quick on the paper scene (its own spp is 4)",
+}
+"""How long each experiment takes on a 2-core machine (filled into its description)."""
+
+DEFAULT_SEEDS = {name: e.seeds for name, e in EXPERIMENTS.items() if e.seeds is not None}
+"""Seeds 0..K-1 when ``--seeds`` is not given (the sun sweep renders six sensors per seed)."""
+
+
+def describe(name: str, width: int = 79) -> str:
+    """The ``--help`` description of experiment ``name``, with its duration, its paragraphs
+    wrapped to ``width`` columns."""
+    import textwrap
+
+    text = EXPERIMENTS[name].description.format(**DURATIONS)
+    return "\n\n".join(textwrap.fill(par, width) for par in text.split("\n\n"))
 
 
 def run_experiment(args: argparse.Namespace) -> None:
     """Run one experiment into ``args.out`` (default ``renders/<name>``) and print its tables."""
-    if args.out is None:
+    if getattr(args, "out", None) is None:
         args.out = Path("renders") / args.name
-    if args.seeds is None:
-        args.seeds = DEFAULT_SEEDS[args.name]
+    if getattr(args, "seeds", None) is None:
+        args.seeds = DEFAULT_SEEDS.get(args.name)
     if args.name == "validate":
         from wai.experiments.validate import print_validate, run_validate
 
