@@ -1,4 +1,5 @@
-"""The documentation's code runs: the ten-line script of docs/api.md and every example."""
+"""The documentation's code runs: the ten-line script of docs/api.md and every example (as the
+installed package runs them, ``python -m wai.examples NAME``)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 
 from tests.conftest import ROOT
 
-EXAMPLES = sorted((ROOT / "examples").glob("*.py"))
+EXAMPLES = sorted(p for p in (ROOT / "wai" / "examples").glob("*.py") if not p.stem.startswith("_"))
 
 
 def test_the_ten_line_script_runs_and_scores(capsys):
@@ -24,12 +25,25 @@ def test_the_ten_line_script_runs_and_scores(capsys):
     assert 0 < rmse < 0.5  # the paper's configuration restores to well under its 1.78 mm
 
 
+def test_every_example_is_listed_and_packaged():
+    import setuptools
+
+    from wai.examples import NAMES
+
+    assert sorted(NAMES) == [p.stem for p in EXAMPLES] and len(NAMES) >= 4
+    # pyproject's package search (what `pip install .` installs) finds the examples' package.
+    assert "wai.examples" in setuptools.find_packages(ROOT, include=["wai*"])
+    assert (ROOT / "examples").resolve() == (ROOT / "wai" / "examples").resolve()
+
+
 @pytest.mark.parametrize("script", EXAMPLES, ids=[p.stem for p in EXAMPLES])
 def test_example_runs_quick(script, tmp_path):
-    assert len(EXAMPLES) >= 4
+    here = tmp_path / "cwd"
+    here.mkdir()
     run = subprocess.run(
-        [sys.executable, str(script), "--quick"], cwd=tmp_path, capture_output=True, text=True,
-        timeout=120,
+        [sys.executable, "-m", "wai.examples", script.stem, "--quick"], cwd=here,
+        capture_output=True, text=True, timeout=120,
     )
     assert run.returncode == 0, run.stderr[-2000:]
     assert "status" in run.stdout or "RMSE" in run.stdout
+    assert not any(here.iterdir())  # nothing written into the folder it ran from

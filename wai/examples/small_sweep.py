@@ -1,9 +1,10 @@
 """A small sweep: the structured light against wind speed, with each frame's status.
 
-    python examples/small_sweep.py [--quick] [--seeds 2]
+    python -m wai.examples small_sweep [--quick] [--seeds 2]
 
 One renderer per grid is reused across seeds; every frame is restored with the same configured
 method and scored against its truth. Frames whose status is not ``ok`` are counted, not averaged.
+It works in memory and writes no file: the table is printed.
 """
 
 import argparse

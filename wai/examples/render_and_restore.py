@@ -1,8 +1,9 @@
 """Render one frame of the paper's system in memory, restore it and score it.
 
-    python examples/render_and_restore.py [--quick] [--wind 1.5] [--seed 3]
+    python -m wai.examples render_and_restore [--quick] [--wind 1.5] [--seed 3]
 
-The ten-line core of a render -> restore -> score script (docs/api.md shows it alone).
+The ten-line core of a render -> restore -> score script (docs/api.md shows it alone). It
+works in memory and writes no file.
 """
 
 import argparse

@@ -1,13 +1,14 @@
 """Restore a folder of one's own images, with no ground truth.
 
-    python examples/restore_own_captures.py --folder MY_CAPTURE
-    python examples/restore_own_captures.py --quick   # a stand-in capture in renders/examples/
+    python -m wai.examples restore_own_captures --folder MY_CAPTURE
+    python -m wai.examples restore_own_captures --quick [--out DIR]   # a stand-in capture
 
 A capture folder holds ``scene.json`` (at least its ``config`` table: the rig's geometry, as in
 ``wai_core/scenes/paper.toml``) and three images as EXR, PNG or TIFF (8 or 16 bit):
 ``pattern`` (camera s, wavy water), ``pattern_flat`` (camera s, calm water: the calibration) and
 ``view`` (camera v). The restoration writes ``FOLDER/restore/`` (surface, restored view,
-``metrics.json``) and says that scores were skipped.
+``metrics.json``) and says that scores were skipped. Without ``--folder`` a stand-in capture
+is rendered into ``--out``, by default a fresh temporary folder whose path is printed.
 """
 
 import argparse
@@ -18,6 +19,7 @@ import cv2
 import numpy as np
 
 import restoration as rs
+from wai.examples import output_folder
 from wai_core import load_system
 
 
@@ -41,13 +43,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--folder", type=Path, help="a capture folder (default: make one)")
     parser.add_argument("--quick", action="store_true", help="a 2-spp stand-in capture")
-    parser.add_argument("--out", type=Path, default=Path("renders/examples/capture"),
-                        help="where the stand-in capture is written (without --folder)")
+    parser.add_argument("--out", type=Path,
+                        help="where the stand-in capture is written, without --folder "
+                        "(default: a fresh temporary folder)")
     args = parser.parse_args()
 
     folder = args.folder
     if folder is None:
-        folder = args.out
+        folder = output_folder(args.out, "capture")
         make_capture(folder, spp=2 if args.quick else 8)
         print(f"stand-in capture written to {folder}")
     done = rs.restore_folder(folder)

@@ -1,7 +1,10 @@
-"""A surface of one's own, from a file, through both methods: structured light and Alterman's
-sun sensor, scored on the same truth.
+"""A surface of one's own, from a file, through both methods, scored on the same truth.
 
-    python examples/custom_surface_both_methods.py [--quick] [--amplitude 3]
+    python -m wai.examples custom_surface_both_methods [--quick] [--amplitude 3] [--out DIR]
+
+Both methods: the structured light and Alterman's sun sensor. Everything (the surface file and
+both render folders, each with its restore/) goes to ``--out``, by default a fresh temporary
+folder whose path is printed.
 
 The surface here is analytic (two crossing swells), written to a ``.npz`` with ``x``, ``y`` (mm)
 and ``z`` (absolute heights, mm), the format ``wai render --heightfield`` reads.
@@ -15,6 +18,7 @@ import numpy as np
 import mitsuba_wai as mw
 import restoration as rs
 from mitsuba_wai.alterman import render_alterman_folder
+from wai.examples import output_folder
 from wai_core import AltermanSystem, Heightfield, load_heightfield, load_system
 
 
@@ -33,14 +37,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 samples per pixel")
     parser.add_argument("--amplitude", type=float, default=2.0, help="swell amplitude, mm")
-    parser.add_argument("--out", type=Path, default=Path("renders/examples/custom_surface"),
-                        help="folder of the surface file and both renders")
+    parser.add_argument("--out", type=Path,
+                        help="folder of the surface file and both renders (default: a fresh "
+                        "temporary folder)")
     args = parser.parse_args()
 
     sensor = load_system("alterman")
     cfg = sensor.base
-    work = args.out
-    work.mkdir(parents=True, exist_ok=True)
+    work = output_folder(args.out, "custom_surface")
+    print(f"writing into {work}")
     swells(cfg.water.h0_mm, args.amplitude).save(work / "swells.npz")
     surface = load_heightfield(work / "swells.npz")
     spp = 2 if args.quick else None
