@@ -245,11 +245,12 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "what",
         nargs="?",
         default="all",
-        choices=["all", "render", "restore", "accuracy", "video", "surfaces"],
+        choices=["all", "render", "restore", "accuracy", "video", "surfaces", "inputs"],
         help="all (default): time every stage, write bench.json and bench.png to --out; "
         "render/restore: wall time of one part, printed; "
         "accuracy: scores over seeds with an error budget; "
         "surfaces: analytic steep and sharp-crested surfaces; "
+        "inputs: wrong inputs (swapped patterns, a turned view, ...) and the status each gets; "
         "video: latency and multi-process throughput over a rendered frame sequence",
     )
     p.add_argument("--config", default="paper", help=SCENE_HELP)
@@ -259,7 +260,8 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--variant", default="auto", help="Mitsuba variant (auto: GPU, else LLVM)")
     p.add_argument("--seeds", type=int, default=10, help="accuracy: seeds 0..K-1")
     p.add_argument(
-        "--out", type=Path, help="all: renders/bench (default); accuracy: renders/bench_accuracy"
+        "--out", type=Path, help="all: renders/bench (default); accuracy: renders/bench_accuracy; "
+        "surfaces, inputs, video: renders/bench_NAME"
     )
     scenes = " (default: the scene's)"
     p.add_argument("--wind", type=float, help="accuracy: wind speed U, m/s" + scenes)

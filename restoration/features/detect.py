@@ -164,9 +164,12 @@ def _noise_sigma(lum: NDArray[np.float32], smooth: NDArray[np.float32], smooth_p
     g = cv2.getGaussianKernel(2 * int(np.ceil(4 * smooth_px)) + 1, smooth_px).ravel()
     g2 = float(np.sum(g**2)) ** 2  # sum of the squared 2-D kernel
     g0 = float(g.max()) ** 2  # its centre weight
+    passed = 1.0 - 2.0 * g0 + g2  # white noise's share left in the residual
+    if passed <= 1e-9:  # a one-tap kernel (tiny spots): no residual to read the noise from
+        return 0.0
     sub = (lum[::3, ::3] - smooth[::3, ::3]).ravel()  # every 9th pixel is plenty
     scale = float(np.percentile(np.abs(sub - np.median(sub)), 25.0)) / 0.3186
-    return scale * float(np.sqrt(g2 / (1.0 - 2.0 * g0 + g2)))
+    return scale * float(np.sqrt(g2 / passed))
 
 
 def _segment(

@@ -163,3 +163,20 @@ def test_a_bad_camera_size_is_one_line(camera, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--camera" in err[0]
     assert not (tmp_path / "a").exists()
+
+
+def test_bench_inputs_flags_every_wrong_input_and_passes_the_right_ones(quick_toml, tmp_path,
+                                                                      capsys):
+    from wai.bench.inputs import CASES
+
+    assert main(["bench", "inputs", "--config", str(quick_toml), "--out", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "inputs.json").read_text())["rows"]
+    assert [r["case"] for r in rows] == list(CASES)
+    status = {r["case"]: r["status"] for r in rows}
+    # What the data can show is flagged; a wrong view with nothing to compare it with cannot be.
+    assert status["right images"] == status["right images, with view_flat"] == "ok"
+    assert status["patterns swapped"] == "bad_reference"
+    assert status["pattern.png of another moment"] == "ambiguous_input"
+    assert status["view turned 180 deg, with view_flat"] == "view_mismatch"
+    assert status["view 0.5 s later, with view_flat"] == "view_mismatch"
+    assert "bad_reference" in capsys.readouterr().out

@@ -418,3 +418,11 @@ def test_killed_runs_leftover_is_removed_by_the_next_run(capfd, tmp_path, inputs
     assert (code, err) == (0, [])
     hidden = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("."))
     assert hidden == [stranger.name] and (out / "scene.json").is_file()
+
+
+def test_a_tiny_render_restores_or_says_why_in_one_line(capfd, tmp_path, inputs):
+    # Cameras 8x smaller than the paper's: dots under a pixel, once a ZeroDivisionError.
+    out = tmp_path / "frame"
+    assert run(capfd, "render", inputs["tiny"], "--out", out, "--spp", "1", "--quiet")[0] == 0
+    code, err, _ = run(capfd, "restore", out, "--quiet")
+    assert code in (0, 2) and len(err) <= 1 and not any("Traceback" in e for e in err)

@@ -6,7 +6,8 @@ reported apart from the measured runs, and times a reference workload in the sam
 rendering and restoration, and writes ``bench.json`` and ``bench.png``; ``render``
 (:mod:`wai.bench.render`) and ``restore`` (:mod:`wai.bench.restore`) print their part only;
 ``accuracy`` (:mod:`wai.bench.accuracy`) scores seeds with an error budget; ``surfaces``
-(:mod:`wai.bench.surfaces`) restores analytic surfaces; ``video``
+(:mod:`wai.bench.surfaces`) restores analytic surfaces; ``inputs`` (:mod:`wai.bench.inputs`)
+restores wrong inputs and reports their statuses; ``video``
 (:mod:`wai.bench.video`) measures latency and throughput over a sequence.
 """
 
@@ -25,6 +26,7 @@ DEFAULT_OUT = {
     "accuracy": Path("renders/bench_accuracy"),
     "video": Path("renders/bench_video"),
     "surfaces": Path("renders/bench_surfaces"),
+    "inputs": Path("renders/bench_inputs"),
 }
 """Output folder of the benchmarks that write files, when ``--out`` is not given."""
 
@@ -58,6 +60,11 @@ def run_bench(args: argparse.Namespace) -> None:
 
         res = bench_surfaces(args)
         printer = print_surfaces
+    elif what == "inputs":
+        from wai.bench.inputs import bench_inputs, print_inputs
+
+        res = bench_inputs(args.config, Path(args.out))
+        printer = print_inputs
     elif what == "video":
         from wai.bench.video import bench_video, print_video
 
