@@ -23,6 +23,6 @@ stamp=.venv/.installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "setup: installing Python packages into .venv"
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-  .venv/bin/python -m pip install -q -e '.[dev,scale]'
+  .venv/bin/python -m pip install -q -e '.[dev]'
   touch "$stamp"
 fi

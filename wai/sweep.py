@@ -43,6 +43,10 @@ BOOKKEEPING = ("point_id", "status", "elapsed_s", "worker")
 OK = "ok"
 IN_PROCESS = "in-process"
 MAX_MESSAGE = 400  # characters of an error message kept in a row's status
+WORKER_LOSSES = frozenset({"KilledWorker", "CommClosedError", "FutureCancelledError"})
+"""Exceptions of a point whose worker process died (not of the point's own code)."""
+WORKER_RETRIES = 1
+"""Times a point is submitted again after its worker died."""
 
 # Native thread pools that read their size from the environment when they are loaded.
 THREAD_VARIABLES = (
@@ -188,7 +192,11 @@ def limit_native_threads(threads: int) -> None:
     later. Dr.Jit (Mitsuba's LLVM backend), OpenCV and numba otherwise start one thread per core
     in every worker.
     """
-    os.environ.update({name: str(threads) for name in THREAD_VARIABLES})
+    # numba refuses a NUMBA_NUM_THREADS that changes once its threads are up (it rereads the
+    # environment when it compiles): its pool is sized by set_num_threads below instead.
+    numba_up = "numba" in sys.modules
+    os.environ.update({name: str(threads) for name in THREAD_VARIABLES
+                       if not (numba_up and name == "NUMBA_NUM_THREADS")})
     if importlib.util.find_spec("drjit") is not None:
         import drjit
 
@@ -230,6 +238,10 @@ class SweepTable:
     def __exit__(self, *exc_info: object) -> None:
         self._close()
         if self._lock is not None:
+            # Removed while still held (a sweep waiting for it opens a new one): nothing of the
+            # lock survives the sweep.
+            with contextlib.suppress(OSError):
+                os.unlink(self._lock.name)
             self._lock.close()  # closing releases the flock
             self._lock = None
 
@@ -375,17 +387,32 @@ def _run_in_process(
 def _run_on_dask(
     client: Any, todo: list[tuple[str, Point]], fn: Callable
 ) -> Iterator[tuple[str, Point, Outcome]]:
-    """Submit every point and yield the outcomes in the order they finish."""
+    """Submit every point and yield the outcomes in the order they finish; a point whose
+    worker died runs once more (:data:`WORKER_RETRIES`)."""
     from distributed import as_completed
 
-    # pure=False: a point rerun (retry_errors) must run again, not reuse a cached result
-    futures = {client.submit(_evaluate_on_worker, fn, p, pure=False): (pid, p) for pid, p in todo}
-    for future in as_completed(futures):
-        pid, point = futures.pop(future)
+    def submit(point: Point) -> Any:
+        # pure=False: a point rerun (retry_errors, a retry) must run again, not reuse a result
+        return client.submit(_evaluate_on_worker, fn, point, pure=False)
+
+    futures = {submit(p): (pid, p, 0) for pid, p in todo}
+    pending = as_completed(list(futures))
+    for future in pending:
+        pid, point, tries = futures.pop(future)
         try:
             outcome = future.result()
         except Exception as exc:  # the worker died, a result did not pickle, ...
-            outcome = {"result": {}, "status": error_status(exc), "elapsed_s": None, "worker": ""}
+            died = type(exc).__name__ in WORKER_LOSSES
+            if died and tries < WORKER_RETRIES:  # another worker takes the point once more
+                future.release()
+                retry = submit(point)
+                futures[retry] = (pid, point, tries + 1)
+                pending.add(retry)
+                continue
+            why = f"worker died ({tries + 1} tries): " if died else ""
+            outcome = {"result": {}, "status": error_status(exc).replace("error: ",
+                                                                         f"error: {why}", 1),
+                       "elapsed_s": None, "worker": ""}
         future.release()
         yield pid, point, outcome
 
@@ -417,8 +444,12 @@ def _dask_client(scheduler: str | None, workers: int, threads_per_worker: int) -
     # Workers import numpy (and with it OpenBLAS) before any task runs: the thread counts must
     # be in the environment they are spawned with. Nannies copy these variables over dask's
     # defaults because they are set in os.environ.
+    import dask
+
     env = {name: str(threads_per_worker) for name in THREAD_VARIABLES}
-    with scoped_environ(env):
+    # A point whose worker dies is retried by the sweep (WORKER_RETRIES), which says so in its
+    # row, rather than silently by the scheduler.
+    with scoped_environ(env), dask.config.set({"distributed.scheduler.allowed-failures": 0}):
         cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=threads_per_worker,

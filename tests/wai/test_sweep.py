@@ -193,3 +193,25 @@ def test_local_cluster_of_two_workers(tmp_path):
     run = last_run(table)
     assert (run["scheduler"], run["workers"], run["threads_per_worker"]) == ("local", 2, 1)
     assert (run["skipped"], run["ran"], run["failed"]) == (2, 4, 2)
+
+
+def die_once(point: dict) -> dict:
+    """Kill this worker process the first time a point runs (a marker file remembers)."""
+    marker = f"{point['dir']}/{point['x']}.tried"
+    if point["x"] == 1 and not os.path.exists(marker):
+        open(marker, "w").close()
+        os._exit(1)
+    if point["x"] == 2:
+        os._exit(1)  # every time
+    return {"y": point["x"]}
+
+
+def test_a_dead_worker_is_said_and_its_point_retried_once(tmp_path):
+    table = tmp_path / "t.csv"
+    pts = [{"x": x, "dir": str(tmp_path)} for x in range(3)]
+    rows = run_sweep(pts, die_once, table, workers=1, progress=False)
+    status = {r["x"]: r["status"] for r in rows}
+    assert status[0] == status[1] == "ok"  # point 1 ran again on the restarted worker
+    assert status[2].startswith("error: worker died (2 tries)")
+    assert last_run(table)["failed"] == 1
+    assert not list(tmp_path.glob(".*.lock"))

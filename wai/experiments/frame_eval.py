@@ -184,12 +184,20 @@ def _names(value: Any, default: str) -> list[str]:
     return [s.strip() for s in str(value or default).split(",") if s.strip()]
 
 
+_WARMED: set[str] = set()
+"""Restoration variants (options' repr) this process has run once: a sweep's worker compiles
+each variant's kernels on its first frame, which would otherwise be timed (hundreds of ms)."""
+
+
 def _timed_restore(images: dict, cal: Any, options: Any, repeats: int) -> tuple[Any, dict]:
     """Restore ``repeats`` times; the last result and the median time of each stage, ms (the
     result alone when the frame failed)."""
     from restoration import StructuredLight
 
     method = StructuredLight(options)
+    if repr(options) not in _WARMED:  # compile this variant's kernels outside the timing
+        method(images, cal)
+        _WARMED.add(repr(options))
     stages: dict[str, list[float]] = {}
     result = None
     for _ in range(max(int(repeats), 1)):
