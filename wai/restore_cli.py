@@ -24,16 +24,29 @@ def run_restore(args: argparse.Namespace) -> None:
                              fit_spots=args.fit)
     from wai_core.sequence import is_sequence
 
+    cold = _compile_notice(args.quiet)
     if is_sequence(args.dir):
         run_restore_sequence(args, options)
         return
     done = restore_folder(args.dir, args.method, options, progress=not args.quiet)
     for line in done.summary_lines():
+        if cold and line.startswith("end to end"):
+            line += " (includes compiling the kernels once)"
         print(line)
     status = done.result.status
     if status != "ok":
         print(f"wai: warning: {args.dir}: frame status {status}: {done.result.message}",
               file=sys.stderr)
+
+
+def _compile_notice(quiet: bool) -> bool:
+    """Say so (unless ``quiet``) when this run compiles the kernels; whether it will."""
+    from restoration._compile import COMPILE_NOTICE, kernels_cached
+
+    cold = not kernels_cached()
+    if cold and not quiet:
+        print(f"wai: {COMPILE_NOTICE}", file=sys.stderr)
+    return cold
 
 
 def run_restore_sequence(args: argparse.Namespace, options: RestoreOptions) -> None:

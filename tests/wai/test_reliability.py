@@ -426,3 +426,13 @@ def test_a_tiny_render_restores_or_says_why_in_one_line(capfd, tmp_path, inputs)
     assert run(capfd, "render", inputs["tiny"], "--out", out, "--spp", "1", "--quiet")[0] == 0
     code, err, _ = run(capfd, "restore", out, "--quiet")
     assert code in (0, 2) and len(err) <= 1 and not any("Traceback" in e for e in err)
+
+
+def test_a_cold_kernel_cache_is_noticed(tmp_path):
+    # Only imports: numba finds its cache (NUMBA_CACHE_DIR first) when a kernel is defined;
+    # an empty one means this run compiles, and `wai restore` says so first.
+    probe = "from restoration._compile import kernels_cached; print(kernels_cached())"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    cold = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
+                          text=True, check=True, cwd=ROOT)
+    assert cold.stdout.strip() == "False"
