@@ -135,7 +135,8 @@ def restore_folder(
     bar.update(1)
     metrics = folder_metrics(meth, result, scores, scored, record.get("seed"))
     if target is not None:
-        write_outputs(target, cal, images, result, scores, truth, metrics)
+        with atomic_dir(target, command="restore", remedy=RESTORE_REMEDY) as tmp:
+            write_restore_files(tmp, cal, images, result, scores, truth, metrics)
     bar.set_postfix_str("done", refresh=False)
     bar.update(1)
     bar.close()
@@ -199,24 +200,6 @@ def folder_metrics(
     return metrics
 
 
-def write_outputs(
-    target: Path,
-    cal: RigCalibration,
-    images: dict[str, Any],
-    result: RestoreResult,
-    scores: Scores | None,
-    truth: Truth | None,
-    metrics: dict[str, Any],
-    *,
-    figures: bool = True,
-) -> None:
-    """The restore folder, atomically: surface, restored view, figures (unless
-    ``figures=False``) and ``metrics.json``; only ``metrics.json`` when there is no
-    restoration."""
-    with atomic_dir(target, command="restore", remedy=RESTORE_REMEDY) as tmp:
-        write_restore_files(tmp, cal, images, result, scores, truth, metrics, figures=figures)
-
-
 def write_restore_files(
     tmp: Path,
     cal: RigCalibration,
@@ -228,7 +211,10 @@ def write_restore_files(
     *,
     figures: bool = True,
 ) -> None:
-    """What :func:`write_outputs` writes, into an open temporary folder ``tmp``."""
+    """The restore folder's files, into an open temporary folder ``tmp`` (renamed into place
+    by the caller's :func:`~wai_core.io.atomic_dir`): surface, restored view, figures (unless
+    ``figures=False``) and ``metrics.json``; only ``metrics.json`` when there is no
+    restoration."""
     _write_arrays(tmp, result)
     if figures:
         _write_figures(tmp, cal, images, result, scores, truth)
