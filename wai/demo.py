@@ -18,8 +18,13 @@ def run_demo(args: argparse.Namespace) -> None:
     print(f"rendering {args.config} into {out} ...")
     render_folder(cfg, out, progress=not args.quiet)
     figures.render_overview(out, cfg, Calibration.from_folder(out).view_gain)
+    from wai.restore_cli import compile_notice
+
     print("restoring ...")
+    cold = compile_notice(args.quiet)
     done = restore_folder(out, progress=not args.quiet)
     for line in done.summary_lines():
+        if cold and line.startswith("end to end"):
+            line += " (includes compiling the kernels once)"
         print("  " + line)
     print(f"results: {out}/ (renders, figures) and {out}/restore/ (metrics.json, figures)")

@@ -24,7 +24,7 @@ def run_restore(args: argparse.Namespace) -> None:
                              fit_spots=args.fit)
     from wai_core.sequence import is_sequence
 
-    cold = _compile_notice(args.quiet)
+    cold = compile_notice(args.quiet)
     if is_sequence(args.dir):
         run_restore_sequence(args, options)
         return
@@ -39,7 +39,7 @@ def run_restore(args: argparse.Namespace) -> None:
               file=sys.stderr)
 
 
-def _compile_notice(quiet: bool) -> bool:
+def compile_notice(quiet: bool) -> bool:
     """Say so (unless ``quiet``) when this run compiles the kernels; whether it will."""
     from restoration._compile import COMPILE_NOTICE, kernels_cached
 
