@@ -8,7 +8,9 @@ its rows and a rerun carries on where it stopped.
 
 Next to ``table`` (``NAME.csv``) it writes ``NAME.parquet``, a copy of the table, and
 ``NAME.json``, a record of each run (where it ran, when, how many points ran, were skipped or
-failed). ``docs/cluster.md`` describes how to use it.
+failed, how many workers died under them). A point whose worker process died runs once more;
+a run stopped before its first row leaves the record as it was. ``docs/cluster.md`` describes
+how to use it.
 """
 
 from __future__ import annotations
@@ -45,13 +47,10 @@ IN_PROCESS = "in-process"
 MAX_MESSAGE = 400  # characters of an error message kept in a row's status
 WORKER_LOSSES = frozenset({"KilledWorker", "CommClosedError", "FutureCancelledError"})
 """Exceptions of a point whose worker process died (not of the point's own code)."""
-
-
-def _tries() -> int:
-    """How often the scheduler runs a task whose workers keep dying."""
-    import dask
-
-    return int(dask.config.get("distributed.scheduler.allowed-failures", 3)) + 1
+WORKER_RETRIES = 1
+"""Times the sweep runs a point again after the worker running it died."""
+WORKER_DIED = "worker died"
+"""What the status of a point whose worker died says (after ``error: ``)."""
 
 # Native thread pools that read their size from the environment when they are loaded.
 THREAD_VARIABLES = (
@@ -236,8 +235,12 @@ class SweepTable:
     def __enter__(self) -> SweepTable:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = _lock(self.path)
-        self._drop_truncated_line()
-        self.columns = self._header()
+        try:
+            self._drop_truncated_line()
+            self.columns = self._header()
+        except BaseException:
+            self.__exit__()  # a table that is not a sweep's: no lock file left behind
+            raise
         return self
 
     def __exit__(self, *exc_info: object) -> None:
@@ -317,14 +320,25 @@ class SweepTable:
 
 
 def _lock(path: Path) -> IO[str]:
-    """Hold an exclusive lock beside ``path``: two sweeps writing one table would lose rows."""
-    lock = path.with_name(f".{path.name}.lock").open("w")
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        lock.close()
-        raise WaiInputError(f"another sweep is writing {path}") from None
-    return lock
+    """Hold an exclusive lock beside ``path``: two sweeps writing one table would lose rows.
+
+    The holder removes the lock file when it is done (:meth:`SweepTable.__exit__`), so a lock
+    taken on a file that is no longer at its path (removed meanwhile) is taken again afresh.
+    """
+    name = path.with_name(f".{path.name}.lock")
+    while True:
+        lock = name.open("w")
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.close()
+            raise WaiInputError(f"another sweep is writing {path}") from None
+        try:
+            if os.stat(name).st_ino == os.fstat(lock.fileno()).st_ino:
+                return lock
+        except FileNotFoundError:
+            pass
+        lock.close()  # its holder removed it as we opened it: another round
 
 
 def _widened(columns: list[str], new: list[str]) -> list[str]:
@@ -418,24 +432,51 @@ def single_threaded() -> Iterator[None]:
 def _run_on_dask(
     client: Any, todo: list[tuple[str, Point]], fn: Callable
 ) -> Iterator[tuple[str, Point, Outcome]]:
-    """Submit every point and yield the outcomes in the order they finish; a point whose
-    worker died is run again by the scheduler (``distributed.scheduler.allowed-failures``
-    times) and, if every worker it ran on died, says so in its status."""
+    """Submit every point and yield the outcomes in the order they finish.
+
+    A point whose worker died (:data:`WORKER_LOSSES`) is submitted again, :data:`WORKER_RETRIES`
+    times; its outcome counts the deaths (``deaths``), and its status says ``worker died``
+    when every run of it lost its worker.
+    """
     from distributed import as_completed
 
-    # pure=False: a point rerun (retry_errors) must run again, not reuse a cached result
-    futures = {client.submit(_evaluate_on_worker, fn, p, pure=False): (pid, p) for pid, p in todo}
-    for future in as_completed(futures):
-        pid, point = futures.pop(future)
+    def submit(point: Point) -> Any:
+        # pure=False: a point rerun (retry_errors, a retry) must run again, not reuse a result
+        return client.submit(_evaluate_on_worker, fn, point, pure=False)
+
+    futures = {submit(p): (pid, p, 0, 0) for pid, p in todo}
+    pending = as_completed(list(futures))
+    for future in pending:
+        pid, point, retries, deaths = futures.pop(future)
         try:
-            outcome = future.result()
+            outcome = {**future.result(), "deaths": deaths}
         except Exception as exc:  # the worker died, a result did not pickle, ...
-            status = error_status(exc)
-            if type(exc).__name__ in WORKER_LOSSES:  # the scheduler already ran it again
-                status = status.replace("error: ", f"error: worker died ({_tries()} tries): ", 1)
-            outcome = {"result": {}, "status": status, "elapsed_s": None, "worker": ""}
+            if type(exc).__name__ not in WORKER_LOSSES:
+                outcome = {"result": {}, "status": error_status(exc), "elapsed_s": None,
+                           "worker": "", "deaths": deaths}
+            else:
+                # KilledWorker comes after the scheduler's own tries (an existing cluster's
+                # allowed-failures; none on the sweep's local cluster)
+                deaths += getattr(exc, "allowed_failures", 0) + 1
+                if retries < WORKER_RETRIES:
+                    future.release()
+                    retry = submit(point)
+                    futures[retry] = (pid, point, retries + 1, deaths)
+                    pending.add(retry)
+                    continue
+                outcome = {"result": {}, "status": _death_status(exc, deaths),
+                           "elapsed_s": None, "worker": "", "deaths": deaths}
         future.release()
         yield pid, point, outcome
+
+
+def _death_status(exc: BaseException, tries: int) -> str:
+    """Status of a point whose worker died on each of its ``tries``:
+    ``error: worker died (2 tries): tcp://... died running it``."""
+    last = getattr(getattr(exc, "last_worker", None), "address", None)
+    why = f"{last} died running it" if last else error_status(exc).removeprefix("error: ")
+    times = "1 try" if tries == 1 else f"{tries} tries"
+    return f"error: {WORKER_DIED} ({times}): {why}"[:MAX_MESSAGE]
 
 
 @contextlib.contextmanager
@@ -456,7 +497,14 @@ def scoped_environ(values: Mapping[str, str]) -> Iterator[None]:
 @contextlib.contextmanager
 def _dask_client(scheduler: str | None, workers: int, threads_per_worker: int) -> Iterator[Any]:
     """A Client of the cluster at ``scheduler``, or of a local cluster started for the block."""
-    from distributed import Client, LocalCluster
+    try:
+        import dask
+        from distributed import Client, LocalCluster
+    except ModuleNotFoundError as exc:  # a dependency, but an environment may lack it
+        raise WaiInputError(
+            f"--workers/--scheduler run on Dask, which is not installed ({exc}): "
+            "pip install 'dask[distributed]', or --workers 0 to run in this process"
+        ) from None
 
     if scheduler is not None:
         with Client(scheduler) as client:
@@ -466,7 +514,12 @@ def _dask_client(scheduler: str | None, workers: int, threads_per_worker: int) -
     # be in the environment they are spawned with. Nannies copy these variables over dask's
     # defaults because they are set in os.environ.
     env = {name: str(threads_per_worker) for name in THREAD_VARIABLES}
-    with scoped_environ(env):
+    # The sweep, not the scheduler, runs again a point whose worker died, and says so
+    # (WORKER_RETRIES): no silent retries, and a worker holds only the tasks it runs, so a
+    # death counts against those alone (not against tasks queued behind them).
+    quiet_retries = {"distributed.scheduler.allowed-failures": 0,
+                     "distributed.scheduler.worker-saturation": 1.0}
+    with scoped_environ(env), dask.config.set(quiet_retries):
         cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=threads_per_worker,
@@ -615,7 +668,7 @@ def _execute(
     backend: tuple[str | None, int, int],
 ) -> None:
     """Run the points and append their rows; ``run`` counts them as they finish."""
-    run.update(ran=0, failed=0)
+    run.update(ran=0, failed=0, worker_deaths=0)
     if not todo:
         return  # no cluster to start
     bar = tqdm(total=len(todo), desc=store.path.name, unit="point", disable=not progress)
@@ -624,6 +677,7 @@ def _execute(
         for pid, point, outcome in runner(todo, fn):
             store.append(_row(pid, point, outcome))
             run["ran"] += 1
+            run["worker_deaths"] += outcome.get("deaths", 0)
             if is_error(outcome["status"]):
                 run["failed"] += 1
                 bar.set_postfix(failed=run["failed"], refresh=False)
@@ -651,7 +705,8 @@ def run_sweep(
     fn
         A top-level (picklable) function of one point returning a dict of results, whose keys
         must not repeat the point's fields. If it raises, the row records the error in
-        ``status`` and the sweep goes on.
+        ``status`` and the sweep goes on. If the worker process running it dies, the point runs
+        once more; when that worker dies too its status is ``error: worker died ...``.
     table
         The CSV table (``*.csv``). It gains one row per finished point, flushed at once; a
         rerun skips the points it holds. ``*.parquet`` (a copy of the table, at the end) and
@@ -709,10 +764,16 @@ def run_sweep(
             raise
         finally:
             run.update(finished=_now(), wall_s=round(time.perf_counter() - start, 3))
-            _record_run(table.with_suffix(".json"), run)
+            # A run stopped before any row (the cluster did not start, ...) leaves no record:
+            # the record describes the table's rows.
+            if run["outcome"] == "complete" or run.get("ran"):
+                _record_run(table.with_suffix(".json"), run)
         rows = {row["point_id"]: _typed(row) for row in store.rows()}
         write_parquet(list(rows.values()), table.with_suffix(".parquet"))
-    _say(progress, f"{table}: ran {run['ran']} ({run['failed']} failed) in {run['wall_s']:.1f} s")
+    deaths = run.get("worker_deaths", 0)
+    died = f"; {deaths} worker deaths, their points run again once" if deaths else ""
+    _say(progress,
+         f"{table}: ran {run['ran']} ({run['failed']} failed) in {run['wall_s']:.1f} s{died}")
     return [rows[pid] for pid in ids if pid in rows]
 
 
