@@ -3,15 +3,18 @@
 Every kernel is compiled by numba with ``cache=True``: the first restoration after an install
 compiles them (30-60 s on two cores) and writes them beside the modules (or to numba's
 user-wide cache where the install is read-only, or ``NUMBA_CACHE_DIR``); later processes load
-them in a fraction of a second. :func:`kernels_cached` lets a command say so before it starts.
+them in a fraction of a second. :func:`kernels_cached` lets a command say so before it starts;
+:func:`kernel_activity` tells a timing whether it included compiling or loading kernels.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
+from collections.abc import Iterator
 
-__all__ = ["COMPILE_NOTICE", "kernels_cached"]
+__all__ = ["COMPILE_NOTICE", "KernelActivity", "kernel_activity", "kernels_cached"]
 
 COMPILE_NOTICE = (
     "compiling the restoration's kernels once (30-60 s on 2 cores; cached for later runs)"
@@ -52,3 +55,59 @@ def kernels_cached() -> bool:
     except Exception:  # numba's cache internals moved: stay quiet
         return True
     return True
+
+
+class KernelActivity:
+    """What numba did during a :func:`kernel_activity` block, in any thread of the process.
+
+    Attributes
+    ----------
+    loads : int
+        Times numba took its compiler lock: a kernel called with new argument types, compiled
+        or loaded from the cache. A call of a kernel already loaded takes none.
+    compiles : int
+        Kernels compiled (not found in the cache), nested ones included.
+    """
+
+    def __init__(self) -> None:
+        self.loads = 0
+        self.compiles = 0
+
+    @property
+    def warm(self) -> bool:
+        """Whether the block ran only kernels already loaded in this process."""
+        return self.loads == 0 and self.compiles == 0
+
+
+@contextlib.contextmanager
+def kernel_activity() -> Iterator[KernelActivity]:
+    """Count numba's kernel loads and compiles while the block runs.
+
+    A timing taken in the block measures warm code only if ``activity.warm`` after it; the
+    first call of each kernel in a process loads it from the cache (hundreds of ms for a
+    frame's kernels) or compiles it (seconds).
+
+    Examples
+    --------
+    >>> with kernel_activity() as activity:
+    ...     pass
+    >>> activity.warm
+    True
+    """
+    from numba.core import event
+
+    activity = KernelActivity()
+
+    class _Count(event.Listener):
+        def __init__(self, field: str) -> None:
+            self.field = field
+
+        def on_start(self, ev: event.Event) -> None:
+            setattr(activity, self.field, getattr(activity, self.field) + 1)
+
+        def on_end(self, ev: event.Event) -> None:
+            pass
+
+    with (event.install_listener("numba:compiler_lock", _Count("loads")),
+          event.install_listener("numba:compile", _Count("compiles"))):
+        yield activity

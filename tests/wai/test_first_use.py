@@ -87,3 +87,83 @@ def test_numba_threads_are_sized_without_changing_its_environment_under_it():
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "compiled"
+
+
+def test_kernel_activity_tells_a_cold_call_from_a_warm_one():
+    import numba
+
+    from restoration._compile import kernel_activity
+
+    kernel = numba.njit(lambda x: x * 2 + 1)
+    with kernel_activity() as cold:
+        assert kernel(3) == 7
+    with kernel_activity() as warm:
+        assert kernel(4) == 9
+    assert cold.compiles >= 1 and cold.loads >= 1 and not cold.warm
+    assert warm.warm
+
+
+def test_a_sweep_timing_that_ran_a_new_kernel_is_taken_again(monkeypatch):
+    # The variant's first frame ran untimed, but the first timed restore still compiles (a
+    # code path that frame did not take): its time must not be the one reported.
+    from types import SimpleNamespace
+
+    import numba
+
+    import restoration
+    from wai.experiments import frame_eval
+
+    calls: list[bool] = []
+
+    class Restore:
+        def __init__(self, options):
+            pass
+
+        def __call__(self, images, cal):
+            cold = len(calls) < 2  # the untimed warm-up and the first timed restore
+            if cold:
+                numba.njit(lambda x: x + 1)(1)  # a new kernel, compiled now
+            calls.append(cold)
+            return SimpleNamespace(restored=True, surface=SimpleNamespace(timings_ms={}),
+                                   timings_ms={"end_to_end": 500.0 if cold else 5.0})
+
+    monkeypatch.setattr(restoration, "StructuredLight", Restore)
+    monkeypatch.setattr(frame_eval, "_WARMED", set())
+    _, ms = frame_eval._timed_restore({}, None, "variant", repeats=1)
+    assert ms == {"end_to_end": 5.0}
+    assert calls == [True, True, False]
+
+
+PROBE = """
+import importlib, json
+from restoration._compile import _KERNEL_MODULES, kernels_cached
+index = []
+for name in _KERNEL_MODULES:
+    for value in vars(importlib.import_module(name)).values():
+        path = getattr(getattr(getattr(value, "_cache", None), "_cache_file", None),
+                       "_index_path", None)
+        if path:
+            index.append(path)
+            break
+print(json.dumps({"cached": kernels_cached(), "index": index}))
+"""
+
+
+def _probe(cache_dir: Path) -> dict:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache_dir)}
+    done = subprocess.run([sys.executable, "-c", PROBE], env=env, cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout)
+
+
+def test_the_compile_notice_is_due_until_the_kernels_are_cached(tmp_path):
+    # Only imports, no compile: an empty cache folder means the next restore compiles (the
+    # notice is due); once a kernel of each module is cached there, it is not.
+    cold = _probe(tmp_path)
+    assert cold["cached"] is False
+    assert cold["index"] and all(Path(p).is_relative_to(tmp_path) for p in cold["index"])
+    for path in cold["index"]:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).touch()  # what numba writes beside a cached kernel
+    assert _probe(tmp_path)["cached"] is True
