@@ -407,10 +407,11 @@ def _run_in_process(
 
 @contextlib.contextmanager
 def single_threaded() -> Iterator[None]:
-    """Numba's, OpenCV's and Dr.Jit's thread pools at one thread for the block, then as they
-    were (this process goes on after the sweep)."""
+    """Numba's, OpenCV's, Dr.Jit's and the BLAS/OpenMP thread pools at one thread for the
+    block, then as they were (this process goes on after the sweep)."""
     import cv2
     import numba
+    from threadpoolctl import threadpool_limits
 
     saved_numba, saved_cv = numba.get_num_threads(), cv2.getNumThreads()
     # Loaded now if present: a sweep's renders would load it inside the block, at full width.
@@ -421,7 +422,10 @@ def single_threaded() -> Iterator[None]:
     if drjit is not None:
         drjit.set_thread_count(1)
     try:
-        yield
+        # OpenBLAS and OpenMP, loaded with numpy at full width here, sit at one thread in a
+        # local worker (its environment at spawn): same in the timings of both
+        with threadpool_limits(1):
+            yield
     finally:
         numba.set_num_threads(saved_numba)
         cv2.setNumThreads(saved_cv)
