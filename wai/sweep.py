@@ -37,6 +37,7 @@ from typing import IO, Any
 
 from tqdm import tqdm
 
+from wai.threads import THREAD_VARIABLES, limit_native_threads, scoped_environ, single_threaded
 from wai_core.errors import WaiInputError
 from wai_core.io import atomic_write_bytes, read_json, write_json
 
@@ -52,10 +53,6 @@ WORKER_RETRIES = 1
 WORKER_DIED = "worker died"
 """What the status of a point whose worker died says (after ``error: ``)."""
 
-# Native thread pools that read their size from the environment when they are loaded.
-THREAD_VARIABLES = (
-    "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS",
-)
 
 # What the table's text cells parse back into (repr() of Python floats, ints and bools).
 _INT = re.compile(r"[+-]?\d+")
@@ -185,34 +182,6 @@ def _worker_name() -> str:
         return distributed.get_worker().address
     except ValueError:
         return IN_PROCESS
-
-
-@functools.cache
-def limit_native_threads(threads: int) -> None:
-    """Size the native thread pools of this (worker) process to ``threads``, once.
-
-    OpenBLAS and OpenMP read the environment when loaded, which in a local cluster's workers is
-    before any task (see :func:`scoped_environ`); setting it here covers libraries loaded
-    later. Dr.Jit (Mitsuba's LLVM backend), OpenCV and numba otherwise start one thread per core
-    in every worker.
-    """
-    # numba refuses a NUMBA_NUM_THREADS that changes once its threads are up (it rereads the
-    # environment when it compiles): its pool is sized by set_num_threads below instead.
-    numba_up = "numba" in sys.modules
-    os.environ.update({name: str(threads) for name in THREAD_VARIABLES
-                       if not (numba_up and name == "NUMBA_NUM_THREADS")})
-    if importlib.util.find_spec("drjit") is not None:
-        import drjit
-
-        drjit.set_thread_count(threads)
-    if importlib.util.find_spec("cv2") is not None:
-        import cv2
-
-        cv2.setNumThreads(threads)
-    if importlib.util.find_spec("numba") is not None:  # the restoration's chunked kernels
-        import numba
-
-        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
 
 
 # --- the table ---------------------------------------------------------------------------------
@@ -405,34 +374,6 @@ def _run_in_process(
             yield pid, point, _evaluate(fn, point)
 
 
-@contextlib.contextmanager
-def single_threaded() -> Iterator[None]:
-    """Numba's, OpenCV's, Dr.Jit's and the BLAS/OpenMP thread pools at one thread for the
-    block, then as they were (this process goes on after the sweep)."""
-    import cv2
-    import numba
-    from threadpoolctl import threadpool_limits
-
-    saved_numba, saved_cv = numba.get_num_threads(), cv2.getNumThreads()
-    # Loaded now if present: a sweep's renders would load it inside the block, at full width.
-    drjit = importlib.import_module("drjit") if importlib.util.find_spec("drjit") else None
-    saved_dr = drjit.thread_count() if drjit is not None else None
-    numba.set_num_threads(1)
-    cv2.setNumThreads(1)
-    if drjit is not None:
-        drjit.set_thread_count(1)
-    try:
-        # OpenBLAS and OpenMP, loaded with numpy at full width here, sit at one thread in a
-        # local worker (its environment at spawn): same in the timings of both
-        with threadpool_limits(1):
-            yield
-    finally:
-        numba.set_num_threads(saved_numba)
-        cv2.setNumThreads(saved_cv)
-        if drjit is not None:
-            drjit.set_thread_count(saved_dr)
-
-
 def _run_on_dask(
     client: Any, todo: list[tuple[str, Point]], fn: Callable
 ) -> Iterator[tuple[str, Point, Outcome]]:
@@ -481,21 +422,6 @@ def _death_status(exc: BaseException, tries: int) -> str:
     why = f"{last} died running it" if last else error_status(exc).removeprefix("error: ")
     times = "1 try" if tries == 1 else f"{tries} tries"
     return f"error: {WORKER_DIED} ({times}): {why}"[:MAX_MESSAGE]
-
-
-@contextlib.contextmanager
-def scoped_environ(values: Mapping[str, str]) -> Iterator[None]:
-    """Set environment variables for the block (spawned workers inherit them), then restore."""
-    saved = {name: os.environ.get(name) for name in values}
-    os.environ.update(values)
-    try:
-        yield
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
 
 
 @contextlib.contextmanager
