@@ -444,12 +444,21 @@ def _dask_client(scheduler: str | None, workers: int, threads_per_worker: int) -
     # be in the environment they are spawned with. Nannies copy these variables over dask's
     # defaults because they are set in os.environ.
     env = {name: str(threads_per_worker) for name in THREAD_VARIABLES}
-    # The sweep, not the scheduler, runs again a point whose worker died, and says so
-    # (WORKER_RETRIES): no silent retries, and a worker holds only the tasks it runs, so a
-    # death counts against those alone (not against tasks queued behind them).
-    quiet_retries = {"distributed.scheduler.allowed-failures": 0,
-                     "distributed.scheduler.worker-saturation": 1.0}
-    with scoped_environ(env), dask.config.set(quiet_retries):
+    settings = {
+        # The sweep, not the scheduler, runs again a point whose worker died, and says so
+        # (WORKER_RETRIES): no silent retries, and a worker holds only the tasks it runs, so
+        # a death counts against those alone (not against tasks queued behind them).
+        "distributed.scheduler.allowed-failures": 0,
+        "distributed.scheduler.worker-saturation": 1.0,
+        # Dask's 64 KiB trim threshold hands every freed array back to the system: a frame's
+        # restoration then page-faults its arrays in anew each time (5000 faults against 140)
+        # and ran 1.3-1.5x slower in a worker than in this process, skewing sweep timings.
+        "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+        # Nor does a worker sample its threads' stacks every 10 ms (for a dashboard the sweep
+        # does not start): the samples take the GIL from the point being timed.
+        "distributed.worker.profile.enabled": False,
+    }
+    with scoped_environ(env), dask.config.set(settings):
         cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=threads_per_worker,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from wai.sweep import WORKER_DIED, is_error, run_sweep
+from wai.sweep import WORKER_DIED, is_error, parse_cell, run_sweep
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -23,7 +23,9 @@ def die_on_first_try(point: dict) -> dict:
     if point["x"] == 2 or (point["x"] == 1 and not marker.exists()):
         marker.touch()
         os._exit(1)
-    return {"y": point["x"] * 10}
+    env = {name: os.environ.get(name) for name in ("OMP_NUM_THREADS", "MALLOC_TRIM_THRESHOLD_")}
+    return {"y": point["x"] * 10, "omp": env["OMP_NUM_THREADS"],
+            "trim": env["MALLOC_TRIM_THRESHOLD_"]}
 
 
 def test_a_point_whose_worker_died_runs_once_more_and_says_so(tmp_path, capsys):
@@ -34,6 +36,11 @@ def test_a_point_whose_worker_died_runs_once_more_and_says_so(tmp_path, capsys):
     by_x = {r["x"]: r for r in rows}
     assert [by_x[x]["status"] for x in (0, 1, 3)] == ["ok"] * 3  # 1 ran again, and then ok
     assert [by_x[x]["y"] for x in (0, 1, 3)] == [0, 10, 30]
+    # Workers, restarted ones too, keep one native thread, and glibc's own trim threshold
+    # (dask's 64 KiB one page-faults every array in anew: 1.3x slower restorations).
+    assert {by_x[x]["omp"] for x in (0, 1, 3)} == {1}
+    mine = os.environ.get("MALLOC_TRIM_THRESHOLD_")  # one the user set is theirs to keep
+    assert {by_x[x]["trim"] for x in (0, 1, 3)} == {None if mine is None else parse_cell(mine)}
     assert by_x[2]["status"].startswith(f"error: {WORKER_DIED} (2 tries): tcp://")
     assert is_error(by_x[2]["status"])
     run = json.loads(table.with_suffix(".json").read_text())["runs"][-1]
