@@ -82,7 +82,7 @@ def test_numba_threads_are_sized_without_changing_its_environment_under_it():
     probe = (
         "import numba, os\n"
         "numba.set_num_threads(1)\n"  # starts numba's threads with the inherited count
-        "from wai.sweep import limit_native_threads\n"
+        "from wai.threads import limit_native_threads\n"
         "limit_native_threads(1)\n"
         "assert numba.get_num_threads() == 1\n"
         "numba.njit(lambda x: x + 1)(1)\n"  # a compile after the sizing
