@@ -30,7 +30,18 @@ class WaterConfig:
 
     h0_mm: float = 150.0
     n_water: float = 4.0 / 3.0
+    """The index the geometric model (the restoration) uses; the render's too, unless
+    ``index_model`` gives it per wavelength."""
     surface: str = "dielectric"
+    index_model: str = "constant"
+    """Renderer only. ``"constant"``: ``n_water`` at every wavelength; ``"quan_fry"``: sea
+    water's index per colour channel from Quan & Fry (1995) at ``salinity_psu`` and
+    ``temperature_c`` (dispersion), while the restoration keeps ``n_water``."""
+    salinity_psu: float = 35.0
+    temperature_c: float = 20.0
+    roughness: float = 0.0
+    """Renderer only. Micro-roughness of the surface below the mesh's scale: the GGX alpha
+    of Mitsuba's ``roughdielectric`` (0: a smooth interface)."""
 
 
 @dataclass(frozen=True)
@@ -45,7 +56,11 @@ class WavesConfig:
     n_directions: int = 24
     omega_min_rel: float = 0.5
     omega_max_rel: float = 2.5
+    """Highest frequency summed, in units of the peak frequency (the paper's cut: 2.5)."""
     mesh_points_per_wavelength: float = 48.0
+    dispersion: str = "gravity"
+    """``"gravity"``: deep-water waves, omega^2 = g k; ``"capillary"``: gravity-capillary
+    waves, omega^2 = g k + (sigma / rho) k^3 (what matters past ~5 omega_p at low wind)."""
 
 
 @dataclass(frozen=True)
@@ -58,6 +73,23 @@ class DeviceConfig:
     focal_mm: float
     rotation: tuple[tuple[float, ...], ...]
     translation_mm: tuple[float, float, float]
+    # What a real device does that the pinhole model leaves out: renderer only (the geometric
+    # model and the restoration use camera()); all off by default.
+    principal_offset_px: tuple[float, float] = (0.0, 0.0)
+    """Principal point minus the image centre ``((W - 1) / 2, (H - 1) / 2)``, pixels."""
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    """Brown-Conrady lens distortion ``(k1, k2, p1, p2, k3)`` as OpenCV defines it."""
+    port_thickness_mm: float = 0.0
+    """A flat port (housing window) perpendicular to the axis; 0: no housing (the device's
+    pinhole sits in the water)."""
+    port_gap_mm: float = 5.0
+    """Air between the pinhole and the port's inner face, mm."""
+    port_n: float = 1.49
+    """The port's refractive index (1.49: acrylic; 1.52: glass)."""
+    aperture_mm: float = 0.0
+    """Projector only: lens aperture diameter, mm (0: a pinhole, every dot in focus)."""
+    focus_mm: float = 0.0
+    """Projector only: distance along the axis to the plane in focus, mm (with aperture)."""
 
     def camera(self) -> PinholeCamera:
         """The device as a :class:`PinholeCamera` (rotation re-orthonormalised)."""
@@ -81,6 +113,10 @@ class PatternConfig:
     # (wai_core.pattern.dot_codes), decoded without ordering (restoration.features.decode).
     code: str = "none"
     code_seed: int = 0
+    polarisation: str = "none"
+    """Renderer only. ``"none"``: unpolarised light; ``"linear"``: an LCD's linearly polarised
+    light, its electric field at ``polarisation_deg`` from the panel's x axis towards y."""
+    polarisation_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -88,6 +124,14 @@ class DiffuserConfig:
     """Horizontal translucent screen at ``z = z_mm`` (z_h)."""
 
     z_mm: float = 60.0
+    # A real screen (renderer only; the geometric model assumes an ideal Lambertian one).
+    half_width_deg: float = 0.0
+    """Half width at half maximum of the transmitted radiance's angular profile, deg
+    (0: Lambertian, whose radiance is the same in every direction)."""
+    reflectance: float = 0.0
+    """Share of the arriving light the screen reflects diffusely back into the water."""
+    blur_mm: float = 0.0
+    """Standard deviation of the spread inside the screen's thickness, mm."""
 
 
 @dataclass(frozen=True)
@@ -413,6 +457,111 @@ def validate(cfg: SystemConfig) -> None:
         )
     _validate_degradations(cfg.sensor, cfg.motion)
     _validate_light(cfg.water_optics, cfg.ambient)
+    _validate_effects(cfg)
+
+
+INDEX_MODELS = ("constant", "quan_fry")
+"""Values of ``[water].index_model``."""
+DISPERSIONS = ("gravity", "capillary")
+"""Values of ``[waves].dispersion``."""
+POLARISATIONS = ("none", "linear")
+"""Values of ``[pattern].polarisation``."""
+
+RENDERER_EFFECTS: dict[str, tuple[str, ...]] = {
+    "water": ("index_model", "roughness"),
+    "waves": ("dispersion",),
+    "pattern": ("polarisation",),
+    "diffuser": ("half_width_deg", "reflectance", "blur_mm"),
+    **{
+        name: ("principal_offset_px", "distortion", "port_thickness_mm", "aperture_mm")
+        for name in DEVICE_SECTIONS
+    },
+}
+"""The physics a render can carry that the geometric model leaves out, per section: each key
+is off at its default, and the restoration never reads it."""
+
+
+def renderer_effects(cfg: SystemConfig) -> dict[str, Any]:
+    """The renderer-only effects of ``cfg`` that are on: ``"section.key"`` to its value.
+
+    Examples
+    --------
+    >>> from wai_core import load_system
+    >>> cfg = load_system("paper")
+    >>> renderer_effects(cfg)
+    {}
+    >>> renderer_effects(cfg.replace("water", index_model="quan_fry"))
+    {'water.index_model': 'quan_fry'}
+    """
+    on = {}
+    for section, keys in RENDERER_EFFECTS.items():
+        value, default = getattr(cfg, section), _SECTIONS[section]
+        for key in keys:
+            off = next(f for f in fields(default) if f.name == key).default
+            if getattr(value, key) != off:
+                on[f"{section}.{key}"] = getattr(value, key)
+    return on
+
+
+def _validate_effects(cfg: SystemConfig) -> None:
+    """The renderer-only effects (:data:`RENDERER_EFFECTS`): checked even when off."""
+    w = cfg.water
+    if w.index_model not in INDEX_MODELS:
+        raise WaiInputError(
+            f"config: [water].index_model must be one of {', '.join(INDEX_MODELS)}, "
+            f"not {w.index_model!r}"
+        )
+    # Quan & Fry's fit spans 0-35 PSU and 0-30 C (400-700 nm); a little beyond is harmless.
+    if not 0 <= w.salinity_psu <= 40:
+        raise WaiInputError(f"config: [water].salinity_psu must be 0 .. 40, not {w.salinity_psu:g}")
+    if not -2 <= w.temperature_c <= 35:
+        raise WaiInputError(
+            f"config: [water].temperature_c must be -2 .. 35, not {w.temperature_c:g}"
+        )
+    if not 0 <= w.roughness < 1:
+        raise WaiInputError(f"config: [water].roughness must be 0 .. 1, not {w.roughness:g}")
+    if cfg.waves.dispersion not in DISPERSIONS:
+        raise WaiInputError(
+            f"config: [waves].dispersion must be one of {', '.join(DISPERSIONS)}, "
+            f"not {cfg.waves.dispersion!r}"
+        )
+    if cfg.pattern.polarisation not in POLARISATIONS:
+        raise WaiInputError(
+            f"config: [pattern].polarisation must be one of {', '.join(POLARISATIONS)}, "
+            f"not {cfg.pattern.polarisation!r}"
+        )
+    d = cfg.diffuser
+    if not 0 <= d.half_width_deg < 90:
+        raise WaiInputError(
+            f"config: [diffuser].half_width_deg must be 0 .. 90, not {d.half_width_deg:g}"
+        )
+    if not 0 <= d.reflectance < 1:
+        raise WaiInputError(f"config: [diffuser].reflectance must be 0 .. 1, not {d.reflectance:g}")
+    if d.blur_mm < 0:
+        raise WaiInputError(f"config: [diffuser].blur_mm must be >= 0, not {d.blur_mm:g}")
+    for name in DEVICE_SECTIONS:
+        _check_device_optics(getattr(cfg, name), name)
+
+
+def _check_device_optics(dev: DeviceConfig, name: str) -> None:
+    """A device's lens, port and aperture keys."""
+    if max(abs(v) for v in dev.principal_offset_px) >= min(dev.width_px, dev.height_px) / 2:
+        raise WaiInputError(f"config: [{name}].principal_offset_px must lie inside the image")
+    if dev.port_thickness_mm < 0 or dev.port_gap_mm <= 0 or dev.port_n <= 1:
+        raise WaiInputError(
+            f"config: [{name}] needs port_thickness_mm >= 0, port_gap_mm > 0 and port_n > 1"
+        )
+    if dev.aperture_mm < 0:
+        raise WaiInputError(f"config: [{name}].aperture_mm must be >= 0, not {dev.aperture_mm:g}")
+    if dev.aperture_mm > 0 and name != "projector":
+        raise WaiInputError(
+            f"config: [{name}].aperture_mm: only the projector's defocus is modelled "
+            "(the cameras are pinholes)"
+        )
+    if dev.aperture_mm > 0 and dev.focus_mm <= 0:
+        raise WaiInputError(
+            f"config: [{name}].focus_mm must be positive when aperture_mm is (the plane in focus)"
+        )
 
 
 def _check_rotation(rotation: Any, name: str) -> None:
