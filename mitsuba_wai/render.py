@@ -111,7 +111,8 @@ def wave_surface(cfg: SystemConfig, extent: NDArray | None = None) -> Heightfiel
         raise WaiInputError(
             f"[waves]: wind {cfg.waves.wind_speed_m_s:g} m/s makes waves as short as "
             f"{sea.shortest_wavelength_mm:.3g} mm, a mesh of {nx}x{ny} vertices (at most "
-            f"{MAX_MESH_VERTICES}): raise the wind or lower mesh_points_per_wavelength"
+            f"{MAX_MESH_VERTICES}): raise the wind, lower [waves].omega_max_rel or "
+            "mesh_points_per_wavelength"
         )
     x, y = _axis(*ext[0], spacing), _axis(*ext[1], spacing)
     return sea.grid(x, y, cfg.waves.time_s, mean_level_mm=cfg.water.h0_mm)

@@ -9,6 +9,13 @@ with amplitudes ``a_ij = sqrt(2 S(omega_i) phi(th_j) d_omega d_th)`` (39), deep-
 ``phi`` (43) about the mean wind direction. Directions ``th`` are measured in the ``lab`` x-y plane
 from +x towards +y; a component travels towards ``th``.
 
+``[waves] dispersion = "capillary"`` replaces (40) by the gravity-capillary relation of deep
+water, ``omega^2 = g k + (sigma / rho) k^3`` (surface tension ``sigma``, density ``rho``): waves
+shorter than a few centimetres are held together by surface tension as much as by gravity, so a
+spectrum cut well past the peak (``omega_max_rel`` > ~5 at light wind) has longer waves than
+(40) gives them, and needs a coarser mesh. The two relations agree for ``k << sqrt(rho g / sigma)``
+(about 370 rad/m, wavelengths well above 1.7 cm).
+
 Physics is done in SI units; everything public on :class:`SeaSurface` is in millimetres
 (positions, heights, wavelengths), radians and seconds, matching the ``lab`` frame.
 """
@@ -41,6 +48,16 @@ PM_BETA = 0.74
 PM_PEAK_FACTOR = (0.8 * PM_BETA) ** 0.25
 """``omega_p U / g`` at the P-M spectral peak, derived from ``dS/domega = 0`` (about 0.877)."""
 
+SURFACE_TENSION_N_M = 0.074
+"""Surface tension of sea water against air, N/m (0.0728 for pure water at 20 C, raised by the
+salt by ~1.5 %; 0.074 is the usual round value for sea water at 20 C, 35 PSU)."""
+
+SEA_WATER_DENSITY_KG_M3 = 1025.0
+"""Density of sea water near the surface (35 PSU, ~15-20 C), kg/m^3."""
+
+DISPERSIONS = ("gravity", "capillary")
+"""Dispersion relations :func:`wavenumber_rad_m` knows (``[waves].dispersion``)."""
+
 MM_PER_M = 1000.0
 
 # Bytes allowed for one (points x components) work array; a few of these live at once, so the
@@ -59,6 +76,40 @@ def peak_frequency_rad_s(wind_speed_m_s: float) -> float:
     if wind_speed_m_s <= 0:
         return float("inf")
     return PM_PEAK_FACTOR * G_M_S2 / wind_speed_m_s
+
+
+def wavenumber_rad_m(omega_rad_s: ArrayLike, dispersion: str = "gravity") -> Array:
+    """Deep-water wave number of angular frequencies by a dispersion relation, rad/m.
+
+    ``"gravity"``: ``k = omega^2 / g`` (eq. 40). ``"capillary"``: the positive root of
+    ``(sigma / rho) k^3 + g k - omega^2 = 0`` (with :data:`SURFACE_TENSION_N_M` and
+    :data:`SEA_WATER_DENSITY_KG_M3`), the only real one since the left side increases with
+    ``k``. As a depressed cubic ``k^3 + p k - q = 0`` with ``p = rho g / sigma > 0`` and
+    ``q = rho omega^2 / sigma``, its root is
+    ``2 sqrt(p/3) sinh(asinh(3 q / (2 p) sqrt(3 / p)) / 3)`` (the hyperbolic form of Cardano's
+    formula, free of the cancellation of its cube roots at small ``omega``).
+
+    Parameters
+    ----------
+    omega_rad_s : array_like, any shape
+        Angular frequencies, rad/s, >= 0.
+    dispersion : {"gravity", "capillary"}
+
+    Returns
+    -------
+    ndarray, same shape as ``omega_rad_s``
+    """
+    w = np.asarray(omega_rad_s, dtype=float)
+    if dispersion == "gravity":
+        return w**2 / G_M_S2
+    if dispersion != "capillary":
+        raise WaiInputError(
+            f"[waves].dispersion must be one of {', '.join(DISPERSIONS)}, not {dispersion!r}"
+        )
+    p = SEA_WATER_DENSITY_KG_M3 * G_M_S2 / SURFACE_TENSION_N_M
+    q = SEA_WATER_DENSITY_KG_M3 * w**2 / SURFACE_TENSION_N_M
+    scale = 2.0 * np.sqrt(p / 3.0)
+    return scale * np.sinh(np.arcsinh(1.5 * q / p * np.sqrt(3.0 / p)) / 3.0)
 
 
 def pm_spectrum(omega_rad_s: ArrayLike, wind_speed_m_s: float) -> Array:
@@ -129,6 +180,9 @@ class SeaSurface:
     omega_band_rad_s : (float, float) or None
         The sampled frequency band, rad/s, when known; it fixes :attr:`shortest_wavelength_mm`
         independently of the random jitter of the samples.
+    dispersion : {"gravity", "capillary"}
+        The relation between ``omega`` and ``k`` (:func:`wavenumber_rad_m`) by which
+        :attr:`shortest_wavelength_mm` follows from the band.
     """
 
     amplitudes_mm: Array
@@ -137,6 +191,7 @@ class SeaSurface:
     directions_rad: Array
     phases: Array
     omega_band_rad_s: tuple[float, float] | None = None
+    dispersion: str = "gravity"
 
     def __post_init__(self) -> None:
         names = ("amplitudes_mm", "omega_rad_s", "k_rad_per_mm", "directions_rad", "phases")
@@ -160,6 +215,11 @@ class SeaSurface:
             object.__setattr__(self, name, arr)
         if np.any(arrays["amplitudes_mm"] < 0):
             raise WaiInputError("waves: amplitudes_mm must be non-negative")
+        if self.dispersion not in DISPERSIONS:
+            raise WaiInputError(
+                f"[waves].dispersion must be one of {', '.join(DISPERSIONS)}, "
+                f"not {self.dispersion!r}"
+            )
 
     @property
     def n_components(self) -> int:
@@ -173,10 +233,11 @@ class SeaSurface:
 
     @property
     def shortest_wavelength_mm(self) -> float:
-        """Wavelength ``2 pi g / omega_max^2`` of the fastest harmonic, mm; ``inf`` when calm.
+        """Wavelength ``2 pi / k(omega_max)`` of the fastest harmonic, mm; ``inf`` when calm.
 
         ``omega_max`` is the top of the sampled band when known, else the largest frequency
-        that carries energy.
+        that carries energy; ``k`` follows :attr:`dispersion` (``2 pi g / omega_max^2`` for
+        gravity waves).
         """
         if self.omega_band_rad_s is not None:
             omega_max = float(self.omega_band_rad_s[1])
@@ -185,7 +246,9 @@ class SeaSurface:
             if not live.any():
                 return float("inf")
             omega_max = float(np.max(self.omega_rad_s[live]))
-        return 2.0 * np.pi * G_M_S2 / omega_max**2 * MM_PER_M
+        if self.dispersion == "gravity":
+            return 2.0 * np.pi * G_M_S2 / omega_max**2 * MM_PER_M
+        return 2.0 * np.pi / float(wavenumber_rad_m(omega_max, self.dispersion)) * MM_PER_M
 
     def height_mm(self, x_mm: ArrayLike, y_mm: ArrayLike, time_s: ArrayLike = 0.0) -> Array:
         """Surface elevation ``eta`` about the mean level at points and times, mm.
@@ -352,7 +415,9 @@ def sea_surface(waves: WavesConfig) -> SeaSurface:
     one sample jittered uniformly inside each bin. Directions: ``n_directions`` bin midpoints over
     ``+-90 deg`` about ``wind_direction_deg``. Phases uniform in ``[0, 2 pi)``. All randomness comes
     from ``numpy.random.default_rng(seed)`` (frequency jitter first, then phases), so a seed fixes
-    the surface. ``time_s`` of the config is not used: time is passed to the evaluators.
+    the surface. Wave numbers follow ``dispersion`` (:func:`wavenumber_rad_m`); the amplitudes,
+    a frequency spectrum, do not depend on it. ``time_s`` of the config is not used: time is
+    passed to the evaluators.
 
     Calm water (``wind_speed_m_s == 0``) gives all amplitudes, frequencies and wave numbers zero:
     a flat surface.
@@ -388,10 +453,11 @@ def sea_surface(waves: WavesConfig) -> SeaSurface:
     return SeaSurface(
         amplitudes_mm=np.sqrt(energy_m2) * MM_PER_M,
         omega_rad_s=omega,
-        k_rad_per_mm=omega**2 / G_M_S2 / MM_PER_M,
+        k_rad_per_mm=wavenumber_rad_m(omega, waves.dispersion) / MM_PER_M,
         directions_rad=directions,
         phases=phases,
         omega_band_rad_s=band,
+        dispersion=waves.dispersion,
     )
 
 

@@ -18,6 +18,7 @@ from mitsuba_wai.waves import (
     peak_frequency_rad_s,
     pm_spectrum,
     sea_surface,
+    wavenumber_rad_m,
 )
 from wai_core.config import WavesConfig
 from wai_core.errors import WaiInputError
@@ -315,6 +316,86 @@ def test_cos2_spreading_gives_3_to_1_slope_variance():
         sx += np.sum(gx**2)
         sy += np.sum(gy**2)
     assert sx / sy == pytest.approx(3.0, rel=0.12)
+
+
+# --- gravity-capillary dispersion -----------------------------------------------------------
+
+SIGMA = 0.074  # N/m, surface tension of sea water (textbook value)
+RHO = 1025.0  # kg/m^3, sea water
+
+
+def test_capillary_wavenumber_solves_the_dispersion_relation():
+    omega = np.geomspace(0.1, 300.0, 400)
+    k = wavenumber_rad_m(omega, "capillary")
+    # omega^2 = g k + (sigma / rho) k^3 (Lamb, Hydrodynamics, art. 267), deep water.
+    np.testing.assert_allclose(G * k + SIGMA / RHO * k**3, omega**2, rtol=1e-10)
+    assert np.all(np.diff(k) > 0)
+
+
+def test_capillary_phase_speed_minimum():
+    # c = sqrt(g / k + sigma k / rho) is least at k_m = sqrt(rho g / sigma), where
+    # c_min = (4 g sigma / rho)^(1/4): 0.231 m/s at 1.70 cm for sea water.
+    c_min = (4.0 * G * SIGMA / RHO) ** 0.25
+    lambda_min_m = 2.0 * np.pi * np.sqrt(SIGMA / (RHO * G))
+    assert c_min == pytest.approx(0.231, abs=5e-4)
+    assert lambda_min_m == pytest.approx(0.0170, abs=1e-4)
+    omega = np.linspace(5.0, 200.0, 200_001)
+    k = wavenumber_rad_m(omega, "capillary")
+    c = omega / k
+    i = int(np.argmin(c))
+    assert c[i] == pytest.approx(c_min, rel=1e-6)
+    assert 2.0 * np.pi / k[i] == pytest.approx(lambda_min_m, rel=2e-3)
+    # Gravity waves have no minimum: c = g / omega falls for ever.
+    assert np.all(np.diff(omega / wavenumber_rad_m(omega, "gravity")) < 0)
+
+
+def test_dispersions_agree_for_long_waves():
+    omega = np.array([0.5, 1.0, 3.0])  # wavelengths 250 m .. 7 m
+    deep = omega**2 / G
+    np.testing.assert_allclose(wavenumber_rad_m(omega, "capillary"), deep, rtol=1e-4)
+    # Short waves: surface tension stiffens the surface, so a frequency has a longer wave.
+    assert wavenumber_rad_m(80.0, "capillary") < 0.6 * 80.0**2 / G
+
+
+def test_gravity_dispersion_is_the_deep_water_default(paper_sea):
+    assert SEA.dispersion == "gravity"
+    assert np.array_equal(paper_sea.k_rad_per_mm, paper_sea.omega_rad_s**2 / G / 1000.0)
+    same = make_sea(dispersion="gravity")
+    assert np.array_equal(same.k_rad_per_mm, paper_sea.k_rad_per_mm)
+    assert same.shortest_wavelength_mm == paper_sea.shortest_wavelength_mm
+
+
+def test_capillary_sea_wavelengths_and_mesh_follow_the_dispersion(paper_sea):
+    from scipy.optimize import brentq
+
+    sea = make_sea(dispersion="capillary")
+    # Same frequencies and amplitudes (a frequency spectrum), other wave numbers.
+    assert np.array_equal(sea.omega_rad_s, paper_sea.omega_rad_s)
+    assert np.array_equal(sea.amplitudes_mm, paper_sea.amplitudes_mm)
+    omega_max = 5.0 * PM_PEAK_FACTOR * G / 1.0
+    k_max = brentq(lambda k: G * k + SIGMA / RHO * k**3 - omega_max**2, 1.0, 1e4, xtol=1e-12)
+    expected_mm = 2.0 * np.pi / k_max * 1000.0
+    assert sea.shortest_wavelength_mm == pytest.approx(expected_mm, rel=1e-9)
+    assert sea.shortest_wavelength_mm > 1.15 * paper_sea.shortest_wavelength_mm
+    assert mesh_spacing_mm(sea, 48.0) == pytest.approx(expected_mm / 48.0, rel=1e-9)
+
+
+def test_a_cutoff_too_far_is_refused_naming_omega_max_rel():
+    from mitsuba_wai.render import wave_surface
+    from wai_core import load_system
+
+    cfg = load_system("paper").replace(
+        "waves", wind_speed_m_s=1.0, omega_max_rel=10.0, dispersion="capillary"
+    )
+    with pytest.raises(WaiInputError, match=r"\[waves\]\.omega_max_rel"):
+        wave_surface(cfg)
+
+
+def test_rejects_unknown_dispersion():
+    with pytest.raises(WaiInputError, match="dispersion"):
+        wavenumber_rad_m(1.0, "shallow")
+    with pytest.raises(WaiInputError, match="dispersion"):
+        SeaSurface([[1.0]], [1.0], [1.0], [0.0], [[0.0]], dispersion="shallow")
 
 
 # --- input checks -------------------------------------------------------------------------------
