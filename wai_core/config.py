@@ -503,6 +503,25 @@ def renderer_effects(cfg: SystemConfig) -> dict[str, Any]:
     return on
 
 
+def with_keys(cfg: SystemConfig, changes: dict[str, Any]) -> SystemConfig:
+    """A checked copy of ``cfg`` with ``"section.key"`` values changed (values as TOML gives).
+
+    Examples
+    --------
+    >>> from wai_core import load_system
+    >>> cfg = with_keys(load_system("paper"), {"camera_v.distortion": [-0.1, 0, 0, 0, 0]})
+    >>> cfg.camera_v.distortion
+    (-0.1, 0.0, 0.0, 0.0, 0.0)
+    """
+    data = cfg.to_dict()
+    for name, value in changes.items():
+        section, _, key = name.partition(".")
+        if section not in data or not isinstance(data[section], dict) or key not in data[section]:
+            raise WaiInputError(f"config: unknown key {name!r} (section.key)")
+        data[section][key] = value
+    return config_from_dict(data)
+
+
 def _validate_effects(cfg: SystemConfig) -> None:
     """The renderer-only effects (:data:`RENDERER_EFFECTS`): checked even when off."""
     w = cfg.water

@@ -41,6 +41,10 @@ Point keys (all optional except ``config`` and ``seed``)
     Comma-separated warp steps (px): the reverse trace is run at each on the same surface.
 ``refinements`` (str)
     Comma-separated names of :data:`REFINEMENTS` run on the same frame (columns get a suffix).
+``render_overrides`` (str)
+    JSON object of ``"section.key"`` values (:func:`wai_core.config.with_keys`) that only the
+    render gets: physics the restoration does not know (``wai experiment budget``); the
+    restoration, its calibration and the correspondence check use the scene without them.
 ``repeats`` (int, default 3)
     Timed restorations per variant; the median is reported.
 
@@ -63,13 +67,14 @@ names, each with its own truth-free status (``variant_status_<suffix>``); ``fram
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from wai_core.config import SystemConfig
+from wai_core.config import SystemConfig, with_keys
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
 from wai_core.system import load_rig
@@ -255,8 +260,11 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
 
     cfg = frame_config(point)
     row: dict[str, Any] = {"phi_max_deg": correspondence_limit(cfg)["phi_max_deg"]}
+    rendered = cfg
+    if point.get("render_overrides"):
+        rendered = with_keys(cfg, json.loads(point["render_overrides"]))
     try:
-        images, surface = render_frame(cfg, float(point.get("amplitude", 1.0)))
+        images, surface = render_frame(rendered, float(point.get("amplitude", 1.0)))
     except (WaiInputError, ValueError) as exc:  # e.g. waves that reach the diffuser
         row["frame_status"] = f"failed: cannot render: {exc}"
         return row

@@ -1,0 +1,58 @@
+"""The error budget's points and summary (the sweep itself runs in CI: ``.ci/run``)."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from wai.experiments.budget import EFFECTS, budget_points, budget_summary
+from wai_core import load_system
+from wai_core.config import RENDERER_EFFECTS, renderer_effects, with_keys
+from wai_core.errors import WaiInputError
+
+
+def test_every_effect_is_a_valid_renderer_only_change():
+    cfg = load_system("paper")
+    known = {f"{s}.{k}" for s, keys in RENDERER_EFFECTS.items() for k in keys}
+    for name, effect in EFFECTS.items():
+        for m in effect.values + effect.quick:
+            changed = with_keys(cfg, effect.overrides(m))  # a checked configuration
+            on = renderer_effects(changed)
+            # Each effect turns on renderer-only keys (the index sweep changes the render's n,
+            # which the budget keeps from the restoration) and never a restoration setting.
+            assert set(on) <= known, name
+            assert on or name == "index", name
+            assert changed.water.n_water != cfg.water.n_water or name != "index"
+
+
+def test_points_carry_the_overrides_and_a_baseline_per_seed():
+    points = budget_points(Path("scenes/paper.toml"), [0, 1], quick=True)
+    base = [p for p in points if p["effect"] == "none"]
+    assert [p["seed"] for p in base] == [0, 1] and all("render_overrides" not in p for p in base)
+    k1 = [p for p in points if p["effect"] == "k1_s"]
+    assert len(k1) == 2 * len(EFFECTS["k1_s"].quick)
+    assert json.loads(k1[0]["render_overrides"])["camera_s.distortion"][0] < 0
+
+
+def test_summary_finds_where_rmse_passes_each_limit_and_counts_flags():
+    def row(effect, m, rmse, status="ok"):
+        return {"effect": effect, "magnitude": m, "seed": 0, "status": "ok",
+                "frame_status": status, "method_status": status, "wai_rmse_mm": rmse,
+                "wai_rmse_demeaned_mm": rmse / 2, "corner_std_restored_px": 0.1,
+                "residual_median_px": 0.05}
+
+    rows = [row("none", 0.0, 0.03), row("k1_s", 0.05, 0.04), row("k1_s", 0.1, 0.2),
+            row("k1_s", 0.2, 3.0, "inconsistent"), row("k1_s", 0.3, 5.0)]
+    s = budget_summary(rows)
+    k1 = s["effects"]["k1_s"]
+    assert k1["passes_mm"] == {"0.05": 0.1, "1": 0.2}
+    assert s["baseline"]["rmse_mm"] == pytest.approx(0.03)
+    # Two ruined frames, one flagged.
+    assert s["detection"]["bad"] == 2 and s["detection"]["detection_rate"] == 0.5
+
+
+def test_with_keys_names_an_unknown_key():
+    with pytest.raises(WaiInputError, match="water.nope"):
+        with_keys(load_system("paper"), {"water.nope": 1})
+    with pytest.raises(WaiInputError, match="roughness"):
+        with_keys(load_system("paper"), {"water.roughness": 2.0})

@@ -1,0 +1,275 @@
+"""``wai experiment budget``: what each effect the geometric model leaves out costs the restoration.
+
+Every frame is rendered with one renderer-only effect (:data:`wai_core.config.RENDERER_EFFECTS`,
+or the render's water index) at one magnitude, and restored by the default restoration on the
+scene without it: the model the restoration has. Per effect and magnitude the sweep reports the
+surface RMSE (absolute and de-meaned), the restored view's corner STD, the status and the
+forward-consistency residual, and where the RMSE passes :data:`LIMITS_MM`; the frames an
+effect ruins (RMSE over 1 mm) must be flagged by the truth-free status.
+
+The magnitudes run from zero (the baseline, every effect off) through a realistic value
+(:data:`EFFECTS`, ``realistic``) and beyond. The frames are points of a Dask sweep
+(:mod:`wai.sweep`), evaluated by :func:`wai.experiments.frame_eval.evaluate_frame` with the
+effect as the point's ``render_overrides``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wai.experiments.frame_eval import evaluate_frame
+from wai.experiments.stability import BAD_RMSE_MM, detection_rates
+from wai.sweep import run_sweep, sweep_kwargs
+from wai_core.io import atomic_write_bytes, write_json
+
+__all__ = ["EFFECTS", "LIMITS_MM", "Effect", "budget_points", "budget_summary", "run_budget"]
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One swept effect.
+
+    Attributes
+    ----------
+    label : str
+        Axis label: what the magnitude is, with its unit.
+    values : tuple of float
+        Magnitudes of the full sweep (the baseline, magnitude 0, is shared by all effects).
+    quick : tuple of float
+        Magnitudes of ``--quick``.
+    realistic : float
+        A magnitude a real rig of the paper's scale has (for the summary table).
+    overrides : callable
+        The render's ``"section.key"`` changes at magnitude ``m``.
+    """
+
+    label: str
+    values: tuple[float, ...]
+    quick: tuple[float, ...]
+    realistic: float
+    overrides: Callable[[float], dict[str, Any]]
+
+
+def _both_cameras(key: str, value: Callable[[float], Any]) -> Callable[[float], dict[str, Any]]:
+    return lambda m: {f"{cam}.{key}": value(m) for cam in ("camera_s", "camera_v")}
+
+
+EFFECTS: dict[str, Effect] = {
+    "polarisation": Effect(
+        "E-field angle on the panel (deg; 0: the panel's x axis)", (0.0, 45.0, 90.0),
+        (0.0, 90.0), 0.0,
+        lambda m: {"pattern.polarisation": "linear", "pattern.polarisation_deg": m},
+    ),
+    "index": Effect(
+        "water index of the render (the model keeps 4/3)", (1.335, 1.338, 1.340, 1.343),
+        (1.340,), 1.340, lambda m: {"water.n_water": m},
+    ),
+    "dispersion": Effect(
+        "salinity (PSU) of Quan & Fry's index per channel at 20 C", (0.0, 35.0), (35.0,), 35.0,
+        lambda m: {"water.index_model": "quan_fry", "water.salinity_psu": m},
+    ),
+    "k1_s": Effect("camera s radial distortion -k1", (0.05, 0.1, 0.2, 0.3), (0.2,), 0.2,
+                   lambda m: {"camera_s.distortion": [-m, 0.0, 0.0, 0.0, 0.0]}),
+    "k1_v": Effect("camera v radial distortion -k1", (0.05, 0.1, 0.2, 0.3), (0.2,), 0.2,
+                   lambda m: {"camera_v.distortion": [-m, 0.0, 0.0, 0.0, 0.0]}),
+    "principal_point": Effect(
+        "principal point offset of both cameras (px, along x and y)", (2.0, 5.0, 10.0, 20.0),
+        (10.0,), 10.0, _both_cameras("principal_offset_px", lambda m: [m, m]),
+    ),
+    "port": Effect("flat port thickness on both cameras (mm)", (2.0, 5.0, 10.0), (5.0,), 5.0,
+                   _both_cameras("port_thickness_mm", lambda m: m)),
+    "aperture": Effect(
+        "projector aperture (mm), focused at 400 mm", (1.0, 2.0, 5.0), (2.0,), 2.0,
+        lambda m: {"projector.aperture_mm": m, "projector.focus_mm": 400.0},
+    ),
+    "diffuser_profile": Effect(
+        "diffuser lobe half width (deg; Lambertian: none)", (60.0, 30.0, 15.0), (30.0,), 30.0,
+        lambda m: {"diffuser.half_width_deg": m},
+    ),
+    "diffuser_reflectance": Effect("diffuser back-reflection", (0.1, 0.3, 0.5), (0.3,), 0.3,
+                                   lambda m: {"diffuser.reflectance": m}),
+    "diffuser_blur": Effect("diffuser thickness blur (mm)", (0.2, 0.5, 1.0), (0.5,), 0.5,
+                            lambda m: {"diffuser.blur_mm": m}),
+    "roughness": Effect("water micro-roughness (GGX alpha)", (0.01, 0.03, 0.1), (0.03,), 0.01,
+                        lambda m: {"water.roughness": m}),
+    "capillary": Effect(
+        "spectrum cutoff (x omega_p), gravity-capillary waves", (4.0, 6.0), (4.0,), 4.0,
+        lambda m: {"waves.dispersion": "capillary", "waves.omega_max_rel": m},
+    ),
+}
+"""The effects the budget sweeps, in the order of its table."""
+
+LIMITS_MM = (0.05, BAD_RMSE_MM)
+"""Surface RMSE levels (mm) at which the report gives each effect's magnitude."""
+
+
+def budget_points(
+    config: Path, seeds: list[int], quick: bool, effects: list[str] | None = None
+) -> list[dict[str, Any]]:
+    """One point per effect, magnitude and seed, and a baseline (every effect off) per seed."""
+    points = [{"effect": "none", "magnitude": 0.0, "config": str(config), "seed": s,
+               "repeats": 1} for s in seeds]
+    for name in effects or list(EFFECTS):
+        effect = EFFECTS[name]
+        for m in effect.quick if quick else effect.values:
+            overrides = json.dumps(effect.overrides(m), sort_keys=True)
+            points += [{"effect": name, "magnitude": float(m), "config": str(config),
+                        "seed": s, "repeats": 1, "render_overrides": overrides} for s in seeds]
+    return points
+
+
+def _mean(rows: list[dict[str, Any]], key: str) -> float:
+    vals = [float(r[key]) for r in rows if r.get(key) is not None]
+    vals = [v for v in vals if np.isfinite(v)]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def _status(row: dict[str, Any]) -> str:
+    if row.get("status", "ok") != "ok":
+        return "error"
+    return str(row.get("method_status") or row.get("frame_status")).split(":")[0]
+
+
+def budget_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per effect and magnitude: frames, statuses, mean RMSE (absolute, de-meaned; over all
+    frames that gave a surface), corner STD, residual; each effect's magnitude at which the
+    RMSE passes each of :data:`LIMITS_MM`; and the detection of ruined frames."""
+    base = [r for r in rows if r.get("effect") == "none"]
+    out: dict[str, Any] = {"baseline": _entry(0.0, base), "effects": {}}
+    for name in EFFECTS:
+        sel = [r for r in rows if r.get("effect") == name]
+        if not sel:
+            continue
+        entries = [_entry(m, [r for r in sel if r["magnitude"] == m])
+                   for m in sorted({r["magnitude"] for r in sel})]
+        crossing = {}
+        for limit in LIMITS_MM:
+            over = [e["magnitude"] for e in entries if not e["rmse_mm"] <= limit]
+            crossing[f"{limit:g}"] = over[0] if over else None
+        out["effects"][name] = {"label": EFFECTS[name].label, "entries": entries,
+                                "passes_mm": crossing}
+    effect_rows = [r for r in rows if r.get("effect") != "none"]
+    out["detection"] = detection_rates([{**r, "sweep": r.get("effect")} for r in effect_rows])
+    return out
+
+
+def _entry(magnitude: float, group: list[dict[str, Any]]) -> dict[str, Any]:
+    statuses: dict[str, int] = {}
+    for r in group:
+        statuses[_status(r)] = statuses.get(_status(r), 0) + 1
+    return {
+        "magnitude": magnitude, "frames": len(group), "statuses": statuses,
+        "rmse_mm": _mean(group, "wai_rmse_mm"),
+        "rmse_demeaned_mm": _mean(group, "wai_rmse_demeaned_mm"),
+        "corner_std_px": _mean(group, "corner_std_restored_px"),
+        "residual_median_px": _mean(group, "residual_median_px"),
+    }
+
+
+def budget_figure(summary: dict[str, Any], path: Path) -> None:
+    """One panel per effect: RMSE (absolute and de-meaned) and corner STD against magnitude,
+    the baseline and the limits drawn; hollow markers where any frame was not ``ok``."""
+    from wai.figures import plt, save_figure
+
+    effects = summary["effects"]
+    if not effects:
+        return
+    cols = min(4, len(effects))
+    rows_n = -(-len(effects) // cols)
+    fig, axes = plt.subplots(rows_n, cols, figsize=(4.6 * cols, 3.6 * rows_n), squeeze=False)
+    base = summary["baseline"]
+    for ax, (name, eff) in zip(axes.ravel(), effects.items(), strict=False):
+        ent = eff["entries"]
+        x = np.arange(len(ent) + 1)
+        for key, style, label in (("rmse_mm", "o-", "RMSE"),
+                                  ("rmse_demeaned_mm", "s--", "RMSE de-meaned")):
+            y = [base[key]] + [e[key] for e in ent]
+            ax.plot(x, y, style, label=label)
+            bad = [i + 1 for i, e in enumerate(ent) if set(e["statuses"]) - {"ok"}]
+            ax.plot(bad, [y[i] for i in bad], "x", color="tab:red", ms=9)
+        for limit in LIMITS_MM:
+            ax.axhline(limit, color="gray", ls=":", lw=0.8)
+        ax.set_xticks(x, ["off"] + [f"{e['magnitude']:g}" for e in ent])
+        ax.set_yscale("log")
+        ax.set(title=name, xlabel=eff["label"], ylabel="surface RMSE (mm)")
+        tw = ax.twinx()
+        tw.plot(x, [base["corner_std_px"]] + [e["corner_std_px"] for e in ent], "^:",
+                color="tab:green", label="corner STD (px)")
+        tw.set_ylabel("corner STD (px)", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6, loc="upper left")
+    for ax in axes.ravel()[len(effects):]:
+        ax.set_visible(False)
+    fig.suptitle("Error budget: each effect rendered, the default restoration not knowing it "
+                 "(x: a frame not ok; dotted: 0.05 and 1 mm)")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def budget_markdown(summary: dict[str, Any], command: str) -> str:
+    """The summary table ("what the model must include") and one table per effect."""
+    base = summary["baseline"]
+    rates = summary["detection"]
+    lines = ["# Error budget: what the geometric model must include", "",
+             f"Command: `{command}`", "", "![budget](budget.png)", "",
+             f"Baseline (every effect off): RMSE {base['rmse_mm']:.4f} mm, de-meaned "
+             f"{base['rmse_demeaned_mm']:.4f} mm, corner STD {base['corner_std_px']:.3f} px, "
+             f"statuses {base['statuses']}.", "",
+             "| effect | realistic magnitude | RMSE there (mm) | passes 0.05 mm at | passes "
+             "1 mm at | must the model include it? |", "|" + " --- |" * 6]
+    for name, eff in summary["effects"].items():
+        real = EFFECTS[name].realistic
+        at = next((e for e in eff["entries"] if e["magnitude"] == real), None)
+        rmse = at["rmse_mm"] if at else float("nan")
+        verdict = ("yes" if rmse > max(0.05, 2 * base["rmse_mm"]) else
+                   "no" if np.isfinite(rmse) else "not measured at it")
+        p = eff["passes_mm"]
+        lines.append(f"| {name} | {real:g} | {rmse:.4f} | {_fmt(p['0.05'])} | {_fmt(p['1'])} "
+                     f"| {verdict} |")
+    lines += ["", f"Ruined frames (RMSE over {rates['bad_rmse_mm']:g} mm or failed): "
+              f"{rates['bad']} of {rates['frames']}, flagged by the truth-free status: "
+              f"{_pct(rates['detection_rate'])} (statuses {rates['bad_statuses']}); good "
+              f"frames flagged: {_pct(rates['false_alarm_rate'])}.", ""]
+    for name, eff in summary["effects"].items():
+        lines += [f"## {name}: {eff['label']}", "",
+                  "| magnitude | frames | statuses | RMSE (mm) | de-meaned (mm) | corner STD "
+                  "(px) | residual (px) |", "|" + " --- |" * 7]
+        for e in [summary["baseline"]] + eff["entries"]:
+            st = ", ".join(f"{k} {v}" for k, v in sorted(e["statuses"].items()))
+            mag = "off" if e is summary["baseline"] else f"{e['magnitude']:g}"
+            lines.append(f"| {mag} | {e['frames']} | {st} | {e['rmse_mm']:.4f} | "
+                         f"{e['rmse_demeaned_mm']:.4f} | {e['corner_std_px']:.3f} | "
+                         f"{e['residual_median_px']:.3f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _fmt(value: float | None) -> str:
+    return "never (in range)" if value is None else f"{value:g}"
+
+
+def _pct(value: float) -> str:
+    return "n/a (none)" if not np.isfinite(value) else f"{value:.0%}"
+
+
+def run_budget(args: argparse.Namespace) -> dict[str, Any]:
+    """Run the budget's sweep into ``args.out/budget.csv``; write the chart and the report."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    points = budget_points(args.config, list(range(args.seeds)), args.quick)
+    rows = run_sweep(points, evaluate_frame, out / "budget.csv", **sweep_kwargs(args))
+    summary = budget_summary(rows)
+    budget_figure(summary, out / "budget.png")
+    command = f"wai experiment budget --seeds {args.seeds}" + (" --quick" if args.quick else "")
+    text = budget_markdown(summary, command)
+    atomic_write_bytes(out / "budget.md", text.encode())
+    write_json(out / "budget_summary.json", summary)
+    print(text)
+    return summary
