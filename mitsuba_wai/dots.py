@@ -5,9 +5,18 @@ image's 2D distribution (a walk down a 1000 x 1000 mip hierarchy per particle), 
 pattern's render time. The image is a sum of Gaussian dots
 (:func:`wai_core.pattern.pattern_image`), so the same emission can be drawn in two cheap steps:
 
-1. The dot. Particle ``i`` of ``n`` takes the dot whose share of the luminance (``w_j / sum
-   w``) covers ``(i + u) / n``, ``u`` one random shift per pass (systematic sampling): every
-   dot gets ``n w_j / sum w`` particles in expectation and within one of it in every pass.
+1. The dot. Particle ``i`` of ``n`` takes the dot whose share ``p_j`` covers ``(i + u) / n``,
+   ``u`` one random shift per pass (systematic sampling): every dot gets ``n p_j`` particles in
+   expectation and within one of it in every pass. The share is the power the dot delivers to
+   the diffuser times its spot's size there, ``p_j ~ w_j R_j a_j`` (``w_j`` its brightness,
+   :func:`wai_core.layout.dot_weights`; ``R_j`` the Fresnel reflectance at its flat-water
+   incidence, 1 for the ``mirror``; ``a_j`` the spot's linear size on the diffuser per panel
+   pixel), not its emitted power: the weights ``1 / R`` make a dot below the critical angle
+   about 50 times brighter than one beyond it, though all reach the diffuser about equally
+   bright, and the spots beyond it land obliquely, 1.6 times wider in camera s. A spot's
+   centroid error grows with its width and shrinks with its particles, so this share gives
+   every spot about the same centroid noise (beyond the critical angle 1.2 times the others'
+   in the paper's flat-water pattern at 4 spp, against 21 times with ``p_j ~ w_j``).
 2. The point. The dot's ``m``-th particle takes the ``m``-th point of a shifted R2 sequence
    (:func:`mitsuba_wai.particles.kronecker`; a shift of its own per dot, so no two dots share
    a point set and its small centroid error), mapped to the Gaussian by Box-Muller.
@@ -17,13 +26,15 @@ plane, see :attr:`DotEmitter.skipped_vertices`), as
 :meth:`wai_core.geometry.PinholeCamera.pixel_rays` maps it (the projector shares the pinhole
 mapping of Mitsuba's perspective camera), and carries the projector's weight (Mitsuba's
 ``projector.cpp``: irradiance x scale x pi x image area at z = 1, over the sample's density),
-for a dot of colour ``c_j``: ``c_j * sum_k(w_k) * 2 pi sigma^2 / (W H) * scale * pi * A``, the same
-for every particle of a colour. Unbiased, because the shifts are uniform.
+for a dot of colour ``c_j``: its emitted flux over its share of the particles,
+``c_j * w_j / p_j * 2 pi sigma^2 / (W H) * scale * pi * A``, the same for all of a dot's
+particles. Unbiased, because the shifts are uniform and every dot's expected count times its
+weight is its flux.
 
 It differs from the bitmap only by what the raster leaves out (the bilinear interpolation
 between pixel centres, the tails cut at the panel's edge): the same flux and spots to the
 tolerance of ``tests/mitsuba_wai/test_particles.py``. The coded pattern's dots are drawn in
-proportion to their weight alone, whatever their colour, so a blue dot gets as many particles
+proportion to their share alone, whatever their colour, so a blue dot gets as many particles
 as a green one.
 """
 
@@ -36,6 +47,7 @@ import numpy as np
 from mitsuba_wai.particles import kronecker
 from mitsuba_wai.variant import mitsuba
 from wai_core.config import SystemConfig
+from wai_core.geometry import fresnel_reflectance, intersect_plane_z, reflect
 from wai_core.layout import dot_weights
 from wai_core.pattern import dot_colours, dot_grid
 
@@ -58,6 +70,8 @@ class DotEmitter:
     ----------
     n_dots : int
         Lit dots (the others are never drawn).
+    share : (n_dots,) ndarray
+        Each lit dot's expected fraction of the particles (sums to 1).
     skipped_vertices : int
         Path vertices the rays start past (1: the diffuser's pass-through), which the particle
         tracer counts towards its ``max_depth``.
@@ -89,13 +103,19 @@ class DotEmitter:
         w, h = projector.width_px, projector.height_px
         tan_x = np.tan(np.radians(projector.fov_x_deg) / 2.0)
         area = 4.0 * tan_x**2 * h / w  # the panel's area on the plane z_cam = 1
-        flux = weights.sum() * 2.0 * np.pi * sigma**2 / (w * h) * cfg.pattern.power * np.pi * area
-        self._cdf = np.concatenate([[0.0], np.cumsum(weights) / weights.sum()])
+        # Flux (per unit colour) of a dot of weight 1.
+        unit = 2.0 * np.pi * sigma**2 / (w * h) * cfg.pattern.power * np.pi * area
+        share = weights * _flat_reflectance(cfg, projector, panel_px)
+        share = share * _spot_size(cfg, projector, panel_px)
+        self.share = share / share.sum()
+        self._cdf = np.concatenate([[0.0], np.cumsum(self.share)])
         # Panel coordinates of each dot relative to the principal point, in focal lengths.
         f = projector.focal_px
         centre = (panel_px - [(w - 1) / 2.0, (h - 1) / 2.0]) / f
         self._centre = mi.Point2f(*(mi.Float(centre[:, k]) for k in range(2)))
-        self._colour = mi.Color3f(*(mi.Float(colours[:, k] * flux) for k in range(3)))
+        # A particle's weight: its dot's flux over the dot's share of the particles.
+        flux = colours * (unit * weights / self.share)[:, None]
+        self._colour = mi.Color3f(*(mi.Float(flux[:, k]) for k in range(3)))
         self._sigma = sigma / f
         self._origin = mi.Point3f(*projector.pose.center_lab_mm.tolist())
         self._axes = [mi.Vector3f(*row.tolist()) for row in projector.pose.R]  # cam axes, lab
@@ -154,3 +174,42 @@ class DotEmitter:
         ray = mi.Ray3f(self._origin + d * travelled, d)
         ray.time = time
         return ray, dr.gather(mi.Color3f, self._colour, dot), travelled
+
+
+def _flat_reflectance(cfg: SystemConfig, projector: Any, panel_px: np.ndarray) -> np.ndarray:
+    """Fresnel reflectance (K,) of the dots' chief rays at flat water (1 for the ``mirror``).
+
+    Parameters
+    ----------
+    cfg : SystemConfig
+    projector : wai_core.geometry.PinholeCamera
+    panel_px : (K, 2) ndarray
+        The dots' centres on the panel, pixels.
+
+    Returns
+    -------
+    (K,) ndarray
+        In (0, 1]; 1 beyond the critical angle.
+    """
+    if cfg.water.surface == "mirror":
+        return np.ones(panel_px.shape[0])
+    _, d = projector.pixel_rays(panel_px[:, 0], panel_px[:, 1])
+    return fresnel_reflectance(d[:, 2], cfg.water.n_water)
+
+
+def _spot_size(cfg: SystemConfig, projector: Any, panel_px: np.ndarray) -> np.ndarray:
+    """Linear size (K,) of the dots' flat-water spots on the diffuser, mm per panel pixel.
+
+    ``sqrt |det J|`` of the map from the panel (pixels) to the diffuser plane (lab x, y, mm)
+    through the flat water's mirror reflection, by central differences of half a pixel.
+    """
+    def diffuser_xy(px: np.ndarray) -> np.ndarray:
+        o, d = projector.pixel_rays(px[:, 0], px[:, 1])
+        q, _ = intersect_plane_z(o, d, cfg.water.h0_mm)
+        s, _ = intersect_plane_z(q, reflect(d, np.array([0.0, 0.0, 1.0])), cfg.diffuser.z_mm)
+        return s[:, :2]
+
+    step = np.array([[0.5, 0.0], [0.0, 0.5]])
+    jac = np.stack([diffuser_xy(panel_px + e) - diffuser_xy(panel_px - e) for e in step], 2)
+    size = np.sqrt(np.abs(np.linalg.det(jac)))
+    return np.where(np.isfinite(size) & (size > 0), size, np.nanmedian(size))
