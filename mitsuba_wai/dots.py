@@ -31,6 +31,14 @@ for a dot of colour ``c_j``: its emitted flux over its share of the particles,
 particles. Unbiased, because the shifts are uniform and every dot's expected count times its
 weight is its flux.
 
+With ``[projector] aperture_mm`` > 0 the projector is a thin lens of that diameter, in focus at
+``z_cam = focus_mm``: a particle's ray starts at a point uniform on the lens disk (centred on
+the projector's centre, perpendicular to its axis; a further shifted Kronecker pair, its own
+shift per dot, mapped to the disk concentrically) and passes where its panel point's pinhole ray
+meets the plane in focus, so a spot at distance ``z`` blurs by a disk of diameter
+``aperture |z - focus| / focus``. The weights stay those of the pinhole (the lens moves light,
+it makes none); with the aperture 0 nothing of this runs.
+
 It differs from the bitmap only by what the raster leaves out (the bilinear interpolation
 between pixel centres, the tails cut at the panel's edge): the same flux and spots to the
 tolerance of ``tests/mitsuba_wai/test_particles.py``. The coded pattern's dots are drawn in
@@ -55,6 +63,19 @@ __all__ = ["DotEmitter"]
 
 # Rays start this far (mm) above the diffuser plane, clear of its surface at float32 precision.
 _PAST_MM = 1e-3
+
+# The lens sample's two coordinates, 2^32 / phi_4^3 and 2^32 / phi_4^4 (mod 2^32; phi_4 the
+# positive root of x^5 = x + 1): the last two of Roberts' 4D sequence, whose steps are
+# rationally independent of the R2 pair's, so the four coordinates fill the 4D cube evenly.
+_LENS_KRONECKER = (2700274806, 2313257605)
+
+
+def _lens_kronecker(index: Any, k: int, shift: Any) -> Any:
+    """Coordinate ``k`` (0, 1) of the lens sample: ``frac(index alpha_k + shift / 2^32)`` as
+    :func:`mitsuba_wai.particles.kronecker`, float32 in [0, 1), (n,)."""
+    mi = mitsuba()
+    bits = index * mi.UInt32(_LENS_KRONECKER[k]) + shift
+    return mi.Float(bits >> 8) * (1.0 / 2**24)
 
 
 class DotEmitter:
@@ -119,6 +140,8 @@ class DotEmitter:
         self._sigma = sigma / f
         self._origin = mi.Point3f(*projector.pose.center_lab_mm.tolist())
         self._axes = [mi.Vector3f(*row.tolist()) for row in projector.pose.R]  # cam axes, lab
+        self._lens_radius = cfg.projector.aperture_mm / 2.0  # mm; 0: the pinhole
+        self._focus = cfg.projector.focus_mm
         # The rays start just past the diffuser plane, which lies between the projector and
         # the water (a checked rule of the configuration): its pass-through from below changes
         # nothing (weight 1, a delta vertex that connects to no camera), so the particle
@@ -145,12 +168,13 @@ class DotEmitter:
         Returns
         -------
         ray : mitsuba.Ray3f, (n,)
-            From the projector's centre (lab, mm) through the sampled panel point, starting
-            just past the diffuser plane.
+            From the projector's centre (lab, mm; with an aperture, the particle's point on the
+            lens) through the sampled panel point (or its point in focus), starting just past
+            the diffuser plane.
         weight : mitsuba.Color3f, (n,)
             The particle's power, as Mitsuba's ``Scene.sample_emitter_ray`` returns it.
         travelled_mm : mitsuba.Float, (n,)
-            Distance from the projector to the ray's origin, mm (in the water).
+            Distance from the projector (its lens point) to the ray's origin, mm (in the water).
         """
         import drjit as dr
 
@@ -169,11 +193,47 @@ class DotEmitter:
         u = [kronecker(local, k, dr.gather(mi.UInt32, mi.UInt32(shifts[k]), dot)) for k in (0, 1)]
         offset = mi.warp.square_to_std_normal(mi.Point2f(*u)) * self._sigma
         xy = dr.gather(mi.Point2f, self._centre, dot) + offset
-        d = dr.normalize(self._axes[0] * xy.x + self._axes[1] * xy.y + self._axes[2])
-        travelled = (self._start_z - self._origin.z) / d.z
-        ray = mi.Ray3f(self._origin + d * travelled, d)
+        lens = None
+        if self._lens_radius > 0:  # drawn after the pinhole's shifts, which stay as they are
+            lens_shifts = rng.integers(0, 2**32, (2, self.n_dots), dtype=np.uint64)
+            lens = mi.Point2f(*(_lens_kronecker(local, k, dr.gather(
+                mi.UInt32, mi.UInt32(lens_shifts[k].astype(np.uint32)), dot)) for k in (0, 1)))
+        origin, d = self._ray(xy, lens)
+        travelled = (self._start_z - origin.z) / d.z
+        ray = mi.Ray3f(origin + d * travelled, d)
         ray.time = time
         return ray, dr.gather(mi.Color3f, self._colour, dot), travelled
+
+    def _ray(self, xy: Any, lens: Any) -> tuple[Any, Any]:
+        """Origin and direction of the rays through panel points ``xy``: the ray construction.
+
+        Parameters
+        ----------
+        xy : mitsuba.Point2f, (n,)
+            Panel points relative to the principal point, in focal lengths (``cam`` frame
+            ``x / z``, ``y / z``).
+        lens : mitsuba.Point2f (n,) or None
+            Points in [0, 1)^2 mapped onto the lens disk; None: the pinhole.
+
+        Returns
+        -------
+        origin : mitsuba.Point3f, (n,)
+            The projector's centre, or the particle's point on the lens disk (lab, mm).
+        direction : mitsuba.Vector3f, (n,)
+            Unit direction, lab.
+        """
+        import drjit as dr
+
+        mi = mitsuba()
+        origin = self._origin
+        if lens is not None:
+            # Thin lens: from the lens point to where the pinhole ray meets the plane in focus,
+            # z_cam = f: direction (f x - a, f y - b, f) for lens point (a, b, 0), cam frame.
+            disk = mi.warp.square_to_uniform_disk_concentric(lens) * self._lens_radius
+            origin = origin + self._axes[0] * disk.x + self._axes[1] * disk.y
+            xy = xy - disk / self._focus
+        d = dr.normalize(self._axes[0] * xy.x + self._axes[1] * xy.y + self._axes[2])
+        return origin, d
 
 
 def _flat_reflectance(cfg: SystemConfig, projector: Any, panel_px: np.ndarray) -> np.ndarray:
