@@ -42,12 +42,13 @@ from mitsuba_wai.degrade import (
     render_frame_images,
     subframe_plan,
 )
+from mitsuba_wai.diffuser import screen_blur
 from mitsuba_wai.dots import DotEmitter
 from mitsuba_wai.particles import pass_split, render_particles, render_particles_water
 from mitsuba_wai.scenes import (
-    SCENE_S_DEPTH,
     SCENE_V_DEPTH,
     VIEW_SAMPLERS,
+    pattern_depth,
     pattern_scene,
     view_scene,
     water_bsdf,
@@ -295,7 +296,7 @@ class FrameRenderer:
             "view": given.get("view") or self.cfg.render.spp_view,
         }
         # The pattern by the deterministic particle tracer (same image for the same seed).
-        depth = {"pattern": SCENE_S_DEPTH, "view": None}
+        depth = {"pattern": pattern_depth(self.cfg), "view": None}
         lit = self.cfg.water_optics.enabled or self.cfg.ambient.enabled
         for key in (k for k in ("pattern", "view") if k in which):
             if key == "pattern" and lit:
@@ -311,6 +312,8 @@ class FrameRenderer:
             if key == "view" and self.cfg.water_optics.enabled:
                 lengths = view_path_lengths(self._scenes["view"], self.cfg)
                 out[key] = water_view(out[key], lengths, self.cfg)
+            if key == "pattern":
+                out[key] = screen_blur(out[key], self.cfg)  # a no-op unless [diffuser].blur_mm
             self.nonfinite_pixels[key] = self.nonfinite_pixels.get(key, 0) + bad
         return out
 
@@ -331,7 +334,7 @@ class FrameRenderer:
     def _pattern_in_daylight_water(self, spp: int, seed: int) -> tuple[NDArray[np.float32], int]:
         """Camera s's image with ``[water_optics]`` and / or ``[ambient]``: the pattern, the
         sun's caustics (their own particles, seeded apart) and the sky's constant light."""
-        image, bad = self._particles("pattern", spp, seed, SCENE_S_DEPTH, 0)
+        image, bad = self._particles("pattern", spp, seed, pattern_depth(self.cfg), 0)
         if self.cfg.ambient.enabled:
             if "pattern_sun" in self._scenes:
                 sun_seed = (int(seed) + AMBIENT_SEED_OFFSET) % 2**32
@@ -386,7 +389,7 @@ def scene_record(
         "render_seed": render_seed(cfg),
         "variant": variant,
         "integrators": {
-            "pattern": {"type": "ptracer", "max_depth": SCENE_S_DEPTH,
+            "pattern": {"type": "ptracer", "max_depth": pattern_depth(cfg),
                         "emitter_samples": cfg.render.sampling},
             "view": {"type": "path", "max_depth": SCENE_V_DEPTH,
                      "sampler": VIEW_SAMPLERS[cfg.render.sampling]},

@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from mitsuba_wai.diffuser import diffuser_bsdf
 from wai_core.config import SystemConfig
 from wai_core.geometry import PinholeCamera
 from wai_core.layout import diffuser_rect, dot_weights, object_plane_center
@@ -113,6 +114,13 @@ def rectangle_to_world(center: NDArray, size_mm: NDArray, facing_down: bool) -> 
     return _transform(m)
 
 
+def pattern_depth(cfg: SystemConfig) -> int:
+    """System S's particle-tracer ``max_depth``: :data:`SCENE_S_DEPTH` (4), or 6 when the
+    diffuser reflects (``[diffuser].reflectance > 0``), whose glow takes two more vertices:
+    diffuser -> water (reflected back down) -> diffuser -> camera."""
+    return SCENE_S_DEPTH + 2 if cfg.diffuser.reflectance > 0 else SCENE_S_DEPTH
+
+
 def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
     """System S: projector, water, diffuser, camera s (see module notes)."""
     import mitsuba as mi
@@ -149,16 +157,17 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
         lights = {"projector": projector_dict(panel)}
     return {
         "type": "scene",
-        "integrator": {"type": "ptracer", "max_depth": SCENE_S_DEPTH, "hide_emitters": True},
+        "integrator": {"type": "ptracer", "max_depth": pattern_depth(cfg), "hide_emitters": True},
         # Box filter: splats land in one pixel, so centroids stay unbiased and splatting is cheap.
         "sensor": sensor_dict(cfg.camera_s.camera(), rfilter="box"),
         **lights,
         "water": water_mesh,
-        # Diffuse transmission from above, pass-through from below (see mitsuba_wai.bsdfs).
+        # Diffuse transmission from above, pass-through from below (see mitsuba_wai.bsdfs);
+        # a real screen's profile and back-reflection when [diffuser] asks (mitsuba_wai.diffuser).
         "diffuser": {
             "type": "rectangle",
             "to_world": rectangle_to_world(center, rect[:, 1] - rect[:, 0], facing_down=False),
-            "bsdf": {"type": "oneway_diffuser"},
+            "bsdf": diffuser_bsdf(cfg),
         },
     }
 
