@@ -141,3 +141,72 @@ def radiance_gain(n_water: float) -> float:
     1.7778
     """
     return float(n_water) ** 2
+
+
+CHANNEL_WAVELENGTHS_NM = (600.0, 530.0, 460.0)
+"""Wavelengths (nm) the renders' colour channels R, G, B stand for (as ``[water_optics]``)."""
+
+# Quan & Fry (1995), eq. (1)'s ten coefficients (n0 .. n9), lambda in nm, T in deg C, S in PSU.
+_QUAN_FRY = (1.31405, 1.779e-4, -1.05e-6, 1.6e-8, -2.02e-6, 15.868, 0.01155, -0.00423, -4382.0,
+             1.1455e6)
+
+
+def quan_fry_index(
+    salinity_psu: ArrayLike, temperature_c: ArrayLike, wavelength_nm: ArrayLike
+) -> Array:
+    """Refractive index of sea water (relative to air) by Quan & Fry's empirical equation.
+
+    Parameters
+    ----------
+    salinity_psu : array_like
+        Salinity S, PSU (parts per thousand; the fit covers 0 .. 35).
+    temperature_c : array_like
+        Temperature T, deg C (the fit covers 0 .. 30).
+    wavelength_nm : array_like
+        Wavelength in vacuum, nm (the fit covers 400 .. 700).
+
+    Returns
+    -------
+    ndarray
+        Index n(S, T, lambda), the inputs' broadcast shape.
+
+    Notes
+    -----
+    .. math::
+
+        n = n_0 + (n_1 + n_2 T + n_3 T^2) S + n_4 T^2 + \\frac{n_5 + n_6 S + n_7 T}{\\lambda}
+            + \\frac{n_8}{\\lambda^2} + \\frac{n_9}{\\lambda^3}
+
+    a fit to the data that Austin & Halikas (1976) selected, at atmospheric pressure.
+
+    References
+    ----------
+    X. Quan and E. S. Fry, "Empirical equation for the index of refraction of seawater",
+    Appl. Opt. 34(18), 3477-3480 (1995).
+
+    Examples
+    --------
+    >>> round(float(quan_fry_index(0.0, 20.0, 589.3)), 4)
+    1.333
+    """
+    n0, n1, n2, n3, n4, n5, n6, n7, n8, n9 = _QUAN_FRY
+    s = np.asarray(salinity_psu, dtype=float)
+    t = np.asarray(temperature_c, dtype=float)
+    lam = np.asarray(wavelength_nm, dtype=float)
+    return (
+        n0 + (n1 + n2 * t + n3 * t**2) * s + n4 * t**2
+        + (n5 + n6 * s + n7 * t) / lam + n8 / lam**2 + n9 / lam**3
+    )
+
+
+def channel_indices(salinity_psu: float, temperature_c: float) -> tuple[float, float, float]:
+    """Sea water's index at the renders' R, G, B wavelengths (:data:`CHANNEL_WAVELENGTHS_NM`),
+    by :func:`quan_fry_index`.
+
+    Examples
+    --------
+    >>> [round(n, 4) for n in channel_indices(35.0, 20.0)]
+    [1.3391, 1.3416, 1.3452]
+    """
+    n = quan_fry_index(salinity_psu, temperature_c, np.array(CHANNEL_WAVELENGTHS_NM))
+    return float(n[0]), float(n[1]), float(n[2])
