@@ -41,17 +41,22 @@ class Experiment:
 # runs are estimated from the quick ones by their number and size of frames.
 EXPERIMENTS: dict[str, Experiment] = {
     "validate": Experiment(
-        summary="the geometric model against the physically based render; spp defaults",
+        summary="the renderer against stock Mitsuba, the geometric model against the render",
         description=(
-            "Spot centres of the pattern render against the geometric model's chief rays, and "
-            "the path-traced view against the geometric view (flat water and waves at several "
-            "wind speeds), then spot error and view noise against samples per pixel for both "
+            "Renderer vs Mitsuba reference: the default renderer against renders made of "
+            "Mitsuba's stock plugins and integrators only (ptracer + projector + dielectric, "
+            "path + dielectric, independent sampler, high spp), flat water and U = 1: spot "
+            "centroids in fixed windows, light in the spots and the image, the view's mean "
+            "and RMS difference. Geometric model vs render: spot centres of the pattern render "
+            "against the geometric model's chief rays, and the rendered view against the "
+            "geometric view (flat water and waves at several wind speeds), then spot error and "
+            "view noise against samples per pixel for both "
             "[render].sampling choices.\n\n"
-            "Writes agreement.csv, spp_sweep.csv, view_spp_sweep.csv, spp_tradeoff.png and "
-            "validate.json into --out, and prints the tables.\n\n"
+            "Writes renderer_vs_mitsuba.csv, agreement.csv, spp_sweep.csv, view_spp_sweep.csv, "
+            "spp_tradeoff.png and validate.json into --out, and prints the tables.\n\n"
             "Takes (2 cores): {validate}."
         ),
-        quick="2 wave cases, spp 2/8/32 and 1/4, one run each",
+        quick="2 wave cases, spp 2/8/32 and 1/4, one run each, the reference at 64 / 16 spp",
     ),
     "paper": Experiment(
         summary="the paper's figures and tables (Fig. 8-15, Table 2) from fresh runs",
@@ -147,8 +152,8 @@ EXPERIMENTS: dict[str, Experiment] = {
 }
 
 DURATIONS = {
-    "validate": "about 80 s with --quick; roughly 15 min without (3 times the cases, spp up "
-                "to 64 and a 256-spp reference, 3 runs each)",
+    "validate": "about 2.5 min with --quick; roughly 20 min without (3 times the cases, spp "
+                "up to 64 and a 256-spp reference, 3 runs each)",
     "paper": "about 35 s with --quick; roughly 2 min without (10 seeds, 8 amplitudes)",
     "alterman": "about 50 s with --quick; roughly 5 min without (3 seeds, 6 sun angles)",
     "tradeoffs": "about 85 s with --quick --workers 0; roughly 5 min without --quick (28 "
