@@ -27,6 +27,21 @@ empty sky. ``water_interface`` follows the needed branch every time with the exa
 the same expected image, without the Fresnel noise and without wasting paths. Radiance crossing
 the interface is scaled by ``eta^2`` as in Mitsuba's ``dielectric`` (radiance transport).
 Normals point into the air (``ext_ior``); ``int_ior`` is the water.
+
+Two optional properties add physics the restoration's model leaves out (absent: the above):
+
+- ``int_ior_rgb`` (three floats, R G B): the water's index per colour channel (dispersion).
+  Reflecting, each channel gets its own Fresnel weight along the one mirror direction.
+  Refracting, one direction cannot follow three indices, so each sample picks one channel
+  with ``sample1`` (probability 1/3), refracts with its index and carries ``3 (1 - F_c)`` in
+  that channel only: unbiased, but each pixel's colour is noisier than with one index (a
+  third of the samples per channel, each three times as heavy).
+- ``polarisation_axis`` (a world vector; ``mode = "reflect"`` only): the incident light is
+  linearly polarised, its field the axis made transverse to the ray (an LCD projector whose
+  light reaches the water with nothing in between that changes it). The reflectance is
+  ``R_s cos^2(phi) + R_p sin^2(phi)``, phi the field's angle from the s direction (normal to
+  the plane of incidence), instead of ``(R_s + R_p) / 2``. What the diffuser then does to the
+  polarisation does not matter: camera s records intensity.
 """
 
 from __future__ import annotations
@@ -93,11 +108,45 @@ def register() -> None:
         def to_string(self):
             return f"OneWayDiffuser[albedo={self.albedo}]"
 
+    def fresnel_sp(cos_i, eta):
+        """Fresnel power reflectances ``(R_s, R_p)`` for the local ``cos_i`` of ``wi`` (> 0:
+        arriving from the exterior, index 1; < 0: from the interior, index ``eta``); 1 under
+        total internal reflection."""
+        outside = cos_i > 0
+        n_i = dr.select(outside, 1.0, eta)
+        n_t = dr.select(outside, eta, 1.0)
+        ci = dr.abs(cos_i)
+        sin_t2 = dr.square(n_i / n_t) * (1.0 - dr.square(ci))
+        tir = sin_t2 >= 1.0
+        ct = dr.safe_sqrt(1.0 - sin_t2)
+        r_s = (n_i * ci - n_t * ct) / (n_i * ci + n_t * ct)
+        r_p = (n_t * ci - n_i * ct) / (n_t * ci + n_i * ct)
+        return dr.select(tir, 1.0, dr.square(r_s)), dr.select(tir, 1.0, dr.square(r_p))
+
+    def one_channel(index, value):
+        """An RGB spectrum with ``value`` in channel ``index`` (0, 1, 2) and 0 in the others."""
+        return mi.Color3f(*(dr.select(index == c, value, 0.0) for c in range(3)))
+
     class WaterInterface(mi.BSDF):
         def __init__(self, props: mi.Properties) -> None:
             super().__init__(props)
-            self.eta = props.get("int_ior", 1.333) / props.get("ext_ior", 1.0)
+            ext = props.get("ext_ior", 1.0)
+            self.eta = props.get("int_ior", 1.333) / ext
             self.refract_mode = props.get("mode", "refract") == "refract"
+            # Optional physics (absent: the plain interface above): a per-channel index
+            # (int_ior_rgb, R G B) and, when reflecting, linearly polarised incident light
+            # (polarisation_axis: its field's direction at the source, world frame).
+            self.eta_rgb = (
+                tuple(float(v) / ext for v in props.get("int_ior_rgb"))
+                if "int_ior_rgb" in props else None
+            )
+            self.axis = None
+            if "polarisation_axis" in props:
+                if self.refract_mode:
+                    raise ValueError("water_interface: polarisation_axis needs mode 'reflect'")
+                a = [float(v) for v in props.get("polarisation_axis")]
+                norm = sum(v * v for v in a) ** 0.5
+                self.axis = mi.Vector3f(*(v / norm for v in a))
             lobe = (
                 mi.BSDFFlags.DeltaTransmission
                 if self.refract_mode
@@ -107,6 +156,10 @@ def register() -> None:
             self.m_flags = self.m_components[0]
 
         def sample(self, ctx, si, sample1, sample2, active=True):
+            if self.eta_rgb is not None and self.refract_mode:
+                return self._sample_dispersed_refraction(ctx, si, sample1, active)
+            if self.eta_rgb is not None or self.axis is not None:
+                return self._sample_reflection(ctx, si, active)
             cos_i = mi.Frame3f.cos_theta(si.wi)
             f, cos_t, eta_it, eta_ti = mi.fresnel(cos_i, self.eta)
             bs = dr.zeros(mi.BSDFSample3f)
@@ -128,6 +181,59 @@ def register() -> None:
                 ok = active
             return bs, dr.select(ok, mi.Spectrum(weight), 0.0)
 
+        def _sample_dispersed_refraction(self, ctx, si, sample1, active):
+            # One direction per sample cannot follow three indices: choose the channel with
+            # sample1 (probability 1/3 each), refract with its index and weight that channel
+            # by 3 (1 - F_c) (x eta^2 for radiance), the others by 0. Unbiased per channel.
+            channel = dr.minimum(mi.UInt32(sample1 * 3.0), 2)
+            eta = dr.select(
+                channel == 0, self.eta_rgb[0], dr.select(channel == 1, self.eta_rgb[1],
+                                                         self.eta_rgb[2])
+            )
+            cos_i = mi.Frame3f.cos_theta(si.wi)
+            f, cos_t, eta_it, eta_ti = mi.fresnel(cos_i, eta)
+            bs = dr.zeros(mi.BSDFSample3f)
+            bs.pdf = 1.0
+            bs.sampled_component = mi.UInt32(0)
+            bs.wo = mi.refract(si.wi, cos_t, eta_ti)
+            bs.eta = eta_it
+            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DeltaTransmission)
+            weight = 3.0 * (1.0 - f)
+            if ctx.mode == mi.TransportMode.Radiance:
+                weight = weight * dr.square(eta_ti)
+            ok = active & (f < 1.0)
+            return bs, dr.select(ok, one_channel(channel, weight), 0.0)
+
+        def _sample_reflection(self, ctx, si, active):
+            cos_i = mi.Frame3f.cos_theta(si.wi)
+            bs = dr.zeros(mi.BSDFSample3f)
+            bs.pdf = 1.0
+            bs.sampled_component = mi.UInt32(0)
+            bs.wo = mi.reflect(si.wi)
+            bs.eta = 1.0
+            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DeltaReflection)
+            etas = self.eta_rgb if self.eta_rgb is not None else (self.eta,)
+            if self.axis is None:
+                r = [mi.fresnel(cos_i, e)[0] for e in etas]
+            else:
+                # Share of the incident field along s (normal to the plane of incidence):
+                # with d the light's direction of travel and E its field (the source's axis
+                # made transverse to d), |E.s|^2 / |E|^2; s is normal to d, so E.s = axis.s.
+                d = -si.wi if ctx.mode == mi.TransportMode.Importance else -bs.wo
+                axis = si.to_local(self.axis)
+                s_dir = mi.Vector3f(-d.y, d.x, 0.0)
+                e_dot_d = dr.dot(axis, d)
+                e_sq = dr.maximum(dr.squared_norm(axis) - dr.square(e_dot_d), 1e-12)
+                s_share = dr.square(dr.dot(axis, s_dir)) / (
+                    dr.maximum(dr.squared_norm(s_dir), 1e-12) * e_sq
+                )
+                s_share = dr.clip(s_share, 0.0, 1.0)
+                r = []
+                for e in etas:
+                    r_s, r_p = fresnel_sp(cos_i, e)
+                    r.append(r_s * s_share + r_p * (1.0 - s_share))
+            return bs, dr.select(active, mi.Color3f(*(r * (3 // len(r)))), 0.0)
+
         def eval(self, ctx, si, wo, active=True):
             return mi.Spectrum(0.0)
 
@@ -142,7 +248,9 @@ def register() -> None:
 
         def to_string(self):
             mode = "refract" if self.refract_mode else "reflect"
-            return f"WaterInterface[eta={self.eta}, mode={mode}]"
+            extra = "" if self.eta_rgb is None else f", eta_rgb={self.eta_rgb}"
+            extra += "" if self.axis is None else ", polarised"
+            return f"WaterInterface[eta={self.eta}, mode={mode}{extra}]"
 
     mi.register_bsdf("oneway_diffuser", lambda props: OneWayDiffuser(props))
     mi.register_bsdf("water_interface", lambda props: WaterInterface(props))

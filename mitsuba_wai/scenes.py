@@ -27,8 +27,10 @@ from numpy.typing import NDArray
 
 from mitsuba_wai.diffuser import diffuser_bsdf
 from wai_core.config import SystemConfig
+from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.layout import diffuser_rect, dot_weights, object_plane_center
+from wai_core.optics import channel_indices
 from wai_core.pattern import pattern_image
 
 SCENE_S_DEPTH = 4
@@ -82,7 +84,16 @@ def water_bsdf(cfg: SystemConfig, system: str) -> dict:
 
     Normals point into the air (exterior). A water surface follows the one branch its system
     needs with the exact Fresnel weight (``water_interface``, :mod:`mitsuba_wai.bsdfs`); the
-    ``mirror`` surface of system S reflects everything.
+    ``mirror`` surface of system S reflects everything. The renderer-only ``[water]`` and
+    ``[pattern]`` keys add, each when on:
+
+    - ``index_model = "quan_fry"``: the index per colour channel (:func:`water_channel_indices`);
+    - ``polarisation = "linear"`` (system S): the projector's field direction
+      (:func:`projector_field_axis`), so the reflectance weighs R_s and R_p by it;
+    - ``roughness > 0``: Mitsuba's ``roughdielectric`` (GGX, ``alpha = roughness``, index
+      ``n_water``). It chooses reflection or refraction at random by the Fresnel weight, so
+      each system keeps only its share of the paths (noisier at the same spp); it has one
+      scalar index and no polarisation, so it refuses both.
     """
     from mitsuba_wai.bsdfs import register
 
@@ -91,8 +102,43 @@ def water_bsdf(cfg: SystemConfig, system: str) -> dict:
         raise ValueError(f"system must be 'S', 'V' or 'A', not {system!r}")
     if system == "S" and cfg.water.surface == "mirror":
         return {"type": "twosided", "bsdf": {"type": "conductor", "material": "none"}}
+    w = cfg.water
+    polarised = system == "S" and cfg.pattern.polarisation == "linear"
+    if w.roughness > 0:
+        if w.index_model != "constant" or polarised:
+            raise WaiInputError(
+                "config: [water].roughness > 0 needs [water].index_model = 'constant' and "
+                "[pattern].polarisation = 'none'"
+            )
+        return {"type": "roughdielectric", "distribution": "ggx", "alpha": float(w.roughness),
+                "int_ior": w.n_water, "ext_ior": 1.0}
     mode = "reflect" if system == "S" else "refract"
-    return {"type": "water_interface", "int_ior": cfg.water.n_water, "ext_ior": 1.0, "mode": mode}
+    bsdf = {"type": "water_interface", "int_ior": w.n_water, "ext_ior": 1.0, "mode": mode}
+    if w.index_model == "quan_fry":
+        bsdf["int_ior_rgb"] = list(water_channel_indices(cfg))
+    if polarised:
+        bsdf["polarisation_axis"] = projector_field_axis(cfg).tolist()
+    return bsdf
+
+
+def water_channel_indices(cfg: SystemConfig) -> tuple[float, float, float]:
+    """The water's index in the renders' R, G, B channels: ``[water].n_water`` in each
+    (``index_model = "constant"``) or sea water's at ``salinity_psu`` and ``temperature_c``
+    (``"quan_fry"``, :func:`wai_core.optics.channel_indices`)."""
+    w = cfg.water
+    if w.index_model == "quan_fry":
+        return channel_indices(w.salinity_psu, w.temperature_c)
+    return (w.n_water,) * 3
+
+
+def projector_field_axis(cfg: SystemConfig) -> NDArray:
+    """Unit vector (3,) ``lab``: the projector's electric field, ``cos(psi) x_cam +
+    sin(psi) y_cam`` of its pose (psi = ``[pattern].polarisation_deg``, from the panel's x axis
+    towards y). A ray's field is this axis made transverse to the ray."""
+    psi = np.radians(cfg.pattern.polarisation_deg)
+    R = cfg.projector.camera().pose.R
+    axis = np.cos(psi) * R[0] + np.sin(psi) * R[1]
+    return axis / np.linalg.norm(axis)
 
 
 def rectangle_to_world(center: NDArray, size_mm: NDArray, facing_down: bool) -> object:
