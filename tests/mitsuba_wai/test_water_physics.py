@@ -161,3 +161,146 @@ def test_projector_field_axis_is_transverse(paper_cfg):
     cfg = paper_cfg.replace("pattern", polarisation="linear", polarisation_deg=90.0)
     assert water_bsdf(cfg, "S")["polarisation_axis"] == pytest.approx(list(a90))
     assert "polarisation_axis" not in water_bsdf(cfg, "V")
+
+
+# --- Renders -------------------------------------------------------------------------------
+
+
+def edge_scene(bsdf, tau_deg, fov_deg, x_edge_mm, uniform=False, size=(64, 8)):
+    """Camera at the origin in water, looking up at ``tau_deg`` from the zenith towards +x,
+    flat water at z = 100 mm, and an emitting plane at z = 1100 mm: dark for x < ``x_edge_mm``,
+    radiance 1 beyond (or 1 everywhere, ``uniform``)."""
+    from mitsuba_wai.scenes import rectangle_to_world
+
+    mi = mitsuba()
+    t = np.radians(tau_deg)
+    tex = np.ones((1, 2, 3)) if uniform else np.array([[[0.0] * 3, [1.0] * 3]])
+    return mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 2, "hide_emitters": False},
+        "sensor": {
+            "type": "perspective", "fov": fov_deg, "fov_axis": "x", "near_clip": 1.0,
+            "far_clip": 1e5, "sampler": {"type": "multijitter"},
+            "to_world": mi.ScalarTransform4f().look_at(
+                origin=[0, 0, 0], target=[np.sin(t), 0, np.cos(t)], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": size[0], "height": size[1],
+                     "pixel_format": "rgb", "rfilter": {"type": "box"}},
+        },
+        "water": {"type": "rectangle", "bsdf": bsdf, "to_world": rectangle_to_world(
+            np.array([0.0, 0.0, 100.0]), np.array([4000.0, 4000.0]), False)},
+        "object": {
+            "type": "rectangle",
+            "to_world": rectangle_to_world(
+                np.array([x_edge_mm, 0.0, 1100.0]), np.array([8000.0, 8000.0]), True),
+            "emitter": {"type": "area", "radiance": {
+                "type": "bitmap", "bitmap": mi.Bitmap(tex), "raw": True,
+                "filter_type": "nearest"}},
+        },
+    })
+
+
+def edge_profile(bsdf, tau_deg, fov_deg, x_edge_mm, spp=64):
+    """Column profile (W, 3) of the edge image over the uniform one (same samples, so the
+    Monte Carlo noise cancels) and the uniform image (H, W, 3)."""
+    mi = mitsuba()
+    edge = np.array(mi.render(edge_scene(bsdf, tau_deg, fov_deg, x_edge_mm), spp=spp, seed=1))
+    flat = np.array(mi.render(edge_scene(bsdf, tau_deg, fov_deg, x_edge_mm, uniform=True),
+                              spp=spp, seed=1))
+    return edge.mean(0) / flat.mean(0), flat
+
+
+def snell_edge_column(n, tau_deg, fov_deg, x_edge_mm, width=64):
+    """Continuous column of the edge in the centre row by Snell's law: the water angle theta
+    whose air ray (sin = n sin theta) meets the plane at the edge, on a pinhole image whose
+    columns run against theta (Mitsuba's perspective: the first column is the camera's left)."""
+    from scipy.optimize import brentq
+
+    def miss(tw):
+        return 100 * np.tan(tw) + 1000 * np.tan(np.arcsin(n * np.sin(tw))) - x_edge_mm
+
+    tw = brentq(miss, 0.0, np.arcsin(1 / n) - 1e-9)
+    half = np.tan(np.radians(fov_deg / 2))
+    return width / 2 - width / 2 * np.tan(tw - np.radians(tau_deg)) / half
+
+
+def test_flat_water_view_disperses_the_edge_per_channel(paper_cfg):
+    """40 deg up through sea water, a 4 deg film: the edge lands in each channel where Snell's
+    law with that channel's index puts it (red and blue 3.4 px apart)."""
+    cfg = paper_cfg.replace("water", index_model="quan_fry")
+    n_rgb = channel_indices(35.0, 20.0)
+    tau, fov = 40.0, 4.0
+    x_edge = 100 * np.tan(np.radians(tau)) + 1000 * np.tan(
+        np.arcsin(n_rgb[1] * np.sin(np.radians(tau))))
+    profile, _ = edge_profile(water_bsdf(cfg, "V"), tau, fov, x_edge)
+    # The bright side is the first columns: the lit share of the row is the edge's column.
+    got = profile.sum(0)
+    want = [snell_edge_column(n, tau, fov, x_edge) for n in n_rgb]
+    np.testing.assert_allclose(got, want, atol=0.15)
+    assert want[2] - want[0] > 3.0
+
+
+def test_rough_water_blurs_the_view_and_keeps_its_energy(paper_cfg):
+    """GGX micro-roughness: the edge's spread grows with alpha, it stays where the smooth
+    surface puts it, and a uniform sky seen through the interface keeps its radiance
+    n^2 (1 - R) within a few per cent (a microfacet interface conserves energy)."""
+    tau, fov = 20.0, 30.0
+    x_edge = 100 * np.tan(np.radians(tau)) + 1000 * np.tan(
+        np.arcsin(N43 * np.sin(np.radians(tau))))
+    widths, energy = [], []
+    for alpha in (0.0, 0.01, 0.03, 0.1):
+        bsdf = water_bsdf(paper_cfg.replace("water", roughness=alpha), "V")
+        profile, flat = edge_profile(bsdf, tau, fov, x_edge)
+        g = -np.diff(profile[:, 1])
+        x = np.arange(g.size)
+        mean = (g * x).sum() / g.sum()
+        widths.append(np.sqrt((g * (x - mean) ** 2).sum() / g.sum()))
+        energy.append(flat.mean())
+        assert profile[:, 1].sum() == pytest.approx(32.0, abs=0.3)
+    assert widths[0] < 0.3 and np.all(np.diff(widths) > 0.4), widths
+    np.testing.assert_allclose(energy[1:], energy[0], rtol=0.03)
+    # The smooth surface's radiance: n^2 (1 - R) at the central ray's incidence, for scale.
+    r_s, r_p = fresnel_sp(np.radians(tau), N43, 1.0)
+    assert energy[0] == pytest.approx(N43**2 * (1 - (r_s + r_p) / 2), rel=0.02)
+
+
+def test_polarised_pattern_fades_near_brewster(paper_cfg):
+    """Flat water, p-, s- and unpolarised projector light: each spot in the projector's plane
+    of symmetry (its plane of incidence is the projector's xz plane, so the field at 0 deg is
+    p, at 90 deg s) keeps R_p / R and R_s / R of its unpolarised energy (R = (R_s + R_p) / 2),
+    the textbook Fresnel equations at its incidence; near Brewster's angle the p spots vanish."""
+    from scipy.ndimage import uniform_filter
+
+    from mitsuba_wai.mesh import flat_like
+    from mitsuba_wai.render import FrameRenderer, wave_surface
+    from tests.conftest import shrink
+    from wai_core.layout import dot_grid, flat_pattern_hits
+
+    cfg = shrink(paper_cfg, factor=2, spp=4)
+    flat = flat_like(wave_surface(cfg), cfg.water.h0_mm)
+    images = {}
+    for name, deg in (("none", None), ("p", 0.0), ("s", 90.0)):
+        c = cfg if deg is None else cfg.replace(
+            "pattern", polarisation="linear", polarisation_deg=deg)
+        images[name] = FrameRenderer(c, flat, systems=("pattern",)).render(
+            flat, 3, ("pattern",))["pattern"].sum(-1)
+    _, spot, seen = flat_pattern_hits(cfg)
+    projector = cfg.projector.camera()
+    _, panel = dot_grid(cfg.pattern, projector)
+    _, d = projector.pixel_rays(panel[:, 0], panel[:, 1])
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    theta = np.arccos(d[:, 2])
+    critical = np.arcsin(1 / N43)
+    sel = seen & (np.abs(d[:, 1]) < 1e-9) & (np.abs(theta - critical) > np.radians(1.0))
+    assert sel.sum() >= 20
+    cols, rows, _ = cfg.camera_s.camera().project(spot[sel])
+    c0, r0 = np.round(cols).astype(int), np.round(rows).astype(int)
+    # Each spot's energy: the sum over a 5 x 5 px window around its flat-water centre.
+    energy = {k: 25.0 * uniform_filter(im, 5, mode="constant")[r0, c0]
+              for k, im in images.items()}
+    r_sp = np.array([fresnel_sp(t, N43, 1.0) for t in theta[sel]])
+    r_mean = r_sp.mean(axis=1)
+    np.testing.assert_allclose(energy["p"] / energy["none"], r_sp[:, 1] / r_mean, atol=0.01)
+    np.testing.assert_allclose(energy["s"] / energy["none"], r_sp[:, 0] / r_mean, atol=0.01)
+    near_brewster = np.abs(theta[sel] - np.arctan(1 / N43)) < np.radians(1.0)
+    assert near_brewster.any() and np.all(energy["p"][near_brewster] < 0.01 * energy["none"][
+        near_brewster])
