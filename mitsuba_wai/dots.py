@@ -150,8 +150,10 @@ class DotEmitter:
         self.skipped_vertices = 1
         # Below the diffuser lies nothing but camera s, and the water stays above the diffuser
         # (the rig checks refuse other surfaces): a connection to the camera cannot be blocked,
-        # so the tracer skips the shadow rays (about a tenth of the pattern's time).
-        self.camera_unoccluded = True
+        # so the tracer skips the shadow rays (about a tenth of the pattern's time). A rough
+        # water surface ([water].roughness) is not a delta BSDF: the diffuser must block its
+        # own connections to the camera, so those need the shadow rays.
+        self.camera_unoccluded = cfg.water.roughness == 0
 
     def __call__(self, time: float, n: int, seed: int) -> tuple[Any, Any]:
         """Rays and weights of ``n`` particles, the point sets shifted by ``seed``.
