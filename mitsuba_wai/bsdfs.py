@@ -35,7 +35,10 @@ Two optional properties add physics the restoration's model leaves out (absent: 
   Refracting, one direction cannot follow three indices, so each sample picks one channel
   with ``sample1`` (probability 1/3), refracts with its index and carries ``3 (1 - F_c)`` in
   that channel only: unbiased, but each pixel's colour is noisier than with one index (a
-  third of the samples per channel, each three times as heavy).
+  third of the samples per channel, each three times as heavy). A stratified sampler
+  (``multijitter``) spreads ``sample1`` evenly over a pixel's samples, so a sample count
+  that is a multiple of 3 gives every channel its third and most of that noise goes; other
+  counts leave a channel one sample short or over in many pixels.
 - ``polarisation_axis`` (a world vector; ``mode = "reflect"`` only): the incident light is
   linearly polarised, its field the axis made transverse to the ray (an LCD projector whose
   light reaches the water with nothing in between that changes it). The reflectance is
