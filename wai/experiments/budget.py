@@ -73,7 +73,10 @@ EFFECTS: dict[str, Effect] = {
     ),
     "dispersion": Effect(
         "salinity (PSU) of Quan & Fry's index per channel at 20 C", (0.0, 35.0), (35.0,), 35.0,
-        lambda m: {"water.index_model": "quan_fry", "water.salinity_psu": m},
+        # 6 view samples: each channel gets its third of the stratified samples (a channel is
+        # picked per sample; at 4 the view's colour noise would swamp the effect).
+        lambda m: {"water.index_model": "quan_fry", "water.salinity_psu": m,
+                   "render.spp_view": 6},
     ),
     "k1_s": Effect("camera s radial distortion -k1", (0.05, 0.1, 0.2, 0.3), (0.2,), 0.2,
                    lambda m: {"camera_s.distortion": [-m, 0.0, 0.0, 0.0, 0.0]}),
