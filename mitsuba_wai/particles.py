@@ -145,12 +145,13 @@ def pass_split(spp: int, pixels: int, max_samples: int | None = None) -> list[in
 
 def _trace_pass(
     scene: Any, spp: int, spp_total: int, seed: int, max_depth: int, water: Any = None,
-    stratified: bool = False, emitter: Any = None,
+    stratified: bool = False, emitter: Any = None, camera: Any = None,
 ) -> list[tuple[Any, ...]]:
     """One pass: for each bounce, the film pixel (``W * H`` where none), the RGB value and the
     pixel of a non-finite value (``W * H`` where finite) of every path's camera connection, as
     Dr.Jit arrays (evaluated); with ``water`` (``(a, b, air_segments)``, 1/mm) the value is the
-    direct light and the scattered share follows as a fourth array."""
+    direct light and the scattered share follows as a fourth array; ``camera`` connects in place
+    of the scene's sensor (its ``sample_direction``)."""
     import drjit as dr
 
     mi = mitsuba()
@@ -185,7 +186,8 @@ def _trace_pass(
     splats = []
     for depth in range(1, max_depth):
         bsdf = si.bsdf(ray)
-        sensor_ds, sensor_weight = sensor.sample_direction(si, sampler.next_2d(), active)
+        sensor_ds, sensor_weight = (sensor if camera is None else camera).sample_direction(
+            si, sampler.next_2d(), active)
         if water is not None:
             if depth > water[2]:
                 length = length + dr.select(active, si.t, 0.0)
@@ -261,7 +263,7 @@ def _connect(
 
 def render_particles(
     scene: Any, spp: int, seed: int, max_depth: int, stratified: bool = False,
-    emitter: Any = None,
+    emitter: Any = None, camera: Any = None,
 ) -> tuple[NDArray[np.float32], int]:
     """Render a particle-traced scene (see the module notes) to linear RGB (H, W, 3).
 
@@ -285,6 +287,9 @@ def render_particles(
         ``emitter.camera_unoccluded`` (:class:`mitsuba_wai.dots.DotEmitter`:
         the projector's dots, each a stratified point set of its own); default: Mitsuba's
         ``Scene.sample_emitter_ray``.
+    camera : mitsuba_wai.lens.CameraLens, optional
+        The camera's principal point, distortion and port: each vertex connects through them
+        (:meth:`~mitsuba_wai.lens.CameraLens.sample_direction`); default the scene's sensor.
 
     Returns
     -------
@@ -294,20 +299,20 @@ def render_particles(
         Pixels that received a non-finite splat (rare degenerate camera connections): zeroed,
         as :func:`mitsuba_wai.render.render_image` does with Mitsuba's image.
     """
-    images, n_bad = _render(scene, spp, seed, max_depth, None, stratified, emitter)
+    images, n_bad = _render(scene, spp, seed, max_depth, None, stratified, emitter, camera)
     return images[0], n_bad
 
 
 def render_particles_water(
     scene: Any, spp: int, seed: int, max_depth: int, absorption_per_mm: NDArray,
     scattering_per_mm: NDArray, air_segments: int = 0, stratified: bool = False,
-    emitter: Any = None,
+    emitter: Any = None, camera: Any = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], int]:
     """:func:`render_particles` with Beer-Lambert weights along each path (module notes).
 
     Parameters
     ----------
-    scene, spp, seed, max_depth, stratified, emitter
+    scene, spp, seed, max_depth, stratified, emitter, camera
         As :func:`render_particles`.
     absorption_per_mm, scattering_per_mm : (3,) array_like
         a and b per channel (R, G, B), 1/mm.
@@ -327,13 +332,13 @@ def render_particles_water(
         [float(v) for v in absorption_per_mm], [float(v) for v in scattering_per_mm],
         int(air_segments),
     )
-    images, n_bad = _render(scene, spp, seed, max_depth, water, stratified, emitter)
+    images, n_bad = _render(scene, spp, seed, max_depth, water, stratified, emitter, camera)
     return images[0], images[1], n_bad
 
 
 def _render(
     scene: Any, spp: int, seed: int, max_depth: int, water: Any, stratified: bool,
-    emitter: Any = None,
+    emitter: Any = None, camera: Any = None,
 ) -> tuple[list[NDArray[np.float32]], int]:
     """The images of :func:`render_particles` (one) or :func:`render_particles_water` (two)."""
     import drjit as dr
@@ -351,7 +356,7 @@ def _render(
     for k, spp_k in enumerate(pass_split(spp, n_pix)):
         pass_seed = (int(seed) + k * PASS_SEED_STRIDE) % 2**32
         for pixel, *rgbs, nonfinite in _trace_pass(scene, spp_k, spp, pass_seed, max_depth,
-                                                   water, stratified, emitter):
+                                                   water, stratified, emitter, camera):
             if dr.all(pixel == n_pix):  # a bounce that never reaches the camera (delta BSDFs)
                 continue
             if not dr.all(nonfinite == n_pix):

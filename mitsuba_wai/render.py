@@ -44,6 +44,7 @@ from mitsuba_wai.degrade import (
 )
 from mitsuba_wai.diffuser import screen_blur
 from mitsuba_wai.dots import DotEmitter
+from mitsuba_wai.lens import scene_lenses
 from mitsuba_wai.particles import pass_split, render_particles, render_particles_water
 from mitsuba_wai.scenes import (
     SCENE_V_DEPTH,
@@ -169,7 +170,7 @@ def labelled(label: str) -> Iterator[None]:
 
 def render_image(
     scene: object, spp: int, seed: int, particle_depth: int | None = None,
-    stratified: bool = False, emitter: object = None,
+    stratified: bool = False, emitter: object = None, camera: object = None,
 ) -> tuple[NDArray[np.float32], int]:
     """Render a loaded scene to linear RGB (H, W, 3); non-finite pixels are zeroed and counted.
 
@@ -190,6 +191,8 @@ def render_image(
         camera-side renders take the sampler of the scene's sensor.
     emitter : callable, optional
         The particle tracer's emitter in place of the scene's (``render_particles``'s).
+    camera : mitsuba_wai.lens.CameraLens, optional
+        The particle tracer's camera in place of the scene's sensor (``render_particles``'s).
 
     Returns
     -------
@@ -200,7 +203,7 @@ def render_image(
     import drjit as dr
 
     if particle_depth is not None:
-        return render_particles(scene, spp, seed, particle_depth, stratified, emitter)
+        return render_particles(scene, spp, seed, particle_depth, stratified, emitter, camera)
     mi = mitsuba()
     size = scene.sensors()[0].film().crop_size()
     passes = pass_split(spp, int(size[0]) * int(size[1]), MAX_WAVEFRONT)
@@ -238,6 +241,8 @@ class FrameRenderer:
 
     def __post_init__(self) -> None:
         self.variant = select_variant()
+        # Real cameras (mitsuba_wai.lens); refused here, before any render, where they cannot go.
+        self._lenses = scene_lenses(self.cfg)
         self._stratified = self.cfg.render.sampling == "stratified"
         mi = mitsuba()
         tm = meshes.heightfield_mesh(self.grid)
@@ -305,10 +310,12 @@ class FrameRenderer:
                 # The three steps system V needs, traced directly (mitsuba_wai.view_tracer):
                 # Mitsuba's path integrator's image at half its cost; with the ambient sun and
                 # sky (emitter sampling) and for "independent", Mitsuba's own integrator.
-                out[key], bad = render_view(self._scenes[key], spp[key], seed)
+                out[key], bad = render_view(self._scenes[key], spp[key], seed,
+                                            self._lenses[key])
             else:
                 out[key], bad = render_image(self._scenes[key], spp[key], seed, depth[key],
-                                             self._stratified, self._emitters.get(key))
+                                             self._stratified, self._emitters.get(key),
+                                             self._lenses.get(key))
             if key == "view" and self.cfg.water_optics.enabled:
                 lengths = view_path_lengths(self._scenes["view"], self.cfg)
                 out[key] = water_view(out[key], lengths, self.cfg)
@@ -323,11 +330,11 @@ class FrameRenderer:
         w = self.cfg.water_optics
         if not w.enabled:
             return render_particles(self._scenes[key], spp, seed, depth, self._stratified,
-                                    self._emitters.get(key))
+                                    self._emitters.get(key), self._lenses.get(key))
         a, b = coefficients_per_mm(w)
         direct, scattered, bad = render_particles_water(
             self._scenes[key], spp, seed, depth, a, b, air_segments, self._stratified,
-            self._emitters.get(key),
+            self._emitters.get(key), self._lenses.get(key),
         )
         return direct + glow(scattered, w.forward_fraction, glow_sigma_px(self.cfg, "S")), bad
 

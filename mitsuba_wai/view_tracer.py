@@ -8,6 +8,8 @@ steps for every camera sample:
 
 1. the pixel sample and the camera ray, from the scene's sensor and sampler in Mitsuba's own
    order of pixels and samples (so ``multijitter`` stratifies each pixel as in ``mi.render``);
+   a real camera's ray (principal point, distortion, port: :mod:`mitsuba_wai.lens`) from the
+   same pixel sample;
 2. at the first hit, the emitted radiance if it is an emitter (``hide_emitters = False``), and
    the water's BSDF sample (its one branch, :mod:`mitsuba_wai.bsdfs`);
 3. the radiance of whatever the sampled ray reaches (the object plane's textured emitter, or
@@ -34,9 +36,10 @@ from mitsuba_wai.variant import mitsuba
 __all__ = ["render_view"]
 
 
-def _trace_pass(scene: Any, spp: int, seed: int) -> NDArray[np.float32]:
+def _trace_pass(scene: Any, spp: int, seed: int, lens: Any = None) -> NDArray[np.float32]:
     """Radiance (3, W * H * s) of one pass's camera samples, pixel-major: ``s`` is ``spp`` as
-    the sampler takes it (``multijitter`` rounds 5 up to 6, as in ``mi.render``)."""
+    the sampler takes it (``multijitter`` rounds 5 up to 6, as in ``mi.render``); with
+    ``lens`` (:class:`mitsuba_wai.lens.CameraLens`) the rays are its, not the sensor's."""
     import drjit as dr
 
     mi = mitsuba()
@@ -50,10 +53,13 @@ def _trace_pass(scene: Any, spp: int, seed: int) -> NDArray[np.float32]:
     sampler.seed(seed, n)
     pixel = dr.arange(mi.UInt32, n) // spp
     pos = mi.Vector2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
-    ray, weight = sensor.sample_ray(
-        sensor.shutter_open(), 0.5, pos * mi.ScalarVector2f(1.0 / width, 1.0 / height),
-        mi.Point2f(0.5),
-    )
+    if lens is None:
+        ray, weight = sensor.sample_ray(
+            sensor.shutter_open(), 0.5, pos * mi.ScalarVector2f(1.0 / width, 1.0 / height),
+            mi.Point2f(0.5),
+        )
+    else:
+        ray, weight = lens.sample_ray(sensor.shutter_open(), pos)
     si = scene.ray_intersect(ray)
     hit = si.is_valid()
     emitted = si.emitter(scene, hit).eval(si, hit)
@@ -69,7 +75,9 @@ def _trace_pass(scene: Any, spp: int, seed: int) -> NDArray[np.float32]:
     return np.asarray(radiance)
 
 
-def render_view(scene: Any, spp: int, seed: int) -> tuple[NDArray[np.float32], int]:
+def render_view(
+    scene: Any, spp: int, seed: int, lens: Any = None
+) -> tuple[NDArray[np.float32], int]:
     """Render system V's scene (see the module notes) to linear RGB (H, W, 3).
 
     Parameters
@@ -83,6 +91,9 @@ def render_view(scene: Any, spp: int, seed: int) -> tuple[NDArray[np.float32], i
         pixel, pass ``k`` seeded ``seed + k``.
     seed : int
         Sampler seed, 0 .. 2^32 - 1; the same seed gives the same image, bit for bit.
+    lens : mitsuba_wai.lens.CameraLens, optional
+        The camera's principal point, distortion and port: each pixel sample's ray through
+        them (:meth:`~mitsuba_wai.lens.CameraLens.sample_ray`); default the sensor's pinhole.
 
     Returns
     -------
@@ -109,7 +120,7 @@ def render_view(scene: Any, spp: int, seed: int) -> tuple[NDArray[np.float32], i
     count = 0
     passes = particles.pass_split(spp, width * height, particles.MAX_PASS_SAMPLES)
     for k, spp_k in enumerate(passes):
-        samples = _trace_pass(scene, spp_k, (int(seed) + k) % 2**32)
+        samples = _trace_pass(scene, spp_k, (int(seed) + k) % 2**32, lens)
         samples = samples.T.reshape(height, width, -1, 3)
         bad |= ~np.isfinite(samples).all(axis=(2, 3))
         total += samples.sum(axis=2, dtype=np.float64)
