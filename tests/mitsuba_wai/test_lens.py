@@ -1,0 +1,204 @@
+"""Real cameras in the renders: distortion, principal offset and port, traced per ray.
+
+The facts: where the numpy model (checked against OpenCV in tests/wai_core/test_lens.py) says a
+ray goes, radiance is unchanged by distortion (a uniformly bright surface stays uniform), and a
+port passes the Fresnel transmittance of its two faces over n_water^2 (written out here)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from mitsuba_wai.lens import CameraLens, scene_lenses
+from mitsuba_wai.particles import render_particles
+from mitsuba_wai.render import FrameRenderer, wave_surface
+from mitsuba_wai.scenes import rectangle_to_world, sensor_dict
+from mitsuba_wai.variant import mitsuba, select_variant
+from tests.conftest import shrink
+from wai_core.errors import WaiInputError
+from wai_core.lens import DeviceOptics
+
+K_V = (-0.15, 0.02, 0.001, -0.001, 0.0)
+K_S = (-0.06, 0.01, 0.0005, 0.0005, 0.0)
+
+
+def _fresnel_port(sin_air, n_port, n_water):
+    """Unpolarised transmittance of air | port | water (Fresnel's equations, each face)."""
+    def t_sp(n1, n2, sin1):
+        c1 = np.sqrt(1 - sin1**2)
+        c2 = np.sqrt(1 - (n1 * sin1 / n2) ** 2)
+        rs = (n1 * c1 - n2 * c2) / (n1 * c1 + n2 * c2)
+        rp = (n1 * c2 - n2 * c1) / (n1 * c2 + n2 * c1)
+        return 1 - rs**2, 1 - rp**2
+
+    ts1, tp1 = t_sp(1.0, n_port, sin_air)
+    ts2, tp2 = t_sp(n_port, n_water, sin_air / n_port)
+    return 0.5 * (ts1 * ts2 + tp1 * tp2)
+
+
+def _flat(cfg):
+    return cfg.replace("waves", wind_speed_m_s=0.0)
+
+
+def _view(cfg, texture=None, spp=16):
+    surface = wave_surface(cfg)
+    r = FrameRenderer(cfg, surface, texture=texture, systems=("view",))
+    return r.render(surface, seed=3, which=("view",), spp=spp)["view"]
+
+
+def _pinhole_remap(image, optics, cam, n_water):
+    """The pinhole (in water) image resampled at each pixel's water-side ray of ``optics``."""
+    cols, rows = cam.pixel_grid()
+    _, d, _ = optics.rays_cam(cols, rows, n_water)
+    f = cam.focal_px
+    mx = (f * d[..., 0] / d[..., 2] + (cam.width_px - 1) / 2).astype(np.float32)
+    my = (f * d[..., 1] / d[..., 2] + (cam.height_px - 1) / 2).astype(np.float32)
+    return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=np.nan), d
+
+
+@pytest.fixture(scope="module")
+def view_cfg(paper_cfg):
+    return _flat(shrink(paper_cfg, factor=4))
+
+
+def test_distorted_view_is_the_pinhole_view_remapped(view_cfg):
+    dist = view_cfg.replace("camera_v", distortion=K_V, principal_offset_px=(5.0, -3.0))
+    pinhole, ours = _view(view_cfg), _view(dist)
+    optics = DeviceOptics.from_config(dist.camera_v)
+    expected, _ = _pinhole_remap(pinhole, optics, view_cfg.camera_v.camera(), 4 / 3)
+    ok = np.isfinite(expected).all(axis=2)
+    assert ok.mean() > 0.6  # barrel distortion: the corners see beyond the pinhole's field
+    err = np.abs(ours - expected)[ok].mean()
+    moved = np.abs(ours - pinhole)[ok].mean()
+    # Bilinear resampling of the board's anti-aliased edges leaves a little; a pixel away
+    # from the model's ray (e.g. the image warped the other way) leaves as much as no remap.
+    assert err < 0.15 * moved
+
+
+def test_port_dims_the_view_by_fresnel_and_n_squared(view_cfg):
+    # Uniform object radiance: the pinhole's field is smooth (Fresnel at the water), so its
+    # remap to the port's water rays is exact but for the rim; the ratio is T / n^2.
+    n_w = view_cfg.water.n_water
+    tex = np.ones((64, 64, 3), dtype=np.float32)
+    port = view_cfg.replace("camera_v", port_thickness_mm=6.0, port_gap_mm=4.0, port_n=1.52)
+    pinhole, ours = _view(view_cfg, tex, spp=4), _view(port, tex, spp=4)
+    optics = DeviceOptics.from_config(port.camera_v)
+    cam = view_cfg.camera_v.camera()
+    expected, _ = _pinhole_remap(pinhole, optics, cam, n_w)
+    _, _, air = optics.rays_cam(*cam.pixel_grid(), n_w)
+    factor = _fresnel_port(np.hypot(air[..., 0], air[..., 1]), 1.52, n_w) / n_w**2
+    smooth = ndimage.maximum_filter(np.abs(np.gradient(pinhole[..., 1], axis=0)), 5) < 0.01
+    ok = np.isfinite(expected[..., 1]) & smooth & (expected[..., 1] > 0.1)
+    assert ok.mean() > 0.5
+    ratio = ours[..., 1][ok] / expected[..., 1][ok]
+    assert np.median(np.abs(ratio / factor[ok] - 1)) < 2e-3
+    assert factor.max() < 0.6  # T / n^2: about 0.55 at the axis, less towards the rim
+
+
+def _uniform_s_scene(cam):
+    """A Lambertian sheet above camera s, lit evenly from below by a directional light."""
+    mi = mitsuba()
+    centre = cam.pose.center_lab_mm + np.array([0.0, 0.0, 250.0])
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": sensor_dict(cam),
+        "sheet": {"type": "rectangle", "bsdf": {"type": "diffuse"},
+                  "to_world": rectangle_to_world(centre, np.array([760.0, 620.0]), True)},
+        "light": {"type": "directional", "direction": [0.0, 0.0, 1.0], "irradiance": 1.0},
+    })
+
+
+@pytest.fixture(scope="module")
+def s_camera(paper_cfg):
+    select_variant()
+    dev = dataclasses.replace(paper_cfg.camera_s, width_px=40, height_px=30)
+    return dev, _uniform_s_scene(dev.camera())
+
+
+def _blocks(image, b=10):
+    h, w = image.shape[0] // b * b, image.shape[1] // b * b
+    return image[:h, :w, 1].reshape(h // b, b, w // b, b).mean(axis=(1, 3))
+
+
+def test_camera_s_distortion_keeps_a_uniform_surface_uniform(s_camera):
+    dev, scene = s_camera
+    spp = 4096  # the directional light's points are independent samples
+    plain, _ = render_particles(scene, spp, 1, 2)
+    # Pincushion: the film stays inside the sheet (barrel corners would look past it).
+    dist = dataclasses.replace(dev, distortion=(0.08, 0.0, 0.0, 0.0, 0.0),
+                               principal_offset_px=(2.0, -1.0))
+    optics = DeviceOptics.from_config(dist)
+    ours, bad = render_particles(scene, spp, 1, 2, camera=CameraLens(optics, 1.0))
+    assert bad == 0
+    level = plain[..., 1].mean()  # the sheet's radiance (the pinhole's image is uniform)
+    assert np.abs(_blocks(plain) / level - 1).max() < 0.015
+    assert np.abs(_blocks(ours) / level - 1).max() < 0.015
+    # The distortion changes the pixels' solid angles across the image by far more than that.
+    c, r = dev.camera().pixel_grid()
+
+    def spread(d):
+        solid = np.linalg.norm(np.cross(np.gradient(d, axis=1), np.gradient(d, axis=0)), axis=2)
+        return solid.max() / solid.min()
+
+    assert spread(optics.rays_cam(c, r, 1.0)[1]) > 1.2 * spread(dev.camera().dirs_cam(c, r))
+
+
+def test_camera_s_port_passes_fresnel_over_n_squared(s_camera):
+    dev, scene = s_camera
+    n_w, n_p = 1.34, 1.49
+    port = dataclasses.replace(dev, port_thickness_mm=8.0, port_gap_mm=6.0, port_n=n_p)
+    optics = DeviceOptics.from_config(port)
+    plain, _ = render_particles(scene, 4096, 2, 2)
+    ours, bad = render_particles(scene, 4096, 2, 2, camera=CameraLens(optics, n_w))
+    assert bad == 0
+    _, _, air = optics.rays_cam(*dev.camera().pixel_grid(), n_w)
+    factor = _fresnel_port(np.hypot(air[..., 0], air[..., 1]), n_p, n_w) / n_w**2
+    expected = plain[..., 1].mean() * factor
+    assert np.abs(_blocks(ours) / _blocks(expected[..., None].repeat(3, 2)) - 1).max() < 0.015
+
+
+def _spots(image):
+    lum = image[..., 1] + image[..., 2]
+    labels, n = ndimage.label(lum > 0.15 * lum.max())
+    size = ndimage.sum(np.ones_like(lum), labels, np.arange(1, n + 1))
+    c = np.array(ndimage.center_of_mass(lum, labels, np.arange(1, n + 1)))[size >= 4]
+    return c[:, ::-1]  # (col, row)
+
+
+def test_camera_s_spots_land_where_the_model_projects_them(paper_cfg):
+    cfg = _flat(paper_cfg)
+    dist = cfg.replace("camera_s", distortion=K_S, principal_offset_px=(4.0, 2.5))
+    surface = wave_surface(cfg)
+    images = []
+    for c in (cfg, dist):
+        r = FrameRenderer(c, surface, systems=("pattern",))
+        images.append(r.render(surface, seed=5, which=("pattern",), spp=4)["pattern"])
+    cam = cfg.camera_s.camera()
+    ref = _spots(images[0])
+    # The undistorted spots' diffuser points, projected by the distorted model.
+    o, d = cam.pixel_rays(ref[:, 0], ref[:, 1])
+    points = o + d * ((cfg.diffuser.z_mm - o[2]) / d[:, 2:3])
+    cols, rows, valid = DeviceOptics.from_config(dist.camera_s).project(points, 4 / 3)
+    predicted = np.column_stack([cols, rows])[valid & cam.in_image(cols, rows, 8)]
+    found = _spots(images[1])
+    gap = np.linalg.norm(predicted[:, None] - found[None], axis=2).min(axis=1)
+    assert len(predicted) > 100
+    assert np.median(gap) < 0.1
+    shift = np.linalg.norm(predicted[:, None] - ref[None], axis=2).min(axis=1)
+    assert np.median(shift) > 2.0  # the distortion moved them
+
+
+def test_lens_refused_where_mitsubas_integrators_render(paper_cfg):
+    select_variant()
+    cfg = paper_cfg.replace("camera_v", distortion=K_V)
+    assert scene_lenses(paper_cfg) == {"pattern": None, "view": None}
+    with pytest.raises(WaiInputError, match=r"\[camera_v\]\.distortion.*sampling"):
+        scene_lenses(cfg.replace("render", sampling="independent"))
+    with pytest.raises(WaiInputError, match=r"\[camera_s\]\.port_thickness_mm.*ambient"):
+        scene_lenses(paper_cfg.replace("camera_s", port_thickness_mm=3.0)
+                     .replace("ambient", enabled=True))
