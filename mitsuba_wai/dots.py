@@ -39,6 +39,11 @@ meets the plane in focus, so a spot at distance ``z`` blurs by a disk of diamete
 ``aperture |z - focus| / focus``. The weights stay those of the pinhole (the lens moves light,
 it makes none); with the aperture 0 nothing of this runs.
 
+With ``[projector]`` ``principal_offset_px``, ``distortion`` or a port
+(``port_thickness_mm``), the panel point is measured from the principal point and is the
+distorted image point: its ray is the undistorted one's, through the port
+(:class:`mitsuba_wai.lens.CameraLens`), the particle's weight times the port's transmittance.
+
 It differs from the bitmap only by what the raster leaves out (the bilinear interpolation
 between pixel centres, the tails cut at the panel's edge): the same flux and spots to the
 tolerance of ``tests/mitsuba_wai/test_particles.py``. The coded pattern's dots are drawn in
@@ -52,11 +57,13 @@ from typing import Any
 
 import numpy as np
 
+from mitsuba_wai.lens import CameraLens, lens_keys
 from mitsuba_wai.particles import kronecker
 from mitsuba_wai.variant import mitsuba
 from wai_core.config import SystemConfig
 from wai_core.geometry import fresnel_reflectance, intersect_plane_z, reflect
 from wai_core.layout import dot_weights
+from wai_core.lens import DeviceOptics
 from wai_core.pattern import dot_colours, dot_grid
 
 __all__ = ["DotEmitter"]
@@ -130,9 +137,13 @@ class DotEmitter:
         share = share * _spot_size(cfg, projector, panel_px)
         self.share = share / share.sum()
         self._cdf = np.concatenate([[0.0], np.cumsum(self.share)])
-        # Panel coordinates of each dot relative to the principal point, in focal lengths.
+        # Panel coordinates of each dot relative to the principal point, in focal lengths
+        # (distorted ones with [projector] distortion; mitsuba_wai.lens: offset, port).
         f = projector.focal_px
-        centre = (panel_px - [(w - 1) / 2.0, (h - 1) / 2.0]) / f
+        optics = DeviceOptics.from_config(cfg.projector)
+        self._optics = (CameraLens(optics, cfg.water.n_water) if lens_keys(cfg.projector)
+                        else None)
+        centre = (panel_px - list(optics.principal_px)) / f
         self._centre = mi.Point2f(*(mi.Float(centre[:, k]) for k in range(2)))
         # A particle's weight: its dot's flux over the dot's share of the particles.
         flux = colours * (unit * weights / self.share)[:, None]
@@ -200,11 +211,14 @@ class DotEmitter:
             lens_shifts = rng.integers(0, 2**32, (2, self.n_dots), dtype=np.uint64)
             lens = mi.Point2f(*(_lens_kronecker(local, k, dr.gather(
                 mi.UInt32, mi.UInt32(lens_shifts[k].astype(np.uint32)), dot)) for k in (0, 1)))
-        origin, d = self._ray(xy, lens)
+        origin, d, passed = self._ray(xy, lens)
         travelled = (self._start_z - origin.z) / d.z
         ray = mi.Ray3f(origin + d * travelled, d)
         ray.time = time
-        return ray, dr.gather(mi.Color3f, self._colour, dot), travelled
+        weight = dr.gather(mi.Color3f, self._colour, dot)
+        if self._optics is not None:
+            weight = weight * passed
+        return ray, weight, travelled
 
     def _ray(self, xy: Any, lens: Any) -> tuple[Any, Any]:
         """Origin and direction of the rays through panel points ``xy``: the ray construction.
@@ -220,22 +234,35 @@ class DotEmitter:
         Returns
         -------
         origin : mitsuba.Point3f, (n,)
-            The projector's centre, or the particle's point on the lens disk (lab, mm).
+            The projector's centre, or the particle's point on the lens disk (lab, mm); with a
+            port, the ray's exit point from it into the water.
         direction : mitsuba.Vector3f, (n,)
-            Unit direction, lab.
+            Unit direction (in the water), lab.
+        passed : mitsuba.Float or float
+            Share of the flux that leaves: the port's transmittance (0 beyond the distortion's
+            fold), 1 without lens keys.
         """
         import drjit as dr
 
         mi = mitsuba()
         origin = self._origin
+        passed = 1.0
+        if self._optics is not None and self._optics.optics.distorted:
+            # The panel point is the distorted image point; its ray is the undistorted one's.
+            x, y, ok = self._optics.undistort(xy.x, xy.y)
+            xy, passed = mi.Point2f(x, y), dr.select(ok, 1.0, 0.0)
+        disk = None
         if lens is not None:
             # Thin lens: from the lens point to where the pinhole ray meets the plane in focus,
             # z_cam = f: direction (f x - a, f y - b, f) for lens point (a, b, 0), cam frame.
             disk = mi.warp.square_to_uniform_disk_concentric(lens) * self._lens_radius
             origin = origin + self._axes[0] * disk.x + self._axes[1] * disk.y
             xy = xy - disk / self._focus
+        if self._optics is not None and self._optics.optics.has_port:
+            origin, d, transmitted = self._optics.port_ray(disk, (xy.x, xy.y))
+            return origin, d, passed * transmitted
         d = dr.normalize(self._axes[0] * xy.x + self._axes[1] * xy.y + self._axes[2])
-        return origin, d
+        return origin, d, passed
 
 
 def _flat_reflectance(cfg: SystemConfig, projector: Any, panel_px: np.ndarray) -> np.ndarray:

@@ -8,7 +8,10 @@ model (nothing is warped after rendering). :class:`CameraLens` holds one camera'
 - :meth:`CameraLens.sample_ray` for camera v (:mod:`mitsuba_wai.view_tracer`): the film
   position's ray into the water, and what the camera records of the radiance along it;
 - :meth:`CameraLens.sample_direction` for camera s (:mod:`mitsuba_wai.particles`): a path
-  vertex projected to the film, with the importance that keeps the image a radiance image.
+  vertex projected to the film, with the importance that keeps the image a radiance image;
+- :meth:`CameraLens.undistort` and :meth:`CameraLens.port_ray` for the projector
+  (:class:`mitsuba_wai.dots.DotEmitter`): a dot's panel point is the distorted image point,
+  its ray the undistorted one's through the port, its flux times the port's transmittance.
 
 Radiometry
 ----------
@@ -129,6 +132,70 @@ class CameraLens:
         _, _, n_p, n_w = self._port
         return port_transmittance(sin_air, n_p, n_w, dr.sqrt) / n_w**2
 
+    def undistort(self, x_d: Any, y_d: Any) -> tuple[Any, Any, Any]:
+        """Undistorted normalised coordinates of distorted ones (:func:`wai_core.lens.undistort`).
+
+        Parameters
+        ----------
+        x_d, y_d : mitsuba.Float, (n,)
+            Distorted normalised coordinates (image point minus principal point, over ``f``).
+
+        Returns
+        -------
+        x, y : mitsuba.Float, (n,)
+            The pinhole ray's slopes ``X / Z``, ``Y / Z`` (``cam``).
+        ok : mitsuba.Bool, (n,)
+            False where the distortion cannot be inverted (beyond its fold).
+        """
+        import drjit as dr
+
+        x, y = undistort(x_d, y_d, self._k, _STEPS)
+        rx, ry = distort(x, y, self._k)
+        a, b, d = distortion_jacobian(x, y, self._k)
+        ok = (dr.abs(rx - x_d) + dr.abs(ry - y_d) < 1e-4) & (a * d - b * b > 0.0)
+        return x, y, ok
+
+    def port_ray(self, start: Any, slope: tuple[Any, Any]) -> tuple[Any, Any, Any]:
+        """A pinhole-side ray into the water, and the port's transmittance along it.
+
+        Parameters
+        ----------
+        start : mitsuba.Point2f (n,) or None
+            The ray's start on the plane ``z_cam = 0``, mm (a thin lens's point); None: the
+            pinhole.
+        slope : 2-tuple of mitsuba.Float, (n,)
+            Direction ``(x, y, 1)`` of the ray behind the port (``cam``).
+
+        Returns
+        -------
+        origin : mitsuba.Point3f, (n,)
+            Where the ray enters the water, ``lab``, mm.
+        direction : mitsuba.Vector3f, (n,)
+            Unit direction in the water, ``lab``.
+        transmittance : mitsuba.Float or float
+            The port's Fresnel transmittance ``T`` (:func:`wai_core.lens.port_transmittance`),
+            1 without a port: the share of the flux that passes (the radiance's is
+            ``T / n_water^2``, module notes).
+        """
+        import drjit as dr
+
+        mi = mitsuba()
+        x, y = slope
+        inv = dr.rsqrt(1.0 + x * x + y * y)
+        d = (x * inv, y * inv, inv)
+        transmittance = 1.0
+        sx, sy = (mi.Float(0.0), mi.Float(0.0)) if start is None else (start.x, start.y)
+        if self.optics.has_port:
+            _, _, n_p, n_w = self._port
+            transmittance = port_transmittance(dr.sqrt(x * x + y * y) * inv, n_p, n_w, dr.sqrt)
+            p, d, _ = port_refract((sx, sy, mi.Float(0.0)), d, *self._port, dr.sqrt)
+            origin = self._center + self._to_lab(p)
+        elif start is None:
+            origin = mi.Point3f(self._center)
+        else:
+            origin = self._center + self._to_lab((sx, sy, mi.Float(0.0)))
+        return origin, dr.normalize(self._to_lab(d)), transmittance
+
     def sample_ray(self, time: Any, position: Any) -> tuple[Any, Any]:
         """The rays of film positions, and what the camera records of their radiance.
 
@@ -155,21 +222,11 @@ class CameraLens:
         y = (position.y - 0.5 - self._c[1]) / self._f
         ok = mi.Bool(True)
         if self.optics.distorted:
-            xd, yd = x, y
-            x, y = undistort(xd, yd, self._k, _STEPS)
-            rx, ry = distort(x, y, self._k)
-            a, b, d = distortion_jacobian(x, y, self._k)
-            ok = (dr.abs(rx - xd) + dr.abs(ry - yd) < 1e-4) & (a * d - b * b > 0.0)
-        inv = dr.rsqrt(1.0 + x * x + y * y)
-        d = (x * inv, y * inv, inv)
-        weight = self._radiance_factor(dr.sqrt(x * x + y * y) * inv)
+            x, y, ok = self.undistort(x, y)
+        origin, d, weight = self.port_ray(None, (x, y))
         if self.optics.has_port:
-            zero = mi.Float(0.0)
-            p, d, _ = port_refract((zero, zero, zero), d, *self._port, dr.sqrt)
-            origin = self._center + self._to_lab(p)
-        else:
-            origin = mi.Point3f(self._center)
-        ray = mi.Ray3f(origin, dr.normalize(self._to_lab(d)))
+            weight = weight / self.n_water**2  # the radiance law (module notes)
+        ray = mi.Ray3f(origin, d)
         ray.time = time
         return ray, dr.select(ok, weight, 0.0)
 
@@ -250,8 +307,9 @@ def scene_lenses(cfg: SystemConfig) -> dict[str, CameraLens | None]:
     ------
     WaiInputError
         A camera's lens or port on in a render that Mitsuba's own integrators make
-        (``[render] sampling = "independent"`` for camera v, ``[ambient] enabled`` for
-        either camera), which cannot carry them.
+        (``[render] sampling = "independent"`` for camera v and the projector, ``[ambient]
+        enabled`` for either camera), which cannot carry them. The projector's lens is drawn
+        by :class:`mitsuba_wai.dots.DotEmitter`.
     """
     out: dict[str, CameraLens | None] = {}
     for key, name in (("pattern", "camera_s"), ("view", "camera_v")):
@@ -271,4 +329,10 @@ def scene_lenses(cfg: SystemConfig) -> dict[str, CameraLens | None]:
                 "own view integrator has no lens model)"
             )
         out[key] = CameraLens(DeviceOptics.from_config(dev), cfg.water.n_water)
+    on = lens_keys(cfg.projector)
+    if on and cfg.render.sampling != "stratified":
+        raise WaiInputError(
+            f"config: [projector].{on[0]} needs [render].sampling = 'stratified' (Mitsuba's "
+            "projector emitter has no lens model; mitsuba_wai.dots draws the dots through it)"
+        )
     return out
