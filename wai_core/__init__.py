@@ -11,11 +11,13 @@ from wai_core.alterman import AltermanSystem
 from wai_core.config import SystemConfig, config_from_dict, load_config
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield, load_heightfield
+from wai_core.lens import DeviceOptics
 from wai_core.scenes import scene_names, scene_path
 from wai_core.system import load_rig, load_system
 
 __all__ = [
     "AltermanSystem",
+    "DeviceOptics",
     "Heightfield",
     "SystemConfig",
     "WaiInputError",
