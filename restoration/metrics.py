@@ -324,18 +324,19 @@ def corner_spread(offsets: ArrayLike, used: ArrayLike) -> dict:
     dict
         ``std_px`` = sqrt(mean |d - mean d|^2) (the paper's "STD"; a common shift does not
         count), ``rms_px`` = sqrt(mean |d|^2) (it does), ``mean_px`` (2,), ``n_used`` and
-        ``n_lost``; the statistics are NaN when no corner is used.
+        ``n_lost``; the statistics are NaN when fewer than two corners are used (one corner
+        has no spread: its STD would read 0).
     """
     d = np.asarray(offsets, dtype=float).reshape(-1, 2)
     u = np.asarray(used, dtype=bool).ravel()
     n = int(u.sum())
-    if n == 0:
+    if n < 2:
         return {
             "std_px": np.nan,
             "rms_px": np.nan,
             "mean_px": [np.nan, np.nan],
-            "n_used": 0,
-            "n_lost": int(u.size),
+            "n_used": n,
+            "n_lost": int(u.size) - n,
         }
     du = d[u]
     mean = du.mean(axis=0)

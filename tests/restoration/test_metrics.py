@@ -217,6 +217,8 @@ def test_corner_spread_by_hand():
     assert corner_spread(np.tile([3.0, 4.0], (4, 1)), np.ones(4, bool))["std_px"] == 0.0
     assert corner_spread(np.tile([3.0, 4.0], (4, 1)), np.ones(4, bool))["rms_px"] == 5.0
     assert np.isnan(corner_spread(d, np.zeros(5, bool))["std_px"])
+    one = corner_spread(d, np.eye(5, dtype=bool)[0])  # a single corner has no spread
+    assert np.isnan(one["std_px"]) and one["n_used"] == 1 and one["n_lost"] == 4
 
 
 def test_corner_offsets_need_both():

@@ -45,7 +45,7 @@ def test_summary_finds_where_rmse_passes_each_limit_and_counts_flags():
             row("k1_s", 0.2, 3.0, "inconsistent"), row("k1_s", 0.3, 5.0)]
     s = budget_summary(rows)
     k1 = s["effects"]["k1_s"]
-    assert k1["passes_mm"] == {"0.05": 0.1, "1": 0.2}
+    assert k1["passes_mm"] == {"+0.05": 0.1, "1": 0.2}  # 0.03 + 0.05 mm, then 1 mm
     assert s["baseline"]["rmse_mm"] == pytest.approx(0.03)
     # Two ruined frames, one flagged.
     assert s["detection"]["bad"] == 2 and s["detection"]["detection_rate"] == 0.5

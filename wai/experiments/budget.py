@@ -4,7 +4,8 @@ Every frame is rendered with one renderer-only effect (:data:`wai_core.config.RE
 or the render's water index) at one magnitude, and restored by the default restoration on the
 scene without it: the model the restoration has. Per effect and magnitude the sweep reports the
 surface RMSE (absolute and de-meaned), the restored view's corner STD, the status and the
-forward-consistency residual, and where the RMSE passes :data:`LIMITS_MM`; the frames an
+forward-consistency residual, and where the RMSE passes the baseline's by
+:data:`ADDED_LIMIT_MM` and passes 1 mm; the frames an
 effect ruins (RMSE over 1 mm) must be flagged by the truth-free status.
 
 The magnitudes run from zero (the baseline, every effect off) through a realistic value
@@ -29,7 +30,7 @@ from wai.experiments.stability import BAD_RMSE_MM, detection_rates
 from wai.sweep import run_sweep, sweep_kwargs
 from wai_core.io import atomic_write_bytes, write_json
 
-__all__ = ["EFFECTS", "LIMITS_MM", "Effect", "budget_points", "budget_summary", "run_budget"]
+__all__ = ["ADDED_LIMIT_MM", "EFFECTS", "Effect", "budget_points", "budget_summary", "run_budget"]
 
 
 @dataclass(frozen=True)
@@ -110,8 +111,10 @@ EFFECTS: dict[str, Effect] = {
 }
 """The effects the budget sweeps, in the order of its table."""
 
-LIMITS_MM = (0.05, BAD_RMSE_MM)
-"""Surface RMSE levels (mm) at which the report gives each effect's magnitude."""
+ADDED_LIMIT_MM = 0.05
+"""Surface RMSE (mm) added to the baseline's at which the report gives each effect's
+magnitude (the baseline itself is near 0.05 mm on a few seeds); the other level is
+:data:`~wai.experiments.stability.BAD_RMSE_MM`, absolute."""
 
 
 def budget_points(
@@ -135,6 +138,12 @@ def _mean(rows: list[dict[str, Any]], key: str) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
+def _extreme(rows: list[dict[str, Any]], key: str, fn: Callable) -> float:
+    vals = [float(r[key]) for r in rows if r.get(key) is not None]
+    vals = [v for v in vals if np.isfinite(v)]
+    return float(fn(vals)) if vals else float("nan")
+
+
 def _status(row: dict[str, Any]) -> str:
     if row.get("status", "ok") != "ok":
         return "error"
@@ -144,7 +153,9 @@ def _status(row: dict[str, Any]) -> str:
 def budget_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Per effect and magnitude: frames, statuses, mean RMSE (absolute, de-meaned; over all
     frames that gave a surface), corner STD, residual; each effect's magnitude at which the
-    RMSE passes each of :data:`LIMITS_MM`; and the detection of ruined frames."""
+    RMSE passes the baseline's by :data:`ADDED_LIMIT_MM` (``"+0.05"``) and passes
+    :data:`~wai.experiments.stability.BAD_RMSE_MM` (``"1"``); and the detection of ruined
+    frames."""
     base = [r for r in rows if r.get("effect") == "none"]
     out: dict[str, Any] = {"baseline": _entry(0.0, base), "effects": {}}
     for name in EFFECTS:
@@ -154,9 +165,11 @@ def budget_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         entries = [_entry(m, [r for r in sel if r["magnitude"] == m])
                    for m in sorted({r["magnitude"] for r in sel})]
         crossing = {}
-        for limit in LIMITS_MM:
+        limits = {f"+{ADDED_LIMIT_MM:g}": out["baseline"]["rmse_mm"] + ADDED_LIMIT_MM,
+                  f"{BAD_RMSE_MM:g}": BAD_RMSE_MM}
+        for key, limit in limits.items():
             over = [e["magnitude"] for e in entries if not e["rmse_mm"] <= limit]
-            crossing[f"{limit:g}"] = over[0] if over else None
+            crossing[key] = over[0] if over else None
         out["effects"][name] = {"label": EFFECTS[name].label, "entries": entries,
                                 "passes_mm": crossing}
     effect_rows = [r for r in rows if r.get("effect") != "none"]
@@ -171,6 +184,8 @@ def _entry(magnitude: float, group: list[dict[str, Any]]) -> dict[str, Any]:
     return {
         "magnitude": magnitude, "frames": len(group), "statuses": statuses,
         "rmse_mm": _mean(group, "wai_rmse_mm"),
+        "rmse_min_mm": _extreme(group, "wai_rmse_mm", np.min),
+        "rmse_max_mm": _extreme(group, "wai_rmse_mm", np.max),
         "rmse_demeaned_mm": _mean(group, "wai_rmse_demeaned_mm"),
         "corner_std_px": _mean(group, "corner_std_restored_px"),
         "residual_median_px": _mean(group, "residual_median_px"),
@@ -198,7 +213,7 @@ def budget_figure(summary: dict[str, Any], path: Path) -> None:
             ax.plot(x, y, style, label=label)
             bad = [i + 1 for i, e in enumerate(ent) if set(e["statuses"]) - {"ok"}]
             ax.plot(bad, [y[i] for i in bad], "x", color="tab:red", ms=9)
-        for limit in LIMITS_MM:
+        for limit in (base["rmse_mm"] + ADDED_LIMIT_MM, BAD_RMSE_MM):
             ax.axhline(limit, color="gray", ls=":", lw=0.8)
         ax.set_xticks(x, ["off"] + [f"{e['magnitude']:g}" for e in ent])
         ax.set_yscale("log")
@@ -212,7 +227,7 @@ def budget_figure(summary: dict[str, Any], path: Path) -> None:
     for ax in axes.ravel()[len(effects):]:
         ax.set_visible(False)
     fig.suptitle("Error budget: each effect rendered, the default restoration not knowing it "
-                 "(x: a frame not ok; dotted: 0.05 and 1 mm)")
+                 "(x: a frame not ok; dotted: baseline + 0.05 mm and 1 mm)")
     fig.tight_layout()
     save_figure(fig, path)
 
@@ -225,16 +240,19 @@ def budget_markdown(summary: dict[str, Any], command: str) -> str:
              f"Command: `{command}`", "", "![budget](budget.png)", "",
              f"Baseline (every effect off): RMSE {base['rmse_mm']:.4f} mm, de-meaned "
              f"{base['rmse_demeaned_mm']:.4f} mm, corner STD {base['corner_std_px']:.3f} px, "
-             f"statuses {base['statuses']}.", "",
-             "| effect | realistic magnitude | RMSE there (mm) | passes 0.05 mm at | passes "
-             "1 mm at | must the model include it? |", "|" + " --- |" * 6]
+             f"statuses {base['statuses']}; per seed {base['rmse_min_mm']:.4f} .. "
+             f"{base['rmse_max_mm']:.4f} mm, so differences of a few hundredths of a mm are "
+             "the seeds' spread, not the effect.", "",
+             "| effect | realistic magnitude | RMSE there (mm) | passes baseline + "
+             f"{ADDED_LIMIT_MM:g} mm at | passes {BAD_RMSE_MM:g} mm at | must the model include "
+             "it? |", "|" + " --- |" * 6]
     for name, eff in summary["effects"].items():
         real = EFFECTS[name].realistic
         at = next((e for e in eff["entries"] if e["magnitude"] == real), None)
         rmse = at["rmse_mm"] if at else float("nan")
         verdict = _verdict(at, base)
         p = eff["passes_mm"]
-        lines.append(f"| {name} | {real:g} | {rmse:.4f} | {_fmt(p['0.05'])} | {_fmt(p['1'])} "
+        lines.append(f"| {name} | {real:g} | {rmse:.4f} | {_fmt(p['+0.05'])} | {_fmt(p['1'])} "
                      f"| {verdict} |")
     lines += ["", f"Ruined frames (RMSE over {rates['bad_rmse_mm']:g} mm or failed): "
               f"{rates['bad']} of {rates['frames']}, flagged by the truth-free status: "
