@@ -6,7 +6,8 @@ System S (structured light): the projector with the dot pattern (only the dots w
 reach the diffuser are lit, each as bright as its Fresnel loss needs), the water surface, the
 diffuser and camera s. The pattern reaches camera s only after a specular bounce, which a
 camera-side path tracer can never connect to a delta-position projector, so it is rendered
-with ``ptracer`` (light tracing), ``max_depth = 4``: projector -> (through the one-way diffuser)
+with ``ptracer`` (light tracing), ``max_depth = 4`` (6 with a reflecting screen,
+:func:`pattern_depth`): projector -> (through the one-way diffuser)
 -> water -> diffuser -> camera; the pass-through counts as a bounce.
 
 System V (observation): camera v, the water surface and the object plane as an area emitter that
