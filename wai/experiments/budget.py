@@ -218,7 +218,12 @@ def budget_figure(summary: dict[str, Any], path: Path) -> None:
             ax.plot(bad, [y[i] for i in bad], "x", color="tab:red", ms=9)
         for limit in (base["rmse_mm"] + ADDED_LIMIT_MM, BAD_RMSE_MM):
             ax.axhline(limit, color="gray", ls=":", lw=0.8)
+        for i, e in enumerate(ent, start=1):
+            if e["rmse_mm"] is None or not np.isfinite(e["rmse_mm"]):  # no surface at all
+                ax.annotate("all\nfailed", (i, 1.0), xycoords=("data", "axes fraction"),
+                            ha="center", va="top", fontsize=7, color="tab:red")
         ax.set_xticks(x, ["off"] + [f"{e['magnitude']:g}" for e in ent])
+        ax.set_xlim(-0.3, len(ent) + 0.3)
         ax.set_yscale("log")
         ax.set(title=name, xlabel=eff["label"], ylabel="surface RMSE (mm)")
         tw = ax.twinx()
