@@ -9,7 +9,7 @@ blue-green reference's 99.9th percentile at ``signal_level`` of the full well), 
 dims the spots and the noise stays. For each detected spot (the flat geometry's spot for each
 dot in view): peak = the highest DN of the channel sum in the 3 x 3 pixels around it, minus
 the background's mean; SNR = peak / the background's standard deviation (pixels 5 px or more
-from every spot where the noiseless image is under 1 % of its 99.9th percentile).
+from every spot where the noiseless image is under 0.1 % of its 99.9th percentile).
 """
 
 from __future__ import annotations
@@ -22,6 +22,10 @@ from wai_core.config import SystemConfig
 
 BACKGROUND_DISTANCE_PX = 5.0
 """Background pixels lie at least this far from every spot (camera s's spots: ~1.4 px sigma)."""
+BACKGROUND_LEVEL = 1e-3
+"""... and below this fraction of the expected image's 99.9th percentile: no spot's tail (the
+render's own noise in the faint tails of the larger, oblique spots would read as the
+sensor's)."""
 
 COLOURS: dict[str, tuple[float, float, float]] = {
     "red": (1.0, 0.0, 0.0),
@@ -66,7 +70,7 @@ def spot_snr(dn: np.ndarray, noiseless: np.ndarray, rows: np.ndarray,
     far[rows[inside], cols[inside]] = False
     # Background: 5 px or more from every spot and dark in the expected image.
     back = (distance_transform_edt(far) >= BACKGROUND_DISTANCE_PX) & (
-        ref < 0.01 * np.percentile(ref, 99.9))
+        ref < BACKGROUND_LEVEL * np.percentile(ref, 99.9))
     mean, noise = float(mono[back].mean()), float(mono[back].std())
     keep = (rows >= 1) & (rows < h - 1) & (cols >= 1) & (cols < w - 1)
     r, c = rows[keep], cols[keep]
