@@ -52,8 +52,8 @@ A few wrong labels (a decoded pattern keeps ~0.4 % of them) give their edges res
 the others', and in a least-squares objective those edges alone placed the level: 1-2 mm off
 on three of ten coded frames of the paper's rig. Under the Cauchy loss an edge's weight falls
 as its residual passes the scale, so they no longer count. Taking the scale at the level rather
-than at a probe a few millimetres off (session 20) also discounts the edges across sharp crests,
-whose steps the rule gets least right: docs/results.md, session 21."""
+than at a probe a few millimetres off also discounts the edges across sharp crests, whose
+steps the rule gets least right (docs/results.md, "Accuracy")."""
 
 
 def edge_residuals_mm(est: SurfaceEstimate) -> tuple[NDArray, NDArray]:

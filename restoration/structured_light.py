@@ -296,8 +296,9 @@ def frame_status(
             f"the flat-water reference shows only {seen} of the {in_view} dots in view"
         )
     # A small patch whose labels only the ordering gave may be shifted by whole dots, and its
-    # slopes then integrate nearly as well (docs/results.md, session 21): only labels that the
-    # pattern pins (decoded, or a unique lattice anchor) make a small patch trustworthy.
+    # slopes then integrate nearly as well (docs/results.md, "Knowing when a frame is wrong"):
+    # only labels that the pattern pins (decoded, or a unique lattice anchor) make a small patch
+    # trustworthy.
     if len(features) < SPARSE_FRACTION * in_view and features.counts.get("labels_ambiguous", 1):
         return "sparse", (
             f"only {len(features)} of the {in_view} dots in view were matched, and nothing in "

@@ -229,7 +229,7 @@ def lattice_bridges(simplices: IntArray, lattice_ij: ArrayLike, max_step: int) -
     3x across the paper's patch (keystone), so a gap in the dense part can be as short as
     an ordinary edge of the sparse part. Over such a gap the blend extrapolates the slopes
     of its corners for 2-3 spacings (slope errors of ~0.01, restored corners moved by 3-5 px
-    on a 1600 x 1200 frame: docs/results.md, session 21).
+    on a 1600 x 1200 frame: docs/results.md, "Accuracy").
     """
     corners = np.asarray(lattice_ij)[simplices]  # (T, 3, 2)
     step = np.abs(corners - np.roll(corners, -1, axis=1)).max(axis=(1, 2))

@@ -276,7 +276,7 @@ def test_level_from_integrability_on_exact_spots(integrator, bound_mm, monkeypat
 
     With the fourth-order rule the level comes out within 0.05 mm (measured 0.0003); the
     trapezoid rule's systematic step error (L^3 h_3 / 12 per edge, a few um) moves the flat
-    valley's minimum by tenths of a millimetre (measured 0.29; 1.00 with session 20's search,
+    valley's minimum by tenths of a millimetre (measured 0.29; 1.00 with a level search
     whose Cauchy scale came from a probe 3 mm lower): the reason the default changed.
     """
     import restoration.structured_light as sl

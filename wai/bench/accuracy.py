@@ -10,7 +10,7 @@ the truth and never feed the restoration):
 ``gauge_anchor``  ours with refinement, but anchored at the gauge's h0 as in the paper;
 ``ours``        the default restoration (anchored by integrability);
 ``trapezoid``   ours with the trapezoid rule instead of the fourth-order one, in the level
-                search and the integration (the default before session 20);
+                search and the integration (the former default);
 ``fit``         ours, then the surface and its level fitted to the spots through the exact model
                 (``RestoreOptions(fit_spots=True)``, :func:`restoration.fit.fit_level`);
 ``oracle_spots``  the default, fed the exact spot positions ray-traced through the true surface
