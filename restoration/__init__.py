@@ -21,15 +21,21 @@ match), :mod:`~restoration.normals`, :mod:`~restoration.surface` with
 (inverse solve, warp); methods in :mod:`~restoration.structured_light` and
 :mod:`~restoration.alterman`; scores in :mod:`~restoration.scoring` and
 :mod:`~restoration.metrics`.
+
+Every result carries a :class:`Status` (a string enum: ``Status.OK == "ok"``). A frame the data
+cannot support comes back with status ``failed`` and the reason (the methods catch
+:class:`RestorationFailed`); bad input (a wrong shape, NaN in an image, an unknown option)
+raises :class:`~wai_core.errors.WaiInputError`.
 """
 
 from restoration.alterman import AltermanCalibration
 from restoration.calibration import Calibration, LevelTrack, RigCalibration
 from restoration.consistency import Consistency
+from restoration.errors import RestorationFailed
 from restoration.folder import FolderRestore, restore_folder
 from restoration.methods import METHODS, Alterman, Method, as_method, get_method, load_calibration
 from restoration.options import ANCHORS, RestoreOptions
-from restoration.result import STATUSES, RestoreResult
+from restoration.result import STATUSES, RestoreResult, Status
 from restoration.scoring import Scores, Truth, score
 from restoration.sequence import SequenceRestore, restore_sequence
 from restoration.structured_light import StructuredLight
@@ -46,11 +52,13 @@ __all__ = [
     "FolderRestore",
     "LevelTrack",
     "Method",
+    "RestorationFailed",
     "RestoreOptions",
     "RestoreResult",
     "RigCalibration",
     "Scores",
     "SequenceRestore",
+    "Status",
     "StructuredLight",
     "Truth",
     "ViewMatch",

@@ -35,11 +35,12 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from restoration.calibration import RigCalibration, read_scene_record, record_view_gain
+from restoration.errors import RestorationFailed
 from restoration.features import Matches, Spots, detect_spots
 from restoration.integrate import MIN_SAMPLES, integrate, to_heightfield
 from restoration.normals import slopes_from_normals, spots_on_diffuser
 from restoration.options import RestoreOptions
-from restoration.result import RestoreResult
+from restoration.result import RestoreResult, Status
 from wai_core.alterman import (
     AltermanSystem,
     SensorLayout,
@@ -54,10 +55,10 @@ from wai_core.heightfield import Heightfield
 Array = NDArray[np.float64]
 
 METHOD = "alterman"
-OK = "ok"
-NO_SUN = "no_sun"
-SUN_OUT_OF_VIEW = "sun_out_of_view"
-TOO_FEW_SPOTS = "too_few_spots"
+OK = Status.OK
+NO_SUN = Status.NO_SUN
+SUN_OUT_OF_VIEW = Status.SUN_OUT_OF_VIEW
+TOO_FEW_SPOTS = Status.TOO_FEW_SPOTS
 MIN_SPOTS = 16
 """Fewest matched spots the method integrates (as the structured light's features)."""
 DEFAULT_OPTIONS = RestoreOptions(anchor="gauge")
@@ -165,7 +166,7 @@ class AltermanCalibration(RigCalibration):
 # ----------------------------------------------------------------------------------------------
 
 
-def sun_status(system: AltermanSystem, layout: SensorLayout) -> tuple[str, str]:
+def sun_status(system: AltermanSystem, layout: SensorLayout) -> tuple[Status, str]:
     """From the calibration alone: is there a sun, and do its spots land in camera a's view?"""
     if not sun_is_up(system.sensor.sun):
         return NO_SUN, "no direct sunlight (sun off, below the horizon or zero irradiance)"
@@ -373,7 +374,7 @@ def reconstruct_alterman(
 
 def _spot_features(
     images: dict[str, NDArray], cal: AltermanCalibration
-) -> tuple[Matches | None, str, str]:
+) -> tuple[Matches | None, Status, str]:
     """Reference (once) and this frame's matches, or the status that stops the method."""
     if cal.reference is None:
         cal.reference = prepare_spot_reference(images["sunspots_flat"], cal.layout)
@@ -400,7 +401,8 @@ def restore_alterman(
 
     Returns a :class:`~restoration.result.RestoreResult`: status ``ok`` with the features,
     surface, restored view and timings, or ``no_sun`` / ``sun_out_of_view`` /
-    ``too_few_spots`` and no surface.
+    ``too_few_spots`` / ``failed`` (the spots give no surface:
+    :class:`~restoration.errors.RestorationFailed`) and no surface.
 
     Raises
     ------
@@ -424,7 +426,10 @@ def restore_alterman(
     t1 = time.perf_counter()
     pinholes = cal.layout.pinholes_mm[cal.layout.index_of(matches.ij)]
     spots_mm = spots_on_diffuser(matches.spot_px, cal.layout.camera, cal.layout.screen_z_mm)
-    surface = reconstruct_alterman(matches.ij, pinholes, spots_mm, cal.layout, options)
+    try:
+        surface = reconstruct_alterman(matches.ij, pinholes, spots_mm, cal.layout, options)
+    except RestorationFailed as exc:
+        return RestoreResult(METHOD, Status.FAILED, str(exc), counts=matches.counts)
     t2 = time.perf_counter()
     view = cal.restore_view(images["view"] / cal.view_gain, surface.heightfield,
                             options.warp_step_px)

@@ -17,7 +17,7 @@ import numpy as np
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
 from restoration.methods import Method, as_method
 from restoration.options import RestoreOptions
-from restoration.result import RestoreResult
+from restoration.result import RestoreResult, Status
 from restoration.scoring import Scores, Truth, score, surface_profile
 from restoration.view_check import match_flat_view
 from wai_core.errors import WaiInputError
@@ -171,13 +171,13 @@ def check_inputs(
         conflict = image_conflict(folder, name, images[name])
         if conflict is not None:
             result.warnings.append(conflict)
-            result.flag("ambiguous_input", conflict)
+            result.flag(Status.AMBIGUOUS_INPUT, conflict)
     if view_flat is not None and result.restored:
         match = match_flat_view(result.view.image, result.view.valid,
                                 cal.radiance(images["view"]), view_flat)
         result.view_match = match
         if not match.consistent:
-            result.flag("view_mismatch", match.message)
+            result.flag(Status.VIEW_MISMATCH, match.message)
 
 
 def folder_metrics(
@@ -297,11 +297,11 @@ def _num(value: Any, spec: str, unit: str = "") -> str:
 
 def summary_lines(m: dict[str, Any]) -> list[str]:
     """The figures of a ``metrics.json`` a person reads first, one line each."""
-    status = m.get("status", "ok")
+    status = m.get("status", Status.OK)
     if "features_used" not in m:
         return [f"{m['method']}: cannot run ({status}): {m['message']}"]
     lines = []
-    if status != "ok":
+    if status != Status.OK:
         lines.append(f"status {status}: {m['message']}")
     if "wai_rmse_mm" in m:
         lines.append(

@@ -22,6 +22,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
+from restoration.errors import RestorationFailed
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera, intersect_plane_z
 
@@ -122,7 +123,7 @@ def reflected_dirs(q_mm: ArrayLike, s_mm: ArrayLike) -> Array:
     v = s - q
     length = np.linalg.norm(v, axis=1, keepdims=True)
     if np.any(length <= 0):
-        raise WaiInputError("reflected_dirs: a reflection point coincides with its spot")
+        raise RestorationFailed("reflected_dirs: a reflection point coincides with its spot")
     return v / length
 
 
@@ -176,7 +177,9 @@ def reflection_normals(v_p: ArrayLike, q_mm: ArrayLike, s_mm: ArrayLike) -> Arra
     length = np.linalg.norm(w, axis=1, keepdims=True)
     # |v_p - v| = 2 cos(incidence): zero only for a grazing ray, which fixes no normal.
     if np.any(length < 1e-9):
-        raise WaiInputError("reflection_normals: a reflected ray is parallel to its incident ray")
+        raise RestorationFailed(
+            "reflection_normals: a reflected ray is parallel to its incident ray"
+        )
     n = w / length
     return n * np.where(n[:, 2:3] < 0, -1.0, 1.0)
 
@@ -191,7 +194,7 @@ def slopes_from_normals(normals: ArrayLike) -> Array:
     """
     n = _as_points(normals, 3, "normals")
     if np.any(np.abs(n[:, 2]) < 1e-9):
-        raise WaiInputError("slopes_from_normals: a normal is horizontal (vertical surface)")
+        raise RestorationFailed("slopes_from_normals: a normal is horizontal (vertical surface)")
     return -n[:, :2] / n[:, 2:3]
 
 
@@ -202,6 +205,13 @@ _KERNEL_ERRORS = {
     3: "reflection_normals: a reflected ray is parallel to its incident ray",
     4: "slopes_from_normals: a normal is horizontal (vertical surface)",
 }
+
+
+def kernel_error(code: int) -> Exception:
+    """The exception of a :data:`_KERNEL_ERRORS` code: rays that do not point up are the
+    caller's geometry (:class:`~wai_core.errors.WaiInputError`); the other codes are a frame's
+    degenerate reflections (:class:`~restoration.errors.RestorationFailed`)."""
+    return (WaiInputError if code == 1 else RestorationFailed)(_KERNEL_ERRORS[code])
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -272,5 +282,5 @@ def reflection_slopes(
         q, normals, slopes,
     )
     if code:
-        raise WaiInputError(_KERNEL_ERRORS[code])
+        raise kernel_error(code)
     return q, normals, slopes

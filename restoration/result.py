@@ -1,7 +1,8 @@
 """What one restoration of one frame produced: a status, and the surface and view when it ran.
 
-Statuses are decided from the images and the calibration alone (no truth), so a user restoring
-their own captures reads the same verdict as a sweep does:
+Statuses (:class:`Status`, a string enum: ``Status.OK == "ok"``) are decided from the images
+and the calibration alone (no truth), so a user restoring their own captures reads the same
+verdict as a sweep does:
 
 ``ok``
     the frame was restored and nothing truth-free says it is wrong;
@@ -34,24 +35,53 @@ their own captures reads the same verdict as a sweep does:
     the folder holds two files of one image (``pattern.exr`` and ``pattern.png``) with
     different content; the first of :data:`~wai_core.images.IMAGE_SUFFIXES` was used;
 ``failed``
-    the method could not build a surface (``message`` says why);
+    the data cannot support a surface (too few features, samples that fix no surface):
+    the method caught :class:`~restoration.errors.RestorationFailed`, whose text is the
+    ``message``. Bad input (a wrong shape, NaN, an unknown option) is no status: it raises
+    :class:`~wai_core.errors.WaiInputError`;
 ``no_sun``, ``sun_out_of_view``, ``too_few_spots``
     Alterman's sensor had no usable sunlight (it then returns no surface).
 """
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-__all__ = ["REFERENCE_RMS_FRACTION", "SPARSE_FRACTION", "STATUSES", "RestoreResult"]
+__all__ = ["REFERENCE_RMS_FRACTION", "SPARSE_FRACTION", "STATUSES", "RestoreResult", "Status"]
 
-STATUSES = (
-    "ok", "bad_reference", "sparse", "inconsistent", "gauge_level", "dark_view", "view_mismatch",
-    "ambiguous_input", "failed", "no_sun", "sun_out_of_view", "too_few_spots",
-)
+
+class Status(enum.StrEnum):
+    """A frame's truth-free verdict (see the module notes); each member is its string value.
+
+    Examples
+    --------
+    >>> from restoration import Status
+    >>> Status.OK == "ok", str(Status.GAUGE_LEVEL), f"{Status.FAILED}"
+    (True, 'gauge_level', 'failed')
+    >>> Status("sparse") is Status.SPARSE
+    True
+    """
+
+    OK = "ok"
+    BAD_REFERENCE = "bad_reference"
+    SPARSE = "sparse"
+    INCONSISTENT = "inconsistent"
+    GAUGE_LEVEL = "gauge_level"
+    DARK_VIEW = "dark_view"
+    VIEW_MISMATCH = "view_mismatch"
+    AMBIGUOUS_INPUT = "ambiguous_input"
+    FAILED = "failed"
+    NO_SUN = "no_sun"
+    SUN_OUT_OF_VIEW = "sun_out_of_view"
+    TOO_FEW_SPOTS = "too_few_spots"
+
+
+STATUSES = tuple(s.value for s in Status)
+"""Every status's string, in :class:`Status` order."""
 SPARSE_FRACTION = 0.25
 """Fewer dots seen in the flat reference, or fewer matches with unpinned labels, than this
 fraction of the features in view make a frame ``sparse``."""
@@ -70,8 +100,8 @@ class RestoreResult:
     ----------
     method : str
         ``structured-light`` or ``alterman``.
-    status : str
-        One of :data:`STATUSES` (see the module notes).
+    status : Status
+        The verdict (see the module notes); a string given here is converted.
     message : str
         Why, in words, when the status is not ``ok``.
     features : Matches or None
@@ -96,7 +126,7 @@ class RestoreResult:
     """
 
     method: str
-    status: str = "ok"
+    status: Status = Status.OK
     message: str = ""
     features: Any = None
     surface: Any = None
@@ -107,16 +137,19 @@ class RestoreResult:
     view_match: Any = None
     warnings: list[str] = field(default_factory=list)
 
+    def __post_init__(self) -> None:
+        self.status = Status(self.status)
+
     @property
     def ok(self) -> bool:
         """True when the status is ``ok``."""
-        return self.status == "ok"
+        return self.status == Status.OK
 
-    def flag(self, status: str, message: str) -> None:
+    def flag(self, status: Status, message: str) -> None:
         """Mark a frame that a later check found wrong: an ``ok`` frame takes ``status``; a
         frame already flagged keeps its status and gains ``message``."""
-        if self.status == "ok":
-            self.status, self.message = status, message
+        if self.status == Status.OK:
+            self.status, self.message = Status(status), message
         elif message not in self.message:
             self.message = f"{self.message}; {message}" if self.message else message
 
@@ -129,7 +162,7 @@ class RestoreResult:
         """The truth-free figures of the frame, as plain values (``metrics.json``)."""
         out: dict[str, Any] = {
             "method": self.method,
-            "status": self.status,
+            "status": self.status.value,
             "message": self.message,
             "feature_counts": dict(self.counts),
             "features_detected": int(self.counts.get("detected", 0)),

@@ -167,7 +167,7 @@ def score(
         When ``result`` holds no restoration (its status says why).
     """
     if not result.restored:
-        raise ValueError(f"nothing to score: the frame's status is {result.status!r}")
+        raise ValueError(f"nothing to score: the frame's status is {result.status.value!r}")
     out = Scores()
     if truth.surface is not None:
         surf = surface_errors(result.surface.heightfield, truth.surface)

@@ -30,6 +30,7 @@ from restoration.folder import (
 )
 from restoration.methods import Method, as_method
 from restoration.options import RestoreOptions
+from restoration.result import Status
 from restoration.scoring import Truth, score
 from restoration.view_check import match_sequence
 from wai_core.io import atomic_dir, atomic_write_bytes, check_output_dir, to_srgb8, write_json
@@ -193,11 +194,11 @@ def _flag_moving_views(
         rows[k]["view_ncc"] = match.ncc_restored
         if match.consistent:
             continue
-        result.flag("view_mismatch", match.message)
-        rows[k]["status"] = result.status
+        result.flag(Status.VIEW_MISMATCH, match.message)
+        rows[k]["status"] = result.status.value
         if staged:
             tmp, metrics = staged[k]
-            metrics.update(status=result.status, message=result.message,
+            metrics.update(status=result.status.value, message=result.message,
                            view_match=match.summary())
             write_json(tmp / "metrics.json", metrics)
 
@@ -208,7 +209,7 @@ def _row(
 ) -> dict[str, Any]:
     """One ``frames.csv`` row."""
     row: dict[str, Any] = {c: None for c in COLUMNS}
-    row.update(frame=k, time_s=time_s, status=result.status)
+    row.update(frame=k, time_s=time_s, status=result.status.value)
     if result.restored:
         row.update(
             anchor_mm=result.surface.anchor.get("anchor_mm"),
@@ -239,7 +240,7 @@ def _mean(rows: list[dict], key: str) -> float | None:
 
 
 def _summary(seq: SequenceRecord, rows: list[dict[str, Any]]) -> dict[str, Any]:
-    ok = [r for r in rows if r["status"] == "ok"]
+    ok = [r for r in rows if r["status"] == Status.OK]
     statuses: dict[str, int] = {}
     for r in rows:
         statuses[r["status"]] = statuses.get(r["status"], 0) + 1

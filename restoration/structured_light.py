@@ -22,6 +22,7 @@ from restoration._threads import run_beside
 from restoration.anchor import find_anchor, integration_residual_mm
 from restoration.calibration import Calibration, LevelTrack
 from restoration.consistency import Consistency, spot_consistency
+from restoration.errors import RestorationFailed
 from restoration.features import (
     Matches,
     ReferenceGrid,
@@ -31,11 +32,10 @@ from restoration.features import (
 from restoration.fit import fit_level
 from restoration.normals import points_on_rays, projector_rays
 from restoration.options import RestoreOptions
-from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, RestoreResult
+from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, RestoreResult, Status
 from restoration.reverse_trace._surface import spline_patches
 from restoration.surface import COMPILED_INTEGRATORS, SurfaceEstimate, reconstruct_surface
 from wai_core.config import DeviceConfig, PatternConfig, SystemConfig
-from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.pattern import dot_grid
 
@@ -215,7 +215,7 @@ def resolve_label_shift(
         candidate = shifted(features, shift, keep)
         try:
             est = estimate_surface(candidate.ij, candidate.spot_px, cfg, options)
-        except WaiInputError:
+        except RestorationFailed:
             continue
         tried += 1
         residual = integration_residual_mm(est)
@@ -279,20 +279,20 @@ def consistency_of(
 def frame_status(
     features: Matches, reference: ReferenceGrid, surface: SurfaceEstimate, check: Consistency,
     view_ok: bool, options: RestoreOptions,
-) -> tuple[str, str]:
+) -> tuple[Status, str]:
     """The truth-free verdict on a restored frame (see :mod:`restoration.result`)."""
     in_view = max(int(reference.counts.get("predicted_in_view", 0)), 1)
     seen = int(reference.counts.get("observed", 0))
     spacing = float(np.nanmedian(reference.spacing_px))
     if reference.rms_px > REFERENCE_RMS_FRACTION * spacing:
-        return "bad_reference", (
+        return Status.BAD_REFERENCE, (
             f"pattern_flat is not flat water for this rig: its {seen} spots lie "
             f"{reference.rms_px:.2f} px (RMS, {reference.rms_px / spacing:.0%} of their "
             "spacing) from the calibrated flat-water positions: pattern and pattern_flat "
             "swapped, or the rig moved since calibration?"
         )
     if seen < SPARSE_FRACTION * in_view:
-        return "sparse", (
+        return Status.SPARSE, (
             f"the flat-water reference shows only {seen} of the {in_view} dots in view"
         )
     # A small patch whose labels only the ordering gave may be shifted by whole dots, and its
@@ -300,20 +300,20 @@ def frame_status(
     # only labels that the pattern pins (decoded, or a unique lattice anchor) make a small patch
     # trustworthy.
     if len(features) < SPARSE_FRACTION * in_view and features.counts.get("labels_ambiguous", 1):
-        return "sparse", (
+        return Status.SPARSE, (
             f"only {len(features)} of the {in_view} dots in view were matched, and nothing in "
             "the pattern pins their labels (they may be shifted by whole dots)"
         )
     if not check.consistent:
-        return "inconsistent", (
+        return Status.INCONSISTENT, (
             f"the surface misses the detected spots by {check.median_px:.2f} px (median; "
             f"threshold {check.threshold_px:.2f} px)"
         )
     if not view_ok:
-        return "dark_view", "the view image holds no signal (all pixels alike)"
+        return Status.DARK_VIEW, "the view image holds no signal (all pixels alike)"
     if options.anchor == "integrability" and surface.anchor.get("method") == "gauge_fallback":
-        return "gauge_level", "the slopes do not pin the level: the gauge's h0 was used"
-    return "ok", ""
+        return Status.GAUGE_LEVEL, "the slopes do not pin the level: the gauge's h0 was used"
+    return Status.OK, ""
 
 
 def _timed(fn: Callable[..., T], *args: Any) -> tuple[T, float]:
@@ -371,12 +371,19 @@ class StructuredLight:
         -------
         RestoreResult
             Status ``failed`` (with the reason, and no surface) when the frame gives no
-            surface; otherwise the surface, the restored view and a truth-free status.
+            surface (:class:`~restoration.errors.RestorationFailed`); otherwise the surface,
+            the restored view and a truth-free status.
+
+        Raises
+        ------
+        WaiInputError
+            For bad input: a wrongly sized image, NaN or inf in one, a configuration whose
+            geometry cannot work.
         """
         options, cfg = self.options, cal.cfg
-        reference = cal.prepare(images["pattern_flat"])
-        t0 = time.perf_counter()
         try:
+            reference = cal.prepare(images["pattern_flat"])
+            t0 = time.perf_counter()
             # The coded pattern is decoded dot by dot; the plain one matched by ordering.
             match = features_from_code if cfg.pattern.code != "none" else features_from_reference
             features = match(images["pattern"], reference, cfg)
@@ -388,8 +395,8 @@ class StructuredLight:
                     features, surface, reference, cfg, options
                 )
             surface.heightfield  # noqa: B018  (gridded here: a patch too small to grid fails)
-        except WaiInputError as exc:
-            return RestoreResult(self.name, "failed", str(exc))
+        except RestorationFailed as exc:
+            return RestoreResult(self.name, Status.FAILED, str(exc))
         if track is not None:
             track.update(surface.anchor)
         spots = spots_of(features, surface.ij)

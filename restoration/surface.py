@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
+from restoration.errors import RestorationFailed
 from restoration.integrate import (
     GRIDDERS,
     INTEGRATORS,
@@ -52,6 +53,7 @@ from restoration.integrate.rules import edge_step, edge_steps
 from restoration.normals import (
     _KERNEL_ERRORS,
     _reflection_kernel,
+    kernel_error,
     points_on_rays,
     projector_rays,
     reflection_slopes,
@@ -468,7 +470,7 @@ def _compiled_refinement(
     if keep is not None:
         _, _, slopes = reflection_slopes(origin, v_p, spots, np.full(len(ij), float(h0_mm)))
         if not np.all(np.isfinite(slopes)):
-            raise WaiInputError(_REFINE_ERRORS[5])
+            raise RestorationFailed(_REFINE_ERRORS[5])
         ij, v_p, spots = ij[keep], v_p[keep], spots[keep]
     k = ij.shape[0]
     q, normals, slopes = np.empty((k, 3)), np.empty((k, 3)), np.empty((k, 2))
@@ -480,7 +482,9 @@ def _compiled_refinement(
         out,
     )
     if code:
-        raise WaiInputError(_KERNEL_ERRORS.get(code) or _REFINE_ERRORS[code])
+        raise kernel_error(code) if code in _KERNEL_ERRORS else RestorationFailed(
+            _REFINE_ERRORS[code]
+        )
     return ij, q, normals, slopes, integrated, int(out[0]), float(out[1])
 
 
@@ -627,7 +631,9 @@ class _TrapezoidSystem:
         length2 = np.empty(a.size)
         _length2_kernel(np.ascontiguousarray(weight_xy, dtype=float), a, b, length2)
         if not np.all(length2 > 0):
-            raise WaiInputError("integrate: two neighbouring samples sit at the same position")
+            raise RestorationFailed(
+                "integrate: two neighbouring samples sit at the same position"
+            )
         return cls(a, b, 1.0 / length2, graph)
 
     def steps(self, xy: Array, slopes: Array) -> Array:

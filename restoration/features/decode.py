@@ -72,6 +72,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from restoration.errors import RestorationFailed
 from restoration.features._outline import _visible_outline
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from restoration.features.detect import Spots, _typical_flux
@@ -757,7 +758,9 @@ def features_from_code(
     Raises
     ------
     WaiInputError
-        On a wrongly sized or grey image, or fewer than ``min_features`` decoded dots.
+        On a wrongly sized or grey image.
+    RestorationFailed
+        On fewer than ``min_features`` decoded dots.
     """
     t0 = time.perf_counter()
     wavy = detect_frame(pattern_img, ref, cfg)
@@ -766,6 +769,6 @@ def features_from_code(
     matches = decode_distorted(ref, wavy, pattern_img, cfg, ordering=ordering).matches
     t2 = time.perf_counter()
     if len(matches) < min_features:
-        raise WaiInputError(f"too few features decoded: {len(matches)} (need {min_features})")
+        raise RestorationFailed(f"too few features decoded: {len(matches)} (need {min_features})")
     matches.timings_ms.update({"detect": 1e3 * (t1 - t0), "match": 1e3 * (t2 - t1)})
     return matches

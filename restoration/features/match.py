@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from restoration.errors import RestorationFailed
 from restoration.features._kernels import grow
 from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
 from restoration.features._outline import _Outline, _outline_px, _visible_outline
@@ -566,7 +567,9 @@ def find_features(
     Raises
     ------
     WaiInputError
-        On bad images (shape, NaN) or fewer than ``min_features`` matches.
+        On bad images (shape, NaN).
+    RestorationFailed
+        On fewer than ``min_features`` matches (or features on flat water).
     """
     cam = cfg.camera_s
     for name, img in (("pattern", pattern_img), ("flat pattern", pattern_flat_img)):
@@ -610,13 +613,21 @@ def detect_frame(pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig) ->
 def features_from_reference(
     pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig, *, min_features: int = 16
 ) -> Matches:
-    """Detect the spots of one wavy frame and match them to a prepared reference grid."""
+    """Detect the spots of one wavy frame and match them to a prepared reference grid.
+
+    Raises
+    ------
+    WaiInputError
+        On a bad image (shape, NaN).
+    RestorationFailed
+        On fewer than ``min_features`` matches.
+    """
     t0 = time.perf_counter()
     wavy = detect_frame(pattern_img, ref, cfg)
     t1 = time.perf_counter()
     matches = match_distorted(ref, wavy, visible_px=_visible_outline(cfg))
     t2 = time.perf_counter()
     if len(matches) < min_features:
-        raise WaiInputError(f"too few features matched: {len(matches)} (need {min_features})")
+        raise RestorationFailed(f"too few features matched: {len(matches)} (need {min_features})")
     matches.timings_ms.update({"detect": 1e3 * (t1 - t0), "match": 1e3 * (t2 - t1)})
     return matches

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from restoration.errors import RestorationFailed
 from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
 from restoration.features._outline import _diffuser, _edge_distances, _outline_px
 from restoration.features._types import BoolArray, FloatArray, IntArray
@@ -362,7 +363,15 @@ def prepare_reference(
     """The flat-water reference grid: calibration, computed once per rig, not per frame.
 
     Spots are detected at the calibrated spot size (:func:`spot_sigma_px`), which the grid
-    keeps for the per-frame detection and matching."""
+    keeps for the per-frame detection and matching.
+
+    Raises
+    ------
+    WaiInputError
+        On a bad image (shape, NaN) or a configuration whose dots cannot reach camera s.
+    RestorationFailed
+        When fewer than ``min_features`` dots are seen on flat water.
+    """
     sigma = spot_sigma_px(cfg)
     sigma_ok = float(sigma) if np.isfinite(sigma) and sigma > 0 else None
     flat = flag_diffuser_edge(
@@ -372,5 +381,5 @@ def prepare_reference(
     ref = match_reference(flat, predicted, lit=lit_dots(cfg) if lit is None else lit)
     ref = replace(ref, spot_sigma_px=float(sigma))
     if ref.counts["observed"] < min_features:
-        raise WaiInputError(f"too few features on flat water: {ref.counts['observed']}")
+        raise RestorationFailed(f"too few features on flat water: {ref.counts['observed']}")
     return ref

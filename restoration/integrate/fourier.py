@@ -14,10 +14,10 @@ from scipy.fft import dctn, idctn, irfft2, rfft2
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import Delaunay, QhullError
 
+from restoration.errors import RestorationFailed
 from restoration.integrate._common import _MAX_GRID_NODES, Array
 from restoration.integrate.gridding import _scan_triangles
 from restoration.integrate.lattice import check_samples, largest_grid_piece
-from wai_core.errors import WaiInputError
 
 # Slope-grid node spacing in units of the median nearest-neighbour distance of the samples (about
 # the smallest lattice spacing, across the keystone): at least two nodes per sample spacing, so
@@ -58,14 +58,14 @@ def _regular_axes(xy: Array, step_mm: float) -> tuple[Array, Array]:
 
     Raises
     ------
-    WaiInputError
+    RestorationFailed
         When the grid would exceed :data:`_MAX_GRID_NODES` (samples spread far beyond their
         spacing).
     """
     lo = xy.min(axis=0)
     n = np.maximum(np.ceil((xy.max(axis=0) - lo) / step_mm).astype(np.int64) + 1, 2)
     if n[0] * n[1] > _MAX_GRID_NODES:
-        raise WaiInputError(
+        raise RestorationFailed(
             f"integrate: samples {step_mm:.3g} mm apart span a {n[0]} x {n[1]} grid, too large"
         )
     # (Rounding the node counts up to FFT-friendly sizes would save ~1 ms but add nodes outside
@@ -79,13 +79,13 @@ def _triangulate(xy: Array) -> Delaunay:
 
     Raises
     ------
-    WaiInputError
+    RestorationFailed
         When the samples are collinear.
     """
     try:
         return Delaunay(xy)
     except QhullError:
-        raise WaiInputError("integrate: samples are collinear (no area to grid)") from None
+        raise RestorationFailed("integrate: samples are collinear (no area to grid)") from None
 
 
 def _median_neighbour_distance(tri: Delaunay) -> float:
@@ -203,7 +203,7 @@ def resample_slopes(xy_mm: Array, slopes: Array, step_mm: float | None = None) -
 
     Raises
     ------
-    WaiInputError
+    RestorationFailed
         When the samples are collinear, leave no node inside their hull, or need too large a
         grid.
     """
@@ -214,7 +214,7 @@ def resample_slopes(xy_mm: Array, slopes: Array, step_mm: float | None = None) -
     field = _linear_on_grid(tri, slopes, gx, gy)
     inside = np.isfinite(field[0])
     if not inside.any():
-        raise WaiInputError("integrate: no grid node falls inside the samples' hull")
+        raise RestorationFailed("integrate: no grid node falls inside the samples' hull")
     p, q = _extrapolate_slopes(field, inside, _mean_hessian(xy_mm, slopes), step_mm)
     return SlopeGrid(float(gx[0]), float(gy[0]), float(step_mm), p, q, inside)
 
@@ -384,9 +384,9 @@ def integrate_frankot_chellappa(
 
     Raises
     ------
-    WaiInputError
-        As :func:`check_samples` and :func:`largest_grid_piece`, and when the samples are
-        collinear (see :func:`resample_slopes`).
+    WaiInputError, RestorationFailed
+        As :func:`check_samples` and :func:`largest_grid_piece`; RestorationFailed when the
+        samples are collinear (see :func:`resample_slopes`).
     """
     return _integrate_on_grid(ij, xy_mm, slopes, frankot_chellappa)
 

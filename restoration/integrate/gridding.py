@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike
 from scipy.interpolate import CloughTocher2DInterpolator
 from scipy.spatial import Delaunay, QhullError
 
+from restoration.errors import RestorationFailed
 from restoration.integrate._common import (
     _MAX_GRID_NODES,
     MIN_SAMPLES,
@@ -40,9 +41,9 @@ def _grid_axes(xy: Array, spacing_mm: float) -> tuple[Array, Array]:
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     n = np.ceil((hi - lo) / spacing_mm).astype(int) + 1
     if n[0] * n[1] > _MAX_GRID_NODES:
-        raise WaiInputError(f"to_heightfield: a {spacing_mm} mm grid needs too many nodes")
+        raise RestorationFailed(f"to_heightfield: a {spacing_mm} mm grid needs too many nodes")
     if np.any(n < 4):
-        raise WaiInputError(
+        raise RestorationFailed(
             f"to_heightfield: samples span too little for a {spacing_mm} mm grid (need 4 nodes)"
         )
     return lo[0] + spacing_mm * np.arange(n[0]), lo[1] + spacing_mm * np.arange(n[1])
@@ -376,7 +377,7 @@ def _check_grid_input(xy: Array, h: Array, spacing_mm: float, method: str) -> No
             f"to_heightfield: need xy_mm (K, 2) and heights_mm (K,), got {xy.shape}, {h.shape}"
         )
     if xy.shape[0] < MIN_SAMPLES:
-        raise WaiInputError(
+        raise RestorationFailed(
             f"to_heightfield: too few samples to grid ({xy.shape[0]} < {MIN_SAMPLES})"
         )
     if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(h))):
@@ -450,7 +451,9 @@ def to_heightfield(
     try:
         tri = Delaunay(xy)
     except QhullError:
-        raise WaiInputError("to_heightfield: samples are collinear (no area to grid)") from None
+        raise RestorationFailed(
+            "to_heightfield: samples are collinear (no area to grid)"
+        ) from None
     z = np.full(gy.size * gx.size, np.nan)
     keep = None if lattice_ij is None else ~lattice_bridges(tri.simplices, lattice_ij,
                                                              max_lattice_step)

@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU, splu
 
+from restoration.errors import RestorationFailed
 from restoration.integrate._common import _MAX_GRID_NODES, MIN_SAMPLES, Array, IntArray
 from restoration.integrate.rules import edge_steps
 from wai_core.errors import WaiInputError
@@ -32,8 +33,9 @@ def check_samples(
     Raises
     ------
     WaiInputError
-        On wrong shapes, NaN or inf, repeated or absurdly spread grid indices, or fewer than
-        :data:`MIN_SAMPLES` samples.
+        On wrong shapes, NaN or inf, or repeated grid indices.
+    RestorationFailed
+        On absurdly spread grid indices, or fewer than :data:`MIN_SAMPLES` samples.
     """
     ij_arr = np.asarray(ij)
     xy = np.asarray(xy_mm, dtype=float)
@@ -44,7 +46,7 @@ def check_samples(
     if not ij_arr.shape[0] == xy.shape[0] == g.shape[0]:
         raise WaiInputError("integrate: ij, xy_mm and slopes must hold the same number of samples")
     if ij_arr.shape[0] < MIN_SAMPLES:
-        raise WaiInputError(
+        raise RestorationFailed(
             f"integrate: too few features to integrate ({ij_arr.shape[0]} < {MIN_SAMPLES})"
         )
     if not np.issubdtype(ij_arr.dtype, np.integer):
@@ -54,7 +56,9 @@ def check_samples(
     ij_arr = ij_arr.astype(np.int64)
     span = ij_arr.max(axis=0) - ij_arr.min(axis=0) + 1
     if span[0] * span[1] > _MAX_GRID_NODES:
-        raise WaiInputError(f"integrate: grid indices span {span[0]} x {span[1]}, too wide a grid")
+        raise RestorationFailed(
+            f"integrate: grid indices span {span[0]} x {span[1]}, too wide a grid"
+        )
     # A table over the index span finds repeated (i, j) without sorting.
     flat = (ij_arr[:, 1] - ij_arr[:, 1].min()) * span[0] + (ij_arr[:, 0] - ij_arr[:, 0].min())
     if np.bincount(flat).max() > 1:
@@ -103,14 +107,14 @@ def largest_piece(n: int, a: IntArray, b: IntArray) -> NDArray[np.bool_]:
 
     Raises
     ------
-    WaiInputError
+    RestorationFailed
         When that piece holds fewer than :data:`MIN_SAMPLES` nodes.
     """
     adjacency = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n))
     _, labels = connected_components(adjacency, directed=False)
     keep = labels == np.bincount(labels).argmax()
     if keep.sum() < MIN_SAMPLES:
-        raise WaiInputError(
+        raise RestorationFailed(
             f"integrate: too few connected features to integrate ({keep.sum()} < {MIN_SAMPLES})"
         )
     return keep
@@ -153,8 +157,8 @@ def spd_solve(matrix: sp.spmatrix, rhs: Array) -> Array:
     return out
 
 
-def _singular() -> WaiInputError:
-    return WaiInputError("integrate: the samples do not determine the surface (singular fit)")
+def _singular() -> RestorationFailed:
+    return RestorationFailed("integrate: the samples do not determine the surface (singular fit)")
 
 
 @dataclass(frozen=True)
@@ -463,7 +467,7 @@ def _integrate_scheme(
     else:
         length2 = np.einsum("ij,ij->i", step, step)
     if not np.all(length2 > 0):
-        raise WaiInputError("integrate: two neighbouring samples sit at the same position")
+        raise RestorationFailed("integrate: two neighbouring samples sit at the same position")
     if plan.before is not None:
         diff = edge_steps(xy, g, a, b, plan.before, plan.after)
     else:

@@ -12,9 +12,9 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
+from restoration.errors import RestorationFailed
 from restoration.integrate._common import Array, IntArray
 from restoration.integrate.lattice import check_samples, largest_grid_piece, spd_solve
-from wai_core.errors import WaiInputError
 
 # Weight of the third-difference penalty relative to the data (dimensionless, see penalty()).
 _SPLINE_SMOOTHING = 1e-2
@@ -119,7 +119,7 @@ def _median_spacing(xy: Array) -> float:
     dist, _ = cKDTree(xy).query(xy, k=2)
     spacing = float(np.median(dist[:, 1]))
     if spacing <= 0:
-        raise WaiInputError("integrate: samples sit at repeated positions")
+        raise RestorationFailed("integrate: samples sit at repeated positions")
     return spacing
 
 

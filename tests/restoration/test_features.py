@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from restoration import features
+from restoration.errors import RestorationFailed
 from restoration.features import (
     ReferenceGrid,
     detect_spots,
@@ -487,7 +488,7 @@ def test_too_few_features_raise(cfg, flat_scene):
     flux = np.zeros(len(ij))
     flux[np.flatnonzero(in_view)[:5]] = 3000.0
     img = pattern_image(flat_scene, spot, flux)
-    with pytest.raises(WaiInputError, match="too few"):
+    with pytest.raises(RestorationFailed, match="too few"):
         find_features(img, img, cfg)
     with pytest.raises(WaiInputError, match="NaN"):
         bad = img.copy()

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
+from restoration.errors import RestorationFailed
 from restoration.integrate import (
     INTEGRATORS,
     MIN_SAMPLES,
@@ -215,9 +216,9 @@ def test_island_is_left_unknown(name):
 def test_bad_input():
     ij, xy = grid()
     _, g = plane(xy)
-    with pytest.raises(WaiInputError, match="too few features"):
+    with pytest.raises(RestorationFailed, match="too few features"):
         integrate(ij[: MIN_SAMPLES - 1], xy[:3], g[:3])
-    with pytest.raises(WaiInputError, match="too few connected"):
+    with pytest.raises(RestorationFailed, match="too few connected"):
         # Five samples, none a grid neighbour of another.
         integrate(ij[::7][:5] * 3, xy[::7][:5], g[:5])
     with pytest.raises(WaiInputError, match="share one grid index"):
@@ -228,7 +229,7 @@ def test_bad_input():
         integrate(ij, xy[:, :1], g)
     with pytest.raises(WaiInputError, match="unknown integrator"):
         integrate(ij, xy, g, method="magic")
-    with pytest.raises(WaiInputError, match="too wide"):
+    with pytest.raises(RestorationFailed, match="too wide"):
         integrate(np.r_[ij[:-1], [[10**5, 10**5]]], xy, g)
 
 
@@ -308,14 +309,14 @@ def test_poisson_dct_is_least_squares_over_grid_edges():
 def test_grid_integrators_bad_input_and_unused_weights(name):
     ij, xy = grid()
     z, g = paraboloid(xy)
-    with pytest.raises(WaiInputError, match="too few features"):
+    with pytest.raises(RestorationFailed, match="too few features"):
         integrate(ij[: MIN_SAMPLES - 1], xy[:3], g[:3], name)
     with pytest.raises(WaiInputError, match="NaN"):
         integrate(ij, xy, np.where(np.arange(len(g))[:, None] == 3, np.nan, g), name)
-    with pytest.raises(WaiInputError, match="too few connected"):
+    with pytest.raises(RestorationFailed, match="too few connected"):
         integrate(ij[::7][:5] * 3, xy[::7][:5], g[:5], name)
     row = ij[:, 1] == 0  # one row of samples: connected, but no area to grid
-    with pytest.raises(WaiInputError, match="collinear"):
+    with pytest.raises(RestorationFailed, match="collinear"):
         integrate(ij[row], xy[row], g[row], name)
     other = xy + np.random.default_rng(2).uniform(-2.0, 2.0, xy.shape)
     np.testing.assert_array_equal(
@@ -458,15 +459,15 @@ def test_gridding_drops_triangles_that_bridge_missing_dots_on_the_lattice():
 def test_gridding_bad_input():
     ij, xy = grid()
     z, g = plane(xy)
-    with pytest.raises(WaiInputError, match="too few samples"):
+    with pytest.raises(RestorationFailed, match="too few samples"):
         to_heightfield(xy[:3], z[:3], g[:3], 5.0)
     with pytest.raises(WaiInputError, match="needs finite slopes"):
         to_heightfield(xy, z, None, 5.0)
-    with pytest.raises(WaiInputError, match="too many nodes"):
+    with pytest.raises(RestorationFailed, match="too many nodes"):
         to_heightfield(xy, z, g, 1e-3)
-    with pytest.raises(WaiInputError, match="span too little"):
+    with pytest.raises(RestorationFailed, match="span too little"):
         to_heightfield(xy, z, g, 1000.0)
-    with pytest.raises(WaiInputError, match="collinear"):
+    with pytest.raises(RestorationFailed, match="collinear"):
         to_heightfield(np.column_stack([np.arange(9.0) * 10, np.arange(9.0) * 10]), z[:9],
                        g[:9], 5.0)
     with pytest.raises(WaiInputError, match="unknown method"):

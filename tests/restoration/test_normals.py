@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from restoration.errors import RestorationFailed
 from restoration.normals import (
     normal_matrix,
     points_on_rays,
@@ -99,7 +100,7 @@ def test_slopes_from_normals():
     gx, gy = np.array([0.1, -0.3, 0.0]), np.array([0.05, 0.2, 0.0])
     n = normalize(np.column_stack([-gx, -gy, np.ones(3)]))
     np.testing.assert_allclose(slopes_from_normals(n), np.column_stack([gx, gy]), atol=1e-15)
-    with pytest.raises(WaiInputError, match="horizontal"):
+    with pytest.raises(RestorationFailed, match="horizontal"):
         slopes_from_normals([[1.0, 0.0, 0.0]])
 
 
@@ -133,8 +134,8 @@ def test_bad_input_raises():
         spots_on_diffuser(np.zeros((3, 3)), None, 60.0)
     with pytest.raises(WaiInputError, match="NaN"):
         reflection_normals([[0, 0, 1.0]], [[0, 0, 150.0]], [[np.nan, 0, 60.0]])
-    with pytest.raises(WaiInputError, match="coincides"):
+    with pytest.raises(RestorationFailed, match="coincides"):
         reflected_dirs([[0, 0, 1.0]], [[0, 0, 1.0]])
-    with pytest.raises(WaiInputError, match="parallel"):
+    with pytest.raises(RestorationFailed, match="parallel"):
         # A reflected "ray" along the incident one: no normal reflects it.
         reflection_normals([[0, 0, 1.0]], [[0, 0, 0.0]], [[0, 0, 5.0]])

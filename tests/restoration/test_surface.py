@@ -10,6 +10,7 @@ reconstruction assumes (see restoration.surface), so the tests measure everythin
 import numpy as np
 import pytest
 
+from restoration.errors import RestorationFailed
 from restoration.surface import SurfaceEstimate, reconstruct_surface
 from wai_core.config import load_config
 from wai_core.errors import WaiInputError
@@ -227,7 +228,7 @@ def test_bad_input(plane_case):
         reconstruct_surface(ij, panel, spots, PROJ, CAM, ZH, H0, gridder="nearest")
     with pytest.raises(WaiInputError, match="grid_spacing_mm"):
         reconstruct_surface(ij, panel, spots, PROJ, CAM, ZH, H0, grid_spacing_mm=0.0)
-    with pytest.raises(WaiInputError, match="too few features"):
+    with pytest.raises(RestorationFailed, match="too few features"):
         reconstruct_surface(ij[:3], panel[:3], spots[:3], PROJ, CAM, ZH, H0)
     with pytest.raises(WaiInputError, match="NaN"):
         reconstruct_surface(ij, panel, np.where(spots > 300, np.nan, spots), PROJ, CAM, ZH, H0)

@@ -254,7 +254,7 @@ def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[s
 
 def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     """Render, restore and score the frame of ``point`` (see the module docstring)."""
-    from restoration import Calibration, RestoreOptions
+    from restoration import Calibration, RestorationFailed, RestoreOptions
     from wai_core.limits import correspondence_limit, effective_phi_deg
     from wai_core.optics import radiance_gain
 
@@ -286,7 +286,7 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
                                       **REFINEMENTS[ref])
                     result, ms = _timed_restore(images, cal, options, repeats)
                     if result.status == "failed":
-                        raise WaiInputError(result.message)
+                        raise RestorationFailed(result.message)
                     suffix = _suffix(name, step, integrators, steps)
                     suffix += f"_{ref}" if len(refinements) > 1 else ""
                     scores = _scores(result, images, cal, surface)
@@ -294,7 +294,7 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
                     row.update({f"ms_{k}{suffix}": v for k, v in ms.items()})
         row.update(correspondence_counts(cfg, surface, result.features))
         row.update({f"count_{k}": v for k, v in result.features.counts.items()})
-    except WaiInputError as exc:
+    except (WaiInputError, RestorationFailed) as exc:
         # A refused frame yields no usable correspondence: it counts as none correct.
         row.update(n_correct=0, fraction_correct=0.0, frame_status=f"failed: {exc}")
         return row

@@ -152,6 +152,7 @@ def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> l
     dots whose correspondence is correct (against the geometric model's labels)."""
     from mitsuba_wai.mesh import flat_like
     from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
+    from restoration import RestorationFailed
     from restoration.features import features_from_reference, prepare_reference
     from wai.experiments.frame_eval import correspondence_counts
     from wai_core.errors import WaiInputError
@@ -170,7 +171,7 @@ def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> l
         img = renderer.render(surface, render_seed(c), which=("pattern",))["pattern"]
         try:
             counts = correspondence_counts(c, surface, features_from_reference(img, reference, c))
-        except WaiInputError:  # refused: no correspondence at all
+        except (WaiInputError, RestorationFailed):  # refused: no correspondence at all
             counts = {"n_in_view": len(predict_spots(c, surface)[0]), "n_correct": 0, "n_wrong": 0}
         rows.append(
             {
