@@ -1,14 +1,31 @@
 """The truth-free frame status: which evidence makes a frame ``sparse``, ``inconsistent`` or
-``ok`` (restoration.result). The rules read counts only, so stand-ins carry them here."""
+``ok`` (restoration.result; the rules read counts only, so stand-ins carry them here); a frame
+the data cannot support is ``failed``, bad input raises; and the statuses' strings."""
 
+import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from restoration import RestoreOptions
-from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, STATUSES
+from restoration import (
+    STATUSES,
+    Calibration,
+    RestorationFailed,
+    RestoreOptions,
+    RestoreResult,
+    Status,
+    StructuredLight,
+)
+from restoration.features import features_from_reference, prepare_reference, spot_sigma_px
+from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION
 from restoration.structured_light import frame_status
+from tests.conftest import PAPER_TOML
+from wai_core.config import load_config, read_toml
+from wai_core.errors import WaiInputError
+from wai_core.forward import predict_spots
+from wai_core.io import write_exr
 
 
 class _Features(SimpleNamespace):
@@ -59,3 +76,127 @@ def test_a_reference_off_the_flat_water_prediction_is_bad_whatever_else_holds():
 
 def test_statuses_are_listed():
     assert {"ok", "sparse", "inconsistent"} <= set(STATUSES)
+
+
+# ------------------------------------------------------------------------------------------
+# The enum, the two kinds of error, and what metrics.json says
+# ------------------------------------------------------------------------------------------
+
+# The strings every table and metrics.json have held: a member renamed would break them.
+STRINGS = (
+    "ok", "bad_reference", "sparse", "inconsistent", "gauge_level", "dark_view", "view_mismatch",
+    "ambiguous_input", "failed", "no_sun", "sun_out_of_view", "too_few_spots",
+)
+
+
+def test_every_status_is_its_string():
+    assert STATUSES == STRINGS == tuple(Status)
+    for s in Status:
+        assert s == s.value and str(s) == s.value and f"{s}" == s.value
+        assert json.dumps({"status": s}) == json.dumps({"status": s.value})
+    assert RestoreResult("structured-light", "sparse").status is Status.SPARSE
+    with pytest.raises(ValueError):
+        RestoreResult("structured-light", "fine")
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(PAPER_TOML)
+
+
+def _spots_image(cfg, keep: int | None = None) -> np.ndarray:
+    """Camera-s image (H, W, 3) of the lit dots' spots through flat water (the first ``keep``
+    of them; all by default), Gaussian spots of the calibrated size, in blue-green."""
+    _, px = predict_spots(cfg, None)
+    px = px[:keep]
+    h, w = cfg.camera_s.height_px, cfg.camera_s.width_px
+    sigma = spot_sigma_px(cfg)
+    r = int(np.ceil(4 * sigma))
+    img = np.zeros((h, w), np.float32)
+    for cx, cy in px:
+        c0, r0 = max(int(cx) - r, 0), max(int(cy) - r, 0)
+        cols, rows = np.arange(c0, min(int(cx) + r + 1, w)), np.arange(r0, min(int(cy) + r + 1, h))
+        d2 = (cols[None, :] - cx) ** 2 + (rows[:, None] - cy) ** 2
+        img[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1] += np.exp(-0.5 * d2 / sigma**2)
+    return img[..., None] * np.array([0.0, 0.75, 1.0], np.float32)
+
+
+def _images(cfg, pattern, flat=None) -> dict[str, np.ndarray]:
+    view = np.random.default_rng(0).random((cfg.camera_v.height_px, cfg.camera_v.width_px, 3))
+    flat = _spots_image(cfg) if flat is None else flat
+    return {"pattern": pattern, "pattern_flat": flat, "view": view.astype(np.float32)}
+
+
+def _failure(fn, *args) -> str:
+    with pytest.raises(RestorationFailed) as caught:
+        fn(*args)
+    return str(caught.value)
+
+
+@pytest.mark.parametrize("spots", [0, 5])
+def test_a_frame_without_enough_spots_is_failed_not_raised(cfg, spots):
+    cal = Calibration(cfg)
+    pattern = _spots_image(cfg, spots) if spots else np.zeros_like(_spots_image(cfg, 1))
+    result = StructuredLight()(_images(cfg, pattern), cal)
+    assert result.status is Status.FAILED and result.surface is None and not result.restored
+    why = _failure(features_from_reference, pattern, cal.reference, cfg)
+    assert result.message == why and why.startswith("too few features matched")
+
+
+def test_a_black_flat_water_reference_is_failed_not_raised(cfg):
+    black = np.zeros((cfg.camera_s.height_px, cfg.camera_s.width_px, 3), np.float32)
+    result = StructuredLight()(_images(cfg, _spots_image(cfg), flat=black), Calibration(cfg))
+    assert result.status is Status.FAILED
+    assert result.message == _failure(prepare_reference, black, cfg)
+    assert result.message == "too few features on flat water: 0"
+
+
+def test_bad_input_raises_out_of_the_method(cfg):
+    cal, method = Calibration(cfg), StructuredLight()
+    pattern = _spots_image(cfg)
+    with pytest.raises(WaiInputError, match="camera s"):  # a wrongly sized image
+        method(_images(cfg, pattern[:100]), cal)
+    nan = pattern.copy()
+    nan[10, 10, 1] = np.nan
+    with pytest.raises(WaiInputError, match="NaN"):
+        method(_images(cfg, nan), cal)
+    with pytest.raises(WaiInputError, match="integrator"):  # an invalid option, at once
+        RestoreOptions(integrator="magic")
+    assert method(_images(cfg, pattern), cal).status is not Status.FAILED
+
+
+def test_data_failures_and_input_errors_are_apart():
+    assert not issubclass(RestorationFailed, WaiInputError)
+    assert not issubclass(WaiInputError, RestorationFailed)
+
+
+def _folder(cfg, tmp_path, pattern) -> Path:
+    folder = tmp_path / "capture"
+    folder.mkdir()
+    (folder / "scene.json").write_text(json.dumps({"config": read_toml(PAPER_TOML)}))
+    for name, img in _images(cfg, pattern).items():
+        write_exr(folder / f"{name}.exr", img)
+    return folder
+
+
+def test_metrics_json_holds_the_status_string(cfg, tmp_path, capsys):
+    from wai.cli import main
+
+    folder = _folder(cfg, tmp_path, np.zeros_like(_spots_image(cfg, 1)))
+    assert main(["restore", str(folder), "--quiet"]) == 0
+    metrics = json.loads((folder / "restore" / "metrics.json").read_text())
+    assert metrics["status"] == "failed" and type(metrics["status"]) is str
+    assert metrics["message"].startswith("too few features matched")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "frame status failed: too few features matched" in err[0]
+
+
+def test_the_command_line_refuses_bad_input_in_one_line(cfg, tmp_path, capsys):
+    from wai.cli import main
+
+    nan = _spots_image(cfg)
+    nan[5, 5, 2] = np.inf
+    folder = _folder(cfg, tmp_path, nan)
+    assert main(["restore", str(folder), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "NaN" in err[0] and not (folder / "restore").exists()
