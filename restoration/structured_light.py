@@ -144,6 +144,12 @@ def _estimate_surface(
     )
 
     def probe(anchor_mm: float) -> SurfaceEstimate:
+        # A search that strays below the diffuser has found no level: the frame's failure, not
+        # a bad argument (reconstruct_surface refuses such a level with this message).
+        if not anchor_mm > cfg.diffuser.z_mm:
+            raise RestorationFailed(
+                "reconstruct_surface: the water level h0 must lie above the diffuser"
+            )
         return reconstruct(anchor_mm, search_with)
 
     h0 = cfg.water.h0_mm

@@ -12,6 +12,7 @@ import pytest
 from restoration import (
     STATUSES,
     Calibration,
+    LevelTrack,
     RestorationFailed,
     RestoreOptions,
     RestoreResult,
@@ -200,3 +201,10 @@ def test_the_command_line_refuses_bad_input_in_one_line(cfg, tmp_path, capsys):
     assert main(["restore", str(folder), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "NaN" in err[0] and not (folder / "restore").exists()
+
+
+def test_a_level_search_below_the_diffuser_is_failed_not_raised(cfg):
+    # The search starts at the track's level: below the diffuser no level can be found.
+    track = LevelTrack(start_mm=cfg.diffuser.z_mm - 5.0)
+    result = StructuredLight()(_images(cfg, _spots_image(cfg)), Calibration(cfg), track)
+    assert result.status is Status.FAILED and "above the diffuser" in result.message
