@@ -316,6 +316,8 @@ def _refinement(
     for it in range(int(n_refine) + 1):
         t0 = time.perf_counter()
         q, normals, slopes = reflection_slopes(origin, v_p, spots, heights)
+        if not (np.all(np.isfinite(q[:, :2])) and np.all(np.isfinite(slopes))):
+            raise RestorationFailed(_REFINE_ERRORS[5])  # a pass that diverged, as compiled
         t1 = time.perf_counter()
         # Every pass weighs the differences by the first pass's geometry: the passes then
         # share one factorisation, and their samples move by only ~mm along the rays.
