@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER_TOML = ROOT / "scenes" / "paper.toml"
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def paper_cfg() -> SystemConfig:
     return load_config(PAPER_TOML)
 
@@ -30,6 +30,6 @@ def shrink(cfg: SystemConfig, factor: int = 4, spp: int = 4) -> SystemConfig:
     return cfg.replace("render", spp_pattern=spp, spp_view=spp)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def small_cfg(paper_cfg) -> SystemConfig:
     return shrink(paper_cfg)
