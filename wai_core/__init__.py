@@ -8,7 +8,13 @@ needs first::
 """
 
 from wai_core.alterman import AltermanSystem
-from wai_core.config import SystemConfig, config_from_dict, load_config
+from wai_core.config import (
+    SystemConfig,
+    config_from_dict,
+    load_config,
+    renderer_effects,
+    with_keys,
+)
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield, load_heightfield
 from wai_core.lens import DeviceOptics
@@ -26,6 +32,8 @@ __all__ = [
     "load_heightfield",
     "load_rig",
     "load_system",
+    "renderer_effects",
     "scene_names",
     "scene_path",
+    "with_keys",
 ]
