@@ -94,9 +94,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_experiment(args: argparse.Namespace) -> int:
-    from wai.experiments import run_experiment
+    from wai.experiments import EXPERIMENTS, run_experiment
+    from wai.sweep import SweepOptions
 
-    run_experiment(args)
+    exp = EXPERIMENTS[args.name]
+    run_experiment(
+        args.name, args.config, args.out, seeds=args.seeds if exp.seeds is not None else None,
+        quick=args.quick, sweep=SweepOptions.from_args(args) if exp.sweep else None,
+    )
     return 0
 
 

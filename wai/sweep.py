@@ -30,7 +30,7 @@ import re
 import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import IO, Any
@@ -756,14 +756,14 @@ def add_sweep_arguments(parser: argparse.ArgumentParser) -> argparse._ArgumentGr
     group.add_argument(
         "--workers",
         type=_count(0),
-        default=2,
+        default=SweepOptions.workers,
         metavar="N",
         help="local worker processes; 0 runs in this process without Dask (default 2)",
     )
     group.add_argument(
         "--threads-per-worker",
         type=_count(1),
-        default=1,
+        default=SweepOptions.threads_per_worker,
         metavar="N",
         help="threads of each local worker, and of its native libraries (default 1)",
     )
@@ -774,13 +774,24 @@ def add_sweep_arguments(parser: argparse.ArgumentParser) -> argparse._ArgumentGr
     return group
 
 
-def sweep_kwargs(args: argparse.Namespace) -> dict[str, Any]:
-    """The keyword arguments of :func:`run_sweep` from options added by
-    :func:`add_sweep_arguments`."""
-    return {
-        "scheduler": args.scheduler,
-        "workers": args.workers,
-        "threads_per_worker": args.threads_per_worker,
-        "retry_errors": args.retry_errors,
-        "progress": not args.no_progress,
-    }
+@dataclass(frozen=True)
+class SweepOptions:
+    """Where and how a sweep's points run: the keyword arguments of :func:`run_sweep` that an
+    experiment passes through (``scheduler``, ``workers``, ``threads_per_worker``,
+    ``retry_errors``, ``progress``; see there)."""
+
+    scheduler: str | None = None
+    workers: int = 2
+    threads_per_worker: int = 1
+    retry_errors: bool = False
+    progress: bool = True
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> SweepOptions:
+        """The options parsed from those that :func:`add_sweep_arguments` added."""
+        return cls(args.scheduler, args.workers, args.threads_per_worker, args.retry_errors,
+                   progress=not args.no_progress)
+
+    def kwargs(self) -> dict[str, Any]:
+        """The keyword arguments of :func:`run_sweep`."""
+        return asdict(self)

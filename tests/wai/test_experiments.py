@@ -54,3 +54,21 @@ def test_paper_experiment_quick(tmp_path):
             assert ds["restored"]["ssim"] > ds["distorted"]["ssim"]
             assert ds["restored"]["mse"] < ds["distorted"]["mse"]
         assert run["metrics"]["corner_std_restored_px"] < run["metrics"]["corner_std_distorted_px"]
+
+
+def test_command_line_hands_typed_arguments_to_each_experiment(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from wai.experiments import budget, validate
+    from wai.sweep import SweepOptions
+
+    calls = {}
+    monkeypatch.setattr(budget, "run_budget", lambda *a, **k: calls.setdefault("budget", (a, k)))
+    monkeypatch.setattr(validate, "run_validate", lambda *a: calls.setdefault("validate", a))
+    monkeypatch.setattr(validate, "print_validate", lambda res: None)
+    out = tmp_path / "b"
+    argv = ["experiment", "budget", "--quick", "--out", str(out), "--workers", "0", "--no-progress"]
+    assert main(argv) == 0
+    assert calls["budget"] == (("paper", out, 3, True, SweepOptions(workers=0, progress=False)), {})
+    assert main(["experiment", "validate", "--config", "x.toml"]) == 0
+    assert calls["validate"] == ("x.toml", Path("renders/validate"), False)

@@ -12,12 +12,12 @@ import time
 import pytest
 
 from wai.sweep import (
+    SweepOptions,
     SweepTable,
     add_sweep_arguments,
     point_id,
     read_table,
     run_sweep,
-    sweep_kwargs,
 )
 from wai_core.errors import WaiInputError
 
@@ -165,7 +165,9 @@ def test_command_line_options():
     parser = argparse.ArgumentParser()
     add_sweep_arguments(parser)
     args = parser.parse_args(["--workers", "0", "--retry-errors", "--no-progress"])
-    assert sweep_kwargs(args) == {
+    assert SweepOptions.from_args(args) == SweepOptions(workers=0, retry_errors=True,
+                                                        progress=False)
+    assert SweepOptions.from_args(args).kwargs() == {
         "scheduler": None,
         "workers": 0,
         "threads_per_worker": 1,
@@ -173,7 +175,8 @@ def test_command_line_options():
         "progress": False,
     }
     args = parser.parse_args(["--scheduler", "tcp://h:8786", "--threads-per-worker", "2"])
-    assert sweep_kwargs(args)["scheduler"] == "tcp://h:8786"
+    assert SweepOptions.from_args(args) == SweepOptions("tcp://h:8786", threads_per_worker=2)
+    assert SweepOptions.from_args(parser.parse_args([])) == SweepOptions()
     with pytest.raises(SystemExit):
         parser.parse_args(["--workers", "-1"])
 

@@ -7,9 +7,12 @@ only those. It is plain data, so building the command line imports no experiment
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from wai.sweep import SweepOptions
 
 
 @dataclass(frozen=True)
@@ -178,41 +181,61 @@ def describe(name: str, width: int = 79) -> str:
     return "\n\n".join(textwrap.fill(par, width) for par in text.split("\n\n"))
 
 
-def run_experiment(args: argparse.Namespace) -> None:
-    """Run one experiment into ``args.out`` (default ``renders/<name>``) and print its tables."""
-    if getattr(args, "out", None) is None:
-        args.out = Path("renders") / args.name
-    if getattr(args, "seeds", None) is None:
-        args.seeds = DEFAULT_SEEDS.get(args.name)
-    if args.name == "validate":
+def run_experiment(name: str, config: str | Path = "paper", out: str | Path | None = None,
+                   seeds: int | None = None, quick: bool = False,
+                   sweep: SweepOptions | None = None) -> None:
+    """Run experiment ``name`` into ``out`` and print its tables.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`EXPERIMENTS`.
+    config : str or Path
+        The scene: a packaged name or a TOML file.
+    out : str, Path or None
+        The output folder; None: ``renders/<name>``.
+    seeds : int or None
+        Seeds 0..seeds-1, for the experiments that have seeds; None: :data:`DEFAULT_SEEDS`.
+    quick : bool
+        The small version (:attr:`Experiment.quick`).
+    sweep : SweepOptions or None
+        Where and how a sweep's points run; None: the defaults of :class:`SweepOptions`.
+    """
+    from wai.sweep import SweepOptions
+
+    out = Path("renders") / name if out is None else Path(out)
+    if seeds is None:
+        seeds = DEFAULT_SEEDS.get(name)
+    sweep = SweepOptions() if sweep is None else sweep
+    if name == "validate":
         from wai.experiments.validate import print_validate, run_validate
 
-        print_validate(run_validate(args))
-    elif args.name == "paper":
+        print_validate(run_validate(config, out, quick))
+    elif name == "paper":
         from wai.experiments.paper import run_paper
 
-        run_paper(args)
-    elif args.name == "alterman":
+        run_paper(config, out, seeds, quick)
+    elif name == "alterman":
         from wai.experiments.alterman import run_alterman
 
-        run_alterman(args)
-    elif args.name == "tradeoffs":
+        run_alterman(config, out, seeds, quick)
+    elif name == "tradeoffs":
         from wai.experiments.tradeoffs import run_tradeoffs
 
-        run_tradeoffs(args)
-    elif args.name == "stability":
+        run_tradeoffs(config, out, seeds, quick, sweep)
+    elif name == "stability":
         from wai.experiments.stability import run_stability
 
-        run_stability(args)
-    elif args.name == "budget":
+        run_stability(config, out, seeds, quick, sweep)
+    elif name == "budget":
         from wai.experiments.budget import run_budget
 
-        run_budget(args)
-    elif args.name == "seawater":
+        run_budget(config, out, seeds, quick, sweep)
+    elif name == "seawater":
         from wai.experiments.seawater import format_snr, seawater_snr
         from wai_core.io import write_json
 
-        res = seawater_snr(args.config, seed=0, spp=4 if args.quick else None)
-        args.out.mkdir(parents=True, exist_ok=True)
-        write_json(args.out / "seawater_snr.json", res)
+        res = seawater_snr(config, seed=0, spp=4 if quick else None)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "seawater_snr.json", res)
         print(format_snr(res))

@@ -11,7 +11,6 @@ frame shows the method declining to run. Writes ``report.md``, ``results.csv`` (
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import sys
@@ -50,10 +49,10 @@ COLUMNS = (
 )
 
 
-def sensor_system(args: argparse.Namespace) -> AltermanSystem:
-    """The sensor of ``scenes/alterman.toml`` over the base scene ``--config`` (or ``--config``
+def sensor_system(config: str | Path) -> AltermanSystem:
+    """The sensor of ``scenes/alterman.toml`` over the base scene ``config`` (or ``config``
     itself when it is a sensor file)."""
-    system = load_system(args.config)
+    system = load_system(config)
     if isinstance(system, AltermanSystem):
         return system
     return AltermanSystem(system, load_alterman(SENSOR_TOML).sensor)
@@ -489,20 +488,37 @@ def report_markdown(command: str, system: AltermanSystem, rows: list[dict], seed
     return "\n".join(lines)
 
 
-def run_alterman(args: argparse.Namespace) -> None:
-    """``wai experiment alterman [--out DIR] [--seeds K] [--quick]``."""
-    system = sensor_system(args)
-    out = Path(args.out)
+def run_alterman(config: str | Path, out: str | Path, seeds: int, quick: bool = False,
+                 command: str | None = None) -> None:
+    """``wai experiment alterman``: both methods through the same surfaces, and the report.
+
+    Parameters
+    ----------
+    config : str or Path
+        The base scene (a packaged name or a TOML file), or a sensor file.
+    out : str or Path
+        The output folder (made if missing).
+    seeds : int
+        Seeds 0..seeds-1 (seed 0 only with ``quick``).
+    quick : bool
+        Seed 0 only, sun at 15 and 60 deg.
+    command : str or None
+        The command line the report quotes; None: ``wai experiment alterman`` and this
+        process's arguments after it.
+    """
+    system = sensor_system(config)
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    seeds = [0] if args.quick else list(range(args.seeds))
-    angles = QUICK_ANGLES_DEG if args.quick else ANGLES_DEG
-    rows, paper = structured_light_rows(system, seeds, out)
-    rows += sun_rows(system, seeds, angles, out, paper)
-    rows.append(overcast_row(system, seeds[0], out))
+    seed_list = [0] if quick else list(range(seeds))
+    angles = QUICK_ANGLES_DEG if quick else ANGLES_DEG
+    rows, paper = structured_light_rows(system, seed_list, out)
+    rows += sun_rows(system, seed_list, angles, out, paper)
+    rows.append(overcast_row(system, seed_list[0], out))
     atomic_write_bytes(out / "results.csv", csv_text(rows).encode())
-    figs = [error_maps_figure(out, seeds[0], angles), rmse_figure(out, rows, angles)]
-    command = "wai experiment alterman " + " ".join(sys.argv[3:])
-    md = report_markdown(command, system, rows, seeds, angles, figs)
+    figs = [error_maps_figure(out, seed_list[0], angles), rmse_figure(out, rows, angles)]
+    if command is None:
+        command = "wai experiment alterman " + " ".join(sys.argv[3:])
+    md = report_markdown(command, system, rows, seed_list, angles, figs)
     atomic_write_bytes(out / "report.md", md.encode())
     print(md.split("## Table 2")[0].split("## Surface error")[1])
     print(f"report: {out / 'report.md'}, data: {out / 'results.csv'}")

@@ -16,7 +16,6 @@ effect as the point's ``render_overrides``.
 
 from __future__ import annotations
 
-import argparse
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -27,7 +26,7 @@ import numpy as np
 
 from wai.experiments.frame_eval import evaluate_frame
 from wai.experiments.stability import BAD_RMSE_MM, detection_rates
-from wai.sweep import run_sweep, sweep_kwargs
+from wai.sweep import SweepOptions, run_sweep
 from wai_core.io import atomic_write_bytes, write_json
 
 __all__ = ["ADDED_LIMIT_MM", "EFFECTS", "Effect", "budget_points", "budget_summary", "run_budget"]
@@ -310,15 +309,36 @@ def _pct(value: float) -> str:
     return "n/a (none)" if not np.isfinite(value) else f"{value:.0%}"
 
 
-def run_budget(args: argparse.Namespace) -> dict[str, Any]:
-    """Run the budget's sweep into ``args.out/budget.csv``; write the chart and the report."""
-    out = Path(args.out)
+def run_budget(config: str | Path, out: str | Path, seeds: int, quick: bool = False,
+               sweep: SweepOptions | None = None) -> dict[str, Any]:
+    """Run the budget's sweep into ``out/budget.csv``; write the chart and the report.
+
+    Parameters
+    ----------
+    config : str or Path
+        The scene: a packaged name or a TOML file.
+    out : str or Path
+        The output folder (made if missing).
+    seeds : int
+        Seeds 0..seeds-1 of every magnitude.
+    quick : bool
+        One magnitude per effect (two for polarisation).
+    sweep : SweepOptions or None
+        Where and how the sweep's points run; None: :class:`SweepOptions`' defaults.
+
+    Returns
+    -------
+    dict
+        :func:`budget_summary` of the sweep's rows.
+    """
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    points = budget_points(args.config, list(range(args.seeds)), args.quick)
-    rows = run_sweep(points, evaluate_frame, out / "budget.csv", **sweep_kwargs(args))
+    points = budget_points(config, list(range(seeds)), quick)
+    sweep = SweepOptions() if sweep is None else sweep
+    rows = run_sweep(points, evaluate_frame, out / "budget.csv", **sweep.kwargs())
     summary = budget_summary(rows)
     budget_figure(summary, out / "budget.png")
-    command = f"wai experiment budget --seeds {args.seeds}" + (" --quick" if args.quick else "")
+    command = f"wai experiment budget --seeds {seeds}" + (" --quick" if quick else "")
     text = budget_markdown(summary, command)
     atomic_write_bytes(out / "budget.md", text.encode())
     write_json(out / "budget_summary.json", summary)

@@ -6,7 +6,6 @@ number as mean ± std over the seeds and the command that made it.
 
 from __future__ import annotations
 
-import argparse
 import base64
 import html
 import shutil
@@ -411,16 +410,32 @@ def markdown_to_html(md: str, folder: Path) -> str:
     return "\n".join(out)
 
 
-def run_paper(args: argparse.Namespace) -> None:
-    """``wai experiment paper [--out DIR] [--seeds K] [--quick]``."""
+def run_paper(config: str | Path, out: str | Path, seeds: int, quick: bool = False,
+              command: str | None = None) -> None:
+    """``wai experiment paper``: render, restore and score each seed, and write the report.
+
+    Parameters
+    ----------
+    config : str or Path
+        The scene: a packaged name or a TOML file.
+    out : str or Path
+        The output folder (made if missing).
+    seeds : int
+        Seeds 0..seeds-1 (two with ``quick``).
+    quick : bool
+        2 seeds, 3 amplitude factors.
+    command : str or None
+        The command line the report quotes; None: ``wai experiment paper`` and this
+        process's arguments after it.
+    """
     from wai import figures
 
-    cfg = load_rig(args.config)
-    out = Path(args.out)
+    cfg = load_rig(config)
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    seeds = list(range(2 if args.quick else args.seeds))
-    factors = [1.0, 2.0, 3.0] if args.quick else [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0]
-    runs = run_seeds(cfg, seeds, out)
+    seed_list = list(range(2 if quick else seeds))
+    factors = [1.0, 2.0, 3.0] if quick else [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0]
+    runs = run_seeds(cfg, seed_list, out)
     fig8 = deflection_curves(np.linspace(-10, 10, 201))
     figures.deflection_figure(fig8["curves"], out / "fig8_deflection.png")
     limit = correspondence_limit(cfg)
@@ -434,7 +449,8 @@ def run_paper(args: argparse.Namespace) -> None:
         vlines={"eq. 35 bound": limit["phi_max_deg"]},
     )
     figs = figures_from_seed0(cfg, out, runs[0].done)
-    command = "wai experiment paper " + " ".join(sys.argv[3:])
+    if command is None:
+        command = "wai experiment paper " + " ".join(sys.argv[3:])
     md = report_markdown(command, cfg, runs, fig8, limit, sweep, figs)
     atomic_write_bytes(out / "report.md", md.encode())
     atomic_write_bytes(out / "report.html", markdown_to_html(md, out).encode())

@@ -28,7 +28,6 @@ for its geometry: the bound predicts failure beyond 1.
 
 from __future__ import annotations
 
-import argparse
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -41,7 +40,7 @@ import numpy as np  # noqa: E402
 
 from wai.experiments.frame_eval import evaluate_frame  # noqa: E402
 from wai.figures import save_figure  # noqa: E402
-from wai.sweep import run_sweep, sweep_kwargs  # noqa: E402
+from wai.sweep import SweepOptions, run_sweep  # noqa: E402
 from wai_core.io import atomic_write_bytes, write_json  # noqa: E402
 from wai_core.scenes import scene_path  # noqa: E402
 
@@ -361,21 +360,40 @@ def report_markdown(
     return "\n".join(lines)
 
 
-def run_stability(args: argparse.Namespace) -> dict[str, Any]:
-    """Run the sweeps into ``args.out/stability.csv``; write the chart and the report."""
-    out = Path(args.out)
+def run_stability(config: str | Path, out: str | Path, seeds: int, quick: bool = False,
+                  sweep: SweepOptions | None = None) -> dict[str, Any]:
+    """Run the sweeps into ``out/stability.csv``; write the chart and the report.
+
+    Parameters
+    ----------
+    config : str or Path
+        The scene of the structured light: a packaged name or a TOML file.
+    out : str or Path
+        The output folder (made if missing).
+    seeds : int
+        Seeds 0..seeds-1 of every value.
+    quick : bool
+        2-3 values per sweep, 2 sea states of the coded sweep.
+    sweep : SweepOptions or None
+        Where and how the sweep's points run; None: :class:`SweepOptions`' defaults.
+
+    Returns
+    -------
+    dict
+        :func:`sweep_summary` of the sweep's rows.
+    """
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    points = stability_points(
-        args.config, scene_path("alterman"), list(range(args.seeds)), args.quick
-    )
-    rows = run_sweep(points, evaluate_point, out / "stability.csv", **sweep_kwargs(args))
+    points = stability_points(config, scene_path("alterman"), list(range(seeds)), quick)
+    sweep = SweepOptions() if sweep is None else sweep
+    rows = run_sweep(points, evaluate_point, out / "stability.csv", **sweep.kwargs())
     summary = sweep_summary(rows)
     rates = detection_rates(rows)
     stability_figure(rows, summary, out / "stability.png")
     coded = coded_summary(rows)
     coded_figure(rows, out / "coded.png")
     confidence_figure(rows, rates, out / "confidence.png")
-    command = f"wai experiment stability --seeds {args.seeds}" + (" --quick" if args.quick else "")
+    command = f"wai experiment stability --seeds {seeds}" + (" --quick" if quick else "")
     text = report_markdown(summary, command, rates) + coded_markdown(coded)
     atomic_write_bytes(out / "stability.md", text.encode())
     # stability.json is the sweep's run record; the summary and the rates go beside it.

@@ -20,7 +20,6 @@ thread each: compare them with each other, and take absolute speed from ``wai be
 
 from __future__ import annotations
 
-import argparse
 import re
 from pathlib import Path
 from typing import Any
@@ -33,7 +32,7 @@ import numpy as np  # noqa: E402
 
 from wai.experiments.frame_eval import REFINEMENTS, evaluate_frame  # noqa: E402
 from wai.figures import save_figure  # noqa: E402
-from wai.sweep import run_sweep, sweep_kwargs  # noqa: E402
+from wai.sweep import SweepOptions, run_sweep  # noqa: E402
 from wai_core.io import atomic_write_bytes, write_json  # noqa: E402
 
 SPACINGS_PX = (16, 20, 24, 28, 36, 48)
@@ -373,19 +372,39 @@ def _verdict(series: list[dict], key: str, default: Any, higher_is_better: bool)
     )
 
 
-def run_tradeoffs(args: argparse.Namespace) -> dict[str, Any]:
-    """Run the sweep into ``args.out/tradeoffs.csv`` and write the charts and report."""
+def run_tradeoffs(config: str | Path, out: str | Path, seeds: int, quick: bool = False,
+                  sweep: SweepOptions | None = None) -> dict[str, Any]:
+    """Run the sweep into ``out/tradeoffs.csv`` and write the charts and report.
+
+    Parameters
+    ----------
+    config : str or Path
+        The scene: a packaged name or a TOML file.
+    out : str or Path
+        The output folder (made if missing).
+    seeds : int
+        Seeds 0..seeds-1 of every variant.
+    quick : bool
+        3 spacings, 2 spp, 3 warp steps, one timed restoration per variant.
+    sweep : SweepOptions or None
+        Where and how the sweep's points run; None: :class:`SweepOptions`' defaults.
+
+    Returns
+    -------
+    dict
+        ``defaults`` (the default of each choice) and ``series`` (:func:`chart_series`).
+    """
     from restoration import RestoreOptions
     from wai_core.system import load_rig
 
-    out = Path(args.out)
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    seeds = list(range(args.seeds))
+    sweep = SweepOptions() if sweep is None else sweep
     rows = run_sweep(
-        tradeoff_points(args.config, seeds, args.quick), evaluate_frame, out / "tradeoffs.csv",
-        **sweep_kwargs(args),
+        tradeoff_points(config, list(range(seeds)), quick), evaluate_frame,
+        out / "tradeoffs.csv", **sweep.kwargs(),
     )
-    cfg, opts = load_rig(args.config), RestoreOptions()
+    cfg, opts = load_rig(config), RestoreOptions()
     defaults = {
         "spacing": cfg.pattern.spacing_px,
         "integrator": opts.integrator,
@@ -395,7 +414,7 @@ def run_tradeoffs(args: argparse.Namespace) -> dict[str, Any]:
     }
     series = chart_series(rows)
     tradeoff_figure(series, defaults, out / "tradeoffs.png")
-    command = f"wai experiment tradeoffs --seeds {args.seeds}" + (" --quick" if args.quick else "")
+    command = f"wai experiment tradeoffs --seeds {seeds}" + (" --quick" if quick else "")
     atomic_write_bytes(out / "tradeoffs.md", report_markdown(series, defaults, command).encode())
     write_json(out / "tradeoffs_series.json", {"defaults": defaults, "series": series})
     print(report_markdown(series, defaults, command))  # its last line: not_ok_summary

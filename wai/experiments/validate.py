@@ -22,7 +22,6 @@ agreement against samples per pixel and render time (camera s), and the view's n
 
 from __future__ import annotations
 
-import argparse
 import csv
 import time
 from pathlib import Path
@@ -295,18 +294,35 @@ def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     atomic_write_bytes(path, buf.getvalue().encode())
 
 
-def run_validate(args: argparse.Namespace) -> dict[str, Any]:
-    """Run both comparisons and the spp sweep; write JSON, CSV and the chart into ``args.out``."""
-    cfg = load_rig(args.config)
-    out = Path(args.out)
+def run_validate(config: str | Path, out: str | Path, quick: bool = False) -> dict[str, Any]:
+    """Run both comparisons and the spp sweeps; write JSON, CSV and the chart into ``out``.
+
+    Parameters
+    ----------
+    config : str or Path
+        The scene: a packaged name or a TOML file.
+    out : str or Path
+        The output folder (made if missing).
+    quick : bool
+        2 wave cases, spp 2/8/32 and 1/4, one run each, the reference at 64 / 16 spp.
+
+    Returns
+    -------
+    dict
+        The tables (``renderer_vs_mitsuba``, ``agreement``, ``spp_sweep``,
+        ``view_spp_sweep``), the scene's ``default_spp`` and ``sampling``; as
+        ``validate.json``.
+    """
+    cfg = load_rig(config)
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    against_mitsuba = reference_table(cfg, args.quick)
-    table = agreement_table(cfg, args.quick)
-    spps = [2, 8, 32] if args.quick else [1, 2, 3, 4, 8, 16, 32, 64]
-    runs = 1 if args.quick else 3
+    against_mitsuba = reference_table(cfg, quick)
+    table = agreement_table(cfg, quick)
+    spps = [2, 8, 32] if quick else [1, 2, 3, 4, 8, 16, 32, 64]
+    runs = 1 if quick else 3
     sweep = spp_sweep(cfg, spps, runs=runs)
-    view_sweep = view_spp_sweep(cfg, [1, 4] if args.quick else [1, 2, 4, 8, 16, 32],
-                                reference_spp=64 if args.quick else 256, runs=runs)
+    view_sweep = view_spp_sweep(cfg, [1, 4] if quick else [1, 2, 4, 8, 16, 32],
+                                reference_spp=64 if quick else 256, runs=runs)
     write_csv(out / "renderer_vs_mitsuba.csv", against_mitsuba)
     write_csv(out / "agreement.csv", table)
     write_csv(out / "spp_sweep.csv", sweep)
