@@ -82,7 +82,12 @@ def _cmd_restore(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from wai.bench import run_bench
 
-    run_bench(args)
+    run_bench(
+        args.what, config=args.config, out=args.out, runs=args.runs, as_json=args.json,
+        variant=args.variant, render_dir=args.dir, seeds=args.seeds, wind=args.wind,
+        surface=args.surface, camera=args.camera, spp=args.spp, phi=args.phi,
+        workers=args.workers, frames=args.frames, sequence=args.sequence,
+    )
     return 0
 
 

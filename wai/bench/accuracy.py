@@ -25,7 +25,6 @@ noise on the rendered images: the floor no surface estimate can go below.
 
 from __future__ import annotations
 
-import argparse
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -210,29 +209,49 @@ def parse_camera(text: str) -> tuple[int, int]:
     return w, h
 
 
-def run_accuracy(args: argparse.Namespace) -> dict[str, Any]:
-    """``wai bench accuracy``: seeds 0..K-1 of a configuration; writes ``accuracy.json``."""
-    cfg = load_rig(args.config)
-    if args.wind is not None:
-        cfg = cfg.replace("waves", wind_speed_m_s=args.wind)
-    if args.surface:
-        cfg = cfg.replace("water", surface=args.surface)
-    if getattr(args, "camera", None):
-        w, h = parse_camera(args.camera)
+def run_accuracy(config: str | Path, out: str | Path, seeds: int, wind: float | None = None,
+                 surface: str | None = None, camera: str | None = None,
+                 spp: int | None = None) -> dict[str, Any]:
+    """``wai bench accuracy``: seeds 0..K-1 of a configuration; writes ``accuracy.json``.
+
+    Parameters
+    ----------
+    config : str or Path
+        The scene: a packaged name or a TOML file.
+    out : str or Path
+        The output folder.
+    seeds : int
+        Seeds 0..seeds-1.
+    wind : float or None
+        Wind speed U, m/s; None: the scene's.
+    surface : str or None
+        Water surface (``dielectric``, ``mirror``); None: the scene's.
+    camera : str or None
+        Both cameras' pixels, ``WIDTHxHEIGHT`` (:func:`parse_camera`); None: the scene's.
+    spp : int or None
+        Samples per pixel of both renders; None: the scene's.
+    """
+    cfg = load_rig(config)
+    if wind is not None:
+        cfg = cfg.replace("waves", wind_speed_m_s=wind)
+    if surface:
+        cfg = cfg.replace("water", surface=surface)
+    if camera:
+        w, h = parse_camera(camera)
         cfg = cfg.replace("camera_s", width_px=w, height_px=h).replace(
             "camera_v", width_px=w, height_px=h
         )
-    if getattr(args, "spp", None):
-        cfg = cfg.replace("render", spp_pattern=args.spp, spp_view=args.spp)
-    out = Path(args.out)
-    runs = [run_seed(cfg, s, out) for s in tqdm(range(args.seeds), desc="seeds", leave=False)]
+    if spp:
+        cfg = cfg.replace("render", spp_pattern=spp, spp_view=spp)
+    out = Path(out)
+    runs = [run_seed(cfg, s, out) for s in tqdm(range(seeds), desc="seeds", leave=False)]
     result = {
-        "config": str(args.config),
+        "config": str(config),
         "wind_speed_m_s": cfg.waves.wind_speed_m_s,
         "surface": cfg.water.surface,
         "camera_px": [cfg.camera_s.width_px, cfg.camera_s.height_px],
         "spp": [cfg.render.spp_pattern, cfg.render.spp_view],
-        "seeds": list(range(args.seeds)),
+        "seeds": list(range(seeds)),
         "summary": summarize_runs(runs),
         "runs": runs,
     }

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import argparse
+from pathlib import Path
 from typing import Any
 
 from wai.bench.timing import (
@@ -44,21 +44,30 @@ def _bench_system(cfg: Any, surface: Any, system: str, runs: int) -> dict[str, A
     }
 
 
-def bench_render(args: argparse.Namespace) -> dict[str, Any]:
+def bench_render(config: str | Path, runs: int, variant: str = "auto") -> dict[str, Any]:
     """Wall time per frame of each scene (pattern: camera s, view: camera v).
 
     A frame is what a sweep pays for it: the new surface's upload (mesh buffers and BVH) and
     the render, read back to a NumPy image. ``surface_update`` is the upload alone.
+
+    Parameters
+    ----------
+    config : str or Path
+        The scene: a packaged name or a TOML file.
+    runs : int
+        Measured runs of each scene, after one warm-up.
+    variant : str
+        Mitsuba variant: ``auto`` (GPU, else LLVM), ``llvm_ad_rgb`` or ``cuda_ad_rgb``.
     """
     from mitsuba_wai.render import wave_surface
     from mitsuba_wai.variant import select_variant
     from wai_core import load_system
 
-    variant = select_variant(args.variant)
-    cfg = load_system(args.config)
+    variant = select_variant(variant)
+    cfg = load_system(config)
     surface = wave_surface(cfg)
     reference = reference_workload()
-    scenes = {name: _bench_system(cfg, surface, name, args.runs) for name in ("pattern", "view")}
+    scenes = {name: _bench_system(cfg, surface, name, runs) for name in ("pattern", "view")}
     pair = scenes["pattern"]["median_ms"] + scenes["view"]["median_ms"]
     return {
         "variant": variant,

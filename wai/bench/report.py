@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import datetime
 from pathlib import Path
 from typing import Any
@@ -17,21 +16,23 @@ from wai_core.io import write_json
 __all__ = ["bench_all", "bench_chart", "print_report", "write_report"]
 
 
-def bench_all(args: argparse.Namespace) -> dict[str, Any]:
+def bench_all(config: str | Path, runs: int, render_dir: str | Path | None = None,
+              variant: str = "auto") -> dict[str, Any]:
     """Every stage: rendering (system S and V) and restoration, with memory and the setup.
 
     The restoration runs first so that the peak RSS recorded after it is its own (unless the
-    render folder had to be rendered first), not the renderer's.
+    render folder had to be rendered first), not the renderer's. The parameters are those of
+    :func:`~wai.bench.restore.bench_restore` (``render_dir``: the folder it restores).
     """
-    restore = bench_restore(args)
-    render = bench_render(args)
+    restore = bench_restore(config, runs, render_dir, variant)
+    render = bench_render(config, runs, variant)
     stages = render_stages(render)
     stages.update({k: {"group": "restore", **v} for k, v in restore["stages"].items()})
     return {
         "format": "wai-bench/1",
         "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "runs": args.runs,
-        "config": str(args.config),
+        "runs": runs,
+        "config": str(config),
         "render_dir": restore["render_dir"],
         "machine": machine(),
         "runtime": runtime(),

@@ -10,7 +10,6 @@ time itself is computed from the others and listed as ``derived``.
 
 from __future__ import annotations
 
-import argparse
 import numbers
 import tracemalloc
 from collections.abc import Callable
@@ -190,10 +189,10 @@ def peak_traced_mib(fn: Callable[[], Any]) -> float:
     return (peak - base) / 2**20
 
 
-def _render_dir(args: argparse.Namespace) -> Path:
-    """``--dir``, or ``renders/bench`` (rendered from ``--config`` unless already there)."""
-    if args.dir is not None:
-        return Path(args.dir)
+def _render_dir(render_dir: str | Path | None, config: str | Path, variant: str) -> Path:
+    """``render_dir``, or ``renders/bench`` (rendered from ``config`` unless already there)."""
+    if render_dir is not None:
+        return Path(render_dir)
     render_dir = Path("renders/bench")
     if not (render_dir / "scene.json").is_file():
         from mitsuba_wai.render import render_folder
@@ -201,17 +200,30 @@ def _render_dir(args: argparse.Namespace) -> Path:
         from wai_core.system import load_rig
 
         # The variant asked for, before render_folder takes "auto": a process cannot switch.
-        select_variant(args.variant)
-        render_folder(load_rig(args.config), render_dir, progress=False)
+        select_variant(variant)
+        render_folder(load_rig(config), render_dir, progress=False)
     return render_dir
 
 
-def bench_restore(args: argparse.Namespace) -> dict[str, Any]:
+def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None = None,
+                  variant: str = "auto") -> dict[str, Any]:
     """Time :class:`restoration.StructuredLight` on a render folder (rendered if not given).
 
     Loading the images is not timed (a camera delivers them in memory); everything from the
     pattern image to the restored view is. A warm-up run (which also prepares the flat-water
     reference) is reported apart; one more run, untimed, measures allocations.
+
+    Parameters
+    ----------
+    config : str or Path
+        The scene rendered into ``renders/bench`` when ``render_dir`` is None and that folder
+        holds no render.
+    runs : int
+        Measured runs, after one warm-up.
+    render_dir : str, Path or None
+        The render folder to restore; None: ``renders/bench``.
+    variant : str
+        Mitsuba variant of that render, when it is made.
 
     Returns
     -------
@@ -225,7 +237,7 @@ def bench_restore(args: argparse.Namespace) -> dict[str, Any]:
     """
     from restoration import Calibration, StructuredLight
 
-    render_dir = _render_dir(args)
+    render_dir = _render_dir(render_dir, config, variant)
     cal = Calibration.from_folder(render_dir)
     images = cal.load_images(render_dir)
     restore = StructuredLight()
@@ -246,7 +258,7 @@ def bench_restore(args: argparse.Namespace) -> dict[str, Any]:
         for name, ms in times.items():
             stages.setdefault(name, []).append(ms)
 
-    warm, samples = time_runs(run, args.runs)
+    warm, samples = time_runs(run, runs)
     stages["end_to_end"] = [s * 1e3 for s in samples]
     summaries = {n: summarize([ms / 1e3 for ms in stages[n]]) for n in ordered(list(stages))}
     e2e = summaries["end_to_end"]

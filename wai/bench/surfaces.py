@@ -9,7 +9,6 @@ de-meaned), the consistency residual and the status are reported per surface.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 from typing import Any
 
@@ -38,20 +37,30 @@ def _restore(frame: Any, cal: Any, fit: bool) -> dict[str, Any]:
     }
 
 
-def bench_surfaces(args: argparse.Namespace) -> dict[str, Any]:
-    """Render and restore every analytic surface; writes ``surfaces.json`` into ``--out``."""
+def bench_surfaces(config: str | Path, out: str | Path, phi: float) -> dict[str, Any]:
+    """Render and restore every analytic surface; writes ``surfaces.json`` into ``out``.
+
+    Parameters
+    ----------
+    config : str or Path
+        The scene: a packaged name or a TOML file.
+    out : str or Path
+        The output folder (made if missing).
+    phi : float
+        Each surface is scaled to at most this fraction of eq. 35's slope bound.
+    """
     import mitsuba_wai as mw
     import restoration as rs
     from wai_core.limits import correspondence_limit, effective_phi_deg
     from wai_core.surfaces import SURFACES, scaled
     from wai_core.system import load_rig
 
-    cfg = load_rig(args.config)
+    cfg = load_rig(config)
     phi_max = correspondence_limit(cfg)["phi_max_deg"]
     rows = []
     for name, make in tqdm(SURFACES.items(), desc="surfaces", leave=False):
         surface = make(cfg.water.h0_mm)
-        factor = min(1.0, args.phi * phi_max / effective_phi_deg(surface, cfg))
+        factor = min(1.0, phi * phi_max / effective_phi_deg(surface, cfg))
         surface = scaled(surface, cfg.water.h0_mm, factor)
         frame = mw.render_frame(cfg, surface)
         cal = rs.Calibration(cfg, frame.view_gain)
@@ -62,8 +71,8 @@ def bench_surfaces(args: argparse.Namespace) -> dict[str, Any]:
             "default": _restore(frame, cal, fit=False),
             "fit": _restore(frame, cal, fit=True),
         })
-    res = {"config": str(args.config), "phi_target": args.phi, "rows": rows}
-    out = Path(args.out)
+    res = {"config": str(config), "phi_target": phi, "rows": rows}
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "surfaces.json", res)
     return res

@@ -14,7 +14,6 @@ frames 1/30 s apart, so the waves move as in a real recording.
 
 from __future__ import annotations
 
-import argparse
 import multiprocessing as mp
 import time
 from pathlib import Path
@@ -88,33 +87,50 @@ def throughput(folder: Path, workers: int, n_frames: int) -> dict[str, Any]:
     }
 
 
-def bench_video(args: argparse.Namespace) -> dict[str, Any]:
-    """Latency (one process) and throughput for 1 .. ``args.workers`` worker processes."""
-    for name in ("workers", "frames", "sequence"):
-        if getattr(args, name) < 1:
-            raise WaiInputError(f"--{name} must be at least 1, got {getattr(args, name)}")
-    out = Path(args.out or "renders/bench_video")
-    folder = sequence_folder(args.config, out, args.sequence)
+def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: int,
+                frames: int, sequence: int) -> dict[str, Any]:
+    """Latency (one process) and throughput for 1 .. ``workers`` worker processes.
+
+    Parameters
+    ----------
+    config : str or Path
+        The scene: a packaged name or a TOML file.
+    out : str, Path or None
+        The folder of the rendered sequence; None: ``renders/bench_video``.
+    runs : int
+        Measured passes over the sequence for the latency.
+    workers : int
+        The most worker processes (throughput is measured for 1 and ``workers``).
+    frames : int
+        Frames restored per worker count.
+    sequence : int
+        Distinct frames rendered.
+    """
+    for name, value in (("workers", workers), ("frames", frames), ("sequence", sequence)):
+        if value < 1:
+            raise WaiInputError(f"--{name} must be at least 1, got {value}")
+    out = Path(out or "renders/bench_video")
+    folder = sequence_folder(config, out, sequence)
     from restoration import LevelTrack, StructuredLight
     from restoration.sequence import load_sequence
 
-    cal, frames = load_sequence(folder)
+    cal, images = load_sequence(folder)
     restore, track = StructuredLight(), LevelTrack()
-    restore(frames[0], cal, track)
+    restore(images[0], cal, track)
     reference = reference_workload()
     samples = []
-    for k in range(args.runs * len(frames)):
+    for k in range(runs * len(images)):
         t0 = time.perf_counter()
-        restore(frames[k % len(frames)], cal, track)
+        restore(images[k % len(images)], cal, track)
         samples.append(time.perf_counter() - t0)
-    counts = sorted({1, args.workers})
+    counts = sorted({1, workers})
     return {
         "machine": machine(),
         "reference": reference,
         "sequence": str(folder),
-        "frames_in_sequence": len(frames),
+        "frames_in_sequence": len(images),
         "latency": summarize(samples),
-        "throughput": [throughput(folder, w, args.frames) for w in counts],
+        "throughput": [throughput(folder, w, frames) for w in counts],
     }
 
 
