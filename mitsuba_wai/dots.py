@@ -7,7 +7,9 @@ pattern's render time. The image is a sum of Gaussian dots
 
 1. The dot. Particle ``i`` of ``n`` takes the dot whose share ``p_j`` covers ``(i + u) / n``,
    ``u`` one random shift per pass (systematic sampling): every dot gets ``n p_j`` particles in
-   expectation and within one of it in every pass. The share is the power the dot delivers to
+   expectation and within one of it in every pass. By default (``[render] particle_shares =
+   "emitted"``) the share is the dot's emitted power ``w_j``. With ``"delivered"`` it is the
+   power the dot delivers to
    the diffuser times its spot's size there, ``p_j ~ w_j R_j a_j`` (``w_j`` its brightness,
    :func:`wai_core.layout.dot_weights`; ``R_j`` the Fresnel reflectance at its flat-water
    incidence, 1 for the ``mirror``; ``a_j`` the spot's linear size on the diffuser per panel
@@ -16,7 +18,9 @@ pattern's render time. The image is a sum of Gaussian dots
    bright, and the spots beyond it land obliquely, 1.6 times wider in camera s. A spot's
    centroid error grows with its width and shrinks with its particles, so this share gives
    every spot about the same centroid noise (beyond the critical angle 1.2 times the others'
-   in the paper's flat-water pattern at 4 spp, against 21 times with ``p_j ~ w_j``).
+   in the paper's flat-water pattern at 4 spp, against 21 times with ``p_j ~ w_j``), but the
+   particles taken from the others double their noise, and the restored surface is less
+   accurate over ten seeds (docs/results.md, "Particles where they are needed").
 2. The point. The dot's ``m``-th particle takes the ``m``-th point of a shifted R2 sequence
    (:func:`mitsuba_wai.particles.kronecker`; a shift of its own per dot, so no two dots share
    a point set and its small centroid error), mapped to the Gaussian by Box-Muller.
@@ -133,10 +137,15 @@ class DotEmitter:
         area = 4.0 * tan_x**2 * h / w  # the panel's area on the plane z_cam = 1
         # Flux (per unit colour) of a dot of weight 1.
         unit = 2.0 * np.pi * sigma**2 / (w * h) * cfg.pattern.power * np.pi * area
-        share = weights * _flat_reflectance(cfg, projector, panel_px)
-        share = share * _spot_size(cfg, projector, panel_px)
-        self.share = share / share.sum()
-        self._cdf = np.concatenate([[0.0], np.cumsum(self.share)])
+        delivered = cfg.render.particle_shares == "delivered"
+        if delivered:
+            share = weights * _flat_reflectance(cfg, projector, panel_px)
+            share = share * _spot_size(cfg, projector, panel_px)
+            self.share = share / share.sum()
+            self._cdf = np.concatenate([[0.0], np.cumsum(self.share)])
+        else:  # by emitted power: every particle of a colour weighs the same
+            self.share = weights / weights.sum()
+            self._cdf = np.concatenate([[0.0], np.cumsum(weights) / weights.sum()])
         # Panel coordinates of each dot relative to the principal point, in focal lengths
         # (distorted ones with [projector] distortion; mitsuba_wai.lens: offset, port).
         f = projector.focal_px
@@ -146,7 +155,11 @@ class DotEmitter:
         centre = (panel_px - list(optics.principal_px)) / f
         self._centre = mi.Point2f(*(mi.Float(centre[:, k]) for k in range(2)))
         # A particle's weight: its dot's flux over the dot's share of the particles.
-        flux = colours * (unit * weights / self.share)[:, None]
+        if delivered:
+            flux = colours * (unit * weights / self.share)[:, None]
+        else:
+            flux = colours * (weights.sum() * 2.0 * np.pi * sigma**2 / (w * h)
+                              * cfg.pattern.power * np.pi * area)
         self._colour = mi.Color3f(*(mi.Float(flux[:, k]) for k in range(3)))
         self._sigma = sigma / f
         self._origin = mi.Point3f(*projector.pose.center_lab_mm.tolist())

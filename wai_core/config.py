@@ -146,6 +146,8 @@ class ObjectConfig:
 
 SAMPLINGS = ("stratified", "independent")
 """Values of ``[render].sampling``."""
+PARTICLE_SHARES = ("emitted", "delivered")
+"""Values of ``[render].particle_shares``."""
 
 
 @dataclass(frozen=True)
@@ -161,6 +163,11 @@ class RenderConfig:
     (``mitsuba_wai.view_tracer``), so 4 samples per pixel beat 8 and 16 independent ones
     (docs/results.md); ``"independent"``: Mitsuba's own projector, ``path`` integrator and
     independent sampler."""
+    particle_shares: str = "emitted"
+    """How the projector's dots share the pattern's particles (stratified sampling):
+    ``"emitted"``, by emitted power (every particle of a colour weighs the same); ``"delivered"``,
+    by the power each spot delivers to the diffuser times its size there (every spot's centroid
+    equally noisy; mitsuba_wai.dots)."""
 
 
 @dataclass(frozen=True)
@@ -450,6 +457,11 @@ def validate(cfg: SystemConfig) -> None:
             raise WaiInputError(f"config: [{name}] {exc}") from None
     if cfg.render.spp_pattern < 1 or cfg.render.spp_view < 1:
         raise WaiInputError("config: [render] spp must be at least 1")
+    if cfg.render.particle_shares not in PARTICLE_SHARES:
+        raise WaiInputError(
+            f"config: [render].particle_shares must be one of {', '.join(PARTICLE_SHARES)}, "
+            f"not {cfg.render.particle_shares!r}"
+        )
     if cfg.render.sampling not in SAMPLINGS:
         raise WaiInputError(
             f"config: [render].sampling must be one of {', '.join(SAMPLINGS)}, "

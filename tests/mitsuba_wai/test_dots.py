@@ -50,8 +50,9 @@ def test_spots_beyond_the_critical_angle_are_as_steady_as_the_others(paper_cfg):
     # Beyond the critical angle water reflects all light (R = 1), elsewhere ~2 %: the adaptive
     # pattern makes those dots ~50x dimmer so all spots reach the diffuser about equally bright.
     # Particles must follow the delivered light, not the emitted: each spot's centroid on the
-    # diffuser (mm) must scatter over seeds about equally beyond the critical angle and below.
-    emitter = _emitter(paper_cfg)
+    # diffuser (mm) must scatter over seeds about equally beyond the critical angle and below
+    # (``particle_shares = "delivered"``; the default shares by emitted power).
+    emitter = _emitter(paper_cfg.replace("render", particle_shares="delivered"))
     dirs = _chief_rays(paper_cfg)
     far = _beyond_critical(dirs, paper_cfg.water.n_water)
     assert 0.2 < far.mean() < 0.8
@@ -72,7 +73,7 @@ def test_spots_beyond_the_critical_angle_are_as_steady_as_the_others(paper_cfg):
 def test_each_dot_emits_its_brightness_whatever_its_particles(paper_cfg):
     # Unbiased: a dot's particles carry its emitted flux, which is its brightness in the panel's
     # bitmap times the Gaussian's integral (the same for every dot), however many it gets.
-    emitter = _emitter(paper_cfg)
+    emitter = _emitter(paper_cfg.replace("render", particle_shares="delivered"))
     dirs = _chief_rays(paper_cfg)
     w = dot_weights(paper_cfg)
     w = w[w > 0]
@@ -108,6 +109,8 @@ def test_thin_lens_blur_disk_grows_as_aperture_times_defocus(paper_cfg):
     # is that diameter / (2 sqrt 2). The panel's Gaussian adds its own spread in quadrature
     # (independent), which the pinhole's rays measure; at z = f the lens adds nothing.
     aperture, focus = 6.0, 400.0
+    # Shares by delivered power: enough particles in every dot, whatever its brightness.
+    paper_cfg = paper_cfg.replace("render", particle_shares="delivered")
     pin = _emitter(paper_cfg)
     lens = _emitter(_lens_cfg(paper_cfg, aperture, focus))
     dirs = _chief_rays(paper_cfg)
