@@ -457,16 +457,8 @@ def validate(cfg: SystemConfig) -> None:
             raise WaiInputError(f"config: [{name}] {exc}") from None
     if cfg.render.spp_pattern < 1 or cfg.render.spp_view < 1:
         raise WaiInputError("config: [render] spp must be at least 1")
-    if cfg.render.particle_shares not in PARTICLE_SHARES:
-        raise WaiInputError(
-            f"config: [render].particle_shares must be one of {', '.join(PARTICLE_SHARES)}, "
-            f"not {cfg.render.particle_shares!r}"
-        )
-    if cfg.render.sampling not in SAMPLINGS:
-        raise WaiInputError(
-            f"config: [render].sampling must be one of {', '.join(SAMPLINGS)}, "
-            f"not {cfg.render.sampling!r}"
-        )
+    _check_choice(cfg.render.particle_shares, PARTICLE_SHARES, "[render].particle_shares")
+    _check_choice(cfg.render.sampling, SAMPLINGS, "[render].sampling")
     _validate_degradations(cfg.sensor, cfg.motion)
     _validate_light(cfg.water_optics, cfg.ambient)
     _validate_effects(cfg)
@@ -537,11 +529,7 @@ def with_keys(cfg: SystemConfig, changes: dict[str, Any]) -> SystemConfig:
 def _validate_effects(cfg: SystemConfig) -> None:
     """The renderer-only effects (:data:`RENDERER_EFFECTS`): checked even when off."""
     w = cfg.water
-    if w.index_model not in INDEX_MODELS:
-        raise WaiInputError(
-            f"config: [water].index_model must be one of {', '.join(INDEX_MODELS)}, "
-            f"not {w.index_model!r}"
-        )
+    _check_choice(w.index_model, INDEX_MODELS, "[water].index_model")
     # Quan & Fry's fit spans 0-35 PSU and 0-30 C (400-700 nm); a little beyond is harmless.
     if not 0 <= w.salinity_psu <= 40:
         raise WaiInputError(f"config: [water].salinity_psu must be 0 .. 40, not {w.salinity_psu:g}")
@@ -551,16 +539,8 @@ def _validate_effects(cfg: SystemConfig) -> None:
         )
     if not 0 <= w.roughness < 1:
         raise WaiInputError(f"config: [water].roughness must be 0 .. 1, not {w.roughness:g}")
-    if cfg.waves.dispersion not in DISPERSIONS:
-        raise WaiInputError(
-            f"config: [waves].dispersion must be one of {', '.join(DISPERSIONS)}, "
-            f"not {cfg.waves.dispersion!r}"
-        )
-    if cfg.pattern.polarisation not in POLARISATIONS:
-        raise WaiInputError(
-            f"config: [pattern].polarisation must be one of {', '.join(POLARISATIONS)}, "
-            f"not {cfg.pattern.polarisation!r}"
-        )
+    _check_choice(cfg.waves.dispersion, DISPERSIONS, "[waves].dispersion")
+    _check_choice(cfg.pattern.polarisation, POLARISATIONS, "[pattern].polarisation")
     d = cfg.diffuser
     if not 0 <= d.half_width_deg < 90:
         raise WaiInputError(
@@ -593,6 +573,12 @@ def _check_device_optics(dev: DeviceConfig, name: str) -> None:
         raise WaiInputError(
             f"config: [{name}].focus_mm must be positive when aperture_mm is (the plane in focus)"
         )
+
+
+def _check_choice(value: str, choices: tuple[str, ...], key: str) -> None:
+    """A key with a fixed set of values: anything else is refused, naming the key."""
+    if value not in choices:
+        raise WaiInputError(f"config: {key} must be one of {', '.join(choices)}, not {value!r}")
 
 
 def _check_rotation(rotation: Any, name: str) -> None:
