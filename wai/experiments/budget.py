@@ -134,13 +134,8 @@ def budget_points(
     return points
 
 
-def _mean(rows: list[dict[str, Any]], key: str) -> float:
-    vals = [float(r[key]) for r in rows if r.get(key) is not None]
-    vals = [v for v in vals if np.isfinite(v)]
-    return float(np.mean(vals)) if vals else float("nan")
-
-
-def _extreme(rows: list[dict[str, Any]], key: str, fn: Callable) -> float:
+def _stat(rows: list[dict[str, Any]], key: str, fn: Callable = np.mean) -> float:
+    """``fn`` of the finite values of ``key`` over ``rows``; NaN when there are none."""
     vals = [float(r[key]) for r in rows if r.get(key) is not None]
     vals = [v for v in vals if np.isfinite(v)]
     return float(fn(vals)) if vals else float("nan")
@@ -185,12 +180,12 @@ def _entry(magnitude: float, group: list[dict[str, Any]]) -> dict[str, Any]:
         statuses[_status(r)] = statuses.get(_status(r), 0) + 1
     return {
         "magnitude": magnitude, "frames": len(group), "statuses": statuses,
-        "rmse_mm": _mean(group, "wai_rmse_mm"),
-        "rmse_min_mm": _extreme(group, "wai_rmse_mm", np.min),
-        "rmse_max_mm": _extreme(group, "wai_rmse_mm", np.max),
-        "rmse_demeaned_mm": _mean(group, "wai_rmse_demeaned_mm"),
-        "corner_std_px": _mean(group, "corner_std_restored_px"),
-        "residual_median_px": _mean(group, "residual_median_px"),
+        "rmse_mm": _stat(group, "wai_rmse_mm"),
+        "rmse_min_mm": _stat(group, "wai_rmse_mm", np.min),
+        "rmse_max_mm": _stat(group, "wai_rmse_mm", np.max),
+        "rmse_demeaned_mm": _stat(group, "wai_rmse_demeaned_mm"),
+        "corner_std_px": _stat(group, "corner_std_restored_px"),
+        "residual_median_px": _stat(group, "residual_median_px"),
     }
 
 
