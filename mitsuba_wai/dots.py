@@ -135,17 +135,21 @@ class DotEmitter:
         w, h = projector.width_px, projector.height_px
         tan_x = np.tan(np.radians(projector.fov_x_deg) / 2.0)
         area = 4.0 * tan_x**2 * h / w  # the panel's area on the plane z_cam = 1
-        # Flux (per unit colour) of a dot of weight 1.
-        unit = 2.0 * np.pi * sigma**2 / (w * h) * cfg.pattern.power * np.pi * area
-        delivered = cfg.render.particle_shares == "delivered"
-        if delivered:
+        # Each dot's share of the particles, and a particle's weight: its dot's flux over its
+        # share (by emitted power the same for every particle of a colour, multiplied in the
+        # order that keeps the default renders' bits).
+        if cfg.render.particle_shares == "delivered":
             share = weights * _flat_reflectance(cfg, projector, panel_px)
             share = share * _spot_size(cfg, projector, panel_px)
             self.share = share / share.sum()
             self._cdf = np.concatenate([[0.0], np.cumsum(self.share)])
-        else:  # by emitted power: every particle of a colour weighs the same
+            unit = 2.0 * np.pi * sigma**2 / (w * h) * cfg.pattern.power * np.pi * area
+            flux = colours * (unit * weights / self.share)[:, None]
+        else:
             self.share = weights / weights.sum()
             self._cdf = np.concatenate([[0.0], np.cumsum(weights) / weights.sum()])
+            flux = colours * (weights.sum() * 2.0 * np.pi * sigma**2 / (w * h)
+                              * cfg.pattern.power * np.pi * area)
         # Panel coordinates of each dot relative to the principal point, in focal lengths
         # (distorted ones with [projector] distortion; mitsuba_wai.lens: offset, port).
         f = projector.focal_px
@@ -154,12 +158,6 @@ class DotEmitter:
                         else None)
         centre = (panel_px - list(optics.principal_px)) / f
         self._centre = mi.Point2f(*(mi.Float(centre[:, k]) for k in range(2)))
-        # A particle's weight: its dot's flux over the dot's share of the particles.
-        if delivered:
-            flux = colours * (unit * weights / self.share)[:, None]
-        else:
-            flux = colours * (weights.sum() * 2.0 * np.pi * sigma**2 / (w * h)
-                              * cfg.pattern.power * np.pi * area)
         self._colour = mi.Color3f(*(mi.Float(flux[:, k]) for k in range(3)))
         self._sigma = sigma / f
         self._origin = mi.Point3f(*projector.pose.center_lab_mm.tolist())
