@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from restoration.reverse_trace._kernels import spline_jet
-from restoration.reverse_trace._surface import spline_patches
+from restoration.reverse_trace._surface import SplinePatches, check_patches
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 
@@ -125,6 +125,7 @@ def predict_spots_px(
     start_mm: Array,
     camera_s: PinholeCamera,
     z_h_mm: float,
+    patches: SplinePatches | None = None,
 ) -> Array:
     """Camera-s pixels (K, 2) of rays ``origin + t dirs`` reflected by ``surface``.
 
@@ -141,13 +142,21 @@ def predict_spots_px(
     camera_s : PinholeCamera
     z_h_mm : float
         Height of the diffuser plane, mm.
+    patches : SplinePatches, optional
+        The spline table of ``surface`` (that very object, else
+        :class:`~wai_core.errors.WaiInputError`), e.g. the one the frame's view uses; built
+        for this call when omitted.
 
     Returns
     -------
     (K, 2) ndarray
         ``(col, row)`` px; NaN where the ray leaves the known surface.
     """
-    patches = spline_patches(surface)  # the view's table too: the same spline as .height
+    # The same spline as Heightfield.height, and the table the view's solver evaluates.
+    if patches is None:
+        patches = SplinePatches(surface)
+    else:
+        check_patches(patches, surface, "predict_spots_px")
     pose = camera_s.pose
     camera = np.array([
         *pose.R.ravel(), *pose.t_mm, camera_s.focal_px, (camera_s.width_px - 1) / 2.0,
@@ -211,6 +220,7 @@ def spot_consistency(
     camera_s: PinholeCamera,
     z_h_mm: float,
     spacing_px: float,
+    patches: SplinePatches | None = None,
 ) -> Consistency:
     """The forward check of a reconstructed surface against its spots.
 
@@ -230,6 +240,9 @@ def spot_consistency(
     z_h_mm : float
     spacing_px : float
         Median dot spacing in camera s, px (sets the threshold).
+    patches : SplinePatches, optional
+        The spline table of ``surface`` (that very object), e.g. shared with the frame's
+        :func:`~restoration.reverse_trace.restore_view`; built for this call when omitted.
 
     Returns
     -------
@@ -256,7 +269,7 @@ def spot_consistency(
     >>> c.median_px < 1e-6, c.consistent
     (True, True)
     """
-    pred = predict_spots_px(surface, origin_mm, dirs, points_mm, camera_s, z_h_mm)
+    pred = predict_spots_px(surface, origin_mm, dirs, points_mm, camera_s, z_h_mm, patches)
     residual = np.linalg.norm(pred - spot_px, axis=1)
     finite = np.isfinite(residual)
     median = float(np.median(residual[finite])) if finite.any() else float("inf")

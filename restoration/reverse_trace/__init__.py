@@ -10,23 +10,29 @@ Modules
     The forward map, pixel -> water surface -> refraction -> object plane
     (:func:`trace_to_object`), and the :class:`RayStatus` codes; shared with the renderer side.
 :mod:`restoration.reverse_trace._surface`
-    Surface models (flat water, bicubic spline patches) with the derivatives the solver needs.
+    Surface models (flat water, bicubic spline patches: :class:`SplinePatches`) with the
+    derivatives the solver needs.
 :mod:`restoration.reverse_trace.inverse`
     The inverse map, object point -> pixel, by Newton over surface points (:func:`solve_pixels`,
     :func:`find_pixels`).
 :mod:`restoration.reverse_trace.warp`
-    The restored image (:func:`restore_view`, :class:`Restoration`).
+    The restored image (:func:`restore_view`, :class:`Restoration`) and the truth view it
+    resamples into (:class:`ViewPlan`).
+
+A caller that restores many frames keeps one :class:`ViewPlan` per camera and passes it to
+every :func:`restore_view`; one frame that both restores its view and checks its surface
+(:func:`restoration.consistency.spot_consistency`) builds one :class:`SplinePatches` and passes
+it to both.
 """
 
-# Private, re-exported (explicit ``as`` form) for the tests that check the spline evaluation.
-from restoration.reverse_trace._surface import _SplinePatches as _SplinePatches
+from restoration.reverse_trace._surface import SplinePatches
 from restoration.reverse_trace.inverse import (
     DEFAULT_TOL_PX,
     PixelSolution,
     find_pixels,
     solve_pixels,
 )
-from restoration.reverse_trace.warp import Restoration, restore_view
+from restoration.reverse_trace.warp import Restoration, ViewPlan, restore_view
 from wai_core.optics import RayStatus, TraceResult, status_counts, trace_to_object
 
 __all__ = [
@@ -34,7 +40,9 @@ __all__ = [
     "PixelSolution",
     "RayStatus",
     "Restoration",
+    "SplinePatches",
     "TraceResult",
+    "ViewPlan",
     "find_pixels",
     "restore_view",
     "solve_pixels",

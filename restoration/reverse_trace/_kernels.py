@@ -40,7 +40,7 @@ def _along(c, p, iy, u):
 @njit(**_JIT)
 def spline_jet(table, cell_ok, gx, gy, x, y):
     """Height and derivatives ``(h, h_x, h_y, h_xx, h_xy, h_yy)`` of a
-    :class:`~restoration.reverse_trace._surface._SplinePatches` table at one point (x, y) mm;
+    :class:`~restoration.reverse_trace._surface.SplinePatches` table at one point (x, y) mm;
     NaN off the known surface. ``table`` (ncx + 1, 16, ncy), ``cell_ok`` (ncx ncy,) bool,
     ``gx`` (ncx + 1,), ``gy`` (ncy + 1,) mm: as in that class."""
     nan = np.nan

@@ -1,19 +1,20 @@
 """Surface models for the inverse solver: height and derivatives at (x, y), cheap and vectorised.
 
-:class:`_FlatWater` is the flat water of the ground-truth view; :class:`_SplinePatches` evaluates
+:class:`_FlatWater` is the flat water of the ground-truth view; :class:`SplinePatches` evaluates
 a :class:`~wai_core.heightfield.Heightfield`'s bicubic spline with its first and second
 derivatives from per-cell power-basis tables (:func:`_cell_polynomials`), which is what each
 Newton step of :mod:`restoration.reverse_trace.inverse` needs; :func:`_surface_model` picks one.
+A frame that evaluates one surface several times (its view and its consistency check) builds
+its :class:`SplinePatches` once and passes it to each.
 """
 
 from __future__ import annotations
-
-import weakref
 
 import numpy as np
 from numpy.typing import NDArray
 
 from restoration.reverse_trace._kernels import cell_polynomials, spline_table
+from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
 
 Array = NDArray[np.float64]
@@ -68,20 +69,7 @@ def _cell_polynomials(grid: Array, knots: Array) -> tuple[NDArray[np.intp], Arra
     )
 
 
-_CELL_CACHE: dict[bytes, tuple[NDArray[np.intp], Array]] = {}
-
-
-def _cached_cell_polynomials(grid: Array, knots: Array) -> tuple[NDArray[np.intp], Array]:
-    """:func:`_cell_polynomials`, cached: a sequence of estimates often shares one grid."""
-    key = grid.tobytes() + knots.tobytes()
-    if key not in _CELL_CACHE:
-        if len(_CELL_CACHE) >= 16:
-            _CELL_CACHE.clear()
-        _CELL_CACHE[key] = _cell_polynomials(grid, knots)
-    return _CELL_CACHE[key]
-
-
-class _SplinePatches:
+class SplinePatches:
     """Fast evaluation of a :class:`Heightfield`'s bicubic spline with its derivatives.
 
     The spline is ``sum_jl c[j, l] B_j(y) B_l(x)``; on each grid cell it is one bicubic
@@ -92,6 +80,33 @@ class _SplinePatches:
     Jacobian needs in the same pass.
     Cells with an unknown corner sample hold NaN, so points there (and outside the grid) get
     NaN, as :meth:`Heightfield.contains` says. Values equal ``Heightfield.height`` to rounding.
+
+    Parameters
+    ----------
+    surface : Heightfield
+        The surface (heights, mm, on an (m, n) grid).
+
+    Attributes
+    ----------
+    surface : Heightfield
+        The surface tabulated (the one its users check they were given).
+    table : (ncx + 1, 16, ncy) ndarray
+        Power-basis coefficients of each cell ``(iy, ix)`` at ``[ix, :, iy]``; slab ``ncx``
+        is NaN (the entry of points off the known surface).
+    cell_ok : (ncx ncy,) ndarray of bool
+        Cells whose four corner samples are known, by ``ix * ncy + iy``.
+    x, y : (n,), (m,) ndarray
+        The surface's grid lines, mm.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from wai_core.heightfield import Heightfield
+    >>> x, y = np.linspace(0.0, 100.0, 51), np.linspace(0.0, 80.0, 41)
+    >>> surface = Heightfield(x, y, np.add.outer(0.01 * y, 0.02 * x))
+    >>> h, hx, hy = SplinePatches(surface).jet(np.array([33.3]), np.array([21.7]))[:3]
+    >>> bool(np.isclose(h[0], surface.height(33.3, 21.7))), bool(np.isclose(hx[0], 0.02))
+    (True, True)
     """
 
     def __init__(self, surface: Heightfield) -> None:
@@ -100,8 +115,8 @@ class _SplinePatches:
         spline = surface._spline
         ty, tx = spline.get_knots()
         coeffs = spline.get_coeffs().reshape(ty.size - 4, tx.size - 4)
-        ky, py = _cached_cell_polynomials(surface.y, ty)
-        kx, px = _cached_cell_polynomials(surface.x, tx)
+        ky, py = _cell_polynomials(surface.y, ty)
+        kx, px = _cell_polynomials(surface.x, tx)
         ncy = ky.size
         # table[ix, 4 * (power of x) + (power of y), iy]: the coefficients of cell (iy, ix),
         # laid out so that looking up N cells gives 16 contiguous rows of N; slab ncx is the
@@ -112,6 +127,7 @@ class _SplinePatches:
         self.cell_ok = cell_ok.T.ravel()  # by cell ix * ncy + iy
         self.offsets = (np.arange(16) * ncy)[:, None]  # of the 16 coefficients from the first
         self.x, self.y = surface.x, surface.y
+        self.surface = surface
         self.ncy, self.nan_slab = ncy, self.table[:-1].size
 
     def jet(self, x: Array, y: Array) -> Jet:
@@ -143,27 +159,24 @@ class _SplinePatches:
         return h, hx, hy, hxx, hxy, hyy
 
 
-def spline_patches(surface: Heightfield) -> _SplinePatches:
-    """The :class:`_SplinePatches` of ``surface``, kept while the surface lives: a frame's
-    consistency check and its view both evaluate the one restored surface."""
-    key = id(surface)
-    found = _PATCHES.get(key)
-    if found is not None and found[0]() is surface:
-        return found[1]
-    patches = _SplinePatches(surface)
-    try:  # forgotten with the surface (the id may then be reused)
-        ref = weakref.ref(surface, lambda _, key=key: _PATCHES.pop(key, None))
-    except TypeError:  # not weakly referable: no caching
+def spline_patches(surface: Heightfield) -> SplinePatches:
+    """The :class:`SplinePatches` of ``surface``, built anew on each call."""
+    return SplinePatches(surface)
+
+
+def _surface_model(
+    surface: Heightfield | None, h0_mm: float, patches: SplinePatches | None = None
+) -> _FlatWater | SplinePatches:
+    """Flat water at ``h0_mm`` (``surface`` None), else the spline table of ``surface``:
+    ``patches`` when given (checked by the caller: :func:`check_patches`), else a new one."""
+    if patches is not None:
         return patches
-    if len(_PATCHES) >= 8:
-        _PATCHES.clear()
-    _PATCHES[key] = (ref, patches)
-    return patches
+    return _FlatWater(h0_mm) if surface is None else SplinePatches(surface)
 
 
-# By id of the Heightfield, with a weak reference to check it is still that object.
-_PATCHES: dict[int, tuple[weakref.ref, _SplinePatches]] = {}
-
-
-def _surface_model(surface: Heightfield | None, h0_mm: float) -> _FlatWater | _SplinePatches:
-    return _FlatWater(h0_mm) if surface is None else spline_patches(surface)
+def check_patches(patches: SplinePatches, surface: Heightfield | None, caller: str) -> None:
+    """Raise :class:`WaiInputError` unless ``patches`` tabulates ``surface`` (the same object)."""
+    if not isinstance(patches, SplinePatches):
+        raise WaiInputError(f"{caller}: patches must be a SplinePatches, got {type(patches)}")
+    if patches.surface is not surface:
+        raise WaiInputError(f"{caller}: patches were built from another surface than the one given")

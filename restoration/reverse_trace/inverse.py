@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from restoration._threads import restore_threads, run_chunks
 from restoration.reverse_trace._kernels import newton_chunk
-from restoration.reverse_trace._surface import _FlatWater, _SplinePatches, _surface_model
+from restoration.reverse_trace._surface import SplinePatches, _FlatWater, _surface_model
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera, intersect_plane_z
 from wai_core.heightfield import Heightfield
@@ -54,7 +54,7 @@ class _Optics:
 
 def _newton(
     camera: PinholeCamera,
-    model: _FlatWater | _SplinePatches,
+    model: _FlatWater | SplinePatches,
     optics: _Optics,
     targets: Array,
     q0: Array,

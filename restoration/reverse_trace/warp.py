@@ -3,14 +3,14 @@
 The ground-truth view is camera v through *flat* water. For each truth pixel ``p`` the target
 ``P`` is the flat-water forward map of ``p``; the distorted image shows ``P`` at ``u =
 find_pixels(surface_est, P)``; so ``restored(p) = distorted(u)``. :func:`restore_view` solves the
-warp ``u(p)`` on a coarse grid (plans of the truth view are cached between calls), upsamples it
-bilinearly (the surface is smooth) and samples the image through it in one compiled pass, and
-reports the :class:`Restoration` with its validity mask and the cause of every unrestored pixel.
+warp ``u(p)`` on a coarse grid, upsamples it bilinearly (the surface is smooth) and samples the
+image through it in one compiled pass, and reports the :class:`Restoration` with its validity
+mask and the cause of every unrestored pixel. The truth view's part, which no surface changes,
+is a :class:`ViewPlan`: a rig builds it once and passes it to every frame's view.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -19,12 +19,13 @@ from numpy.typing import NDArray
 
 from restoration._threads import restore_threads, run_chunks
 from restoration.reverse_trace._kernels import finish_rows, valid_box, warp_rows
-from restoration.reverse_trace._surface import _surface_model
+from restoration.reverse_trace._surface import SplinePatches, _surface_model, check_patches
 from restoration.reverse_trace.inverse import _newton, _Optics
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 from wai_core.optics import RayStatus, _check_system, trace_to_object
+from wai_core.timings import Timings
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -52,8 +53,9 @@ class Restoration:
         (the target is seen outside the distorted image); ``not_converged``; ``missed_object``.
         A pixel takes the cause of the worst of the four warp nodes around it.
     timings_ms : dict of str to float
-        Wall times of the stages, ms: ``plan`` (geometry of the truth view, cached between
-        calls), ``surface`` (spline tables), ``solve`` (warp on the coarse grid), ``upsample``
+        Wall times of the stages, ms: ``plan`` (geometry of the truth view: the
+        :class:`ViewPlan`, ~0 when one is passed), ``surface`` (spline tables, ~0 when passed),
+        ``solve`` (warp on the coarse grid), ``upsample``
         (the warp at the nodes and their status), ``remap`` (upsampled to pixels and the image
         sampled, one pass) and ``total``.
     step_px : int
@@ -86,26 +88,142 @@ class Restoration:
         return warp
 
 
-@dataclass(frozen=True)
-class _Plan:
-    """Everything about the truth view that does not depend on the surface."""
+@dataclass(frozen=True, eq=False)
+class ViewPlan:
+    """The flat-water (truth) view of camera v on the coarse warp grid: all of
+    :func:`restore_view` that does not depend on the surface.
 
-    grid_shape: tuple[int, int]  # coarse nodes (rows, cols)
-    node_px: Array  # (K, 2) truth pixel of each node that sees the object plane
-    node_index: NDArray[np.intp]  # (K,) flat index of those nodes in the coarse grid
-    targets: Array  # (K, 3) their object points, mm
-    node_q0: Array  # (K, 2) where their rays cross flat water, mm: Newton's start
-    truth_status: NDArray[np.int8]  # (rows, cols) status of every node in the truth view
-    image_shape: tuple[int, int]  # (H, W) pixels
-    # Cell and fraction across it of every pixel column, then row: (W,), (W,), (H,), (H,).
-    pixel_cells: tuple[NDArray[np.intp], NDArray[np.float32], NDArray[np.intp], NDArray[np.float32]]
-    cell_area: NDArray[np.float64]  # (rows - 1, cols - 1) pixels in each coarse cell
+    Build it with :meth:`build` once per camera, water and warp step (a rig's calibration keeps
+    one) and pass it to each :func:`restore_view`, which checks that it was built for the
+    camera, water and step it is given.
 
+    Attributes
+    ----------
+    camera : PinholeCamera
+        Camera v.
+    h0_mm, n_water, z_object_mm : float
+        Mean water level (mm), refractive index, object-plane height (mm).
+    step_px : int
+        Spacing of the coarse nodes, pixels.
+    grid_shape : (int, int)
+        Coarse nodes (rows, cols): every ``step_px`` pixels from 0 up to, or just past, the
+        last pixel.
+    node_px : (K, 2) ndarray
+        Truth pixel ``(col, row)`` of each node whose flat-water ray reaches the object plane.
+    node_index : (K,) ndarray of int
+        Their flat indices in the coarse grid.
+    targets : (K, 3) ndarray
+        Their object points, mm.
+    node_q0 : (K, 2) ndarray
+        Where their rays cross flat water, mm (Newton's start).
+    truth_status : (rows, cols) ndarray of int8
+        :class:`RayStatus` of every node in the truth view.
+    image_shape : (int, int)
+        ``(H, W)`` pixels.
+    pixel_cells : tuple of four ndarrays
+        Coarse cell (int) and fraction across it (float32) of every pixel column, then row:
+        (W,), (W,), (H,), (H,).
+    cell_area : (rows - 1, cols - 1) ndarray
+        Pixels in each coarse cell.
 
-_PLANS: dict[tuple, _Plan] = {}
+    Examples
+    --------
+    >>> from wai_core import load_rig
+    >>> cfg = load_rig("paper")
+    >>> plan = ViewPlan.build(cfg.camera_v.camera(), cfg.water.h0_mm, cfg.water.n_water,
+    ...                       cfg.object_z_mm, 8)
+    >>> plan.grid_shape, plan.image_shape
+    ((76, 101), (600, 800))
+    """
+
+    camera: PinholeCamera = field(repr=False)
+    h0_mm: float
+    n_water: float
+    z_object_mm: float
+    step_px: int
+    grid_shape: tuple[int, int]
+    node_px: Array = field(repr=False)
+    node_index: NDArray[np.intp] = field(repr=False)
+    targets: Array = field(repr=False)
+    node_q0: Array = field(repr=False)
+    truth_status: NDArray[np.int8] = field(repr=False)
+    image_shape: tuple[int, int]
+    pixel_cells: tuple[
+        NDArray[np.intp], NDArray[np.float32], NDArray[np.intp], NDArray[np.float32]
+    ] = field(repr=False)
+    cell_area: NDArray[np.float64] = field(repr=False)
+
+    @classmethod
+    def build(
+        cls,
+        camera: PinholeCamera,
+        h0_mm: float,
+        n_water: float,
+        z_object_mm: float,
+        step_px: int = 8,
+    ) -> ViewPlan:
+        """Trace the truth view of ``camera`` through flat water at the coarse nodes.
+
+        Parameters
+        ----------
+        camera : PinholeCamera
+            Camera v.
+        h0_mm, n_water, z_object_mm : float
+            Mean water level (mm), refractive index, object-plane height (mm).
+        step_px : int
+            Spacing of the coarse warp grid, pixels (``warp_step_px`` of :func:`restore_view`).
+
+        Returns
+        -------
+        ViewPlan
+        """
+        step = _check_step(step_px, "ViewPlan.build")
+        _check_system(h0_mm, n_water, z_object_mm)
+        w, h = camera.width_px, camera.height_px
+        # Nodes every `step` pixels from 0 up to (or just past) the last pixel: every pixel then
+        # lies in a cell of four nodes and bilinear interpolation never extrapolates.
+        ncol = -(-(w - 1) // step) + 1
+        nrow = -(-(h - 1) // step) + 1
+        cols, rows = np.meshgrid(np.arange(ncol) * float(step), np.arange(nrow) * float(step))
+        truth = trace_to_object(camera, None, h0_mm, n_water, z_object_mm, cols, rows)
+        ok = truth.ok.ravel()
+        targets = truth.object_mm.reshape(-1, 3)[ok]
+        q0 = truth.surface_mm.reshape(-1, 3)[ok, :2]
+        return cls(
+            camera,
+            float(h0_mm),
+            float(n_water),
+            float(z_object_mm),
+            step,
+            (nrow, ncol),
+            np.column_stack([cols.ravel(), rows.ravel()])[ok],
+            np.flatnonzero(ok),
+            targets,
+            q0,
+            truth.status,
+            (h, w),
+            _pixel_cells(w, ncol, step) + _pixel_cells(h, nrow, step),
+            np.outer(_cell_sizes(h, nrow, step), _cell_sizes(w, ncol, step)),
+        )
+
+    def check_fits(
+        self, camera: PinholeCamera, h0_mm: float, n_water: float, z_object_mm: float,
+        step_px: int, caller: str = "restore_view",
+    ) -> None:
+        """Raise :class:`~wai_core.errors.WaiInputError` unless the plan was built for this
+        camera (size, optics and pose), water and step."""
+        if _plan_key(camera, h0_mm, n_water, z_object_mm, step_px) != _plan_key(
+            self.camera, self.h0_mm, self.n_water, self.z_object_mm, self.step_px
+        ):
+            raise WaiInputError(
+                f"{caller}: plan was built for camera {self.camera.width_px}x"
+                f"{self.camera.height_px}, step {self.step_px} px and other water or pose than "
+                f"given (camera {camera.width_px}x{camera.height_px}, step {step_px} px)"
+            )
 
 
 def _plan_key(camera: PinholeCamera, h0: float, n: float, z: float, step: int) -> tuple:
+    """What a :class:`ViewPlan` depends on, comparable by value."""
     pose = camera.pose
     return (
         camera.width_px,
@@ -121,28 +239,11 @@ def _plan_key(camera: PinholeCamera, h0: float, n: float, z: float, step: int) -
     )
 
 
-def _make_plan(camera: PinholeCamera, h0: float, n: float, z: float, step: int) -> _Plan:
-    w, h = camera.width_px, camera.height_px
-    # Nodes every `step` pixels from 0 up to (or just past) the last pixel: every pixel then lies
-    # in a cell of four nodes and bilinear interpolation never extrapolates.
-    ncol = -(-(w - 1) // step) + 1
-    nrow = -(-(h - 1) // step) + 1
-    cols, rows = np.meshgrid(np.arange(ncol) * float(step), np.arange(nrow) * float(step))
-    truth = trace_to_object(camera, None, h0, n, z, cols, rows)
-    ok = truth.ok.ravel()
-    targets = truth.object_mm.reshape(-1, 3)[ok]
-    q0 = truth.surface_mm.reshape(-1, 3)[ok, :2]
-    return _Plan(
-        (nrow, ncol),
-        np.column_stack([cols.ravel(), rows.ravel()])[ok],
-        np.flatnonzero(ok),
-        targets,
-        q0,
-        truth.status,
-        (h, w),
-        _pixel_cells(w, ncol, step) + _pixel_cells(h, nrow, step),
-        np.outer(_cell_sizes(h, nrow, step), _cell_sizes(w, ncol, step)),
-    )
+def _check_step(step_px: int, caller: str) -> int:
+    """``step_px`` as an int after checking that it is a positive integer."""
+    if isinstance(step_px, bool) or int(step_px) != step_px or step_px < 1:
+        raise WaiInputError(f"{caller}: warp_step_px must be a positive integer, got {step_px!r}")
+    return int(step_px)
 
 
 def _pixel_cells(
@@ -160,15 +261,6 @@ def _cell_sizes(n_px: int, n_nodes: int, step: int) -> NDArray[np.float64]:
     sizes = np.full(n_nodes - 1, float(step))
     sizes[-1] = n_px - step * (n_nodes - 2)
     return sizes
-
-
-def _plan(camera: PinholeCamera, h0: float, n: float, z: float, step: int) -> _Plan:
-    key = _plan_key(camera, h0, n, z, step)
-    if key not in _PLANS:
-        if len(_PLANS) >= 4:
-            _PLANS.clear()
-        _PLANS[key] = _make_plan(camera, h0, n, z, step)
-    return _PLANS[key]
 
 
 def _check_image(distorted: NDArray, camera: PinholeCamera) -> NDArray:
@@ -216,7 +308,7 @@ def _cell_status(node_status: NDArray[np.int8]) -> NDArray[np.int8]:
 
 
 def _node_warp(
-    plan: _Plan, px: Array, status: NDArray[np.int8]
+    plan: ViewPlan, px: Array, status: NDArray[np.int8]
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.int8]]:
     """Displacement ``u - p`` in columns and in rows (rows, cols) px at the coarse nodes (0 where
     unsolved) and the status of every node (the truth view's where it sees no object)."""
@@ -230,7 +322,7 @@ def _node_warp(
 
 
 def _pixel_warp(
-    plan: _Plan,
+    plan: ViewPlan,
     img: NDArray,
     disp_x: NDArray[np.float32],
     disp_y: NDArray[np.float32],
@@ -279,7 +371,7 @@ def _pixel_warp(
     return out, map_x, map_y, valid, _counts(cell, plan, int(n_valid))
 
 
-def _counts(cell: NDArray[np.int8], plan: _Plan, n_valid: int) -> dict[str, int]:
+def _counts(cell: NDArray[np.int8], plan: ViewPlan, n_valid: int) -> dict[str, int]:
     """Restored pixels (``ok``: the ``n_valid`` valid ones) and the others by cause: the
     coarse cells' statuses weighed by their pixel areas, solved cells' pixels sampling
     outside the image counted ``out_of_view``."""
@@ -299,6 +391,9 @@ def restore_view(
     z_object_mm: float,
     warp_step_px: int = 8,
     gain: float = 1.0,
+    *,
+    plan: ViewPlan | None = None,
+    patches: SplinePatches | None = None,
 ) -> Restoration:
     """Undo the refraction of ``surface_est``: resample the distorted view into the flat-water view.
 
@@ -328,36 +423,46 @@ def restore_view(
         The restored image is the sampled one divided by it (a camera's gain, e.g.
         :attr:`~restoration.calibration.RigCalibration.view_gain`): sampling is linear, so
         this is ``distorted / gain`` restored, to rounding, without a divided copy of it.
+    plan : ViewPlan, optional
+        The truth view, built by :meth:`ViewPlan.build` for this camera, water and
+        ``warp_step_px`` (else :class:`~wai_core.errors.WaiInputError`); built for this call
+        when omitted. The result does not depend on whether it is passed.
+    patches : SplinePatches, optional
+        The spline table of ``surface_est`` (that very object, else
+        :class:`~wai_core.errors.WaiInputError`), e.g. shared with
+        :func:`restoration.consistency.spot_consistency`; built for this call when omitted.
 
     Returns
     -------
     Restoration
     """
-    t_start = time.perf_counter()
-    img = _check_image(distorted, camera)
-    if isinstance(warp_step_px, bool) or int(warp_step_px) != warp_step_px or warp_step_px < 1:
-        raise WaiInputError(
-            f"restore_view: warp_step_px must be a positive integer, got {warp_step_px!r}"
-        )
-    step = int(warp_step_px)
-    if not (np.isfinite(gain) and gain > 0):
-        raise WaiInputError(f"restore_view: gain must be finite and positive, got {gain!r}")
-    _check_system(h0_mm, n_water, z_object_mm)
-    t = {"plan": time.perf_counter()}
-    plan = _plan(camera, h0_mm, n_water, z_object_mm, step)
-    t["surface"] = time.perf_counter()
-    model = _surface_model(surface_est, h0_mm)
-    optics = _Optics(camera.pose.center_lab_mm, float(n_water), float(z_object_mm))
-    t["solve"] = time.perf_counter()
-    px, st, _, _ = _newton(
-        camera, model, optics, plan.targets[:, :2], plan.node_q0, _WARP_TOL_PX, _WARP_ITER
-    )
-    t["upsample"] = time.perf_counter()
-    disp_x, disp_y, node_status = _node_warp(plan, px, st)
-    t["remap"] = time.perf_counter()
-    out, map_x, map_y, valid, counts = _pixel_warp(plan, img, disp_x, disp_y, node_status, gain)
-    t["end"] = time.perf_counter()
-    names = list(t)
-    timings = {a: 1e3 * (t[b] - t[a]) for a, b in zip(names[:-1], names[1:], strict=True)}
-    timings["total"] = 1e3 * (t["end"] - t_start)
-    return Restoration(out, valid, counts, timings, step, map_x, map_y)
+    timings = Timings()
+    with timings("total"):
+        img = _check_image(distorted, camera)
+        step = _check_step(warp_step_px, "restore_view")
+        if not (np.isfinite(gain) and gain > 0):
+            raise WaiInputError(f"restore_view: gain must be finite and positive, got {gain!r}")
+        _check_system(h0_mm, n_water, z_object_mm)
+        with timings("plan"):
+            if plan is None:
+                plan = ViewPlan.build(camera, h0_mm, n_water, z_object_mm, step)
+            elif not isinstance(plan, ViewPlan):
+                raise WaiInputError(f"restore_view: plan must be a ViewPlan, got {type(plan)}")
+            else:
+                plan.check_fits(camera, h0_mm, n_water, z_object_mm, step)
+        with timings("surface"):
+            if patches is not None:
+                check_patches(patches, surface_est, "restore_view")
+            model = _surface_model(surface_est, h0_mm, patches)
+            optics = _Optics(camera.pose.center_lab_mm, float(n_water), float(z_object_mm))
+        with timings("solve"):
+            px, st, _, _ = _newton(
+                camera, model, optics, plan.targets[:, :2], plan.node_q0, _WARP_TOL_PX, _WARP_ITER
+            )
+        with timings("upsample"):
+            disp_x, disp_y, node_status = _node_warp(plan, px, st)
+        with timings("remap"):
+            out, map_x, map_y, valid, counts = _pixel_warp(
+                plan, img, disp_x, disp_y, node_status, gain
+            )
+    return Restoration(out, valid, counts, timings.to_dict(), step, map_x, map_y)

@@ -25,7 +25,7 @@ def _swell(cfg, amplitude_mm=2.0, offset_mm=0.0, wavelength_mm=160.0):
     return Heightfield(x, y, z)
 
 
-def _check(cfg, truth, surface):
+def _check(cfg, truth, surface, patches=None):
     ij = np.array([[i, j] for i in range(-12, 13) for j in range(-12, 13)])
     panel = panel_positions(cfg, ij)
     spots = spots_through(cfg, truth, panel)
@@ -35,7 +35,7 @@ def _check(cfg, truth, surface):
     hits, _ = truth.intersect(np.broadcast_to(origin, dirs.shape),
                               dirs / np.linalg.norm(dirs, axis=1, keepdims=True))
     return spot_consistency(surface, hits, origin, dirs, spots[keep], cfg.camera_s.camera(),
-                            cfg.diffuser.z_mm, SPACING_PX)
+                            cfg.diffuser.z_mm, SPACING_PX, patches=patches)
 
 
 def test_the_true_surface_reproduces_its_spots(paper_cfg):
@@ -67,10 +67,10 @@ def test_the_confidence_map_follows_the_residuals(paper_cfg):
 
 def _numpy_prediction(surface, origin, dirs, start, camera_s, z_h_mm, steps=3):
     """The forward prediction by NumPy steps (the oracle of the compiled kernel)."""
-    from restoration.reverse_trace import _SplinePatches
+    from restoration.reverse_trace import SplinePatches
     from wai_core.geometry import intersect_plane_z, reflect
 
-    patches = _SplinePatches(surface)
+    patches = SplinePatches(surface)
     d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     t = (start[:, 2] - origin[2]) / d[:, 2]
     for _ in range(steps):
@@ -108,11 +108,16 @@ def test_compiled_prediction_is_the_numpy_steps(paper_cfg):
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
 
 
-def test_the_view_and_the_check_share_one_spline_table():
-    from restoration.reverse_trace._surface import _surface_model, spline_patches
+def test_a_passed_spline_table_gives_the_same_check(paper_cfg):
+    """The frame's one :class:`SplinePatches` (shared with its view) checks exactly what the
+    check builds for itself; a table of another surface object is refused."""
+    from restoration.reverse_trace import SplinePatches
+    from wai_core.errors import WaiInputError
 
-    x, y = np.linspace(0.0, 100.0, 21), np.linspace(0.0, 80.0, 17)
-    surface = Heightfield(x, y, np.add.outer(0.01 * y, 0.02 * x))
-    patches = spline_patches(surface)
-    assert _surface_model(surface, 0.0) is patches
-    assert spline_patches(Heightfield(x, y, surface.z)) is not patches  # another surface
+    truth, surface = _swell(paper_cfg), _swell(paper_cfg, 1.4)
+    own = _check(paper_cfg, truth, surface)
+    shared = _check(paper_cfg, truth, surface, patches=SplinePatches(surface))
+    np.testing.assert_array_equal(shared.residual_px, own.residual_px)
+    assert not own.consistent
+    with pytest.raises(WaiInputError, match="another surface"):
+        _check(paper_cfg, truth, surface, patches=SplinePatches(truth))

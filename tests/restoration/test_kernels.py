@@ -19,14 +19,14 @@ from restoration.features.detect import (
     _refine_centres,
     detect_spots,
 )
-from restoration.integrate import integrate_trapezoid
+from restoration.integrate.lattice import integrate_trapezoid
 from restoration.normals import (
     points_on_rays,
     reflection_normals,
     reflection_slopes,
     slopes_from_normals,
 )
-from restoration.reverse_trace import _SplinePatches
+from restoration.reverse_trace import SplinePatches
 from restoration.reverse_trace._kernels import finish_rows, spline_jet, valid_box, warp_rows
 from restoration.reverse_trace._surface import _cell_polynomials
 from restoration.reverse_trace.warp import _pixel_cells, restore_view
@@ -84,7 +84,7 @@ def test_spline_jet_matches_the_spline_patches_exactly():
     xx, yy = np.meshgrid(x, y)
     z = 150.0 + 2.0 * np.sin(xx / 23.0) * np.cos(yy / 17.0)
     z[5:9, 10:13] = np.nan
-    model = _SplinePatches(Heightfield(x, y, z))
+    model = SplinePatches(Heightfield(x, y, z))
     rng = np.random.default_rng(4)
     px = np.r_[rng.uniform(-5.0, 305.0, 2000), x[[0, -1, 5]]]
     py = np.r_[rng.uniform(-105.0, 125.0, 2000), y[[0, -1, 3]]]

@@ -16,7 +16,8 @@ from skimage.metrics import structural_similarity
 
 from restoration.reverse_trace import (
     RayStatus,
-    _SplinePatches,
+    SplinePatches,
+    ViewPlan,
     find_pixels,
     restore_view,
     solve_pixels,
@@ -24,7 +25,7 @@ from restoration.reverse_trace import (
 )
 from wai_core.config import load_config
 from wai_core.errors import WaiInputError
-from wai_core.geometry import PinholeCamera
+from wai_core.geometry import PinholeCamera, Pose
 from wai_core.heightfield import Heightfield
 
 SCENE = Path(__file__).resolve().parents[2] / "scenes" / "paper.toml"
@@ -131,7 +132,7 @@ def test_spline_patches_match_the_heightfield():
     rng = np.random.default_rng(4)
     px = np.r_[rng.uniform(-5.0, 305.0, 5000), x[[0, -1, 5]], 100.0]
     py = np.r_[rng.uniform(-105.0, 125.0, 5000), y[[0, -1, 3]], y[-1]]
-    h, hx, hy, hxx, hxy, hyy = _SplinePatches(hf).jet(px, py)
+    h, hx, hy, hxx, hxy, hyy = SplinePatches(hf).jet(px, py)
     known = hf.contains(px, py)
     np.testing.assert_array_equal(np.isfinite(h), known)
     gx, gy = hf.gradient(px, py)
@@ -294,3 +295,39 @@ def test_restore_view_rejects_bad_input(small_cam, optics):
         restore_view(img, small_cam, None, *optics, warp_step_px=0)
     with pytest.raises(WaiInputError):
         restore_view(img, small_cam, None, optics[0], optics[1], optics[0] - 1.0)
+
+
+def test_a_passed_plan_and_table_give_the_same_view(small_cam, optics):
+    """A rig's :class:`ViewPlan` and a frame's :class:`SplinePatches`, built once and passed,
+    restore exactly what restore_view builds for itself."""
+    wavy = _wavy(optics[0])
+    distorted, _ = _render(small_cam, wavy, optics)
+    own = restore_view(distorted, small_cam, wavy, *optics, warp_step_px=5, gain=1.5)
+    plan = ViewPlan.build(small_cam, *optics, 5)
+    patches = SplinePatches(wavy)
+    for _ in range(2):  # reused
+        got = restore_view(distorted, small_cam, wavy, *optics, warp_step_px=5, gain=1.5,
+                           plan=plan, patches=patches)
+        np.testing.assert_array_equal(got.image, own.image)
+        np.testing.assert_array_equal(got.map_px, own.map_px)
+        assert got.counts == own.counts
+
+
+def test_a_plan_or_table_of_something_else_is_refused(small_cam, optics):
+    img = np.zeros((150, 200))
+    wavy = _wavy(optics[0])
+    h0, n, z = optics
+    with pytest.raises(WaiInputError, match="plan"):  # another step
+        restore_view(img, small_cam, wavy, *optics, plan=ViewPlan.build(small_cam, *optics, 4))
+    with pytest.raises(WaiInputError, match="plan"):  # another water level
+        restore_view(img, small_cam, wavy, *optics, plan=ViewPlan.build(small_cam, h0 + 1, n, z))
+    pose = Pose(small_cam.pose.R, small_cam.pose.t_mm + np.array([1.0, 0.0, 0.0]))
+    moved = PinholeCamera(200, 150, small_cam.focal_mm, small_cam.pixel_pitch_mm, pose)
+    with pytest.raises(WaiInputError, match="plan"):  # another pose
+        restore_view(img, small_cam, wavy, *optics, plan=ViewPlan.build(moved, *optics))
+    with pytest.raises(WaiInputError, match="another surface"):  # an equal copy is not it
+        restore_view(img, small_cam, wavy, *optics,
+                     patches=SplinePatches(Heightfield(wavy.x, wavy.y, wavy.z)))
+    with pytest.raises(WaiInputError, match="warp_step_px"):
+        ViewPlan.build(small_cam, *optics, 0)
+
