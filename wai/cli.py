@@ -8,7 +8,9 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from wai_core.errors import WaiInputError
 
@@ -17,7 +19,24 @@ SCENE_HELP = "scene: a packaged name (paper, alterman) or a TOML file"
 
 
 class _Parser(argparse.ArgumentParser):
-    """A parser whose usage errors are bad input like any other: one line, exit code 2."""
+    """A parser whose usage errors are bad input like any other: one line, exit code 2.
+
+    ``default_subcommand``: the subcommand run when none is named (``wai bench`` is ``wai
+    bench all``, options included: ``wai bench --runs 3``).
+    """
+
+    def __init__(self, *args: Any, default_subcommand: str | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.default_subcommand = default_subcommand
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        args = sys.argv[1:] if args is None else list(args)
+        if self.default_subcommand and (not args or (
+                args[0].startswith("-") and args[0] not in ("-h", "--help"))):
+            args = [self.default_subcommand, *args]
+        return super().parse_known_args(args, namespace)
 
     def error(self, message: str) -> None:  # type: ignore[override]
         raise WaiInputError(f"{self.prog}: {message} (see '{self.prog} --help')")
@@ -80,14 +99,11 @@ def _cmd_restore(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from wai.bench import run_bench
+    from wai.bench import show
 
-    run_bench(
-        args.what, config=args.config, out=args.out, runs=args.runs, as_json=args.json,
-        variant=args.variant, render_dir=args.dir, seeds=args.seeds, wind=args.wind,
-        surface=args.surface, camera=args.camera, spp=args.spp, phi=args.phi,
-        workers=args.workers, frames=args.frames, sequence=args.sequence,
-    )
+    bench: _Bench = args.bench
+    result, printer, written = bench.run(args)
+    show(result, printer, as_json=args.json, written=written)
     return 0
 
 
@@ -249,46 +265,143 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_restore)
 
 
-def _add_bench(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="benchmarks that print figures", formatter_class=_Help)
-    p.add_argument(
-        "what",
-        nargs="?",
-        default="all",
-        choices=["all", "render", "restore", "accuracy", "video", "surfaces", "inputs"],
-        help="all (default): time every stage, write bench.json and bench.png to --out; "
-        "render/restore: wall time of one part, printed; "
-        "accuracy: scores over seeds with an error budget; "
-        "surfaces: analytic steep and sharp-crested surfaces; "
-        "inputs: wrong inputs (swapped patterns, a turned view, ...) and the status each gets; "
-        "video: latency and multi-process throughput over a rendered frame sequence",
-    )
-    p.add_argument("--config", default="paper", help=SCENE_HELP)
-    p.add_argument("--dir", type=Path, help="render folder to restore (default: render one)")
+_BenchRun = tuple[dict[str, Any], Callable[[dict[str, Any]], None], list[Path]]
+"""A benchmark's result, the function that prints it, and the files it wrote."""
+
+
+def _bench_all(args: argparse.Namespace) -> _BenchRun:
+    from wai.bench.report import bench_all, print_report, write_report
+
+    result = bench_all(args.config, args.runs, args.dir, args.variant)
+    return result, print_report, write_report(result, args.out)
+
+
+def _bench_render(args: argparse.Namespace) -> _BenchRun:
+    from wai.bench.render import bench_render, print_render
+
+    return bench_render(args.config, args.runs, args.variant), print_render, []
+
+
+def _bench_restore(args: argparse.Namespace) -> _BenchRun:
+    from wai.bench.restore import bench_restore, print_restore
+
+    return bench_restore(args.config, args.runs, args.dir, args.variant), print_restore, []
+
+
+def _bench_accuracy(args: argparse.Namespace) -> _BenchRun:
+    from wai.bench.accuracy import print_accuracy, run_accuracy
+
+    result = run_accuracy(args.config, args.out, args.seeds, args.wind, args.surface,
+                          args.camera, args.spp)
+    return result, print_accuracy, []
+
+
+def _bench_surfaces(args: argparse.Namespace) -> _BenchRun:
+    from wai.bench.surfaces import bench_surfaces, print_surfaces
+
+    return bench_surfaces(args.config, args.out, args.phi), print_surfaces, []
+
+
+def _bench_inputs(args: argparse.Namespace) -> _BenchRun:
+    from wai.bench.inputs import bench_inputs, print_inputs
+
+    return bench_inputs(args.config, args.out), print_inputs, []
+
+
+def _bench_video(args: argparse.Namespace) -> _BenchRun:
+    from wai.bench.video import bench_video, print_video
+
+    result = bench_video(args.config, args.out, args.runs, args.workers, args.frames,
+                         args.sequence)
+    return result, print_video, []
+
+
+def _timed_options(p: argparse.ArgumentParser, *, restores: bool = False,
+                   renders: bool = True) -> None:
+    """``--runs`` of the wall-time benchmarks; ``--variant`` of those that render, ``--dir`` of
+    those that restore a render folder."""
+    if restores:
+        p.add_argument("--dir", type=Path,
+                       help="render folder to restore (default: renders/bench, rendered there "
+                       "unless it holds one)")
     p.add_argument("--runs", type=int, default=5, help="measured runs (after a warm-up)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--variant", default="auto", help="Mitsuba variant (auto: GPU, else LLVM)")
-    p.add_argument("--seeds", type=int, default=10, help="accuracy: seeds 0..K-1")
-    p.add_argument(
-        "--out", type=Path, help="all: renders/bench (default); accuracy: renders/bench_accuracy; "
-        "surfaces, inputs, video: renders/bench_NAME"
-    )
+    if renders:
+        p.add_argument("--variant", default="auto",
+                       help="Mitsuba variant (auto: GPU, else LLVM)")
+
+
+def _accuracy_options(p: argparse.ArgumentParser) -> None:
     scenes = " (default: the scene's)"
-    p.add_argument("--wind", type=float, help="accuracy: wind speed U, m/s" + scenes)
-    p.add_argument("--surface", choices=["dielectric", "mirror"],
-                   help="accuracy: water surface" + scenes)
-    p.add_argument("--camera",
-                   help="accuracy: both cameras' pixels, WIDTHxHEIGHT (same sensors)" + scenes)
-    p.add_argument("--spp", type=int,
-                   help="accuracy: samples per pixel of both renders" + scenes)
-    p.add_argument(
-        "--phi", type=float, default=0.8,
-        help="surfaces: scale each surface to at most this fraction of eq. 35's slope bound",
+    p.add_argument("--seeds", type=int, default=10, help="seeds 0..K-1")
+    p.add_argument("--wind", type=float, help="wind speed U, m/s" + scenes)
+    p.add_argument("--surface", choices=["dielectric", "mirror"], help="water surface" + scenes)
+    p.add_argument("--camera", help="both cameras' pixels, WIDTHxHEIGHT (same sensors)" + scenes)
+    p.add_argument("--spp", type=int, help="samples per pixel of both renders" + scenes)
+
+
+def _surfaces_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--phi", type=float, default=0.8,
+                   help="scale each surface to at most this fraction of eq. 35's slope bound")
+
+
+def _video_options(p: argparse.ArgumentParser) -> None:
+    _timed_options(p, renders=False)
+    p.add_argument("--workers", type=int, default=2, help="worker processes (and 1)")
+    p.add_argument("--frames", type=int, default=60, help="frames restored per count")
+    p.add_argument("--sequence", type=int, default=6, help="distinct frames rendered")
+
+
+@dataclass(frozen=True)
+class _Bench:
+    """One ``wai bench NAME``: its help line, its own options (beside ``--config``, ``--json``
+    and, where it writes files, ``--out``) and how it runs."""
+
+    summary: str
+    options: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], _BenchRun]
+
+
+_BENCHES = {
+    "all": _Bench("time every stage, rendering and restoration; write bench.json and bench.png "
+                  "to --out ('wai bench' alone runs it)",
+                  lambda p: _timed_options(p, restores=True), _bench_all),
+    "render": _Bench("wall time per frame of each scene, printed", _timed_options,
+                     _bench_render),
+    "restore": _Bench("per-stage and end-to-end time of the restoration of one frame, printed",
+                      lambda p: _timed_options(p, restores=True), _bench_restore),
+    "accuracy": _Bench("scores over seeds with an error budget", _accuracy_options,
+                       _bench_accuracy),
+    "surfaces": _Bench("analytic steep and sharp-crested surfaces", _surfaces_options,
+                       _bench_surfaces),
+    "inputs": _Bench("wrong inputs (swapped patterns, a turned view, ...) and the status each "
+                     "gets", lambda p: None, _bench_inputs),
+    "video": _Bench("latency and multi-process throughput over a rendered frame sequence",
+                    _video_options, _bench_video),
+}
+"""``wai bench NAME``, in the order of ``wai bench --help``."""
+
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    """``wai bench NAME``: one subcommand per benchmark, each with only its own options;
+    ``wai bench`` alone is ``wai bench all``."""
+    from wai.bench import DEFAULT_OUT
+
+    p = sub.add_parser(
+        "bench", help="benchmarks that print figures", formatter_class=_Help,
+        default_subcommand="all",
+        description="Benchmarks that print figures; 'wai bench NAME --help' lists NAME's "
+        "options. Without NAME: all (its options too: 'wai bench --runs 3').",
     )
-    p.add_argument("--workers", type=int, default=2, help="video: worker processes (and 1)")
-    p.add_argument("--frames", type=int, default=60, help="video: frames restored per count")
-    p.add_argument("--sequence", type=int, default=6, help="video: distinct frames rendered")
-    p.set_defaults(func=_cmd_bench)
+    names = p.add_subparsers(dest="what", required=True, metavar="NAME")
+    for name, bench in _BENCHES.items():
+        q = names.add_parser(name, help=bench.summary, description=bench.summary.capitalize()
+                             + ".", formatter_class=_Help)
+        q.add_argument("--config", default="paper", help=SCENE_HELP)
+        q.add_argument("--json", action="store_true", help="print one JSON object")
+        if name in DEFAULT_OUT:
+            q.add_argument("--out", type=Path, default=DEFAULT_OUT[name], help="output folder")
+        bench.options(q)
+        q.set_defaults(func=_cmd_bench, bench=bench)
 
 
 def build_parser() -> argparse.ArgumentParser:

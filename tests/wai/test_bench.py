@@ -3,6 +3,8 @@
 
 import json
 import re
+import shlex
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -10,7 +12,7 @@ import pytest
 from mitsuba_wai.render import render_folder
 from tests.conftest import PAPER_TOML
 from wai.bench.restore import stage_times
-from wai.cli import main
+from wai.cli import build_parser, main
 
 STAGES = (
     "render_s",
@@ -94,6 +96,38 @@ def test_restore_json_keeps_its_keys(frame_dir, capsys):
     assert res["end_to_end_ms"] > 0
     assert {"features", "surface", "reverse_trace", "end_to_end"} <= set(res["stages_ms"])
     assert all(isinstance(v, float) for v in res["stages_ms"].values())
+
+
+# The invocations README.md and docs/results.md give, one per option set.
+DOCUMENTED = [
+    "bench", "bench --runs 5 --out renders/bench", "bench render --runs 3 --json",
+    "bench restore --runs 10 --json", "bench accuracy --seeds 10",
+    "bench accuracy --seeds 10 --config coded.toml --out renders/bench_acc_coded",
+    "bench accuracy --seeds 10 --camera 1280x960", "bench surfaces --phi 0.8", "bench inputs",
+    "bench video --workers 2 --frames 60",
+]
+
+
+@pytest.mark.parametrize("command", DOCUMENTED)
+def test_documented_invocations_parse(command):
+    argv = shlex.split(command)
+    named = argv[1:2] if len(argv) > 1 and not argv[1].startswith("-") else ["all"]
+    assert build_parser().parse_args(argv).what == named[0]
+
+
+def test_bench_alone_is_all_and_takes_its_options():
+    args = build_parser().parse_args(["bench", "--runs", "3", "--dir", "d", "--json"])
+    assert (args.what, args.runs, args.dir, args.json) == ("all", 3, Path("d"), True)
+    assert args.out == Path("renders/bench")
+
+
+@pytest.mark.parametrize("argv", [
+    ["accuracy", "--runs", "3"], ["surfaces", "--seeds", "2"], ["render", "--out", "x"],
+    ["inputs", "--phi", "0.5"], ["video", "--variant", "auto"], ["restore", "--workers", "2"],
+])
+def test_an_option_of_another_bench_is_bad_input(argv, capsys):
+    assert main(["bench", *argv]) == 2
+    assert argv[1] in capsys.readouterr().err
 
 
 def test_zero_runs_is_bad_input(capsys):

@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from wai.bench.timing import (
+    check_runs,
     machine,
     peak_rss_mib,
     reference_workload,
@@ -63,6 +64,7 @@ def bench_render(config: str | Path, runs: int, variant: str = "auto") -> dict[s
     from mitsuba_wai.variant import select_variant
     from wai_core import load_system
 
+    check_runs(runs)
     variant = select_variant(variant)
     cfg = load_system(config)
     surface = wave_surface(cfg)

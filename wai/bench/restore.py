@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from wai.bench.timing import (
+    check_runs,
     machine,
     peak_rss_mib,
     print_stage_table,
@@ -237,6 +238,7 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
     """
     from restoration import Calibration, StructuredLight
 
+    check_runs(runs)
     render_dir = _render_dir(render_dir, config, variant)
     cal = Calibration.from_folder(render_dir)
     images = cal.load_images(render_dir)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "check_runs",
     "machine",
     "peak_rss_mib",
     "print_stage_table",
@@ -108,6 +109,20 @@ def summarize(samples_s: list[float]) -> dict[str, float]:
         "q3_ms": float(q3),
         "runs": int(ms.size),
     }
+
+
+def check_runs(runs: int) -> None:
+    """Refuse fewer than one measured run (``--runs``), before any work.
+
+    Raises
+    ------
+    WaiInputError
+        ``runs`` below 1.
+    """
+    if runs < 1:
+        from wai_core.errors import WaiInputError
+
+        raise WaiInputError(f"--runs must be at least 1, got {runs}")
 
 
 def time_runs(fn: Callable[[int], Any], runs: int) -> tuple[float, list[float]]:

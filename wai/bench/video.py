@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from wai.bench.timing import machine, reference_workload, summarize
+from wai.bench.timing import check_runs, machine, reference_workload, summarize
 from wai.sweep import THREAD_VARIABLES, limit_native_threads, scoped_environ
 from wai_core.errors import WaiInputError
 
@@ -106,6 +106,7 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
     sequence : int
         Distinct frames rendered.
     """
+    check_runs(runs)
     for name, value in (("workers", workers), ("frames", frames), ("sequence", sequence)):
         if value < 1:
             raise WaiInputError(f"--{name} must be at least 1, got {value}")
