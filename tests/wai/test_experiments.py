@@ -2,6 +2,7 @@
 report hold (the meridional dψ/dθ = 2, restoration beats distortion)."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -72,3 +73,28 @@ def test_command_line_hands_typed_arguments_to_each_experiment(tmp_path, monkeyp
     assert calls["budget"] == (("paper", out, 3, True, SweepOptions(workers=0, progress=False)), {})
     assert main(["experiment", "validate", "--config", "x.toml"]) == 0
     assert calls["validate"] == ("x.toml", Path("renders/validate"), False)
+
+
+def test_run_experiment_runs_the_registrys_runner_with_its_seeds(monkeypatch, tmp_path):
+    import dataclasses
+
+    from wai import experiments
+    from wai_core.errors import WaiInputError
+
+    calls = []
+
+    def recorder(name):
+        return lambda *args: calls.append((name, *args))
+
+    for name, exp in experiments.EXPERIMENTS.items():
+        monkeypatch.setitem(experiments.EXPERIMENTS, name,
+                            dataclasses.replace(exp, run=recorder(name)))
+    for name in experiments.EXPERIMENTS:
+        experiments.run_experiment(name, out=tmp_path / name)
+    assert [c[0] for c in calls] == list(experiments.EXPERIMENTS)
+    for name, _config, out, seeds, _quick, _sweep in calls:
+        assert out == tmp_path / name and seeds == experiments.EXPERIMENTS[name].seeds
+    experiments.run_experiment("paper", seeds=4)
+    assert calls[-1][2:4] == (Path("renders/paper"), 4)
+    with pytest.raises(WaiInputError, match="no experiment 'nope'"):
+        experiments.run_experiment("nope")

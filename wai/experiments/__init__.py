@@ -1,12 +1,14 @@
-"""Dispatch of ``wai experiment NAME``, and what each experiment offers on its command line.
+"""``wai experiment NAME``: the one registry of experiments, and how each is run.
 
-:data:`EXPERIMENTS` holds every experiment's help (what it does, the files it writes, how long
-it takes) and which of the shared options apply to it; ``wai experiment NAME --help`` shows
-only those. It is plain data, so building the command line imports no experiment.
+:data:`EXPERIMENTS` holds every experiment: its help (what it does, the files it writes, how
+long it takes), which of the shared options apply to it, and its runner. The command line's
+subcommands and help, and :func:`run_experiment`, read it. Each runner imports its experiment
+when called, so building the command line imports none.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -14,19 +16,81 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from wai.sweep import SweepOptions
 
+Runner = Callable[[str | Path, Path, int | None, bool, "SweepOptions"], None]
+"""Runs an experiment: ``(config, out, seeds, quick, sweep)`` (``seeds`` None where the
+experiment has none)."""
+
+
+def _run_validate(config: str | Path, out: Path, seeds: int | None, quick: bool,
+                  sweep: SweepOptions) -> None:
+    from wai.experiments.validate import print_validate, run_validate
+
+    print_validate(run_validate(config, out, quick))
+
+
+def _run_paper(config: str | Path, out: Path, seeds: int | None, quick: bool,
+               sweep: SweepOptions) -> None:
+    from wai.experiments.paper import run_paper
+
+    run_paper(config, out, seeds, quick)
+
+
+def _run_alterman(config: str | Path, out: Path, seeds: int | None, quick: bool,
+                  sweep: SweepOptions) -> None:
+    from wai.experiments.alterman import run_alterman
+
+    run_alterman(config, out, seeds, quick)
+
+
+def _run_tradeoffs(config: str | Path, out: Path, seeds: int | None, quick: bool,
+                   sweep: SweepOptions) -> None:
+    from wai.experiments.tradeoffs import run_tradeoffs
+
+    run_tradeoffs(config, out, seeds, quick, sweep)
+
+
+def _run_stability(config: str | Path, out: Path, seeds: int | None, quick: bool,
+                   sweep: SweepOptions) -> None:
+    from wai.experiments.stability import run_stability
+
+    run_stability(config, out, seeds, quick, sweep)
+
+
+def _run_budget(config: str | Path, out: Path, seeds: int | None, quick: bool,
+                sweep: SweepOptions) -> None:
+    from wai.experiments.budget import run_budget
+
+    run_budget(config, out, seeds, quick, sweep)
+
+
+def _run_seawater(config: str | Path, out: Path, seeds: int | None, quick: bool,
+                  sweep: SweepOptions) -> None:
+    from wai.experiments.seawater import format_snr, seawater_snr
+    from wai_core.io import write_json
+
+    res = seawater_snr(config, seed=0, spp=4 if quick else None)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "seawater_snr.json", res)
+    print(format_snr(res))
+
 
 @dataclass(frozen=True)
 class Experiment:
-    """One ``wai experiment NAME``: its help and its options.
+    """One ``wai experiment NAME``: its help, its options and its runner.
 
     Attributes
     ----------
     summary : str
         One line, in ``wai experiment --help``.
     description : str
-        ``wai experiment NAME --help``: what it does, what it writes, how long it takes.
+        ``wai experiment NAME --help``: what it does and what it writes (:func:`describe` adds
+        :attr:`duration`).
     quick : str
         What ``--quick`` makes smaller.
+    duration : str
+        How long it takes on a 2-core machine, with and without ``--quick``.
+    run : Runner
+        Runs it (:func:`run_experiment` calls it).
     seeds : int or None
         The default of ``--seeds`` (seeds 0..K-1); None: the experiment has no ``--seeds``.
     sweep : bool
@@ -36,6 +100,8 @@ class Experiment:
     summary: str
     description: str
     quick: str
+    duration: str
+    run: Runner
     seeds: int | None = None
     sweep: bool = False
 
@@ -56,10 +122,12 @@ EXPERIMENTS: dict[str, Experiment] = {
             "view noise against samples per pixel for both "
             "[render].sampling choices.\n\n"
             "Writes renderer_vs_mitsuba.csv, agreement.csv, spp_sweep.csv, view_spp_sweep.csv, "
-            "spp_tradeoff.png and validate.json into --out, and prints the tables.\n\n"
-            "Takes (2 cores): {validate}."
+            "spp_tradeoff.png and validate.json into --out, and prints the tables."
         ),
         quick="2 wave cases, spp 2/8/32 and 1/4, one run each, the reference at 64 / 16 spp",
+        duration="about 2.5 min with --quick; roughly 20 min without (3 times the cases, spp "
+                  "up to 64 and a 256-spp reference, 3 runs each)",
+        run=_run_validate,
     ),
     "paper": Experiment(
         summary="the paper's figures and tables (Fig. 8-15, Table 2) from fresh runs",
@@ -70,10 +138,11 @@ EXPERIMENTS: dict[str, Experiment] = {
             "Writes report.md, report.html (figures inline), paper.json, fig8_deflection.png, "
             "fig10_surface.png, fig11_features.png, fig11_surfaces.png, fig11f_profile.png, "
             "fig12_error_map.png, fig15_views.png, fig15d_corners.png, sweep_amplitude.png and "
-            "one render folder per seed (seedNNN/, with restore/) into --out.\n\n"
-            "Takes (2 cores): {paper}."
+            "one render folder per seed (seedNNN/, with restore/) into --out."
         ),
         quick="2 seeds, 3 amplitude factors",
+        duration="about 35 s with --quick; roughly 2 min without (10 seeds, 8 amplitudes)",
+        run=_run_paper,
         seeds=10,
     ),
     "alterman": Experiment(
@@ -83,10 +152,11 @@ EXPERIMENTS: dict[str, Experiment] = {
             "anchors), then the sun sensor rendered through the same surface at each sun "
             "zenith angle and restored by Alterman's method, and one overcast frame.\n\n"
             "Writes report.md, results.csv (every number), fig13_error_maps.png, "
-            "fig14_rmse_vs_sun.png and the render folders (seedNNN/) into --out.\n\n"
-            "Takes (2 cores): {alterman}."
+            "fig14_rmse_vs_sun.png and the render folders (seedNNN/) into --out."
         ),
         quick="seed 0 only, sun at 15 and 60 deg",
+        duration="about 50 s with --quick; roughly 5 min without (3 seeds, 6 sun angles)",
+        run=_run_alterman,
         seeds=3,
     ),
     "tradeoffs": Experiment(
@@ -97,10 +167,12 @@ EXPERIMENTS: dict[str, Experiment] = {
             "the default, with min-max bars over seeds.\n\n"
             "Writes tradeoffs.csv (one row per frame; a rerun skips the rows it holds), "
             "tradeoffs.parquet, tradeoffs.json (the run record), tradeoffs.png, tradeoffs.md "
-            "and tradeoffs_series.json into --out, and prints the report.\n\n"
-            "Takes (2 cores): {tradeoffs}."
+            "and tradeoffs_series.json into --out, and prints the report."
         ),
         quick="3 spacings, 2 spp, 3 warp steps, one timed restoration per variant",
+        duration="about 85 s with --quick --workers 0; roughly 5 min without --quick (28 "
+                  "frames, spp up to 32, 3 timed restorations per variant)",
+        run=_run_tradeoffs,
         seeds=2,
         sweep=True,
     ),
@@ -114,10 +186,11 @@ EXPERIMENTS: dict[str, Experiment] = {
             "Writes stability.csv (one row per frame; a rerun skips the rows it holds), "
             "stability.parquet, stability.json (the run record), stability.png, coded.png, "
             "confidence.png, stability.md and stability_summary.json into --out, and prints "
-            "the report.\n\n"
-            "Takes (2 cores): {stability}."
+            "the report."
         ),
         quick="2-3 values per sweep, 2 sea states of the coded sweep",
+        duration="about 7 min with --quick; roughly 25 min without (144 frames against 44)",
+        run=_run_stability,
         seeds=2,
         sweep=True,
     ),
@@ -134,10 +207,12 @@ EXPERIMENTS: dict[str, Experiment] = {
             "truth-free status flags the frames an effect ruins.\n\n"
             "Writes budget.csv (one row per frame; a rerun skips the rows it holds), "
             "budget.parquet, budget.json (the run record), budget.png, budget.md and "
-            "budget_summary.json into --out, and prints the report.\n\n"
-            "Takes (2 cores): {budget}."
+            "budget_summary.json into --out, and prints the report."
         ),
         quick="one magnitude per effect (two for polarisation)",
+        duration="about 2 min with --quick --seeds 1; roughly 8 min without (36 magnitudes, "
+                  "3 seeds)",
+        run=_run_budget,
         seeds=3,
         sweep=True,
     ),
@@ -147,29 +222,13 @@ EXPERIMENTS: dict[str, Experiment] = {
             "The seed paper's blue-green argument in numbers: camera s's flat-water pattern "
             "in each colour, dimmed by 0, 1 and 5 m of sea water and read by one noisy "
             "sensor; the detected spots' SNR.\n\n"
-            "Writes seawater_snr.json into --out and prints the table.\n\n"
-            "Takes (2 cores): {seawater}."
+            "Writes seawater_snr.json into --out and prints the table."
         ),
         quick="4 samples per pixel (the packaged paper scene's own count)",
+        duration="about 15 s, with or without --quick on the paper scene (its own spp is 4)",
+        run=_run_seawater,
     ),
 }
-
-DURATIONS = {
-    "validate": "about 2.5 min with --quick; roughly 20 min without (3 times the cases, spp "
-                "up to 64 and a 256-spp reference, 3 runs each)",
-    "paper": "about 35 s with --quick; roughly 2 min without (10 seeds, 8 amplitudes)",
-    "alterman": "about 50 s with --quick; roughly 5 min without (3 seeds, 6 sun angles)",
-    "tradeoffs": "about 85 s with --quick --workers 0; roughly 5 min without --quick (28 "
-                 "frames, spp up to 32, 3 timed restorations per variant)",
-    "stability": "about 7 min with --quick; roughly 25 min without (144 frames against 44)",
-    "budget": "about 2 min with --quick --seeds 1; roughly 8 min without (36 magnitudes, "
-              "3 seeds)",
-    "seawater": "about 15 s, with or without --quick on the paper scene (its own spp is 4)",
-}
-"""How long each experiment takes on a 2-core machine (filled into its description)."""
-
-DEFAULT_SEEDS = {name: e.seeds for name, e in EXPERIMENTS.items() if e.seeds is not None}
-"""Seeds 0..K-1 when ``--seeds`` is not given (the sun sweep renders six sensors per seed)."""
 
 
 def describe(name: str, width: int = 79) -> str:
@@ -177,7 +236,8 @@ def describe(name: str, width: int = 79) -> str:
     wrapped to ``width`` columns."""
     import textwrap
 
-    text = EXPERIMENTS[name].description.format(**DURATIONS)
+    exp = EXPERIMENTS[name]
+    text = f"{exp.description}\n\nTakes (2 cores): {exp.duration}."
     return "\n\n".join(textwrap.fill(par, width) for par in text.split("\n\n"))
 
 
@@ -195,47 +255,24 @@ def run_experiment(name: str, config: str | Path = "paper", out: str | Path | No
     out : str, Path or None
         The output folder; None: ``renders/<name>``.
     seeds : int or None
-        Seeds 0..seeds-1, for the experiments that have seeds; None: :data:`DEFAULT_SEEDS`.
+        Seeds 0..seeds-1, for the experiments that have seeds; None: its
+        :attr:`Experiment.seeds`.
     quick : bool
         The small version (:attr:`Experiment.quick`).
     sweep : SweepOptions or None
         Where and how a sweep's points run; None: the defaults of :class:`SweepOptions`.
+
+    Raises
+    ------
+    WaiInputError
+        ``name`` is no experiment.
     """
     from wai.sweep import SweepOptions
+    from wai_core.errors import WaiInputError
 
+    if name not in EXPERIMENTS:
+        raise WaiInputError(f"no experiment {name!r}: one of {', '.join(EXPERIMENTS)}")
+    exp = EXPERIMENTS[name]
     out = Path("renders") / name if out is None else Path(out)
-    if seeds is None:
-        seeds = DEFAULT_SEEDS.get(name)
-    sweep = SweepOptions() if sweep is None else sweep
-    if name == "validate":
-        from wai.experiments.validate import print_validate, run_validate
-
-        print_validate(run_validate(config, out, quick))
-    elif name == "paper":
-        from wai.experiments.paper import run_paper
-
-        run_paper(config, out, seeds, quick)
-    elif name == "alterman":
-        from wai.experiments.alterman import run_alterman
-
-        run_alterman(config, out, seeds, quick)
-    elif name == "tradeoffs":
-        from wai.experiments.tradeoffs import run_tradeoffs
-
-        run_tradeoffs(config, out, seeds, quick, sweep)
-    elif name == "stability":
-        from wai.experiments.stability import run_stability
-
-        run_stability(config, out, seeds, quick, sweep)
-    elif name == "budget":
-        from wai.experiments.budget import run_budget
-
-        run_budget(config, out, seeds, quick, sweep)
-    elif name == "seawater":
-        from wai.experiments.seawater import format_snr, seawater_snr
-        from wai_core.io import write_json
-
-        res = seawater_snr(config, seed=0, spp=4 if quick else None)
-        out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "seawater_snr.json", res)
-        print(format_snr(res))
+    exp.run(config, out, exp.seeds if seeds is None else seeds, quick,
+            SweepOptions() if sweep is None else sweep)
