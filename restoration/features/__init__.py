@@ -6,11 +6,13 @@ The paper (Jian et al. 2022, section 3.2.1) needs, for every projected dot ``k``
 correspondence. The stage's modules:
 
 - :mod:`~restoration.features.detect`: detect the spots with sub-pixel centres
-  (:func:`detect_spots`).
+  (:func:`detect_spots`), at pixel scales set by the calibrated spot size
+  (:class:`SpotScales`, built once per rig).
 - :mod:`~restoration.features.reference`: predict the flat-water spots from calibration
   (:func:`predict_flat_spots`) and label the flat-water spots with grid indices
   (:func:`match_reference`, :func:`prepare_reference`); the calibrated spot size that
-  sets every pixel-scale constant (:func:`spot_sigma_px`).
+  sets every pixel-scale constant (:func:`spot_sigma_px`). The prepared
+  :class:`ReferenceGrid` holds all the per-frame steps need of the rig.
 - :mod:`~restoration.features.match`: label the wavy-water spots by region growing, the
   ordering check and anchoring (:func:`match_distorted`); per frame
   (:func:`features_from_reference`) or all steps at once (:func:`find_features`).
@@ -20,7 +22,6 @@ correspondence. The stage's modules:
 - ``_lattice``, ``_outline``, ``_types``: private helpers shared by the above.
 """
 
-from restoration.features._lattice import _LatticeTables as _LatticeTables
 from restoration.features.decode import (
     Decoded,
     decode_distorted,
@@ -28,11 +29,7 @@ from restoration.features.decode import (
     node_symbols,
     spot_symbols,
 )
-from restoration.features.detect import Spots, detect_spots
-from restoration.features.detect import _background as _background
-from restoration.features.detect import _minimum_bias as _minimum_bias
-from restoration.features.detect import _noise_sigma as _noise_sigma
-from restoration.features.detect import _segment as _segment
+from restoration.features.detect import Spots, SpotScales, detect_spots
 from restoration.features.match import (
     REGROW_BELOW,
     Matches,
@@ -41,8 +38,6 @@ from restoration.features.match import (
     match_distorted,
     order_violations,
 )
-from restoration.features.match import _anchor_shift as _anchor_shift
-from restoration.features.match import _choose_seed as _choose_seed
 from restoration.features.reference import (
     ReferenceGrid,
     flag_diffuser_edge,
@@ -57,6 +52,7 @@ __all__ = [
     "Decoded",
     "Matches",
     "ReferenceGrid",
+    "SpotScales",
     "Spots",
     "decode_distorted",
     "detect_spots",

@@ -10,11 +10,12 @@ are the same.
 from __future__ import annotations
 
 import math
+from types import MappingProxyType
 
 import numpy as np
 from numba import njit
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT = MappingProxyType({"cache": True, "nogil": True, "error_model": "numpy"})
 
 
 @njit(**_JIT)

@@ -16,6 +16,8 @@ from restoration.features._types import BoolArray, IntArray
 _LATTICE_PAD = 2
 _DIRS4 = np.array([[1, 0], [-1, 0], [0, 1], [0, -1]])
 _DIRS8 = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [1, -1], [-1, 1], [-1, -1]])
+_DIRS4.setflags(write=False)
+_DIRS8.setflags(write=False)
 
 
 class _Lattice:

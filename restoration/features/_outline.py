@@ -5,7 +5,6 @@ distances of points inside the edges of a convex polygon.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import cv2
@@ -25,9 +24,10 @@ def _diffuser(cfg: SystemConfig) -> FloatArray:
         raise WaiInputError(f"config: {exc}") from None
 
 
-@functools.lru_cache(maxsize=8)  # per frame it would cost ~0.3 ms; the config is immutable
 def _outline_px(cfg: SystemConfig) -> FloatArray:
-    """The diffuser's corners (4, 2) in camera s, pixels, in order around it (read-only)."""
+    """The diffuser's corners (4, 2) in camera s, pixels, in order around it (read-only). Per
+    rig: the reference keeps it
+    (:attr:`~restoration.features.reference.ReferenceGrid.outline_px`)."""
     (x0, x1), (y0, y1) = _diffuser(cfg)
     z = cfg.diffuser.z_mm
     corners = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
@@ -37,10 +37,10 @@ def _outline_px(cfg: SystemConfig) -> FloatArray:
     return out
 
 
-@functools.lru_cache(maxsize=8)
 def _visible_outline(cfg: SystemConfig) -> FloatArray:
     """Where camera s can see a spot: the diffuser's outline clipped to the image, (M, 2) px
-    (read-only)."""
+    (read-only). Per rig: the reference keeps it
+    (:attr:`~restoration.features.reference.ReferenceGrid.visible_px`)."""
     cam = cfg.camera_s
     w, h = cam.width_px - 0.5, cam.height_px - 0.5
     frame = np.array([[-0.5, -0.5], [w, -0.5], [w, h], [-0.5, h]], np.float32)

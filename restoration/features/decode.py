@@ -73,7 +73,6 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from restoration.errors import RestorationFailed
-from restoration.features._outline import _visible_outline
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from restoration.features.detect import Spots, _typical_flux
 from restoration.features.match import (
@@ -81,6 +80,7 @@ from restoration.features.match import (
     _largest_component,
     detect_frame,
     match_distorted,
+    visible_outline,
 )
 from restoration.features.reference import ReferenceGrid
 from wai_core.config import SystemConfig
@@ -243,6 +243,7 @@ def node_symbols(ref: ReferenceGrid, cfg: SystemConfig) -> IntArray:
 # Opposite neighbour directions in _DIRS8 order ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1),
 # (1, -1), (-1, 1), (-1, -1)).
 _OPPOSITE = np.array([[0, 1], [2, 3], [4, 7], [5, 6]])
+_OPPOSITE.setflags(write=False)
 
 
 @numba.njit(cache=True)
@@ -765,7 +766,7 @@ def features_from_code(
     t0 = time.perf_counter()
     wavy = detect_frame(pattern_img, ref, cfg)
     t1 = time.perf_counter()
-    ordering = match_distorted(ref, wavy, visible_px=_visible_outline(cfg))
+    ordering = match_distorted(ref, wavy, visible_px=visible_outline(ref, cfg))
     matches = decode_distorted(ref, wavy, pattern_img, cfg, ordering=ordering).matches
     t2 = time.perf_counter()
     if len(matches) < min_features:

@@ -141,11 +141,10 @@ def _background(smooth: NDArray[np.float32], size_px: int) -> NDArray[np.float32
     return _upsample(cv2.blur(low, (k, k), borderType=cv2.BORDER_REPLICATE), smooth.shape, full)
 
 
-@functools.lru_cache(maxsize=8)
 def _minimum_bias(smooth_px: float, size_px: int) -> float:
     """How far :func:`_background` lies below the mean of pure noise, in units of the smoothed
-    noise's standard deviation (about 2.5): measured once on seeded white noise smoothed as the
-    images are."""
+    noise's standard deviation: measured on seeded white noise smoothed as the images are (once
+    per spot size, in :class:`SpotScales`: it costs more than a frame can spare)."""
     white = np.random.default_rng(0).normal(size=(256, 256)).astype(np.float32)
     smooth = cv2.GaussianBlur(white, (0, 0), smooth_px, borderType=cv2.BORDER_REFLECT)
     smooth /= smooth.std()
@@ -188,7 +187,7 @@ def _segment(
     dot's peak: a dim dot next to a bright one is segmented like the bright one. On a wide spot
     that test holds far into the tails (the slope there is gentle), so pixels must also exceed
     ``wide_level`` x the maximum within ``wide_px`` of a copy blurred by a ``wide_blur_px``
-    Gaussian (both scale with the spot size: :func:`_pixel_scales`). A wide
+    Gaussian (both scale with the spot size: :class:`SpotScales`). A wide
     spot keeps its peak under that blur, so its segment ends at ~3.5 sigma, short of its
     neighbours; a small bright dot loses most of its peak, so a small dim neighbour survives.
 
@@ -347,7 +346,7 @@ def _typical_flux(flux: FloatArray) -> float:
 
 
 # Half widths of the centroid boxes: multiples of 3 px, up to _BOX_MAX at the tuned spot size
-# (scaled with it: _Scales.box_max_px), the frame of zeros around the image in detect_spots.
+# (scaled with it: SpotScales.box_max_px), the frame of zeros around the image in detect_spots.
 _BOX_MAX = 48
 
 
@@ -400,9 +399,39 @@ def _refine_centres(
 
 
 @dataclass(frozen=True)
-class _Scales:
-    """Pixel-scale parameters of the detection for one spot size (see :func:`_pixel_scales`)."""
+class SpotScales:
+    """The detection's pixel-scale parameters for spots of one size, and the background's bias
+    measured at them (:func:`_minimum_bias`): per rig, built once (:meth:`of`) and passed to
+    every frame's :func:`detect_spots`.
 
+    Lengths scale with the spot's standard deviation ``spot_sigma_px`` from their tuned values
+    at :data:`_TUNED_SIGMA_PX`, the smallest area with its square; integers are rounded, and
+    stay at least what a pixel grid needs.
+
+    Attributes
+    ----------
+    spot_sigma_px : float or None
+        Spot standard deviation the scales follow, pixels (None: the tuned one).
+    smooth_px : float
+        Standard deviation of the noise-suppressing Gaussian, pixels.
+    local_radius_px : int
+        Radius of the local maximum filter, pixels.
+    min_area_px : int
+        Smallest segment kept, pixels.
+    background_px : int
+        Window of the background estimate, pixels.
+    wide_px : int
+        Reach of the segmentation's wide-spot test, pixels.
+    wide_blur_px : float
+        Blur of the wide-spot test's copy, pixels.
+    box_max_px : int
+        Largest centroid box half width, and the frame of zeros around the image, pixels.
+    minimum_bias : float
+        How far the background at ``smooth_px`` and ``background_px`` lies below the mean of
+        pure noise, in the smoothed noise's standard deviations.
+    """
+
+    spot_sigma_px: float | None
     smooth_px: float
     local_radius_px: int
     min_area_px: int
@@ -410,31 +439,50 @@ class _Scales:
     wide_px: int
     wide_blur_px: float
     box_max_px: int
+    minimum_bias: float
+
+    @classmethod
+    def of(cls, spot_sigma_px: float | None = None) -> SpotScales:
+        """The scales for spots of standard deviation ``spot_sigma_px``, pixels (None: the
+        tuned ones).
+
+        Raises
+        ------
+        WaiInputError
+            When ``spot_sigma_px`` is not a positive number.
+        """
+        k = 1.0 if spot_sigma_px is None else float(spot_sigma_px) / _TUNED_SIGMA_PX
+        if not (np.isfinite(k) and k > 0):
+            raise WaiInputError(f"spot_sigma_px must be positive, got {spot_sigma_px!r}")
+        smooth_px, background_px = 1.0 * k, max(int(round(25 * k)), 5)
+        return cls(
+            spot_sigma_px=spot_sigma_px,
+            smooth_px=smooth_px,
+            local_radius_px=max(int(round(3 * k)), 1),
+            min_area_px=max(int(round(3 * k * k)), 3),
+            background_px=background_px,
+            wide_px=max(int(round(40 * k)), 8),
+            wide_blur_px=4.0 * k,
+            box_max_px=max(3 * int(np.ceil(_BOX_MAX / 3 * k - 1e-9)), _BOX_MAX),
+            minimum_bias=_minimum_bias(smooth_px, background_px),
+        )
 
 
-@functools.lru_cache(maxsize=16)
-def _pixel_scales(spot_sigma_px: float | None) -> _Scales:
-    """The detection's pixel-scale parameters for spots of standard deviation ``spot_sigma_px``
-    (None: the tuned ones, :data:`_TUNED_SIGMA_PX`). Lengths scale with the spot, the smallest
-    area with its square; integers are rounded, and stay at least what a pixel grid needs."""
-    k = 1.0 if spot_sigma_px is None else float(spot_sigma_px) / _TUNED_SIGMA_PX
-    if not (np.isfinite(k) and k > 0):
-        raise WaiInputError(f"spot_sigma_px must be positive, got {spot_sigma_px!r}")
-    return _Scales(
-        smooth_px=1.0 * k,
-        local_radius_px=max(int(round(3 * k)), 1),
-        min_area_px=max(int(round(3 * k * k)), 3),
-        background_px=max(int(round(25 * k)), 5),
-        wide_px=max(int(round(40 * k)), 8),
-        wide_blur_px=4.0 * k,
-        box_max_px=max(3 * int(np.ceil(_BOX_MAX / 3 * k - 1e-9)), _BOX_MAX),
-    )
+# The scales of detect_spots' defaults, for callers without a calibrated spot size (built at
+# import: frozen, and a per-call measurement would cost more than some frames' detection).
+_TUNED_SCALES = SpotScales.of(None)
+
+
+def _scales_for(spot_sigma_px: float | None) -> SpotScales:
+    """:meth:`SpotScales.of`, without measuring again for the tuned spot size (None)."""
+    return _TUNED_SCALES if spot_sigma_px is None else SpotScales.of(spot_sigma_px)
 
 
 def detect_spots(
     image: NDArray,
     *,
     spot_sigma_px: float | None = None,
+    scales: SpotScales | None = None,
     smooth_px: float | None = None,
     local_radius_px: int | None = None,
     rel_level: float = 0.25,
@@ -467,7 +515,12 @@ def detect_spots(
         left at None (``smooth_px``, ``local_radius_px``, ``min_area_px``, ``background_px``
         and the segmentation's wide-spot test) follow from it: their tuned values (1.0, 3, 3,
         25 px at a spot sigma of 1.518 px, the paper's rig at 800 x 600) scale with it, areas
-        with its square. None: the tuned values.
+        with its square. None: the tuned values. Measures :attr:`SpotScales.minimum_bias`
+        on every call: per frame, pass ``scales`` instead.
+    scales : SpotScales, optional
+        The pixel-scale parameters for the calibrated spot size, built once
+        (:meth:`SpotScales.of`, :attr:`~restoration.features.reference.ReferenceGrid.spot_scales`);
+        not with ``spot_sigma_px``.
     smooth_px : float, optional
         Standard deviation of the Gaussian that suppresses pixel noise before segmentation, px.
     local_radius_px : int, optional
@@ -501,9 +554,11 @@ def detect_spots(
     Raises
     ------
     WaiInputError
-        On a wrong shape or non-finite values.
+        On a wrong shape or non-finite values, or both ``spot_sigma_px`` and ``scales``.
     """
-    sc = _pixel_scales(spot_sigma_px)
+    if scales is not None and spot_sigma_px is not None:
+        raise WaiInputError("detect_spots: give spot_sigma_px or scales, not both")
+    sc = _scales_for(spot_sigma_px) if scales is None else scales
     smooth_px = sc.smooth_px if smooth_px is None else smooth_px
     local_radius_px = sc.local_radius_px if local_radius_px is None else local_radius_px
     min_area_px = sc.min_area_px if min_area_px is None else min_area_px
@@ -523,7 +578,11 @@ def detect_spots(
     # there is no noise (there the noise estimate is only the dots' sharpness).
     lifted = float(np.percentile(smooth[::4, ::4] - bg[::4, ::4], 25.0))
     noise = noise_of()
-    bg += min(noise * _minimum_bias(smooth_px, background_px), max(lifted, 0.0))
+    if (smooth_px, background_px) == (sc.smooth_px, sc.background_px):
+        bias = sc.minimum_bias
+    else:  # parameters given by the caller: measured for them
+        bias = _minimum_bias(smooth_px, background_px)
+    bg += min(noise * bias, max(lifted, 0.0))
     smooth -= bg
     saturated_px = None if saturation is None else lum >= saturation
     lum -= bg  # now the raw, background-subtracted image

@@ -605,9 +605,14 @@ def detect_frame(pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig) ->
             f"pattern image is {np.shape(pattern_img)[:2]}, camera s is "
             f"{cam.height_px}x{cam.width_px}"
         )
-    return flag_diffuser_edge(
-        detect_spots(pattern_img, spot_sigma_px=ref.detect_sigma_px), _outline_px(cfg)
-    )
+    outline = _outline_px(cfg) if ref.outline_px is None else ref.outline_px
+    return flag_diffuser_edge(detect_spots(pattern_img, scales=ref.spot_scales), outline)
+
+
+def visible_outline(ref: ReferenceGrid, cfg: SystemConfig) -> FloatArray:
+    """Where camera s can see a spot (M, 2), pixels: the reference's
+    (:attr:`ReferenceGrid.visible_px`), or from ``cfg`` for a grid built without one."""
+    return _visible_outline(cfg) if ref.visible_px is None else ref.visible_px
 
 
 def features_from_reference(
@@ -625,7 +630,7 @@ def features_from_reference(
     t0 = time.perf_counter()
     wavy = detect_frame(pattern_img, ref, cfg)
     t1 = time.perf_counter()
-    matches = match_distorted(ref, wavy, visible_px=_visible_outline(cfg))
+    matches = match_distorted(ref, wavy, visible_px=visible_outline(ref, cfg))
     t2 = time.perf_counter()
     if len(matches) < min_features:
         raise RestorationFailed(f"too few features matched: {len(matches)} (need {min_features})")

@@ -8,7 +8,6 @@ once per rig rather than per frame (:func:`prepare_reference`).
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -18,9 +17,20 @@ from scipy.spatial import cKDTree
 
 from restoration.errors import RestorationFailed
 from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
-from restoration.features._outline import _diffuser, _edge_distances, _outline_px
+from restoration.features._outline import (
+    _diffuser,
+    _edge_distances,
+    _outline_px,
+    _visible_outline,
+)
 from restoration.features._types import BoolArray, FloatArray, IntArray
-from restoration.features.detect import _TUNED_SIGMA_PX, Spots, detect_spots
+from restoration.features.detect import (
+    _TUNED_SIGMA_PX,
+    Spots,
+    SpotScales,
+    _scales_for,
+    detect_spots,
+)
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.geometry import intersect_plane_z, reflect
@@ -60,6 +70,16 @@ class ReferenceGrid:
         Calibrated spot standard deviation in camera s (:func:`spot_sigma_px`), pixels: the
         length that the pixel-scale constants of detection and matching follow; NaN when the
         grid was built without a configuration (the tuned constants then apply).
+    outline_px : (4, 2) ndarray or None
+        The diffuser's corners in camera s, pixels, in order around it (read-only): where
+        spots are cut by its edge (:func:`flag_diffuser_edge`). None when the grid was built
+        without a configuration.
+    visible_px : (M, 2) ndarray or None
+        Where camera s can see a spot: the diffuser's outline clipped to the image, pixels
+        (read-only; ``visible_px`` of the matching). None as ``outline_px``.
+    spot_scales : SpotScales
+        The detection's pixel-scale parameters at ``spot_sigma_px`` (the tuned ones when it is
+        NaN), built with the grid for every frame's :func:`detect_spots`.
     """
 
     ij: IntArray
@@ -73,10 +93,14 @@ class ReferenceGrid:
     rms_px: float
     tables: _LatticeTables = field(init=False, repr=False, compare=False)
     spot_sigma_px: float = float("nan")
+    outline_px: FloatArray | None = field(default=None, repr=False, compare=False)
+    visible_px: FloatArray | None = field(default=None, repr=False, compare=False)
+    spot_scales: SpotScales = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # Neighbour tables for the per-frame matching: they depend on the lattice only.
         object.__setattr__(self, "tables", _LatticeTables.of(self.ij, self.lit))
+        object.__setattr__(self, "spot_scales", _scales_for(self.detect_sigma_px))
 
     def lit_at(self, ij: NDArray) -> BoolArray:
         """Whether each lattice index ``ij`` (K, 2) is a lit dot of this lattice."""
@@ -149,7 +173,6 @@ def predict_flat_spots(
     return ij.astype(np.int64), panel, spot_px, in_view
 
 
-@functools.lru_cache(maxsize=8)  # the config is immutable; the reference is per rig
 def spot_sigma_px(cfg: SystemConfig) -> float:
     """Expected standard deviation of a dot's spot in camera s, pixels, from calibration alone.
 
@@ -157,7 +180,8 @@ def spot_sigma_px(cfg: SystemConfig) -> float:
     panel dot's Gaussian sigma (``cfg.pattern.sigma_px``) times that map's local linear
     magnification ``sqrt(|det J|)`` (the geometric mean over the spot's two axes), median over
     the dots in view. It sets the scale of every pixel constant of spot detection and matching:
-    1.518 px for the paper's rig at 800 x 600, twice that at 1600 x 1200.
+    1.518 px for the paper's rig at 800 x 600, twice that at 1600 x 1200. Per rig:
+    :func:`prepare_reference` keeps it (:attr:`ReferenceGrid.spot_sigma_px`).
 
     Parameters
     ----------
@@ -362,8 +386,10 @@ def prepare_reference(
 ) -> ReferenceGrid:
     """The flat-water reference grid: calibration, computed once per rig, not per frame.
 
-    Spots are detected at the calibrated spot size (:func:`spot_sigma_px`), which the grid
-    keeps for the per-frame detection and matching.
+    Spots are detected at the calibrated spot size (:func:`spot_sigma_px`). The grid keeps
+    what every frame's detection and matching need of the rig: the spot size
+    (``spot_sigma_px``, ``spot_scales``) and the diffuser's outlines in camera s
+    (``outline_px``, ``visible_px``).
 
     Raises
     ------
@@ -374,12 +400,13 @@ def prepare_reference(
     """
     sigma = spot_sigma_px(cfg)
     sigma_ok = float(sigma) if np.isfinite(sigma) and sigma > 0 else None
-    flat = flag_diffuser_edge(
-        detect_spots(pattern_flat_img, spot_sigma_px=sigma_ok), _outline_px(cfg)
-    )
+    outline = _outline_px(cfg)
+    flat = flag_diffuser_edge(detect_spots(pattern_flat_img, spot_sigma_px=sigma_ok), outline)
     predicted = predict_flat_spots(cfg)
     ref = match_reference(flat, predicted, lit=lit_dots(cfg) if lit is None else lit)
-    ref = replace(ref, spot_sigma_px=float(sigma))
+    ref = replace(
+        ref, spot_sigma_px=float(sigma), outline_px=outline, visible_px=_visible_outline(cfg)
+    )
     if ref.counts["observed"] < min_features:
         raise RestorationFailed(f"too few features on flat water: {ref.counts['observed']}")
     return ref

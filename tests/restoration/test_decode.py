@@ -22,7 +22,7 @@ from restoration.features import (
     spot_sigma_px,
     spot_symbols,
 )
-from restoration.features._outline import _outline_px, _visible_outline
+from restoration.features._outline import _edge_distances, _outline_px, _visible_outline
 from restoration.features.match import match_distorted
 from wai_core.config import load_config
 from wai_core.errors import WaiInputError
@@ -112,6 +112,19 @@ def test_symbols_read_from_colour(cfg):
     assert clear.mean() > 0.95
     assert np.all(sym[clear] == truth[clear])
     np.testing.assert_allclose(levels, CODE_LEVELS, atol=0.05)
+
+
+def test_reference_keeps_the_rig_outlines(cfg, reference):
+    """The prepared grid holds the diffuser's outline in camera s and the part of it that the
+    image shows: inside the image frame and inside the outline, neither writable."""
+    vis, outline = reference.visible_px, reference.outline_px
+    cam = cfg.camera_s
+    assert np.all(vis >= -0.5 - 1e-6)
+    assert np.all(vis <= np.array([cam.width_px, cam.height_px]) - 0.5 + 1e-6)
+    assert np.all(_edge_distances(outline, vis)[0] >= -1e-3)
+    for arr in (vis, outline):
+        with pytest.raises(ValueError):
+            arr[0, 0] = 0.0
 
 
 def test_node_symbols_match_the_panel(cfg, reference):

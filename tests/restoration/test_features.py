@@ -15,6 +15,7 @@ from restoration import features
 from restoration.errors import RestorationFailed
 from restoration.features import (
     ReferenceGrid,
+    SpotScales,
     detect_spots,
     find_features,
     match_distorted,
@@ -22,6 +23,9 @@ from restoration.features import (
     order_violations,
     predict_flat_spots,
 )
+from restoration.features._lattice import _LatticeTables
+from restoration.features.detect import _background, _minimum_bias, _noise_sigma, _segment
+from restoration.features.match import _anchor_shift, _choose_seed
 from wai_core.config import SystemConfig, load_config
 from wai_core.errors import WaiInputError
 
@@ -180,13 +184,13 @@ def reference_detect(image: np.ndarray) -> dict[str, np.ndarray]:
     lum = np.asarray(image, np.float64)
     lum = (lum[..., :3].sum(axis=2) if lum.ndim == 3 else lum).astype(np.float32)
     smooth = cv2.GaussianBlur(lum, (0, 0), 1.0, borderType=cv2.BORDER_REFLECT)
-    noise = features._noise_sigma(lum, smooth, 1.0)
-    bg = features._background(smooth, 25)
+    noise = _noise_sigma(lum, smooth, 1.0)
+    bg = _background(smooth, 25)
     lifted = float(np.percentile(smooth[::4, ::4] - bg[::4, ::4], 25.0))
-    bg += min(noise * features._minimum_bias(1.0, 25), max(lifted, 0.0))
+    bg += min(noise * _minimum_bias(1.0, 25), max(lifted, 0.0))
     smooth, raw = smooth - bg, (lum - bg).astype(np.float64)
     tiny = 1e-6 * max(float(smooth.max()), 1e-30)
-    n, labels, _ = features._segment(smooth, 3, 0.25, max(2.0 * noise, tiny), np.empty_like(smooth))
+    n, labels, _ = _segment(smooth, 3, 0.25, max(2.0 * noise, tiny), np.empty_like(smooth))
     h, w = labels.shape
     seg = []
     for k in range(1, n):
@@ -445,10 +449,10 @@ def test_anchor_shift_counts_equal_a_lookup_per_shift():
     jj, ii = np.mgrid[-9:10, -12:13]
     ij = np.stack([ii.ravel(), jj.ravel()], 1)
     lit = rng.random(len(ij)) < 0.9
-    tab = features._LatticeTables.of(ij, lit)
+    tab = _LatticeTables.of(ij, lit)
     matched = rng.random(len(ij)) < 0.5
     absent = ~matched & (rng.random(len(ij)) < 0.3)
-    shift, tied = features._anchor_shift(tab, matched, absent, 4)
+    shift, tied = _anchor_shift(tab, matched, absent, 4)
     r = np.arange(-4, 5)
     shifts = np.stack(np.meshgrid(r, r, indexing="ij"), -1).reshape(-1, 2)
     lookup = {tuple(k): bool(v) for k, v in zip(ij.tolist(), lit, strict=True)}
@@ -505,13 +509,13 @@ def test_a_second_seed_avoids_the_first_piece(flat_scene, reference):
     spots = detect_spots(pattern_image(flat_scene, spot, np.full(len(ij), 3000.0)))
     tab, tree = reference.tables, cKDTree(spots.centres_px)
     args = (tab, reference.ref_px, reference, spots, tree, 0.35, 0.6)
-    first = features._choose_seed(*args)
+    first = _choose_seed(*args)
     assert first >= 0
     exclude = np.zeros(len(reference.ij), bool)
     exclude[reference.ij[:, 0] >= reference.ij[first, 0] - 2] = True  # a half-plane around it
-    second = features._choose_seed(*args, exclude)
+    second = _choose_seed(*args, exclude)
     assert second >= 0 and not exclude[second]
-    assert features._choose_seed(*args, np.ones(len(reference.ij), bool)) == -1
+    assert _choose_seed(*args, np.ones(len(reference.ij), bool)) == -1
 
 
 def test_detection_at_twice_the_resolution_sees_the_same_spots():
@@ -535,19 +539,22 @@ def test_detection_at_twice_the_resolution_sees_the_same_spots():
     err_fine = nearest((fine.centres_px - 0.5) / 2.0, c)  # in coarse pixels
     assert np.median(err_fine) <= 1.1 * np.median(err_coarse)
     # Without the scale the fine image is cut into the tuned (coarse) windows.
-    assert features.detect._pixel_scales(2.0 * sigma).local_radius_px == 6
+    assert SpotScales.of(2.0 * sigma).local_radius_px == 6
 
 
 def test_pixel_scales_default_to_the_tuned_values():
-    tuned = features.detect._pixel_scales(None)
-    same = features.detect._pixel_scales(features.detect._TUNED_SIGMA_PX)
+    tuned = SpotScales.of(None)
+    same = SpotScales.of(features.detect._TUNED_SIGMA_PX)
     assert (tuned.smooth_px, tuned.local_radius_px, tuned.min_area_px) == (1.0, 3, 3)
     assert (tuned.background_px, tuned.wide_px, tuned.box_max_px) == (25, 40, 48)
     assert same.smooth_px == pytest.approx(1.0) and same.local_radius_px == 3
-    double = features.detect._pixel_scales(2.0 * features.detect._TUNED_SIGMA_PX)
+    double = SpotScales.of(2.0 * features.detect._TUNED_SIGMA_PX)
     assert (double.min_area_px, double.background_px, double.box_max_px) == (12, 50, 96)
+    # The background's noise bias is measured at each scale's own smoothing and window.
+    assert tuned.minimum_bias == _minimum_bias(1.0, 25)
+    assert double.minimum_bias == _minimum_bias(double.smooth_px, 50)
     with pytest.raises(WaiInputError):
-        features.detect._pixel_scales(-1.0)
+        SpotScales.of(-1.0)
 
 
 def test_reference_carries_the_calibrated_spot_scale(cfg):
@@ -562,6 +569,23 @@ def test_reference_carries_the_calibrated_spot_scale(cfg):
     )
     assert grid.pixel_scale == pytest.approx(2.0, rel=1e-4)
     assert grid.detect_sigma_px == pytest.approx(2.0 * sigma)
+    assert grid.spot_scales.local_radius_px == 6  # the tuned 3 px, doubled
     assert ReferenceGrid(*[getattr(grid, f) for f in (
         "ij", "ref_px", "observed", "lit", "spacing_px", "cov_px2", "unmatched_ij", "counts",
         "rms_px")]).pixel_scale == 1.0  # not calibrated: the tuned constants
+
+
+def test_detection_takes_the_scales_or_the_spot_size():
+    """Scales built once for a spot size detect exactly what that spot size does per call."""
+    rng = np.random.default_rng(13)
+    c = jittered_grid(12.0, rng)
+    img = draw_dots(c, rng.uniform(300.0, 3000.0, len(c)), 2.0 * np.eye(2))
+    img = (img + rng.normal(0.0, 0.2, img.shape)).astype(np.float32)
+    sigma = 1.3 * features.detect._TUNED_SIGMA_PX
+    per_call = detect_spots(img, spot_sigma_px=sigma)
+    once = detect_spots(img, scales=SpotScales.of(sigma))
+    assert len(once) == len(per_call) > 0
+    for name in ("centres_px", "flux", "peak", "area_px", "cov_px2", "merged", "border"):
+        assert np.array_equal(getattr(once, name), getattr(per_call, name)), name
+    with pytest.raises(WaiInputError, match="not both"):
+        detect_spots(img, spot_sigma_px=sigma, scales=SpotScales.of(sigma))
