@@ -8,11 +8,13 @@ folder and renamed into place when complete.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
 from restoration.methods import Method, as_method
@@ -28,7 +30,7 @@ RESTORE_REMEDY = "move what is not the tool's elsewhere: a restore replaces only
 """What a refused restore folder's message tells the user (``wai restore`` has no --overwrite:
 it never replaces a folder it did not write)."""
 
-__all__ = ["FolderRestore", "check_inputs", "restore_folder"]
+__all__ = ["FolderRestore", "check_inputs", "restore_folder", "restore_frame"]
 
 
 @dataclass
@@ -40,7 +42,8 @@ class FolderRestore:
     folder : Path
         The folder read.
     out : Path or None
-        Where the outputs were written (None when ``write=False``).
+        Where the outputs were written (None when ``write=False``, and from
+        :func:`restore_frame`).
     cal : RigCalibration
         The calibration read (with its per-rig caches, e.g. the flat-water reference).
     images : dict of str to ndarray
@@ -62,9 +65,21 @@ class FolderRestore:
     scores: Scores | None
     metrics: dict[str, Any]
 
+    @property
+    def distorted(self) -> NDArray:
+        """(H, W, 3) ndarray: the frame's view on the object's radiance scale (what the scores
+        compare the restored view with)."""
+        return self.cal.radiance(self.images["view"])
+
     def summary_lines(self) -> list[str]:
         """The figures a person reads first, one line each."""
         return summary_lines(self.metrics)
+
+    def write_files(self, tmp: Path, *, figures: bool = True) -> None:
+        """This frame's restore files into an open temporary folder ``tmp`` (see
+        :func:`write_restore_files`)."""
+        write_restore_files(tmp, self.cal, self.images, self.result, self.scores, self.truth,
+                            self.metrics, figures=figures)
 
 
 def restore_folder(
@@ -117,30 +132,83 @@ def restore_folder(
     meth = as_method(method, options)
     bar = tqdm(total=3, desc="restore", disable=not progress, leave=False, unit="step")
     bar.set_postfix_str("surface and view")
+
+    def step(name: str) -> None:
+        bar.set_postfix_str(name, refresh=False)
+        bar.update(1)
+
     record = read_scene_record(folder)
     target = (Path(out) if out is not None else folder / "restore") if write else None
     if target is not None:  # refused before any work
         check_output_dir(target, "restore", remedy=RESTORE_REMEDY)
     cal = meth.calibration_type.from_record(record)
-    images = cal.load_images(folder)
-    view_flat = load_view_flat(cal, folder)
-    result = meth(images, cal, track)
-    check_inputs(folder, cal, images, result, view_flat)
-    bar.set_postfix_str("score" if scored else "score (skipped)", refresh=False)
-    bar.update(1)
-    distorted = images["view"] / cal.view_gain
-    truth = Truth.from_folder(folder, cal) if scored and result.restored else None
-    scores = None if truth is None else score(result, distorted, cal, truth)
-    bar.set_postfix_str("write" if write else "write (skipped)", refresh=False)
-    bar.update(1)
-    metrics = folder_metrics(meth, result, scores, scored, record.get("seed"))
+    done = restore_frame(folder, cal, meth, track, scored=scored, seed=record.get("seed"),
+                         step=step)
+    step("write" if write else "write (skipped)")
     if target is not None:
         with atomic_dir(target, command="restore", remedy=RESTORE_REMEDY) as tmp:
-            write_restore_files(tmp, cal, images, result, scores, truth, metrics)
-    bar.set_postfix_str("done", refresh=False)
-    bar.update(1)
+            done.write_files(tmp)
+        done.out = target
+    step("done")
     bar.close()
-    return FolderRestore(folder, target, cal, images, result, truth, scores, metrics)
+    return done
+
+
+def restore_frame(
+    folder: str | Path,
+    cal: RigCalibration,
+    method: Method,
+    track: LevelTrack | None = None,
+    *,
+    flat_from: Sequence[str | Path] = (),
+    scored: bool = True,
+    seed: Any = None,
+    step: Callable[[str], None] | None = None,
+) -> FolderRestore:
+    """Restore one frame's folder with a calibration already read, and score it; nothing is
+    written (:meth:`FolderRestore.write_files` does).
+
+    What :func:`restore_folder` and a sequence's restore do for each frame: load the images,
+    run ``method``, flag the result by the folder's other files (:func:`check_inputs`), score
+    it against the folder's truth, and assemble ``metrics.json``.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Holds the method's images (see :func:`restore_folder`) and, for scores, the truth.
+    cal : RigCalibration
+        The rig's calibration (of ``method.calibration_type``); one serves every frame of a
+        rig, keeping its per-rig caches.
+    method : Method
+        A configured method object (:func:`~restoration.methods.as_method`).
+    track : LevelTrack, optional
+        A sequence's level (see :class:`~restoration.calibration.LevelTrack`).
+    flat_from : sequence of str or Path
+        Folders searched after ``folder`` for the rig's flat-water view ``view_flat.*``
+        (a sequence's own folder).
+    scored : bool
+        Score against the folder's truth when it has some (default True).
+    seed : optional
+        The render's seed, recorded in ``metrics.json``.
+    step : callable, optional
+        Called with the name of the next step once restoring is done (a progress bar's).
+
+    Returns
+    -------
+    FolderRestore
+        With ``out`` None.
+    """
+    folder = Path(folder)
+    images = cal.load_images(folder)
+    view_flat = load_view_flat(cal, folder, *flat_from)
+    result = method(images, cal, track)
+    check_inputs(folder, cal, images, result, view_flat)
+    if step is not None:
+        step("score" if scored else "score (skipped)")
+    truth = Truth.from_folder(folder, cal) if scored and result.restored else None
+    scores = None if truth is None else score(result, cal.radiance(images["view"]), cal, truth)
+    metrics = folder_metrics(method, result, scores, scored, seed)
+    return FolderRestore(folder, None, cal, images, result, truth, scores, metrics)
 
 
 def load_view_flat(cal: RigCalibration, *folders: str | Path) -> Any:

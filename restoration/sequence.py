@@ -21,17 +21,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
-from restoration.folder import (
-    RESTORE_REMEDY,
-    check_inputs,
-    folder_metrics,
-    load_view_flat,
-    write_restore_files,
-)
+from restoration.folder import RESTORE_REMEDY, restore_frame
 from restoration.methods import Method, as_method
 from restoration.options import RestoreOptions
 from restoration.result import Status
-from restoration.scoring import Truth, score
 from restoration.view_check import match_sequence
 from wai_core.io import atomic_dir, atomic_write_bytes, check_output_dir, to_srgb8, write_json
 from wai_core.sequence import SequenceRecord, read_sequence
@@ -100,7 +93,8 @@ def restore_sequence(
     movie: bool = True,
     progress: bool = False,
 ) -> SequenceRestore:
-    """Restore every frame of a sequence folder (see :mod:`wai_core.sequence`).
+    """Restore every frame of a sequence folder (see :mod:`wai_core.sequence`), each as
+    :func:`~restoration.folder.restore_frame` with the sequence's one calibration and level.
 
     Parameters
     ----------
@@ -139,23 +133,18 @@ def restore_sequence(
         bar = tqdm(seq.frame_dirs, desc="restore frames", disable=not progress, leave=False,
                    unit="frame")
         for k, frame_dir in enumerate(bar):
-            images = cal.load_images(frame_dir)
-            result = meth(images, cal, track)
-            check_inputs(frame_dir, cal, images, result,
-                         load_view_flat(cal, frame_dir, seq.folder))
-            view = cal.radiance(images["view"])
-            truth = Truth.from_folder(frame_dir, cal) if result.restored else None
-            scores = None if truth is None else score(result, view, cal, truth)
-            metrics = folder_metrics(meth, result, scores, True, seq.record.get("seed"))
+            done = restore_frame(frame_dir, cal, meth, track, flat_from=(seq.folder,),
+                                 seed=seq.record.get("seed"))
+            result = done.result
             if write:
                 tmp = stack.enter_context(atomic_dir(frame_dir / "restore", command="restore",
                                                         remedy=RESTORE_REMEDY))
-                write_restore_files(tmp, cal, images, result, scores, truth, metrics,
-                                    figures=False)
-                staged.append((tmp, metrics))
+                done.write_files(tmp, figures=False)
+                staged.append((tmp, done.metrics))
+            view = done.distorted
             image = result.view.image if result.restored else np.zeros_like(view)
             valid = result.view.valid if result.restored else np.zeros(view.shape[:2], bool)
-            rows.append(_row(k, seq.times_s[k], result, scores, view, image, valid,
+            rows.append(_row(k, seq.times_s[k], result, done.scores, view, image, valid,
                              distorted[-1:], restored[-1:], masks[-1:]))
             distorted.append(view)
             restored.append(image.astype(np.float32))

@@ -118,3 +118,22 @@ def test_an_interrupted_sequence_restore_keeps_every_old_output(sequence_copy, m
     after = {p: p.read_bytes() for p in sorted(sequence_copy.rglob("restore/*")) if p.is_file()}
     assert after == before
     assert not [p for p in sequence_copy.rglob(".*") if ".tmp-" in p.name or ".old-" in p.name]
+
+
+def test_a_sequences_first_frame_restores_as_its_folder_alone(sequence_copy):
+    """Before any level is tracked, a sequence's frame is the single-frame restore: same
+    surface, view and metrics (timings aside), no figures."""
+    from restoration import restore_folder, restore_sequence
+
+    frame = sequence_copy / "frame000"
+    alone = restore_folder(frame, write=False)
+    restore_sequence(sequence_copy, movie=False)
+    written = json.loads((frame / "restore" / "metrics.json").read_text())
+    for m in (written, alone.metrics):
+        m.pop("timings_ms")
+    assert json.dumps(written, sort_keys=True) == json.dumps(alone.metrics, sort_keys=True)
+    est = np.load(frame / "restore" / "heightfield_est.npz")
+    assert np.array_equal(est["z"], alone.result.surface.heightfield.z, equal_nan=True)
+    assert np.array_equal(read_exr(frame / "restore" / "restored.exr"),
+                          alone.result.view.image.astype(np.float32), equal_nan=True)
+    assert not (frame / "restore" / "distorted_vs_restored.png").exists()
