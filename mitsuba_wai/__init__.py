@@ -16,8 +16,9 @@ sun spots) come from :mod:`mitsuba_wai.particles`, which sums in a fixed order.
 """
 
 from mitsuba_wai.frame import Frame, render_frame
-from mitsuba_wai.render import FrameRenderer, file_surface, render_folder, wave_surface
+from mitsuba_wai.render import FrameRenderer, render_folder
 from mitsuba_wai.sequence import render_sequence
+from mitsuba_wai.surface_sampling import file_surface, wave_surface
 from mitsuba_wai.variant import select_variant
 from mitsuba_wai.waves import sea_surface
 

@@ -60,16 +60,14 @@ from mitsuba_wai import mesh as meshes
 from mitsuba_wai.render import (
     OUTPUT_COMMAND,
     FrameRenderer,
-    file_surface,
-    labelled,
     render_image,
     render_seed,
     scene_record,
-    wave_surface,
     write_images,
     write_surface,
 )
 from mitsuba_wai.scenes import rectangle_to_world, sensor_dict, sun_frame, water_bsdf
+from mitsuba_wai.surface_sampling import file_surface, labelled, wave_surface
 from mitsuba_wai.variant import mitsuba, select_variant
 from wai_core.alterman import (
     AltermanSystem,

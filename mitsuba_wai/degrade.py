@@ -67,17 +67,20 @@ from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
 
 
-class FrameRenderer(Protocol):
-    """What :func:`render_exposure` needs of :class:`mitsuba_wai.render.FrameRenderer` (not
-    imported: the renderer imports this module)."""
+class RendersFrames(Protocol):
+    """Renders the pattern (camera s) and / or the view (camera v) through a surface: what
+    :func:`render_exposure` needs of :class:`mitsuba_wai.render.FrameRenderer` (not imported:
+    the renderer imports this module)."""
 
     def render(
         self, surface: Heightfield, seed: int, which: tuple[str, ...] = ...,
         spp: int | dict[str, int] | None = ...,
     ) -> dict[str, NDArray[np.float32]]: ...
 
+
 __all__ = [
     "MOTION_SIGMAS",
+    "RendersFrames",
     "SubframePlan",
     "degradation_record",
     "motion_rates",
@@ -181,7 +184,7 @@ def subframe_plan(cfg: SystemConfig, amplitude: float = 1.0) -> SubframePlan:
 
 
 def render_exposure(
-    renderer: FrameRenderer,
+    renderer: RendersFrames,
     cfg: SystemConfig,
     surface: Heightfield,
     seed: int,
@@ -194,7 +197,7 @@ def render_exposure(
 
     Parameters
     ----------
-    renderer : FrameRenderer
+    renderer : RendersFrames
         Loaded for ``cfg``'s geometry (any time).
     cfg : SystemConfig
         The frame's configuration: its ``[waves].time_s``, ``[motion]`` and ``[render]``.
@@ -341,34 +344,3 @@ def _ambient_record(cfg: SystemConfig) -> dict[str, Any]:
         "model": "S: sun by particle tracing (directionalarea, refracting surface, flat skirt "
                  "beyond the waves), sky analytic (uniform); V: constant sky, far sun disk",
     }
-
-
-def render_frame_images(
-    renderer: FrameRenderer,
-    cfg: SystemConfig,
-    surface: Heightfield,
-    seed: int,
-    *,
-    spp: int | None = None,
-    surface_at: Callable[[float], Heightfield] | None = None,
-    plan: SubframePlan | None = None,
-) -> tuple[SystemConfig, dict[str, NDArray[np.float32]]]:
-    """The four images of a frame (``pattern``, ``pattern_flat``, ``view``, ``view_truth``):
-    the wavy ones over the exposure (:func:`render_exposure`), the flat ones sharp, then the
-    sensor when ``[sensor]`` is on. Returns the configuration with the exposure it resolved
-    (what ``scene.json`` records) and the images."""
-    from mitsuba_wai.mesh import flat_like
-
-    wavy = render_exposure(renderer, cfg, surface, seed, spp=spp, surface_at=surface_at,
-                           plan=plan)
-    flat = renderer.render(flat_like(surface, cfg.water.h0_mm), seed, spp=spp)
-    images = {
-        "pattern": wavy["pattern"],
-        "pattern_flat": flat["pattern"],
-        "view": wavy["view"],
-        "view_truth": flat["view"],
-    }
-    if cfg.sensor.enabled:
-        cfg = resolve_exposure(cfg, images)
-        images = sense(cfg, images)
-    return cfg, images

@@ -8,14 +8,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from mitsuba_wai.degrade import render_frame_images
-from mitsuba_wai.render import (
-    FrameRenderer,
-    file_surface,
-    moving_surface,
-    render_seed,
-    wave_surface,
-)
+from mitsuba_wai.frame_images import render_frame_images
+from mitsuba_wai.render import FrameRenderer, render_seed
+from mitsuba_wai.surface_sampling import file_surface, moving_surface, wave_surface
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.optics import radiance_gain

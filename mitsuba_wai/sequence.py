@@ -24,13 +24,12 @@ from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense, subfra
 from mitsuba_wai.render import (
     OUTPUT_COMMAND,
     FrameRenderer,
-    moving_surface,
     render_seed,
     scene_record,
-    wave_surface,
     write_images,
     write_surface,
 )
+from mitsuba_wai.surface_sampling import moving_surface, wave_surface
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.io import atomic_dir, check_output_dir, raise_if_interrupted, write_json
 from wai_core.optics import radiance_gain

@@ -13,7 +13,8 @@ from mitsuba_wai.degrade import (
     render_exposure,
     subframe_plan,
 )
-from mitsuba_wai.render import FrameRenderer, moving_surface, render_folder, render_seed
+from mitsuba_wai.render import FrameRenderer, render_folder, render_seed
+from mitsuba_wai.surface_sampling import moving_surface
 from mitsuba_wai.waves import sea_surface
 from wai_core.io import read_exr
 from wai_core.sensor import full_scale_dn

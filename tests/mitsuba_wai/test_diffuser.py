@@ -193,7 +193,8 @@ def test_blur_is_a_gaussian_of_blur_mm_on_the_screen(small_cfg):
 @pytest.fixture(scope="module")
 def flat_patterns(small_cfg):
     from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, wave_surface
+    from mitsuba_wai.render import FrameRenderer
+    from mitsuba_wai.surface_sampling import wave_surface
 
     grid = wave_surface(small_cfg)
     flat = flat_like(grid, small_cfg.water.h0_mm)

@@ -154,7 +154,8 @@ def test_aperture_keeps_the_flux_and_widens_the_spots(paper_cfg):
     # per channel is the projector's whatever the aperture; and out of focus (the water lies
     # nearer than the plane in focus) the spots in camera s get wider.
     from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, wave_surface
+    from mitsuba_wai.render import FrameRenderer
+    from mitsuba_wai.surface_sampling import wave_surface
     from tests.conftest import shrink
 
     cfg = shrink(paper_cfg, factor=2, spp=1)

@@ -15,8 +15,9 @@ from scipy import ndimage
 
 from mitsuba_wai.lens import CameraLens, scene_lenses
 from mitsuba_wai.particles import render_particles
-from mitsuba_wai.render import FrameRenderer, wave_surface
+from mitsuba_wai.render import FrameRenderer
 from mitsuba_wai.scenes import rectangle_to_world, sensor_dict
+from mitsuba_wai.surface_sampling import wave_surface
 from mitsuba_wai.variant import mitsuba, select_variant
 from tests.conftest import shrink
 from wai_core.errors import WaiInputError

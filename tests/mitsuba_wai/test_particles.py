@@ -7,8 +7,9 @@ import pytest
 from mitsuba_wai import particles
 from mitsuba_wai import render as render_mod
 from mitsuba_wai.particles import pass_split, render_particles
-from mitsuba_wai.render import FrameRenderer, render_image, wave_surface
+from mitsuba_wai.render import FrameRenderer, render_image
 from mitsuba_wai.scenes import SCENE_S_DEPTH
+from mitsuba_wai.surface_sampling import wave_surface
 from tests.conftest import shrink
 
 

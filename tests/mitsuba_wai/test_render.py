@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mitsuba_wai.mesh import flat_like
-from mitsuba_wai.render import FrameRenderer, render_folder, wave_surface
+from mitsuba_wai.render import FrameRenderer, render_folder
+from mitsuba_wai.surface_sampling import wave_surface
 from wai_core.errors import WaiInputError
 from wai_core.geometry import refract
 from wai_core.heightfield import Heightfield

@@ -5,8 +5,9 @@ import pytest
 
 from mitsuba_wai.ambient import hemispherical_reflectance, sky_image
 from mitsuba_wai.mesh import flat_like
-from mitsuba_wai.render import FrameRenderer, render_image, wave_surface
+from mitsuba_wai.render import FrameRenderer, render_image
 from mitsuba_wai.seawater import coefficients_per_mm, medium_view_scene, pattern_path_lengths_mm
+from mitsuba_wai.surface_sampling import wave_surface
 from mitsuba_wai.textures import object_texture
 from mitsuba_wai.variant import mitsuba
 from tests.conftest import shrink

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from mitsuba_wai.render import FrameRenderer, render_image, wave_surface
+from mitsuba_wai.render import FrameRenderer, render_image
+from mitsuba_wai.surface_sampling import wave_surface
 from mitsuba_wai.view_tracer import render_view
 from tests.conftest import shrink
 

@@ -271,7 +271,8 @@ def test_polarised_pattern_fades_near_brewster(paper_cfg):
     from scipy.ndimage import uniform_filter
 
     from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, wave_surface
+    from mitsuba_wai.render import FrameRenderer
+    from mitsuba_wai.surface_sampling import wave_surface
     from tests.conftest import shrink
     from wai_core.layout import dot_grid, flat_pattern_hits
 
@@ -311,7 +312,8 @@ def test_rough_water_pattern_matches_mitsubas_own_tracer(paper_cfg):
     diffuser (which diffuses that light instead). The stratified dot emitter's tracer then
     delivers what Mitsuba's projector and shadow-tested connections deliver."""
     from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, wave_surface
+    from mitsuba_wai.render import FrameRenderer
+    from mitsuba_wai.surface_sampling import wave_surface
     from tests.conftest import shrink
 
     cfg = shrink(paper_cfg, factor=4, spp=8).replace("water", roughness=0.05)

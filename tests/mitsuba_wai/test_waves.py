@@ -381,7 +381,7 @@ def test_capillary_sea_wavelengths_and_mesh_follow_the_dispersion(paper_sea):
 
 
 def test_a_cutoff_too_far_is_refused_naming_omega_max_rel():
-    from mitsuba_wai.render import wave_surface
+    from mitsuba_wai.surface_sampling import wave_surface
     from wai_core import load_system
 
     cfg = load_system("paper").replace(

@@ -5,7 +5,8 @@ import dataclasses
 import pytest
 
 from mitsuba_wai.mesh import flat_like
-from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
+from mitsuba_wai.render import FrameRenderer, render_seed
+from mitsuba_wai.surface_sampling import wave_surface
 from mitsuba_wai.textures import object_texture
 from wai.experiments.validate import spot_agreement, view_agreement
 

@@ -60,7 +60,7 @@ def bench_render(config: str | Path, runs: int, variant: str = "auto") -> dict[s
     variant : str
         Mitsuba variant: ``auto`` (GPU, else LLVM), ``llvm_ad_rgb`` or ``cuda_ad_rgb``.
     """
-    from mitsuba_wai.render import wave_surface
+    from mitsuba_wai.surface_sampling import wave_surface
     from mitsuba_wai.variant import select_variant
     from wai_core import load_system
 

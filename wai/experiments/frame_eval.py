@@ -135,7 +135,8 @@ def render_frame(cfg: SystemConfig, amplitude: float = 1.0) -> tuple[dict[str, A
     (at mid-exposure)."""
     from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense, subframe_plan
     from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
+    from mitsuba_wai.render import FrameRenderer, render_seed
+    from mitsuba_wai.surface_sampling import wave_surface
 
     h0 = cfg.water.h0_mm
 

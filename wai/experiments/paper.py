@@ -124,7 +124,8 @@ def _other_datasets(
 
 def run_seeds(cfg: SystemConfig, seeds: list[int], out: Path) -> list[SeedRun]:
     """Render, restore and score each seed on the checkerboard, then the natural images."""
-    from mitsuba_wai.render import FrameRenderer, render_folder, wave_surface
+    from mitsuba_wai.render import FrameRenderer, render_folder
+    from mitsuba_wai.surface_sampling import wave_surface
     from mitsuba_wai.textures import object_texture
     from restoration import restore_folder
 
@@ -150,7 +151,8 @@ def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> l
     """Scale the waves' heights by each factor: measured slope amplitude Φ and the fraction of
     dots whose correspondence is correct (against the geometric model's labels)."""
     from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
+    from mitsuba_wai.render import FrameRenderer, render_seed
+    from mitsuba_wai.surface_sampling import wave_surface
     from restoration import RestorationFailed
     from restoration.features import features_from_reference, prepare_reference
     from wai.experiments.frame_eval import correspondence_counts

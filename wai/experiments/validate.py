@@ -115,7 +115,8 @@ def reference_table(cfg: SystemConfig, quick: bool) -> list[dict[str, Any]]:
     at the default spp, the reference at 64 / 16 spp (``quick``) or 256 / 64."""
     from mitsuba_wai.mesh import flat_like
     from mitsuba_wai.reference import render_reference
-    from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
+    from mitsuba_wai.render import FrameRenderer, render_seed
+    from mitsuba_wai.surface_sampling import wave_surface
 
     spp = (64, 16) if quick else (256, 64)
     c = cfg.replace("waves", wind_speed_m_s=1.0, seed=0)
@@ -141,7 +142,8 @@ def _cases(quick: bool) -> list[tuple[float, int]]:
 def agreement_table(cfg: SystemConfig, quick: bool) -> list[dict[str, Any]]:
     """Spot and view agreement for flat water and each (wind, seed) case at the default spp."""
     from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, render_seed, wave_surface
+    from mitsuba_wai.render import FrameRenderer, render_seed
+    from mitsuba_wai.surface_sampling import wave_surface
     from mitsuba_wai.textures import object_texture
 
     texture = object_texture(cfg.object)
@@ -174,7 +176,8 @@ def agreement_table(cfg: SystemConfig, quick: bool) -> list[dict[str, Any]]:
 def spp_sweep(cfg: SystemConfig, spps: list[int], runs: int = 2) -> list[dict[str, Any]]:
     """Spot agreement and render time of the pattern against spp, for each ``[render].sampling``
     (U from cfg, seed 0)."""
-    from mitsuba_wai.render import FrameRenderer, wave_surface
+    from mitsuba_wai.render import FrameRenderer
+    from mitsuba_wai.surface_sampling import wave_surface
 
     surface = wave_surface(cfg)
     rows = []
@@ -209,7 +212,8 @@ def view_spp_sweep(
     """The view's noise against spp, for each ``[render].sampling``: RMS difference from a
     ``reference_spp`` render (two independent ones averaged), on the radiance scale (1 = white),
     and render time (U from cfg, seed 0)."""
-    from mitsuba_wai.render import FrameRenderer, wave_surface
+    from mitsuba_wai.render import FrameRenderer
+    from mitsuba_wai.surface_sampling import wave_surface
 
     surface = wave_surface(cfg)
     reference = None
