@@ -47,7 +47,6 @@ variant), each image with a PNG preview; written atomically.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -58,13 +57,11 @@ from numpy.typing import NDArray
 
 from mitsuba_wai import mesh as meshes
 from mitsuba_wai.render import (
-    OUTPUT_COMMAND,
     FrameRenderer,
+    RenderSteps,
     render_image,
     render_seed,
     scene_record,
-    write_images,
-    write_surface,
 )
 from mitsuba_wai.scenes import rectangle_to_world, sensor_dict, sun_frame, water_bsdf
 from mitsuba_wai.surface_sampling import file_surface, labelled, wave_surface
@@ -81,7 +78,6 @@ from wai_core.alterman import (
 from wai_core.errors import WaiInputError
 from wai_core.geometry import critical_angle_rad
 from wai_core.heightfield import Heightfield, grid_faces
-from wai_core.io import atomic_dir, check_output_dir, raise_if_interrupted, write_json
 from wai_core.layout import surface_extent
 from wai_core.rig_checks import check_surface_in_rig
 
@@ -457,59 +453,36 @@ def render_alterman_folder(
     dict
         The ``scene.json`` record, with ``timings_s`` per step.
     """
-    from tqdm import tqdm
-
-    bar = tqdm(total=5, desc="render A", disable=not progress, unit="step", leave=False)
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-
-    def tick(name: str) -> None:
-        nonlocal t0
-        raise_if_interrupted()
-        timings[name] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        bar.update(1)
-
-    label = surface_label or ("[waves]" if heightfield is None else "heightfield")
-    with labelled(label):
-        surface = alterman_surface(system, heightfield)
-    source = "waves" if heightfield is None else "file"
-    check_surface_in_rig(system.base, surface, label)
-    try:
-        check_surface(system, sensor_layout(system), surface)
-    except WaiInputError as exc:
-        raise WaiInputError(f"{label}: {exc}") from None
-    check_output_dir(out_dir, OUTPUT_COMMAND, overwrite)
-    renderer = renderer if renderer is not None else SunRenderer(system, surface)
-    zeroed_before = renderer.nonfinite_pixels
-    tick("surface and scene")
-    seed = render_seed(system.base)
-    h0 = system.base.water.h0_mm
-    images = {
-        "sunspots": renderer.render(surface, seed),
-        "sunspots_flat": renderer.render(meshes.flat_like(surface, h0), seed),
-    }
-    tick("render sun")
-    if views is None:
-        frame = FrameRenderer(system.base, surface, systems=("view",))
-        views = {
-            "view": frame.render(surface, seed, which=("view",))["view"],
-            "view_truth": frame.render(meshes.flat_like(surface, h0), seed, which=("view",))[
-                "view"
-            ],
-        }
-    images.update({k: views[k] for k in ("view", "view_truth")})
-    tick("render view")
-    record = alterman_record(system, renderer, surface, source)
-    with atomic_dir(out_dir, command=OUTPUT_COMMAND, overwrite=overwrite) as tmp:
-        write_images(tmp, images, view_gain=system.base.water.n_water**2)
-        write_surface(tmp, surface)
-        tick("write")
-        record["timings_s"] = timings
-        record["nonfinite_pixels_zeroed"] = {
-            "sunspots": renderer.nonfinite_pixels - zeroed_before
-        }
-        write_json(tmp / "scene.json", record)
-    bar.update(1)
-    bar.close()
-    return record
+    steps = ("surface and scene", "render sun", "render view", "write")
+    with RenderSteps(out_dir, steps, "render A", progress, overwrite) as run:
+        label = surface_label or ("[waves]" if heightfield is None else "heightfield")
+        with run("surface and scene"):
+            with labelled(label):
+                surface = alterman_surface(system, heightfield)
+            source = "waves" if heightfield is None else "file"
+            check_surface_in_rig(system.base, surface, label)
+            try:
+                check_surface(system, sensor_layout(system), surface)
+            except WaiInputError as exc:
+                raise WaiInputError(f"{label}: {exc}") from None
+            run.check_output()
+            renderer = renderer if renderer is not None else SunRenderer(system, surface)
+            zeroed_before = renderer.nonfinite_pixels
+        seed = render_seed(system.base)
+        flat = meshes.flat_like(surface, system.base.water.h0_mm)
+        with run("render sun"):
+            images = {
+                "sunspots": renderer.render(surface, seed),
+                "sunspots_flat": renderer.render(flat, seed),
+            }
+        with run("render view"):
+            if views is None:
+                frame = FrameRenderer(system.base, surface, systems=("view",))
+                views = {
+                    "view": frame.render(surface, seed, which=("view",))["view"],
+                    "view_truth": frame.render(flat, seed, which=("view",))["view"],
+                }
+            images.update({k: views[k] for k in ("view", "view_truth")})
+        record = alterman_record(system, renderer, surface, source)
+        zeroed = {"sunspots": renderer.nonfinite_pixels - zeroed_before}
+        return run.write(record, images, surface, zeroed, view_gain=system.base.water.n_water**2)

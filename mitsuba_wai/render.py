@@ -24,8 +24,9 @@ blurred over the exposure and the surface files hold the surface at mid-exposure
 
 from __future__ import annotations
 
+import contextlib
 import platform
-import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -73,6 +74,7 @@ from wai_core.io import (
 from wai_core.layout import diffuser_rect, object_plane_center, observed_patch, surface_extent
 from wai_core.rig_checks import check_surface_in_rig
 from wai_core.sensor import integer_image
+from wai_core.timings import Timings
 
 # Most samples Mitsuba takes in one wavefront (2^32 - 1); more spp are rendered in passes.
 MAX_WAVEFRONT = 0xFFFFFFFF
@@ -361,6 +363,90 @@ def render_seed(cfg: SystemConfig) -> int:
     return (int(cfg.waves.seed) * 7919 + 17) % 2**32
 
 
+class RenderSteps:
+    """The skeleton of writing one render folder: a progress bar over its steps, each step's
+    wall time, a pending interrupt raised between steps, the output location checked before the
+    renders and the folder written atomically after them.
+
+    Parameters
+    ----------
+    out_dir : path
+        The render folder to create (the output policy of :mod:`wai_core.io`).
+    steps : sequence of str
+        The steps, in the order they run; the last is ``"write"`` (:meth:`write`).
+    desc : str
+        The progress bar's label.
+    progress : bool
+        Show the progress bar.
+    overwrite : bool
+        Replace an existing folder at ``out_dir`` that is not a previous render folder.
+
+    Each step is a block, ``with steps("load scenes"): ...``; :meth:`write` is the last.
+    """
+
+    def __init__(self, out_dir: str | Path, steps: Sequence[str], desc: str, progress: bool,
+                 overwrite: bool = False) -> None:
+        from tqdm import tqdm
+
+        self.out_dir = Path(out_dir)
+        self.steps = tuple(steps)
+        self.overwrite = overwrite
+        self.timings = Timings()
+        self._bar = tqdm(total=len(self.steps), desc=desc, disable=not progress, unit="step",
+                         leave=False)
+        self._bar.set_postfix_str(self.steps[0])
+
+    def __enter__(self) -> RenderSteps:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._bar.close()
+
+    @contextlib.contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        """Time the block as step ``name``; then raise a pending interrupt and advance the
+        bar, whose label names the step now running."""
+        with self.timings(name):
+            yield
+        raise_if_interrupted()
+        following = self.steps.index(name) + 1
+        self._bar.set_postfix_str(
+            self.steps[following] if following < len(self.steps) else "done", refresh=False
+        )
+        self._bar.update(1)
+
+    @property
+    def timings_s(self) -> dict[str, float]:
+        """Wall time of each step done so far, s."""
+        return {name: ms / 1e3 for name, ms in self.timings.ms.items()}
+
+    def check_output(self) -> None:
+        """Refuse an output location that cannot or may not be written, before the renders."""
+        check_output_dir(self.out_dir, OUTPUT_COMMAND, self.overwrite)
+
+    def write(
+        self,
+        record: dict[str, Any],
+        images: dict[str, NDArray],
+        surface: Heightfield,
+        nonfinite_pixels: dict[str, int],
+        *,
+        view_gain: float,
+        sensor: SensorConfig | None = None,
+    ) -> dict[str, Any]:
+        """Step ``"write"``: the images (:func:`write_images`), the surface (:func:`write_surface`)
+        and ``scene.json`` (``record`` with ``timings_s`` and ``nonfinite_pixels_zeroed``),
+        into a folder that appears at ``out_dir`` when complete. Returns ``record``."""
+        with atomic_dir(self.out_dir, command=OUTPUT_COMMAND, overwrite=self.overwrite) as tmp:
+            with self("write"):
+                write_images(tmp, images, view_gain=view_gain, sensor=sensor)
+                write_surface(tmp, surface)
+            record["timings_s"] = self.timings_s
+            record["nonfinite_pixels_zeroed"] = nonfinite_pixels
+            write_json(tmp / "scene.json", record)
+        return record
+
+
 def render_folder(
     cfg: SystemConfig,
     out_dir: str | Path,
@@ -402,53 +488,28 @@ def render_folder(
     WaiInputError
         A surface outside the rig, an output location that cannot or may not be written.
     """
-    from tqdm import tqdm
-
-    steps = ["surface", "load scenes", "render wavy and flat", "write"]
-    bar = tqdm(total=len(steps), desc="render", disable=not progress, unit="step", leave=False)
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-
-    def tick(name: str) -> None:
-        nonlocal t0
-        raise_if_interrupted()
-        timings[name] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        # The label names the step now running (the last one: what just finished).
-        following = steps.index(name) + 1
-        bar.set_postfix_str(steps[following] if following < len(steps) else "done",
-                            refresh=False)
-        bar.update(1)
-
-    bar.set_postfix_str(steps[0])
-    label = surface_label or ("[waves]" if heightfield is None else "heightfield")
-    with labelled(label):
-        if heightfield is None:
-            surface, source = wave_surface(cfg), "waves"
-        else:
-            surface, source = file_surface(cfg, heightfield), "file"
-    check_surface_in_rig(cfg, surface, label)
-    # Only the wave model moves; the exposure's first and last surfaces are checked too.
-    surface_at = moving_surface(cfg) if heightfield is None else None
-    plan = subframe_plan(cfg) if surface_at is not None else None
-    if plan is not None and plan.n > 1:
-        for t in (plan.times_s[0], plan.times_s[-1]):
-            check_surface_in_rig(cfg, surface_at(t), label)
-    check_output_dir(out_dir, OUTPUT_COMMAND, overwrite)
-    tick("surface")
-    renderer = FrameRenderer(cfg, surface)
-    tick("load scenes")
-    seed = render_seed(cfg)
-    cfg, images = render_frame_images(renderer, cfg, surface, seed, surface_at=surface_at,
-                                      plan=plan)
-    tick("render wavy and flat")
-    record = scene_record(cfg, renderer.variant, surface, source)
-    with atomic_dir(out_dir, command=OUTPUT_COMMAND, overwrite=overwrite) as tmp:
-        write_images(tmp, images, view_gain=cfg.water.n_water**2, sensor=cfg.sensor)
-        write_surface(tmp, surface)
-        tick("write")
-        record["timings_s"] = timings
-        record["nonfinite_pixels_zeroed"] = renderer.nonfinite_pixels
-        write_json(tmp / "scene.json", record)
-    bar.close()
-    return record
+    steps = ("surface", "load scenes", "render wavy and flat", "write")
+    with RenderSteps(out_dir, steps, "render", progress, overwrite) as run:
+        label = surface_label or ("[waves]" if heightfield is None else "heightfield")
+        with run("surface"):
+            with labelled(label):
+                if heightfield is None:
+                    surface, source = wave_surface(cfg), "waves"
+                else:
+                    surface, source = file_surface(cfg, heightfield), "file"
+            check_surface_in_rig(cfg, surface, label)
+            # Only the wave model moves; the exposure's first and last surfaces are checked too.
+            surface_at = moving_surface(cfg) if heightfield is None else None
+            plan = subframe_plan(cfg) if surface_at is not None else None
+            if plan is not None and plan.n > 1:
+                for t in (plan.times_s[0], plan.times_s[-1]):
+                    check_surface_in_rig(cfg, surface_at(t), label)
+            run.check_output()
+        with run("load scenes"):
+            renderer = FrameRenderer(cfg, surface)
+        with run("render wavy and flat"):
+            cfg, images = render_frame_images(renderer, cfg, surface, render_seed(cfg),
+                                              surface_at=surface_at, plan=plan)
+        record = scene_record(cfg, renderer.variant, surface, source)
+        return run.write(record, images, surface, renderer.nonfinite_pixels,
+                         view_gain=cfg.water.n_water**2, sensor=cfg.sensor)
