@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from mitsuba_wai.mesh import flat_like
-from mitsuba_wai.render import FrameRenderer, render_folder
+from mitsuba_wai.render import FrameRenderer, RenderSteps, render_folder
 from mitsuba_wai.surface_sampling import wave_surface
 from wai_core.errors import WaiInputError
 from wai_core.geometry import refract
-from wai_core.heightfield import Heightfield
+from wai_core.heightfield import Heightfield, load_heightfield
 from wai_core.io import read_exr
 
 
@@ -63,6 +63,43 @@ def test_render_folder_contract(small_cfg, tmp_path):
     saved = json.loads((out / "scene.json").read_text())
     assert saved["seed"] == small_cfg.waves.seed and saved["variant"] == record["variant"]
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())
+
+
+def _tiny_folder_parts():
+    surface = Heightfield(np.linspace(0, 10, 5), np.linspace(0, 10, 5), np.full((5, 5), 150.0))
+    return surface, {"view": np.full((4, 6, 3), 0.5, np.float32)}
+
+
+def test_render_steps_time_each_step_and_write_the_folder(tmp_path):
+    surface, images = _tiny_folder_parts()
+    out = tmp_path / "frame"
+    with RenderSteps(out, ("surface", "render", "write"), "test", progress=False) as steps:
+        with steps("surface"):
+            steps.check_output()
+        with steps("render"):
+            sum(range(10**5))
+        steps.write({"format": "test"}, images, surface, {"view": 0}, view_gain=1.0)
+    saved = json.loads((out / "scene.json").read_text())
+    assert list(saved["timings_s"]) == ["surface", "render", "write"]
+    assert all(s >= 0 for s in saved["timings_s"].values())
+    assert saved["format"] == "test" and saved["nonfinite_pixels_zeroed"] == {"view": 0}
+    assert np.array_equal(read_exr(out / "view.exr"), images["view"])
+    assert np.array_equal(load_heightfield(out / "heightfield.npz").z, surface.z)
+
+
+def test_render_steps_leave_nothing_when_the_write_fails(tmp_path, monkeypatch):
+    from mitsuba_wai import render
+
+    def fail(folder, surface):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(render, "write_surface", fail)
+    surface, images = _tiny_folder_parts()
+    with pytest.raises(OSError, match="disk full"), RenderSteps(
+        tmp_path / "frame", ("write",), "test", progress=False
+    ) as steps:
+        steps.write({}, images, surface, {}, view_gain=1.0)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_heightfield_not_covering_the_patch_leaves_nothing(small_cfg, tmp_path):
