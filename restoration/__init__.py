@@ -12,14 +12,17 @@ A frame in ten lines::
     print(done.result.status, done.scores.rmse_mm)
 
     cal = rs.Calibration.from_folder("renders/demo")   # or step by step, from memory
-    method = rs.StructuredLight(rs.RestoreOptions(integrator="paper"))
+    method = rs.StructuredLight(rs.StructuredLightOptions(integrator="paper"))
     result = method(cal.load_images("renders/demo"), cal)
 
-Stages (one subpackage or module each): :mod:`~restoration.features` (detect, reference,
-match), :mod:`~restoration.normals`, :mod:`~restoration.surface` with
-:mod:`~restoration.integrate` and :mod:`~restoration.anchor`, :mod:`~restoration.reverse_trace`
-(inverse solve, warp); methods in :mod:`~restoration.structured_light` and
-:mod:`~restoration.alterman`; scores in :mod:`~restoration.scoring` and
+One path for a frame: the :class:`Calibration` (the rig and everything derived from it, once)
+-> the features (:mod:`~restoration.features`: detect, reference, match) -> the frame's
+:class:`Observations` (:meth:`Calibration.observe`: rays and diffuser points) -> the stages,
+normals (:mod:`~restoration.normals`), integration (:mod:`~restoration.integrate`), level
+(:mod:`~restoration.anchor`), surface (:mod:`~restoration.surface`), consistency
+(:mod:`~restoration.consistency`), view (:mod:`~restoration.reverse_trace`) -> the
+:class:`RestoreResult`. The methods are :mod:`~restoration.structured_light` and
+:mod:`~restoration.alterman`; scores are in :mod:`~restoration.scoring` and
 :mod:`~restoration.metrics`.
 
 Every result carries a :class:`Status` (a string enum: ``Status.OK == "ok"``). A frame the data
@@ -34,7 +37,13 @@ from restoration.consistency import Consistency
 from restoration.errors import RestorationFailed
 from restoration.folder import FolderRestore, restore_folder
 from restoration.methods import METHODS, Alterman, Method, as_method, get_method, load_calibration
-from restoration.options import ANCHORS, RestoreOptions
+from restoration.observations import Observations
+from restoration.options import (
+    ANCHORS,
+    AltermanOptions,
+    StructuredLightOptions,
+    SurfaceOptions,
+)
 from restoration.result import STATUSES, RestoreResult, Status
 from restoration.scoring import Scores, Truth, score
 from restoration.sequence import SequenceRestore, restore_sequence
@@ -47,19 +56,22 @@ __all__ = [
     "STATUSES",
     "Alterman",
     "AltermanCalibration",
+    "AltermanOptions",
     "Calibration",
     "Consistency",
     "FolderRestore",
     "LevelTrack",
     "Method",
+    "Observations",
     "RestorationFailed",
-    "RestoreOptions",
     "RestoreResult",
     "RigCalibration",
     "Scores",
     "SequenceRestore",
     "Status",
     "StructuredLight",
+    "StructuredLightOptions",
+    "SurfaceOptions",
     "Truth",
     "ViewMatch",
     "as_method",

@@ -39,7 +39,7 @@ from restoration.errors import RestorationFailed
 from restoration.features import Matches, Spots, detect_spots
 from restoration.integrate import MIN_SAMPLES, integrate, to_heightfield
 from restoration.normals import slopes_from_normals, spots_on_diffuser
-from restoration.options import RestoreOptions
+from restoration.options import AltermanOptions
 from restoration.result import RestoreResult, Status
 from wai_core.alterman import (
     AltermanSystem,
@@ -51,6 +51,7 @@ from wai_core.alterman import (
 from wai_core.config import config_from_dict
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
+from wai_core.timings import Timings
 
 Array = NDArray[np.float64]
 
@@ -61,7 +62,6 @@ SUN_OUT_OF_VIEW = Status.SUN_OUT_OF_VIEW
 TOO_FEW_SPOTS = Status.TOO_FEW_SPOTS
 MIN_SPOTS = 16
 """Fewest matched spots the method integrates (as the structured light's features)."""
-DEFAULT_OPTIONS = RestoreOptions(anchor="gauge")
 """The structured light's defaults with the only anchor this method has (see the notes)."""
 
 
@@ -304,8 +304,7 @@ def reconstruct_alterman(
     pinholes_mm: Array,
     spots_mm: Array,
     layout: SensorLayout,
-    options: RestoreOptions,
-    tol_mm: float = 1e-4,
+    options: AltermanOptions,
 ) -> AltermanSurface:
     """Surface from matched spots: Snell normals, samples at h0 then refined, integrated on the
     pinhole grid (``options.integrator``) with mean height h0, gridded (``options.gridder``).
@@ -318,11 +317,9 @@ def reconstruct_alterman(
         Pinhole centres and their spots on the screen, mm.
     layout : SensorLayout
         The sensor's calibration (sun direction, water index and level).
-    options : RestoreOptions
+    options : AltermanOptions
         ``integrator``, ``n_refine`` (0: samples stay on z = h0, the published method),
-        ``gridder``, ``grid_spacing_mm``.
-    tol_mm : float
-        Refinement stops once a pass changes no height by more than this, mm.
+        ``refine_tol_mm``, ``gridder``, ``grid_spacing_mm``.
     """
     t0 = time.perf_counter()
     t = refracted_dirs(pinholes_mm, spots_mm)
@@ -343,7 +340,7 @@ def reconstruct_alterman(
         new, heights = new[keep], heights[keep]
         change = float(np.max(np.abs(new - heights))) if it > 0 else np.nan
         heights = new
-        if it > 0 and change < tol_mm:
+        if it > 0 and change < options.refine_tol_mm:
             break
     t2 = time.perf_counter()
     surface = to_heightfield(
@@ -395,7 +392,7 @@ def _spot_features(
 def restore_alterman(
     images: dict[str, NDArray],
     cal: AltermanCalibration,
-    options: RestoreOptions = DEFAULT_OPTIONS,
+    options: AltermanOptions | None = None,
 ) -> RestoreResult:
     """Run the method on loaded images (``sunspots``, ``sunspots_flat``, ``view``).
 
@@ -403,42 +400,28 @@ def restore_alterman(
     surface, restored view and timings, or ``no_sun`` / ``sun_out_of_view`` /
     ``too_few_spots`` / ``failed`` (the spots give no surface:
     :class:`~restoration.errors.RestorationFailed`) and no surface.
-
-    Raises
-    ------
-    WaiInputError
-        For an anchor other than ``gauge`` (its normals do not depend on the height, so the
-        structured light's integrability anchor has nothing to work with).
     """
-    if options.anchor != "gauge":
-        raise WaiInputError(
-            "alterman: the absolute height comes from the gauge (--anchor gauge); its normals do "
-            "not depend on height, so integrability cannot fix it"
-        )
+    options = AltermanOptions() if options is None else options
     status, message = sun_status(cal.system, cal.layout)
     if status != OK:
         return RestoreResult(METHOD, status, message)
-    t0 = time.perf_counter()
-    matches, status, message = _spot_features(images, cal)
+    timings = Timings()
+    with timings("features"):
+        matches, status, message = _spot_features(images, cal)
     if matches is None or status != OK:
         counts = {} if matches is None else matches.counts
         return RestoreResult(METHOD, status, message, counts=counts)
-    t1 = time.perf_counter()
-    pinholes = cal.layout.pinholes_mm[cal.layout.index_of(matches.ij)]
-    spots_mm = spots_on_diffuser(matches.spot_px, cal.layout.camera, cal.layout.screen_z_mm)
     try:
-        surface = reconstruct_alterman(matches.ij, pinholes, spots_mm, cal.layout, options)
+        with timings("surface"):
+            pinholes = cal.layout.pinholes_mm[cal.layout.index_of(matches.ij)]
+            spots_mm = spots_on_diffuser(matches.spot_px, cal.layout.camera,
+                                         cal.layout.screen_z_mm)
+            surface = reconstruct_alterman(matches.ij, pinholes, spots_mm, cal.layout, options)
     except RestorationFailed as exc:
         return RestoreResult(METHOD, Status.FAILED, str(exc), counts=matches.counts)
-    t2 = time.perf_counter()
-    view = cal.restore_view(images["view"] / cal.view_gain, surface.heightfield,
-                            options.warp_step_px)
-    t3 = time.perf_counter()
-    matches.timings_ms.update({"detect_and_match": 1e3 * (t1 - t0)})
-    timings = {
-        "features": 1e3 * (t1 - t0),
-        "surface": 1e3 * (t2 - t1),
-        "reverse_trace": 1e3 * (t3 - t2),
-        "end_to_end": 1e3 * (t3 - t0),
-    }
-    return RestoreResult(METHOD, OK, "", matches, surface, view, timings, matches.counts)
+    with timings("reverse_trace"):
+        view = cal.restore_view(images["view"], surface.heightfield, options.warp_step_px,
+                                gain=cal.view_gain)
+    timings.add("end_to_end", timings.total())
+    matches.timings_ms.update({"detect_and_match": timings.ms["features"]})
+    return RestoreResult(METHOD, OK, "", matches, surface, view, timings.to_dict(), matches.counts)

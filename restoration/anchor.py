@@ -37,7 +37,9 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from restoration.integrate import edge_step, line_neighbours
+from restoration.integrate.lattice import line_neighbours
+from restoration.integrate.plans import IntegrationPlans, plan_of
+from restoration.integrate.rules import edge_step
 from restoration.surface import SurfaceEstimate, trapezoid_edges
 
 N_SETS = 4
@@ -56,7 +58,9 @@ than at a probe a few millimetres off also discounts the edges across sharp cres
 steps the rule gets least right (docs/results.md, "Accuracy")."""
 
 
-def edge_residuals_mm(est: SurfaceEstimate) -> tuple[NDArray, NDArray]:
+def edge_residuals_mm(
+    est: SurfaceEstimate, plans: IntegrationPlans | None = None
+) -> tuple[NDArray, NDArray]:
     """Per grid edge: the mismatch (mm) between the height difference of neighbouring samples
     and the step their slopes give (zero for an integrable slope field, to the rule's error),
     and the edge's set in ``0 .. N_SETS - 1`` (parity of its first dot's ``i`` and ``j``).
@@ -67,7 +71,7 @@ def edge_residuals_mm(est: SurfaceEstimate) -> tuple[NDArray, NDArray]:
     trapezoid rule's for an estimate the ``"trapezoid"`` integrator made: the reconstruction's
     own least-squares misfit. (The trapezoid rule's error, ~2 um rms on the paper's rig, is
     systematic and biased the level by ~0.1 mm; docs/results.md.)"""
-    a, b, before, after, sets = _edges(est.ij, est.integrator == "trapezoid")
+    a, b, before, after, sets = _edges(est.ij, est.integrator == "trapezoid", plans)
     r = np.empty(a.size)
     _edge_residual_kernel(
         np.ascontiguousarray(est.points_mm, dtype=float),
@@ -84,30 +88,28 @@ def _edge_residual_kernel(points, slopes, a, b, before, after, r):  # pragma: no
         r[e] = points[j, 2] - points[i, 2] - edge_step(points, slopes, before[e], i, j, after[e])
 
 
-def _edges(ij: NDArray, trapezoid: bool = False) -> tuple[NDArray, ...]:
+def _edges(
+    ij: NDArray, trapezoid: bool = False, plans: IntegrationPlans | None = None
+) -> tuple[NDArray, ...]:
     """:func:`~restoration.surface.trapezoid_edges` of ``ij``, the samples before and after
-    each on its lattice line (all -1 for the ``trapezoid`` rule), and each edge's set, cached:
-    a search evaluates every probe on the same samples."""
-    key = (ij.shape, ij.tobytes(), trapezoid)
-    if key not in _EDGES:
-        if len(_EDGES) >= 16:
-            _EDGES.clear()
-        a, b = trapezoid_edges(ij)
-        if trapezoid:
-            before = after = np.full(a.size, -1, np.int64)
-        else:
-            before, after = line_neighbours(ij, a, b)
-        sets = ((ij[a, 0] % 2) + 2 * (ij[a, 1] % 2)).astype(np.int64)
-        _EDGES[key] = (a, b, before, after, sets)
-    return _EDGES[key]
+    each on its lattice line (all -1 for the ``trapezoid`` rule), and each edge's set, kept
+    in ``plans`` when given: a search evaluates every probe on the same samples."""
+    return plan_of(plans, "anchor_edges", ij, lambda: _build_edges(ij, trapezoid), trapezoid)
 
 
-_EDGES: dict[tuple, tuple[NDArray, NDArray, NDArray]] = {}
+def _build_edges(ij: NDArray, trapezoid: bool) -> tuple[NDArray, ...]:
+    a, b = trapezoid_edges(ij)
+    if trapezoid:
+        before = after = np.full(a.size, -1, np.int64)
+    else:
+        before, after = line_neighbours(ij, a, b)
+    sets = ((ij[a, 0] % 2) + 2 * (ij[a, 1] % 2)).astype(np.int64)
+    return a, b, before, after, sets
 
 
-def integration_residual_mm(est: SurfaceEstimate) -> float:
+def integration_residual_mm(est: SurfaceEstimate, plans: IntegrationPlans | None = None) -> float:
     """RMS of :func:`edge_residuals_mm` over the finite edges, mm (NaN when there are none)."""
-    r, _ = edge_residuals_mm(est)
+    r, _ = edge_residuals_mm(est, plans)
     r = r[np.isfinite(r)]
     return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
 
@@ -229,11 +231,12 @@ def _linear_minima(r, g, sets, scale, out):  # pragma: no cover
 def find_anchor(
     reconstruct: Callable[[float], SurfaceEstimate],
     start_mm: float,
-    step_mm: float = 2.0,
+    step_mm: float,
     max_shift_mm: float = 60.0,
     tol_mm: float = 0.02,
     max_evaluations: int = 12,
     cauchy_scale: float = CAUCHY_SCALE,
+    plans: IntegrationPlans | None = None,
 ) -> AnchorSearch:
     """Minimise the integration residual over the anchor height.
 
@@ -267,6 +270,8 @@ def find_anchor(
         The objective is the mean Cauchy loss of the edge residuals with this scale in robust
         standard deviations of the latest reconstruction's residuals (:data:`CAUCHY_SCALE`);
         0: the mean squared residual.
+    plans : IntegrationPlans, optional
+        Where the probes' edges are kept (the frame's observations' plans).
     """
     anchors: list[float] = []
     residuals: list[NDArray] = []
@@ -276,7 +281,7 @@ def find_anchor(
     def probe(anchor: float) -> None:
         nonlocal sets
         est = reconstruct(anchor)
-        r, sets = edge_residuals_mm(est)
+        r, sets = edge_residuals_mm(est, plans)
         anchors.append(anchor)
         residuals.append(np.asarray(r, dtype=float))
         estimates.append(est)

@@ -1,14 +1,17 @@
-"""What the restoration knows of a rig: its configuration, the view's gain, per-rig caches.
+"""What the restoration knows of a rig: its configuration and everything derived from it.
 
 A calibration is read from ``scene.json`` (written by ``wai render``, or by hand for one's own
 captures: the ``config`` section alone is enough) or built from a configuration in memory. It
-is shared by every frame of the rig; per-rig work (the flat-water reference, detected once) is
-cached on it. Per-sequence state (a video's level) is not: see :class:`LevelTrack`.
+is shared by every frame of the rig and owns what is derived from the rig once: the devices'
+models, the dot grid and its panel lookup, the view's gain, the flat-water reference (detected
+once) and the view's trace plan. A frame's features become :meth:`Calibration.observe`'s
+:class:`~restoration.observations.Observations`. Per-sequence state (a video's level) is not
+kept here: see :class:`LevelTrack`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Any, ClassVar
@@ -17,13 +20,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.features import ReferenceGrid, prepare_reference
-from restoration.reverse_trace import Restoration, restore_view
+from restoration.observations import Observations
+from restoration.options import SurfaceOptions
+from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, restore_view
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 from wai_core.images import find_image, read_image
 from wai_core.io import read_json
+from wai_core.pattern import dot_grid
 
 __all__ = ["Calibration", "LevelTrack", "RigCalibration", "read_scene_record"]
 
@@ -63,6 +69,9 @@ class RigCalibration:
 
     cfg: SystemConfig
     view_gain: float = 1.0
+    _view_plans: dict[int, ViewPlan] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
 
     IMAGES: ClassVar[tuple[str, ...]] = ("view",)
     """Stems of the images a frame of this method needs."""
@@ -77,15 +86,28 @@ class RigCalibration:
         :attr:`view_gain` (what scores and restored images are expressed in)."""
         return view / self.view_gain
 
+    def view_plan(self, warp_step_px: int = SurfaceOptions.warp_step_px) -> ViewPlan:
+        """The flat-water trace of camera v's nodes every ``warp_step_px`` pixels, built once
+        per step and kept (every frame's view resamples into it)."""
+        plan = self._view_plans.get(int(warp_step_px))
+        if plan is None:
+            cfg = self.cfg
+            plan = ViewPlan.build(self.camera_v, cfg.water.h0_mm, cfg.water.n_water,
+                                  cfg.object_z_mm, int(warp_step_px))
+            self._view_plans[int(warp_step_px)] = plan
+        return plan
+
     def restore_view(
-        self, distorted: NDArray, surface: Heightfield, warp_step_px: int = 8,
-        gain: float = 1.0,
+        self, distorted: NDArray, surface: Heightfield,
+        warp_step_px: int = SurfaceOptions.warp_step_px, gain: float = 1.0,
+        patches: SplinePatches | None = None,
     ) -> Restoration:
         """The view ``distorted`` ((H, W, 3)) restored into the flat-water view's geometry by
         reverse ray tracing through ``surface`` (absolute heights, mm), solving every
         ``warp_step_px``-th pixel, on the radiance scale: ``gain`` is divided out of the
         restored pixels (:attr:`view_gain` for a raw view; 1 for one already divided).
-        Resampling is linear, so this equals dividing first, without a copy of the view."""
+        Resampling is linear, so this equals dividing first, without a copy of the view.
+        ``patches``: the surface's spline table when the frame has built it already."""
         cfg = self.cfg
         distorted = np.asarray(distorted)
         if not np.issubdtype(distorted.dtype, np.floating):  # integer captures
@@ -93,6 +115,7 @@ class RigCalibration:
         return restore_view(
             distorted, self.camera_v, surface, cfg.water.h0_mm, cfg.water.n_water,
             cfg.object_z_mm, warp_step_px=warp_step_px, gain=gain,
+            plan=self.view_plan(warp_step_px), patches=patches,
         )
 
     def image_size(self, name: str) -> tuple[int, int]:
@@ -134,6 +157,56 @@ class Calibration(RigCalibration):
     reference: ReferenceGrid | None = None
 
     IMAGES: ClassVar[tuple[str, ...]] = ("pattern", "pattern_flat", "view")
+
+    @cached_property
+    def projector(self) -> PinholeCamera:
+        """The projector as a pinhole device (its panel pixels' rays)."""
+        return self.cfg.projector.camera()
+
+    @cached_property
+    def camera_s(self) -> PinholeCamera:
+        """The diffuser camera."""
+        return self.cfg.camera_s.camera()
+
+    @property
+    def diffuser_z_mm(self) -> float:
+        """Height of the diffuser plane, mm."""
+        return float(self.cfg.diffuser.z_mm)
+
+    @cached_property
+    def dot_grid(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Every dot's grid index ``(i, j)`` (G, 2) and panel position ``(col, row)`` (G, 2)
+        px, row by row (:func:`wai_core.pattern.dot_grid`)."""
+        return dot_grid(self.cfg.pattern, self.projector)
+
+    def panel_px(self, ij: NDArray) -> NDArray[np.float64]:
+        """Projector panel ``(col, row)`` (K, 2) px of the dots with grid indices ``ij`` (K, 2).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from restoration import Calibration
+        >>> from wai_core import load_system
+        >>> cal = Calibration(load_system("paper"))
+        >>> step = cal.panel_px(np.array([[1, 0], [0, 1]])) - cal.panel_px(np.array([[0, 0]]))
+        >>> bool(np.array_equal(step, np.eye(2) * cal.cfg.pattern.spacing_px))
+        True
+        """
+        grid_ij, panel = self.dot_grid
+        ni, nj = int(grid_ij[:, 0].max()), int(grid_ij[:, 1].max())
+        ij = np.asarray(ij)
+        return panel[(ij[:, 1] + nj) * (2 * ni + 1) + (ij[:, 0] + ni)]
+
+    def observe(self, ij: NDArray, spot_px: NDArray) -> Observations:
+        """The features with grid indices ``ij`` (K, 2) and spots ``spot_px`` (K, 2) px in
+        the rig's geometry (features without a finite spot left out), weighted for
+        integration at the gauge's level (:class:`~restoration.observations.Observations`)."""
+        keep = np.isfinite(spot_px).all(axis=1)
+        ij, spot_px = ij[keep], spot_px[keep]
+        return Observations.build(
+            ij, self.panel_px(ij), spot_px, self.projector, self.camera_s, self.diffuser_z_mm,
+            weight_h_mm=self.cfg.water.h0_mm,
+        )
 
     @classmethod
     def from_record(cls, record: dict[str, Any]) -> Calibration:

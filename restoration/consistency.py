@@ -256,10 +256,10 @@ def spot_consistency(
     >>> from wai_core import Heightfield, load_rig
     >>> cfg = load_rig("paper")
     >>> from restoration.normals import projector_rays
-    >>> from restoration.structured_light import panel_positions
+    >>> from restoration import Calibration
     >>> from wai_core.forward import spots_through
     >>> ij = np.array([[i, j] for i in range(-3, 4) for j in range(-3, 4)])
-    >>> panel = panel_positions(cfg, ij)
+    >>> panel = Calibration(cfg).panel_px(ij)
     >>> o, d = projector_rays(panel, cfg.projector.camera())
     >>> x, y = np.linspace(-200, 800, 101), np.linspace(-400, 400, 81)
     >>> flat = Heightfield(x, y, np.full((81, 101), cfg.water.h0_mm))

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
 from restoration.methods import Method, as_method
-from restoration.options import RestoreOptions
+from restoration.options import SurfaceOptions
 from restoration.result import RestoreResult, Status
 from restoration.scoring import Scores, Truth, score, surface_profile
 from restoration.view_check import match_flat_view
@@ -85,7 +85,7 @@ class FolderRestore:
 def restore_folder(
     folder: str | Path,
     method: str | Method = "structured-light",
-    options: RestoreOptions | None = None,
+    options: SurfaceOptions | None = None,
     *,
     out: str | Path | None = None,
     scored: bool = True,
@@ -103,7 +103,7 @@ def restore_folder(
         ``.exr``, ``.png``, ``.tif`` or ``.tiff``.
     method : str or Method
         ``"structured-light"`` (default), ``"alterman"``, or a configured method object.
-    options : RestoreOptions, optional
+    options : SurfaceOptions, optional
         With a method name: its options (default: the method's own).
     out : str or Path, optional
         Output folder (default ``folder/restore``).

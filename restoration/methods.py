@@ -1,8 +1,9 @@
 """The surface-sensing methods behind one small protocol, and a registry by name.
 
-A method is a callable object configured once (its :class:`RestoreOptions`) and applied to
-frames: ``method(images, cal) -> RestoreResult``. Each names the calibration type it needs,
-which also knows how to read a frame's images from a folder.
+A method is a callable object configured once (its options: :class:`StructuredLightOptions`,
+:class:`AltermanOptions`) and applied to frames: ``method(images, cal) -> RestoreResult``. Each
+names its options type and the calibration type it needs, which also knows how to read a
+frame's images from a folder.
 """
 
 from __future__ import annotations
@@ -12,10 +13,9 @@ from typing import Any, ClassVar, Protocol
 
 from numpy.typing import NDArray
 
-from restoration.alterman import DEFAULT_OPTIONS as ALTERMAN_OPTIONS
 from restoration.alterman import AltermanCalibration, restore_alterman
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
-from restoration.options import RestoreOptions
+from restoration.options import AltermanOptions, SurfaceOptions, checked_options
 from restoration.result import RestoreResult
 from restoration.structured_light import StructuredLight
 from wai_core.errors import WaiInputError
@@ -28,7 +28,8 @@ class Method(Protocol):
 
     name: ClassVar[str]
     calibration_type: ClassVar[type[RigCalibration]]
-    options: RestoreOptions
+    options_type: ClassVar[type[SurfaceOptions]]
+    options: SurfaceOptions
 
     def __call__(
         self, images: dict[str, NDArray], cal: Any, track: LevelTrack | None = None
@@ -38,21 +39,22 @@ class Method(Protocol):
 class Alterman:
     """Alterman et al.'s sun-and-pinhole sensor (STELLA MARIS), configured once.
 
-    Its normals do not depend on the height, so the level is always the gauge's
-    (``options.anchor`` must be ``gauge``, the default here).
+    Its normals do not depend on the height, so the level is always the gauge's: its options
+    (:class:`AltermanOptions`) have no anchor.
 
     Examples
     --------
-    >>> from restoration import Alterman
-    >>> Alterman().options.anchor
-    'gauge'
+    >>> from restoration import Alterman, AltermanOptions
+    >>> Alterman(AltermanOptions(n_refine=0)).options.n_refine
+    0
     """
 
     name = "alterman"
     calibration_type = AltermanCalibration
+    options_type = AltermanOptions
 
-    def __init__(self, options: RestoreOptions | None = None) -> None:
-        self.options = ALTERMAN_OPTIONS if options is None else options
+    def __init__(self, options: AltermanOptions | None = None) -> None:
+        self.options = checked_options(self.name, AltermanOptions, options)
 
     def __repr__(self) -> str:
         return f"Alterman({self.options!r})"
@@ -72,20 +74,31 @@ METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name
 """Methods by name: ``structured-light`` (the paper's) and ``alterman`` (the sun sensor)."""
 
 
-def get_method(name: str, options: RestoreOptions | None = None) -> Method:
-    """The method called ``name``, configured with ``options`` (default: its own defaults).
+def get_method(name: str, options: SurfaceOptions | None = None, **choices: Any) -> Method:
+    """The method called ``name``, configured with ``options`` (default: its own defaults),
+    or with the ``choices`` that are not None (``n_refine=0``, ``anchor=None``: a CLI's flags;
+    the others at the method's defaults).
 
     Raises
     ------
     WaiInputError
-        For an unknown name.
+        For an unknown name, another method's options, or a choice the method does not have.
+
+    Examples
+    --------
+    >>> from restoration import get_method
+    >>> get_method("alterman", n_refine=0, anchor=None).options.n_refine
+    0
     """
     if name not in METHODS:
         raise WaiInputError(f"unknown method {name!r} (known: {', '.join(METHODS)})")
-    return METHODS[name](options)
+    cls = METHODS[name]
+    if options is None and choices:
+        options = cls.options_type.from_choices(**choices)
+    return cls(options)
 
 
-def as_method(method: str | Method, options: RestoreOptions | None = None) -> Method:
+def as_method(method: str | Method, options: SurfaceOptions | None = None) -> Method:
     """``method`` itself when it is a configured method object, else :func:`get_method`
     ``(method, options)``."""
     return get_method(method, options) if isinstance(method, str) else method

@@ -1,29 +1,33 @@
-"""The restoration's choices, and their defaults in one place."""
+"""Each method's choices, with their defaults in one place per method.
+
+:class:`SurfaceOptions` holds what both surface-sensing methods choose (integrator, passes,
+gridding, the view's warp); :class:`StructuredLightOptions` adds the level and refinement of
+the paper's method, :class:`AltermanOptions` the sun sensor's refinement tolerance. An option
+one method does not have cannot be given to it: the options refuse it when they are built.
+"""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import asdict, dataclass, fields
+from typing import Any, TypeVar
 
 from restoration.integrate import GRIDDERS, INTEGRATORS
 from wai_core.errors import WaiInputError
 
-__all__ = ["ANCHORS", "RestoreOptions"]
+__all__ = [
+    "ANCHORS", "AltermanOptions", "StructuredLightOptions", "SurfaceOptions",
+    "checked_options",
+]
+
+OptionsT = TypeVar("OptionsT", bound="SurfaceOptions")
 
 ANCHORS = ("integrability", "gauge")
 """How the absolute level is set: from the slopes' integrability, or the gauge's h0."""
 
 
 @dataclass(frozen=True)
-class RestoreOptions:
-    """Choices of the restoration (defaults: the most accurate at real-time speed).
-
-    ``integrator='paper'``, ``n_refine=0``, ``gridder='clough_tocher'`` and ``anchor='gauge'``
-    is the paper's method as published (q_k on z = h0, central differences, bicubic-type
-    interpolation, mean height = h0). ``anchor='integrability'`` finds the absolute height
-    from the data instead (:mod:`restoration.anchor`); when the data do not pin it (standard
-    error above ``anchor_max_sigma_mm``, e.g. over calm water) the gauge's h0 is used and the
-    estimate says so (``SurfaceEstimate.anchor["method"] == "gauge_fallback"``).
+class SurfaceOptions:
+    """The choices every surface-sensing method makes.
 
     Attributes
     ----------
@@ -31,13 +35,8 @@ class RestoreOptions:
         A name in :data:`restoration.integrate.INTEGRATORS` (``fourth_order``, ``trapezoid``,
         ``paper``, ``spline``, ``frankot_chellappa``, ``dct_poisson``).
     n_refine : int
-        Most refinement passes of the reflection points after the paper's pass (0: the
-        paper); they stop once a pass moves no height by more than ``refine_tol_mm``.
-    refine_tol_mm : float
-        The refinement's convergence, mm. An unconverged refinement biases the level search
-        (three fixed passes left seed 4 of the accuracy bench 0.2 mm off; converged, 0.05 mm),
-        while 0.01 mm gives the same level as 1e-4 mm in 4-5 passes instead of 6-8
-        (docs/results.md).
+        Most refinement passes of the surface samples after the first pass (0: the samples
+        stay on ``z = h0``, as published).
     gridder : str
         A name in :data:`restoration.integrate.GRIDDERS`.
     grid_spacing_mm : float
@@ -45,10 +44,88 @@ class RestoreOptions:
     warp_step_px : int
         Spacing of the reverse trace's solved nodes in camera v, px (pixels between are
         interpolated).
+    """
+
+    integrator: str = "fourth_order"
+    n_refine: int = 8
+    gridder: str = "tangent_blend"
+    grid_spacing_mm: float = 2.0
+    warp_step_px: int = 8
+
+    def __post_init__(self) -> None:
+        for name, value, known in (
+            ("integrator", self.integrator, tuple(INTEGRATORS)),
+            ("gridder", self.gridder, GRIDDERS),
+        ):
+            if value not in known:
+                raise WaiInputError(f"unknown {name} {value!r} (known: {', '.join(known)})")
+        if int(self.n_refine) != self.n_refine or self.n_refine < 0:
+            raise WaiInputError(f"n_refine must be an integer >= 0, not {self.n_refine}")
+        if not self.grid_spacing_mm > 0 or int(self.warp_step_px) < 1:
+            raise WaiInputError("grid spacing must be > 0 mm and the warp step >= 1 px")
+
+    @classmethod
+    def from_choices(cls, **choices: Any) -> SurfaceOptions:
+        """These options with the ``choices`` that are not None (a CLI's unset flags), the
+        others at their defaults.
+
+        Raises
+        ------
+        WaiInputError
+            For a choice this method does not have (named, with the ones it has).
+
+        Examples
+        --------
+        >>> from restoration import AltermanOptions
+        >>> AltermanOptions.from_choices(n_refine=0, anchor=None).n_refine
+        0
+        >>> AltermanOptions.from_choices(anchor="integrability")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        wai_core.errors.WaiInputError: AltermanOptions has no option 'anchor' (its options: ...
+        """
+        known = {f.name for f in fields(cls)}
+        given = {k: v for k, v in choices.items() if v is not None}
+        unknown = sorted(set(given) - known)
+        if unknown:
+            raise WaiInputError(
+                f"{cls.__name__} has no option {unknown[0]!r} (its options: "
+                f"{', '.join(sorted(known))})"
+            )
+        return cls(**given)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options as plain values (what ``metrics.json`` records)."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class StructuredLightOptions(SurfaceOptions):
+    """The structured light's choices (defaults: the most accurate at real-time speed).
+
+    ``integrator='paper'``, ``n_refine=0``, ``gridder='clough_tocher'`` and ``anchor='gauge'``
+    is the paper's method as published (q_k on z = h0, central differences, bicubic-type
+    interpolation, mean height = h0). ``anchor='integrability'`` finds the absolute height
+    from the data instead (:mod:`restoration.anchor`); when the data do not pin it (standard
+    error above ``anchor_max_sigma_mm``, e.g. over calm water) the gauge's h0 is used and the
+    estimate says so (its anchor's method is ``gauge_fallback``).
+
+    Attributes
+    ----------
+    integrator, n_refine, gridder, grid_spacing_mm, warp_step_px
+        As :class:`SurfaceOptions`; the refinement passes move the reflection points along
+        their projector rays and stop once a pass moves no height by more than
+        ``refine_tol_mm``.
+    refine_tol_mm : float
+        The refinement's convergence, mm: an unconverged refinement biases the level search
+        (docs/results.md, "Accuracy").
     anchor : str
         One of :data:`ANCHORS`.
     anchor_max_sigma_mm : float
         Largest standard error of the integrability level that is trusted, mm.
+    anchor_step_mm : float
+        How far below its start the level search's first probe lies, mm
+        (:func:`restoration.anchor.find_anchor`).
     converge_mm : float
         When the last of the ``n_refine`` passes still moves a height by more than this (mm),
         the fixed point has not converged (a diffuser close to the water contracts slowly)
@@ -57,50 +134,80 @@ class RestoreOptions:
         Most refinement passes of that second search (it stops earlier once converged).
     fit_spots : bool
         After the reconstruction, fit a smooth surface and its level to the detected spots
-        through the exact reflection model (:func:`restoration.fit.fit_level`), at ~0.3-1 s
-        per frame, so off by default (real time). Since the secant level search the default
-        is as accurate on the mean (0.020 against 0.024 mm over ten seeds); docs/results.md.
+        through the exact reflection model (:func:`restoration.fit.fit_level`); slower than
+        real time, so off by default (docs/results.md, "Accuracy").
 
     Examples
     --------
-    >>> from restoration import RestoreOptions
-    >>> RestoreOptions().integrator
+    >>> from restoration import StructuredLightOptions
+    >>> StructuredLightOptions().integrator
     'fourth_order'
-    >>> RestoreOptions(integrator="paper", n_refine=0, anchor="gauge").n_refine
+    >>> StructuredLightOptions(integrator="paper", n_refine=0, anchor="gauge").n_refine
     0
     """
 
-    integrator: str = "fourth_order"
-    n_refine: int = 8
     refine_tol_mm: float = 0.01
-    gridder: str = "tangent_blend"
-    grid_spacing_mm: float = 2.0
-    warp_step_px: int = 8
     anchor: str = "integrability"
     anchor_max_sigma_mm: float = 1.0
+    anchor_step_mm: float = 3.0
     converge_mm: float = 1.0
     max_refine: int = 40
     fit_spots: bool = False
 
     def __post_init__(self) -> None:
-        for name, value, known in (
-            ("integrator", self.integrator, tuple(INTEGRATORS)),
-            ("gridder", self.gridder, GRIDDERS),
-            ("anchor", self.anchor, ANCHORS),
-        ):
-            if value not in known:
-                raise WaiInputError(f"unknown {name} {value!r} (known: {', '.join(known)})")
-        if int(self.n_refine) < 0 or int(self.max_refine) < int(self.n_refine):
+        super().__post_init__()
+        if self.anchor not in ANCHORS:
+            raise WaiInputError(f"unknown anchor {self.anchor!r} (known: {', '.join(ANCHORS)})")
+        if int(self.max_refine) < int(self.n_refine):
             raise WaiInputError(
-                f"refinement passes must be >= 0 and max_refine >= n_refine, not "
-                f"{self.n_refine} and {self.max_refine}"
+                f"max_refine must be >= n_refine, not {self.max_refine} < {self.n_refine}"
             )
         if not self.refine_tol_mm > 0:
             raise WaiInputError(f"refine_tol_mm must be > 0, not {self.refine_tol_mm}")
-        if not self.grid_spacing_mm > 0 or int(self.warp_step_px) < 1:
-            raise WaiInputError("grid spacing must be > 0 mm and the warp step >= 1 px")
+        if not self.anchor_step_mm > 0:
+            raise WaiInputError(f"anchor_step_mm must be > 0, not {self.anchor_step_mm}")
 
-    def to_dict(self) -> dict[str, Any]:
-        """The options as plain values (what ``metrics.json`` records)."""
-        return asdict(self)
 
+@dataclass(frozen=True)
+class AltermanOptions(SurfaceOptions):
+    """The sun sensor's choices. Its normals do not depend on the height, so the level is
+    always the gauge's: there is no anchor to choose.
+
+    Attributes
+    ----------
+    integrator, n_refine, gridder, grid_spacing_mm, warp_step_px
+        As :class:`SurfaceOptions`; the refinement moves each sample along its pinhole's
+        refracted sunlight to the reconstructed height.
+    refine_tol_mm : float
+        Refinement stops once a pass changes no height by more than this, mm.
+
+    Examples
+    --------
+    >>> from restoration import AltermanOptions
+    >>> AltermanOptions().integrator, AltermanOptions(n_refine=0).n_refine
+    ('fourth_order', 0)
+    """
+
+    refine_tol_mm: float = 1e-4
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.refine_tol_mm > 0:
+            raise WaiInputError(f"refine_tol_mm must be > 0, not {self.refine_tol_mm}")
+
+
+def checked_options(method: str, cls: type[OptionsT], options: SurfaceOptions | None) -> OptionsT:
+    """``options`` when they are ``cls`` (the options of ``method``), ``cls()`` when None.
+
+    Raises
+    ------
+    WaiInputError
+        For another method's options (they hold choices this method does not have).
+    """
+    if options is None:
+        return cls()
+    if not isinstance(options, cls):
+        raise WaiInputError(
+            f"{method}: options must be {cls.__name__}, not {type(options).__name__}"
+        )
+    return options

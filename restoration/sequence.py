@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
 from restoration.folder import RESTORE_REMEDY, restore_frame
 from restoration.methods import Method, as_method
-from restoration.options import RestoreOptions
+from restoration.options import SurfaceOptions
 from restoration.result import Status
 from restoration.view_check import match_sequence
 from wai_core.io import atomic_dir, atomic_write_bytes, check_output_dir, to_srgb8, write_json
@@ -87,7 +87,7 @@ def frame_change(a: NDArray, b: NDArray, mask: NDArray | None = None) -> float:
 def restore_sequence(
     folder: str | Path,
     method: str | Method = "structured-light",
-    options: RestoreOptions | None = None,
+    options: SurfaceOptions | None = None,
     *,
     write: bool = True,
     movie: bool = True,

@@ -9,11 +9,7 @@ through that surface (:mod:`restoration.reverse_trace`). Reads only images and c
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from dataclasses import replace
-from functools import lru_cache
-from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,45 +26,22 @@ from restoration.features import (
     features_from_reference,
 )
 from restoration.fit import fit_level
-from restoration.normals import points_on_rays, projector_rays
-from restoration.options import RestoreOptions
+from restoration.normals import projector_rays
+from restoration.observations import Observations
+from restoration.options import StructuredLightOptions, checked_options
 from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, RestoreResult, Status
-from restoration.reverse_trace._surface import spline_patches
-from restoration.surface import COMPILED_INTEGRATORS, SurfaceEstimate, reconstruct_surface
-from wai_core.config import DeviceConfig, PatternConfig, SystemConfig
-from wai_core.geometry import PinholeCamera
-from wai_core.pattern import dot_grid
+from restoration.reverse_trace import SplinePatches
+from restoration.surface import COMPILED_INTEGRATORS, SurfaceEstimate, reconstruct
+from wai_core.config import SystemConfig
+from wai_core.timings import Timings
 
 __all__ = [
-    "StructuredLight", "estimate_surface", "fit_to_spots", "panel_positions", "spots_of",
+    "StructuredLight", "estimate_surface", "fit_to_spots", "match_features", "spots_of",
     "view_has_signal",
 ]
 
-T = TypeVar("T")
-
 DARK_VIEW_CONTRAST = 1e-3
 """A view whose 1st-99th percentile spread (after the gain) is below this has no signal."""
-
-
-@lru_cache(maxsize=8)
-def camera_of(device: DeviceConfig) -> PinholeCamera:
-    """The pinhole model of a device, built once per configuration (a frame asks ~8 times)."""
-    return device.camera()
-
-
-@lru_cache(maxsize=8)
-def _dot_grid(pattern: PatternConfig, projector: DeviceConfig) -> tuple[NDArray, NDArray]:
-    return dot_grid(pattern, camera_of(projector))
-
-
-def panel_positions(cfg: SystemConfig, ij: NDArray) -> NDArray:
-    """Projector panel ``(col, row)`` of the dots with grid indices ``ij`` (K, 2)."""
-    grid_ij, panel = _dot_grid(cfg.pattern, cfg.projector)
-    side = int(grid_ij[:, 0].max()) * 2 + 1
-    half = side // 2
-    index = (np.asarray(ij)[:, 1] + half) * side + (np.asarray(ij)[:, 0] + half)
-    return panel[index]
-
 
 SEARCH_INTEGRATOR = "fourth_order"
 """Integrator of the anchor search (see :func:`estimate_surface`), unless the options name
@@ -76,14 +49,13 @@ another lattice rule of :data:`~restoration.surface.COMPILED_INTEGRATORS`."""
 
 
 def estimate_surface(
-    ij: NDArray,
-    spot_px: NDArray,
-    cfg: SystemConfig,
-    options: RestoreOptions,
+    obs: Observations,
+    cal: Calibration,
+    options: StructuredLightOptions,
     start_mm: float | None = None,
 ) -> SurfaceEstimate:
-    """Surface from matched features, anchored by the gauge's h0 or by integrability (searched
-    from ``start_mm``, default h0).
+    """Surface from a frame's observations, anchored by the gauge's h0 or by integrability
+    (searched from ``start_mm``, default h0).
 
     When the last refinement pass still moves the heights by more than
     ``options.converge_mm``, the fixed point had not converged (it contracts slowly when the
@@ -91,14 +63,34 @@ def estimate_surface(
     ``options.max_refine`` passes: an unconverged refinement biases the level search, and a
     wrong level gives a wrong shape (the depth-normal ambiguity). ``anchor["refine_passes"]``
     says how many passes the estimate allowed.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from restoration import Calibration, StructuredLightOptions
+    >>> from restoration.structured_light import estimate_surface
+    >>> from wai_core import load_system
+    >>> from wai_core.geometry import intersect_plane_z
+    >>> cal = Calibration(load_system("paper"))
+    >>> ij = cal.dot_grid[0][np.abs(cal.dot_grid[0]).max(axis=1) <= 6]
+    >>> origin, dirs = cal.projector.pixel_rays(*cal.panel_px(ij).T)
+    >>> # Flat water at h0: mirror the rays there and find their spots on the diffuser.
+    >>> t = (cal.cfg.water.h0_mm - origin[2]) / dirs[:, 2]
+    >>> q = origin + t[:, None] * dirs
+    >>> spot, _ = intersect_plane_z(q, dirs * [1, 1, -1], cal.diffuser_z_mm)
+    >>> cols, rows, _ = cal.camera_s.project(spot)
+    >>> opts = StructuredLightOptions(anchor="gauge")
+    >>> est = estimate_surface(cal.observe(ij, np.column_stack([cols, rows])), cal, opts)
+    >>> bool(np.abs(est.points_mm[:, 2] - cal.cfg.water.h0_mm).max() < 1e-6)
+    True
     """
-    est = _estimate_surface(ij, spot_px, cfg, options, start_mm, options.n_refine)
+    est = _estimate_surface(obs, cal, options, start_mm, options.n_refine)
     if (
         options.n_refine > 0
         and options.max_refine > options.n_refine
         and est.height_change_mm > options.converge_mm
     ):
-        est = _estimate_surface(ij, spot_px, cfg, options, start_mm, options.max_refine)
+        est = _estimate_surface(obs, cal, options, start_mm, options.max_refine)
         est.anchor["refine_passes"] = options.max_refine
     else:
         est.anchor["refine_passes"] = options.n_refine
@@ -106,58 +98,50 @@ def estimate_surface(
 
 
 def _estimate_surface(
-    ij: NDArray,
-    spot_px: NDArray,
-    cfg: SystemConfig,
-    options: RestoreOptions,
+    obs: Observations,
+    cal: Calibration,
+    options: StructuredLightOptions,
     start_mm: float | None,
     n_refine: int,
 ) -> SurfaceEstimate:
     """:func:`estimate_surface` with ``n_refine`` passes per reconstruction."""
-    keep = np.isfinite(spot_px).all(axis=1)
-    ij, spot_px = ij[keep], spot_px[keep]
-    panel = panel_positions(cfg, ij)
-    projector = camera_of(cfg.projector)
-    fixed = (ij, panel, spot_px, projector, camera_of(cfg.camera_s), cfg.diffuser.z_mm)
-    # Every reconstruction weighs its differences by the dots' spacing on z = h0: the anchor
-    # search's reconstructions then share one factorisation.
-    weight_xy = points_on_rays(*projector_rays(panel, projector), cfg.water.h0_mm)[:, :2]
 
-    def reconstruct(anchor_mm: float, integrator: str = options.integrator) -> SurfaceEstimate:
-        return reconstruct_surface(
-            *fixed,
+    def rebuild(anchor_mm: float, integrator: str = options.integrator) -> SurfaceEstimate:
+        return reconstruct(
+            obs,
             anchor_mm,
             integrator=integrator,
             n_refine=n_refine,
             tol_mm=options.refine_tol_mm,
             grid_spacing_mm=options.grid_spacing_mm,
             gridder=options.gridder,
-            weight_xy_mm=weight_xy,
         )
 
     # The level is a property of the data, not of the integrator: search it with a lattice
     # rule, whose fit error is the integrability residual itself (integrators that resample
     # onto a grid add their own resampling error to it): the fourth-order rule, or the
-    # trapezoid when asked for (its systematic error biased the level by ~0.1 mm).
+    # trapezoid when asked for (its systematic error biased the level; docs/results.md).
     search_with = (
         options.integrator if options.integrator in COMPILED_INTEGRATORS else SEARCH_INTEGRATOR
     )
 
     def probe(anchor_mm: float) -> SurfaceEstimate:
         # A search that strays below the diffuser has found no level: the frame's failure, not
-        # a bad argument (reconstruct_surface refuses such a level with this message).
-        if not anchor_mm > cfg.diffuser.z_mm:
+        # a bad argument (reconstruct refuses such a level with this message).
+        if not anchor_mm > cal.diffuser_z_mm:
             raise RestorationFailed(
                 "reconstruct_surface: the water level h0 must lie above the diffuser"
             )
-        return reconstruct(anchor_mm, search_with)
+        return rebuild(anchor_mm, search_with)
 
-    h0 = cfg.water.h0_mm
+    h0 = cal.cfg.water.h0_mm
     if options.anchor == "gauge":
-        est = reconstruct(h0)
+        est = rebuild(h0)
         est.anchor.update(method="gauge", anchor_mm=h0)
         return est
-    search = find_anchor(probe, h0 if start_mm is None else start_mm, step_mm=3.0)
+    search = find_anchor(
+        probe, h0 if start_mm is None else start_mm, options.anchor_step_mm, plans=obs.plans
+    )
     info = {
         "searched_mm": search.anchor_mm,
         "sigma_mm": search.sigma_mm,
@@ -166,10 +150,10 @@ def _estimate_surface(
     if search.sigma_mm <= options.anchor_max_sigma_mm:
         est = search.estimate
         if options.integrator != search_with:
-            est = reconstruct(search.anchor_mm)
+            est = rebuild(search.anchor_mm)
         est.anchor.update(method="integrability", anchor_mm=search.anchor_mm, **info)
     else:  # the slopes do not pin the level (calm water): trust the gauge, and say so
-        est = reconstruct(h0)
+        est = rebuild(h0)
         est.anchor.update(method="gauge_fallback", anchor_mm=h0, **info)
     return est
 
@@ -199,18 +183,19 @@ def resolve_label_shift(
     features: Matches,
     surface: SurfaceEstimate,
     reference: ReferenceGrid,
-    cfg: SystemConfig,
-    options: RestoreOptions,
-) -> tuple[Matches, SurfaceEstimate]:
+    cal: Calibration,
+    options: StructuredLightOptions,
+) -> tuple[Matches, Observations | None, SurfaceEstimate]:
     """Among lattice shifts that the lit/unlit evidence cannot tell apart, keep the labelling
     whose slopes integrate best.
 
     A labelling shifted by whole dots pairs every spot with a neighbouring projector ray: the
     normals then describe no surface, and the integration residual grows (on the paper's rig
     by 2-3x per dot of shift). ``counts`` gains ``label_shift_candidates`` (tried) and
-    ``label_shift_di/dj`` (applied on top of the pattern's choice).
+    ``label_shift_di/dj`` (applied on top of the pattern's choice). Returns the chosen
+    features, their observations (None when the pattern's own labelling won) and surface.
     """
-    best = (integration_residual_mm(surface), features, surface)
+    best = (integration_residual_mm(surface), features, None, surface)
     tried = 1
     for shift in features.alt_shifts[:MAX_SHIFT_CANDIDATES]:
         if not shift.any():
@@ -219,43 +204,47 @@ def resolve_label_shift(
         if keep.sum() < MIN_SHIFT_KEEP * len(keep):
             continue
         candidate = shifted(features, shift, keep)
+        obs = cal.observe(candidate.ij, candidate.spot_px)
         try:
-            est = estimate_surface(candidate.ij, candidate.spot_px, cfg, options)
+            est = estimate_surface(obs, cal, options)
         except RestorationFailed:
             continue
         tried += 1
-        residual = integration_residual_mm(est)
+        residual = integration_residual_mm(est, obs.plans)
         if residual < best[0]:
-            best = (residual, candidate, est)
-    _, chosen, est = best
+            best = (residual, candidate, obs, est)
+    _, chosen, obs, est = best
     chosen.counts["label_shift_candidates"] = tried
-    return chosen, est
+    return chosen, obs, est
 
 
-def view_has_signal(view: NDArray) -> bool:
-    """Whether the (gain-divided) view shows anything: its spread between the 1st and 99th
-    percentiles, on a sparse sample of pixels, exceeds :data:`DARK_VIEW_CONTRAST`."""
-    sample = np.asarray(view)[::7, ::7]
+def view_has_signal(view: NDArray, gain: float = 1.0) -> bool:
+    """Whether the view ``view`` (H, W, 3) shows anything: the spread between the 1st and 99th
+    percentiles of every 7th pixel of each 7th row, divided by the view's ``gain``, exceeds
+    :data:`DARK_VIEW_CONTRAST`."""
+    sample = np.asarray(view)[::7, ::7] / gain
     lo, hi = np.percentile(sample, [1.0, 99.0])
     return bool(hi - lo > DARK_VIEW_CONTRAST)
 
 
-def spots_of(features: Matches, ij: NDArray) -> NDArray:
+def spots_of(obs: Observations, ij: NDArray) -> NDArray:
     """The detected spots (K, 2) px of the samples with grid indices ``ij`` (K, 2), which are
-    a subset of the features' (the integrator may drop some)."""
-    base = int(np.abs(features.ij).max()) + 1 if len(features) else 1
-    keys = (features.ij[:, 0] + base) * (2 * base + 1) + features.ij[:, 1] + base
+    a subset of the observations' (the integrator may drop some)."""
+    base = int(np.abs(obs.ij).max()) + 1 if len(obs) else 1
+    keys = (obs.ij[:, 0] + base) * (2 * base + 1) + obs.ij[:, 1] + base
     order = np.argsort(keys)
     want = (ij[:, 0] + base) * (2 * base + 1) + ij[:, 1] + base
-    return features.spot_px[order[np.searchsorted(keys, want, sorter=order)]]
+    return obs.spot_px[order[np.searchsorted(keys, want, sorter=order)]]
 
 
-def fit_to_spots(surface: SurfaceEstimate, spots_px: NDArray, cfg: SystemConfig) -> SurfaceEstimate:
+def fit_to_spots(
+    surface: SurfaceEstimate, spots_px: NDArray, cal: Calibration
+) -> SurfaceEstimate:
     """``surface`` refitted to its samples' spots through the exact model, its level included
     (:func:`restoration.fit.fit_level`)."""
     level = fit_level(
-        surface.points_mm, surface.slopes, panel_positions(cfg, surface.ij), spots_px,
-        camera_of(cfg.projector), camera_of(cfg.camera_s), cfg.diffuser.z_mm, surface.heightfield,
+        surface.points_mm, surface.slopes, cal.panel_px(surface.ij), spots_px,
+        cal.projector, cal.camera_s, cal.diffuser_z_mm, surface.heightfield,
     )
     fit = level.fit
     est = surface.refitted(
@@ -272,19 +261,21 @@ def fit_to_spots(surface: SurfaceEstimate, spots_px: NDArray, cfg: SystemConfig)
 
 
 def consistency_of(
-    surface: SurfaceEstimate, spots_px: NDArray, cfg: SystemConfig, reference: ReferenceGrid
+    surface: SurfaceEstimate, spots_px: NDArray, cal: Calibration, reference: ReferenceGrid,
+    patches: SplinePatches | None = None,
 ) -> Consistency:
-    """The forward check of ``surface`` against its samples' spots (restoration.consistency)."""
-    origin, dirs = projector_rays(panel_positions(cfg, surface.ij), camera_of(cfg.projector))
+    """The forward check of ``surface`` against its samples' spots (restoration.consistency),
+    through the surface's spline table ``patches`` when it is built already."""
+    origin, dirs = projector_rays(cal.panel_px(surface.ij), cal.projector)
     return spot_consistency(
-        surface.heightfield, surface.points_mm, origin, dirs, spots_px, camera_of(cfg.camera_s),
-        cfg.diffuser.z_mm, float(np.nanmedian(reference.spacing_px)),
+        surface.heightfield, surface.points_mm, origin, dirs, spots_px, cal.camera_s,
+        cal.diffuser_z_mm, float(np.nanmedian(reference.spacing_px)), patches=patches,
     )
 
 
 def frame_status(
     features: Matches, reference: ReferenceGrid, surface: SurfaceEstimate, check: Consistency,
-    view_ok: bool, options: RestoreOptions,
+    view_ok: bool, options: StructuredLightOptions,
 ) -> tuple[Status, str]:
     """The truth-free verdict on a restored frame (see :mod:`restoration.result`)."""
     in_view = max(int(reference.counts.get("predicted_in_view", 0)), 1)
@@ -322,34 +313,28 @@ def frame_status(
     return Status.OK, ""
 
 
-def _timed(fn: Callable[..., T], *args: Any) -> tuple[T, float]:
-    """``fn(*args)`` and its wall time, ms."""
-    t0 = time.perf_counter()
-    out = fn(*args)
-    return out, 1e3 * (time.perf_counter() - t0)
-
-
 class StructuredLight:
     """The paper's structured-light method, configured once and applied to frames.
 
     Parameters
     ----------
-    options : RestoreOptions, optional
+    options : StructuredLightOptions, optional
         Integrator, refinement, gridding, anchor and warp choices (default: the testbed's).
 
     Examples
     --------
-    >>> from restoration import StructuredLight, RestoreOptions
-    >>> method = StructuredLight(RestoreOptions(integrator="paper"))
+    >>> from restoration import StructuredLight, StructuredLightOptions
+    >>> method = StructuredLight(StructuredLightOptions(integrator="paper"))
     >>> method.name, method.options.integrator
     ('structured-light', 'paper')
     """
 
     name = "structured-light"
     calibration_type = Calibration
+    options_type = StructuredLightOptions
 
-    def __init__(self, options: RestoreOptions | None = None) -> None:
-        self.options = RestoreOptions() if options is None else options
+    def __init__(self, options: StructuredLightOptions | None = None) -> None:
+        self.options = checked_options(self.name, StructuredLightOptions, options)
 
     def __repr__(self) -> str:
         return f"StructuredLight({self.options!r})"
@@ -386,49 +371,66 @@ class StructuredLight:
             For bad input: a wrongly sized image, NaN or inf in one, a configuration whose
             geometry cannot work.
         """
-        options, cfg = self.options, cal.cfg
+        options = self.options
+        timings = Timings()
         try:
             reference = cal.prepare(images["pattern_flat"])
-            t0 = time.perf_counter()
-            # The coded pattern is decoded dot by dot; the plain one matched by ordering.
-            match = features_from_code if cfg.pattern.code != "none" else features_from_reference
-            features = match(images["pattern"], reference, cfg)
-            t1 = time.perf_counter()
-            start = None if track is None else track.start_mm
-            surface = estimate_surface(features.ij, features.spot_px, cfg, options, start)
-            if len(features.alt_shifts) > 1:
-                features, surface = resolve_label_shift(
-                    features, surface, reference, cfg, options
-                )
-            surface.heightfield  # noqa: B018  (gridded here: a patch too small to grid fails)
+            with timings("features"):
+                features = match_features(images["pattern"], reference, cal.cfg)
+            with timings("surface"):
+                obs = cal.observe(features.ij, features.spot_px)
+                start = None if track is None else track.start_mm
+                surface = estimate_surface(obs, cal, options, start)
+                if len(features.alt_shifts) > 1:
+                    features, shifted_obs, surface = resolve_label_shift(
+                        features, surface, reference, cal, options
+                    )
+                    obs = obs if shifted_obs is None else shifted_obs
+                heightfield = surface.heightfield  # a patch too small to grid fails here
         except RestorationFailed as exc:
             return RestoreResult(self.name, Status.FAILED, str(exc))
         if track is not None:
             track.update(surface.anchor)
-        spots = spots_of(features, surface.ij)
-        if options.fit_spots:
-            surface = fit_to_spots(surface, spots, cfg)
-        t2 = time.perf_counter()
-        # The check and the view evaluate one spline table of the surface, built here; the
-        # check then runs beside the view (it reads neither the view nor its results).
-        spline_patches(surface.heightfield)
-        checked = run_beside(lambda: _timed(consistency_of, surface, spots, cfg, reference))
-        view = cal.restore_view(images["view"], surface.heightfield, options.warp_step_px,
-                                gain=cal.view_gain)
-        check, check_ms = checked()
-        t4 = time.perf_counter()
+        spots = spots_of(obs, surface.ij)
+        with timings("surface"):
+            if options.fit_spots:
+                surface = fit_to_spots(surface, spots, cal)
+                heightfield = surface.heightfield
+        with timings("reverse_trace"):
+            # The check and the view evaluate one spline table of the surface; the check runs
+            # beside the view (it reads neither the view nor its results).
+            patches = SplinePatches(heightfield)
+            checked = run_beside(
+                lambda: _timed_check(surface, spots, cal, reference, patches)
+            )
+            view = cal.restore_view(images["view"], heightfield, options.warp_step_px,
+                                    gain=cal.view_gain, patches=patches)
+            check, check_ms = checked()
+        timings.add("consistency", check_ms)
+        timings.add("end_to_end", timings.total("features", "surface", "reverse_trace"))
         status, message = frame_status(
             features, reference, surface, check,
-            view_has_signal(np.asarray(images["view"])[::7, ::7] / cal.view_gain), options,
+            view_has_signal(images["view"], cal.view_gain), options,
         )
-        timings = {
-            "features": 1e3 * (t1 - t0),
-            "surface": 1e3 * (t2 - t1),
-            "consistency": check_ms,
-            "reverse_trace": 1e3 * (t4 - t2),
-            "end_to_end": 1e3 * (t4 - t0),
-        }
         return RestoreResult(
-            self.name, status, message, features, surface, view, timings, features.counts,
-            check,
+            self.name, status, message, features, surface, view, timings.to_dict(),
+            features.counts, check,
         )
+
+
+def match_features(pattern: NDArray, reference: ReferenceGrid, cfg: SystemConfig) -> Matches:
+    """The wavy pattern's features, labelled with grid indices: the coded pattern decoded dot
+    by dot, the plain one matched by ordering (:mod:`restoration.features`)."""
+    match = features_from_code if cfg.pattern.code != "none" else features_from_reference
+    return match(pattern, reference, cfg)
+
+
+def _timed_check(
+    surface: SurfaceEstimate, spots_px: NDArray, cal: Calibration, reference: ReferenceGrid,
+    patches: SplinePatches,
+) -> tuple[Consistency, float]:
+    """:func:`consistency_of` and its wall time, ms (it runs on another thread)."""
+    timings = Timings()
+    with timings("check"):
+        check = consistency_of(surface, spots_px, cal, reference, patches)
+    return check, timings.ms["check"]

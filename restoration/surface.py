@@ -49,21 +49,24 @@ from restoration.integrate import (
     to_heightfield,
 )
 from restoration.integrate.lattice import line_neighbours, lu_solve
+from restoration.integrate.plans import IntegrationPlans, plan_of
 from restoration.integrate.rules import edge_step, edge_steps
 from restoration.normals import (
     _KERNEL_ERRORS,
     _reflection_kernel,
     kernel_error,
     points_on_rays,
-    projector_rays,
     reflection_slopes,
-    spots_on_diffuser,
 )
+from restoration.observations import Observations
+from restoration.options import StructuredLightOptions
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 
 Array = NDArray[np.float64]
+
+_DEFAULT = StructuredLightOptions()
 
 COMPILED_INTEGRATORS = ("fourth_order", "trapezoid")
 """Integrators whose refinement passes run in one compiled call (:func:`_compiled_refinement`)."""
@@ -89,9 +92,8 @@ class SurfaceEstimate:
     height_change_mm : float
         Largest height change of the last refinement pass, mm (NaN when none ran).
     timings_ms : dict of str to float
-        Wall time per stage, ms: ``rays`` (back-projection of spots and projector rays,
-        cached for repeated reconstructions of the same features), ``normals``,
-        ``integrate`` (summed over passes) and ``total``; ``grid`` is added (and counted in
+        Wall time per stage, ms: ``normals``, ``integrate`` (summed over passes) and
+        ``total``; ``grid`` is added (and counted in
         ``total``) when :attr:`heightfield` is first read. With the integrators of
         :data:`COMPILED_INTEGRATORS` the passes run in one compiled call: ``integrate`` then
         holds the normals too and ``normals`` is 0.
@@ -115,10 +117,10 @@ class SurfaceEstimate:
     iterations: int
     height_change_mm: float
     timings_ms: dict[str, float] = field(default_factory=dict)
-    grid_spacing_mm: float = 5.0
-    gridder: str = "tangent_blend"
+    grid_spacing_mm: float = _DEFAULT.grid_spacing_mm
+    gridder: str = _DEFAULT.gridder
     anchor: dict[str, Any] = field(default_factory=dict)
-    integrator: str = "fourth_order"
+    integrator: str = _DEFAULT.integrator
     _heightfield: Heightfield | None = field(default=None, init=False, repr=False, compare=False)
 
     def refitted(self, heightfield: Heightfield, points_mm: Array, slopes: Array,
@@ -154,25 +156,17 @@ class SurfaceEstimate:
         return self._heightfield
 
 
-def _check_inputs(
-    ij: ArrayLike,
-    panel_px: ArrayLike,
-    spot_px: ArrayLike,
-    z_h_mm: float,
+def _check_choices(
+    obs: Observations,
     h0_mm: float,
     integrator: str,
     n_refine: int,
     gridder: str,
     grid_spacing_mm: float,
-) -> NDArray[np.int64]:
-    """Validate what the arrays in :func:`reconstruct_surface` cannot check themselves."""
-    ij_arr = np.asarray(ij)
-    n = {np.shape(a)[0] if np.ndim(a) else -1 for a in (ij_arr, panel_px, spot_px)}
-    if len(n) != 1:
-        raise WaiInputError("reconstruct_surface: ij, panel_px and spot_px differ in length")
-    if not np.issubdtype(ij_arr.dtype, np.integer):
-        raise WaiInputError("reconstruct_surface: ij must hold integer grid indices")
-    if not h0_mm > z_h_mm:
+) -> None:
+    """Validate the choices of :func:`reconstruct` (the arrays were checked when ``obs`` was
+    built)."""
+    if not h0_mm > obs.z_h_mm:
         raise WaiInputError("reconstruct_surface: the water level h0 must lie above the diffuser")
     if integrator not in INTEGRATORS:
         raise WaiInputError(
@@ -187,7 +181,6 @@ def _check_inputs(
         )
     if not grid_spacing_mm > 0:
         raise WaiInputError("reconstruct_surface: grid_spacing_mm must be positive")
-    return ij_arr
 
 
 def reconstruct_surface(
@@ -198,11 +191,11 @@ def reconstruct_surface(
     camera_s: PinholeCamera,
     z_h_mm: float,
     h0_mm: float,
-    integrator: str = "trapezoid",
-    n_refine: int = 3,
-    grid_spacing_mm: float = 5.0,
-    gridder: str = "tangent_blend",
-    tol_mm: float = 1e-4,
+    integrator: str = _DEFAULT.integrator,
+    n_refine: int = _DEFAULT.n_refine,
+    grid_spacing_mm: float = _DEFAULT.grid_spacing_mm,
+    gridder: str = _DEFAULT.gridder,
+    tol_mm: float = _DEFAULT.refine_tol_mm,
     accelerate: bool = True,
     weight_xy_mm: ArrayLike | None = None,
 ) -> SurfaceEstimate:
@@ -222,11 +215,57 @@ def reconstruct_surface(
         Height of the diffuser plane, mm.
     h0_mm : float
         Mean water level, mm (the anchor; see the module docstring).
+    integrator, n_refine, grid_spacing_mm, gridder, tol_mm, accelerate
+        As :func:`reconstruct` (defaults: :class:`~restoration.options.SurfaceOptions`).
+    weight_xy_mm : (K, 2) array_like, optional
+        Sample positions that set the integration weights of every pass, mm (default: the
+        first pass's reflection points).
+
+    Returns
+    -------
+    SurfaceEstimate
+
+    See Also
+    --------
+    reconstruct : the same from :class:`~restoration.observations.Observations`, which a
+        frame's repeated reconstructions share.
+    """
+    obs = Observations.build(
+        ij, panel_px, spot_px, projector, camera_s, z_h_mm, weight_xy_mm=weight_xy_mm
+    )
+    return reconstruct(
+        obs, h0_mm, integrator=integrator, n_refine=n_refine, grid_spacing_mm=grid_spacing_mm,
+        gridder=gridder, tol_mm=tol_mm, accelerate=accelerate,
+    )
+
+
+def reconstruct(
+    obs: Observations,
+    h0_mm: float,
+    *,
+    integrator: str = _DEFAULT.integrator,
+    n_refine: int = _DEFAULT.n_refine,
+    grid_spacing_mm: float = _DEFAULT.grid_spacing_mm,
+    gridder: str = _DEFAULT.gridder,
+    tol_mm: float = _DEFAULT.refine_tol_mm,
+    accelerate: bool = True,
+) -> SurfaceEstimate:
+    """Reconstruct the water surface from one frame's observations, its samples' mean height
+    pinned at ``h0_mm``.
+
+    Parameters
+    ----------
+    obs : Observations
+        The features with their rays; its :attr:`~Observations.weight_xy_mm` weigh the
+        differences of every pass, and its :attr:`~Observations.plans` keep the integration
+        structures for the next reconstruction of the same features (the level search runs
+        several).
+    h0_mm : float
+        Mean water level, mm (the anchor; see the module docstring).
     integrator : str
-        Name in :data:`restoration.integrate.INTEGRATORS` (``"paper"``, ``"trapezoid"``,
-        ``"spline"``).
+        Name in :data:`restoration.integrate.INTEGRATORS`.
     n_refine : int
-        Refinement passes after the paper's ``q = h0`` pass; 0 is the paper's method.
+        Most refinement passes after the paper's ``q = h0`` pass; 0 is the paper's method.
     grid_spacing_mm : float
         Node spacing of the output heightfield, mm.
     gridder : str
@@ -239,38 +278,28 @@ def reconstruct_surface(
         Mix each refinement step with the previous one (Anderson acceleration, depth 1): the
         same fixed point in about half the passes. False gives the plain iteration
         ``h <- integrate(normals(q(h)))``.
-    weight_xy_mm : (K, 2) array_like, optional
-        Sample positions that set the integration weights of every pass, mm (default: the
-        first pass's reflection points). Reconstructions of the same features that share them
-        share one sparse factorisation (the anchor search runs several).
 
     Returns
     -------
     SurfaceEstimate
     """
     t_start = time.perf_counter()
-    ij_arr = _check_inputs(
-        ij, panel_px, spot_px, z_h_mm, h0_mm, integrator, n_refine, gridder, grid_spacing_mm
-    )
-    spots, origin, v_p = _rays(spot_px, camera_s, z_h_mm, panel_px, projector)
-    timings = {"rays": _ms(t_start), "normals": 0.0, "integrate": 0.0}
-
-    weight_xy: Array | None = None
-    if weight_xy_mm is not None:
-        weight_xy = np.asarray(weight_xy_mm, dtype=float)
-        if weight_xy.shape != (ij_arr.shape[0], 2):
-            raise WaiInputError("reconstruct_surface: weight_xy_mm must be (K, 2)")
-    args = (ij_arr, origin, v_p, spots, h0_mm, int(n_refine), tol_mm, accelerate)
+    _check_choices(obs, h0_mm, integrator, n_refine, gridder, grid_spacing_mm)
+    timings = {"normals": 0.0, "integrate": 0.0}
+    args = (obs.ij, obs.origin_mm, obs.dirs, obs.spots_mm, h0_mm, int(n_refine), tol_mm,
+            accelerate)
+    weight_xy = obs.weight_xy_mm
     if integrator in COMPILED_INTEGRATORS:  # the level search's: all passes in one call
         # Default weights: the first pass's reflection points (q on z = h0), as the loop's.
-        wxy = points_on_rays(origin, v_p, h0_mm)[:, :2] if weight_xy is None else weight_xy
+        if weight_xy is None:
+            weight_xy = points_on_rays(obs.origin_mm, obs.dirs, h0_mm)[:, :2]
         ij_arr, q, normals, slopes, integrated, it, change = _compiled_refinement(
-            *args, wxy, integrator == "fourth_order"
+            *args, weight_xy, integrator == "fourth_order", obs.plans
         )
-        timings["integrate"] = _ms(t_start) - timings["rays"]
+        timings["integrate"] = _ms(t_start)
     else:
         ij_arr, q, normals, slopes, integrated, it, change = _refinement(
-            *args, weight_xy, integrator, timings
+            *args, weight_xy, integrator, timings, obs.plans
         )
     timings["total"] = _ms(t_start)
     return SurfaceEstimate(
@@ -299,8 +328,9 @@ def _refinement(
     weight_xy: Array | None,
     integrator: str,
     timings: dict[str, float],
+    plans: IntegrationPlans | None = None,
 ) -> tuple[NDArray[np.int64], Array, Array, Array, Array, int, float]:
-    """The passes of :func:`reconstruct_surface` as NumPy steps around
+    """The passes of :func:`reconstruct` as NumPy steps around
     :func:`~restoration.integrate.integrate`, for any integrator (the ``"trapezoid"`` one runs
     compiled instead, :func:`_compiled_refinement`, to the same result). Adds each pass's
     ``normals`` and ``integrate`` times to ``timings``.
@@ -322,7 +352,7 @@ def _refinement(
         # Every pass weighs the differences by the first pass's geometry: the passes then
         # share one factorisation, and their samples move by only ~mm along the rays.
         weight_xy = q[:, :2] if weight_xy is None else weight_xy
-        relative = integrate(ij_arr, q[:, :2], slopes, integrator, weight_xy)
+        relative = integrate(ij_arr, q[:, :2], slopes, integrator, weight_xy, plans)
         integrated = _anchored(relative, h0_mm)
         timings["normals"] += _ms(t0, t1)
         timings["integrate"] += _ms(t1)
@@ -346,48 +376,13 @@ def _refinement(
     return ij_arr, q, normals, slopes, integrated, it, change
 
 
-def _camera_key(camera: PinholeCamera) -> tuple:
-    """What a pinhole device's rays depend on, as a hashable key."""
-    pose = camera.pose
-    return (
-        camera.width_px, camera.height_px, camera.focal_mm, camera.pixel_pitch_mm,
-        pose.R.tobytes(), pose.t_mm.tobytes(),
-    )
-
-
-def _rays(
-    spot_px: ArrayLike,
-    camera_s: PinholeCamera,
-    z_h_mm: float,
-    panel_px: ArrayLike,
-    projector: PinholeCamera,
-) -> tuple[Array, Array, Array]:
-    """Spots on the diffuser (K, 3) mm, the projector centre (3,) mm and the unit projector
-    rays (K, 3) (:func:`spots_on_diffuser`, :func:`projector_rays`), cached by value: the
-    level search reconstructs the same features 3-5 times a frame."""
-    spot = np.asarray(spot_px)
-    panel = np.asarray(panel_px)
-    key = (
-        spot.dtype.str, spot.shape, spot.tobytes(), panel.dtype.str, panel.shape,
-        panel.tobytes(), float(z_h_mm), _camera_key(camera_s), _camera_key(projector),
-    )
-    found = _RAYS.get(key)
-    if found is None:
-        spots = spots_on_diffuser(spot_px, camera_s, z_h_mm)
-        origin, v_p = projector_rays(panel_px, projector)
-        found = (spots, origin, v_p)  # shared by the reconstructions: never written
-        if len(_RAYS) >= 4:
-            _RAYS.clear()
-        _RAYS[key] = found
-    return found
-
-
-_RAYS: dict[tuple, tuple[Array, Array, Array]] = {}
-
-
-def _prepared(ij: NDArray[np.int64], weight_xy: Array, fourth_order: bool) -> tuple:
-    """What :func:`_refine_kernel` needs of a sample set, its weights and its rule, cached (one
-    lookup per reconstruction instead of the system's, the weights' and the factors').
+def _prepared(
+    ij: NDArray[np.int64], weight_xy: Array, fourth_order: bool,
+    plans: IntegrationPlans | None = None,
+) -> tuple:
+    """What :func:`_refine_kernel` needs of a sample set, its weights and its rule, kept in
+    ``plans`` (one lookup per reconstruction instead of the system's, the weights' and the
+    factors').
 
     Returns
     -------
@@ -404,15 +399,14 @@ def _prepared(ij: NDArray[np.int64], weight_xy: Array, fourth_order: bool) -> tu
         Laplacian.
     """
     weight_xy = np.ascontiguousarray(weight_xy, dtype=float)
-    key = (ij.shape, ij.tobytes(), weight_xy.shape, weight_xy.tobytes(), fourth_order)
-    found = _PREPARED.get(key)
-    if found is None:
-        system = _TrapezoidSystem.of(ij, weight_xy, checked=True)
+
+    def build() -> tuple:
+        system = _TrapezoidSystem.of(ij, weight_xy, checked=True, plans=plans)
         keep = system.graph.keep
         if keep.all():
             keep = None
         else:
-            system = _TrapezoidSystem.of(ij[keep], weight_xy[keep], checked=True)
+            system = _TrapezoidSystem.of(ij[keep], weight_xy[keep], checked=True, plans=plans)
         graph = system.graph
         w = system.weights[graph.edges]
         if fourth_order:
@@ -421,14 +415,10 @@ def _prepared(ij: NDArray[np.int64], weight_xy: Array, fourth_order: bool) -> tu
             )
         else:
             before = after = np.full(graph.ea.size, -1, np.int64)
-        found = (keep, graph.ea, graph.eb, before, after, w, graph.triangular(w).arrays)
-        if len(_PREPARED) >= 8:
-            _PREPARED.clear()
-        _PREPARED[key] = found
-    return found
+        return keep, graph.ea, graph.eb, before, after, w, graph.triangular(w).arrays
 
-
-_PREPARED: dict[tuple, tuple] = {}
+    return plan_of(plans, "prepared", ij, build, weight_xy.shape, weight_xy.tobytes(),
+                   fourth_order)
 
 
 # Why _refine_kernel stopped, beyond the reflection's codes (restoration.normals).
@@ -449,6 +439,7 @@ def _compiled_refinement(
     accelerate: bool,
     weight_xy: Array,
     fourth_order: bool = True,
+    plans: IntegrationPlans | None = None,
 ) -> tuple[NDArray[np.int64], Array, Array, Array, Array, int, float]:
     """The passes of :func:`reconstruct_surface` with the ``"fourth_order"`` (or, with
     ``fourth_order=False``, the ``"trapezoid"``) integrator in one compiled call
@@ -468,7 +459,7 @@ def _compiled_refinement(
         (K', 3), slopes (K', 2), anchored heights (K',) mm, passes run after the first, and
         the last pass's largest height change (mm; NaN when none ran).
     """
-    keep, ea, eb, before, after, w, factors = _prepared(ij, weight_xy, fourth_order)
+    keep, ea, eb, before, after, w, factors = _prepared(ij, weight_xy, fourth_order, plans)
     if keep is not None:
         _, _, slopes = reflection_slopes(origin, v_p, spots, np.full(len(ij), float(h0_mm)))
         if not np.all(np.isfinite(slopes)):
@@ -614,22 +605,21 @@ class _TrapezoidSystem:
 
     @classmethod
     def of(
-        cls, ij: NDArray[np.int64], weight_xy: Array, checked: bool = False
+        cls, ij: NDArray[np.int64], weight_xy: Array, checked: bool = False,
+        plans: IntegrationPlans | None = None,
     ) -> _TrapezoidSystem:
         """The system of grid indices ``ij`` (K, 2) weighted by positions ``weight_xy``
         (K, 2) mm; ``checked`` runs :func:`check_samples` on ``ij`` first (once per index set:
-        the compiled passes check their own positions and slopes)."""
-        key = (ij.shape, ij.tobytes())
-        found = _GRAPHS.get(key)
-        if found is None:
+        the compiled passes check their own positions and slopes). The edges and graph (which
+        keeps its factorisations) are kept in ``plans``: a frame's probes share them."""
+
+        def build() -> tuple:
             if checked:
                 check_samples(ij, weight_xy, np.zeros_like(weight_xy))
             a, b = trapezoid_edges(ij)
-            found = (a, b, DifferenceGraph.build(ij.shape[0], a, b))
-            if len(_GRAPHS) >= 16:
-                _GRAPHS.clear()
-            _GRAPHS[key] = found
-        a, b, graph = found
+            return a, b, DifferenceGraph.build(ij.shape[0], a, b)
+
+        a, b, graph = plan_of(plans, "trapezoid_graph", ij, build)
         length2 = np.empty(a.size)
         _length2_kernel(np.ascontiguousarray(weight_xy, dtype=float), a, b, length2)
         if not np.all(length2 > 0):
@@ -643,11 +633,6 @@ class _TrapezoidSystem:
         (:func:`~restoration.integrate.edge_steps` without neighbours)."""
         none = np.full(self.a.size, -1, np.int64)
         return edge_steps(xy, slopes, self.a, self.b, none, none)
-
-
-# Edges and graphs by grid indices: a frame's anchor probes all integrate the same samples
-# (the graph also keeps their factorisation).
-_GRAPHS: dict[tuple, tuple[NDArray[np.int64], NDArray[np.int64], DifferenceGraph]] = {}
 
 
 def _anchored(relative_mm: Array, h0_mm: float) -> Array:

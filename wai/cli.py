@@ -233,13 +233,14 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("dir", type=Path, help="the folder to restore")
     p.add_argument(
-        "--integrator", default="fourth_order", choices=_integrators(),
-        help="slope integrator (paper: the paper's central differences, eq. 10-13)",
+        "--integrator", default=None, choices=_integrators(),
+        help="slope integrator (paper: the paper's central differences, eq. 10-13); default: "
+        "the method's (fourth_order)",
     )
     p.add_argument(
-        "--refine", type=int, default=8,
-        help="most refinement passes of the reflection points, stopping once converged "
-        "(0 = the paper's q on z = h0; RestoreOptions.n_refine)",
+        "--refine", type=int, default=None,
+        help="most refinement passes of the surface samples, stopping once converged "
+        "(0 = the paper's q on z = h0); default: the method's (8)",
     )
     p.add_argument(
         "--method",

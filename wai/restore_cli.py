@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from restoration import RestoreOptions, restore_folder
+from restoration import SurfaceOptions, get_method, restore_folder
 
 
 def run_restore(args: argparse.Namespace) -> None:
@@ -16,12 +16,9 @@ def run_restore(args: argparse.Namespace) -> None:
 
     if not args.dir.is_dir():
         raise WaiInputError(f"restore folder not found: {args.dir}")
-    if args.refine < 0:
+    if args.refine is not None and args.refine < 0:
         raise WaiInputError(f"--refine must be 0 or more passes, got {args.refine}")
-    # The structured light finds the height from integrability; the sun sensor cannot.
-    anchor = args.anchor or ("gauge" if args.method == "alterman" else "integrability")
-    options = RestoreOptions(integrator=args.integrator, n_refine=args.refine, anchor=anchor,
-                             fit_spots=args.fit)
+    options = method_options(args)
     from wai_core.sequence import is_sequence
 
     cold = compile_notice(args.quiet)
@@ -39,6 +36,25 @@ def run_restore(args: argparse.Namespace) -> None:
               file=sys.stderr)
 
 
+def method_options(args: argparse.Namespace) -> SurfaceOptions:
+    """The method's options with the flags given, the rest at the method's defaults."""
+    from wai_core.errors import WaiInputError
+
+    anchor = args.anchor
+    if args.method == "alterman":
+        # The sun sensor's normals do not depend on the height: its level is the gauge's.
+        if anchor == "integrability" or args.fit:
+            flag = "--fit" if args.fit else "--anchor integrability"
+            raise WaiInputError(
+                f"{flag}: alterman's normals do not depend on the height, so its level is "
+                "always the gauge's (--anchor gauge)"
+            )
+        anchor = None
+    choices = {"integrator": args.integrator, "n_refine": args.refine, "anchor": anchor,
+               "fit_spots": True if args.fit else None}
+    return get_method(args.method, **choices).options
+
+
 def compile_notice(quiet: bool) -> bool:
     """Say so (unless ``quiet``) when this run compiles the kernels; whether it will."""
     from restoration._compile import COMPILE_NOTICE, kernels_cached
@@ -49,7 +65,7 @@ def compile_notice(quiet: bool) -> bool:
     return cold
 
 
-def run_restore_sequence(args: argparse.Namespace, options: RestoreOptions) -> None:
+def run_restore_sequence(args: argparse.Namespace, options: SurfaceOptions) -> None:
     """A sequence folder: every frame, the per-frame table, the movies and temporal scores."""
     from restoration.sequence import restore_sequence
 

@@ -3,7 +3,8 @@
 The integrators turn slopes at the detected dots into heights up to a constant; all share one
 interface (:data:`Integrator`) and are chosen by name from :data:`INTEGRATORS` through
 :func:`integrate`. :func:`to_heightfield` then grids the scattered heights (and slopes) onto a
-regular :class:`~wai_core.heightfield.Heightfield`.
+regular :class:`~wai_core.heightfield.Heightfield`. The package's API is these; each
+integrator and its helpers are in its module.
 
 Modules
 -------
@@ -21,6 +22,8 @@ Modules
     Scattered heights to a :class:`~wai_core.heightfield.Heightfield` (:data:`GRIDDERS`).
 :mod:`~restoration.integrate.dispatch`
     The :data:`INTEGRATORS` registry and the :func:`integrate` dispatcher.
+:mod:`~restoration.integrate.plans`
+    What repeated integrations of one sample set share (:class:`IntegrationPlans`).
 ``_common``
     Array aliases and the input limits shared by the modules above.
 """
@@ -29,72 +32,25 @@ from restoration.integrate._common import MIN_SAMPLES
 from restoration.integrate.dispatch import (
     COMPARISON_INTEGRATORS,
     INTEGRATORS,
+    LATTICE_INTEGRATORS,
     Integrator,
     integrate,
 )
-from restoration.integrate.fourier import (
-    SlopeGrid,
-    frankot_chellappa,
-    integrate_dct_poisson,
-    integrate_frankot_chellappa,
-    poisson_dct,
-    resample_slopes,
-    sample_heights,
-)
-from restoration.integrate.gridding import (
-    GRIDDERS,
-    MAX_LATTICE_STEP,
-    gap_free_triangles,
-    lattice_bridges,
-    to_heightfield,
-)
-from restoration.integrate.lattice import (
-    DifferenceGraph,
-    check_samples,
-    grid_neighbours,
-    integrate_fourth_order,
-    integrate_paper,
-    integrate_trapezoid,
-    largest_grid_piece,
-    largest_piece,
-    line_neighbours,
-    solve_differences,
-    spd_solve,
-)
-from restoration.integrate.rules import edge_step, edge_steps
-from restoration.integrate.spline import SplineGrid, integrate_spline
+from restoration.integrate.gridding import GRIDDERS, to_heightfield
+from restoration.integrate.lattice import DifferenceGraph, check_samples, grid_neighbours
+from restoration.integrate.plans import IntegrationPlans
 
 __all__ = [
     "COMPARISON_INTEGRATORS",
     "GRIDDERS",
     "INTEGRATORS",
-    "MAX_LATTICE_STEP",
+    "LATTICE_INTEGRATORS",
     "MIN_SAMPLES",
     "DifferenceGraph",
+    "IntegrationPlans",
     "Integrator",
-    "SlopeGrid",
-    "SplineGrid",
     "check_samples",
-    "edge_step",
-    "edge_steps",
-    "frankot_chellappa",
-    "gap_free_triangles",
     "grid_neighbours",
     "integrate",
-    "integrate_dct_poisson",
-    "integrate_fourth_order",
-    "integrate_frankot_chellappa",
-    "integrate_paper",
-    "integrate_spline",
-    "integrate_trapezoid",
-    "largest_grid_piece",
-    "largest_piece",
-    "lattice_bridges",
-    "line_neighbours",
-    "poisson_dct",
-    "resample_slopes",
-    "sample_heights",
-    "solve_differences",
-    "spd_solve",
     "to_heightfield",
 ]

@@ -15,6 +15,7 @@ from restoration.integrate.lattice import (
     integrate_paper,
     integrate_trapezoid,
 )
+from restoration.integrate.plans import IntegrationPlans
 from restoration.integrate.spline import integrate_spline
 from wai_core.errors import WaiInputError
 
@@ -86,6 +87,9 @@ Integrators
     edge, they err more than the lattice integrators; they cost a fixed ~10 ms per call.
 """
 
+LATTICE_INTEGRATORS = ("fourth_order", "paper", "trapezoid")
+"""Integrators on the dot lattice, which take ``plans`` (:func:`integrate`)."""
+
 COMPARISON_INTEGRATORS = ("frankot_chellappa", "dct_poisson")
 """Integrators kept for comparison (sweeps, benchmarks) but not offered by ``wai restore``: on
 the paper's scene every frame they restore is ``inconsistent`` (surface RMSE 0.15-0.32 mm where
@@ -99,11 +103,14 @@ def integrate(
     slopes: ArrayLike,
     method: str = "fourth_order",
     weight_xy_mm: ArrayLike | None = None,
+    plans: IntegrationPlans | None = None,
 ) -> Array:
     """Heights (K,) in mm, zero mean, from slopes with the integrator named ``method``.
 
     ``weight_xy_mm`` (K, 2) mm, optional: positions that set the difference weights of
-    the lattice integrators (default ``xy_mm``; see :func:`integrate_paper`).
+    the lattice integrators (default ``xy_mm``; see :func:`integrate_paper`). ``plans``,
+    optional: where the lattice integrators keep their edges and factorisations for later
+    calls on the same samples (:class:`~restoration.integrate.plans.IntegrationPlans`).
     """
     try:
         integrator = INTEGRATORS[method]
@@ -111,6 +118,7 @@ def integrate(
         raise WaiInputError(
             f"integrate: unknown integrator {method!r} (known: {', '.join(INTEGRATORS)})"
         ) from None
-    if weight_xy_mm is None:
-        return integrator(ij, xy_mm, slopes)
-    return integrator(ij, xy_mm, slopes, weight_xy_mm=weight_xy_mm)
+    kwargs: dict = {} if weight_xy_mm is None else {"weight_xy_mm": weight_xy_mm}
+    if plans is not None and method in LATTICE_INTEGRATORS:
+        kwargs["plans"] = plans
+    return integrator(ij, xy_mm, slopes, **kwargs)

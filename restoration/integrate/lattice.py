@@ -17,6 +17,7 @@ from scipy.sparse.linalg import SuperLU, splu
 
 from restoration.errors import RestorationFailed
 from restoration.integrate._common import _MAX_GRID_NODES, MIN_SAMPLES, Array, IntArray
+from restoration.integrate.plans import IntegrationPlans, plan_of
 from restoration.integrate.rules import edge_steps
 from wai_core.errors import WaiInputError
 
@@ -403,22 +404,13 @@ class _EdgePlan:
     after: IntArray | None = None
 
 
-# Plans by (scheme, grid indices): the refinement passes of one frame, and the anchor search's
-# reconstructions, integrate the same samples many times.
-_EDGE_PLANS: dict[tuple, _EdgePlan] = {}
-
-
 def _edge_plan(ij: IntArray, scheme: str) -> _EdgePlan:
     """The :class:`_EdgePlan` of ``scheme`` (``"central"``, ``"trapezoid"`` or
-    ``"fourth_order"``, the last two on the same edges) on ``ij``, cached.
+    ``"fourth_order"``, the last two on the same edges) on ``ij``.
 
     ``"central"`` is eq. 10: central where both neighbours exist, else forward or backward
     (slope at the centre).
     """
-    key = (scheme, ij.shape, ij.tobytes())
-    plan = _EDGE_PLANS.get(key)
-    if plan is not None:
-        return plan
     centre = np.arange(ij.shape[0])
     neighbours = grid_neighbours(ij, [(1, 0), (-1, 0), (0, 1), (0, -1)])
     parts = []
@@ -437,9 +429,6 @@ def _edge_plan(ij: IntArray, scheme: str) -> _EdgePlan:
     if scheme == "fourth_order":
         before, after = (np.where(graph.keep[k], k, -1) for k in line_neighbours(ij, a, b))
         plan = _EdgePlan(a, b, None, graph, before, after)
-    if len(_EDGE_PLANS) >= 16:
-        _EDGE_PLANS.clear()
-    _EDGE_PLANS[key] = plan
     return plan
 
 
@@ -449,14 +438,16 @@ def _integrate_scheme(
     slopes: ArrayLike,
     scheme: str,
     weight_xy_mm: ArrayLike | None = None,
+    plans: IntegrationPlans | None = None,
 ) -> Array:
     """Heights by least squares over the differences of ``scheme`` (see :func:`_edge_plan`).
 
     Weights ``1 / |xy(b) - xy(a)|^2`` turn each residual into slope units (eq. 13), with the
-    positions ``weight_xy_mm`` (K, 2) mm where given, else ``xy_mm``.
+    positions ``weight_xy_mm`` (K, 2) mm where given, else ``xy_mm``. ``plans`` keeps the
+    edges and the graph (with its factorisations) for later calls on the same indices.
     """
     ij_a, xy, g = check_samples(ij, xy_mm, slopes)
-    plan = _edge_plan(ij_a, scheme)
+    plan = plan_of(plans, "edge_plan", ij_a, lambda: _edge_plan(ij_a, scheme), scheme)
     a, b = plan.a, plan.b
     step = xy[b] - xy[a]
     if weight_xy_mm is not None:
@@ -477,7 +468,11 @@ def _integrate_scheme(
 
 
 def integrate_paper(
-    ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike, weight_xy_mm: ArrayLike | None = None
+    ij: ArrayLike,
+    xy_mm: ArrayLike,
+    slopes: ArrayLike,
+    weight_xy_mm: ArrayLike | None = None,
+    plans: IntegrationPlans | None = None,
 ) -> Array:
     """Eq. 10-13: central differences on the sample grid, least squares (see :data:`INTEGRATORS`).
 
@@ -489,31 +484,42 @@ def integrate_paper(
     weight_xy_mm : (K, 2) array_like, mm, optional
         Positions that set the weights (eq. 13), default ``xy_mm``. Repeated solves with the
         same weights reuse one factorisation (see :class:`DifferenceGraph`).
+    plans : IntegrationPlans, optional
+        Where the edges and their graph are kept for later calls on the same ``ij`` (one
+        frame's passes); default: built for this call.
 
     Returns
     -------
     (K,) ndarray
         Zero-mean heights, mm; NaN for samples cut off from the largest connected piece.
     """
-    return _integrate_scheme(ij, xy_mm, slopes, "central", weight_xy_mm)
+    return _integrate_scheme(ij, xy_mm, slopes, "central", weight_xy_mm, plans)
 
 
 def integrate_fourth_order(
-    ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike, weight_xy_mm: ArrayLike | None = None
+    ij: ArrayLike,
+    xy_mm: ArrayLike,
+    slopes: ArrayLike,
+    weight_xy_mm: ArrayLike | None = None,
+    plans: IntegrationPlans | None = None,
 ) -> Array:
     """Least squares over the trapezoid integrator's edges, each step by the fourth-order rule
     (see :data:`INTEGRATORS` and :mod:`restoration.integrate.rules`).
 
     Parameters and return as :func:`integrate_paper`.
     """
-    return _integrate_scheme(ij, xy_mm, slopes, "fourth_order", weight_xy_mm)
+    return _integrate_scheme(ij, xy_mm, slopes, "fourth_order", weight_xy_mm, plans)
 
 
 def integrate_trapezoid(
-    ij: ArrayLike, xy_mm: ArrayLike, slopes: ArrayLike, weight_xy_mm: ArrayLike | None = None
+    ij: ArrayLike,
+    xy_mm: ArrayLike,
+    slopes: ArrayLike,
+    weight_xy_mm: ArrayLike | None = None,
+    plans: IntegrationPlans | None = None,
 ) -> Array:
     """Trapezoid-rule least squares over the 4-neighbour edges (see :data:`INTEGRATORS`).
 
     Parameters and return as :func:`integrate_paper`.
     """
-    return _integrate_scheme(ij, xy_mm, slopes, "trapezoid", weight_xy_mm)
+    return _integrate_scheme(ij, xy_mm, slopes, "trapezoid", weight_xy_mm, plans)

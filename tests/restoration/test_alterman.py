@@ -22,7 +22,7 @@ from restoration.alterman import (
     sun_status,
 )
 from restoration.features import Spots
-from restoration.options import RestoreOptions
+from restoration.options import AltermanOptions, StructuredLightOptions
 from restoration.reverse_trace import restore_view, trace_to_object
 from tests.conftest import ROOT, shrink
 from wai_core.alterman import AltermanSystem, chief_rays, load_alterman, sensor_layout
@@ -31,7 +31,7 @@ from wai_core.geometry import PinholeCamera, Pose
 from wai_core.heightfield import Heightfield
 
 SENSOR = ROOT / "scenes" / "alterman.toml"
-OPTIONS = RestoreOptions(anchor="gauge")
+OPTIONS = AltermanOptions()
 PERIOD_MM = 150.0  # texture period on the object plane
 
 
@@ -98,7 +98,7 @@ def test_tilted_plane_is_reconstructed_exactly(system, theta_deg):
     plane = _surface(h0, lambda x, y: gx * (x - 220.0) + gy * y)
     rays = chief_rays(lay, plane)
     est = reconstruct_alterman(
-        lay.ij, lay.pinholes_mm, rays.spots_mm, lay, RestoreOptions(anchor="gauge", n_refine=8)
+        lay.ij, lay.pinholes_mm, rays.spots_mm, lay, AltermanOptions(n_refine=8)
     )
     assert np.allclose(est.slopes, [gx, gy], atol=1e-9)
     # The refined samples lie on the lines through the pinholes, on a plane parallel to the truth
@@ -175,9 +175,14 @@ def test_spots_out_of_view_and_too_few_spots(system):
     assert out.status == TOO_FEW_SPOTS and out.surface is None
 
 
-def test_integrability_anchor_is_refused(system):
-    with pytest.raises(WaiInputError, match="gauge"):
-        restore_alterman({}, _cal(system), RestoreOptions(anchor="integrability"))
+def test_an_anchor_or_the_structured_lights_options_are_refused():
+    # The sun sensor's normals do not depend on the height: it has no level to choose.
+    from restoration import Alterman, get_method
+
+    with pytest.raises(WaiInputError, match="no option 'anchor'"):
+        get_method("alterman", anchor="integrability")
+    with pytest.raises(WaiInputError, match="AltermanOptions"):
+        Alterman(StructuredLightOptions())
 
 
 def test_wavy_surface_is_recovered_and_restores_the_view(system):

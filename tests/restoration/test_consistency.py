@@ -7,9 +7,9 @@ no detector): the true surface must reproduce them to rounding, a wrong one must
 import numpy as np
 import pytest
 
+from restoration import Calibration
 from restoration.consistency import INCONSISTENT_FRACTION, spot_consistency
 from restoration.normals import projector_rays
-from restoration.structured_light import panel_positions
 from wai_core.forward import spots_through
 from wai_core.heightfield import Heightfield
 
@@ -27,7 +27,7 @@ def _swell(cfg, amplitude_mm=2.0, offset_mm=0.0, wavelength_mm=160.0):
 
 def _check(cfg, truth, surface, patches=None):
     ij = np.array([[i, j] for i in range(-12, 13) for j in range(-12, 13)])
-    panel = panel_positions(cfg, ij)
+    panel = Calibration(cfg).panel_px(ij)
     spots = spots_through(cfg, truth, panel)
     keep = np.isfinite(spots).all(axis=1)
     origin, dirs = projector_rays(panel[keep], cfg.projector.camera())
@@ -96,7 +96,7 @@ def test_compiled_prediction_is_the_numpy_steps(paper_cfg):
     z[150:170, 200:230] = np.nan  # a hole: rays through it leave the known surface
     surface = Heightfield(truth.x, truth.y, z)
     ij = np.array([[i, j] for i in range(-14, 15) for j in range(-14, 15)])
-    origin, dirs = projector_rays(panel_positions(paper_cfg, ij), paper_cfg.projector.camera())
+    origin, dirs = projector_rays(Calibration(paper_cfg).panel_px(ij), paper_cfg.projector.camera())
     # Starts off the surface by up to 3 mm; unnormalised directions.
     start = origin + ((paper_cfg.water.h0_mm - origin[2]) / dirs[:, 2])[:, None] * dirs
     start[:, 2] += np.linspace(-3.0, 3.0, len(start))

@@ -2,9 +2,9 @@
 
 import numpy as np
 
+from restoration import Calibration
 from restoration.fit import BSplineSurface, fit_surface
 from restoration.normals import projector_rays
-from restoration.structured_light import panel_positions
 from wai_core.forward import spots_through
 from wai_core.heightfield import Heightfield
 
@@ -29,7 +29,7 @@ def test_the_fit_moves_a_wrong_start_towards_the_spots(paper_cfg):
     cfg = paper_cfg
     truth = _swell(cfg.water.h0_mm)
     ij = np.array([[i, j] for i in range(-10, 11) for j in range(-10, 11)])
-    panel = panel_positions(cfg, ij)
+    panel = Calibration(cfg).panel_px(ij)
     spots = spots_through(cfg, truth, panel)
     keep = np.isfinite(spots).all(axis=1)
     ij, panel, spots = ij[keep], panel[keep], spots[keep]
@@ -52,7 +52,7 @@ def test_the_fit_moves_a_wrong_start_towards_the_spots(paper_cfg):
 
 def _exact_samples(cfg, truth, n=10):
     ij = np.array([[i, j] for i in range(-n, n + 1) for j in range(-n, n + 1)])
-    panel = panel_positions(cfg, ij)
+    panel = Calibration(cfg).panel_px(ij)
     spots = spots_through(cfg, truth, panel)
     keep = np.isfinite(spots).all(axis=1)
     panel, spots = panel[keep], spots[keep]

@@ -97,7 +97,7 @@ def test_a_sequence_median_singles_out_the_turned_frame():
 
 
 def test_every_integrator_wai_restore_offers_restores_the_paper_frame_ok(frames, tmp_path):
-    from restoration import RestoreOptions
+    from restoration import StructuredLightOptions
     from wai.cli import build_parser
 
     parser = build_parser()
@@ -105,5 +105,6 @@ def test_every_integrator_wai_restore_offers_restores_the_paper_frame_ok(frames,
     offered = next(a.choices for a in restore._actions if a.dest == "integrator")
     folder = _case(frames, tmp_path, flat_view=False)
     for name in offered:
-        result = restore_folder(folder, options=RestoreOptions(integrator=name), write=False)
+        options = StructuredLightOptions(integrator=name)
+        result = restore_folder(folder, options=options, write=False)
         assert result.result.status == "ok", (name, result.result.message)

@@ -9,13 +9,12 @@ from restoration.integrate import (
     INTEGRATORS,
     MIN_SAMPLES,
     DifferenceGraph,
-    frankot_chellappa,
-    gap_free_triangles,
     integrate,
-    poisson_dct,
-    solve_differences,
     to_heightfield,
 )
+from restoration.integrate.fourier import frankot_chellappa, poisson_dct
+from restoration.integrate.gridding import gap_free_triangles
+from restoration.integrate.lattice import solve_differences
 from wai_core.errors import WaiInputError
 
 D = 10.0  # grid spacing, mm
@@ -146,7 +145,7 @@ def test_fourth_order_sinusoid_error_bound():
 def test_fourth_order_steps_are_exact_for_quartics_along_a_line():
     """Unevenly spaced samples on a line: with both neighbours the step of h = s^4 is exact,
     with one that of h = s^3, with none the trapezoid rule's (exact for s^2 only)."""
-    from restoration.integrate import edge_steps
+    from restoration.integrate.rules import edge_steps
 
     x = np.array([-1.3, 0.0, 0.8, 2.1])
     xy = np.column_stack([x, 0.5 * x])  # along a slanted line: steps are along it

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mitsuba_wai.render import render_folder
-from restoration import Calibration, RestoreOptions, StructuredLight, restore_folder
+from restoration import Calibration, StructuredLight, StructuredLightOptions, restore_folder
 from restoration.anchor import find_anchor
 from restoration.structured_light import estimate_surface
 from wai_core.errors import WaiInputError
@@ -66,13 +66,14 @@ def test_known_bump_is_recovered(bump_dir, quick_cfg):
 
 
 def test_the_fit_to_the_spots_restores_and_reports_its_level_search(bump_dir, tmp_path):
-    # RestoreOptions(fit_spots=True), as `wai restore --fit`: the fit's surface is scored, and
-    # metrics.json says how its level search went (probes, convergence, a kept start).
+    # StructuredLightOptions(fit_spots=True), as `wai restore --fit`: the fit's surface is scored,
+    # and metrics.json says how its level search went (probes, convergence, a kept start).
     import json
 
-    from restoration import RestoreOptions
+    from restoration import StructuredLightOptions
 
-    done = restore_folder(bump_dir, options=RestoreOptions(fit_spots=True), out=tmp_path / "r")
+    options = StructuredLightOptions(fit_spots=True)
+    done = restore_folder(bump_dir, options=options, out=tmp_path / "r")
     assert done.metrics["status"] == "ok"
     # The default's bound (known, docs/results.md: on a bump's magnified flanks the detected
     # centres are biased and the fit's level follows them, 0.31 mm here against 0.18).
@@ -89,9 +90,10 @@ def test_integrability_anchor_beats_the_gauge_on_an_offset_surface(bump_dir, qui
     # integrability anchor does not.
     cal = Calibration.from_folder(bump_dir)
     feats = StructuredLight()(cal.load_images(bump_dir), cal).features
-    wrong = quick_cfg.replace("water", h0_mm=quick_cfg.water.h0_mm + 4.0)
-    gauge = estimate_surface(feats.ij, feats.spot_px, wrong, RestoreOptions(anchor="gauge"))
-    integ = estimate_surface(feats.ij, feats.spot_px, wrong, RestoreOptions())
+    wrong = Calibration(quick_cfg.replace("water", h0_mm=quick_cfg.water.h0_mm + 4.0))
+    obs = wrong.observe(feats.ij, feats.spot_px)
+    gauge = estimate_surface(obs, wrong, StructuredLightOptions(anchor="gauge"))
+    integ = estimate_surface(obs, wrong, StructuredLightOptions())
     truth = _bump_surface(quick_cfg)
     pts_g, pts_i = gauge.points_mm, integ.points_mm
     err_g = np.abs(pts_g[:, 2] - truth.height(pts_g[:, 0], pts_g[:, 1])).mean()
@@ -117,7 +119,7 @@ class _FakeEstimate:
 def _patched_search(monkeypatch, slope):
     import restoration.anchor as anchor
 
-    monkeypatch.setattr(anchor, "edge_residuals_mm", lambda est: est.residuals())
+    monkeypatch.setattr(anchor, "edge_residuals_mm", lambda est, plans=None: est.residuals())
     return find_anchor(lambda a: _FakeEstimate(a, slope), start_mm=0.0, step_mm=2.0)
 
 
@@ -146,7 +148,7 @@ def test_anchor_search_is_robust_to_a_few_wrong_labels(monkeypatch):
     # of 3 (measured 2.93).
     import restoration.anchor as anchor
 
-    monkeypatch.setattr(anchor, "edge_residuals_mm", lambda est: est.residuals())
+    monkeypatch.setattr(anchor, "edge_residuals_mm", lambda est, plans=None: est.residuals())
     search = functools.partial(
         find_anchor, lambda a: _OutlierEstimate(a, 1.0), start_mm=0.0, step_mm=2.0
     )
@@ -172,7 +174,7 @@ def test_anchor_search_converges_from_far_starts(monkeypatch, start_mm):
     # still finds it, in a handful of reconstructions.
     import restoration.anchor as anchor
 
-    monkeypatch.setattr(anchor, "edge_residuals_mm", lambda est: est.residuals())
+    monkeypatch.setattr(anchor, "edge_residuals_mm", lambda est, plans=None: est.residuals())
     res = find_anchor(lambda a: _CurvedEstimate(a, 1.0), start_mm=start_mm, step_mm=2.0)
     assert res.anchor_mm == pytest.approx(3.0, abs=0.03)
     assert res.sigma_mm < 0.05

@@ -22,7 +22,7 @@ import mitsuba_wai as mw
 from restoration import Calibration, StructuredLight, Truth, score
 from restoration.consistency import predict_spots_px
 from restoration.features import spot_sigma_px
-from restoration.structured_light import panel_positions, projector_rays
+from restoration.normals import projector_rays
 
 COARSE, FINE = (800, 600, 8), (1600, 1200, 2)  # width, height, spp: equal light paths
 
@@ -35,7 +35,7 @@ def _sized(cfg, width, height):
 def _centroid_error_px800(cfg, frame, features):
     """Median distance of the matched spots from the exact spots of their dots' central rays
     through the true surface, in pixels of the 800-px-wide camera s."""
-    origin, dirs = projector_rays(panel_positions(cfg, features.ij), cfg.projector.camera())
+    origin, dirs = projector_rays(Calibration(cfg).panel_px(features.ij), cfg.projector.camera())
     d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     start = origin + ((cfg.water.h0_mm - origin[2]) / d[:, 2])[:, None] * d
     exact = predict_spots_px(

@@ -14,10 +14,10 @@ from restoration import (
     Calibration,
     LevelTrack,
     RestorationFailed,
-    RestoreOptions,
     RestoreResult,
     Status,
     StructuredLight,
+    StructuredLightOptions,
 )
 from restoration.features import features_from_reference, prepare_reference, spot_sigma_px
 from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION
@@ -40,7 +40,7 @@ def _status(n_matched, ambiguous, observed=1000, in_view=1000, median_px=0.2, rm
                                 rms_px=rms_px, spacing_px=np.full(in_view, 13.0))
     surface = SimpleNamespace(anchor={"method": "integrability"})
     check = SimpleNamespace(consistent=median_px <= 1.0, median_px=median_px, threshold_px=1.0)
-    return frame_status(features, reference, surface, check, True, RestoreOptions())
+    return frame_status(features, reference, surface, check, True, StructuredLightOptions())
 
 
 def test_a_large_consistent_patch_is_ok():
@@ -162,7 +162,7 @@ def test_bad_input_raises_out_of_the_method(cfg):
     with pytest.raises(WaiInputError, match="NaN"):
         method(_images(cfg, nan), cal)
     with pytest.raises(WaiInputError, match="integrator"):  # an invalid option, at once
-        RestoreOptions(integrator="magic")
+        StructuredLightOptions(integrator="magic")
     assert method(_images(cfg, pattern), cal).status is not Status.FAILED
 
 

@@ -148,7 +148,7 @@ def test_mapping_derives_renames_and_passes_unknown_keys_through():
     res = _result(
         top={"features": 10.0, "surface": 8.0, "reverse_trace": 6.0, "end_to_end": 25.0},
         features={"detect": 6.0, "match": 3.0, "subpixel": 1.0},
-        surface={"rays": 1.0, "normals": 2.0, "integrate": 3.0, "grid": 1.5, "total": 7.5},
+        surface={"normals": 3.0, "integrate": 3.0, "grid": 1.5, "total": 7.5},
         view={"plan": 0.1, "surface": 0.4, "solve": 2.0, "upsample": 1.0, "remap": 1.0},
     )
     times, derived = stage_times(res)

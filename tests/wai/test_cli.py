@@ -8,6 +8,7 @@ import pytest
 
 from tests.conftest import PAPER_TOML
 from wai.cli import main
+from wai_core.errors import WaiInputError
 
 
 def _run(capsys, *argv):
@@ -51,15 +52,19 @@ def test_console_script_exit_code(tmp_path):
     assert proc.stderr.strip().count("\n") == 0
 
 
-def test_restore_defaults_are_the_librarys():
-    """The CLI's restore options default to what a script gets from RestoreOptions()."""
-    from restoration import RestoreOptions
+def test_unset_restore_flags_leave_each_methods_defaults():
+    """The CLI holds no defaults of its own: unset flags give what a script gets from the
+    method's options, and a flag the method has no use for is refused."""
+    from restoration import AltermanOptions, StructuredLightOptions
     from wai.cli import build_parser
+    from wai.restore_cli import method_options
 
-    args = build_parser().parse_args(["restore", "somewhere"])
-    defaults = RestoreOptions()
-    assert args.refine == defaults.n_refine
-    assert args.integrator == defaults.integrator
+    parse = build_parser().parse_args
+    assert method_options(parse(["restore", "d"])) == StructuredLightOptions()
+    alterman = parse(["restore", "d", "--method", "alterman", "--refine", "0"])
+    assert method_options(alterman) == AltermanOptions(n_refine=0)
+    with pytest.raises(WaiInputError, match="--fit"):
+        method_options(parse(["restore", "d", "--method", "alterman", "--fit"]))
 
 
 def test_negative_refine_names_the_option(capsys, tmp_path):

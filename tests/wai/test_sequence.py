@@ -97,7 +97,7 @@ def test_a_turned_view_in_a_sequence_is_a_view_mismatch(sequence_copy):
 
 
 def test_an_interrupted_sequence_restore_keeps_every_old_output(sequence_copy, monkeypatch):
-    from restoration import RestoreOptions, StructuredLight, restore_sequence
+    from restoration import StructuredLight, StructuredLightOptions, restore_sequence
 
     restore_sequence(sequence_copy, movie=False)
     outputs = sorted(sequence_copy.rglob("restore/*"))
@@ -113,7 +113,7 @@ def test_an_interrupted_sequence_restore_keeps_every_old_output(sequence_copy, m
 
     monkeypatch.setattr(StructuredLight, "__call__", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        restore_sequence(sequence_copy, options=RestoreOptions(integrator="trapezoid"),
+        restore_sequence(sequence_copy, options=StructuredLightOptions(integrator="trapezoid"),
                          movie=False)
     after = {p: p.read_bytes() for p in sorted(sequence_copy.rglob("restore/*")) if p.is_file()}
     assert after == before

@@ -12,7 +12,7 @@ the truth and never feed the restoration):
 ``trapezoid``   ours with the trapezoid rule instead of the fourth-order one, in the level
                 search and the integration (the former default);
 ``fit``         ours, then the surface and its level fitted to the spots through the exact model
-                (``RestoreOptions(fit_spots=True)``, :func:`restoration.fit.fit_level`);
+                (``StructuredLightOptions(fit_spots=True)``, :func:`restoration.fit.fit_level`);
 ``oracle_spots``  the default, fed the exact spot positions ray-traced through the true surface
                 (what is left is integration, gridding and the anchor);
 ``oracle_anchor`` the default with the truth's mean height over the samples as anchor instead
@@ -50,13 +50,9 @@ def true_spots(cfg: SystemConfig, truth: Heightfield, panel_px: NDArray) -> NDAr
 def _surface_variant(
     name: str, features: Any, cal: Any, truth: Heightfield, options: Any
 ) -> dict[str, float]:
+    from restoration import Calibration
     from restoration.metrics import surface_errors
-    from restoration.structured_light import (
-        estimate_surface,
-        fit_to_spots,
-        panel_positions,
-        spots_of,
-    )
+    from restoration.structured_light import estimate_surface, fit_to_spots, spots_of
 
     cfg = cal.cfg
     spots = features.spot_px
@@ -71,18 +67,20 @@ def _surface_variant(
     elif name == "trapezoid":
         options = replace(options, integrator="trapezoid")
     elif name == "oracle_spots":
-        spots = true_spots(cfg, truth, panel_positions(cfg, features.ij))
+        spots = true_spots(cfg, truth, cal.panel_px(features.ij))
     elif name == "oracle_anchor":
         # The gauge reading replaced by the truth's mean height over the samples.
-        est = estimate_surface(features.ij, spots, cfg, replace(options, anchor="gauge"))
+        obs = cal.observe(features.ij, spots)
+        est = estimate_surface(obs, cal, replace(options, anchor="gauge"))
         pts = est.points_mm
         mean = float(np.mean(truth.height(pts[:, 0], pts[:, 1])))
-        cfg = cfg.replace("water", h0_mm=mean)
+        cal = Calibration(cfg.replace("water", h0_mm=mean))
         options = replace(options, anchor="gauge")
     t0 = time.perf_counter()
-    est = estimate_surface(features.ij, spots, cfg, options)
+    obs = cal.observe(features.ij, spots)
+    est = estimate_surface(obs, cal, options)
     if name == "fit":
-        est = fit_to_spots(est, spots_of(features, est.ij), cfg)
+        est = fit_to_spots(est, spots_of(obs, est.ij), cal)
     elapsed_ms = 1e3 * (time.perf_counter() - t0)
     err = surface_errors(est.heightfield, truth)
     return {**{k: float(err[k]) for k in ("rmse_mm", "rmse_demeaned_mm", "max_abs_mm")},
@@ -97,9 +95,9 @@ VARIANTS = (
 
 def spot_noise_px(cfg: SystemConfig, features: Any, truth: Heightfield) -> dict[str, float]:
     """Detected minus ray-traced spot centres, pixels: median and 95th percentile of |d|."""
-    from restoration.structured_light import panel_positions
+    from restoration import Calibration
 
-    exact = true_spots(cfg, truth, panel_positions(cfg, features.ij))
+    exact = true_spots(cfg, truth, Calibration(cfg).panel_px(features.ij))
     d = np.linalg.norm(features.spot_px - exact, axis=1)
     d = d[np.isfinite(d)]
     return {"median_px": float(np.median(d)), "p95_px": float(np.percentile(d, 95))}
@@ -137,9 +135,9 @@ def run_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Any]:
 
 def result_options(done: Any) -> Any:
     """The options ``done`` (a FolderRestore) was restored with."""
-    from restoration import RestoreOptions
+    from restoration import StructuredLightOptions
 
-    return RestoreOptions(**done.metrics["options"])
+    return StructuredLightOptions(**done.metrics["options"])
 
 
 def corner_floor_px(done: Any, truth: Heightfield) -> Any:

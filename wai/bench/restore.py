@@ -35,7 +35,6 @@ _KNOWN: dict[str, dict[str, str | None]] = {
     "": {"features": "features", "surface": "surface", "reverse_trace": "view", "end_to_end": None},
     "features": {"detect": "features.detect", "match": "features.match"},
     "surface": {
-        "rays": "surface.rays",
         "normals": "surface.normals",
         "integrate": "surface.integrate",
         "grid": "grid",
@@ -53,9 +52,10 @@ _KNOWN: dict[str, dict[str, str | None]] = {
 
 DERIVED: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     "normals": (
-        ("surface.rays", "surface.normals"),
+        ("surface.normals",),
         (),
-        "surface.rays + surface.normals (back-projected rays and normals, final reconstruction)",
+        "surface.normals (normals of the final reconstruction; 0 when its passes run compiled, "
+        "which count them in surface.integrate)",
     ),
     "integration": (
         ("surface",),
@@ -65,7 +65,7 @@ DERIVED: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     ),
     "surface.anchor_search": (
         ("surface",),
-        ("surface.rays", "surface.normals", "surface.integrate"),
+        ("surface.normals", "surface.integrate"),
         "surface - its final reconstruction's parts (the anchor search's other reconstructions)",
     ),
     "reverse_trace": (
@@ -98,7 +98,6 @@ ORDER = (
     "surface",
     "normals",
     "integration",
-    "surface.rays",
     "surface.normals",
     "surface.integrate",
     "surface.anchor_search",
@@ -115,7 +114,7 @@ ORDER = (
 """Display order; unknown stages follow, then ``end_to_end``."""
 
 CHART_HIDDEN = frozenset(
-    {"view", "surface.rays", "surface.normals", "surface.integrate", "surface.anchor_search"}
+    {"view", "surface.normals", "surface.integrate", "surface.anchor_search"}
     | {n for n in ORDER if n.startswith("view.")}
 )
 """Parts left out of ``bench.png`` (they are in the JSON and the table) to keep it readable."""

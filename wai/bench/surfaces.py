@@ -22,7 +22,7 @@ __all__ = ["bench_surfaces", "print_surfaces"]
 def _restore(frame: Any, cal: Any, fit: bool) -> dict[str, Any]:
     import restoration as rs
 
-    result = rs.StructuredLight(rs.RestoreOptions(fit_spots=fit))(frame.images, cal)
+    result = rs.StructuredLight(rs.StructuredLightOptions(fit_spots=fit))(frame.images, cal)
     if not result.restored:
         return {"status": result.status, "message": result.message}
     truth = rs.Truth(frame.surface, cal.radiance(frame.images["view_truth"]))

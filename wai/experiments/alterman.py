@@ -152,7 +152,7 @@ def structured_light_rows(
     import time
 
     from mitsuba_wai.render import render_folder
-    from restoration import RestoreOptions, restore_folder
+    from restoration import StructuredLightOptions, restore_folder
 
     rows, restored = [], {}
     for seed in tqdm(seeds, desc="alterman: structured light, per seed", leave=True):
@@ -164,7 +164,7 @@ def structured_light_rows(
         restored[seed] = done
         rows.append(row(seed, "structured-light", "integrability", None, done.metrics, render_s))
         rows[-1].update(common_region_errors(done, done))
-        gauge = _in_memory(frame, "structured-light", RestoreOptions(anchor="gauge"))
+        gauge = _in_memory(frame, "structured-light", StructuredLightOptions(anchor="gauge"))
         rows.append(row(seed, "structured-light", "gauge", None, gauge))
     return rows, restored
 
@@ -181,7 +181,7 @@ def sun_rows(
     import time
 
     from mitsuba_wai.alterman import SunRenderer, alterman_surface, render_alterman_folder
-    from restoration import Alterman, RestoreOptions, restore_folder
+    from restoration import Alterman, AltermanOptions, restore_folder
 
     rows = []
     for theta in tqdm(angles, desc="alterman: sun angles", leave=True):
@@ -201,7 +201,7 @@ def sun_rows(
             if done.result.ok:
                 rows[-1].update(common_region_errors(done, paper[seed]))
                 rows[-1].update(oracle_level_errors(done))
-            published = _in_memory(frame, "alterman", RestoreOptions(anchor="gauge", n_refine=0))
+            published = _in_memory(frame, "alterman", AltermanOptions(n_refine=0))
             rows.append(row(seed, "alterman", "h0", theta, published))
     return rows
 

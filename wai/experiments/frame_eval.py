@@ -255,7 +255,7 @@ def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[s
 
 def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     """Render, restore and score the frame of ``point`` (see the module docstring)."""
-    from restoration import Calibration, RestorationFailed, RestoreOptions
+    from restoration import Calibration, RestorationFailed, StructuredLightOptions
     from wai_core.limits import correspondence_limit, effective_phi_deg
     from wai_core.optics import radiance_gain
 
@@ -273,7 +273,7 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
         row[key] = images.pop(key)
     row["phi_deg"] = effective_phi_deg(surface, cfg)
     cal = Calibration(cfg, radiance_gain(cfg.water.n_water))
-    base = RestoreOptions()
+    base = StructuredLightOptions()
     integrators = _names(point.get("integrators"), base.integrator)
     steps = [int(s) for s in _names(point.get("warp_steps"), str(base.warp_step_px))]
     refinements = _names(point.get("refinements"), "default")

@@ -394,7 +394,7 @@ def run_tradeoffs(config: str | Path, out: str | Path, seeds: int, quick: bool =
     dict
         ``defaults`` (the default of each choice) and ``series`` (:func:`chart_series`).
     """
-    from restoration import RestoreOptions
+    from restoration import StructuredLightOptions
     from wai_core.system import load_rig
 
     out = Path(out)
@@ -404,7 +404,7 @@ def run_tradeoffs(config: str | Path, out: str | Path, seeds: int, quick: bool =
         tradeoff_points(config, list(range(seeds)), quick), evaluate_frame,
         out / "tradeoffs.csv", **sweep.kwargs(),
     )
-    cfg, opts = load_rig(config), RestoreOptions()
+    cfg, opts = load_rig(config), StructuredLightOptions()
     defaults = {
         "spacing": cfg.pattern.spacing_px,
         "integrator": opts.integrator,
