@@ -41,6 +41,7 @@ from restoration.integrate import MIN_SAMPLES, integrate, to_heightfield
 from restoration.normals import slopes_from_normals, spots_on_diffuser
 from restoration.options import AltermanOptions
 from restoration.result import RestoreResult, Status
+from restoration.surface import Anchor
 from wai_core.alterman import (
     AltermanSystem,
     SensorLayout,
@@ -62,7 +63,6 @@ SUN_OUT_OF_VIEW = Status.SUN_OUT_OF_VIEW
 TOO_FEW_SPOTS = Status.TOO_FEW_SPOTS
 MIN_SPOTS = 16
 """Fewest matched spots the method integrates (as the structured light's features)."""
-"""The structured light's defaults with the only anchor this method has (see the notes)."""
 
 
 @dataclass(frozen=True)
@@ -108,7 +108,7 @@ class AltermanSurface:
         Largest height change of the last refinement pass, mm (NaN when none ran).
     timings_ms : dict of str to float
         ``normals``, ``integrate`` (all passes), ``grid`` and ``total``, ms.
-    anchor : dict
+    anchor : Anchor
         How the absolute level was set: always the gauge's h0 (the sensor has no other anchor).
     """
 
@@ -120,7 +120,7 @@ class AltermanSurface:
     iterations: int
     height_change_mm: float
     timings_ms: dict[str, float] = field(default_factory=dict)
-    anchor: dict[str, Any] = field(default_factory=lambda: {"method": "gauge"})
+    anchor: Anchor = field(default_factory=lambda: Anchor("gauge"))
 
 
 @dataclass

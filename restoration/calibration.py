@@ -23,6 +23,7 @@ from restoration.features import ReferenceGrid, prepare_reference
 from restoration.observations import Observations
 from restoration.options import SurfaceOptions
 from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, restore_view
+from restoration.surface import Anchor
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
@@ -248,7 +249,7 @@ class LevelTrack:
 
     start_mm: float | None = None
 
-    def update(self, anchor: dict[str, Any]) -> None:
+    def update(self, anchor: Anchor) -> None:
         """Take the level of a frame whose level came from integrability."""
-        if anchor.get("method") == "integrability":
-            self.start_mm = float(anchor["anchor_mm"])
+        if anchor.method == "integrability":
+            self.start_mm = float(anchor.anchor_mm)

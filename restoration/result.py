@@ -174,7 +174,7 @@ class RestoreResult:
             out.update(
                 features_used=int(len(self.surface.ij)),
                 refine_iterations=int(self.surface.iterations),
-                anchor=self.surface.anchor,
+                anchor=self.surface.anchor.to_dict(),
             )
         if self.view is not None:
             valid = self.view.valid

@@ -201,7 +201,7 @@ def _row(
     row.update(frame=k, time_s=time_s, status=result.status.value)
     if result.restored:
         row.update(
-            anchor_mm=result.surface.anchor.get("anchor_mm"),
+            anchor_mm=result.surface.anchor.anchor_mm,
             features_used=len(result.surface.ij),
             end_to_end_ms=result.timings_ms.get("end_to_end"),
         )

@@ -61,7 +61,7 @@ def estimate_surface(
     ``options.converge_mm``, the fixed point had not converged (it contracts slowly when the
     diffuser is close to the water) and the whole estimate is made again with up to
     ``options.max_refine`` passes: an unconverged refinement biases the level search, and a
-    wrong level gives a wrong shape (the depth-normal ambiguity). ``anchor["refine_passes"]``
+    wrong level gives a wrong shape (the depth-normal ambiguity). ``anchor.refine_passes``
     says how many passes the estimate allowed.
 
     Examples
@@ -91,9 +91,9 @@ def estimate_surface(
         and est.height_change_mm > options.converge_mm
     ):
         est = _estimate_surface(obs, cal, options, start_mm, options.max_refine)
-        est.anchor["refine_passes"] = options.max_refine
+        est.anchor.refine_passes = options.max_refine
     else:
-        est.anchor["refine_passes"] = options.n_refine
+        est.anchor.refine_passes = options.n_refine
     return est
 
 
@@ -308,7 +308,7 @@ def frame_status(
         )
     if not view_ok:
         return Status.DARK_VIEW, "the view image holds no signal (all pixels alike)"
-    if options.anchor == "integrability" and surface.anchor.get("method") == "gauge_fallback":
+    if options.anchor == "integrability" and surface.anchor.method == "gauge_fallback":
         return Status.GAUGE_LEVEL, "the slopes do not pin the level: the gauge's h0 was used"
     return Status.OK, ""
 

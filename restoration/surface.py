@@ -31,7 +31,7 @@ anchor error costs about 5e-3 rad (rms) in the normals and 0.25 mm (rms) in the 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -72,6 +72,74 @@ COMPILED_INTEGRATORS = ("fourth_order", "trapezoid")
 """Integrators whose refinement passes run in one compiled call (:func:`_compiled_refinement`)."""
 
 
+@dataclass
+class Anchor:
+    """How a surface's absolute level was set (``metrics.json``'s ``anchor``).
+
+    Attributes
+    ----------
+    method : str
+        ``gauge`` (the gauge's h0), ``integrability`` (searched from the slopes,
+        :mod:`restoration.anchor`) or ``gauge_fallback`` (searched, but the slopes did not pin
+        it: the gauge's h0); empty until the level is set.
+    anchor_mm : float or None
+        The level the samples' mean height was pinned at, mm.
+    searched_mm, sigma_mm : float or None
+        After a search: the level it found and its standard error, mm.
+    evaluations : int or None
+        After a search: the reconstructions it ran.
+    refine_passes : int or None
+        Most refinement passes each reconstruction allowed.
+    fit_rms_mm, fit_iterations, fit_level_offset_mm, fit_level_sigma_mm, fit_level_probes,
+    fit_level_probes_converged, fit_level_kept_start, fit_level_reason
+        After a fit to the spots (:func:`restoration.fit.fit_level`): its RMS spot miss as a
+        height (mm), Gauss-Newton iterations, the level's offset from the reconstruction and
+        its standard error (mm), the levels probed and how many converged, whether the
+        reconstruction's level was kept, and why.
+
+    Examples
+    --------
+    >>> from restoration.surface import Anchor
+    >>> a = Anchor("gauge", 150.0)
+    >>> a.update(refine_passes=8)
+    >>> a.to_dict()
+    {'method': 'gauge', 'anchor_mm': 150.0, 'refine_passes': 8}
+    """
+
+    method: str = ""
+    anchor_mm: float | None = None
+    searched_mm: float | None = None
+    sigma_mm: float | None = None
+    evaluations: int | None = None
+    refine_passes: int | None = None
+    fit_rms_mm: float | None = None
+    fit_iterations: int | None = None
+    fit_level_offset_mm: float | None = None
+    fit_level_sigma_mm: float | None = None
+    fit_level_probes: int | None = None
+    fit_level_probes_converged: int | None = None
+    fit_level_kept_start: bool | None = None
+    fit_level_reason: str | None = None
+
+    def update(self, **values: Any) -> None:
+        """Set the named fields.
+
+        Raises
+        ------
+        TypeError
+            For a name that is not a field.
+        """
+        for name, value in values.items():
+            if not hasattr(self, name) or name.startswith("_"):
+                raise TypeError(f"Anchor has no field {name!r}")
+            setattr(self, name, value)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fields that are set, as plain values."""
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if getattr(self, f.name) is not None}
+
+
 @dataclass(frozen=True)
 class SurfaceEstimate:
     """A reconstructed water surface and the samples it was built from.
@@ -101,10 +169,9 @@ class SurfaceEstimate:
         Node spacing of :attr:`heightfield`, mm.
     gridder : str
         ``method`` of :func:`restoration.integrate.to_heightfield` that builds it.
-    anchor : dict
+    anchor : Anchor
         How the absolute level was set (filled by the caller, e.g.
-        :func:`restoration.structured_light.estimate_surface`): ``method``, ``anchor_mm`` and,
-        after an integrability search, ``searched_mm``, ``sigma_mm``, ``evaluations``.
+        :func:`restoration.structured_light.estimate_surface`).
     integrator : str
         The integrator that made the heights (its rule also measures their integrability,
         :func:`restoration.anchor.edge_residuals_mm`).
@@ -119,7 +186,7 @@ class SurfaceEstimate:
     timings_ms: dict[str, float] = field(default_factory=dict)
     grid_spacing_mm: float = _DEFAULT.grid_spacing_mm
     gridder: str = _DEFAULT.gridder
-    anchor: dict[str, Any] = field(default_factory=dict)
+    anchor: Anchor = field(default_factory=Anchor)
     integrator: str = _DEFAULT.integrator
     _heightfield: Heightfield | None = field(default=None, init=False, repr=False, compare=False)
 
@@ -131,7 +198,7 @@ class SurfaceEstimate:
         normals = np.column_stack([-slopes, np.ones(len(slopes))])
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         new = replace(self, points_mm=points_mm, slopes=slopes, normals=normals,
-                      timings_ms={**self.timings_ms, **timings_ms}, anchor=dict(self.anchor))
+                      timings_ms={**self.timings_ms, **timings_ms}, anchor=replace(self.anchor))
         object.__setattr__(new, "_heightfield", heightfield)
         return new
 

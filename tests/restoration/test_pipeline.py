@@ -196,7 +196,7 @@ def test_flat_water_restores_to_the_truth_with_the_gauge_level(flat_dir, quick_c
     # Flat water carries no curvature, so integrability cannot pin the level: the pipeline must
     # notice and fall back to the gauge rather than drift along the depth-normal ambiguity.
     result, scores = _run(flat_dir)
-    assert result.surface.anchor["method"] == "gauge_fallback"
+    assert result.surface.anchor.method == "gauge_fallback"
     counts = result.features.counts
     # A perfectly regular pattern: every dot seen on flat water is found again under its own
     # label, at its flat-water position (the two images are the same render).

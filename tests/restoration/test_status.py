@@ -22,6 +22,7 @@ from restoration import (
 from restoration.features import features_from_reference, prepare_reference, spot_sigma_px
 from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION
 from restoration.structured_light import frame_status
+from restoration.surface import Anchor
 from tests.conftest import PAPER_TOML
 from wai_core.config import load_config, read_toml
 from wai_core.errors import WaiInputError
@@ -38,7 +39,7 @@ def _status(n_matched, ambiguous, observed=1000, in_view=1000, median_px=0.2, rm
     features = _Features(n=n_matched, counts={"labels_ambiguous": int(ambiguous)})
     reference = SimpleNamespace(counts={"predicted_in_view": in_view, "observed": observed},
                                 rms_px=rms_px, spacing_px=np.full(in_view, 13.0))
-    surface = SimpleNamespace(anchor={"method": "integrability"})
+    surface = SimpleNamespace(anchor=Anchor("integrability"))
     check = SimpleNamespace(consistent=median_px <= 1.0, median_px=median_px, threshold_px=1.0)
     return frame_status(features, reference, surface, check, True, StructuredLightOptions())
 

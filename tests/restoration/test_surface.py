@@ -292,7 +292,7 @@ def test_level_from_integrability_on_exact_spots(integrator, bound_mm, monkeypat
     cal = Calibration(CFG)
     opts = StructuredLightOptions(integrator=integrator)
     est = sl.estimate_surface(cal.observe(ij, spots), cal, opts)
-    level_error = est.anchor["anchor_mm"] - H0  # the samples' true mean height is h0
+    level_error = est.anchor.anchor_mm - H0  # the samples' true mean height is h0
     if bound_mm is None:
         assert abs(level_error) > 0.2
     else:
