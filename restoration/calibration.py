@@ -24,6 +24,7 @@ from restoration.observations import Observations
 from restoration.options import SurfaceOptions
 from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, restore_view
 from restoration.surface import Anchor
+from restoration.undistort import PinholeRemap, check_no_port, pinhole_panel_px
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
@@ -76,6 +77,34 @@ class RigCalibration:
 
     IMAGES: ClassVar[tuple[str, ...]] = ("view",)
     """Stems of the images a frame of this method needs."""
+    DEVICES: ClassVar[dict[str, str]] = {"view": "camera_v", "view_flat": "camera_v",
+                                         "view_truth": "camera_v"}
+    """The device (config section) that takes each image."""
+
+    def __post_init__(self) -> None:
+        for device in set(self.DEVICES.values()):
+            check_no_port(getattr(self.cfg, device), device)
+
+    @cached_property
+    def _remaps(self) -> dict[str, PinholeRemap]:
+        """The pinhole remap of each device whose optics are not its ideal pinhole's."""
+        remaps = {}
+        for device in set(self.DEVICES.values()):
+            remap = PinholeRemap.of(getattr(self.cfg, device), device)
+            if remap is not None:
+                remaps[device] = remap
+        return remaps
+
+    def resamples(self, name: str) -> bool:
+        """Whether image ``name`` is resampled into its device's ideal pinhole."""
+        return self.DEVICES.get(name, "") in self._remaps
+
+    def to_pinhole(self, name: str, image: NDArray) -> NDArray:
+        """Image ``name`` of a real device resampled into its ideal pinhole's geometry (the
+        one every stage models; :mod:`restoration.undistort`); itself for an ideal device.
+        :meth:`load_images` and the truth readers do this when they read a file."""
+        remap = self._remaps.get(self.DEVICES.get(name, ""))
+        return image if remap is None else remap.apply(image)
 
     @cached_property
     def camera_v(self) -> PinholeCamera:
@@ -127,7 +156,8 @@ class RigCalibration:
         raise KeyError(name)
 
     def load_images(self, folder: str | Path) -> dict[str, NDArray[np.float32]]:
-        """A frame's images from ``folder`` (EXR, PNG or TIFF by stem), sizes checked."""
+        """A frame's images from ``folder`` (EXR, PNG or TIFF by stem), sizes checked, in the
+        devices' ideal pinholes' geometry (:meth:`to_pinhole`)."""
         images = {}
         for name in self.IMAGES:
             path = find_image(folder, name)
@@ -137,7 +167,7 @@ class RigCalibration:
                 raise WaiInputError(
                     f"{path} is {img.shape[1]}x{img.shape[0]} but the calibration says {w}x{h}"
                 )
-            images[name] = img
+            images[name] = self.to_pinhole(name, img)
         return images
 
 
@@ -158,6 +188,11 @@ class Calibration(RigCalibration):
     reference: ReferenceGrid | None = None
 
     IMAGES: ClassVar[tuple[str, ...]] = ("pattern", "pattern_flat", "view")
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        # Camera s's spots are mapped to its pinhole as they are detected (features).
+        check_no_port(self.cfg.camera_s, "camera_s")
+        check_no_port(self.cfg.projector, "projector")
 
     @cached_property
     def projector(self) -> PinholeCamera:
@@ -181,7 +216,8 @@ class Calibration(RigCalibration):
         return dot_grid(self.cfg.pattern, self.projector)
 
     def panel_px(self, ij: NDArray) -> NDArray[np.float64]:
-        """Projector panel ``(col, row)`` (K, 2) px of the dots with grid indices ``ij`` (K, 2).
+        """Projector panel ``(col, row)`` (K, 2) px of the dots with grid indices ``ij`` (K, 2),
+        as the projector's ideal pinhole has them (:attr:`pinhole_dot_grid`).
 
         Examples
         --------
@@ -193,10 +229,18 @@ class Calibration(RigCalibration):
         >>> bool(np.array_equal(step, np.eye(2) * cal.cfg.pattern.spacing_px))
         True
         """
-        grid_ij, panel = self.dot_grid
+        grid_ij, panel = self.pinhole_dot_grid
         ni, nj = int(grid_ij[:, 0].max()), int(grid_ij[:, 1].max())
         ij = np.asarray(ij)
         return panel[(ij[:, 1] + nj) * (2 * ni + 1) + (ij[:, 0] + ni)]
+
+    @cached_property
+    def pinhole_dot_grid(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """:attr:`dot_grid` with the panel positions whose pinhole rays are the dots' real
+        rays (:func:`~restoration.undistort.pinhole_panel_px`; the same for an ideal
+        projector)."""
+        ij, panel = self.dot_grid
+        return ij, pinhole_panel_px(self.cfg.projector, panel)
 
     def observe(self, ij: NDArray, spot_px: NDArray) -> Observations:
         """The features with grid indices ``ij`` (K, 2) and spots ``spot_px`` (K, 2) px in

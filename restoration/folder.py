@@ -8,10 +8,10 @@ folder and renamed into place when complete.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,15 +22,18 @@ from restoration.options import SurfaceOptions
 from restoration.result import RestoreResult, Status
 from restoration.scoring import Scores, Truth, score, surface_profile
 from restoration.view_check import match_flat_view
+from wai_core.config import with_keys
 from wai_core.errors import WaiInputError
-from wai_core.images import image_conflict, locate_image, read_image
+from wai_core.images import find_image, image_conflict, locate_image, read_image
 from wai_core.io import atomic_dir, check_output_dir, write_exr, write_json, write_png
 
 RESTORE_REMEDY = "move what is not the tool's elsewhere: a restore replaces only its own outputs"
 """What a refused restore folder's message tells the user (``wai restore`` has no --overwrite:
 it never replaces a folder it did not write)."""
 
-__all__ = ["FolderRestore", "check_inputs", "restore_folder", "restore_frame"]
+__all__ = ["FolderRestore", "check_inputs", "restore_folder", "restore_frame", "with_rig"]
+
+CalibrationT = TypeVar("CalibrationT", bound=RigCalibration)
 
 
 @dataclass
@@ -92,6 +95,7 @@ def restore_folder(
     write: bool = True,
     track: LevelTrack | None = None,
     progress: bool = False,
+    rig: Mapping[str, Any] | None = None,
 ) -> FolderRestore:
     """Restore the frame in ``folder``, score it where truth exists, write the outputs.
 
@@ -115,6 +119,9 @@ def restore_folder(
         A sequence's level (see :class:`~restoration.calibration.LevelTrack`).
     progress : bool
         Show a progress bar.
+    rig : mapping of str to value, optional
+        Configuration keys (``"camera_v.distortion"``: value) that replace the folder's, e.g.
+        the calibrated intrinsics of a rig file (:func:`restoration.rig_calibration.read_rig`).
 
     Returns
     -------
@@ -141,7 +148,7 @@ def restore_folder(
     target = (Path(out) if out is not None else folder / "restore") if write else None
     if target is not None:  # refused before any work
         check_output_dir(target, "restore", remedy=RESTORE_REMEDY)
-    cal = meth.calibration_type.from_record(record)
+    cal = with_rig(meth.calibration_type.from_record(record), rig)
     done = restore_frame(folder, cal, meth, track, scored=scored, seed=record.get("seed"),
                          step=step)
     step("write" if write else "write (skipped)")
@@ -152,6 +159,12 @@ def restore_folder(
     step("done")
     bar.close()
     return done
+
+
+def with_rig(cal: CalibrationT, rig: Mapping[str, Any] | None) -> CalibrationT:
+    """``cal`` with the configuration keys of ``rig`` applied (checked; ``cal`` itself when
+    there are none)."""
+    return cal if not rig else replace(cal, cfg=with_keys(cal.cfg, dict(rig)))
 
 
 def restore_frame(
@@ -224,7 +237,7 @@ def load_view_flat(cal: RigCalibration, *folders: str | Path) -> Any:
             raise WaiInputError(
                 f"{path} is {img.shape[1]}x{img.shape[0]} but the calibration says {w}x{h}"
             )
-        return img
+        return cal.to_pinhole("view_flat", img)
     return None
 
 
@@ -236,7 +249,10 @@ def check_inputs(
     files of one image (``ambiguous_input``), and a restored view that disagrees with the
     rig's flat-water view (``view_mismatch``, see :mod:`restoration.view_check`)."""
     for name in cal.IMAGES:
-        conflict = image_conflict(folder, name, images[name])
+        image = images[name]
+        if cal.resamples(name):  # compare the file as it was read
+            image = read_image(find_image(folder, name))
+        conflict = image_conflict(folder, name, image)
         if conflict is not None:
             result.warnings.append(conflict)
             result.flag(Status.AMBIGUOUS_INPUT, conflict)
@@ -398,6 +414,10 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
             "view sees)"
         )
     lines.append(anchor_line(m.get("anchor", {})))
+    if "flat_reference" in m:
+        ref = m["flat_reference"]
+        lines.append(f"flat-water reference {ref['rms_px']:.2f} px RMS from the calibration "
+                     f"({ref['rms_of_spacing']:.1%} of the dot spacing; docs/rig.md)")
     lines.append(f"end to end {m['timings_ms']['end_to_end']:.1f} ms")
     return lines
 

@@ -123,6 +123,11 @@ class RestoreResult:
     warnings : list of str
         What the input's folder said that the status reflects (e.g. two differing files of
         one image).
+    reference_rms_px : float or None
+        The flat-water reference's residual: its detected spots against where the
+        calibration puts them, RMS px (structured light; the check of a rig, docs/rig.md).
+    reference_spacing_px : float or None
+        The reference's median dot spacing, px (the residual's scale).
     """
 
     method: str
@@ -136,6 +141,8 @@ class RestoreResult:
     consistency: Any = None
     view_match: Any = None
     warnings: list[str] = field(default_factory=list)
+    reference_rms_px: float | None = None
+    reference_spacing_px: float | None = None
 
     def __post_init__(self) -> None:
         self.status = Status(self.status)
@@ -186,6 +193,13 @@ class RestoreResult:
             out["consistency"] = self.consistency.summary()
         if self.view_match is not None:
             out["view_match"] = self.view_match.summary()
+        if self.reference_rms_px is not None:
+            out["flat_reference"] = {
+                "rms_px": float(self.reference_rms_px),
+                "spacing_px": float(self.reference_spacing_px or np.nan),
+                "rms_of_spacing": float(self.reference_rms_px / (self.reference_spacing_px
+                                                                 or np.nan)),
+            }
         if self.warnings:
             out["warnings"] = list(self.warnings)
         if self.timings_ms:

@@ -55,7 +55,9 @@ class Truth:
         surface_file = folder / "heightfield.npz"
         surface = load_heightfield(surface_file) if surface_file.is_file() else None
         view_file = locate_image(folder, "view_truth")
-        view = None if view_file is None else read_image(view_file) / cal.view_gain
+        view = None
+        if view_file is not None:
+            view = cal.to_pinhole("view_truth", read_image(view_file)) / cal.view_gain
         if surface is None and view is None:
             return None
         return cls(surface, view)

@@ -414,7 +414,8 @@ class StructuredLight:
         )
         return RestoreResult(
             self.name, status, message, features, surface, view, timings.to_dict(),
-            features.counts, check,
+            features.counts, check, reference_rms_px=float(reference.rms_px),
+            reference_spacing_px=float(np.nanmedian(reference.spacing_px)),
         )
 
 

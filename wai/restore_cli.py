@@ -19,13 +19,18 @@ def run_restore(args: argparse.Namespace) -> None:
     if args.refine is not None and args.refine < 0:
         raise WaiInputError(f"--refine must be 0 or more passes, got {args.refine}")
     options = method_options(args)
+    rig = None
+    if getattr(args, "rig", None) is not None:  # read before any work: a bad file stops here
+        from restoration.rig_calibration import read_rig
+
+        rig = read_rig(args.rig)
     from wai_core.sequence import is_sequence
 
     cold = compile_notice(args.quiet)
     if is_sequence(args.dir):
         run_restore_sequence(args, options)
         return
-    done = restore_folder(args.dir, args.method, options, progress=not args.quiet)
+    done = restore_folder(args.dir, args.method, options, progress=not args.quiet, rig=rig)
     for line in done.summary_lines():
         if cold and line.startswith("end to end"):
             line += " (includes compiling the kernels once)"

@@ -28,6 +28,7 @@ from restoration.features.detect import Spots, detect_spots
 from restoration.features.reference import (
     ReferenceGrid,
     flag_diffuser_edge,
+    pinhole_spots,
     prepare_reference,
 )
 from wai_core.config import SystemConfig
@@ -606,7 +607,8 @@ def detect_frame(pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig) ->
             f"{cam.height_px}x{cam.width_px}"
         )
     outline = _outline_px(cfg) if ref.outline_px is None else ref.outline_px
-    return flag_diffuser_edge(detect_spots(pattern_img, scales=ref.spot_scales), outline)
+    spots = pinhole_spots(detect_spots(pattern_img, scales=ref.spot_scales), cfg)
+    return flag_diffuser_edge(spots, outline)
 
 
 def visible_outline(ref: ReferenceGrid, cfg: SystemConfig) -> FloatArray:

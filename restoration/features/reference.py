@@ -31,6 +31,7 @@ from restoration.features.detect import (
     _scales_for,
     detect_spots,
 )
+from restoration.undistort import pinhole_panel_px, pinhole_px
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.geometry import intersect_plane_z, reflect
@@ -153,7 +154,9 @@ def predict_flat_spots(
     projector = cfg.projector.camera()
     cam = cfg.camera_s.camera()
     ij, panel = dot_grid(cfg.pattern, projector)
-    origin, dirs = projector.pixel_rays(panel[:, 0], panel[:, 1])
+    # The dots' real rays (a lens that distorts moves them), as pinhole panel positions.
+    ray_px = pinhole_panel_px(cfg.projector, panel)
+    origin, dirs = projector.pixel_rays(ray_px[:, 0], ray_px[:, 1])
     hit, _ = intersect_plane_z(origin, dirs, cfg.water.h0_mm)
     down = reflect(dirs, np.array([0.0, 0.0, 1.0]))
     spot, _ = intersect_plane_z(hit, down, cfg.diffuser.z_mm)
@@ -207,6 +210,18 @@ def spot_sigma_px(cfg: SystemConfig) -> float:
     ] ** 2
     mag = np.sqrt(np.abs(np.linalg.det(jac)))
     return float(cfg.pattern.sigma_px * np.median(mag))
+
+
+def pinhole_spots(spots: Spots, cfg: SystemConfig) -> Spots:
+    """``spots`` of camera s with their centres in its ideal pinhole's pixels (the model every
+    later stage uses; :func:`restoration.undistort.pinhole_px`); the same object for an ideal
+    camera. Spots whose centre the lens cannot map are flagged ``border``."""
+    centres = pinhole_px(cfg.camera_s, spots.centres_px)
+    if centres is spots.centres_px:
+        return spots
+    lost = ~np.isfinite(centres).all(axis=1)
+    centres = np.where(lost[:, None], spots.centres_px, centres)
+    return replace(spots, centres_px=centres, border=spots.border | lost)
 
 
 def flag_diffuser_edge(spots: Spots, outline_px: FloatArray, n_sigma: float = 2.5) -> Spots:
@@ -401,7 +416,8 @@ def prepare_reference(
     sigma = spot_sigma_px(cfg)
     sigma_ok = float(sigma) if np.isfinite(sigma) and sigma > 0 else None
     outline = _outline_px(cfg)
-    flat = flag_diffuser_edge(detect_spots(pattern_flat_img, spot_sigma_px=sigma_ok), outline)
+    flat = pinhole_spots(detect_spots(pattern_flat_img, spot_sigma_px=sigma_ok), cfg)
+    flat = flag_diffuser_edge(flat, outline)
     predicted = predict_flat_spots(cfg)
     ref = match_reference(flat, predicted, lit=lit_dots(cfg) if lit is None else lit)
     ref = replace(

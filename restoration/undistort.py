@@ -1,0 +1,125 @@
+"""Real devices as the ideal pinholes the restoration models.
+
+A device whose principal point is off the image centre or whose lens distorts
+(``principal_offset_px``, ``distortion``) is seen through its ideal pinhole (same pose and
+focal length, centred, undistorted). Camera v's images are resampled into that pinhole's
+geometry when they are read (:class:`PinholeRemap`: the view is restored pixel by pixel);
+camera s's spots are detected in the image as taken, where they are compact, and their
+centres mapped to the pinhole (:func:`pinhole_px`: resampling a wide-angle lens's edges would
+stretch them); a projector's dots are given the panel positions whose pinhole rays are their
+real rays (:func:`pinhole_panel_px`). Every stage after that works with the pinhole. A
+housing port makes a device's rays miss a common centre, which no pinhole reproduces: the
+restoration refuses it (:func:`check_no_port`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from wai_core.config import DeviceConfig
+from wai_core.errors import WaiInputError
+from wai_core.lens import DeviceOptics, distort
+
+__all__ = ["PinholeRemap", "check_no_port", "pinhole_panel_px", "pinhole_px"]
+
+
+def check_no_port(dev: DeviceConfig, name: str) -> None:
+    """Refuse a device with a housing port (``[name] port_thickness_mm > 0``).
+
+    Raises
+    ------
+    WaiInputError
+        Naming the config key.
+    """
+    if dev.port_thickness_mm > 0:
+        raise WaiInputError(
+            f"[{name}] port_thickness_mm: the restoration models devices without a housing "
+            "port (a flat port's rays share no centre)"
+        )
+
+
+@dataclass(frozen=True)
+class PinholeRemap:
+    """Where each pixel of a device's ideal pinhole lies in its real image.
+
+    Attributes
+    ----------
+    map_cols, map_rows : (H, W) ndarray of float32
+        Real-image coordinates (px) of every ideal pixel: the real optics' projection of the
+        ideal pixel's ray (:func:`wai_core.lens.distort` with the principal point).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from wai_core import load_system, with_keys
+    >>> cfg = with_keys(load_system("paper"), {"camera_v.principal_offset_px": [3.0, 0.0]})
+    >>> remap = PinholeRemap.of(cfg.camera_v, "camera_v")
+    >>> real = np.zeros((600, 800), np.float32); real[300, 403] = 1.0
+    >>> ideal = remap.apply(real)  # ideal pixel c sees real pixel c + 3
+    >>> int(np.argmax(ideal[300])), PinholeRemap.of(load_system("paper").camera_v, "v") is None
+    (400, True)
+    """
+
+    map_cols: NDArray[np.float32]
+    map_rows: NDArray[np.float32]
+
+    @classmethod
+    def of(cls, dev: DeviceConfig, name: str) -> PinholeRemap | None:
+        """The remap of device ``dev`` (config section ``name``), None for an ideal one."""
+        check_no_port(dev, name)
+        optics = DeviceOptics.from_config(dev)
+        if optics.ideal:
+            return None
+        cam = optics.camera
+        f = cam.focal_px
+        rows, cols = np.mgrid[0:cam.height_px, 0:cam.width_px].astype(np.float64)
+        x = (cols - (cam.width_px - 1) / 2.0) / f
+        y = (rows - (cam.height_px - 1) / 2.0) / f
+        if optics.distorted:
+            x, y = distort(x, y, optics.distortion)
+        cx, cy = optics.principal_px
+        return cls((f * x + cx).astype(np.float32), (f * y + cy).astype(np.float32))
+
+    def apply(self, image: ArrayLike) -> NDArray:
+        """``image`` (H, W) or (H, W, C) of the real device resampled into the ideal pinhole
+        (bilinear; 0 where the ideal pixel sees past the real image's border)."""
+        img = np.asarray(image)
+        if not np.issubdtype(img.dtype, np.floating):
+            img = img.astype(np.float32)
+        return cv2.remap(img, self.map_cols, self.map_rows, cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def pinhole_px(dev: DeviceConfig, px: ArrayLike, name: str = "camera_s") -> NDArray:
+    """Pixel positions (K, 2) of the ideal pinhole whose rays are the real device's rays at
+    ``px`` (K, 2): ``px`` itself for an ideal device (the same array); NaN where the lens's
+    distortion cannot be inverted.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from wai_core import load_system, with_keys
+    >>> cfg = with_keys(load_system("paper"), {"camera_s.principal_offset_px": [3.0, 0.0]})
+    >>> pinhole_px(cfg.camera_s, np.array([[402.5, 299.5]]))  # the principal point: the centre
+    array([[399.5, 299.5]])
+    """
+    pts = np.asarray(px, dtype=float)
+    check_no_port(dev, name)
+    optics = DeviceOptics.from_config(dev)
+    if optics.ideal:
+        return np.asarray(px)
+    cam = optics.camera
+    _, d, _ = optics.rays_cam(pts[:, 0], pts[:, 1], 1.0)
+    f = cam.focal_px
+    return np.column_stack([f * d[:, 0] / d[:, 2] + (cam.width_px - 1) / 2.0,
+                            f * d[:, 1] / d[:, 2] + (cam.height_px - 1) / 2.0])
+
+
+def pinhole_panel_px(dev: DeviceConfig, panel_px: ArrayLike) -> NDArray:
+    """Panel positions (K, 2) px whose ideal-pinhole rays are the real rays of the projector's
+    dots at ``panel_px`` (K, 2) px (:func:`pinhole_px`)."""
+    return pinhole_px(dev, panel_px, "projector")

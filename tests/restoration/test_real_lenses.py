@@ -1,0 +1,80 @@
+"""Real lenses (distortion, a principal point off the centre) seen as their ideal pinholes.
+
+Facts from outside the code: OpenCV's projection (cv2.projectPoints) of a lens's rays; a rig
+restored with its lenses left out is wrong, and its flat-water reference says so; restored with
+the lenses it was rendered with, the frame is as good as the ideal rig's.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from mitsuba_wai.render import render_folder
+from restoration import Calibration, restore_folder
+from restoration.undistort import PinholeRemap, pinhole_px
+from wai_core.config import with_keys
+from wai_core.errors import WaiInputError
+
+LENS = {"distortion": [-0.2, 0.05, 0.001, -0.0005, 0.0], "principal_offset_px": [15.0, -10.0]}
+
+
+def _real(cfg, *devices):
+    return with_keys(cfg, {f"{d}.{k}": v for d in devices for k, v in LENS.items()})
+
+
+def _cv2_pixels(dev, rays_cam):
+    """OpenCV's pixels of camera-frame rays through a lens with ``LENS``."""
+    f = dev.focal_mm * dev.width_px / dev.sensor_width_mm
+    c = np.array([(dev.width_px - 1) / 2, (dev.height_px - 1) / 2]) + LENS["principal_offset_px"]
+    k = np.array([[f, 0, c[0]], [0, f, c[1]], [0, 0, 1]])
+    px, _ = cv2.projectPoints(rays_cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), k,
+                              np.array(LENS["distortion"]))
+    return px[:, 0]
+
+
+def test_spots_and_images_map_to_the_pinhole_opencv_projects_them_from(paper_cfg):
+    dev = _real(paper_cfg, "camera_s", "camera_v").camera_s
+    rng = np.random.default_rng(1)
+    ideal = rng.uniform([40, 40], [760, 560], (200, 2))  # ideal pinhole pixels
+    f = dev.focal_mm * dev.width_px / dev.sensor_width_mm
+    rays = np.column_stack([(ideal - [399.5, 299.5]) / f, np.ones(200)])
+    real = _cv2_pixels(dev, rays)
+    np.testing.assert_allclose(pinhole_px(dev, real), ideal, atol=1e-6)
+    remap = PinholeRemap.of(dev, "camera_s")
+    rows, cols = np.round(ideal[:, 1]).astype(int), np.round(ideal[:, 0]).astype(int)
+    at = _cv2_pixels(dev, np.column_stack([(cols - 399.5) / f, (rows - 299.5) / f,
+                                           np.ones(200)]))
+    np.testing.assert_allclose(remap.map_cols[rows, cols], at[:, 0], atol=1e-3)
+    np.testing.assert_allclose(remap.map_rows[rows, cols], at[:, 1], atol=1e-3)
+
+
+def test_an_ideal_rig_costs_nothing(paper_cfg):
+    cal = Calibration(paper_cfg)
+    view = np.zeros((600, 800, 3), np.float32)
+    assert cal.to_pinhole("view", view) is view and not cal.resamples("view")
+    px = np.array([[1.5, 2.5]])
+    assert pinhole_px(paper_cfg.camera_s, px) is px
+
+
+def test_a_housing_port_is_refused_by_name(paper_cfg):
+    with pytest.raises(WaiInputError, match=r"\[camera_v\] port_thickness_mm"):
+        Calibration(with_keys(paper_cfg, {"camera_v.port_thickness_mm": 5.0}))
+
+
+@pytest.fixture(scope="module")
+def lens_frame(paper_cfg, tmp_path_factory):
+    out = tmp_path_factory.mktemp("lens") / "frame"
+    cfg = paper_cfg.replace("render", spp_pattern=4, spp_view=4)
+    render_folder(_real(cfg, "camera_s", "camera_v"), out, progress=False)
+    return out
+
+
+def test_restored_with_its_lenses_the_frame_is_ok_and_without_them_flagged(lens_frame):
+    true_rig = restore_folder(lens_frame, write=False).metrics
+    assert true_rig["status"] == "ok", true_rig["message"]
+    assert true_rig["wai_rmse_mm"] < 0.15  # the ideal rig's frames: 0.02 mm on the mean
+    assert true_rig["flat_reference"]["rms_of_spacing"] < 0.02
+    ideal = {f"{d}.{k}": [0.0] * len(v) for d in ("camera_s", "camera_v")
+             for k, v in LENS.items()}
+    pinholes = restore_folder(lens_frame, write=False, rig=ideal).metrics
+    assert pinholes["status"] == "bad_reference"
