@@ -6,6 +6,11 @@ One calibration serves the whole sequence (the flat-water reference is detected 
 frame's level. Temporal scores say whether the restoration is stable in time: the view of a
 still object should not move, so the mean absolute change between consecutive restored frames
 (on pixels restored in both) is compared with the same for the distorted frames.
+
+A folder of one's own captures (numbered images or frame folders, :mod:`wai_core.sequence`)
+restores the same way, without truth: its frames are read where they are, and every output,
+each frame's included (``restore/<frame>/``), goes under ``folder/restore/``; nothing else in
+the folder is written.
 """
 
 from __future__ import annotations
@@ -21,15 +26,30 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
-from restoration.folder import RESTORE_REMEDY, restore_frame
+from restoration.folder import (
+    RESTORE_REMEDY,
+    FolderRestore,
+    folder_metrics,
+    load_view_flat,
+    restore_frame,
+)
 from restoration.methods import Method, as_method
 from restoration.options import SurfaceOptions
 from restoration.result import Status
-from restoration.view_check import match_sequence
+from restoration.view_check import match_flat_view, match_sequence
+from wai_core.errors import WaiInputError
+from wai_core.images import image_conflict, read_image
 from wai_core.io import atomic_dir, atomic_write_bytes, check_output_dir, to_srgb8, write_json
 from wai_core.sequence import SequenceRecord, read_sequence
 
-__all__ = ["SequenceRestore", "frame_change", "load_sequence", "restore_sequence", "write_movie"]
+__all__ = [
+    "SequenceRestore",
+    "frame_change",
+    "load_sequence",
+    "restore_captured_frame",
+    "restore_sequence",
+    "write_movie",
+]
 
 COLUMNS = (
     "frame", "time_s", "status", "wai_rmse_mm", "wai_rmse_demeaned_mm", "distorted_ssim",
@@ -85,7 +105,7 @@ def frame_change(a: NDArray, b: NDArray, mask: NDArray | None = None) -> float:
 
 
 def restore_sequence(
-    folder: str | Path,
+    folder: str | Path | SequenceRecord,
     method: str | Method = "structured-light",
     options: SurfaceOptions | None = None,
     *,
@@ -93,19 +113,21 @@ def restore_sequence(
     movie: bool = True,
     progress: bool = False,
 ) -> SequenceRestore:
-    """Restore every frame of a sequence folder (see :mod:`wai_core.sequence`), each as
-    :func:`~restoration.folder.restore_frame` with the sequence's one calibration and level.
+    """Restore every frame of a sequence folder (any layout of :mod:`wai_core.sequence`),
+    each as :func:`~restoration.folder.restore_frame` with the sequence's one calibration and
+    level.
 
     Parameters
     ----------
-    folder : str or Path
-        The sequence folder.
+    folder : str, Path or SequenceRecord
+        The sequence folder, or its description (:func:`~wai_core.sequence.read_sequence`).
     method, options
         As :func:`restoration.restore_folder`.
     write : bool
         Write ``folder/restore/`` (``frames.csv``, ``summary.json``, ``temporal.png``, the
-        movies) and each frame's own ``restore/`` (surface, restored view, ``metrics.json``;
-        no per-frame figures).
+        movies) and each frame's own restore files (surface, restored view, ``metrics.json``;
+        no per-frame figures): a render's in each frame folder's ``restore/``, captures' in
+        ``folder/restore/<frame>/``.
     movie : bool
         Write ``restored.mp4`` and ``side_by_side.mp4`` (animated GIFs where no MP4 encoder
         is present).
@@ -118,27 +140,39 @@ def restore_sequence(
     """
     from tqdm import tqdm
 
-    seq = read_sequence(folder)
+    seq = folder if isinstance(folder, SequenceRecord) else read_sequence(folder)
     meth = as_method(method, options)
     cal = _calibration(seq, meth)
     out = seq.folder / "restore"
     if write:  # every output checked before the first frame is restored
-        for target in (out, *(d / "restore" for d in seq.frame_dirs)):
+        frame_outs = () if seq.captured else (d / "restore" for d in seq.frame_dirs)
+        for target in (out, *frame_outs):
             check_output_dir(target, "restore", remedy=RESTORE_REMEDY)
     track = LevelTrack()
     rows, restored, distorted, masks, results, staged = [], [], [], [], [], []
     # Each frame's restore/ is written to a temporary folder and all are renamed into place
     # together at the end: an interrupted run leaves every old output as it was.
     with contextlib.ExitStack() as stack:
+        out_tmp = None  # captures' frames are written inside it, so it is open from the start
+        if write and seq.captured:
+            out_tmp = stack.enter_context(atomic_dir(out, command="restore",
+                                                     remedy=RESTORE_REMEDY))
         bar = tqdm(seq.frame_dirs, desc="restore frames", disable=not progress, leave=False,
                    unit="frame")
         for k, frame_dir in enumerate(bar):
-            done = restore_frame(frame_dir, cal, meth, track, flat_from=(seq.folder,),
-                                 seed=seq.record.get("seed"))
+            if seq.captured:
+                done = restore_captured_frame(seq, k, cal, meth, track)
+            else:
+                done = restore_frame(frame_dir, cal, meth, track, flat_from=(seq.folder,),
+                                     seed=seq.record.get("seed"))
             result = done.result
             if write:
-                tmp = stack.enter_context(atomic_dir(frame_dir / "restore", command="restore",
-                                                        remedy=RESTORE_REMEDY))
+                if out_tmp is not None:
+                    tmp = out_tmp / seq.frames[k]
+                    tmp.mkdir()
+                else:
+                    tmp = stack.enter_context(atomic_dir(
+                        frame_dir / "restore", command="restore", remedy=RESTORE_REMEDY))
                 done.write_files(tmp, figures=False)
                 staged.append((tmp, done.metrics))
             view = done.distorted
@@ -155,7 +189,8 @@ def restore_sequence(
         _flag_moving_views(results, rows, restored, masks, distorted, staged)
         summary = _summary(seq, rows)
         if write:
-            tmp = stack.enter_context(atomic_dir(out, command="restore", remedy=RESTORE_REMEDY))
+            tmp = out_tmp if out_tmp is not None else stack.enter_context(
+                atomic_dir(out, command="restore", remedy=RESTORE_REMEDY))
             atomic_write_bytes(tmp / "frames.csv", _csv(rows).encode())
             write_json(tmp / "summary.json", summary)
             _temporal_figure(rows, tmp / "temporal.png")
@@ -379,9 +414,79 @@ def load_sequence(
     benchmark restores in a loop)."""
     seq = read_sequence(folder)
     cal = _calibration(seq, as_method(method))
-    return cal, [cal.load_images(d) for d in seq.frame_dirs]
+    if not seq.captured:
+        return cal, [cal.load_images(d) for d in seq.frame_dirs]
+    return cal, [_load_images(cal, _frame_files(seq, k, cal)) for k in range(len(seq.frames))]
+
+
+def restore_captured_frame(
+    seq: SequenceRecord, k: int, cal: RigCalibration, method: Method,
+    track: LevelTrack | None = None,
+) -> FolderRestore:
+    """Restore frame ``k`` of a capture sequence from its files where they are: what
+    :func:`~restoration.folder.restore_frame` does for a frame folder (load, restore, flag
+    differing files of one image and a view that disagrees with ``view_flat``, assemble
+    ``metrics.json``), without truth (a capture has none); nothing is written.
+
+    Parameters
+    ----------
+    seq : SequenceRecord
+        A capture sequence (``seq.captured``).
+    k : int
+        The frame's index, 0-based.
+    cal : RigCalibration
+        The rig's calibration (of ``method.calibration_type``).
+    method : Method
+        A configured method object.
+    track : LevelTrack, optional
+        The sequence's level.
+
+    Returns
+    -------
+    FolderRestore
+        With ``folder`` the frame's folder (the sequence folder for numbered images), ``out``
+        None, no truth and no scores.
+    """
+    files = _frame_files(seq, k, cal)
+    images = _load_images(cal, files)
+    view_flat = load_view_flat(cal, *dict.fromkeys((seq.frame_dirs[k], seq.folder)))
+    result = method(images, cal, track)
+    for name, path in files.items():
+        image = read_image(path) if cal.resamples(name) else images[name]
+        conflict = image_conflict(path.parent, path.stem, image)
+        if conflict is not None:
+            result.warnings.append(conflict)
+            result.flag(Status.AMBIGUOUS_INPUT, conflict)
+    if view_flat is not None and result.restored:
+        match = match_flat_view(result.view.image, result.view.valid,
+                                cal.radiance(images["view"]), view_flat)
+        result.view_match = match
+        if not match.consistent:
+            result.flag(Status.VIEW_MISMATCH, match.message)
+    metrics = folder_metrics(method, result, None, True, seq.record.get("seed"))
+    return FolderRestore(seq.frame_dirs[k], None, cal, images, result, None, None, metrics)
+
+
+def _frame_files(seq: SequenceRecord, k: int, cal: RigCalibration) -> dict[str, Path]:
+    """The file of each of the method's images for frame ``k``."""
+    return {name: seq.image_path(k, name) for name in cal.IMAGES}
+
+
+def _load_images(cal: RigCalibration, files: dict[str, Path]) -> dict[str, NDArray]:
+    """:meth:`~restoration.calibration.RigCalibration.load_images` from named files."""
+    images = {}
+    for name, path in files.items():
+        img = read_image(path)
+        h, w = cal.image_size(name)
+        if img.shape[:2] != (h, w):
+            raise WaiInputError(
+                f"{path} is {img.shape[1]}x{img.shape[0]} but the calibration says {w}x{h}"
+            )
+        images[name] = cal.to_pinhole(name, img)
+    return images
 
 
 def _calibration(seq: SequenceRecord, method: Method) -> RigCalibration:
-    """The one calibration of a sequence (every frame's ``scene.json`` has the same rig)."""
-    return method.calibration_type.from_record(read_scene_record(seq.frame_dirs[0]))
+    """The one calibration of a sequence (a capture's ``scene.json``, or a render's first
+    frame's: every frame's has the same rig)."""
+    return method.calibration_type.from_record(read_scene_record(seq.scene_dir))
