@@ -253,8 +253,9 @@ def _check_numbering(folder: Path, numbers: list[int], first: dict[int, Path],
     for a, b in zip(numbers, numbers[1:], strict=False):
         if b != a + 1:
             prefix, digits = _parts(first[a], pattern)
-            name = f"{prefix}{a + 1:0{len(digits)}d}" + (".*" if first[a].is_file() else "/")
-            raise WaiInputError(f"{folder / name}: missing (the numbering goes from "
+            name = f"{prefix}{a + 1:0{len(digits)}d}"
+            kind = ".*" if first[a].is_file() else "/"
+            raise WaiInputError(f"{folder / name}{kind}: missing (the numbering goes from "
                                 f"{first[a].name} to {first[b].name})")
 
 
