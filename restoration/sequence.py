@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ from restoration.folder import (
     folder_metrics,
     load_view_flat,
     restore_frame,
+    with_rig,
 )
 from restoration.methods import Method, as_method
 from restoration.options import SurfaceOptions
@@ -112,6 +114,7 @@ def restore_sequence(
     write: bool = True,
     movie: bool = True,
     progress: bool = False,
+    rig: Mapping[str, Any] | None = None,
 ) -> SequenceRestore:
     """Restore every frame of a sequence folder (any layout of :mod:`wai_core.sequence`),
     each as :func:`~restoration.folder.restore_frame` with the sequence's one calibration and
@@ -133,6 +136,9 @@ def restore_sequence(
         is present).
     progress : bool
         A progress bar over the frames.
+    rig : mapping of str to value, optional
+        Configuration keys that replace the sequence's, as :func:`restoration.restore_folder`'s
+        (a rig file's calibrated intrinsics).
 
     Returns
     -------
@@ -142,7 +148,7 @@ def restore_sequence(
 
     seq = folder if isinstance(folder, SequenceRecord) else read_sequence(folder)
     meth = as_method(method, options)
-    cal = _calibration(seq, meth)
+    cal = with_rig(_calibration(seq, meth), rig)
     out = seq.folder / "restore"
     if write:  # every output checked before the first frame is restored
         frame_outs = () if seq.captured else (d / "restore" for d in seq.frame_dirs)

@@ -159,3 +159,10 @@ def test_a_broken_capture_numbering_is_one_line_naming_the_file(tmp_path, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and named in err[0], err
     assert listing(own) == before
+
+
+def test_a_rig_file_s_keys_reach_the_sequence_s_calibration(rendered):
+    from restoration import restore_sequence
+
+    with pytest.raises(WaiInputError, match="camera_v.no_such_key"):
+        restore_sequence(rendered, write=False, rig={"camera_v.no_such_key": 1})
