@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 from restoration import SurfaceOptions, get_method, restore_folder
 
@@ -28,7 +29,7 @@ def run_restore(args: argparse.Namespace) -> None:
 
     cold = compile_notice(args.quiet)
     if is_sequence(args.dir):
-        run_restore_sequence(args, options)
+        run_restore_sequence(args, options, rig)
         return
     done = restore_folder(args.dir, args.method, options, progress=not args.quiet, rig=rig)
     for line in done.summary_lines():
@@ -70,11 +71,13 @@ def compile_notice(quiet: bool) -> bool:
     return cold
 
 
-def run_restore_sequence(args: argparse.Namespace, options: SurfaceOptions) -> None:
+def run_restore_sequence(
+    args: argparse.Namespace, options: SurfaceOptions, rig: dict[str, Any] | None = None
+) -> None:
     """A sequence folder: every frame, the per-frame table, the movies and temporal scores."""
     from restoration.sequence import restore_sequence
 
-    done = restore_sequence(args.dir, args.method, options, progress=not args.quiet)
+    done = restore_sequence(args.dir, args.method, options, progress=not args.quiet, rig=rig)
     for line in done.summary_lines():
         print(line)
     print(f"per-frame table, movies and figures: {done.out}")
