@@ -4,4 +4,5 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 .venv/bin/ruff check .
-.venv/bin/python -m pytest -q "$@"
+# Two processes, whole files each (module fixtures render once per file).
+.venv/bin/python -m pytest -q -n 2 --dist loadfile "$@"
