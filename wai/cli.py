@@ -210,6 +210,11 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--fps", type=float, default=30.0, help="frames per second of a sequence")
     p.add_argument(
+        "--checkerboards", type=int, default=0, metavar="N",
+        help="instead of a frame: N views of a checkerboard per camera through the scene's "
+        "true lenses, for 'wai calibrate' (docs/rig.md)",
+    )
+    p.add_argument(
         "--workers", type=int, default=0,
         help="sequence: Dask worker processes rendering frames (0: here, in order; default: 0)",
     )
@@ -255,6 +260,10 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         choices=["integrability", "gauge"],
         help="absolute height: from the slopes' integrability (structured light's default), or "
         "the gauge's h0 (the paper; alterman's only anchor); default: the method's",
+    )
+    p.add_argument(
+        "--rig", type=Path, default=None,
+        help="rig file written by 'wai calibrate': its devices' intrinsics replace the folder's",
     )
     p.add_argument(
         "--fit", action="store_true",
@@ -414,6 +423,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (_add_render, _add_restore, _add_bench, _add_demo, _add_experiment):
         add(sub)
+    from wai.calibrate_cli import add_calibrate
+
+    add_calibrate(sub, _Help, SCENE_HELP)
     return parser
 
 

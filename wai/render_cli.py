@@ -101,6 +101,13 @@ def run_render(args: argparse.Namespace) -> None:
         run_render_alterman(args)
         return
     cfg = apply_overrides(load_config(scene), args)
+    if getattr(args, "checkerboards", 0):
+        from wai.calibrate_cli import run_checkerboards
+
+        if args.checkerboards < 1 or sequence:
+            raise WaiInputError("--checkerboards N needs N >= 1 and no --frames")
+        run_checkerboards(args, cfg)
+        return
     if sequence:
         run_render_sequence(cfg, args)
         return

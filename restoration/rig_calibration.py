@@ -1,0 +1,217 @@
+"""Calibrating a rig's cameras from checkerboard images, as the field does (OpenCV).
+
+Each camera's intrinsics (focal length with square pixels, principal point, distortion k1, k2,
+p1, p2) come from ``cv2.findChessboardCornersSB`` and ``cv2.calibrateCameraExtended`` over a
+dozen views of a planar board. A rig file (JSON) records the fits with their standard
+deviations and reprojection RMS, what they could not determine, and the configuration keys
+that ``wai restore --rig`` applies (:func:`read_rig`).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from wai_core.config import DeviceConfig
+from wai_core.errors import WaiInputError
+from wai_core.io import write_json
+
+__all__ = [
+    "UNDETERMINED", "BoardSpec", "DeviceFit", "calibrate_device", "find_corners", "read_rig",
+    "write_rig",
+]
+
+UNDETERMINED = (
+    "poses (rotation, translation_mm): measure them in the lab frame (docs/rig.md)",
+    "the projector's intrinsics",
+    "the diffuser's height and extent, the water level and index",
+)
+"""What checkerboards seen by the cameras cannot give."""
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """A checkerboard's inner corners (``cols`` x ``rows``) and square size, mm.
+
+    Examples
+    --------
+    >>> BoardSpec(3, 3, 10.0).corners_mm()[[0, 1, 3]].tolist()
+    [[10.0, 10.0, 0.0], [20.0, 10.0, 0.0], [10.0, 20.0, 0.0]]
+    """
+
+    cols: int
+    rows: int
+    square_mm: float
+
+    def corners_mm(self) -> NDArray[np.float32]:
+        """The inner corners (cols * rows, 3) on the board, row by row, mm."""
+        j, i = np.mgrid[1:self.rows + 1, 1:self.cols + 1]
+        pts = np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], axis=1) * self.square_mm
+        return pts.astype(np.float32)
+
+
+@dataclass
+class DeviceFit:
+    """One camera's calibration.
+
+    Attributes
+    ----------
+    fx_px, fy_px, cx_px, cy_px : float
+        Focal lengths (equal: square pixels) and principal point, px.
+    distortion : (5,) ndarray
+        OpenCV's ``(k1, k2, p1, p2, k3)`` (k3 held at 0).
+    sigma : dict of str to float
+        Standard deviations of ``fx_px``, ``cx_px``, ``cy_px``, ``k1``, ``k2``, ``p1``, ``p2``.
+    rms_px : float
+        Reprojection RMS over every corner of the views used, px.
+    view_rms_px : list of float
+        Each used view's RMS, px.
+    n_used, n_rejected : int
+        Views whose board was found, and views without one (never silently dropped).
+    """
+
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    distortion: NDArray[np.float64]
+    sigma: dict[str, float]
+    rms_px: float
+    view_rms_px: list[float] = field(default_factory=list)
+    n_used: int = 0
+    n_rejected: int = 0
+
+    def to_config_keys(self, device: str, dev: DeviceConfig) -> dict[str, Any]:
+        """The configuration keys of ``device`` (its section ``dev`` gives the image size
+        and sensor width) that this fit replaces."""
+        cx0, cy0 = (dev.width_px - 1) / 2.0, (dev.height_px - 1) / 2.0
+        return {
+            f"{device}.focal_mm": self.fx_px * dev.sensor_width_mm / dev.width_px,
+            f"{device}.principal_offset_px": [self.cx_px - cx0, self.cy_px - cy0],
+            f"{device}.distortion": [float(v) for v in self.distortion],
+        }
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "fx_px": self.fx_px, "fy_px": self.fy_px, "cx_px": self.cx_px, "cy_px": self.cy_px,
+            "distortion": [float(v) for v in self.distortion], "sigma": self.sigma,
+            "rms_px": self.rms_px, "view_rms_px": self.view_rms_px, "views_used": self.n_used,
+            "views_rejected": self.n_rejected,
+        }
+
+
+def _as_uint8(image: NDArray) -> NDArray[np.uint8]:
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = img.mean(axis=2)
+    if np.issubdtype(img.dtype, np.floating):
+        hi = float(np.nanpercentile(img, 99.5)) or 1.0
+        img = np.clip(img / hi * 255.0, 0, 255)
+    return np.ascontiguousarray(img, dtype=np.uint8)
+
+
+def find_corners(image: NDArray, board: BoardSpec) -> NDArray[np.float32] | None:
+    """The board's inner corners (cols * rows, 2) px in ``image``, or None when not found."""
+    flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    found, corners = cv2.findChessboardCornersSB(_as_uint8(image), (board.cols, board.rows),
+                                                 flags=flags)
+    return corners.reshape(-1, 2) if found else None
+
+
+def calibrate_device(images: Sequence[NDArray], board: BoardSpec | Any,
+                     image_size: tuple[int, int], min_views: int = 5) -> DeviceFit:
+    """Calibrate one camera from ``images`` of ``board``, each ``image_size`` (H, W).
+
+    Raises
+    ------
+    WaiInputError
+        When fewer than ``min_views`` images show the board, or an image has another size.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> blank = [np.zeros((60, 80), np.float32)] * 5
+    >>> calibrate_device(blank, BoardSpec(9, 6, 20.0), (60, 80))  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    wai_core.errors.WaiInputError: the board (9x6 inner corners) was found in 0 of 5 images: ...
+    """
+    board = BoardSpec(int(board.cols), int(board.rows), float(board.square_mm))
+    h, w = image_size
+    obj, img_pts = [], []
+    rejected = 0
+    for image in images:
+        if np.shape(image)[:2] != (h, w):
+            raise WaiInputError(f"checkerboard image is {np.shape(image)[:2]}, not {(h, w)}")
+        corners = find_corners(image, board)
+        if corners is None:
+            rejected += 1
+            continue
+        obj.append(board.corners_mm())
+        img_pts.append(corners.astype(np.float32))
+    if len(obj) < min_views:
+        raise WaiInputError(
+            f"the board ({board.cols}x{board.rows} inner corners) was found in {len(obj)} of "
+            f"{len(images)} images: at least {min_views} are needed"
+        )
+    flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_K3
+    k0 = np.array([[1.0, 0.0, (w - 1) / 2.0], [0.0, 1.0, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    rms, k, dist, _, _, std_in, _, per_view = cv2.calibrateCameraExtended(
+        obj, img_pts, (w, h), k0, np.zeros(5), flags=flags,
+    )
+    std = std_in.ravel()
+    dist = np.asarray(dist, float).ravel()[:5]
+    return DeviceFit(
+        float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), dist,
+        # fx follows fy (square pixels): fy is the free parameter, with fy's deviation.
+        {name: float(std[i]) for i, name in
+         ((1, "fx_px"), (2, "cx_px"), (3, "cy_px"), (4, "k1"), (5, "k2"), (6, "p1"), (7, "p2"))},
+        float(rms), [float(v) for v in np.ravel(per_view)], len(obj), rejected,
+    )
+
+
+def write_rig(path: str | Path, fits: dict[str, DeviceFit], devices: dict[str, DeviceConfig],
+              board: BoardSpec | Any) -> None:
+    """Write the rig file: each device's fit, its configuration keys, what is undetermined."""
+    keys: dict[str, Any] = {}
+    for name, fit in fits.items():
+        keys.update(fit.to_config_keys(name, devices[name]))
+    write_json(path, {
+        "devices": {name: fit.summary() for name, fit in fits.items()},
+        "config_keys": keys,
+        "undetermined": list(UNDETERMINED),
+        "board": {"cols": int(board.cols), "rows": int(board.rows),
+                  "square_mm": float(board.square_mm)},
+        "versions": {"opencv": cv2.__version__, "numpy": np.__version__,
+                     "python": platform.python_version()},
+    })
+
+
+def read_rig(path: str | Path) -> dict[str, Any]:
+    """The configuration keys of a rig file (``config_keys``), to apply with
+    :func:`wai_core.config.with_keys`.
+
+    Raises
+    ------
+    WaiInputError
+        Naming the file when it is missing, not JSON, or holds no ``config_keys`` table.
+    """
+    path = Path(path)
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise WaiInputError(f"{path}: rig file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise WaiInputError(f"{path}: not a rig file (JSON): {exc}") from None
+    keys = record.get("config_keys") if isinstance(record, dict) else None
+    if not isinstance(keys, dict) or not keys:
+        raise WaiInputError(f"{path}: needs a 'config_keys' table (written by wai calibrate)")
+    return keys

@@ -1,0 +1,153 @@
+"""``wai calibrate DIR`` and ``wai render --checkerboards N``: a rig's cameras calibrated from
+checkerboard images, and such images rendered through a scene's true lenses."""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+from typing import Any
+
+from wai_core.errors import WaiInputError
+
+BOARD_FILE = "board.json"
+CAMERAS = ("camera_v", "camera_s")
+
+
+def parse_board(text: str, square_mm: float) -> Any:
+    """``COLSxROWS`` inner corners and the square size as a board spec."""
+    from restoration.rig_calibration import BoardSpec
+
+    m = re.fullmatch(r"(\d+)x(\d+)", text.strip())
+    if m is None or int(m[1]) < 3 or int(m[2]) < 3 or not square_mm > 0:
+        raise WaiInputError(f"--board must be COLSxROWS inner corners (>= 3 each) and "
+                            f"--square-mm > 0, not {text!r} and {square_mm}")
+    return BoardSpec(int(m[1]), int(m[2]), float(square_mm))
+
+
+def _board(args: argparse.Namespace) -> Any:
+    from restoration.rig_calibration import BoardSpec
+    from wai_core.io import read_json
+
+    if args.board is not None:
+        return parse_board(args.board, args.square_mm)
+    path = args.dir / BOARD_FILE
+    if not path.is_file():
+        raise WaiInputError(f"{path}: not found; describe the board with --board COLSxROWS "
+                            "--square-mm S")
+    spec = read_json(path)
+    try:
+        return BoardSpec(int(spec["cols"]), int(spec["rows"]), float(spec["square_mm"]))
+    except (KeyError, TypeError, ValueError):
+        raise WaiInputError(f"{path}: needs cols, rows and square_mm") from None
+
+
+def check_rig_output(path: Path) -> None:
+    """Refuse to replace anything but a rig file this tool wrote."""
+    import json
+
+    if not path.exists():
+        return
+    try:
+        ours = path.is_file() and "config_keys" in json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError):
+        ours = False
+    if not ours:
+        raise WaiInputError(f"--out {path}: exists and is not a rig file of wai calibrate")
+
+
+def run_calibrate(args: argparse.Namespace) -> None:
+    """Calibrate every camera folder of ``args.dir`` and write the rig file ``args.out``."""
+    from tqdm import tqdm
+
+    from restoration.rig_calibration import UNDETERMINED, calibrate_device, write_rig
+    from wai_core.images import IMAGE_SUFFIXES, read_image
+    from wai_core.system import load_system
+
+    if not args.dir.is_dir():
+        raise WaiInputError(f"calibration folder not found: {args.dir}")
+    board = _board(args)
+    cfg = load_system(args.config)
+    folders = {c: args.dir / c for c in CAMERAS if (args.dir / c).is_dir()}
+    if not folders:
+        raise WaiInputError(f"{args.dir}: holds no camera_v/ or camera_s/ folder of board images")
+    files = {c: sorted(p for p in f.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+             for c, f in folders.items()}
+    for camera, paths in files.items():
+        if not paths:
+            raise WaiInputError(f"{folders[camera]}: no images ({', '.join(IMAGE_SUFFIXES)})")
+    check_rig_output(args.out)
+    fits = {}
+    for camera, paths in tqdm(files.items(), desc="calibrate", unit="camera",
+                              disable=args.quiet):
+        dev = getattr(cfg, camera)
+        images = [read_image(p) for p in paths]
+        fits[camera] = calibrate_device(images, board, (dev.height_px, dev.width_px))
+    write_rig(args.out, fits, {c: getattr(cfg, c) for c in fits}, board)
+    for camera, fit in fits.items():
+        s = fit.sigma
+        k1, k2 = fit.distortion[:2]
+        print(f"{camera}: fx {fit.fx_px:.2f} +- {s['fx_px']:.2f} px, cx {fit.cx_px:.2f} +- "
+              f"{s['cx_px']:.2f}, cy {fit.cy_px:.2f} +- {s['cy_px']:.2f} px, k1 {k1:.4f} +- "
+              f"{s['k1']:.4f}, k2 {k2:.4f} +- {s['k2']:.4f}; RMS {fit.rms_px:.3f} px over "
+              f"{fit.n_used} views ({fit.n_rejected} without the board)")
+    print("not determined: " + "; ".join(UNDETERMINED))
+    print(f"rig file: {args.out} (wai restore DIR --rig {args.out})")
+
+
+def run_checkerboards(args: argparse.Namespace, cfg: Any) -> None:
+    """Render ``args.checkerboards`` board views per camera of ``cfg`` into
+    ``args.out/checkerboards/`` with ``board.json`` and the true intrinsics."""
+    from tqdm import tqdm
+
+    from mitsuba_wai.checkerboards import Board, render_checkerboards
+    from wai_core.io import atomic_dir, write_json, write_png
+
+    board = Board()
+    seed = cfg.waves.seed
+    with atomic_dir(args.out, command="render", overwrite=args.overwrite) as tmp:
+        truth: dict[str, Any] = {}
+        for camera in tqdm(CAMERAS, desc="checkerboards", unit="camera", disable=args.quiet):
+            folder = tmp / "checkerboards" / camera
+            folder.mkdir(parents=True)
+            images = render_checkerboards(cfg, camera, args.checkerboards, seed=seed,
+                                          board=board)
+            for k, img in enumerate(images):
+                write_png(folder / f"board_{k:03d}.png", img)
+            dev = getattr(cfg, camera)
+            truth[camera] = {
+                "fx_px": dev.focal_mm * dev.width_px / dev.sensor_width_mm,
+                "cx_px": (dev.width_px - 1) / 2.0 + dev.principal_offset_px[0],
+                "cy_px": (dev.height_px - 1) / 2.0 + dev.principal_offset_px[1],
+                "distortion": list(dev.distortion),
+            }
+        write_json(tmp / "checkerboards" / BOARD_FILE, board.to_dict())
+        write_json(tmp / "scene.json", {"config": cfg.to_dict(), "seed": seed,
+                                        "checkerboards": {"views": args.checkerboards,
+                                                          "truth": truth}})
+    print(f"checkerboards: {args.out / 'checkerboards'} (wai calibrate "
+          f"{args.out / 'checkerboards'} --out rig.json)")
+
+
+def add_calibrate(sub: argparse._SubParsersAction, formatter: type, scene_help: str) -> None:
+    """The ``calibrate`` subcommand."""
+    p = sub.add_parser(
+        "calibrate", help="calibrate the cameras from checkerboard images; write a rig file",
+        formatter_class=formatter,
+        description="Each camera folder (DIR/camera_v/, DIR/camera_s/) holds images of a "
+        "planar checkerboard in 10-20 poses; OpenCV finds its corners and calibrates the "
+        "camera (fx = fy, cx, cy, k1, k2, p1, p2). Writes a rig file for 'wai restore --rig'. "
+        "See docs/rig.md.",
+    )
+    p.add_argument("dir", type=Path, help="folder of camera folders (and board.json)")
+    p.add_argument("--out", type=Path, default=Path("rig.json"), help="rig file to write")
+    p.add_argument("--config", default="paper", help=scene_help + " (image sizes and sensors)")
+    p.add_argument("--board", help="inner corners COLSxROWS (default: DIR/board.json)")
+    p.add_argument("--square-mm", type=float, default=20.0, help="square size with --board, mm")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_calibrate)
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    run_calibrate(args)
+    return 0
