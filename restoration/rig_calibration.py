@@ -25,8 +25,8 @@ from wai_core.errors import WaiInputError
 from wai_core.io import write_json
 
 __all__ = [
-    "UNDETERMINED", "BoardSpec", "DeviceFit", "calibrate_device", "find_corners", "read_rig",
-    "write_rig",
+    "UNDETERMINED", "BoardSpec", "DeviceFit", "FlatFit", "calibrate_device", "find_corners",
+    "read_rig", "refine_on_flat_water", "rig_keys", "write_rig",
 ]
 
 UNDETERMINED = (
@@ -178,13 +178,25 @@ def calibrate_device(images: Sequence[NDArray], board: BoardSpec | Any,
     )
 
 
-def write_rig(path: str | Path, fits: dict[str, DeviceFit], devices: dict[str, DeviceConfig],
-              board: BoardSpec | Any) -> None:
-    """Write the rig file: each device's fit, its configuration keys, what is undetermined."""
+def rig_keys(fits: dict[str, DeviceFit], devices: dict[str, DeviceConfig]) -> dict[str, Any]:
+    """The configuration keys of every fit."""
     keys: dict[str, Any] = {}
     for name, fit in fits.items():
         keys.update(fit.to_config_keys(name, devices[name]))
+    return keys
+
+
+def write_rig(path: str | Path, fits: dict[str, DeviceFit], devices: dict[str, DeviceConfig],
+              board: BoardSpec | Any, flat: FlatFit | None = None) -> None:
+    """Write the rig file: each device's fit, its configuration keys (camera s's refined on
+    flat water when ``flat`` is given), what is undetermined."""
+    keys = rig_keys(fits, devices)
+    if flat is not None:
+        keys.update(flat.config_keys)
     write_json(path, {
+        "flat_water": None if flat is None else {
+            "config_keys": flat.config_keys, "rms_before_px": flat.rms_before_px,
+            "rms_after_px": flat.rms_after_px, "spots": flat.n_spots},
         "devices": {name: fit.summary() for name, fit in fits.items()},
         "config_keys": keys,
         "undetermined": list(UNDETERMINED),
@@ -215,3 +227,101 @@ def read_rig(path: str | Path) -> dict[str, Any]:
     if not isinstance(keys, dict) or not keys:
         raise WaiInputError(f"{path}: needs a 'config_keys' table (written by wai calibrate)")
     return keys
+
+
+@dataclass
+class FlatFit:
+    """Camera s's intrinsics refined on the flat-water reference (:func:`refine_on_flat_water`).
+
+    Attributes
+    ----------
+    config_keys : dict
+        ``camera_s.focal_mm`` and ``camera_s.principal_offset_px``, refined.
+    rms_before_px, rms_after_px : float
+        The flat-water residual (detected against predicted spots, RMS px) before and after.
+    n_spots : int
+        Spots the fit used.
+    """
+
+    config_keys: dict[str, Any]
+    rms_before_px: float
+    rms_after_px: float
+    n_spots: int
+
+
+def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0) -> FlatFit:
+    """Refine camera s's focal length and principal point so that the flat-water pattern's
+    spots land where the rig predicts them (its poses, diffuser and water level taken as
+    known; the lens's distortion as calibrated: freeing k1, k2 too trades them against the
+    focal length).
+
+    The structured light's level rests on camera s's intrinsics far more finely than a
+    checkerboard pins them (docs/results.md, "Calibrating a real rig"); the ~1000 spots of the
+    flat reference pin them again, in the rig's own geometry.
+
+    Raises
+    ------
+    WaiInputError
+        When fewer than 50 spots lie within ``max_px`` of their prediction.
+    """
+    from scipy.optimize import least_squares
+    from scipy.spatial import cKDTree
+
+    from restoration.features import detect_spots, predict_flat_spots, spot_sigma_px
+    from restoration.undistort import pinhole_px
+    from wai_core.config import with_keys
+
+    sigma = spot_sigma_px(cfg)
+    raw = detect_spots(pattern_flat, spot_sigma_px=float(sigma) if sigma > 0 else None)
+    raw_px = raw.centres_px[~raw.border]
+    dev = cfg.camera_s
+
+    def rig(p: NDArray) -> Any:
+        return with_keys(cfg, {"camera_s.focal_mm": float(p[0]),
+                               "camera_s.principal_offset_px": [float(p[1]), float(p[2])]})
+
+    def predicted(p: NDArray) -> tuple[NDArray, NDArray]:
+        c = rig(p)
+        _, _, pred, in_view = predict_flat_spots(c)
+        return pinhole_px(c.camera_s, raw_px), np.where(in_view[:, None], pred, np.nan)
+
+    start = np.array([dev.focal_mm, *dev.principal_offset_px], float)
+    scale = np.array([dev.focal_mm * 1e-3, 1.0, 1.0])
+
+    def pairs_at(p: NDArray) -> tuple[NDArray, NDArray]:
+        seen, pred = predicted(p)
+        dots = np.flatnonzero(np.isfinite(pred).all(axis=1))  # indices stay the grid's
+        dist, nearest = cKDTree(pred[dots]).query(seen)
+        index = dots[np.minimum(nearest, len(dots) - 1)]
+        keep = np.isfinite(dist) & (dist < max_px)
+        if keep.sum() < 50:
+            raise WaiInputError(f"pattern_flat: only {int(keep.sum())} spots lie within "
+                                f"{max_px} px of the rig's prediction: check the poses and "
+                                "the diffuser")
+        return np.flatnonzero(keep), index[keep]
+
+    def residual_of(pairs: tuple[NDArray, NDArray]) -> Any:
+        def residual(p: NDArray) -> NDArray:
+            s, q = predicted(p)
+            return np.nan_to_num((s[pairs[0]] - q[pairs[1]]).ravel(), nan=max_px)
+        return residual
+
+    # Spots are paired with the nearest prediction, which moves as the fit does: pair again
+    # until the pairs hold.
+    pairs = pairs_at(start)
+    x = start
+    for _ in range(4):
+        x = least_squares(residual_of(pairs), x, x_scale=scale, method="lm").x
+        again = pairs_at(x)
+        if len(again[0]) == len(pairs[0]) and all(map(np.array_equal, again, pairs)):
+            break
+        pairs = again
+    residual = residual_of(pairs)
+    fit = least_squares(residual, x, x_scale=scale, method="lm")
+    keep = pairs[0]
+    before = float(np.sqrt(np.mean(residual_of(pairs_at(start))(start) ** 2) * 2))
+    after = float(np.sqrt(np.mean(fit.fun**2) * 2))
+    best = rig(fit.x).camera_s
+    return FlatFit({"camera_s.focal_mm": best.focal_mm,
+                    "camera_s.principal_offset_px": list(best.principal_offset_px)},
+                   before, after, int(keep.size))

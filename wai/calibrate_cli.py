@@ -66,6 +66,8 @@ def run_calibrate(args: argparse.Namespace) -> None:
 
     if not args.dir.is_dir():
         raise WaiInputError(f"calibration folder not found: {args.dir}")
+    if args.flat is not None and not args.flat.is_file():
+        raise WaiInputError(f"--flat {args.flat}: not found")
     board = _board(args)
     cfg = load_system(args.config)
     folders = {c: args.dir / c for c in CAMERAS if (args.dir / c).is_dir()}
@@ -83,7 +85,17 @@ def run_calibrate(args: argparse.Namespace) -> None:
         dev = getattr(cfg, camera)
         images = [read_image(p) for p in paths]
         fits[camera] = calibrate_device(images, board, (dev.height_px, dev.width_px))
-    write_rig(args.out, fits, {c: getattr(cfg, c) for c in fits}, board)
+    devices = {c: getattr(cfg, c) for c in fits}
+    flat = None
+    if args.flat is not None:
+        from restoration.rig_calibration import refine_on_flat_water, rig_keys
+        from wai_core.config import with_keys
+
+        if "camera_s" not in fits:
+            raise WaiInputError("--flat refines camera s: DIR needs a camera_s/ folder")
+        flat = refine_on_flat_water(with_keys(cfg, rig_keys(fits, devices)),
+                                    read_image(args.flat))
+    write_rig(args.out, fits, devices, board, flat)
     for camera, fit in fits.items():
         s = fit.sigma
         k1, k2 = fit.distortion[:2]
@@ -91,6 +103,12 @@ def run_calibrate(args: argparse.Namespace) -> None:
               f"{s['cx_px']:.2f}, cy {fit.cy_px:.2f} +- {s['cy_px']:.2f} px, k1 {k1:.4f} +- "
               f"{s['k1']:.4f}, k2 {k2:.4f} +- {s['k2']:.4f}; RMS {fit.rms_px:.3f} px over "
               f"{fit.n_used} views ({fit.n_rejected} without the board)")
+    if flat is not None:
+        f, (cx, cy) = flat.config_keys, flat.config_keys["camera_s.principal_offset_px"]
+        print(f"camera_s on flat water: focal {f['camera_s.focal_mm']:.5f} mm, principal "
+              f"offset {cx:.2f}, {cy:.2f} px; residual "
+              f"{flat.rms_before_px:.3f} -> {flat.rms_after_px:.3f} px over {flat.n_spots} "
+              "spots")
     print("not determined: " + "; ".join(UNDETERMINED))
     print(f"rig file: {args.out} (wai restore DIR --rig {args.out})")
 
@@ -144,6 +162,11 @@ def add_calibrate(sub: argparse._SubParsersAction, formatter: type, scene_help: 
     p.add_argument("--config", default="paper", help=scene_help + " (image sizes and sensors)")
     p.add_argument("--board", help="inner corners COLSxROWS (default: DIR/board.json)")
     p.add_argument("--square-mm", type=float, default=20.0, help="square size with --board, mm")
+    p.add_argument(
+        "--flat", type=Path, default=None,
+        help="the rig's flat-water pattern (pattern_flat): refine camera s's focal length and "
+        "principal point on its spots, with --config's poses and diffuser",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_calibrate)
 

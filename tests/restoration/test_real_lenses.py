@@ -78,3 +78,19 @@ def test_restored_with_its_lenses_the_frame_is_ok_and_without_them_flagged(lens_
              for k, v in LENS.items()}
     pinholes = restore_folder(lens_frame, write=False, rig=ideal).metrics
     assert pinholes["status"] == "bad_reference"
+
+
+def test_the_flat_water_pattern_pins_camera_s_where_a_checkerboard_leaves_it(lens_frame):
+    # Camera s 0.2 % off in focal length and 1 px off in principal point, as a checkerboard
+    # calibration might leave it: the flat reference's spots bring it back.
+    from restoration.rig_calibration import refine_on_flat_water
+    from wai_core.images import find_image, read_image
+
+    true = Calibration.from_folder(lens_frame).cfg
+    off = with_keys(true, {"camera_s.focal_mm": true.camera_s.focal_mm * 1.002,
+                           "camera_s.principal_offset_px": [16.0, -9.0]})
+    fit = refine_on_flat_water(off, read_image(find_image(lens_frame, "pattern_flat")))
+    keys = fit.config_keys
+    assert keys["camera_s.focal_mm"] == pytest.approx(true.camera_s.focal_mm, rel=3e-4)
+    np.testing.assert_allclose(keys["camera_s.principal_offset_px"], [15.0, -10.0], atol=0.2)
+    assert fit.rms_after_px < 0.5 * fit.rms_before_px and fit.n_spots > 500

@@ -3,9 +3,10 @@
 For each seed the paper's scene is rendered twice: with ideal lenses, and with real ones
 (:data:`LENS`: barrel distortion and a principal point off the centre, on camera s and camera
 v). The real-lens frame is restored three ways: with the ideal rig (the pinholes the scene
-names), with the true rig (the keys it was rendered with), and with the rig that
-``wai calibrate`` finds from rendered checkerboards (:mod:`restoration.rig_calibration`); the
-ideal-lens frame restored with the ideal rig is the accuracy to get back. Writes
+names), with the true rig (the keys it was rendered with), with the rig that ``wai calibrate``
+finds from rendered checkerboards (:mod:`restoration.rig_calibration`), and with that rig's
+camera s refined on the flat-water pattern (``wai calibrate --flat``); the ideal-lens frame
+restored with the ideal rig is the accuracy to get back. Writes
 ``calibration.csv`` (one row per frame and rig), ``calibration.json`` (the run record with the
 calibrated intrinsics against the truth), ``calibration.png`` and ``calibration.md``.
 """
@@ -69,6 +70,16 @@ def calibrated_rig(real: SystemConfig, out: Path, views: int) -> tuple[dict[str,
     return keys, fits
 
 
+def refined_on_flat_water(cfg: SystemConfig, boards: dict[str, Any], frame: Path) -> Any:
+    """Camera s refined on the rig's flat-water pattern (:func:`restoration.rig_calibration.
+    refine_on_flat_water`), starting from the checkerboards' intrinsics."""
+    from restoration.rig_calibration import refine_on_flat_water
+    from wai_core.images import find_image, read_image
+
+    return refine_on_flat_water(with_keys(cfg, boards), read_image(find_image(frame,
+                                                                              "pattern_flat")))
+
+
 def _row(seed: int, lens: str, rig: str, metrics: dict[str, Any]) -> dict[str, Any]:
     row = {"seed": seed, "lens": lens, "rig": rig}
     for key in COLUMNS[3:]:
@@ -76,12 +87,10 @@ def _row(seed: int, lens: str, rig: str, metrics: dict[str, Any]) -> dict[str, A
     return row
 
 
-def run_seed(cfg: SystemConfig, seed: int, out: Path, calibrated: dict[str, Any]
-             ) -> list[dict[str, Any]]:
-    """Render the seed's two frames (kept in ``out``: a rerun reuses them) and restore them
-    with each rig."""
+def render_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Path]:
+    """The seed's ideal-lens and real-lens frames, rendered into ``out`` (a rerun reuses
+    them)."""
     from mitsuba_wai.render import render_folder
-    from restoration import restore_folder
 
     cfg = cfg.replace("waves", seed=seed)
     folders = {"ideal": out / f"seed{seed:03d}" / "ideal_lens",
@@ -90,8 +99,19 @@ def run_seed(cfg: SystemConfig, seed: int, out: Path, calibrated: dict[str, Any]
         if not (folder / "scene.json").is_file():
             render_folder(cfg if lens == "ideal" else with_keys(cfg, LENS), folder,
                           progress=False)
+    return folders
+
+
+def run_seed(cfg: SystemConfig, seed: int, out: Path, calibrated: dict[str, dict[str, Any]]
+             ) -> list[dict[str, Any]]:
+    """Restore the seed's frames (:func:`render_seed`) with each rig: ideal, true, the
+    checkerboards' and the checkerboards' refined on flat water."""
+    from restoration import restore_folder
+
+    folders = render_seed(cfg, seed, out)
     runs = (("ideal", "ideal", None), ("real", "ideal", IDEAL), ("real", "true", None),
-            ("real", "calibrated", calibrated))
+            ("real", "checkerboards", calibrated["checkerboards"]),
+            ("real", "calibrated", calibrated["flat_water"]))
     return [_row(seed, lens, rig, restore_folder(folders[lens], write=False, rig=keys).metrics)
             for lens, rig, keys in runs]
 
@@ -134,15 +154,17 @@ def _figure(rows: list[dict[str, Any]], path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(7, 4))
     cases = [("ideal", "ideal", "ideal lens, ideal rig"), ("real", "true", "real lens, true rig"),
-             ("real", "calibrated", "real lens, calibrated rig")]
+             ("real", "checkerboards", "real lens, checkerboards' rig"),
+             ("real", "calibrated", "real lens, checkerboards + flat water")]
     for k, (lens, rig, label) in enumerate(cases):
         part = [r for r in rows if r["lens"] == lens and r["rig"] == rig]
-        seeds = np.array([r["seed"] for r in part], float) + (k - 1) * 0.2
+        seeds = np.array([r["seed"] for r in part], float) + (k - 1.5) * 0.15
         rmse = [r["wai_rmse_mm"] if r["status"] == "ok" else np.nan for r in part]
         ax.plot(seeds, rmse, "o", label=label)
     flagged = [r for r in rows if r["lens"] == "real" and r["rig"] == "ideal"]
     ax.set_xlabel("seed")
     ax.set_ylabel("surface RMSE, mm (status ok)")
+    ax.set_yscale("log")
     ax.set_title(f"Real lenses restored with the ideal rig: "
                  f"{sum(r['status'] != 'ok' for r in flagged)} of {len(flagged)} flagged")
     ax.legend()
@@ -189,7 +211,12 @@ def run_calibration(config: str | Path, out: Path, seeds: int | None, quick: boo
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     views = 8 if quick else CHECKERBOARD_VIEWS
-    calibrated, fits = calibrated_rig(with_keys(cfg, LENS), out, views)
+    boards, fits = calibrated_rig(with_keys(cfg, LENS), out, views)
+    flat = refined_on_flat_water(cfg, boards, render_seed(cfg, 0, out)["real"])
+    fits["camera_s"]["flat_water"] = {"config_keys": flat.config_keys,
+                                      "rms_before_px": flat.rms_before_px,
+                                      "rms_after_px": flat.rms_after_px}
+    calibrated = {"checkerboards": boards, "flat_water": {**boards, **flat.config_keys}}
     n = 1 if quick else int(seeds or 10)
     rows: list[dict[str, Any]] = []
     for seed in tqdm(range(n), desc="calibration", unit="seed"):
