@@ -165,7 +165,8 @@ def add_calibrate(sub: argparse._SubParsersAction, formatter: type, scene_help: 
     p.add_argument(
         "--flat", type=Path, default=None,
         help="the rig's flat-water pattern (pattern_flat): refine camera s's focal length and "
-        "principal point on its spots, with --config's poses and diffuser",
+        "principal point on its spots, with --config's poses and diffuser (default: none, "
+        "the checkerboards' values)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_calibrate)

@@ -263,7 +263,8 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--rig", type=Path, default=None,
-        help="rig file written by 'wai calibrate': its devices' intrinsics replace the folder's",
+        help="rig file written by 'wai calibrate': its devices' intrinsics replace the folder's "
+        "(default: none, the folder's scene.json as it is)",
     )
     p.add_argument(
         "--fit", action="store_true",
