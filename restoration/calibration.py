@@ -11,6 +11,7 @@ kept here: see :class:`LevelTrack`.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -158,9 +159,12 @@ class RigCalibration:
     def load_images(self, folder: str | Path) -> dict[str, NDArray[np.float32]]:
         """A frame's images from ``folder`` (EXR, PNG or TIFF by stem), sizes checked, in the
         devices' ideal pinholes' geometry (:meth:`to_pinhole`)."""
+        return self.load_files({name: find_image(folder, name) for name in self.IMAGES})
+
+    def load_files(self, files: Mapping[str, Path]) -> dict[str, NDArray[np.float32]]:
+        """:meth:`load_images` from the named files (image name: path)."""
         images = {}
-        for name in self.IMAGES:
-            path = find_image(folder, name)
+        for name, path in files.items():
             img = read_image(path)
             h, w = self.image_size(name)
             if img.shape[:2] != (h, w):

@@ -31,7 +31,9 @@ RESTORE_REMEDY = "move what is not the tool's elsewhere: a restore replaces only
 """What a refused restore folder's message tells the user (``wai restore`` has no --overwrite:
 it never replaces a folder it did not write)."""
 
-__all__ = ["FolderRestore", "check_inputs", "restore_folder", "restore_frame", "with_rig"]
+__all__ = [
+    "FolderRestore", "check_files", "check_inputs", "restore_folder", "restore_frame", "with_rig",
+]
 
 CalibrationT = TypeVar("CalibrationT", bound=RigCalibration)
 
@@ -248,11 +250,21 @@ def check_inputs(
     """Flag ``result`` by what the folder shows beyond the frame's own images: two differing
     files of one image (``ambiguous_input``), and a restored view that disagrees with the
     rig's flat-water view (``view_mismatch``, see :mod:`restoration.view_check`)."""
-    for name in cal.IMAGES:
+    files = {name: find_image(folder, name) for name in cal.IMAGES}
+    check_files(files, cal, images, result, view_flat)
+
+
+def check_files(
+    files: Mapping[str, Path], cal: RigCalibration, images: dict[str, Any],
+    result: RestoreResult, view_flat: Any = None,
+) -> None:
+    """:func:`check_inputs` for the frame's images read from ``files`` (name: path): another
+    file of one image beside it (same stem) that differs, and the flat-water view."""
+    for name, path in files.items():
         image = images[name]
         if cal.resamples(name):  # compare the file as it was read
-            image = read_image(find_image(folder, name))
-        conflict = image_conflict(folder, name, image)
+            image = read_image(path)
+        conflict = image_conflict(path.parent, path.stem, image)
         if conflict is not None:
             result.warnings.append(conflict)
             result.flag(Status.AMBIGUOUS_INPUT, conflict)

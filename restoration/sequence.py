@@ -30,6 +30,7 @@ from restoration.calibration import LevelTrack, RigCalibration, read_scene_recor
 from restoration.folder import (
     RESTORE_REMEDY,
     FolderRestore,
+    check_files,
     folder_metrics,
     load_view_flat,
     restore_frame,
@@ -38,9 +39,7 @@ from restoration.folder import (
 from restoration.methods import Method, as_method
 from restoration.options import SurfaceOptions
 from restoration.result import Status
-from restoration.view_check import match_flat_view, match_sequence
-from wai_core.errors import WaiInputError
-from wai_core.images import image_conflict, read_image
+from restoration.view_check import match_sequence
 from wai_core.io import atomic_dir, atomic_write_bytes, check_output_dir, to_srgb8, write_json
 from wai_core.sequence import SequenceRecord, read_sequence
 
@@ -422,7 +421,7 @@ def load_sequence(
     cal = _calibration(seq, as_method(method))
     if not seq.captured:
         return cal, [cal.load_images(d) for d in seq.frame_dirs]
-    return cal, [_load_images(cal, _frame_files(seq, k, cal)) for k in range(len(seq.frames))]
+    return cal, [cal.load_files(_frame_files(seq, k, cal)) for k in range(len(seq.frames))]
 
 
 def restore_captured_frame(
@@ -454,21 +453,10 @@ def restore_captured_frame(
         None, no truth and no scores.
     """
     files = _frame_files(seq, k, cal)
-    images = _load_images(cal, files)
+    images = cal.load_files(files)
     view_flat = load_view_flat(cal, *dict.fromkeys((seq.frame_dirs[k], seq.folder)))
     result = method(images, cal, track)
-    for name, path in files.items():
-        image = read_image(path) if cal.resamples(name) else images[name]
-        conflict = image_conflict(path.parent, path.stem, image)
-        if conflict is not None:
-            result.warnings.append(conflict)
-            result.flag(Status.AMBIGUOUS_INPUT, conflict)
-    if view_flat is not None and result.restored:
-        match = match_flat_view(result.view.image, result.view.valid,
-                                cal.radiance(images["view"]), view_flat)
-        result.view_match = match
-        if not match.consistent:
-            result.flag(Status.VIEW_MISMATCH, match.message)
+    check_files(files, cal, images, result, view_flat)
     metrics = folder_metrics(method, result, None, True, seq.record.get("seed"))
     return FolderRestore(seq.frame_dirs[k], None, cal, images, result, None, None, metrics)
 
@@ -476,20 +464,6 @@ def restore_captured_frame(
 def _frame_files(seq: SequenceRecord, k: int, cal: RigCalibration) -> dict[str, Path]:
     """The file of each of the method's images for frame ``k``."""
     return {name: seq.image_path(k, name) for name in cal.IMAGES}
-
-
-def _load_images(cal: RigCalibration, files: dict[str, Path]) -> dict[str, NDArray]:
-    """:meth:`~restoration.calibration.RigCalibration.load_images` from named files."""
-    images = {}
-    for name, path in files.items():
-        img = read_image(path)
-        h, w = cal.image_size(name)
-        if img.shape[:2] != (h, w):
-            raise WaiInputError(
-                f"{path} is {img.shape[1]}x{img.shape[0]} but the calibration says {w}x{h}"
-            )
-        images[name] = cal.to_pinhole(name, img)
-    return images
 
 
 def _calibration(seq: SequenceRecord, method: Method) -> RigCalibration:
