@@ -63,7 +63,6 @@ symbol confidence, and the consistent neighbours.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import cv2
@@ -86,6 +85,7 @@ from restoration.features.reference import ReferenceGrid
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.pattern import CODE_LEVELS, dot_codes, dot_grid
+from wai_core.timings import Timings
 
 __all__ = [
     "MIN_SYMBOL_CONFIDENCE",
@@ -763,13 +763,13 @@ def features_from_code(
     RestorationFailed
         On fewer than ``min_features`` decoded dots.
     """
-    t0 = time.perf_counter()
-    wavy = detect_frame(pattern_img, ref, cfg)
-    t1 = time.perf_counter()
-    ordering = match_distorted(ref, wavy, visible_px=visible_outline(ref, cfg))
-    matches = decode_distorted(ref, wavy, pattern_img, cfg, ordering=ordering).matches
-    t2 = time.perf_counter()
+    timings = Timings()
+    with timings("detect"):
+        wavy = detect_frame(pattern_img, ref, cfg)
+    with timings("match"):
+        ordering = match_distorted(ref, wavy, visible_px=visible_outline(ref, cfg))
+        matches = decode_distorted(ref, wavy, pattern_img, cfg, ordering=ordering).matches
     if len(matches) < min_features:
         raise RestorationFailed(f"too few features decoded: {len(matches)} (need {min_features})")
-    matches.timings_ms.update({"detect": 1e3 * (t1 - t0), "match": 1e3 * (t2 - t1)})
+    matches.timings_ms.update(timings.ms)
     return matches

@@ -10,7 +10,6 @@ steps from the two images (:func:`find_features`).
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -33,6 +32,7 @@ from restoration.features.reference import (
 )
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
+from wai_core.timings import Timings
 
 
 @dataclass(frozen=True)
@@ -562,8 +562,8 @@ def find_features(
     Returns
     -------
     Matches
-        With ``timings_ms`` for ``detect_flat``, ``detect``, ``predict``, ``match_reference``,
-        ``match`` and ``total``.
+        With ``timings_ms`` for ``detect`` and ``match`` (:func:`features_from_reference`),
+        ``reference`` (the flat frame's grid) and ``total``.
 
     Raises
     ------
@@ -578,22 +578,14 @@ def find_features(
             raise WaiInputError(
                 f"{name} image is {np.shape(img)[:2]}, camera s is {cam.height_px}x{cam.width_px}"
             )
-    timings: dict[str, float] = {}
-    t_all = t0 = time.perf_counter()
-
-    def lap(name: str) -> None:
-        nonlocal t0
-        t1 = time.perf_counter()
-        timings[name] = 1e3 * (t1 - t0)
-        t0 = t1
-
-    if not np.isfinite(pattern_img).all():
-        raise WaiInputError("pattern image holds NaN or inf")
-    ref = prepare_reference(pattern_flat_img, cfg, lit=lit, min_features=min_features)
-    timings["reference"] = 1e3 * (time.perf_counter() - t_all)
-    matches = features_from_reference(pattern_img, ref, cfg, min_features=min_features)
-    matches.timings_ms["reference"] = timings["reference"]
-    matches.timings_ms["total"] = 1e3 * (time.perf_counter() - t_all)
+    timings = Timings()
+    with timings("total"):
+        with timings("reference"):
+            if not np.isfinite(pattern_img).all():
+                raise WaiInputError("pattern image holds NaN or inf")
+            ref = prepare_reference(pattern_flat_img, cfg, lit=lit, min_features=min_features)
+        matches = features_from_reference(pattern_img, ref, cfg, min_features=min_features)
+    matches.timings_ms.update(timings.ms)
     return matches
 
 
@@ -629,12 +621,12 @@ def features_from_reference(
     RestorationFailed
         On fewer than ``min_features`` matches.
     """
-    t0 = time.perf_counter()
-    wavy = detect_frame(pattern_img, ref, cfg)
-    t1 = time.perf_counter()
-    matches = match_distorted(ref, wavy, visible_px=visible_outline(ref, cfg))
-    t2 = time.perf_counter()
+    timings = Timings()
+    with timings("detect"):
+        wavy = detect_frame(pattern_img, ref, cfg)
+    with timings("match"):
+        matches = match_distorted(ref, wavy, visible_px=visible_outline(ref, cfg))
     if len(matches) < min_features:
         raise RestorationFailed(f"too few features matched: {len(matches)} (need {min_features})")
-    matches.timings_ms.update({"detect": 1e3 * (t1 - t0), "match": 1e3 * (t2 - t1)})
+    matches.timings_ms.update(timings.ms)
     return matches
