@@ -27,7 +27,6 @@ profile.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +40,7 @@ from restoration.anchor import N_SETS, anchor_sigma_mm
 from restoration.normals import projector_rays, spots_on_diffuser
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
+from wai_core.timings import Timings
 
 __all__ = ["BSplineSurface", "FitResult", "LevelFit", "fit_level", "fit_surface"]
 
@@ -422,13 +422,13 @@ def _total_cost(pred: _Prediction, scale: float | None) -> float:
     return float(np.sum(_cost(r2[np.isfinite(r2)], scale)))
 
 
-def _result(fit: _Fit, like: Heightfield, timings_ms: dict[str, float]) -> FitResult:
-    """The public result of a fit, gridded on ``like``."""
-    t0 = time.perf_counter()
-    heightfield = fit.spline.to_heightfield(like)
-    pred = fit.prediction
-    timings_ms = {**timings_ms, "grid": 1e3 * (time.perf_counter() - t0)}
-    timings_ms["total"] = sum(timings_ms.values())
+def _result(fit: _Fit, like: Heightfield, timings: Timings) -> FitResult:
+    """The public result of a fit, gridded on ``like``; ``timings`` (the fit's steps) gains
+    ``grid`` and ``total``, the sum of all steps."""
+    with timings("grid"):
+        heightfield = fit.spline.to_heightfield(like)
+        pred = fit.prediction
+    timings.add("total", timings.total())
     return FitResult(
         spline=fit.spline,
         heightfield=heightfield,
@@ -438,7 +438,7 @@ def _result(fit: _Fit, like: Heightfield, timings_ms: dict[str, float]) -> FitRe
         rms_mm=fit.rms_mm,
         iterations=fit.iterations,
         converged=fit.converged,
-        timings_ms=timings_ms,
+        timings_ms=timings.to_dict(),
     )
 
 
@@ -493,16 +493,16 @@ def fit_surface(
     -------
     FitResult
     """
-    t0 = time.perf_counter()
-    xy = points_mm[:, :2]
-    step_mm = _knot_step(xy) if step_mm is None else float(step_mm)
-    start = _initial_spline(xy, points_mm[:, 2], slopes, step_mm, smoothness)
-    rays = _Rays.of(panel_px, spot_px, projector, camera_s, z_h_mm)
-    t1 = time.perf_counter()
-    fit = _gauss_newton(start, rays, rays.t_at(points_mm[:, 2]), iterations=iterations,
-                        tol_mm=tol_mm, smoothness=smoothness)
-    t2 = time.perf_counter()
-    return _result(fit, like, {"warm_start": 1e3 * (t1 - t0), "gauss_newton": 1e3 * (t2 - t1)})
+    timings = Timings()
+    with timings("warm_start"):
+        xy = points_mm[:, :2]
+        step_mm = _knot_step(xy) if step_mm is None else float(step_mm)
+        start = _initial_spline(xy, points_mm[:, 2], slopes, step_mm, smoothness)
+        rays = _Rays.of(panel_px, spot_px, projector, camera_s, z_h_mm)
+    with timings("gauss_newton"):
+        fit = _gauss_newton(start, rays, rays.t_at(points_mm[:, 2]), iterations=iterations,
+                            tol_mm=tol_mm, smoothness=smoothness)
+    return _result(fit, like, timings)
 
 
 @dataclass
@@ -598,51 +598,51 @@ def fit_level(
     -------
     LevelFit
     """
-    t0 = time.perf_counter()
-    xy = points_mm[:, :2]
-    # One knot layout for every probe, or their residuals would not compare.
-    start = _initial_spline(xy, points_mm[:, 2], slopes, _knot_step(xy), SMOOTHNESS)
-    rays = _Rays.of(panel_px, spot_px, projector, camera_s, z_h_mm)
-    a = _level_weights(start, xy)
-    level0 = float(a @ start.coeffs.ravel())
-    gn = {"iterations": iterations, "tol_mm": PROBE_TOL_MM, "smoothness": SMOOTHNESS}
-    base = _gauss_newton(start, rays, rays.t_at(points_mm[:, 2]), level=(a, level0), **gn)
-    # A few spots far off the rest (a detection error, a crest the spline cannot follow)
-    # can outweigh every other ray's preference for a level: the profile is of the Cauchy
-    # loss, its scale fixed from the plain fit's median residual so all probes compare.
-    r = np.linalg.norm(base.prediction.residual_mm, axis=1)
-    scale = CAUCHY_SCALE * max(float(np.nanmedian(r)), 1e-6) / _MEDIAN_NORM  # exact spots
-    gn["scale_mm"] = scale
-    base = _gauss_newton(base.spline, rays, base.prediction.t, level=(a, level0), **gn)
-    fits = {0.0: base}
+    timings = Timings()
+    with timings("gauss_newton"):  # the whole search over levels
+        xy = points_mm[:, :2]
+        # One knot layout for every probe, or their residuals would not compare.
+        start = _initial_spline(xy, points_mm[:, 2], slopes, _knot_step(xy), SMOOTHNESS)
+        rays = _Rays.of(panel_px, spot_px, projector, camera_s, z_h_mm)
+        a = _level_weights(start, xy)
+        level0 = float(a @ start.coeffs.ravel())
+        gn = {"iterations": iterations, "tol_mm": PROBE_TOL_MM, "smoothness": SMOOTHNESS}
+        base = _gauss_newton(start, rays, rays.t_at(points_mm[:, 2]), level=(a, level0), **gn)
+        # A few spots far off the rest (a detection error, a crest the spline cannot follow)
+        # can outweigh every other ray's preference for a level: the profile is of the Cauchy
+        # loss, its scale fixed from the plain fit's median residual so all probes compare.
+        r = np.linalg.norm(base.prediction.residual_mm, axis=1)
+        scale = CAUCHY_SCALE * max(float(np.nanmedian(r)), 1e-6) / _MEDIAN_NORM  # exact spots
+        gn["scale_mm"] = scale
+        base = _gauss_newton(base.spline, rays, base.prediction.t, level=(a, level0), **gn)
+        fits = {0.0: base}
 
-    def probe(offset: float) -> None:
-        # The same start for every probe: the base moved by the offset (a's weights sum to
-        # one, so adding the offset to every coefficient moves the level by exactly that).
-        shifted = BSplineSurface(start.x0_mm, start.y0_mm, start.step_mm,
-                                 base.spline.coeffs + offset)
-        t = base.prediction.t + offset / rays.d[:, 2]
-        fits[offset] = _gauss_newton(shifted, rays, t, level=(a, level0 + offset), **gn)
+        def probe(offset: float) -> None:
+            # The same start for every probe: the base moved by the offset (a's weights sum to
+            # one, so adding the offset to every coefficient moves the level by exactly that).
+            shifted = BSplineSurface(start.x0_mm, start.y0_mm, start.step_mm,
+                                     base.spline.coeffs + offset)
+            t = base.prediction.t + offset / rays.d[:, 2]
+            fits[offset] = _gauss_newton(shifted, rays, t, level=(a, level0 + offset), **gn)
 
-    for offset in (-probe_mm, probe_mm):
-        probe(offset)
-    reason = ""
-    while True:
-        offsets, cost, _ = _profile(fits, scale)
-        low = int(np.argmin(cost))
-        if 0 < low < len(offsets) - 1:  # bracketed: refine by the parabola through three
-            vertex = _vertex3(offsets[low - 1:low + 2], cost[low - 1:low + 2])
-            if np.min(np.abs(offsets - vertex)) < POLISH_MM or len(fits) >= max_probes:
+        for offset in (-probe_mm, probe_mm):
+            probe(offset)
+        reason = ""
+        while True:
+            offsets, cost, _ = _profile(fits, scale)
+            low = int(np.argmin(cost))
+            if 0 < low < len(offsets) - 1:  # bracketed: refine by the parabola through three
+                vertex = _vertex3(offsets[low - 1:low + 2], cost[low - 1:low + 2])
+                if np.min(np.abs(offsets - vertex)) < POLISH_MM or len(fits) >= max_probes:
+                    break
+                probe(vertex)
+            elif len(fits) >= max_probes:
+                reason = (f"the level's profile has no minimum within {offsets[0]:+.2f} to "
+                          f"{offsets[-1]:+.2f} mm of the start")
                 break
-            probe(vertex)
-        elif len(fits) >= max_probes:
-            reason = (f"the level's profile has no minimum within {offsets[0]:+.2f} to "
-                      f"{offsets[-1]:+.2f} mm of the start")
-            break
-        else:  # walk downhill
-            probe(float(offsets[low] + (probe_mm if low else -probe_mm)))
-    chosen = 0.0 if reason else float(offsets[low])
-    timings = {"gauss_newton": 1e3 * (time.perf_counter() - t0)}
+            else:  # walk downhill
+                probe(float(offsets[low] + (probe_mm if low else -probe_mm)))
+        chosen = 0.0 if reason else float(offsets[low])
     sigma = _profile_sigma(fits, scale)
     return LevelFit(
         _result(fits[chosen], like, timings), offsets, cost,
