@@ -25,7 +25,6 @@ so with a status instead of a surface: it never makes one up.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -321,32 +320,33 @@ def reconstruct_alterman(
         ``integrator``, ``n_refine`` (0: samples stay on z = h0, the published method),
         ``refine_tol_mm``, ``gridder``, ``grid_spacing_mm``.
     """
-    t0 = time.perf_counter()
-    t = refracted_dirs(pinholes_mm, spots_mm)
-    normals = snell_normals(layout.sun_dir, t, layout.n_water)
-    slopes = slopes_from_normals(normals)
-    t1 = time.perf_counter()
-    heights = np.full(len(ij), layout.h0_mm)
-    change, it = np.nan, 0
-    for it in range(int(options.n_refine) + 1):
-        q = points_on_lines(pinholes_mm, t, heights)
-        rel = integrate(ij, q[:, :2], slopes, options.integrator)
-        new = rel - np.nanmean(rel) + layout.h0_mm
-        # Samples the integrator cannot tie to the rest leave for good.
-        keep = np.isfinite(new)
-        ij, pinholes_mm, t, normals, slopes, q = (
-            a[keep] for a in (ij, pinholes_mm, t, normals, slopes, q)
+    timings = Timings()
+    with timings("normals"):
+        t = refracted_dirs(pinholes_mm, spots_mm)
+        normals = snell_normals(layout.sun_dir, t, layout.n_water)
+        slopes = slopes_from_normals(normals)
+    with timings("integrate"):
+        heights = np.full(len(ij), layout.h0_mm)
+        change, it = np.nan, 0
+        for it in range(int(options.n_refine) + 1):
+            q = points_on_lines(pinholes_mm, t, heights)
+            rel = integrate(ij, q[:, :2], slopes, options.integrator)
+            new = rel - np.nanmean(rel) + layout.h0_mm
+            # Samples the integrator cannot tie to the rest leave for good.
+            keep = np.isfinite(new)
+            ij, pinholes_mm, t, normals, slopes, q = (
+                a[keep] for a in (ij, pinholes_mm, t, normals, slopes, q)
+            )
+            new, heights = new[keep], heights[keep]
+            change = float(np.max(np.abs(new - heights))) if it > 0 else np.nan
+            heights = new
+            if it > 0 and change < options.refine_tol_mm:
+                break
+    with timings("grid"):
+        surface = to_heightfield(
+            q[:, :2], heights, slopes, options.grid_spacing_mm, method=options.gridder
         )
-        new, heights = new[keep], heights[keep]
-        change = float(np.max(np.abs(new - heights))) if it > 0 else np.nan
-        heights = new
-        if it > 0 and change < options.refine_tol_mm:
-            break
-    t2 = time.perf_counter()
-    surface = to_heightfield(
-        q[:, :2], heights, slopes, options.grid_spacing_mm, method=options.gridder
-    )
-    t3 = time.perf_counter()
+    timings.add("total", timings.total())
     return AltermanSurface(
         heightfield=surface,
         ij=ij,
@@ -355,12 +355,7 @@ def reconstruct_alterman(
         slopes=slopes,
         iterations=it,
         height_change_mm=change,
-        timings_ms={
-            "normals": 1e3 * (t1 - t0),
-            "integrate": 1e3 * (t2 - t1),
-            "grid": 1e3 * (t3 - t2),
-            "total": 1e3 * (t3 - t0),
-        },
+        timings_ms=timings.to_dict(),
     )
 
 
