@@ -30,7 +30,6 @@ anchor error costs about 5e-3 rad (rms) in the normals and 0.25 mm (rms) in the 
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -63,6 +62,7 @@ from restoration.options import StructuredLightOptions
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
+from wai_core.timings import Timings
 
 Array = NDArray[np.float64]
 
@@ -213,13 +213,14 @@ class SurfaceEstimate:
         their samples.
         """
         if self._heightfield is None:
-            t0 = time.perf_counter()
-            xy, z = self.points_mm[:, :2], self.points_mm[:, 2]
-            grid = to_heightfield(xy, z, self.slopes, self.grid_spacing_mm, method=self.gridder,
-                                  lattice_ij=self.ij)
-            object.__setattr__(self, "_heightfield", grid)  # a cache: frozen otherwise
-            self.timings_ms["grid"] = _ms(t0)
-            self.timings_ms["total"] = self.timings_ms.get("total", 0.0) + self.timings_ms["grid"]
+            timings = Timings()
+            with timings("grid"):
+                xy, z = self.points_mm[:, :2], self.points_mm[:, 2]
+                grid = to_heightfield(xy, z, self.slopes, self.grid_spacing_mm,
+                                      method=self.gridder, lattice_ij=self.ij)
+                object.__setattr__(self, "_heightfield", grid)  # a cache: frozen otherwise
+            self.timings_ms["grid"] = timings.ms["grid"]
+            self.timings_ms["total"] = self.timings_ms.get("total", 0.0) + timings.ms["grid"]
         return self._heightfield
 
 
@@ -350,25 +351,26 @@ def reconstruct(
     -------
     SurfaceEstimate
     """
-    t_start = time.perf_counter()
-    _check_choices(obs, h0_mm, integrator, n_refine, gridder, grid_spacing_mm)
-    timings = {"normals": 0.0, "integrate": 0.0}
-    args = (obs.ij, obs.origin_mm, obs.dirs, obs.spots_mm, h0_mm, int(n_refine), tol_mm,
-            accelerate)
-    weight_xy = obs.weight_xy_mm
-    if integrator in COMPILED_INTEGRATORS:  # the level search's: all passes in one call
-        # Default weights: the first pass's reflection points (q on z = h0), as the loop's.
-        if weight_xy is None:
-            weight_xy = points_on_rays(obs.origin_mm, obs.dirs, h0_mm)[:, :2]
-        ij_arr, q, normals, slopes, integrated, it, change = _compiled_refinement(
-            *args, weight_xy, integrator == "fourth_order", obs.plans
-        )
-        timings["integrate"] = _ms(t_start)
-    else:
-        ij_arr, q, normals, slopes, integrated, it, change = _refinement(
-            *args, weight_xy, integrator, timings, obs.plans
-        )
-    timings["total"] = _ms(t_start)
+    timings = Timings()
+    with timings("total"):
+        _check_choices(obs, h0_mm, integrator, n_refine, gridder, grid_spacing_mm)
+        timings.add("normals", 0.0)  # the compiled passes time both steps as one
+        timings.add("integrate", 0.0)
+        args = (obs.ij, obs.origin_mm, obs.dirs, obs.spots_mm, h0_mm, int(n_refine), tol_mm,
+                accelerate)
+        weight_xy = obs.weight_xy_mm
+        if integrator in COMPILED_INTEGRATORS:  # the level search's: all passes in one call
+            with timings("integrate"):
+                # Default weights: the first pass's reflection points (q on z = h0), as the loop's.
+                if weight_xy is None:
+                    weight_xy = points_on_rays(obs.origin_mm, obs.dirs, h0_mm)[:, :2]
+                ij_arr, q, normals, slopes, integrated, it, change = _compiled_refinement(
+                    *args, weight_xy, integrator == "fourth_order", obs.plans
+                )
+        else:
+            ij_arr, q, normals, slopes, integrated, it, change = _refinement(
+                *args, weight_xy, integrator, timings, obs.plans
+            )
     return SurfaceEstimate(
         ij=ij_arr,
         points_mm=np.column_stack([q[:, :2], integrated]),
@@ -376,7 +378,7 @@ def reconstruct(
         slopes=slopes,
         iterations=it,
         height_change_mm=change,
-        timings_ms=timings,
+        timings_ms=timings.to_dict(),
         grid_spacing_mm=float(grid_spacing_mm),
         gridder=gridder,
         integrator=integrator,
@@ -394,7 +396,7 @@ def _refinement(
     accelerate: bool,
     weight_xy: Array | None,
     integrator: str,
-    timings: dict[str, float],
+    timings: Timings,
     plans: IntegrationPlans | None = None,
 ) -> tuple[NDArray[np.int64], Array, Array, Array, Array, int, float]:
     """The passes of :func:`reconstruct` as NumPy steps around
@@ -411,18 +413,16 @@ def _refinement(
     previous: tuple[Array, Array] | None = None
     change = np.nan
     for it in range(int(n_refine) + 1):
-        t0 = time.perf_counter()
-        q, normals, slopes = reflection_slopes(origin, v_p, spots, heights)
-        if not (np.all(np.isfinite(q[:, :2])) and np.all(np.isfinite(slopes))):
-            raise RestorationFailed(_REFINE_ERRORS[5])  # a pass that diverged, as compiled
-        t1 = time.perf_counter()
-        # Every pass weighs the differences by the first pass's geometry: the passes then
-        # share one factorisation, and their samples move by only ~mm along the rays.
-        weight_xy = q[:, :2] if weight_xy is None else weight_xy
-        relative = integrate(ij_arr, q[:, :2], slopes, integrator, weight_xy, plans)
-        integrated = _anchored(relative, h0_mm)
-        timings["normals"] += _ms(t0, t1)
-        timings["integrate"] += _ms(t1)
+        with timings("normals"):
+            q, normals, slopes = reflection_slopes(origin, v_p, spots, heights)
+            if not (np.all(np.isfinite(q[:, :2])) and np.all(np.isfinite(slopes))):
+                raise RestorationFailed(_REFINE_ERRORS[5])  # a pass that diverged, as compiled
+        with timings("integrate"):
+            # Every pass weighs the differences by the first pass's geometry: the passes then
+            # share one factorisation, and their samples move by only ~mm along the rays.
+            weight_xy = q[:, :2] if weight_xy is None else weight_xy
+            relative = integrate(ij_arr, q[:, :2], slopes, integrator, weight_xy, plans)
+            integrated = _anchored(relative, h0_mm)
         # Samples the integrator could not tie to the rest (NaN) leave for good.
         keep = np.isfinite(integrated)
         if not keep.all():
@@ -726,8 +726,3 @@ def _anderson_step(
     if denom == 0.0 or residual @ residual > previous[1] @ previous[1]:
         return plain
     return plain - (df @ residual) / denom * (dh + df)
-
-
-def _ms(start: float, end: float | None = None) -> float:
-    """Milliseconds from ``start`` to ``end`` (default: now)."""
-    return 1e3 * ((time.perf_counter() if end is None else end) - start)

@@ -244,14 +244,14 @@ def test_compiled_refinement_is_the_numpy_loop(sine_case, accelerate, weights, i
     from restoration import Observations
     from restoration.normals import points_on_rays
     from restoration.surface import _compiled_refinement, _refinement
+    from wai_core.timings import Timings
 
     ij, panel, spots = sine_case[:3]
     obs = Observations.build(ij, panel, spots, PROJ, CAM, ZH)
     s, o, d = obs.spots_mm, obs.origin_mm, obs.dirs
     wxy = points_on_rays(o, d, H0 + 2.0)[:, :2] if weights else None
     args = (ij, o, d, s, H0, 6, 1e-4, accelerate)
-    timings = {"normals": 0.0, "integrate": 0.0}
-    loop = _refinement(*args, wxy, integrator, timings)
+    loop = _refinement(*args, wxy, integrator, Timings())
     fast = _compiled_refinement(
         *args, points_on_rays(o, d, H0)[:, :2] if wxy is None else wxy,
         integrator == "fourth_order",
