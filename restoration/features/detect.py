@@ -7,8 +7,11 @@ continuous ``(col, row)`` with integer values at pixel centres (see :mod:`wai_co
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from dataclasses import dataclass
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -85,9 +88,54 @@ class Spots:
         return self.merged | self.border | self.saturated
 
 
-def _luminance(image: NDArray, pad: int) -> NDArray[np.float32]:
-    """Sum of the colour channels, float32, in a new array with ``pad`` zeros around it
-    (h + 2 pad, w + 2 pad); rejects bad shapes and non-finite values."""
+class _Workspace:
+    """The image-sized scratch arrays of :func:`detect_spots`, kept from frame to frame.
+
+    A fresh image-sized array costs more in page faults than the filter that fills it, so a
+    rig's :class:`SpotScales` keeps one set. One frame at a time uses them: a thread that finds
+    them taken works in fresh arrays. Pickled, it starts empty.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._arrays: dict[str, NDArray] = {}
+
+    @contextlib.contextmanager
+    def borrow(self) -> Iterator[dict[str, NDArray] | None]:
+        """The arrays by name, for :func:`_scratch` (None while another thread has them)."""
+        if not self._lock.acquire(blocking=False):
+            yield None
+            return
+        try:
+            yield self._arrays
+        finally:
+            self._lock.release()
+
+    def __getstate__(self) -> dict:
+        return {}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__()  # type: ignore[misc]
+
+
+def _scratch(
+    store: dict[str, NDArray] | None, name: str, shape: tuple[int, ...], dtype: type
+) -> NDArray:
+    """``store``'s array ``name`` if it has this shape and dtype, else a new one of zeros
+    (kept there). Only the first gets zeros: callers that need zeros where they do not write
+    (the frame of :func:`_luminance`) never write there."""
+    arr = None if store is None else store.get(name)
+    if arr is None or arr.shape != shape or arr.dtype != dtype:
+        arr = np.zeros(shape, dtype)
+        if store is not None:
+            store[name] = arr
+    return arr
+
+
+def _luminance(image: NDArray, pad: int, store: dict | None = None) -> NDArray[np.float32]:
+    """Sum of the colour channels, float32, in an array with ``pad`` zeros around it
+    (h + 2 pad, w + 2 pad): new, or ``store``'s (:class:`_Workspace`); rejects bad shapes and
+    non-finite values."""
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] in (1, 3, 4):
         shape = img.shape[:2]
@@ -101,7 +149,7 @@ def _luminance(image: NDArray, pad: int) -> NDArray[np.float32]:
         )
     if img.ndim == 2 and not np.issubdtype(img.dtype, np.number):
         raise WaiInputError(f"pattern image must be numeric, got {img.dtype}")
-    padded = np.zeros((shape[0] + 2 * pad, shape[1] + 2 * pad), np.float32)
+    padded = _scratch(store, "padded", (shape[0] + 2 * pad, shape[1] + 2 * pad), np.float32)
     lum = padded[pad : pad + shape[0], pad : pad + shape[1]]
     if img.ndim == 2:
         lum[:] = img
@@ -128,14 +176,17 @@ def _upsample(
     return cv2.resize(small, (shape[1], shape[0]), dst=out, interpolation=cv2.INTER_LINEAR)
 
 
-def _background(smooth: NDArray[np.float32], size_px: int) -> NDArray[np.float32]:
-    """Slowly varying background: local minimum over a window wider than a spot, then averaged.
+def _background(
+    smooth: NDArray[np.float32], size_px: int, out: NDArray[np.float32] | None = None
+) -> NDArray[np.float32]:
+    """Slowly varying background: local minimum over a window wider than a spot, then averaged
+    (into ``out``, (h, w), if given).
 
     Runs on a 4x coarser grid (the background varies slowly): a 5 x 5 minimum first, so the
     subsampled pixels are the darkest of their neighbourhood, not a spot's core.
     """
     k = max(size_px // 4, 1) | 1
-    full = cv2.erode(smooth, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    full = cv2.erode(smooth, np.ones((5, 5), np.uint8), dst=out, borderType=cv2.BORDER_REPLICATE)
     low = cv2.erode(np.ascontiguousarray(full[::4, ::4]), np.ones((k, k), np.uint8),
                     borderType=cv2.BORDER_REPLICATE)
     return _upsample(cv2.blur(low, (k, k), borderType=cv2.BORDER_REPLICATE), smooth.shape, full)
@@ -180,6 +231,7 @@ def _segment(
     wide_px: int = 40,
     wide_level: float = 0.005,
     wide_blur_px: float = 4.0,
+    store: dict[str, NDArray] | None = None,
 ) -> tuple[int, NDArray[np.int32], BoolArray]:
     """Label pixels above ``rel_level`` x their local maximum (and above ``floor``).
 
@@ -193,13 +245,15 @@ def _segment(
 
     ``work`` (h, w) is scratch space, overwritten: the maps above and then the labels are
     written there rather than into fresh image-sized arrays (each new one costs more in page
-    faults than the filter does). Returns the number of labels (background included), the
-    label image (h, w, a view of ``work``) and the mask.
+    faults than the filter does), and so are the masks, into ``store``'s (:func:`_scratch`).
+    Returns the number of labels (background included), the label image (h, w, a view of
+    ``work``) and the mask.
     """
     size = 2 * radius_px + 1
     level = cv2.dilate(smooth, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)), dst=work)
     level *= rel_level
-    mask = smooth > level
+    mask = np.greater(smooth, level, out=_scratch(store, "mask", smooth.shape, np.bool_))
+    above = _scratch(store, "above", smooth.shape, np.bool_)
     # On a 4x coarser grid: a 4 x 4 block average and a wide_blur_px / 4 blur there make the
     # ~wide_blur_px blur.
     h, w = smooth.shape
@@ -208,8 +262,8 @@ def _segment(
     k = 2 * (wide_px // 4) + 1
     level = _upsample(cv2.dilate(small, np.ones((k, k), np.uint8)), smooth.shape, work)
     level *= wide_level
-    mask &= smooth > level
-    mask &= smooth > floor
+    mask &= np.greater(smooth, level, out=above)
+    mask &= np.greater(smooth, floor, out=above)
     # Plain labelling: cv2's per-component statistics cost 6x the labelling itself, and the
     # moments below give the same from the pixel list.
     n, labels = cv2.connectedComponents(mask.view(np.uint8), work.view(np.int32), 8, cv2.CV_32S)
@@ -429,6 +483,9 @@ class SpotScales:
     minimum_bias : float
         How far the background at ``smooth_px`` and ``background_px`` lies below the mean of
         pure noise, in the smoothed noise's standard deviations.
+    workspace : _Workspace or None
+        The image-sized scratch arrays :func:`detect_spots` reuses from frame to frame (None:
+        fresh ones every frame). Private.
     """
 
     spot_sigma_px: float | None
@@ -440,6 +497,7 @@ class SpotScales:
     wide_blur_px: float
     box_max_px: int
     minimum_bias: float
+    workspace: _Workspace | None = field(default=None, compare=False, repr=False)
 
     @classmethod
     def of(cls, spot_sigma_px: float | None = None) -> SpotScales:
@@ -465,17 +523,21 @@ class SpotScales:
             wide_blur_px=4.0 * k,
             box_max_px=max(3 * int(np.ceil(_BOX_MAX / 3 * k - 1e-9)), _BOX_MAX),
             minimum_bias=_minimum_bias(smooth_px, background_px),
+            workspace=_Workspace(),
         )
 
 
 # The scales of detect_spots' defaults, for callers without a calibrated spot size (built at
 # import: frozen, and a per-call measurement would cost more than some frames' detection).
-_TUNED_SCALES = SpotScales.of(None)
+# Without a workspace: shared by every caller.
+_TUNED_SCALES = replace(SpotScales.of(None), workspace=None)
 
 
 def _scales_for(spot_sigma_px: float | None) -> SpotScales:
     """:meth:`SpotScales.of`, without measuring again for the tuned spot size (None)."""
-    return _TUNED_SCALES if spot_sigma_px is None else SpotScales.of(spot_sigma_px)
+    if spot_sigma_px is None:
+        return replace(_TUNED_SCALES, workspace=_Workspace())
+    return SpotScales.of(spot_sigma_px)
 
 
 def detect_spots(
@@ -558,55 +620,63 @@ def detect_spots(
     """
     if scales is not None and spot_sigma_px is not None:
         raise WaiInputError("detect_spots: give spot_sigma_px or scales, not both")
-    sc = _scales_for(spot_sigma_px) if scales is None else scales
+    if scales is None:
+        scales = _TUNED_SCALES if spot_sigma_px is None else SpotScales.of(spot_sigma_px)
+    sc = scales
     smooth_px = sc.smooth_px if smooth_px is None else smooth_px
     local_radius_px = sc.local_radius_px if local_radius_px is None else local_radius_px
     min_area_px = sc.min_area_px if min_area_px is None else min_area_px
     background_px = sc.background_px if background_px is None else background_px
-    # The image sits in a frame of zeros, where the centroid boxes may reach past its edge.
-    pad = sc.box_max_px
-    padded = _luminance(image, pad)
-    lum = padded[pad:-pad, pad:-pad]
-    h, w = lum.shape
-    smooth = cv2.GaussianBlur(lum, (0, 0), smooth_px, borderType=cv2.BORDER_REFLECT)
-    # The noise (two selections over a sample) beside the background (filters): both only
-    # read lum and smooth, which change below.
-    noise_of = run_beside(functools.partial(_noise_sigma, lum, smooth, smooth_px))
-    bg = _background(smooth, background_px)
-    # A local minimum sits below the mean of noise: without this, read noise would lift every
-    # pixel above the floor. Capped by the lower quartile of what remains, which is ~0 where
-    # there is no noise (there the noise estimate is only the dots' sharpness).
-    lifted = float(np.percentile(smooth[::4, ::4] - bg[::4, ::4], 25.0))
-    noise = noise_of()
-    if (smooth_px, background_px) == (sc.smooth_px, sc.background_px):
-        bias = sc.minimum_bias
-    else:  # parameters given by the caller: measured for them
-        bias = _minimum_bias(smooth_px, background_px)
-    bg += min(noise * bias, max(lifted, 0.0))
-    smooth -= bg
-    saturated_px = None if saturation is None else lum >= saturation
-    lum -= bg  # now the raw, background-subtracted image
-    tiny = 1e-6 * max(float(smooth.max()), 1e-30)  # keeps a noiseless zero background out
-    # bg, no longer needed, is the scratch space (and then the labels).
-    n, labels, mask = _segment(
-        smooth, local_radius_px, rel_level, max(2.0 * noise, tiny), bg, sc.wide_px,
-        wide_blur_px=sc.wide_blur_px,
-    )
-    px = _Pixels.of(labels, smooth, padded, pad)
-    edge = np.zeros(n, bool)  # the segment has a pixel in the image's outer rows or columns
-    edge[np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])] = True
-    n_saturated = None if saturated_px is None else np.bincount(labels[saturated_px], minlength=n)
-    # Free the image-sized arrays no longer needed before the moments and centroids take their
-    # memory: a lower peak lets the allocator reuse pages from frame to frame, not fault in new.
-    del smooth, bg, labels, mask, saturated_px
-    seg = _segment_stats(px, n, (h, w))
-    good = (seg.peak > max(snr_min * noise, tiny)) & (seg.area >= min_area_px) & (seg.tot > 0)
-    good[0] = False  # label 0 is the background
-    good &= seg.flux > rel_flux * _typical_flux(seg.flux[good])
-    idx = np.flatnonzero(good)
-    saturated = np.zeros(idx.size, bool) if n_saturated is None else n_saturated[idx] > 0
-    cov, major = _spot_covariance(seg.cov[idx])
-    centres = _refine_centres(padded, px, n, idx, seg.mean[idx], cov, box_max=pad)
+    # The scratch arrays are the rig's (see _Workspace), or new ones.
+    borrowed = contextlib.nullcontext(None) if sc.workspace is None else sc.workspace.borrow()
+    with borrowed as store:
+        # The image sits in a frame of zeros, where the centroid boxes may reach past its edge.
+        pad = sc.box_max_px
+        padded = _luminance(image, pad, store)
+        lum = padded[pad:-pad, pad:-pad]
+        h, w = lum.shape
+        smooth = cv2.GaussianBlur(
+            lum, (0, 0), smooth_px, dst=_scratch(store, "smooth", (h, w), np.float32),
+            borderType=cv2.BORDER_REFLECT,
+        )
+        # The noise (two selections over a sample) beside the background (filters): both only
+        # read lum and smooth, which change below.
+        noise_of = run_beside(functools.partial(_noise_sigma, lum, smooth, smooth_px))
+        bg = _background(smooth, background_px, _scratch(store, "bg", (h, w), np.float32))
+        # A local minimum sits below the mean of noise: without this, read noise would lift every
+        # pixel above the floor. Capped by the lower quartile of what remains, which is ~0 where
+        # there is no noise (there the noise estimate is only the dots' sharpness).
+        lifted = float(np.percentile(smooth[::4, ::4] - bg[::4, ::4], 25.0))
+        noise = noise_of()
+        if (smooth_px, background_px) == (sc.smooth_px, sc.background_px):
+            bias = sc.minimum_bias
+        else:  # parameters given by the caller: measured for them
+            bias = _minimum_bias(smooth_px, background_px)
+        bg += min(noise * bias, max(lifted, 0.0))
+        smooth -= bg
+        saturated_px = None if saturation is None else lum >= saturation
+        lum -= bg  # now the raw, background-subtracted image
+        tiny = 1e-6 * max(float(smooth.max()), 1e-30)  # keeps a noiseless zero background out
+        # bg, no longer needed, is the scratch space (and then the labels).
+        n, labels, mask = _segment(
+            smooth, local_radius_px, rel_level, max(2.0 * noise, tiny), bg, sc.wide_px,
+            wide_blur_px=sc.wide_blur_px, store=store,
+        )
+        px = _Pixels.of(labels, smooth, padded, pad)
+        edge = np.zeros(n, bool)  # the segment has a pixel in the image's outer rows or columns
+        edge[np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])] = True
+        n_saturated = (
+            None if saturated_px is None else np.bincount(labels[saturated_px], minlength=n)
+        )
+        seg = _segment_stats(px, n, (h, w))
+        good = (seg.peak > max(snr_min * noise, tiny)) & (seg.area >= min_area_px) & (seg.tot > 0)
+        good[0] = False  # label 0 is the background
+        good &= seg.flux > rel_flux * _typical_flux(seg.flux[good])
+        idx = np.flatnonzero(good)
+        saturated = np.zeros(idx.size, bool) if n_saturated is None else n_saturated[idx] > 0
+        cov, major = _spot_covariance(seg.cov[idx])
+        # The centroids read (and blank) the padded image: still the borrowed one.
+        centres = _refine_centres(padded, px, n, idx, seg.mean[idx], cov, box_max=pad)
     # Too few pixels across to tell a shape (single spots of sigma <~ 1.2 px): never "merged".
     merged = (seg.kurtosis[idx] < merge_kurtosis) & (major >= 1.3**2)
     return Spots(
