@@ -99,13 +99,29 @@ def nearest_two(xy, lo, shape, start, order, cell, bound, x, y):  # pragma: no c
     return d1, d2, best
 
 
+@njit(**_JIT)
+def nearest_each(xy, lo, shape, start, order, cell, bound, pts):  # pragma: no cover
+    """:func:`nearest_two` for each point of ``pts`` (Q, 2) px, with its own ``bound`` (Q,)
+    px. Returns the nearest distances ``d1`` (Q,), the second-nearest ``d2`` (Q,) and the
+    nearest's index ``idx`` (Q,) (inf, inf and ``P - 1`` where none)."""
+    q = pts.shape[0]
+    d1 = np.empty(q)
+    d2 = np.empty(q)
+    idx = np.empty(q, np.int64)
+    for k in range(q):
+        d1[k], d2[k], idx[k] = nearest_two(
+            xy, lo, shape, start, order, cell, bound[k], pts[k, 0], pts[k, 1]
+        )
+    return d1, d2, idx
+
+
 # Why a lattice node was not matched (as restoration.features.match).
 _NONE, _MERGED, _BORDER, _AMBIGUOUS = 0, 1, 2, 3
 
 
 @njit(**_JIT)
 def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal, offset,
-         ratio, max_step_ratio, bound, cell, seed_node, seed_spot):  # pragma: no cover
+         ratio, max_step_ratio, bound, cells, seed_node, seed_spot):  # pragma: no cover
     """Region growing over the lattice from ``(seed_node, seed_spot)``; see
     :func:`restoration.features.match._grow` for the rules.
 
@@ -129,8 +145,8 @@ def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal
     ratio, max_step_ratio, bound : float
         Nearest to second-nearest ratio, largest spacing change along a grid line, and the
         search radius of the spot lookup, px.
-    cell : float
-        Cell size of the spot lookup (:func:`spot_cells`), px.
+    cells : tuple
+        The spots bucketed by :func:`spot_cells`: ``(lo, shape, start, order, cell)``.
     seed_node, seed_spot : int
         The first match.
 
@@ -146,8 +162,7 @@ def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal
         Evaluated at least once.
     """
     n, n_spots = radius.size, spot_xy.shape[0]
-    # Cells of about one spot each: a lookup visits a few cells around the prediction.
-    lo, shape, start, order = spot_cells(spot_xy, cell)
+    lo, shape, start, order, cell = cells
     match = np.full(n, -1, np.int64)
     matched = np.zeros(n + 1, np.bool_)
     blocked = np.zeros(n + 1, np.bool_)

@@ -16,10 +16,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from restoration.errors import RestorationFailed
-from restoration.features._kernels import grow
+from restoration.features._kernels import grow, nearest_each, spot_cells
 from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
 from restoration.features._outline import _Outline, _outline_px, _visible_outline
 from restoration.features._types import BoolArray, FloatArray, IntArray
@@ -105,13 +104,27 @@ class _Growth:
     tried: BoolArray
 
 
-def _nearest_two(tree: cKDTree, pts: FloatArray) -> tuple[FloatArray, IntArray, FloatArray]:
-    """Distance and index of the nearest spot, and distance of the second nearest (inf if none)."""
-    k = min(2, tree.n)
-    d, idx = tree.query(pts, k=k)
-    d, idx = d.reshape(len(pts), k), idx.reshape(len(pts), k)
-    d2 = d[:, 1] if k == 2 else np.full(len(pts), np.inf)
-    return d[:, 0], idx[:, 0], d2
+class _SpotLookup:
+    """The detected spots bucketed into cells of about one spot each (compiled:
+    :func:`restoration.features._kernels.spot_cells`), for nearest-spot queries; the region
+    growing searches the same cells."""
+
+    def __init__(self, xy: FloatArray) -> None:
+        self.xy = np.ascontiguousarray(xy, float)
+        cell = _lookup_cell(self.xy)
+        self.cells = (*spot_cells(self.xy, cell), cell)
+
+    def nearest(
+        self, pts: FloatArray, bound: float | FloatArray = np.inf
+    ) -> tuple[FloatArray, IntArray, FloatArray]:
+        """Distance (Q,) px and index (Q,) of the nearest spot to each of ``pts`` (Q, 2) px,
+        and the distance of the second nearest (Q,) px, counting only spots closer than
+        ``bound`` px (one for all, or (Q,)); inf where none (the index is then ``P - 1``)."""
+        pts = np.ascontiguousarray(np.reshape(pts, (-1, 2)), float)
+        bounds = np.broadcast_to(np.asarray(bound, float), len(pts)).copy()
+        lo, shape, start, order, cell = self.cells
+        d1, d2, idx = nearest_each(self.xy, lo, shape, start, order, cell, bounds, pts)
+        return d1, idx, d2
 
 
 def _det2(m: FloatArray) -> FloatArray:
@@ -124,7 +137,7 @@ def _choose_seed(
     base_px: FloatArray,
     ref: ReferenceGrid,
     spots: Spots,
-    tree: cKDTree,
+    lookup: _SpotLookup,
     accept: float,
     ratio: float,
     exclude: BoolArray | None = None,
@@ -141,7 +154,7 @@ def _choose_seed(
     """
     n, spacing = len(base_px), ref.spacing_px
     obs = np.flatnonzero(ref.observed)  # only an observed node can be the seed or support it
-    d1, i1, d2 = _nearest_two(tree, base_px[obs])
+    d1, i1, d2 = lookup.nearest(base_px[obs])
     good = (d1 < accept * spacing[obs]) & (d1 < ratio * d2) & ~spots.suspicious[i1]
     if exclude is not None:
         good &= ~exclude[obs]
@@ -150,7 +163,7 @@ def _choose_seed(
     ok = np.zeros(n + 1, bool)  # entry n: "no neighbour"
     ok[obs] = good
     disp = np.zeros((n + 1, 2))
-    disp[obs] = tree.data[i1] - base_px[obs]
+    disp[obs] = lookup.xy[i1] - base_px[obs]
     cand = obs[good]
     nb = tab.nbrs8[cand]
     has = ok[nb]
@@ -177,6 +190,7 @@ def _grow(
     base_px: FloatArray,
     spacing: FloatArray,
     spots: Spots,
+    lookup: _SpotLookup,
     seed: tuple[int, int],
     visible: _Outline,
     accept: float,
@@ -210,10 +224,10 @@ def _grow(
     # xy . normal[k] - offset[k] = m.
     offset = np.einsum("mk,mk->m", visible.poly, visible.normal)
     match, claim, reason, pred, tried = grow(
-        np.vstack([base_px, np.zeros((1, 2))]), np.ascontiguousarray(spots.centres_px, float),
+        np.vstack([base_px, np.zeros((1, 2))]), lookup.xy,
         ~spots.suspicious, spots.merged, radius, -2.0 * spacing, tab.back, tab.fwd, tab.nbrs4,
         np.ascontiguousarray(visible.normal), offset, float(ratio), float(max_step_ratio),
-        bound, _lookup_cell(spots.centres_px), int(seed[0]), int(seed[1]),
+        bound, lookup.cells, int(seed[0]), int(seed[1]),
     )
     return _Growth(match, reason, claim, pred, tried)
 
@@ -274,8 +288,9 @@ def order_violations(
         return bad
     lat = _Lattice(ij)
     pairs = [(np.flatnonzero(nb >= 0), nb[nb >= 0]) for nb in map(lat.neighbour, _DIRS4[[0, 2]])]
-    tree = cKDTree(all_spots_px) if all_spots_px is not None and len(all_spots_px) else None
-    return _order_violations(pairs, ref_px, spot_px, margin_px, tree)
+    has = all_spots_px is not None and len(all_spots_px) > 0
+    lookup = _SpotLookup(all_spots_px) if has else None
+    return _order_violations(pairs, ref_px, spot_px, margin_px, lookup)
 
 
 def _order_violations(
@@ -283,20 +298,20 @@ def _order_violations(
     ref_px: FloatArray,
     spot_px: FloatArray,
     margin_px: float,
-    tree: cKDTree | None,
+    lookup: _SpotLookup | None,
 ) -> BoolArray:
     """:func:`order_violations` given the neighbour pairs ``(a, b)`` along rows and along
-    columns, and the detected spots in a KD-tree (or None)."""
+    columns, and the detected spots bucketed for lookup (or None)."""
     bad = np.zeros(len(spot_px), bool)
     for a, b in pairs:
         u = ref_px[b] - ref_px[a]
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         gap = np.sum((spot_px[b] - spot_px[a]) * u, axis=1)
         viol = gap <= margin_px
-        if tree is not None and len(a):
+        if lookup is not None and len(a):
             reach = 0.3 * np.linalg.norm(spot_px[b] - spot_px[a], axis=1)
             # Only whether a spot lies within reach matters: the search stops there.
-            dist, _ = tree.query(0.5 * (spot_px[a] + spot_px[b]), distance_upper_bound=reach.max())
+            dist, _, _ = lookup.nearest(0.5 * (spot_px[a] + spot_px[b]), reach)
             viol |= dist < reach
         bad[a[viol]] = True
         bad[b[viol]] = True
@@ -343,7 +358,8 @@ def _anchor_shift(
 
 
 def _absent_nodes(
-    tab: _LatticeTables, g: _Growth, tree: cKDTree, spacing: FloatArray, visible: _Outline
+    tab: _LatticeTables, g: _Growth, lookup: _SpotLookup, spacing: FloatArray,
+    visible: _Outline,
 ) -> BoolArray:
     """Nodes seen empty: unmatched, predicted from at least two matched neighbours to a place
     well inside the visible area where no spot at all lies within half a spacing."""
@@ -351,7 +367,7 @@ def _absent_nodes(
     cand = g.tried & (g.match < 0) & (matched[tab.nbrs8].sum(axis=1) >= 2)
     idx = np.flatnonzero(cand)
     idx = idx[visible.inside(g.pred_px[idx], spacing[idx])]
-    dist, _ = tree.query(g.pred_px[idx])
+    dist, _, _ = lookup.nearest(g.pred_px[idx], 0.5 * spacing[idx] + 1.0)
     cand[:] = False
     cand[idx[dist > 0.5 * spacing[idx]]] = True
     return cand
@@ -455,7 +471,7 @@ def match_distorted(
     if prior_px is not None:
         prior = np.asarray(prior_px, dtype=float)
         base = np.where(np.isfinite(prior), prior, base)
-    tree = cKDTree(spots.centres_px)
+    lookup = _SpotLookup(spots.centres_px)
     if visible_px is None:
         hull = cv2.convexHull(ref.ref_px[ref.observed].astype(np.float32))[:, 0]
     else:
@@ -463,11 +479,13 @@ def match_distorted(
     visible = _Outline.of(hull)
 
     def grow_from(exclude: BoolArray | None) -> _Growth | None:
-        seed = _choose_seed(tab, base, ref, spots, tree, accept, ratio, exclude)
+        seed = _choose_seed(tab, base, ref, spots, lookup, accept, ratio, exclude)
         if seed < 0:
             return None
-        seed_spot = int(tree.query(base[seed])[1])
-        g = _grow(tab, base, ref.spacing_px, spots, (seed, seed_spot), visible, accept, ratio)
+        seed_spot = int(lookup.nearest(base[seed])[1][0])
+        g = _grow(
+            tab, base, ref.spacing_px, spots, lookup, (seed, seed_spot), visible, accept, ratio
+        )
         _drop_double_claims(g)
         return g
 
@@ -487,7 +505,7 @@ def match_distorted(
 
     shift, tied = np.zeros(2, np.int64), np.zeros((1, 2), np.int64)
     if anchor:
-        absent = _absent_nodes(tab, g, tree, ref.spacing_px, visible)
+        absent = _absent_nodes(tab, g, lookup, ref.spacing_px, visible)
         shift, tied = _anchor_shift(tab, g.match >= 0, absent, max_shift)
     n_tied = len(tied)
     match, reason, n_off = _relabel(tab.lat, g.match, g.reason, shift)
@@ -506,7 +524,7 @@ def match_distorted(
         nb = where[tab.nbrs4[kept, step]]
         pairs.append((np.flatnonzero(nb >= 0), nb[nb >= 0]))
     margin = 0.5 * ref.pixel_scale if order_margin_px is None else order_margin_px
-    bad = _order_violations(pairs, ref.ref_px[kept], spot_px, margin, tree)
+    bad = _order_violations(pairs, ref.ref_px[kept], spot_px, margin, lookup)
     reason[kept[bad]] = _ORDER
     unlit = ~ref.lit[kept] & ~bad
     reason[kept[unlit]] = _UNLIT
