@@ -364,7 +364,7 @@ def spline_table(first_x, poly_x, first_y, poly_y, coeffs):  # pragma: no cover
 
 @njit(**_JIT)
 def warp_rows(chunk, n_chunks, disp_x, disp_y, cell_ok, col_i, col_t, row_i, row_t, map_x,
-              map_y, valid, blank, per_row, first, last):  # pragma: no cover
+              map_y, valid, per_row, first, last):  # pragma: no cover
     """Upsample a coarse warp to the pixels of rows ``chunk, chunk + n_chunks, ...``, with its
     validity. The rows are independent: any thread may run any chunk.
 
@@ -377,16 +377,14 @@ def warp_rows(chunk, n_chunks, disp_x, disp_y, cell_ok, col_i, col_t, row_i, row
     cell_ok : (rows - 1, cols - 1) ndarray of bool
         Cells whose four nodes were solved.
     col_i, row_i : (W,), (H,) ndarray of int
-        Cell of each pixel column (row); a last pixel lying exactly on the last node belongs
-        to the cell before it.
+        Cell of each pixel column (row), non-decreasing; a last pixel lying exactly on the
+        last node belongs to the cell before it.
     col_t, row_t : (W,), (H,) ndarray of float32
         Its fraction of the way across that cell.
     map_x, map_y : (H, W) ndarray of float32
         Out: the sampling column and row ``u`` of every pixel.
     valid : (H, W) ndarray of bool
         Out: in a solved cell and ``-0.5 <= u <= size - 0.5`` (as :meth:`PinholeCamera.in_image`).
-    blank : (H, W) ndarray of uint8
-        Out: 1 where not valid (the mask that zeroes those pixels of the resampled image).
     per_row, first, last : (H,) ndarray of int
         Out: each row's valid pixels, and the first and one past the last valid column (``W``
         and 0 where none): :func:`valid_box` reduces them.
@@ -395,12 +393,12 @@ def warp_rows(chunk, n_chunks, disp_x, disp_y, cell_ok, col_i, col_t, row_i, row
     n_cols = disp_x.shape[1]
     lo = np.float32(-0.5)
     wx, hy = np.float32(w - 0.5), np.float32(h - 0.5)
-    # The warp along a row at every node column: the pixel loop then only gathers from it
-    # (no per-cell inner loop), which the compiler vectorises; same float32 operations as
-    # interpolating cell by cell.
+    # The warp along a row at every node column, then the pixels cell by cell: a cell's
+    # pixels are one short loop with the cell's constants (its validity tested once), the
+    # same float32 operations as interpolating pixel by pixel.
     node_x = np.empty(n_cols, np.float32)
     node_y = np.empty(n_cols, np.float32)
-    cell_flag = np.empty(n_cols, np.int32)  # cell_ok's row as words: bytes cannot be gathered
+    col_f = np.arange(w).astype(np.float32)
     for r in range(chunk, h, n_chunks):
         iy, ty = row_i[r], row_t[r]
         x0, x1, y0, y1 = disp_x[iy], disp_x[iy + 1], disp_y[iy], disp_y[iy + 1]
@@ -408,33 +406,45 @@ def warp_rows(chunk, n_chunks, disp_x, disp_y, cell_ok, col_i, col_t, row_i, row
             node_x[ix] = x0[ix] + ty * (x1[ix] - x0[ix])
             node_y[ix] = y0[ix] + ty * (y1[ix] - y0[ix])
         ok_row = cell_ok[iy]
-        for ix in range(n_cols - 1):
-            cell_flag[ix] = ok_row[ix]
-        mx_row, my_row, valid_row, blank_row = map_x[r], map_y[r], valid[r], blank[r]
+        mx_row, my_row, valid_row = map_x[r], map_y[r], valid[r]
         fr = np.float32(r)
-        for c in range(w):
-            # Unsigned: no negative-index wraparound in the loop, which would stop vectorising.
-            ix = np.uint64(col_i[c])
-            lx, ly = node_x[ix], node_y[ix]
-            sx, sy = node_x[ix + np.uint64(1)] - lx, node_y[ix + np.uint64(1)] - ly
-            tx = col_t[c]
-            mx = np.float32(c) + (lx + tx * sx)
-            my = fr + (ly + tx * sy)
-            mx_row[c], my_row[c] = mx, my
-            ok = (cell_flag[ix] != 0) & (mx >= lo) & (mx <= wx) & (my >= lo) & (my <= hy)
-            valid_row[c] = ok
-            blank_row[c] = not ok
         n_ok = 0
-        for c in range(w):
-            n_ok += valid_row[c]
         lo_c, hi_c = w, 0
-        if n_ok:
-            lo_c = 0
-            while not valid_row[lo_c]:
-                lo_c += 1
-            hi_c = w
-            while not valid_row[hi_c - 1]:
-                hi_c -= 1
+        c = 0
+        while c < w:
+            ix = col_i[c]
+            e = c
+            while e < w and col_i[e] == ix:
+                e += 1
+            lx, ly = node_x[ix], node_y[ix]
+            sx, sy = node_x[ix + 1] - lx, node_y[ix + 1] - ly
+            if ok_row[ix]:
+                cnt = 0
+                for j in range(c, e):
+                    tx = col_t[j]
+                    mx = col_f[j] + (lx + tx * sx)
+                    my = fr + (ly + tx * sy)
+                    mx_row[j], my_row[j] = mx, my
+                    ok = (mx >= lo) & (mx <= wx) & (my >= lo) & (my <= hy)
+                    valid_row[j] = ok
+                    cnt += ok
+                if cnt:
+                    n_ok += cnt
+                    j = c
+                    while not valid_row[j]:
+                        j += 1
+                    lo_c = min(lo_c, j)
+                    j = e
+                    while not valid_row[j - 1]:
+                        j -= 1
+                    hi_c = max(hi_c, j)
+            else:
+                for j in range(c, e):
+                    tx = col_t[j]
+                    mx_row[j] = col_f[j] + (lx + tx * sx)
+                    my_row[j] = fr + (ly + tx * sy)
+                    valid_row[j] = False
+            c = e
         per_row[r], first[r], last[r] = n_ok, lo_c, hi_c
 
 
@@ -456,10 +466,10 @@ def valid_box(per_row, first, last, w):  # pragma: no cover
 
 
 @njit(**_JIT)
-def finish_rows(chunk, n_chunks, out, blank, box, gain):  # pragma: no cover
+def finish_rows(chunk, n_chunks, out, valid, box, gain):  # pragma: no cover
     """Rows ``chunk, chunk + n_chunks, ...`` of the resampled image ``out`` (H, W, C): inside
     ``box`` (4,) (first and one past the last row, then column, where ``cv2.remap`` wrote)
-    divided by ``gain`` (of its type), and 0 where ``blank`` (H, W) is set; 0 outside it
+    divided by ``gain`` (of its type), and 0 where ``valid`` (H, W) is not set; 0 outside it
     (``out`` comes uninitialised, which spares a pass zeroing the whole image)."""
     h, w, n_ch = out.shape
     r0, r1, c0, c1 = box[0], box[1], box[2], box[3]
@@ -473,8 +483,8 @@ def finish_rows(chunk, n_chunks, out, blank, box, gain):  # pragma: no cover
         part = row[c0 * n_ch : c1 * n_ch]
         for j in range(part.size):  # from 0: no negative-index check, so it vectorises
             part[j] = part[j] / gain
-        blank_row = blank[r]
+        valid_row = valid[r]
         for c in range(c0, c1):
-            if blank_row[c]:
+            if not valid_row[c]:
                 for k in range(n_ch):
                     row[c * n_ch + k] = 0.0

@@ -347,11 +347,10 @@ def _pixel_warp(
     map_x = np.empty((h, w), np.float32)
     map_y = np.empty((h, w), np.float32)
     valid = np.empty((h, w), bool)
-    blank = np.empty((h, w), np.uint8)
     per_row, first, last = (np.empty(h, np.int64) for _ in range(3))
     run_chunks(
         warp_rows, 4 * restore_threads(), disp_x, disp_y, cell == RayStatus.OK,
-        *plan.pixel_cells, map_x, map_y, valid, blank, per_row, first, last,
+        *plan.pixel_cells, map_x, map_y, valid, per_row, first, last,
     )
     n_valid, box = valid_box(per_row, first, last, w)
     r0, r1, c0, c1 = (int(v) for v in box)
@@ -365,7 +364,7 @@ def _pixel_warp(
     cv2.remap(img, map_x[r0:r1, c0:c1], map_y[r0:r1, c0:c1], cv2.INTER_LINEAR,
               dst=out[r0:r1, c0:c1], borderMode=cv2.BORDER_REPLICATE)
     run_chunks(
-        finish_rows, 4 * restore_threads(), out.reshape(h, w, -1), blank, box,
+        finish_rows, 4 * restore_threads(), out.reshape(h, w, -1), valid, box,
         img.dtype.type(gain),
     )
     return out, map_x, map_y, valid, _counts(cell, plan, int(n_valid))

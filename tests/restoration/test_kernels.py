@@ -203,12 +203,11 @@ def test_warp_rows_are_the_bilinear_upsampling():
     dx[0, :] -= 5.0  # some pixels sample outside the image
     cell_ok = rng.random((n_rows - 1, n_cols - 1)) > 0.2
     map_x, map_y = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
-    valid, blank = np.empty((h, w), bool), np.empty((h, w), np.uint8)
+    valid = np.empty((h, w), bool)
     per_row, first, last = np.empty(h, np.int64), np.empty(h, np.int64), np.empty(h, np.int64)
     cells = (*_pixel_cells(w, n_cols, step), *_pixel_cells(h, n_rows, step))
     for k in range(3):  # in 3 chunks of rows
-        warp_rows(k, 3, dx, dy, cell_ok, *cells, map_x, map_y, valid, blank, per_row, first,
-                  last)
+        warp_rows(k, 3, dx, dy, cell_ok, *cells, map_x, map_y, valid, per_row, first, last)
     n_valid, box = valid_box(per_row, first, last, w)
     # Oracle: bilinear interpolation of the node grid, pixel by pixel.
     rows, cols = np.mgrid[0:h, 0:w]
@@ -225,26 +224,25 @@ def test_warp_rows_are_the_bilinear_upsampling():
     inside = (map_x >= -0.5) & (map_x <= w - 0.5) & (map_y >= -0.5) & (map_y <= h - 0.5)
     want_valid = cell_ok[iy, ix] & inside
     np.testing.assert_array_equal(valid, want_valid)
-    np.testing.assert_array_equal(blank, ~want_valid)
     assert n_valid == want_valid.sum()
     r, c = np.flatnonzero(want_valid.any(axis=1)), np.flatnonzero(want_valid.any(axis=0))
     np.testing.assert_array_equal(box, [r[0], r[-1] + 1, c[0], c[-1] + 1])
 
 
 def test_finish_rows_divides_the_box_and_zeroes_the_rest():
-    """Inside the box: divided by the gain, 0 where blank; outside it: 0 (the image comes
+    """Inside the box: divided by the gain, 0 where not valid; outside it: 0 (the image comes
     uninitialised)."""
     rng = np.random.default_rng(9)
     h, w, box = 11, 17, np.array([2, 9, 3, 14])
     for n_ch in (1, 3):
         out = rng.random((h, w, n_ch)).astype(np.float32) + 1.0
-        blank = (rng.random((h, w)) > 0.7).astype(np.uint8)
+        valid = rng.random((h, w)) <= 0.7
         gain = np.float32(1.7)
         want = np.zeros_like(out)
         inner = (slice(box[0], box[1]), slice(box[2], box[3]))
-        want[inner] = np.where(blank[inner][..., None] > 0, 0.0, out[inner] / gain)
+        want[inner] = np.where(valid[inner][..., None], out[inner] / gain, 0.0)
         for k in range(3):  # in 3 chunks of rows
-            finish_rows(k, 3, out, blank, box, gain)
+            finish_rows(k, 3, out, valid, box, gain)
         np.testing.assert_array_equal(out, want)
 
 
