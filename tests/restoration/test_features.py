@@ -25,7 +25,7 @@ from restoration.features import (
 )
 from restoration.features._lattice import _LatticeTables
 from restoration.features.detect import _background, _minimum_bias, _noise_sigma, _segment
-from restoration.features.match import _anchor_shift, _choose_seed
+from restoration.features.match import _anchor_shift, _choose_seed, _SpotLookup
 from wai_core.config import SystemConfig, load_config
 from wai_core.errors import WaiInputError
 
@@ -507,8 +507,8 @@ def test_a_second_seed_avoids_the_first_piece(flat_scene, reference):
     # an exclusion mask (the first piece and its neighbours).
     ij, _, spot, _, _, _ = flat_scene
     spots = detect_spots(pattern_image(flat_scene, spot, np.full(len(ij), 3000.0)))
-    tab, tree = reference.tables, cKDTree(spots.centres_px)
-    args = (tab, reference.ref_px, reference, spots, tree, 0.35, 0.6)
+    tab, lookup = reference.tables, _SpotLookup(spots.centres_px)
+    args = (tab, reference.ref_px, reference, spots, lookup, 0.35, 0.6)
     first = _choose_seed(*args)
     assert first >= 0
     exclude = np.zeros(len(reference.ij), bool)
@@ -516,6 +516,24 @@ def test_a_second_seed_avoids_the_first_piece(flat_scene, reference):
     second = _choose_seed(*args, exclude)
     assert second >= 0 and not exclude[second]
     assert _choose_seed(*args, np.ones(len(reference.ij), bool)) == -1
+
+
+def test_spot_lookup_finds_the_nearest_two_within_each_bound():
+    # Against brute force: nearest and second-nearest distance and the nearest's index, only
+    # spots closer than each query's own bound counted (inf, and index P - 1, where none).
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0.0, 200.0, (300, 2))
+    pts = np.vstack([rng.uniform(-20.0, 220.0, (200, 2)), [[np.nan, 1.0]]])
+    bound = rng.uniform(0.5, 30.0, len(pts))
+    d1, i1, d2 = _SpotLookup(xy).nearest(pts, bound)
+    dist = np.hypot(*(pts[:, None, :] - xy[None]).transpose(2, 0, 1))
+    dist = np.where(dist < bound[:, None], dist, np.inf)
+    order = np.sort(dist, axis=1)
+    np.testing.assert_allclose(d1, order[:, 0], rtol=1e-12)
+    np.testing.assert_allclose(d2, order[:, 1], rtol=1e-12)
+    found = np.isfinite(order[:, 0])
+    np.testing.assert_array_equal(i1[found], np.argmin(dist, axis=1)[found])
+    assert (i1[~found] == len(xy) - 1).all() and not found[-1]
 
 
 def test_detection_at_twice_the_resolution_sees_the_same_spots():
