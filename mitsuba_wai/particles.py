@@ -154,6 +154,8 @@ def _trace_pass(
     of the scene's sensor (its ``sample_direction``)."""
     import drjit as dr
 
+    if emitter is not None and _direct_scene(scene, max_depth, emitter):
+        return _trace_direct(scene, spp, spp_total, seed, water, emitter, camera)
     mi = mitsuba()
     sensor = scene.sensors()[0]
     film = sensor.film()
@@ -211,6 +213,85 @@ def _trace_pass(
         active = active & si.is_valid()
     dr.eval(*[v for splat in splats for v in splat])
     return splats
+
+
+def _direct_scene(scene: Any, max_depth: int, emitter: Any) -> bool:
+    """Whether a pass can take :func:`_trace_direct`: an emitter whose rays start past the
+    diffuser towards the water, nothing between a vertex and the camera, and the scene of
+    system S alone (its ``water`` and ``diffuser``), paths of two vertices."""
+    ids = sorted(shape.id() for shape in scene.shapes())
+    return (emitter.camera_unoccluded and max_depth - emitter.skipped_vertices == 3
+            and ids == ["diffuser", "water"])
+
+
+def _trace_direct(
+    scene: Any, spp: int, spp_total: int, seed: int, water: Any, emitter: Any, camera: Any,
+) -> list[tuple[Any, ...]]:
+    """:func:`_trace_pass` for system S's two-vertex paths (:func:`_direct_scene`): emitter
+    -> water (a delta BSDF, called directly) -> the diffuser (the rectangle's own
+    intersection; the water only where it can lie in the way) -> camera.
+
+    The general pass's steps with their choices fixed: the water vertex connects to nothing
+    (its BSDF is a delta), no path can take a third vertex, and none of the steps draws a
+    random number (the emitter's samples are its own), so it gives the same image without
+    the sampler, the BSDF dispatch or the general intersection of the second segment.
+    """
+    import drjit as dr
+
+    mi = mitsuba()
+    sensor = scene.sensors()[0]
+    width, height = (int(v) for v in sensor.film().crop_size())
+    n = width * height * spp
+    shapes = {shape.id(): shape for shape in scene.shapes()}
+    water_bsdf, diffuser = shapes["water"].bsdf(), shapes["diffuser"]
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+    flags = mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame
+    ray, throughput, length = emitter(sensor.shutter_open(), n, seed)
+    active = dr.max(throughput) != 0.0
+    si = scene.ray_intersect(ray, flags, True, active)
+    active = active & si.is_valid()
+    if water is not None:
+        length = length + dr.select(active, si.t, 0.0)
+    bs, bsdf_val = water_bsdf.sample(ctx, si, 0.0, mi.Point2f(0.0), active)
+    wi_dot_n = dr.dot(si.n, -ray.d)
+    wo_world = si.to_world(bs.wo)
+    wo_dot_n = dr.dot(si.n, wo_world)
+    cos_wi, cos_wo = mi.Frame3f.cos_theta(si.wi), mi.Frame3f.cos_theta(bs.wo)
+    # Shading normals: no light leaks, and the adjoint correction (Veach, p. 155).
+    active = active & (wi_dot_n * cos_wi > 0.0) & (wo_dot_n * cos_wo > 0.0)
+    throughput = throughput * bsdf_val * dr.abs((cos_wi * wo_dot_n) / (cos_wo * wi_dot_n))
+    active = active & dr.any(throughput != 0.0)
+    ray = si.spawn_ray(wo_world)
+    si = diffuser.ray_intersect(ray, mi.RayFlags.All, active)
+    active = active & si.is_valid()
+    # The water lies in the way only of rays flatter than its steepest facet (module notes).
+    flat = -ray.d.z <= _slope_bound(shapes["water"]) * dr.norm(mi.Vector2f(ray.d.x, ray.d.y))
+    blocked = scene.ray_test(mi.Ray3f(ray.o, ray.d, si.t * (1.0 - 1e-4), ray.time,
+                                      ray.wavelengths), active & flat)
+    active = active & ~blocked
+    if water is not None:
+        length = length + dr.select(active, si.t, 0.0)
+    sensor_ds, sensor_weight = (sensor if camera is None else camera).sample_direction(
+        si, mi.Point2f(0.5), active)
+    splat = _connect(scene, si, sensor_ds, diffuser.bsdf(), throughput * sensor_weight,
+                     1.0 / spp_total, (width, height), ctx, active,
+                     None if water is None else (water[0], water[1], length), False)
+    dr.eval(*splat)
+    return [splat]
+
+
+def _slope_bound(mesh: Any) -> Any:
+    """Steepest facet slope ``|grad z|`` of a mesh, a little over it (a bound of every
+    triangle's), as a one-element Dr.Jit array: computed where the mesh is, no read-back."""
+    import drjit as dr
+
+    mi = mitsuba()
+    faces = dr.unravel(mi.Vector3u, mesh.faces_buffer())
+    positions = mesh.vertex_positions_buffer()
+    a, b, c = (dr.gather(mi.Point3f, positions, k) for k in faces)
+    normal = dr.cross(b - a, c - a)
+    slope = dr.norm(mi.Vector2f(normal.x, normal.y)) / dr.abs(normal.z)
+    return dr.max(dr.select(dr.isfinite(slope), slope, 0.0)) * 1.01 + 1e-6
 
 
 def _connect(

@@ -36,10 +36,13 @@ from mitsuba_wai.variant import mitsuba
 __all__ = ["render_view"]
 
 
-def _trace_pass(scene: Any, spp: int, seed: int, lens: Any = None) -> NDArray[np.float32]:
-    """Radiance (3, W * H * s) of one pass's camera samples, pixel-major: ``s`` is ``spp`` as
-    the sampler takes it (``multijitter`` rounds 5 up to 6, as in ``mi.render``); with
-    ``lens`` (:class:`mitsuba_wai.lens.CameraLens`) the rays are its, not the sensor's."""
+def _trace_pass(
+    scene: Any, spp: int, seed: int, lens: Any = None
+) -> tuple[NDArray[np.float32], int]:
+    """Sum (3, W * H) of each pixel's radiance over one pass's camera samples (non-finite
+    where a sample is) and their number ``s`` per pixel: ``spp`` as the sampler takes it
+    (``multijitter`` rounds 5 up to 6, as in ``mi.render``); with ``lens``
+    (:class:`mitsuba_wai.lens.CameraLens`) the rays are its, not the sensor's."""
     import drjit as dr
 
     mi = mitsuba()
@@ -60,19 +63,72 @@ def _trace_pass(scene: Any, spp: int, seed: int, lens: Any = None) -> NDArray[np
         )
     else:
         ray, weight = lens.sample_ray(sensor.shutter_open(), pos)
-    si = scene.ray_intersect(ray)
+    direct = _direct_parts(scene)
+    if direct is None:
+        si = scene.ray_intersect(ray)
+        hit = si.is_valid()
+        emitted = si.emitter(scene, hit).eval(si, hit)
+        bs, bsdf_weight = si.bsdf(ray).sample(
+            mi.BSDFContext(), si, sampler.next_1d(hit), sampler.next_2d(hit), hit
+        )
+        onward = hit & dr.any(bsdf_weight != 0.0)
+        si_next = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), onward)
+        # An invalid hit's emitter is the environment's, if any (Mitsuba's convention).
+        arriving = si_next.emitter(scene, onward).eval(si_next, onward)
+        radiance = weight * (emitted + dr.select(onward, bsdf_weight * arriving, 0.0))
+    else:
+        radiance = weight * _direct_radiance(scene, ray, sampler, *direct)
+    # Each pixel's samples are consecutive: their sum here, a non-finite one making it so.
+    pixel_sum = dr.block_sum(radiance, spp)
+    dr.eval(pixel_sum)
+    return np.asarray(pixel_sum), spp
+
+
+def _direct_parts(scene: Any) -> tuple[Any, Any] | None:
+    """The water mesh and the object plane of system V's scene when it holds only those and
+    the object's emitter (what :func:`_direct_radiance` traces); None otherwise."""
+    shapes = {shape.id(): shape for shape in scene.shapes()}
+    if sorted(shapes) != ["object", "water"] or len(scene.emitters()) != 1:
+        return None
+    if shapes["object"].emitter() is None or scene.environment() is not None:
+        return None
+    return shapes["water"], shapes["object"]
+
+
+def _direct_radiance(scene: Any, ray: Any, sampler: Any, water: Any, plane: Any) -> Any:
+    """Radiance (Color3f) along camera rays of system V's two-shape scene: the general
+    steps with their choices fixed. The first hit, through the scene; the water's BSDF,
+    called directly (the same random numbers drawn); then the object plane's own
+    intersection and emitter. A ray that meets the object without the water reaches it
+    with weight 1; the water lies in the way of a refracted ray only where that ray is
+    flatter than the steepest facet, and only there is it tested."""
+    import drjit as dr
+
+    from mitsuba_wai.particles import _slope_bound
+
+    mi = mitsuba()
+    si = scene.ray_intersect(ray, mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame, True)
     hit = si.is_valid()
-    emitted = si.emitter(scene, hit).eval(si, hit)
-    bs, bsdf_weight = si.bsdf(ray).sample(
-        mi.BSDFContext(), si, sampler.next_1d(hit), sampler.next_2d(hit), hit
+    on_water = hit & (si.shape == mi.ShapePtr(water))
+    bs, bsdf_weight = water.bsdf().sample(
+        mi.BSDFContext(), si, sampler.next_1d(hit), sampler.next_2d(hit), on_water
     )
-    onward = hit & dr.any(bsdf_weight != 0.0)
-    si_next = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), onward)
-    # An invalid hit's emitter is the environment's, if any (Mitsuba's convention).
-    arriving = si_next.emitter(scene, onward).eval(si_next, onward)
-    radiance = weight * (emitted + dr.select(onward, bsdf_weight * arriving, 0.0))
-    dr.eval(radiance)
-    return np.asarray(radiance)
+    refracted = on_water & dr.any(bsdf_weight != 0.0)
+    onward = refracted | (hit & ~on_water)
+    spawned = si.spawn_ray(si.to_world(bs.wo))
+    next_ray = mi.Ray3f(dr.select(on_water, spawned.o, ray.o),
+                        dr.select(on_water, spawned.d, ray.d), ray.time, ray.wavelengths)
+    si_next = plane.ray_intersect(next_ray, mi.RayFlags.All, onward)
+    onward = onward & si_next.is_valid()
+    d = next_ray.d
+    flat = d.z <= _slope_bound(water) * dr.norm(mi.Vector2f(d.x, d.y))
+    blocked = scene.ray_test(
+        mi.Ray3f(next_ray.o, d, si_next.t * (1.0 - 1e-4), ray.time, ray.wavelengths),
+        onward & refracted & flat,
+    )
+    onward = onward & ~blocked
+    arriving = plane.emitter().eval(si_next, onward)
+    return dr.select(onward, dr.select(on_water, bsdf_weight, 1.0) * arriving, 0.0)
 
 
 def render_view(
@@ -120,11 +176,11 @@ def render_view(
     count = 0
     passes = particles.pass_split(spp, width * height, particles.MAX_PASS_SAMPLES)
     for k, spp_k in enumerate(passes):
-        samples = _trace_pass(scene, spp_k, (int(seed) + k) % 2**32, lens)
-        samples = samples.T.reshape(height, width, -1, 3)
-        bad |= ~np.isfinite(samples).all(axis=(2, 3))
-        total += samples.sum(axis=2, dtype=np.float64)
-        count += samples.shape[2]
+        sums, taken = _trace_pass(scene, spp_k, (int(seed) + k) % 2**32, lens)
+        sums = sums.T.reshape(height, width, 3)
+        bad |= ~np.isfinite(sums).all(axis=2)
+        total += sums
+        count += taken
     image = (total / count).astype(np.float32)
     image[bad] = 0.0
     return image, int(bad.sum())
