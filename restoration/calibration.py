@@ -246,12 +246,20 @@ class Calibration(RigCalibration):
         ij, panel = self.dot_grid
         return ij, pinhole_panel_px(self.cfg.projector, panel)
 
-    def observe(self, ij: NDArray, spot_px: NDArray) -> Observations:
+    def observe(self, ij: NDArray, spot_px: NDArray, *, flat_referenced: bool = False
+                ) -> Observations:
         """The features with grid indices ``ij`` (K, 2) and spots ``spot_px`` (K, 2) px in
         the rig's geometry (features without a finite spot left out), weighted for
-        integration at the gauge's level (:class:`~restoration.observations.Observations`)."""
+        integration at the gauge's level (:class:`~restoration.observations.Observations`).
+        ``flat_referenced``: each spot less its dot's flat-water shift
+        (:meth:`~restoration.features.ReferenceGrid.flat_shift_at`; needs :meth:`prepare`)."""
         keep = np.isfinite(spot_px).all(axis=1)
         ij, spot_px = ij[keep], spot_px[keep]
+        if flat_referenced:
+            if self.reference is None:
+                raise WaiInputError("observe: flat_referenced needs the flat-water reference "
+                                    "(Calibration.prepare)")
+            spot_px = spot_px - self.reference.flat_shift_at(ij)
         return Observations.build(
             ij, self.panel_px(ij), spot_px, self.projector, self.camera_s, self.diffuser_z_mm,
             weight_h_mm=self.cfg.water.h0_mm,

@@ -136,6 +136,15 @@ class StructuredLightOptions(SurfaceOptions):
         After the reconstruction, fit a smooth surface and its level to the detected spots
         through the exact reflection model (:func:`restoration.fit.fit_level`); slower than
         real time, so off by default (docs/results.md, "Accuracy").
+    flat_referenced : bool
+        Refer every spot to the flat reference, as the paper's dot shifts do: the spot less
+        its dot's flat-water shift from the calibrated prediction
+        (:func:`restoration.features.flat_shifts`). What displaces both images alike (the
+        cameras' and the projector's calibration errors, the spots' centroid bias) then drops
+        out, and the flat reference's level, the configuration's ``water.h0_mm``, becomes the
+        datum: an error in it moves the level by about as much (docs/results.md, "Calibrating
+        a real rig"). Off, the spots are taken as detected and the level comes from the data
+        alone.
 
     Examples
     --------
@@ -153,6 +162,7 @@ class StructuredLightOptions(SurfaceOptions):
     converge_mm: float = 1.0
     max_refine: int = 40
     fit_spots: bool = False
+    flat_referenced: bool = True
 
     def __post_init__(self) -> None:
         super().__post_init__()

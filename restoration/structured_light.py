@@ -204,7 +204,8 @@ def resolve_label_shift(
         if keep.sum() < MIN_SHIFT_KEEP * len(keep):
             continue
         candidate = shifted(features, shift, keep)
-        obs = cal.observe(candidate.ij, candidate.spot_px)
+        obs = cal.observe(candidate.ij, candidate.spot_px,
+                          flat_referenced=options.flat_referenced)
         try:
             est = estimate_surface(obs, cal, options)
         except RestorationFailed:
@@ -378,7 +379,8 @@ class StructuredLight:
             with timings("features"):
                 features = match_features(images["pattern"], reference, cal.cfg)
             with timings("surface"):
-                obs = cal.observe(features.ij, features.spot_px)
+                obs = cal.observe(features.ij, features.spot_px,
+                                  flat_referenced=options.flat_referenced)
                 start = None if track is None else track.start_mm
                 surface = estimate_surface(obs, cal, options, start)
                 if len(features.alt_shifts) > 1:

@@ -41,6 +41,7 @@ from restoration.features.match import (
 from restoration.features.reference import (
     ReferenceGrid,
     flag_diffuser_edge,
+    flat_shifts,
     match_reference,
     predict_flat_spots,
     prepare_reference,
@@ -60,6 +61,7 @@ __all__ = [
     "features_from_reference",
     "find_features",
     "flag_diffuser_edge",
+    "flat_shifts",
     "match_distorted",
     "match_reference",
     "node_symbols",

@@ -53,6 +53,9 @@ class ReferenceGrid:
     ref_px : (G, 2) ndarray
         Flat-water spot centre, pixels: detected where ``observed``, else the calibrated
         prediction (which may lie off the diffuser or off the image).
+    pred_px : (G, 2) ndarray or None
+        The calibrated prediction of every node (:func:`predict_flat_spots`), pixels; None
+        for a grid made by hand.
     observed : (G,) ndarray of bool
         The dot's spot was detected on flat water.
     lit : (G,) ndarray of bool
@@ -81,6 +84,10 @@ class ReferenceGrid:
     spot_scales : SpotScales
         The detection's pixel-scale parameters at ``spot_sigma_px`` (the tuned ones when it is
         NaN), built with the grid for every frame's :func:`detect_spots`.
+    shift_px : (G, 2) ndarray or None
+        Each node's flat-water spot less its calibrated prediction, pixels (read-only;
+        :func:`flat_shifts`): what refers a frame's spots to the flat reference
+        (:meth:`flat_shift_at`). None when the grid was built without a configuration.
     """
 
     ij: IntArray
@@ -97,6 +104,8 @@ class ReferenceGrid:
     outline_px: FloatArray | None = field(default=None, repr=False, compare=False)
     visible_px: FloatArray | None = field(default=None, repr=False, compare=False)
     spot_scales: SpotScales = field(init=False, repr=False, compare=False)
+    pred_px: FloatArray | None = field(default=None, repr=False, compare=False)
+    shift_px: FloatArray | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # Neighbour tables for the per-frame matching: they depend on the lattice only.
@@ -107,6 +116,17 @@ class ReferenceGrid:
         """Whether each lattice index ``ij`` (K, 2) is a lit dot of this lattice."""
         node = self.tables.lat.lookup(ij)
         return (node >= 0) & self.lit[np.maximum(node, 0)]
+
+    def flat_shift_at(self, ij: NDArray) -> FloatArray:
+        """The flat-water shift (:attr:`shift_px`) of the dots with grid indices ``ij`` (K, 2),
+        pixels: zero for a dot the lattice lacks, or a grid built without a configuration."""
+        out = np.zeros((len(ij), 2))
+        if self.shift_px is None:
+            return out
+        node = self.tables.lat.lookup(ij)
+        known = node >= 0
+        out[known] = self.shift_px[node[known]]
+        return out
 
     @property
     def pixel_scale(self) -> float:
@@ -392,7 +412,55 @@ def match_reference(
         unmatched_ij=ij[view & lit_node & ~observed],
         counts=counts,
         rms_px=rms,
+        pred_px=pred,
     )
+
+
+FLAT_SHIFT_MAX_PX = 1.0
+"""A flat-water spot further than this from its prediction (pixels, at the tuned spot size;
+scaled with it) is not trusted to refer frames to: a spot the image's edge cuts, or a stray
+match. The rig's own error lies below it (docs/results.md, "Calibrating a real rig")."""
+
+
+def flat_shifts(ref: ReferenceGrid, image_shape: tuple[int, int]) -> FloatArray:
+    """Every node's flat-water spot less its calibrated prediction, pixels (G, 2).
+
+    Referred to these shifts, a frame's spots see the flat reference exactly where the
+    calibrated model puts flat water, so what displaces both images alike (an error of camera
+    s's intrinsics or of the projector's, the spot's centroid bias from the reflectance across
+    it) drops out, as it does in the dot shifts the paper measures. Shifts near the image's
+    edge (within four spot sigmas) or beyond :data:`FLAT_SHIFT_MAX_PX` are not trusted; a lit
+    node without a trusted shift takes the mean of its trusted neighbours', else zero.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> ij = np.array([[0, 0], [1, 0], [2, 0]])
+    >>> px = np.array([[100.0, 100.0], [110.0, 100.0], [120.0, 100.0]])
+    >>> ref = ReferenceGrid(ij, px + [0.1, 0.0], np.array([True, False, True]),
+    ...                     np.ones(3, bool), np.full(3, 10.0), np.full((3, 2, 2), np.nan),
+    ...                     np.zeros((0, 2), int), {}, 0.1, pred_px=px)
+    >>> flat_shifts(ref, (600, 800))[:, 0].round(3).tolist()
+    [0.1, 0.1, 0.1]
+    """
+    shift = np.full(ref.ref_px.shape, np.nan)
+    if ref.pred_px is None:
+        return np.zeros(ref.ref_px.shape)
+    h, w = image_shape
+    edge = 4.0 * (ref.spot_sigma_px if np.isfinite(ref.spot_sigma_px) else _TUNED_SIGMA_PX)
+    x, y = ref.ref_px[:, 0], ref.ref_px[:, 1]
+    inside = (x > edge - 0.5) & (y > edge - 0.5) & (x < w - 0.5 - edge) & (y < h - 0.5 - edge)
+    d = ref.ref_px - ref.pred_px
+    trusted = ref.observed & inside & (np.hypot(d[:, 0], d[:, 1]) <= FLAT_SHIFT_MAX_PX
+                                       * ref.pixel_scale)
+    shift[trusted] = d[trusted]
+    nbr = ref.tables.nbrs8  # (G, 8) neighbour nodes, G where absent
+    vals = np.vstack([shift, np.full((1, 2), np.nan)])[nbr]
+    n = np.sum(np.isfinite(vals[..., 0]), axis=1)
+    mean = np.nansum(vals, axis=1) / np.maximum(n, 1)[:, None]
+    fill = ~trusted & (n > 0)
+    shift[fill] = mean[fill]
+    return np.nan_to_num(shift, nan=0.0)
 
 
 def prepare_reference(
@@ -423,6 +491,8 @@ def prepare_reference(
     ref = replace(
         ref, spot_sigma_px=float(sigma), outline_px=outline, visible_px=_visible_outline(cfg)
     )
+    shape = (cfg.camera_s.height_px, cfg.camera_s.width_px)
+    ref = replace(ref, shift_px=flat_shifts(ref, shape))
     if ref.counts["observed"] < min_features:
         raise RestorationFailed(f"too few features on flat water: {ref.counts['observed']}")
     return ref

@@ -193,9 +193,12 @@ def test_anchor_search_says_when_the_data_do_not_pin_the_level(monkeypatch):
 
 
 def test_flat_water_restores_to_the_truth_with_the_gauge_level(flat_dir, quick_cfg):
-    # Flat water carries no curvature, so integrability cannot pin the level: the pipeline must
-    # notice and fall back to the gauge rather than drift along the depth-normal ambiguity.
-    result, scores = _run(flat_dir)
+    # Flat water carries no curvature, so integrability cannot pin the level from the spots as
+    # detected: the pipeline must notice and fall back to the gauge rather than drift along the
+    # depth-normal ambiguity.
+    done = restore_folder(flat_dir, options=StructuredLightOptions(flat_referenced=False),
+                          write=False)
+    result, scores = done.result, done.metrics
     assert result.surface.anchor.method == "gauge_fallback"
     counts = result.features.counts
     # A perfectly regular pattern: every dot seen on flat water is found again under its own
@@ -206,6 +209,15 @@ def test_flat_water_restores_to_the_truth_with_the_gauge_level(flat_dir, quick_c
     assert scores["wai_rmse_mm"] < 0.05
     assert scores["restored"]["ssim"] > 0.99
     assert scores["corner_std_restored_px"] < 0.1
+
+
+def test_flat_water_referred_to_itself_is_the_reference_level(flat_dir, quick_cfg):
+    # The frame is the flat reference's own image: referred to it, every spot sits exactly
+    # where the calibrated model puts flat water at h0, so the surface is flat at h0.
+    result, scores = _run(flat_dir)
+    heights = result.surface.points_mm[:, 2] - quick_cfg.water.h0_mm
+    assert np.max(np.abs(heights)) < 1e-3
+    assert scores["wai_rmse_mm"] < 0.01
 
 
 def test_image_size_mismatch_is_a_clear_error(flat_dir, tmp_path):

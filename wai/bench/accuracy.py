@@ -56,6 +56,9 @@ def _surface_variant(
 
     cfg = cal.cfg
     spots = features.spot_px
+    if options.flat_referenced and name != "oracle_spots":
+        # Referred once here: the oracle anchor's calibration below has no reference of its own.
+        spots = spots - cal.reference.flat_shift_at(features.ij)
     if name == "paper":
         options = replace(
             options, integrator="paper", n_refine=0, gridder="clough_tocher", anchor="gauge"

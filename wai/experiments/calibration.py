@@ -6,7 +6,9 @@ v). The real-lens frame is restored three ways: with the ideal rig (the pinholes
 names), with the true rig (the keys it was rendered with), with the rig that ``wai calibrate``
 finds from rendered checkerboards (:mod:`restoration.rig_calibration`), and with that rig's
 camera s refined on the flat-water pattern (``wai calibrate --flat``); the ideal-lens frame
-restored with the ideal rig is the accuracy to get back. Writes
+restored with the ideal rig is the accuracy to get back. Each restoration runs twice: with
+the spots referred to the flat reference (the default,
+:attr:`restoration.StructuredLightOptions.flat_referenced`) and as detected. Writes
 ``calibration.csv`` (one row per frame and rig), ``calibration.json`` (the run record with the
 calibrated intrinsics against the truth), ``calibration.png`` and ``calibration.md``.
 """
@@ -40,7 +42,9 @@ IDEAL: dict[str, Any] = {
 }
 """The ideal rig's keys: what restoring as if the lenses were pinholes assumes."""
 CHECKERBOARD_VIEWS = 15
-COLUMNS = ("seed", "lens", "rig", "status", "wai_rmse_mm", "wai_rmse_demeaned_mm",
+SPOTS = {"flat-referenced": True, "as detected": False}
+"""The two ways of taking the spots, and their ``flat_referenced`` option."""
+COLUMNS = ("seed", "lens", "rig", "spots", "status", "wai_rmse_mm", "wai_rmse_demeaned_mm",
            "corner_std_restored_px", "restored_psnr_db", "features_used")
 
 
@@ -80,9 +84,10 @@ def refined_on_flat_water(cfg: SystemConfig, boards: dict[str, Any], frame: Path
                                                                               "pattern_flat")))
 
 
-def _row(seed: int, lens: str, rig: str, metrics: dict[str, Any]) -> dict[str, Any]:
-    row = {"seed": seed, "lens": lens, "rig": rig}
-    for key in COLUMNS[3:]:
+def _row(seed: int, lens: str, rig: str, spots: str, metrics: dict[str, Any]
+         ) -> dict[str, Any]:
+    row = {"seed": seed, "lens": lens, "rig": rig, "spots": spots}
+    for key in COLUMNS[4:]:
         row[key] = metrics.get(key)
     return row
 
@@ -105,22 +110,26 @@ def render_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Path]:
 def run_seed(cfg: SystemConfig, seed: int, out: Path, calibrated: dict[str, dict[str, Any]]
              ) -> list[dict[str, Any]]:
     """Restore the seed's frames (:func:`render_seed`) with each rig: ideal, true, the
-    checkerboards' and the checkerboards' refined on flat water."""
-    from restoration import restore_folder
+    checkerboards' and the checkerboards' refined on flat water; each with the spots
+    flat-referenced and as detected."""
+    from restoration import StructuredLightOptions, restore_folder
 
     folders = render_seed(cfg, seed, out)
     runs = (("ideal", "ideal", None), ("real", "ideal", IDEAL), ("real", "true", None),
             ("real", "checkerboards", calibrated["checkerboards"]),
             ("real", "calibrated", calibrated["flat_water"]))
-    return [_row(seed, lens, rig, restore_folder(folders[lens], write=False, rig=keys).metrics)
-            for lens, rig, keys in runs]
+    return [_row(seed, lens, rig, spots, restore_folder(
+                folders[lens], options=StructuredLightOptions(flat_referenced=referenced),
+                write=False, rig=keys).metrics)
+            for lens, rig, keys in runs for spots, referenced in SPOTS.items()]
 
 
 def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per (lens, rig): mean and spread of the RMSE and corner STD, and the statuses."""
+    """Per (lens, rig, spots): mean and spread of the RMSE and corner STD, and the
+    statuses."""
     out: dict[str, Any] = {}
-    for lens, rig in sorted({(r["lens"], r["rig"]) for r in rows}):
-        part = [r for r in rows if (r["lens"], r["rig"]) == (lens, rig)]
+    for lens, rig, spots in sorted({(r["lens"], r["rig"], r["spots"]) for r in rows}):
+        part = [r for r in rows if (r["lens"], r["rig"], r["spots"]) == (lens, rig, spots)]
         ok = [r for r in part if r["status"] == "ok"]
 
         def stat(key: str, part: list[dict[str, Any]] = ok) -> dict[str, float | None]:
@@ -129,8 +138,8 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 return {"mean": None, "max": None}
             return {"mean": float(v.mean()), "max": float(v.max())}
 
-        out[f"{lens}_lens/{rig}_rig"] = {
-            "frames": len(part), "ok": len(ok),
+        out[f"{lens}_lens/{rig}_rig/{spots}"] = {
+            "lens": lens, "rig": rig, "spots": spots, "frames": len(part), "ok": len(ok),
             "statuses": sorted({str(r["status"]) for r in part}),
             "wai_rmse_mm": stat("wai_rmse_mm"),
             "corner_std_restored_px": stat("corner_std_restored_px"),
@@ -152,22 +161,25 @@ def _figure(rows: list[dict[str, Any]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     cases = [("ideal", "ideal", "ideal lens, ideal rig"), ("real", "true", "real lens, true rig"),
              ("real", "checkerboards", "real lens, checkerboards' rig"),
              ("real", "calibrated", "real lens, checkerboards + flat water")]
-    for k, (lens, rig, label) in enumerate(cases):
-        part = [r for r in rows if r["lens"] == lens and r["rig"] == rig]
-        seeds = np.array([r["seed"] for r in part], float) + (k - 1.5) * 0.15
-        rmse = [r["wai_rmse_mm"] if r["status"] == "ok" else np.nan for r in part]
-        ax.plot(seeds, rmse, "o", label=label)
-    flagged = [r for r in rows if r["lens"] == "real" and r["rig"] == "ideal"]
-    ax.set_xlabel("seed")
-    ax.set_ylabel("surface RMSE, mm (status ok)")
-    ax.set_yscale("log")
-    ax.set_title(f"Real lenses restored with the ideal rig: "
-                 f"{sum(r['status'] != 'ok' for r in flagged)} of {len(flagged)} flagged")
-    ax.legend()
+    for ax, spots in zip(axes, SPOTS, strict=True):
+        for k, (lens, rig, label) in enumerate(cases):
+            part = [r for r in rows if (r["lens"], r["rig"], r["spots"]) == (lens, rig, spots)]
+            seeds = np.array([r["seed"] for r in part], float) + (k - 1.5) * 0.15
+            rmse = [r["wai_rmse_mm"] if r["status"] == "ok" else np.nan for r in part]
+            ax.plot(seeds, rmse, "o", label=label)
+        flagged = [r for r in rows if (r["lens"], r["rig"], r["spots"]) == ("real", "ideal",
+                                                                             spots)]
+        ax.set_xlabel("seed")
+        ax.set_yscale("log")
+        ax.set_title(f"spots {spots}; real lenses with the ideal rig:\n"
+                     f"{sum(r['status'] != 'ok' for r in flagged)} of {len(flagged)} flagged",
+                     fontsize=9)
+    axes[0].set_ylabel("surface RMSE, mm (status ok)")
+    axes[0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -184,14 +196,15 @@ def report(rows: list[dict[str, Any]], fits: dict[str, Any]) -> str:
             f"({f['cx_true_px']:.2f}) | {f['cy_px']:.2f} ({f['cy_true_px']:.2f}) | "
             f"{f['k1']:.4f} ({f['k1_true']:.2f}) | {f['k2']:.4f} ({f['k2_true']:.2f}) | "
             f"{f['rms_px']:.3f} |")
-    lines += ["", "| lens | rig | ok / frames | RMSE mm (mean, max) | corner STD px (mean) |",
-              "| --- | --- | --- | --- | --- |"]
-    for case, s in summarize(rows).items():
-        lens, rig = (p.split("_")[0] for p in case.split("/"))
+    lines += ["", "| lens | rig | spots | ok / frames | RMSE mm (mean, max) | "
+              "corner STD px (mean) |", "| --- | --- | --- | --- | --- | --- |"]
+    for s in summarize(rows).values():
+        lens, rig, spots = s["lens"], s["rig"], s["spots"]
         r, c = s["wai_rmse_mm"], s["corner_std_restored_px"]
         rmse = "-" if r["mean"] is None else f"{r['mean']:.4f}, {r['max']:.4f}"
         corner = "-" if c["mean"] is None else f"{c['mean']:.3f}"
-        lines.append(f"| {lens} | {rig} | {s['ok']} / {s['frames']} | {rmse} | {corner} |")
+        lines.append(f"| {lens} | {rig} | {spots} | {s['ok']} / {s['frames']} | {rmse} | "
+                     f"{corner} |")
     return "\n".join(lines) + "\n"
 
 
