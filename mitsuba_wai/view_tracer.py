@@ -78,8 +78,10 @@ def _trace_pass(
         radiance = weight * (emitted + dr.select(onward, bsdf_weight * arriving, 0.0))
     else:
         radiance = weight * _direct_radiance(scene, ray, sampler, *direct)
-    # Each pixel's samples are consecutive: their sum here, a non-finite one making it so.
-    pixel_sum = dr.block_sum(radiance, spp)
+    # Each pixel's samples are consecutive: their sum here, a non-finite one making it so
+    # (the three channels evaluated together first: one trace, not one per channel).
+    dr.eval(radiance)
+    pixel_sum = dr.block_sum(radiance, spp, mode="evaluated")
     dr.eval(pixel_sum)
     return np.asarray(pixel_sum), spp
 
