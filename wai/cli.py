@@ -272,6 +272,12 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "model (restoration.fit.fit_level): ~0.3-1 s more per frame, no more accurate than the "
         "default on the mean of the paper's rig (docs/results.md)",
     )
+    p.add_argument(
+        "--as-detected", action="store_true",
+        help="structured light: take the spots as detected, not referred to the flat reference; "
+        "the level then comes from the data alone, not from the reference's water.h0_mm "
+        "(default: referred, which cancels the rig's common errors; docs/rig.md)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_restore)
 

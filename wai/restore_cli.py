@@ -49,15 +49,17 @@ def method_options(args: argparse.Namespace) -> SurfaceOptions:
     anchor = args.anchor
     if args.method == "alterman":
         # The sun sensor's normals do not depend on the height: its level is the gauge's.
-        if anchor == "integrability" or args.fit:
-            flag = "--fit" if args.fit else "--anchor integrability"
+        if anchor == "integrability" or args.fit or args.as_detected:
+            flag = ("--fit" if args.fit else "--as-detected" if args.as_detected
+                    else "--anchor integrability")
             raise WaiInputError(
                 f"{flag}: alterman's normals do not depend on the height, so its level is "
                 "always the gauge's (--anchor gauge)"
             )
         anchor = None
     choices = {"integrator": args.integrator, "n_refine": args.refine, "anchor": anchor,
-               "fit_spots": True if args.fit else None}
+               "fit_spots": True if args.fit else None,
+               "flat_referenced": False if args.as_detected else None}
     return get_method(args.method, **choices).options
 
 

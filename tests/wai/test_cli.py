@@ -65,6 +65,10 @@ def test_unset_restore_flags_leave_each_methods_defaults():
     assert method_options(alterman) == AltermanOptions(n_refine=0)
     with pytest.raises(WaiInputError, match="--fit"):
         method_options(parse(["restore", "d", "--method", "alterman", "--fit"]))
+    as_detected = method_options(parse(["restore", "d", "--as-detected"]))
+    assert as_detected == StructuredLightOptions(flat_referenced=False)
+    with pytest.raises(WaiInputError, match="--as-detected"):
+        method_options(parse(["restore", "d", "--method", "alterman", "--as-detected"]))
 
 
 def test_negative_refine_names_the_option(capsys, tmp_path):
