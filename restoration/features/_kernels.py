@@ -409,67 +409,52 @@ def peak_axis_moments(lab, smooth, cols, rows, peak, origin, mean, cos, sin,
 
 
 @njit(**_JIT)
-def _window_sums(box, hx, hy, a, b, c, sx, sy, decay):  # pragma: no cover
-    """``sum w``, ``sum w fx``, ``sum w fy`` over a box (2 hy + 1, 2 hx + 1) of pixel offsets
-    ``(fx, fy)`` from its centre, ``w = box exp(-q / 2)``, ``q = (f - s)^T [[a, b], [b, c]]
-    (f - s)``. Along each row the exponential comes from a recurrence, walking out from the
-    row's maximum (``decay = exp(-a)``): three exponentials per row instead of one per pixel,
-    to ~1e-14 relative."""
+def _window_sums(padded, labels, spot_of, s, top, left, hx, hy, a, b, c, sx, sy,
+                 decay):  # pragma: no cover
+    """``sum w``, ``sum w fx``, ``sum w fy`` over spot ``s``'s box (2 hy + 1, 2 hx + 1) of
+    pixel offsets ``(fx, fy)`` from its centre, ``w = v exp(-q / 2)``, ``q = (f - s)^T [[a,
+    b], [b, c]] (f - s)``, where ``v`` is ``padded`` from row ``top`` and column ``left`` on,
+    blanked on the pixels of the other kept segments (``spot_of[labels] >= 0`` and not ``s``).
+    Along each row the exponential comes from a recurrence, walking out from the row's maximum
+    (``decay = exp(-a)``): three exponentials per row instead of one per pixel, to ~1e-14
+    relative."""
     tot, mx, my = 0.0, 0.0, 0.0
     for row in range(2 * hy + 1):
         fy = row - hy
         dy = fy - sy
+        vals = padded[top + row, left : left + 2 * hx + 1]
+        labs = labels[top + row, left : left + 2 * hx + 1]
         # The row's maximum, q'(fx) = 0: fx = sx - b dy / a.
         j0 = min(max(int(math.floor(sx - b * dy / a + 0.5)), -hx), hx)
         dx = j0 - sx
         e0 = math.exp(-0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
         # Ratios of neighbouring weights to the right and to the left of j0.
         right = math.exp(-0.5 * (a * (2.0 * dx + 1.0) + 2.0 * b * dy))
-        left = math.exp(-0.5 * (a * (1.0 - 2.0 * dx) - 2.0 * b * dy))
+        left_ = math.exp(-0.5 * (a * (1.0 - 2.0 * dx) - 2.0 * b * dy))
         e = e0
         for fx in range(j0, hx + 1):
-            v = e * box[row, fx + hx]
+            o = spot_of[labs[fx + hx]]
+            v = e * (np.float64(vals[fx + hx]) if o < 0 or o == s else 0.0)
             tot += v
             mx += v * fx
             my += v * fy
             e *= right
             right *= decay
-        e = e0 * left
+        e = e0 * left_
         for fx in range(j0 - 1, -hx - 1, -1):
-            v = e * box[row, fx + hx]
+            o = spot_of[labs[fx + hx]]
+            v = e * (np.float64(vals[fx + hx]) if o < 0 or o == s else 0.0)
             tot += v
             mx += v * fx
             my += v * fy
-            left *= decay
-            e *= left
+            left_ *= decay
+            e *= left_
     return tot, mx, my
 
 
 @njit(**_JIT)
-def spot_boxes(padded, pad, rows, cols, spot, p):  # pragma: no cover
-    """Blank every kept segment of ``padded`` (each of :func:`centroid_chunk`'s boxes gets
-    its own back) and list the kept pixels by spot: spot ``s`` holds pixels ``own[first[s] :
-    first[s + 1]]``. Returns ``first`` (P + 1,) and ``own``; arguments as
-    :func:`centroid_chunk`'s, ``spot`` (N,) the spot whose segment holds each pixel (-1: a
-    dropped segment) and ``p`` the number of spots."""
-    count = np.zeros(p + 1, np.int64)
-    for k in range(spot.size):
-        if spot[k] >= 0:
-            padded[rows[k] + pad, cols[k] + pad] = 0.0
-            count[spot[k] + 1] += 1
-    first = np.cumsum(count)
-    fill = first[:-1].copy()
-    own = np.empty(first[-1], np.int64)
-    for k in range(spot.size):
-        if spot[k] >= 0:
-            own[fill[spot[k]]] = k
-            fill[spot[k]] += 1
-    return first, own
-
-
-@njit(**_JIT)
-def centroid_chunk(chunk, n_chunks, padded, pad, rows, cols, raw, base, half, inv_win, start,
-                   gain, n_iter, first, own, out):  # pragma: no cover
+def centroid_chunk(chunk, n_chunks, padded, labels, pad, spot_of, base, half, inv_win, start,
+                   gain, n_iter, out):  # pragma: no cover
     """Gaussian-windowed centroids of spots ``chunk, chunk + n_chunks, ...`` of P into ``out``
     (P, 2) px; see :func:`restoration.features.detect._refine_centres` for the method. The
     spots are independent: any thread may run any chunk.
@@ -479,11 +464,13 @@ def centroid_chunk(chunk, n_chunks, padded, pad, rows, cols, raw, base, half, in
     chunk, n_chunks : int
         This chunk, and how many there are.
     padded : (H + 2 pad, W + 2 pad) ndarray of float32
-        The raw image in a frame of zeros, the kept segments blanked (:func:`spot_boxes`).
+        The raw image in a frame of zeros.
+    labels : (H + 2 pad, W + 2 pad) ndarray of int32
+        The segment label of each pixel of ``padded`` (0: none, and in the frame).
     pad : int
         Frame width, px (at least the largest half width).
-    rows, cols, raw : (N,) ndarray
-        The segmented pixels: position and raw value.
+    spot_of : (n,) ndarray of int
+        The spot of each label (-1: not a kept segment).
     base, half : (P, 2) ndarray of int
         Box centre ``(col, row)`` and half widths ``(hx, hy)`` of each spot, px.
     inv_win : (P, 3) ndarray
@@ -494,28 +481,19 @@ def centroid_chunk(chunk, n_chunks, padded, pad, rows, cols, raw, base, half, in
         Step gain ``1 + 1 / k^2``.
     n_iter : int
         Window steps.
-    first, own : ndarray
-        Each spot's pixels (:func:`spot_boxes`).
     out : (P, 2) ndarray
         Out: the centres, px.
     """
-    box = np.empty((2 * pad + 1, 2 * pad + 1))
     for s in range(chunk, start.shape[0], n_chunks):
         hx, hy = half[s, 0], half[s, 1]
         bx, by = base[s, 0], base[s, 1]
-        for r in range(2 * hy + 1):
-            for c in range(2 * hx + 1):
-                box[r, c] = padded[by - hy + r + pad, bx - hx + c + pad]
-        for j in range(first[s], first[s + 1]):
-            k = own[j]
-            r, c = rows[k] - by + hy, cols[k] - bx + hx
-            if 0 <= r <= 2 * hy and 0 <= c <= 2 * hx:
-                box[r, c] = raw[k]
+        top, left = by - hy + pad, bx - hx + pad
         a, b, c = inv_win[s, 0], inv_win[s, 1], inv_win[s, 2]
         decay = math.exp(-a)
         sx, sy = start[s, 0] - bx, start[s, 1] - by
         for _ in range(n_iter):
-            tot, mx, my = _window_sums(box, hx, hy, a, b, c, sx, sy, decay)
+            tot, mx, my = _window_sums(padded, labels, spot_of, s, top, left, hx, hy, a, b, c,
+                                       sx, sy, decay)
             if tot > 0.0:
                 # A step longer than a pixel means noise dominates the window.
                 sx += min(max(gain * (mx / tot - sx), -1.0), 1.0)

@@ -25,7 +25,6 @@ from restoration.features._kernels import (
     peak_axis_moments,
     peak_moments,
     segment_moments,
-    spot_boxes,
 )
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from wai_core.errors import WaiInputError
@@ -232,6 +231,7 @@ def _segment(
     wide_level: float = 0.005,
     wide_blur_px: float = 4.0,
     store: dict[str, NDArray] | None = None,
+    labels_out: NDArray[np.int32] | None = None,
 ) -> tuple[int, NDArray[np.int32], BoolArray]:
     """Label pixels above ``rel_level`` x their local maximum (and above ``floor``).
 
@@ -246,8 +246,8 @@ def _segment(
     ``work`` (h, w) is scratch space, overwritten: the maps above and then the labels are
     written there rather than into fresh image-sized arrays (each new one costs more in page
     faults than the filter does), and so are the masks, into ``store``'s (:func:`_scratch`).
-    Returns the number of labels (background included), the label image (h, w, a view of
-    ``work``) and the mask.
+    Returns the number of labels (background included), the label image (h, w: ``labels_out``
+    if given, else a view of ``work``) and the mask.
     """
     size = 2 * radius_px + 1
     level = cv2.dilate(smooth, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)), dst=work)
@@ -266,7 +266,8 @@ def _segment(
     mask &= np.greater(smooth, floor, out=above)
     # Plain labelling: cv2's per-component statistics cost 6x the labelling itself, and the
     # moments below give the same from the pixel list.
-    n, labels = cv2.connectedComponents(mask.view(np.uint8), work.view(np.int32), 8, cv2.CV_32S)
+    dst = work.view(np.int32) if labels_out is None else labels_out
+    n, labels = cv2.connectedComponents(mask.view(np.uint8), dst, 8, cv2.CV_32S)
     return n, labels, mask
 
 
@@ -406,7 +407,7 @@ _BOX_MAX = 48
 
 def _refine_centres(
     padded: NDArray[np.float32],
-    px: _Pixels,
+    labels: NDArray[np.int32],
     n: int,
     keep: IntArray,
     start: FloatArray,
@@ -429,9 +430,9 @@ def _refine_centres(
     sigmas: beyond it the spot times the window is below 0.5 %), centred on ``start`` rounded
     to a pixel. It holds the raw image there with the pixels of the other kept segments
     blanked, so a much brighter neighbour cannot pull the centre. ``padded`` is the raw image
-    with ``box_max`` zeros around it (a multiple of 3 px); it is used up (blanked). Compiled
-    loops over the spots, in chunks shared by the restoration's threads
-    (:func:`restoration.features._kernels.centroid_chunk`).
+    with ``box_max`` zeros around it (a multiple of 3 px), ``labels`` the segment labels of
+    its pixels (of ``n``; 0 in the frame). Compiled loops over the spots, in chunks shared by
+    the restoration's threads (:func:`restoration.features._kernels.centroid_chunk`).
     """
     if len(keep) == 0:
         return np.zeros((0, 2))
@@ -442,12 +443,11 @@ def _refine_centres(
     inv_win = np.stack([cov[:, 1, 1] / det, -cov[:, 0, 1] / det, cov[:, 0, 0] / det], axis=1)
     spot_of = np.full(n, -1, np.int64)
     spot_of[keep] = np.arange(len(keep))
-    first, own = spot_boxes(padded, box_max, px.rows, px.cols, spot_of[px.lab], len(keep))
     out = np.empty((len(keep), 2))
     run_chunks(
-        centroid_chunk, _chunks(len(keep)), padded, box_max, px.rows, px.cols, px.raw,
+        centroid_chunk, _chunks(len(keep)), padded, labels, box_max, spot_of,
         np.rint(start).astype(np.int64), half, inv_win, np.ascontiguousarray(start, float),
-        _WINDOW_GAIN, n_iter, first, own, out,
+        _WINDOW_GAIN, n_iter, out,
     )
     return out
 
@@ -657,10 +657,12 @@ def detect_spots(
         saturated_px = None if saturation is None else lum >= saturation
         lum -= bg  # now the raw, background-subtracted image
         tiny = 1e-6 * max(float(smooth.max()), 1e-30)  # keeps a noiseless zero background out
-        # bg, no longer needed, is the scratch space (and then the labels).
+        # bg, no longer needed, is the scratch space.
+        # The labels sit in a frame of zeros too (the centroid boxes read them).
+        framed = _scratch(store, "labels", padded.shape, np.int32)
         n, labels, mask = _segment(
             smooth, local_radius_px, rel_level, max(2.0 * noise, tiny), bg, sc.wide_px,
-            wide_blur_px=sc.wide_blur_px, store=store,
+            wide_blur_px=sc.wide_blur_px, store=store, labels_out=framed[pad:-pad, pad:-pad],
         )
         px = _Pixels.of(labels, smooth, padded, pad)
         edge = np.zeros(n, bool)  # the segment has a pixel in the image's outer rows or columns
@@ -675,8 +677,8 @@ def detect_spots(
         idx = np.flatnonzero(good)
         saturated = np.zeros(idx.size, bool) if n_saturated is None else n_saturated[idx] > 0
         cov, major = _spot_covariance(seg.cov[idx])
-        # The centroids read (and blank) the padded image: still the borrowed one.
-        centres = _refine_centres(padded, px, n, idx, seg.mean[idx], cov, box_max=pad)
+        # The centroids read the padded image and labels: still the borrowed ones.
+        centres = _refine_centres(padded, framed, n, idx, seg.mean[idx], cov, box_max=pad)
     # Too few pixels across to tell a shape (single spots of sigma <~ 1.2 px): never "merged".
     merged = (seg.kurtosis[idx] < merge_kurtosis) & (major >= 1.3**2)
     return Spots(
