@@ -12,12 +12,43 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from wai_core.heightfield import Heightfield
+from wai_core.heightfield import Heightfield, grid_faces
 
 
 def heightfield_mesh(surface: Heightfield) -> trimesh.Trimesh:
     """Triangle mesh through the heightfield's samples, mm, with exact vertex normals."""
     return surface.to_trimesh()
+
+
+def surface_buffers(
+    surface: Heightfield,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh of :func:`heightfield_mesh` as flat buffers, without building a ``trimesh``.
+
+    Parameters
+    ----------
+    surface : Heightfield
+        The surface, mm.
+
+    Returns
+    -------
+    vertices : (3 V,) ndarray of float32
+        ``x, y, z`` of each grid sample in turn (row-major), mm; unknown heights at the mean.
+    normals : (3 V,) ndarray of float32
+        The spline's unit normals at the vertices (up where the height is unknown).
+    faces : (3 F,) ndarray of uint32
+        Triangles counter-clockwise seen from above; cells touching an unknown sample left out.
+    """
+    xx, yy = np.meshgrid(surface.x, surface.y)
+    valid = np.isfinite(surface.z).ravel()
+    z = np.nan_to_num(surface.z.ravel(), nan=float(np.nanmean(surface.z)))
+    vertices = np.stack([xx.ravel(), yy.ravel(), z], axis=1)
+    faces = grid_faces(surface.y.size, surface.x.size)
+    faces = faces[valid[faces].all(axis=1)]
+    normals = np.nan_to_num(surface.normal(xx.ravel(), yy.ravel()), nan=0.0)
+    normals[~valid] = (0.0, 0.0, 1.0)
+    return (vertices.astype(np.float32).ravel(), normals.astype(np.float32).ravel(),
+            faces.astype(np.uint32).ravel())
 
 
 def flat_like(surface: Heightfield, z_mm: float) -> Heightfield:
@@ -51,14 +82,27 @@ def to_mitsuba(
 def set_mesh_geometry(m: object, mesh: trimesh.Trimesh, prefix: str = "") -> None:
     """Write vertex positions, normals and faces into a Mitsuba mesh (or a scene's parameters when
     ``m`` is a ``SceneParameters`` and ``prefix`` names the mesh, e.g. ``'water.'``)."""
+    set_mesh_buffers(
+        m,
+        np.ascontiguousarray(mesh.vertices, dtype=np.float32).ravel(),
+        np.ascontiguousarray(mesh.vertex_normals, dtype=np.float32).ravel(),
+        np.ascontiguousarray(mesh.faces, dtype=np.uint32).ravel(),
+        prefix,
+    )
+
+
+def set_mesh_buffers(
+    m: object, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray | None,
+    prefix: str = "",
+) -> None:
+    """Write flat vertex positions, normals (3 V,) float32 and faces (3 F,) uint32 into a
+    Mitsuba mesh (or scene parameters, as :func:`set_mesh_geometry`); ``faces=None`` keeps the
+    mesh's own (the same grid: only the positions, the normals and the BVH change)."""
     import mitsuba as mi
 
     params = m if prefix else mi.traverse(m)
-    params[f"{prefix}vertex_positions"] = mi.Float(
-        np.ascontiguousarray(mesh.vertices, dtype=np.float32).ravel()
-    )
-    params[f"{prefix}vertex_normals"] = mi.Float(
-        np.ascontiguousarray(mesh.vertex_normals, dtype=np.float32).ravel()
-    )
-    params[f"{prefix}faces"] = mi.UInt32(np.ascontiguousarray(mesh.faces, dtype=np.uint32).ravel())
+    params[f"{prefix}vertex_positions"] = mi.Float(vertices)
+    params[f"{prefix}vertex_normals"] = mi.Float(normals)
+    if faces is not None:
+        params[f"{prefix}faces"] = mi.UInt32(faces)
     params.update()

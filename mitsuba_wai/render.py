@@ -182,6 +182,7 @@ class FrameRenderer:
                 scene_v.update(view_emitters(self.cfg))
             self._scenes["view"] = mi.load_dict(scene_v)
         self._params = {k: mi.traverse(scene) for k, scene in self._scenes.items()}
+        self._faces = None  # the water's faces uploaded last (flat uint32), None: unknown
         # Stratified: the projector's dots drawn directly (mitsuba_wai.dots), same emission as
         # the scene's projector at a fraction of its cost; independent: Mitsuba's projector.
         self._emitters = (
@@ -192,9 +193,13 @@ class FrameRenderer:
     def _set_surface(self, surface: Heightfield) -> None:
         if surface.z.shape != self.grid.z.shape:
             raise ValueError("surface grid differs from the renderer's mesh grid")
-        tm = meshes.heightfield_mesh(surface)
+        vertices, normals, faces = meshes.surface_buffers(surface)
+        # The faces change only where a surface's holes differ: otherwise the grid's stay.
+        same_faces = self._faces is not None and np.array_equal(faces, self._faces)
         for params in self._params.values():
-            meshes.set_mesh_geometry(params, tm, prefix="water.")
+            meshes.set_mesh_buffers(params, vertices, normals, None if same_faces else faces,
+                                    prefix="water.")
+        self._faces = faces
 
     def render(
         self,

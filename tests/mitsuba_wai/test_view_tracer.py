@@ -56,3 +56,16 @@ def test_a_new_seed_reuses_the_compiled_kernel(view_scene):
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     assert compiled == []
+
+
+def test_direct_trace_is_the_general_one(view_scene, monkeypatch):
+    # The two-shape scene's direct trace (water BSDF called directly, the object plane's own
+    # intersection) follows the same samples as the general one: equal to float rounding.
+    from mitsuba_wai import view_tracer
+
+    assert view_tracer._direct_parts(view_scene) is not None
+    direct, _ = render_view(view_scene, 4, 7)
+    monkeypatch.setattr(view_tracer, "_direct_parts", lambda scene: None)
+    general, _ = render_view(view_scene, 4, 7)
+    assert direct.mean() > 0
+    assert np.abs(direct - general).max() < 1e-4 * general.max()
