@@ -409,46 +409,39 @@ def peak_axis_moments(lab, smooth, cols, rows, peak, origin, mean, cos, sin,
 
 
 @njit(**_JIT)
-def _window_sums(padded, labels, spot_of, s, top, left, hx, hy, a, b, c, sx, sy,
-                 decay):  # pragma: no cover
-    """``sum w``, ``sum w fx``, ``sum w fy`` over spot ``s``'s box (2 hy + 1, 2 hx + 1) of
-    pixel offsets ``(fx, fy)`` from its centre, ``w = v exp(-q / 2)``, ``q = (f - s)^T [[a,
-    b], [b, c]] (f - s)``, where ``v`` is ``padded`` from row ``top`` and column ``left`` on,
-    blanked on the pixels of the other kept segments (``spot_of[labels] >= 0`` and not ``s``).
-    Along each row the exponential comes from a recurrence, walking out from the row's maximum
-    (``decay = exp(-a)``): three exponentials per row instead of one per pixel, to ~1e-14
-    relative."""
+def _window_sums(box, hx, hy, a, b, c, sx, sy, decay):  # pragma: no cover
+    """``sum w``, ``sum w fx``, ``sum w fy`` over a box (2 hy + 1, 2 hx + 1) of pixel offsets
+    ``(fx, fy)`` from its centre, ``w = box exp(-q / 2)``, ``q = (f - s)^T [[a, b], [b, c]]
+    (f - s)``. Along each row the exponential comes from a recurrence, walking out from the
+    row's maximum (``decay = exp(-a)``): three exponentials per row instead of one per pixel,
+    to ~1e-14 relative."""
     tot, mx, my = 0.0, 0.0, 0.0
     for row in range(2 * hy + 1):
         fy = row - hy
         dy = fy - sy
-        vals = padded[top + row, left : left + 2 * hx + 1]
-        labs = labels[top + row, left : left + 2 * hx + 1]
         # The row's maximum, q'(fx) = 0: fx = sx - b dy / a.
         j0 = min(max(int(math.floor(sx - b * dy / a + 0.5)), -hx), hx)
         dx = j0 - sx
         e0 = math.exp(-0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
         # Ratios of neighbouring weights to the right and to the left of j0.
         right = math.exp(-0.5 * (a * (2.0 * dx + 1.0) + 2.0 * b * dy))
-        left_ = math.exp(-0.5 * (a * (1.0 - 2.0 * dx) - 2.0 * b * dy))
+        left = math.exp(-0.5 * (a * (1.0 - 2.0 * dx) - 2.0 * b * dy))
         e = e0
         for fx in range(j0, hx + 1):
-            o = spot_of[labs[fx + hx]]
-            v = e * (np.float64(vals[fx + hx]) if o < 0 or o == s else 0.0)
+            v = e * box[row, fx + hx]
             tot += v
             mx += v * fx
             my += v * fy
             e *= right
             right *= decay
-        e = e0 * left_
+        e = e0 * left
         for fx in range(j0 - 1, -hx - 1, -1):
-            o = spot_of[labs[fx + hx]]
-            v = e * (np.float64(vals[fx + hx]) if o < 0 or o == s else 0.0)
+            v = e * box[row, fx + hx]
             tot += v
             mx += v * fx
             my += v * fy
-            left_ *= decay
-            e *= left_
+            left *= decay
+            e *= left
     return tot, mx, my
 
 
@@ -484,16 +477,21 @@ def centroid_chunk(chunk, n_chunks, padded, labels, pad, spot_of, base, half, in
     out : (P, 2) ndarray
         Out: the centres, px.
     """
+    box = np.empty((2 * pad + 1, 2 * pad + 1))
     for s in range(chunk, start.shape[0], n_chunks):
         hx, hy = half[s, 0], half[s, 1]
         bx, by = base[s, 0], base[s, 1]
         top, left = by - hy + pad, bx - hx + pad
+        # The raw image around the spot, the other kept segments blanked.
+        for r in range(2 * hy + 1):
+            for c in range(2 * hx + 1):
+                o = spot_of[labels[top + r, left + c]]
+                box[r, c] = padded[top + r, left + c] if o < 0 or o == s else 0.0
         a, b, c = inv_win[s, 0], inv_win[s, 1], inv_win[s, 2]
         decay = math.exp(-a)
         sx, sy = start[s, 0] - bx, start[s, 1] - by
         for _ in range(n_iter):
-            tot, mx, my = _window_sums(padded, labels, spot_of, s, top, left, hx, hy, a, b, c,
-                                       sx, sy, decay)
+            tot, mx, my = _window_sums(box, hx, hy, a, b, c, sx, sy, decay)
             if tot > 0.0:
                 # A step longer than a pixel means noise dominates the window.
                 sx += min(max(gain * (mx / tot - sx), -1.0), 1.0)
