@@ -243,17 +243,43 @@ def _segment(
     spot keeps its peak under that blur, so its segment ends at ~3.5 sigma, short of its
     neighbours; a small bright dot loses most of its peak, so a small dim neighbour survives.
 
-    ``work`` (h, w) is scratch space, overwritten: the maps above and then the labels are
+    ``work`` (h, w) is scratch space, overwritten: the local maximum and then the labels are
     written there rather than into fresh image-sized arrays (each new one costs more in page
-    faults than the filter does), and so are the masks, into ``store``'s (:func:`_scratch`).
+    faults than the filter does), and so are the masks and the wide-spot test (on another
+    thread, :func:`_wide_test`), into ``store``'s (:func:`_scratch`).
     Returns the number of labels (background included), the label image (h, w: ``labels_out``
     if given, else a view of ``work``) and the mask.
     """
+    # The wide-spot test (on a coarse grid) beside the local maximum: both only read smooth.
+    wide_of = run_beside(functools.partial(
+        _wide_test, smooth, wide_px, wide_level, wide_blur_px,
+        _scratch(store, "wide", smooth.shape, np.float32),
+        _scratch(store, "wide_mask", smooth.shape, np.bool_),
+    ))
     size = 2 * radius_px + 1
     level = cv2.dilate(smooth, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)), dst=work)
     level *= rel_level
     mask = np.greater(smooth, level, out=_scratch(store, "mask", smooth.shape, np.bool_))
-    above = _scratch(store, "above", smooth.shape, np.bool_)
+    mask &= np.greater(smooth, floor, out=_scratch(store, "above", smooth.shape, np.bool_))
+    mask &= wide_of()
+    # Plain labelling: cv2's per-component statistics cost 6x the labelling itself, and the
+    # moments below give the same from the pixel list.
+    dst = work.view(np.int32) if labels_out is None else labels_out
+    n, labels = cv2.connectedComponents(mask.view(np.uint8), dst, 8, cv2.CV_32S)
+    return n, labels, mask
+
+
+def _wide_test(
+    smooth: NDArray[np.float32],
+    wide_px: int,
+    wide_level: float,
+    wide_blur_px: float,
+    work: NDArray[np.float32],
+    out: BoolArray,
+) -> BoolArray:
+    """Pixels of ``smooth`` (h, w) above ``wide_level`` x the maximum within ``wide_px`` of a
+    copy blurred by ``wide_blur_px`` (see :func:`_segment`), into ``out`` (h, w); ``work``
+    (h, w) is scratch space."""
     # On a 4x coarser grid: a 4 x 4 block average and a wide_blur_px / 4 blur there make the
     # ~wide_blur_px blur.
     h, w = smooth.shape
@@ -262,13 +288,7 @@ def _segment(
     k = 2 * (wide_px // 4) + 1
     level = _upsample(cv2.dilate(small, np.ones((k, k), np.uint8)), smooth.shape, work)
     level *= wide_level
-    mask &= np.greater(smooth, level, out=above)
-    mask &= np.greater(smooth, floor, out=above)
-    # Plain labelling: cv2's per-component statistics cost 6x the labelling itself, and the
-    # moments below give the same from the pixel list.
-    dst = work.view(np.int32) if labels_out is None else labels_out
-    n, labels = cv2.connectedComponents(mask.view(np.uint8), dst, 8, cv2.CV_32S)
-    return n, labels, mask
+    return np.greater(smooth, level, out=out)
 
 
 def _moments(first: FloatArray, second: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
