@@ -305,6 +305,13 @@ def _bench_restore(args: argparse.Namespace) -> _BenchRun:
     return bench_restore(args.config, args.runs, args.dir, args.variant), print_restore, []
 
 
+def _bench_sizes(args: argparse.Namespace) -> _BenchRun:
+    from wai.bench.sizes import bench_sizes, parse_sizes, print_sizes
+
+    sizes = parse_sizes(args.sizes)
+    return bench_sizes(args.config, args.out, args.runs, sizes), print_sizes, []
+
+
 def _bench_accuracy(args: argparse.Namespace) -> _BenchRun:
     from wai.bench.accuracy import print_accuracy, run_accuracy
 
@@ -356,6 +363,15 @@ def _accuracy_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spp", type=int, help="samples per pixel of both renders" + scenes)
 
 
+def _sizes_options(p: argparse.ArgumentParser) -> None:
+    from wai.bench.sizes import SIZES
+
+    _timed_options(p, renders=False)
+    p.add_argument("--sizes", default=",".join(SIZES),
+                   help="both cameras' sizes, WIDTHxHEIGHT, comma-separated (default: "
+                   f"{','.join(SIZES)})")
+
+
 def _surfaces_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--phi", type=float, default=0.8,
                    help="scale each surface to at most this fraction of eq. 35's slope bound")
@@ -386,6 +402,8 @@ _BENCHES = {
                      _bench_render),
     "restore": _Bench("per-stage and end-to-end time of the restoration of one frame, printed",
                       lambda p: _timed_options(p, restores=True), _bench_restore),
+    "sizes": _Bench("the restoration's cost against camera size: ms per frame and per "
+                    "megapixel, printed", _sizes_options, _bench_sizes),
     "accuracy": _Bench("scores over seeds with an error budget", _accuracy_options,
                        _bench_accuracy),
     "surfaces": _Bench("analytic steep and sharp-crested surfaces", _surfaces_options,

@@ -214,3 +214,12 @@ def test_bench_inputs_flags_every_wrong_input_and_passes_the_right_ones(quick_to
     assert status["view turned 180 deg, with view_flat"] == "view_mismatch"
     assert status["view 0.5 s later, with view_flat"] == "view_mismatch"
     assert "bad_reference" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("text", ["", "800", "10x10", "640x480,axb"])
+def test_bench_sizes_names_its_option(text):
+    from wai.bench.sizes import parse_sizes
+    from wai_core.errors import WaiInputError
+
+    with pytest.raises(WaiInputError, match="^--sizes"):
+        parse_sizes(text)

@@ -26,6 +26,7 @@ DEFAULT_OUT = {
     "video": Path("renders/bench_video"),
     "surfaces": Path("renders/bench_surfaces"),
     "inputs": Path("renders/bench_inputs"),
+    "sizes": Path("renders/bench_sizes"),
 }
 """Output folder of the benchmarks that write files, when ``--out`` is not given."""
 
