@@ -115,6 +115,31 @@ def nearest_each(xy, lo, shape, start, order, cell, bound, pts):  # pragma: no c
     return d1, d2, idx
 
 
+@njit(**_JIT)
+def order_pairs(a, b, ref_px, spot_px, margin, xy, lo, shape, start, order, cell,
+                bad):  # pragma: no cover
+    """Mark both ends of each neighbour pair ``(a[k], b[k])`` that breaks eq. 33 in ``bad``;
+    see :func:`restoration.features.match.order_violations` for the tests. ``xy`` (P, 2) are
+    the detected spots, bucketed by :func:`spot_cells` (``lo, shape, start, order, cell``);
+    P = 0: no skipped-spot test. Arithmetic as the NumPy expressions, term by term."""
+    for k in range(a.size):
+        i, j = a[k], b[k]
+        ux, uy = ref_px[j, 0] - ref_px[i, 0], ref_px[j, 1] - ref_px[i, 1]
+        norm = math.sqrt(ux * ux + uy * uy)
+        ux, uy = ux / norm, uy / norm
+        dx, dy = spot_px[j, 0] - spot_px[i, 0], spot_px[j, 1] - spot_px[i, 1]
+        viol = dx * ux + dy * uy <= margin
+        if not viol and xy.shape[0] > 0:
+            reach = 0.3 * math.sqrt(dx * dx + dy * dy)
+            mx = 0.5 * (spot_px[i, 0] + spot_px[j, 0])
+            my = 0.5 * (spot_px[i, 1] + spot_px[j, 1])
+            d1 = nearest_two(xy, lo, shape, start, order, cell, reach, mx, my)[0]
+            viol = d1 < reach
+        if viol:
+            bad[i] = True
+            bad[j] = True
+
+
 # Why a lattice node was not matched (as restoration.features.match).
 _NONE, _MERGED, _BORDER, _AMBIGUOUS = 0, 1, 2, 3
 

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from restoration.errors import RestorationFailed
-from restoration.features._kernels import grow, nearest_each, spot_cells
+from restoration.features._kernels import grow, nearest_each, order_pairs, spot_cells
 from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
 from restoration.features._outline import _Outline, _outline_px, _visible_outline
 from restoration.features._types import BoolArray, FloatArray, IntArray
@@ -303,18 +303,15 @@ def _order_violations(
     """:func:`order_violations` given the neighbour pairs ``(a, b)`` along rows and along
     columns, and the detected spots bucketed for lookup (or None)."""
     bad = np.zeros(len(spot_px), bool)
+    if lookup is None:
+        lookup = _SpotLookup(np.zeros((0, 2)))
+    lo, shape, start, order, cell = lookup.cells
     for a, b in pairs:
-        u = ref_px[b] - ref_px[a]
-        u /= np.linalg.norm(u, axis=1, keepdims=True)
-        gap = np.sum((spot_px[b] - spot_px[a]) * u, axis=1)
-        viol = gap <= margin_px
-        if lookup is not None and len(a):
-            reach = 0.3 * np.linalg.norm(spot_px[b] - spot_px[a], axis=1)
-            # Only whether a spot lies within reach matters: the search stops there.
-            dist, _, _ = lookup.nearest(0.5 * (spot_px[a] + spot_px[b]), reach)
-            viol |= dist < reach
-        bad[a[viol]] = True
-        bad[b[viol]] = True
+        order_pairs(
+            np.ascontiguousarray(a), np.ascontiguousarray(b), np.ascontiguousarray(ref_px, float),
+            np.ascontiguousarray(spot_px, float), float(margin_px), lookup.xy, lo, shape, start,
+            order, cell, bad,
+        )
     return bad
 
 
