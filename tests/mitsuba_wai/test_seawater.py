@@ -114,5 +114,7 @@ def test_daylight_on_the_diffuser_matches_its_irradiance(small_cfg, surface):
 def test_the_sky_lights_the_view_beyond_the_object(small_cfg, surface, clear):
     cfg = small_cfg.replace("ambient", enabled=True, sun_irradiance=0.0)
     view = FrameRenderer(cfg, surface, systems=("view",)).render(surface, 7, ("view",))["view"]
-    assert (view >= clear["view"] - 1e-6).all()
+    # Two tracers (Mitsuba's path integrator with the sky, the direct one without): equal
+    # where the sky adds nothing, to float32 rounding.
+    assert (view >= clear["view"] * (1.0 - 1e-4) - 1e-6).all()
     assert view.sum() > clear["view"].sum()
