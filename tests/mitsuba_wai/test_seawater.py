@@ -115,6 +115,7 @@ def test_the_sky_lights_the_view_beyond_the_object(small_cfg, surface, clear):
     cfg = small_cfg.replace("ambient", enabled=True, sun_irradiance=0.0)
     view = FrameRenderer(cfg, surface, systems=("view",)).render(surface, 7, ("view",))["view"]
     # Two tracers (Mitsuba's path integrator with the sky, the direct one without): equal
-    # where the sky adds nothing, to float32 rounding.
-    assert (view >= clear["view"] * (1.0 - 1e-4) - 1e-6).all()
+    # where the sky adds nothing, up to the object plane's float32 intersection point, which
+    # moves a texture edge's value by a few 1e-4 of it.
+    assert (view >= clear["view"] * (1.0 - 1e-3) - 1e-6).all()
     assert view.sum() > clear["view"].sum()
