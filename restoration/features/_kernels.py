@@ -140,6 +140,33 @@ def order_pairs(a, b, ref_px, spot_px, margin, xy, lo, shape, start, order, cell
             bad[j] = True
 
 
+@njit(**_JIT)
+def seed_scores(cand, nbrs8, ok, disp, base, centre, extent, spacing, size):  # pragma: no cover
+    """The seed score of each candidate node ``cand`` (C,) and how many of its 8-neighbours
+    (``nbrs8`` (n, 8), ``n`` for none) are ``ok`` (n + 1,); see
+    :func:`restoration.features.match._choose_seed`. ``disp`` (n + 1, 2) px: each node's
+    displacement to its nearest spot; ``base`` (n, 2) px, ``centre`` (2,) px and ``extent`` px:
+    where the nodes are, the pattern's middle and its size; ``spacing`` (n,) px; ``size``
+    (C,): the spot-size term. Arithmetic as the NumPy expressions, term by term."""
+    score = np.empty(cand.size)
+    n_ok = np.zeros(cand.size, np.int64)
+    for q in range(cand.size):
+        i = cand[q]
+        worst = 0.0
+        for k in range(8):
+            j = nbrs8[i, k]
+            dx, dy = disp[i, 0] - disp[j, 0], disp[i, 1] - disp[j, 1]
+            d = math.sqrt(dx * dx + dy * dy) if ok[j] else 0.0
+            if d > worst or math.isnan(d):
+                worst = d
+            n_ok[q] += ok[j]
+        own = math.sqrt(disp[i, 0] * disp[i, 0] + disp[i, 1] * disp[i, 1])
+        rx, ry = base[i, 0] - centre[0], base[i, 1] - centre[1]
+        reach = math.sqrt(rx * rx + ry * ry) / extent
+        score[q] = (worst + own) / spacing[i] + size[q] + 0.1 * reach
+    return score, n_ok
+
+
 # Why a lattice node was not matched (as restoration.features.match).
 _NONE, _MERGED, _BORDER, _AMBIGUOUS = 0, 1, 2, 3
 

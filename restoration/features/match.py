@@ -18,7 +18,13 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from restoration.errors import RestorationFailed
-from restoration.features._kernels import grow, nearest_each, order_pairs, spot_cells
+from restoration.features._kernels import (
+    grow,
+    nearest_each,
+    order_pairs,
+    seed_scores,
+    spot_cells,
+)
 from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
 from restoration.features._outline import _Outline, _outline_px, _visible_outline
 from restoration.features._types import BoolArray, FloatArray, IntArray
@@ -165,21 +171,19 @@ def _choose_seed(
     disp = np.zeros((n + 1, 2))
     disp[obs] = lookup.xy[i1] - base_px[obs]
     cand = obs[good]
-    nb = tab.nbrs8[cand]
-    has = ok[nb]
-    diff = disp[cand, None, :] - disp[nb]
-    diff = np.sqrt(diff[..., 0] ** 2 + diff[..., 1] ** 2)
-    worst = np.where(has, diff, 0.0).max(axis=1)
-    n_ok = has.sum(axis=1)
     spot = i1[good]
     with np.errstate(divide="ignore", invalid="ignore"):
         size = np.abs(0.5 * np.log(_det2(spots.cov_px2[spot]) / _det2(ref.cov_px2[cand])))
     size = np.where(np.isfinite(size), size, 0.0)
-    centre = np.median(base_px[obs], axis=0)
-    extent = np.ptp(base_px[obs], axis=0).max() + 1.0
-    reach = np.linalg.norm(base_px[cand] - centre, axis=1) / extent
-    own = np.linalg.norm(disp[cand], axis=1)
-    score = (worst + own) / spacing[cand] + size + 0.1 * reach
+    cols = base_px[obs].T.copy()  # (2, K): NumPy reduces a long axis fastest
+    centre = np.median(cols, axis=1)
+    extent = (cols.max(axis=1) - cols.min(axis=1)).max() + 1.0
+    # Per candidate (compiled): the largest displacement difference to an ok neighbour, its
+    # own displacement and its distance from the middle, and the ok neighbours.
+    score, n_ok = seed_scores(
+        cand, tab.nbrs8, ok, disp, np.ascontiguousarray(base_px, float), centre, float(extent),
+        np.ascontiguousarray(spacing, float), size,
+    )
     score = np.where(n_ok >= min(6, int(n_ok.max())), score, np.inf)
     best = int(np.argmin(score))
     return int(cand[best]) if np.isfinite(score[best]) else -1
@@ -235,7 +239,8 @@ def _grow(
 def _lookup_cell(xy: FloatArray) -> float:
     """Cell size of the growing's spot lookup, px: about one spot per cell of their bounding
     box (any size gives the same answers; this one visits the fewest cells and points)."""
-    extent = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
+    cols = np.asarray(xy).T.copy()  # (2, P): NumPy reduces a long axis fastest
+    extent = cols.max(axis=1) - cols.min(axis=1) if len(xy) else np.ones(2)
     return float(max(np.sqrt(max(extent[0] * extent[1], 1.0) / max(len(xy), 1)), 1.0))
 
 
