@@ -375,7 +375,6 @@ class _Segments:
     peak: FloatArray  # peak of the smoothed image
     flux: FloatArray  # raw intensity summed over the segment
     area: IntArray  # pixels in the segment
-    kurtosis: FloatArray  # along the major axis, of the part above 0.2 x peak
 
 
 def _segment_stats(px: _Pixels, n: int, shape: tuple[int, ...]) -> _Segments:
@@ -388,7 +387,7 @@ def _segment_stats(px: _Pixels, n: int, shape: tuple[int, ...]) -> _Segments:
     )
     tot, mean, cov = _moments(first, second)
     mean += [0.5 * (w - 1), 0.5 * (h - 1)]
-    return _Segments(tot, mean, cov, peak, flux, area, _major_axis_kurtosis(px, peak, mean))
+    return _Segments(tot, mean, cov, peak, flux, area)
 
 
 def _spot_covariance(cov_seg: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -697,10 +696,13 @@ def detect_spots(
         idx = np.flatnonzero(good)
         saturated = np.zeros(idx.size, bool) if n_saturated is None else n_saturated[idx] > 0
         cov, major = _spot_covariance(seg.cov[idx])
+        # The merge test's kurtosis beside the centroids (it reads only the pixel list).
+        kurtosis_of = run_beside(functools.partial(_major_axis_kurtosis, px, seg.peak, seg.mean))
         # The centroids read the padded image and labels: still the borrowed ones.
         centres = _refine_centres(padded, framed, n, idx, seg.mean[idx], cov, box_max=pad)
+        kurtosis = kurtosis_of()
     # Too few pixels across to tell a shape (single spots of sigma <~ 1.2 px): never "merged".
-    merged = (seg.kurtosis[idx] < merge_kurtosis) & (major >= 1.3**2)
+    merged = (kurtosis[idx] < merge_kurtosis) & (major >= 1.3**2)
     return Spots(
         centres_px=centres,
         flux=seg.flux[idx],
