@@ -45,7 +45,7 @@ def surface_buffers(
     vertices = np.stack([xx.ravel(), yy.ravel(), z], axis=1)
     faces = grid_faces(surface.y.size, surface.x.size)
     faces = faces[valid[faces].all(axis=1)]
-    normals = np.nan_to_num(surface.normal(xx.ravel(), yy.ravel()), nan=0.0)
+    normals = np.nan_to_num(surface.grid_normals().reshape(-1, 3), nan=0.0)
     normals[~valid] = (0.0, 0.0, 1.0)
     return (vertices.astype(np.float32).ravel(), normals.astype(np.float32).ravel(),
             faces.astype(np.uint32).ravel())
