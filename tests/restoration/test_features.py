@@ -6,6 +6,9 @@ indices) are facts of the drawing, not of the code under test.
 
 from __future__ import annotations
 
+import dataclasses
+import pickle
+
 import cv2
 import numpy as np
 import pytest
@@ -607,3 +610,29 @@ def test_detection_takes_the_scales_or_the_spot_size():
         assert np.array_equal(getattr(once, name), getattr(per_call, name)), name
     with pytest.raises(WaiInputError, match="not both"):
         detect_spots(img, spot_sigma_px=sigma, scales=SpotScales.of(sigma))
+
+
+def test_scratch_arrays_kept_between_frames_change_no_spot():
+    """The scales' reused scratch arrays (and fresh ones while another frame holds them, or
+    after pickling) give exactly the spots of fresh arrays, frame after frame."""
+    rng = np.random.default_rng(14)
+    imgs = []
+    for spacing in (12.0, 15.0):
+        c = jittered_grid(spacing, rng)
+        img = draw_dots(c, rng.uniform(300.0, 3000.0, len(c)), 2.0 * np.eye(2))
+        imgs.append((img + rng.normal(0.0, 0.2, img.shape)).astype(np.float32))
+    scales = SpotScales.of(features.detect._TUNED_SIGMA_PX)
+    fresh = dataclasses.replace(scales, workspace=None)
+    names = ("centres_px", "flux", "peak", "area_px", "cov_px2", "merged", "border")
+
+    def same(a, b):
+        return len(a) == len(b) > 0 and all(
+            np.array_equal(getattr(a, k), getattr(b, k)) for k in names
+        )
+
+    want = [detect_spots(img, scales=fresh) for img in imgs]
+    for img, w in zip(imgs + imgs, want + want, strict=True):  # each after the other one
+        assert same(detect_spots(img, scales=scales), w)
+    with scales.workspace.borrow():  # taken: this frame works in fresh arrays
+        assert same(detect_spots(imgs[0], scales=scales), want[0])
+    assert same(detect_spots(imgs[1], scales=pickle.loads(pickle.dumps(scales))), want[1])
