@@ -362,6 +362,22 @@ def spline_table(first_x, poly_x, first_y, poly_y, coeffs):  # pragma: no cover
 # --- the restored image -----------------------------------------------------------------------
 
 
+_LANES = 8
+
+
+@njit(inline="always", **_JIT)
+def _warp_pixel(j, col_t, col_f, lx, sx, ly, sy, fr, lo, wx, hy, mx_row, my_row, valid_row):
+    """Pixel ``j`` of a row in a solved cell of :func:`warp_rows`: its sampling column and
+    row and validity written; returns 1 if valid, else 0."""
+    tx = col_t[j]
+    mx = col_f[j] + (lx + tx * sx)
+    my = fr + (ly + tx * sy)
+    mx_row[j], my_row[j] = mx, my
+    ok = (mx >= lo) & (mx <= wx) & (my >= lo) & (my <= hy)
+    valid_row[j] = ok
+    return np.int64(ok)
+
+
 @njit(**_JIT)
 def warp_rows(chunk, n_chunks, disp_x, disp_y, cell_ok, col_i, col_t, row_i, row_t, map_x,
               map_y, valid, per_row, first, last):  # pragma: no cover
@@ -419,15 +435,18 @@ def warp_rows(chunk, n_chunks, disp_x, disp_y, cell_ok, col_i, col_t, row_i, row
             lx, ly = node_x[ix], node_y[ix]
             sx, sy = node_x[ix + 1] - lx, node_y[ix + 1] - ly
             if ok_row[ix]:
+                # Blocks of _LANES pixels: a loop of constant length is unrolled into SIMD
+                # (a cell's few pixels are too short a loop for the vectoriser); the rest alone.
                 cnt = 0
-                for j in range(c, e):
-                    tx = col_t[j]
-                    mx = col_f[j] + (lx + tx * sx)
-                    my = fr + (ly + tx * sy)
-                    mx_row[j], my_row[j] = mx, my
-                    ok = (mx >= lo) & (mx <= wx) & (my >= lo) & (my <= hy)
-                    valid_row[j] = ok
-                    cnt += ok
+                j0 = c
+                while j0 + _LANES <= e:
+                    for k in range(_LANES):
+                        cnt += _warp_pixel(j0 + k, col_t, col_f, lx, sx, ly, sy, fr, lo, wx,
+                                           hy, mx_row, my_row, valid_row)
+                    j0 += _LANES
+                for j in range(j0, e):
+                    cnt += _warp_pixel(j, col_t, col_f, lx, sx, ly, sy, fr, lo, wx, hy, mx_row,
+                                       my_row, valid_row)
                 if cnt:
                     n_ok += cnt
                     j = c

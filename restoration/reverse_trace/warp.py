@@ -11,7 +11,11 @@ is a :class:`ViewPlan`: a rig builds it once and passes it to every frame's view
 
 from __future__ import annotations
 
+import contextlib
+import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -34,6 +38,30 @@ BoolArray = NDArray[np.bool_]
 #: last Newton step, which is then taken: the error left is second order (below 3e-3 px for
 #: 0.05 px on the paper's rig), far below what bilinear interpolation of the warp adds.
 _WARP_TOL_PX, _WARP_ITER = 0.05, 12
+
+
+@dataclass(frozen=True)
+class _CoarseWarp:
+    """The warp on the coarse grid, all a :class:`Restoration` needs to give its full-size
+    maps when they are read: displacement ``u - p`` in columns and rows (rows, cols) px,
+    cells whose four nodes were solved (rows - 1, cols - 1), and the plan's pixel cells."""
+
+    disp_x: NDArray[np.float32]
+    disp_y: NDArray[np.float32]
+    cell_ok: BoolArray
+    pixel_cells: tuple[NDArray[np.intp], NDArray[np.float32], NDArray[np.intp],
+                       NDArray[np.float32]]
+
+    def maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Sampling columns and rows (H, W): the very values the restored image sampled."""
+        h, w = self.pixel_cells[2].size, self.pixel_cells[0].size
+        scratch = _WarpScratch.new(h, w)
+        run_chunks(
+            warp_rows, 4 * restore_threads(), self.disp_x, self.disp_y, self.cell_ok,
+            *self.pixel_cells, scratch.map_x, scratch.map_y, np.empty((h, w), bool),
+            scratch.per_row, scratch.first, scratch.last,
+        )
+        return scratch.map_x, scratch.map_y
 
 
 @dataclass(frozen=True)
@@ -60,8 +88,6 @@ class Restoration:
         sampled, one pass) and ``total``.
     step_px : int
         Spacing of the coarse warp grid, pixels.
-    map_cols, map_rows : (H, W) ndarray of float32
-        The warp's columns and rows (see :attr:`map_px`).
     """
 
     image: NDArray
@@ -69,8 +95,22 @@ class Restoration:
     counts: dict[str, int]
     timings_ms: dict[str, float]
     step_px: int
-    map_cols: NDArray[np.float32] = field(repr=False)
-    map_rows: NDArray[np.float32] = field(repr=False)
+    coarse: _CoarseWarp = field(repr=False)
+
+    @cached_property
+    def _maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        return self.coarse.maps()
+
+    @property
+    def map_cols(self) -> NDArray[np.float32]:
+        """(H, W) float32: the warp's columns (see :attr:`map_px`); upsampled from the coarse
+        warp on first read (the restoration samples the image without keeping them)."""
+        return self._maps[0]
+
+    @property
+    def map_rows(self) -> NDArray[np.float32]:
+        """(H, W) float32: the warp's rows (see :attr:`map_px`), as :attr:`map_cols`."""
+        return self._maps[1]
 
     @property
     def map_px(self) -> NDArray[np.float32]:
@@ -86,6 +126,53 @@ class Restoration:
         warp = self.map_px
         warp[~self.valid] = np.nan
         return warp
+
+
+@dataclass(frozen=True)
+class _WarpScratch:
+    """The full-size intermediate arrays of :func:`_pixel_warp`: sampling columns and rows
+    (H, W) float32, and each row's valid pixels and first and last valid column (H,)."""
+
+    map_x: NDArray[np.float32]
+    map_y: NDArray[np.float32]
+    per_row: NDArray[np.int64]
+    first: NDArray[np.int64]
+    last: NDArray[np.int64]
+
+    @classmethod
+    def new(cls, h: int, w: int) -> _WarpScratch:
+        """Uninitialised arrays for an image ``h`` x ``w`` (every entry is written)."""
+        return cls(np.empty((h, w), np.float32), np.empty((h, w), np.float32),
+                   *(np.empty(h, np.int64) for _ in range(3)))
+
+
+class _Workspace:
+    """A :class:`ViewPlan`'s :class:`_WarpScratch`, kept from frame to frame.
+
+    Fresh image-sized arrays cost more in page faults than the pass that fills them, so the
+    plan keeps one set; nothing of them reaches a :class:`Restoration`. One frame at a time
+    uses them: a thread that finds them taken works in fresh ones. Pickled, it starts empty.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._scratch: _WarpScratch | None = None
+
+    @contextlib.contextmanager
+    def borrow(self, h: int, w: int) -> Iterator[_WarpScratch]:
+        """The scratch for an image ``h`` x ``w`` (fresh while another thread has it)."""
+        if not self._lock.acquire(blocking=False):
+            yield _WarpScratch.new(h, w)
+            return
+        try:
+            if self._scratch is None or self._scratch.map_x.shape != (h, w):
+                self._scratch = _WarpScratch.new(h, w)
+            yield self._scratch
+        finally:
+            self._lock.release()
+
+    def __reduce__(self) -> tuple:
+        return (_Workspace, ())
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,6 +212,9 @@ class ViewPlan:
         (W,), (W,), (H,), (H,).
     cell_area : (rows - 1, cols - 1) ndarray
         Pixels in each coarse cell.
+    workspace
+        Full-size scratch arrays that every frame's :func:`restore_view` reuses (one frame
+        at a time; another thread meanwhile works in fresh ones); not part of the result.
 
     Examples
     --------
@@ -152,6 +242,8 @@ class ViewPlan:
         NDArray[np.intp], NDArray[np.float32], NDArray[np.intp], NDArray[np.float32]
     ] = field(repr=False)
     cell_area: NDArray[np.float64] = field(repr=False)
+    workspace: _Workspace = field(default_factory=_Workspace, init=False, repr=False,
+                                  compare=False)
 
     @classmethod
     def build(
@@ -328,46 +420,50 @@ def _pixel_warp(
     disp_y: NDArray[np.float32],
     node_status: NDArray[np.int8],
     gain: float,
-) -> tuple[NDArray, NDArray[np.float32], NDArray[np.float32], BoolArray, dict[str, int]]:
-    """The restored image (H, W[, C]) over ``gain``, full-resolution sampling columns and rows
-    (H, W), validity (H, W) and counts per cause.
+) -> tuple[NDArray, BoolArray, dict[str, int], _CoarseWarp]:
+    """The restored image (H, W[, C]) over ``gain``, validity (H, W), counts per cause and
+    the coarse warp (the full-size maps on demand).
 
     A pixel is valid when the four nodes of its cell were solved and its sampling position
     lies inside the distorted image. One compiled pass over the rows, in chunks shared by the
     restoration's threads (:func:`~restoration.reverse_trace._kernels.warp_rows`), upsamples
-    the warp and tests it; ``cv2.remap`` samples the image in the valid pixels' bounding box
-    (exact bilinear weights on float maps since OpenCV 5; the fixed-point maps of
-    ``cv2.convertMaps`` would round the position to 1/32 px and measured no faster); the box
-    is then divided by the gain, and its invalid pixels and everything outside it zeroed, in
-    chunks of rows (:func:`~restoration.reverse_trace._kernels.finish_rows`).
+    the warp into the plan's scratch maps and tests it; ``cv2.remap`` samples the image in
+    the valid pixels' bounding box (exact bilinear weights on float maps since OpenCV 5; the
+    fixed-point maps of ``cv2.convertMaps`` would round the position to 1/32 px and measured
+    no faster); the box is then divided by the gain, and its invalid pixels and everything
+    outside it zeroed, in chunks of rows
+    (:func:`~restoration.reverse_trace._kernels.finish_rows`). The image and validity are
+    new arrays (the caller keeps them); the maps are not kept.
     Displacements are interpolated, not positions: they vary slowly, so float32 costs nothing.
     """
     h, w = plan.image_shape
     cell = _cell_status(node_status)
-    map_x = np.empty((h, w), np.float32)
-    map_y = np.empty((h, w), np.float32)
+    cell_ok = cell == RayStatus.OK
+    coarse = _CoarseWarp(disp_x, disp_y, cell_ok, plan.pixel_cells)
     valid = np.empty((h, w), bool)
-    per_row, first, last = (np.empty(h, np.int64) for _ in range(3))
-    run_chunks(
-        warp_rows, 4 * restore_threads(), disp_x, disp_y, cell == RayStatus.OK,
-        *plan.pixel_cells, map_x, map_y, valid, per_row, first, last,
-    )
-    n_valid, box = valid_box(per_row, first, last, w)
-    r0, r1, c0, c1 = (int(v) for v in box)
-    # Only the valid pixels' bounding box is sampled (views: cv2 writes into the result); the
-    # rest is zeroed. Half-pixel border: replicate rather than blend with black. The box is
-    # then divided by the gain, its invalid pixels and everything outside it zeroed, in one
-    # pass over the rows (so the result is not zeroed first: a full pass less).
-    if not n_valid:
-        return np.zeros(img.shape, dtype=img.dtype), map_x, map_y, valid, _counts(cell, plan, 0)
-    out = np.empty(img.shape, dtype=img.dtype)
-    cv2.remap(img, map_x[r0:r1, c0:c1], map_y[r0:r1, c0:c1], cv2.INTER_LINEAR,
-              dst=out[r0:r1, c0:c1], borderMode=cv2.BORDER_REPLICATE)
+    with plan.workspace.borrow(h, w) as scratch:
+        map_x, map_y = scratch.map_x, scratch.map_y
+        run_chunks(
+            warp_rows, 4 * restore_threads(), disp_x, disp_y, cell_ok, *plan.pixel_cells,
+            map_x, map_y, valid, scratch.per_row, scratch.first, scratch.last,
+        )
+        n_valid, box = valid_box(scratch.per_row, scratch.first, scratch.last, w)
+        r0, r1, c0, c1 = (int(v) for v in box)
+        # Only the valid pixels' bounding box is sampled (views: cv2 writes into the result);
+        # the rest is zeroed. Half-pixel border: replicate rather than blend with black. The
+        # box is then divided by the gain, its invalid pixels and everything outside it
+        # zeroed, in one pass over the rows (so the result is not zeroed first: a full pass
+        # less).
+        if not n_valid:
+            return np.zeros(img.shape, dtype=img.dtype), valid, _counts(cell, plan, 0), coarse
+        out = np.empty(img.shape, dtype=img.dtype)
+        cv2.remap(img, map_x[r0:r1, c0:c1], map_y[r0:r1, c0:c1], cv2.INTER_LINEAR,
+                  dst=out[r0:r1, c0:c1], borderMode=cv2.BORDER_REPLICATE)
     run_chunks(
         finish_rows, 4 * restore_threads(), out.reshape(h, w, -1), valid, box,
         img.dtype.type(gain),
     )
-    return out, map_x, map_y, valid, _counts(cell, plan, int(n_valid))
+    return out, valid, _counts(cell, plan, int(n_valid)), coarse
 
 
 def _counts(cell: NDArray[np.int8], plan: ViewPlan, n_valid: int) -> dict[str, int]:
@@ -461,7 +557,7 @@ def restore_view(
         with timings("upsample"):
             disp_x, disp_y, node_status = _node_warp(plan, px, st)
         with timings("remap"):
-            out, map_x, map_y, valid, counts = _pixel_warp(
+            out, valid, counts, coarse = _pixel_warp(
                 plan, img, disp_x, disp_y, node_status, gain
             )
-    return Restoration(out, valid, counts, timings.to_dict(), step, map_x, map_y)
+    return Restoration(out, valid, counts, timings.to_dict(), step, coarse)
