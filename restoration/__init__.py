@@ -36,7 +36,17 @@ from restoration.calibration import Calibration, LevelTrack, RigCalibration
 from restoration.consistency import Consistency
 from restoration.errors import RestorationFailed
 from restoration.folder import FolderRestore, restore_folder
-from restoration.methods import METHODS, Alterman, Method, as_method, get_method, load_calibration
+from restoration.methods import (
+    ENTRY_POINT_GROUP,
+    METHODS,
+    Alterman,
+    Method,
+    as_method,
+    get_method,
+    load_calibration,
+    method_class,
+    method_names,
+)
 from restoration.observations import Observations
 from restoration.options import (
     ANCHORS,
@@ -44,7 +54,7 @@ from restoration.options import (
     StructuredLightOptions,
     SurfaceOptions,
 )
-from restoration.result import STATUSES, RestoreResult, Status
+from restoration.result import STATUSES, RestoredView, RestoreResult, Status
 from restoration.scoring import Scores, Truth, score
 from restoration.sequence import SequenceRestore, restore_sequence
 from restoration.structured_light import StructuredLight
@@ -52,6 +62,7 @@ from restoration.view_check import ViewMatch
 
 __all__ = [
     "ANCHORS",
+    "ENTRY_POINT_GROUP",
     "METHODS",
     "STATUSES",
     "Alterman",
@@ -65,6 +76,7 @@ __all__ = [
     "Observations",
     "RestorationFailed",
     "RestoreResult",
+    "RestoredView",
     "RigCalibration",
     "Scores",
     "SequenceRestore",
@@ -77,6 +89,8 @@ __all__ = [
     "as_method",
     "get_method",
     "load_calibration",
+    "method_class",
+    "method_names",
     "restore_folder",
     "restore_sequence",
     "score",

@@ -8,6 +8,7 @@ folder and renamed into place when complete.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -216,11 +217,14 @@ def restore_frame(
     folder = Path(folder)
     images = cal.load_images(folder)
     view_flat = load_view_flat(cal, folder, *flat_from)
+    t0 = time.perf_counter()
     result = method(images, cal, track)
+    # A method of one's own may time nothing: the call's wall time is its end to end.
+    result.timings_ms.setdefault("end_to_end", 1e3 * (time.perf_counter() - t0))
     check_inputs(folder, cal, images, result, view_flat)
     if step is not None:
         step("score" if scored else "score (skipped)")
-    truth = Truth.from_folder(folder, cal) if scored and result.restored else None
+    truth = Truth.from_folder(folder, cal) if scored and result.has_view else None
     scores = None if truth is None else score(result, cal.radiance(images["view"]), cal, truth)
     metrics = folder_metrics(method, result, scores, scored, seed)
     return FolderRestore(folder, None, cal, images, result, truth, scores, metrics)
@@ -268,7 +272,7 @@ def check_files(
         if conflict is not None:
             result.warnings.append(conflict)
             result.flag(Status.AMBIGUOUS_INPUT, conflict)
-    if view_flat is not None and result.restored:
+    if view_flat is not None and result.has_view:
         match = match_flat_view(result.view.image, result.view.valid,
                                 cal.radiance(images["view"]), view_flat)
         result.view_match = match
@@ -288,7 +292,7 @@ def folder_metrics(
     if scores is None:
         metrics["scores_skipped"] = (
             "not asked" if not scored
-            else "no restoration" if not result.restored
+            else "no restoration" if not result.has_view
             else "no truth in the folder (heightfield.npz, view_truth.*)"
         )
     metrics["options"] = method.options.to_dict()
@@ -318,12 +322,14 @@ def write_restore_files(
 
 
 def _write_arrays(tmp: Path, result: RestoreResult) -> None:
-    """The surface, the restored view, its mask and the confidence arrays."""
-    if not result.restored:
+    """The surface (when the method gives one), the restored view, its mask and the
+    confidence arrays."""
+    if not result.has_view:
         return
-    est = result.surface.heightfield
-    est.save(tmp / "heightfield_est.npz")
-    est.to_trimesh().export(tmp / "surface_est.ply")
+    if result.surface is not None:
+        est = result.surface.heightfield
+        est.save(tmp / "heightfield_est.npz")
+        est.to_trimesh().export(tmp / "surface_est.ply")
     write_exr(tmp / "restored.exr", result.view.image)
     write_png(tmp / "restored.png", result.view.image, exposure=1.0)
     write_png(tmp / "restored_mask.png", (result.view.valid * np.uint8(255)).astype(np.uint8))
@@ -343,12 +349,14 @@ def _write_figures(
     corners."""
     from restoration import figures
 
-    if not result.restored:
+    if not result.has_view:
         return
-    est = result.surface.heightfield
     figures.views_figure(_view_panels(cal, images, result, scores, truth), result.view.valid,
                          tmp / "distorted_vs_restored.png",
                          None if scores is None else scores.view_restored_fraction)
+    if result.surface is None:
+        return _write_corners(tmp, scores)
+    est = result.surface.heightfield
     if result.consistency is not None:
         check = result.consistency
         figures.confidence_figure(est, check.residual_map_px, check.threshold_px,
@@ -357,6 +365,12 @@ def _write_figures(
         figures.error_map_figure(est, scores.error_map_mm, tmp / "error_map.png")
         y0 = float(np.nanmedian(result.surface.points_mm[:, 1]))
         figures.profile_figure(*surface_profile(est, truth.surface, y0), y0, tmp / "profile.png")
+    _write_corners(tmp, scores)
+
+
+def _write_corners(tmp: Path, scores: Scores | None) -> None:
+    from restoration import figures
+
     if scores is not None and scores.corner_points_px:
         figures.corner_scatter_figure(
             scores.corner_points_px,
@@ -394,7 +408,7 @@ def _num(value: Any, spec: str, unit: str = "") -> str:
 def summary_lines(m: dict[str, Any]) -> list[str]:
     """The figures of a ``metrics.json`` a person reads first, one line each."""
     status = m.get("status", Status.OK)
-    if "features_used" not in m:
+    if "features_used" not in m and "view_valid_fraction" not in m:
         return [f"{m['method']}: cannot run ({status}): {m['message']}"]
     lines = []
     if status != Status.OK:
@@ -406,11 +420,14 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
             f"{_num(m['wai_max_abs_mm'], '.3f', ' mm')}) from {m['features_used']} features "
             f"({m['features_rejected']} rejected)"
         )
-    else:
+    elif "features_used" in m:
         lines.append(
             f"surface from {m['features_used']} features ({m['features_rejected']} rejected); "
             f"scores skipped: {m.get('scores_skipped', 'no truth')}"
         )
+    else:
+        skipped = "" if m.get("scored") else f"; scores skipped: {m.get('scores_skipped')}"
+        lines.append(f"{m['method']}: a restored view without a surface{skipped}")
     if "corner_std_restored_px" in m:
         lines.append(
             f"corner STD {_num(m['corner_std_distorted_px'], '.2f', ' px')} -> "
@@ -425,7 +442,8 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
             f"{m['view_restored_fraction']:.0%} of the object's pixels (those the flat-water "
             "view sees)"
         )
-    lines.append(anchor_line(m.get("anchor", {})))
+    if "anchor" in m:
+        lines.append(anchor_line(m["anchor"]))
     if "flat_reference" in m:
         ref = m["flat_reference"]
         lines.append(f"flat-water reference {ref['rms_px']:.2f} px RMS from the calibration "

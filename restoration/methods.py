@@ -4,10 +4,19 @@ A method is a callable object configured once (its options: :class:`StructuredLi
 :class:`AltermanOptions`) and applied to frames: ``method(images, cal) -> RestoreResult``. Each
 names its options type and the calibration type it needs, which also knows how to read a
 frame's images from a folder.
+
+Methods of one's own join by the same protocol (:class:`Method`), named in three ways
+(:func:`method_class`): a built-in name (:data:`METHODS`), ``"module:Class"`` (imported), or
+the name of an entry point in the group :data:`ENTRY_POINT_GROUP` of an installed package
+(``[project.entry-points."wai.methods"] my-method = "my_package.module:MyMethod"``).
 """
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
+import sys
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
@@ -20,7 +29,10 @@ from restoration.result import RestoreResult
 from restoration.structured_light import StructuredLight
 from wai_core.errors import WaiInputError
 
-__all__ = ["METHODS", "Alterman", "Method", "as_method", "get_method", "load_calibration"]
+__all__ = [
+    "ENTRY_POINT_GROUP", "METHODS", "Alterman", "Method", "as_method", "get_method",
+    "load_calibration", "method_class", "method_names",
+]
 
 
 class Method(Protocol):
@@ -74,10 +86,95 @@ METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name
 """Methods by name: ``structured-light`` (the paper's) and ``alterman`` (the sun sensor)."""
 
 
+ENTRY_POINT_GROUP = "wai.methods"
+"""The entry-point group in which installed packages register their methods."""
+
+
+def _plugins() -> dict[str, Any]:
+    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def method_names() -> list[str]:
+    """The built-in methods' names, then those registered by installed packages."""
+    return [*METHODS, *(n for n in sorted(_plugins()) if n not in METHODS)]
+
+
+def _checked_class(cls: Any, spec: str) -> type:
+    """``cls`` when it offers the :class:`Method` protocol's class attributes."""
+    problems = []
+    if not isinstance(cls, type) or not callable(cls):
+        problems.append("is not a class")
+    else:
+        if not isinstance(getattr(cls, "name", None), str):
+            problems.append("has no name (str)")
+        cal = getattr(cls, "calibration_type", None)
+        if not (isinstance(cal, type) and issubclass(cal, RigCalibration)):
+            problems.append("has no calibration_type (a RigCalibration subclass)")
+        opts = getattr(cls, "options_type", None)
+        if not (isinstance(opts, type) and issubclass(opts, SurfaceOptions)):
+            problems.append("has no options_type (a SurfaceOptions subclass)")
+    if problems:
+        raise WaiInputError(f"method {spec!r} {', '.join(problems)} (see restoration.Method)")
+    return cls
+
+
+def _import(module: str) -> Any:
+    """A module by dotted name (the working directory searched too, as ``python -m`` does), or
+    a Python file by its path (``my_method.py``)."""
+    if module.endswith(".py"):
+        path = Path(module)
+        if not path.is_file():
+            raise ImportError(f"no file {module}")
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        found = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(found)
+        return found
+    if "" not in sys.path and str(Path.cwd()) not in sys.path:
+        sys.path.append(str(Path.cwd()))
+    return importlib.import_module(module)
+
+
+def method_class(spec: str) -> type:
+    """The method class that ``spec`` names: a built-in name (:data:`METHODS`),
+    ``"module:Class"`` (a dotted module, found from the working directory too, or a Python
+    file, ``"path/to/mine.py:Class"``), or an entry point of :data:`ENTRY_POINT_GROUP`.
+
+    Raises
+    ------
+    WaiInputError
+        When nothing of that name exists, its module does not import, or the class does not
+        offer the protocol (:class:`Method`).
+
+    Examples
+    --------
+    >>> from restoration.methods import method_class
+    >>> method_class("alterman").__name__, method_class("restoration:StructuredLight").name
+    ('Alterman', 'structured-light')
+    """
+    if spec in METHODS:
+        return METHODS[spec]
+    if ":" in spec:
+        module, _, attr = spec.rpartition(":")
+        try:
+            found = getattr(_import(module), attr)
+        except (ImportError, AttributeError, OSError) as exc:
+            raise WaiInputError(f"method {spec!r}: cannot import it ({exc})") from None
+        return _checked_class(found, spec)
+    plugin = _plugins().get(spec)
+    if plugin is None:
+        raise WaiInputError(f"unknown method {spec!r} (known: {', '.join(method_names())}; "
+                            "or module:Class)")
+    try:
+        found = plugin.load()
+    except (ImportError, AttributeError) as exc:
+        raise WaiInputError(f"method {spec!r}: its entry point does not load ({exc})") from None
+    return _checked_class(found, spec)
+
+
 def get_method(name: str, options: SurfaceOptions | None = None, **choices: Any) -> Method:
-    """The method called ``name``, configured with ``options`` (default: its own defaults),
-    or with the ``choices`` that are not None (``n_refine=0``, ``anchor=None``: a CLI's flags;
-    the others at the method's defaults).
+    """The method called ``name`` (:func:`method_class`), configured with ``options``
+    (default: its own defaults), or with the ``choices`` that are not None (``n_refine=0``,
+    ``anchor=None``: a CLI's flags; the others at the method's defaults).
 
     Raises
     ------
@@ -90,9 +187,7 @@ def get_method(name: str, options: SurfaceOptions | None = None, **choices: Any)
     >>> get_method("alterman", n_refine=0, anchor=None).options.n_refine
     0
     """
-    if name not in METHODS:
-        raise WaiInputError(f"unknown method {name!r} (known: {', '.join(METHODS)})")
-    cls = METHODS[name]
+    cls = method_class(name)
     if options is None and choices:
         options = cls.options_type.from_choices(**choices)
     return cls(options)

@@ -50,8 +50,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-__all__ = ["REFERENCE_RMS_FRACTION", "SPARSE_FRACTION", "STATUSES", "RestoreResult", "Status"]
+__all__ = [
+    "REFERENCE_RMS_FRACTION", "SPARSE_FRACTION", "STATUSES", "RestoreResult", "RestoredView",
+    "Status",
+]
 
 
 class Status(enum.StrEnum):
@@ -90,6 +94,37 @@ REFERENCE_RMS_FRACTION = 0.15
 spacing from the calibrated flat-water prediction makes a frame ``bad_reference``. A flat-water
 render of the paper's rig lies 0.02 spacings from it; the wavy pattern taken for the reference
 0.3 (a proximity match cannot exceed about 0.5)."""
+
+
+@dataclass(frozen=True)
+class RestoredView:
+    """A restored view of a method that gives no warp of its own (one restoring from images
+    alone, a method of one's own): what :class:`RestoreResult` and the scores read.
+
+    Attributes
+    ----------
+    image : (H, W, 3) ndarray
+        The restored view, in the flat-water view's geometry, radiance (the view divided by
+        the calibration's gain); 0 where not valid.
+    valid : (H, W) ndarray of bool
+        True where the pixel was restored.
+    counts : dict of str to int
+        Pixels per cause, if the method counts them (``ok`` and its own names).
+    timings_ms : dict of str to float
+        The method's own stage times, ms.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> view = RestoredView(np.zeros((4, 5, 3)), np.ones((4, 5), bool))
+    >>> RestoreResult("mine", view=view).has_view, RestoreResult("mine", view=view).restored
+    (True, False)
+    """
+
+    image: NDArray
+    valid: NDArray[np.bool_]
+    counts: dict[str, int] = field(default_factory=dict)
+    timings_ms: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -164,6 +199,12 @@ class RestoreResult:
     def restored(self) -> bool:
         """True when a surface and a restored view exist (whatever the status says of them)."""
         return self.surface is not None and self.view is not None
+
+    @property
+    def has_view(self) -> bool:
+        """True when a restored view exists, with or without a surface (a method that
+        restores from images alone gives none)."""
+        return self.view is not None
 
     def summary(self) -> dict[str, Any]:
         """The truth-free figures of the frame, as plain values (``metrics.json``)."""

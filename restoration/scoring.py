@@ -153,7 +153,8 @@ def score(
     Parameters
     ----------
     result : RestoreResult
-        A restoration with a surface and a view (``result.restored``).
+        A restoration with a view (``result.has_view``); its surface is scored when it has
+        one.
     distorted_view : (H, W, 3) ndarray
         The view image divided by the calibration's gain.
     cal : RigCalibration
@@ -168,10 +169,10 @@ def score(
     ValueError
         When ``result`` holds no restoration (its status says why).
     """
-    if not result.restored:
+    if not result.has_view:
         raise ValueError(f"nothing to score: the frame's status is {result.status.value!r}")
     out = Scores()
-    if truth.surface is not None:
+    if truth.surface is not None and result.surface is not None:
         surf = surface_errors(result.surface.heightfield, truth.surface)
         out.surface = {
             k: surf[k]

@@ -78,12 +78,6 @@ def _integrators() -> list[str]:
     return [name for name in INTEGRATORS if name not in COMPARISON_INTEGRATORS]
 
 
-def _methods() -> list[str]:
-    from restoration import METHODS
-
-    return list(METHODS)
-
-
 def _cmd_render(args: argparse.Namespace) -> int:
     from wai.render_cli import run_render
 
@@ -250,9 +244,10 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--method",
         default="structured-light",
-        choices=_methods(),
-        help="surface sensing method: structured-light, or alterman (the sun-and-pinhole "
-        "baseline, on a folder rendered from the alterman scene)",
+        help="restoration method: structured-light, alterman (the sun-and-pinhole baseline, on "
+        "a folder rendered from the alterman scene), a method of one's own as module:Class, "
+        "or the name an installed package registers (entry points 'wai.methods'; "
+        "docs/methods.md) (default: structured-light)",
     )
     p.add_argument(
         "--anchor",

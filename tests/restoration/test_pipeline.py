@@ -13,6 +13,7 @@ from mitsuba_wai.render import render_folder
 from restoration import Calibration, StructuredLight, StructuredLightOptions, restore_folder
 from restoration.anchor import find_anchor
 from restoration.structured_light import estimate_surface
+from tests.conftest import ROOT
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
 from wai_core.io import write_exr
@@ -283,3 +284,18 @@ def test_a_black_view_is_flagged_and_prints_no_nan(bump_dir, tmp_path, capsys):
     out, err = capsys.readouterr()
     assert "dark_view" in err and len(err.strip().splitlines()) == 1
     assert "nan" not in out.lower()
+
+
+def test_a_view_only_method_is_scored_on_its_view(flat_dir, tmp_path):
+    """The unrestored view of flat water is the truth itself: SSIM 1, no surface scores,
+    and the outputs hold the view but no surface files."""
+    plugin = f"{ROOT / 'examples' / 'plugin_method.py'}:AsSeen"
+    done = restore_folder(flat_dir, plugin, out=tmp_path / "out")
+    m = done.metrics
+    assert m["scored"] and "wai_rmse_mm" not in m and "features_used" not in m
+    assert m["restored"]["ssim"] == pytest.approx(1.0, abs=1e-3)
+    assert m["timings_ms"]["end_to_end"] > 0
+    files = {p.name for p in (tmp_path / "out").iterdir()}
+    assert "restored.exr" in files and "heightfield_est.npz" not in files
+    assert done.summary_lines()[0].startswith("as-seen: a restored view without a surface")
+    assert np.all(done.result.view.valid)

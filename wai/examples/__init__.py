@@ -12,7 +12,7 @@ import tempfile
 from pathlib import Path
 
 NAMES = ("render_and_restore", "restore_own_captures", "custom_surface_both_methods",
-         "small_sweep")
+         "small_sweep", "plugin_method")
 """The examples, simplest first."""
 
 
