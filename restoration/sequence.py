@@ -181,8 +181,8 @@ def restore_sequence(
                 done.write_files(tmp, figures=False)
                 staged.append((tmp, done.metrics))
             view = done.distorted
-            image = result.view.image if result.restored else np.zeros_like(view)
-            valid = result.view.valid if result.restored else np.zeros(view.shape[:2], bool)
+            image = result.view.image if result.has_view else np.zeros_like(view)
+            valid = result.view.valid if result.has_view else np.zeros(view.shape[:2], bool)
             rows.append(_row(k, seq.times_s[k], result, done.scores, view, image, valid,
                              distorted[-1:], restored[-1:], masks[-1:]))
             distorted.append(view)
@@ -239,11 +239,12 @@ def _row(
     """One ``frames.csv`` row."""
     row: dict[str, Any] = {c: None for c in COLUMNS}
     row.update(frame=k, time_s=time_s, status=result.status.value)
+    if result.has_view:
+        row["end_to_end_ms"] = result.timings_ms.get("end_to_end")
     if result.restored:
         row.update(
             anchor_mm=result.surface.anchor.anchor_mm,
             features_used=len(result.surface.ij),
-            end_to_end_ms=result.timings_ms.get("end_to_end"),
         )
         if result.consistency is not None:
             row["residual_median_px"] = result.consistency.median_px
