@@ -41,15 +41,15 @@ from restoration.errors import RestorationFailed
 from restoration.integrate import (
     GRIDDERS,
     INTEGRATORS,
-    DifferenceGraph,
     check_samples,
     grid_neighbours,
     integrate,
     to_heightfield,
 )
-from restoration.integrate.lattice import line_neighbours, lu_solve
+from restoration.integrate.lattice import largest_piece, line_neighbours
+from restoration.integrate.ldl import ldl_solve, pinned_laplacian_ldl
 from restoration.integrate.plans import IntegrationPlans, plan_of
-from restoration.integrate.rules import edge_step, edge_steps
+from restoration.integrate.rules import edge_step
 from restoration.normals import (
     _KERNEL_ERRORS,
     _reflection_kernel,
@@ -462,27 +462,32 @@ def _prepared(
         (:func:`~restoration.integrate.line_neighbours`), -1 where absent; all -1 for the
         trapezoid rule.
     factors : tuple
-        :attr:`~restoration.integrate.lattice.TriangularFactors.arrays` of its pinned
-        Laplacian.
+        :attr:`~restoration.integrate.ldl.LdlFactors.arrays` of its pinned Laplacian (the
+        matrix of :class:`~restoration.integrate.DifferenceGraph`).
     """
     weight_xy = np.ascontiguousarray(weight_xy, dtype=float)
 
     def build() -> tuple:
-        system = _TrapezoidSystem.of(ij, weight_xy, checked=True, plans=plans)
-        keep = system.graph.keep
-        if keep.all():
-            keep = None
-        else:
-            system = _TrapezoidSystem.of(ij[keep], weight_xy[keep], checked=True, plans=plans)
-        graph = system.graph
-        w = system.weights[graph.edges]
-        if fourth_order:
-            before, after = line_neighbours(
-                ij if keep is None else ij[keep], graph.ea, graph.eb
+        check_samples(ij, weight_xy, np.zeros_like(weight_xy))
+        a, b = trapezoid_edges(ij)
+        length2 = np.empty(a.size)
+        _length2_kernel(weight_xy, a, b, length2)
+        if not np.all(length2 > 0):
+            raise RestorationFailed(
+                "integrate: two neighbouring samples sit at the same position"
             )
+        keep = largest_piece(ij.shape[0], a, b)
+        # The piece's edges, in the order of the trapezoid edges of its own samples.
+        inside = keep[a] & keep[b]
+        pos = np.cumsum(keep) - 1
+        ea, eb, w = pos[a[inside]], pos[b[inside]], 1.0 / length2[inside]
+        kept_ij = ij[keep]
+        if fourth_order:
+            before, after = line_neighbours(kept_ij, ea, eb)
         else:
-            before = after = np.full(graph.ea.size, -1, np.int64)
-        return keep, graph.ea, graph.eb, before, after, w, graph.triangular(w).arrays
+            before = after = np.full(ea.size, -1, np.int64)
+        factors = pinned_laplacian_ldl(kept_ij, ea, eb, w).arrays
+        return None if keep.all() else keep, ea, eb, before, after, w, factors
 
     return plan_of(plans, "prepared", ij, build, weight_xy.shape, weight_xy.tobytes(),
                    fourth_order)
@@ -551,13 +556,12 @@ def _compiled_refinement(
 @njit(cache=True, nogil=True, error_model="numpy")
 def _refine_kernel(
     origin, dirs, spots, h0, n_refine, tol, accelerate, ea, eb, before, after, w,
-    l_ptr, l_idx, l_val, l_diag, u_ptr, u_idx, u_val, u_diag, perm_r, perm_c,
-    q, normals, slopes, integrated, out,
+    rank, l_ptr, l_idx, l_val, l_diag, q, normals, slopes, integrated, out,
 ):  # pragma: no cover
     """All passes of the trapezoid refinement (see :func:`_compiled_refinement`).
 
     ``ea, eb`` (E,) are the edges (every sample kept, sample 0 pinned), ``w`` (E,) their
-    weights, then the factors of the pinned Laplacian (:class:`TriangularFactors`). Fills
+    weights, then the factors of the pinned Laplacian (:class:`LdlFactors`). Fills
     ``q``, ``normals``, ``slopes``, ``integrated`` and ``out = (iterations, change)``;
     returns 0 or an error code (:data:`_KERNEL_ERRORS`, :data:`_REFINE_ERRORS`).
     """
@@ -590,8 +594,7 @@ def _refine_kernel(
             minus[i] += wd
         for i in range(k - 1):
             rhs[i] = plus[i + 1] - minus[i + 1]
-        lu_solve(l_ptr, l_idx, l_val, l_diag, u_ptr, u_idx, u_val, u_diag, perm_r, perm_c,
-                 rhs, sol)
+        ldl_solve(rank, l_ptr, l_idx, l_val, l_diag, rhs, sol)
         total = 0.0
         for i in range(k - 1):
             if not np.isfinite(sol[i]):
@@ -655,51 +658,6 @@ def trapezoid_edges(ij: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[n
     a = np.concatenate([np.flatnonzero(row >= 0) for row in nb])
     b = np.concatenate([row[row >= 0] for row in nb])
     return a, b
-
-
-@dataclass(frozen=True)
-class _TrapezoidSystem:
-    """The ``"trapezoid"`` integration of one sample set with fixed weights, prepared once:
-    its edges (:func:`trapezoid_edges`), weights (E,) and :class:`DifferenceGraph`. Solving
-    it gives what :func:`restoration.integrate.integrate_trapezoid` gives, to the last bit,
-    without its per-call checks and lookups (the level search runs ~30 such solves a frame).
-    """
-
-    a: NDArray[np.int64]
-    b: NDArray[np.int64]
-    weights: Array
-    graph: DifferenceGraph
-
-    @classmethod
-    def of(
-        cls, ij: NDArray[np.int64], weight_xy: Array, checked: bool = False,
-        plans: IntegrationPlans | None = None,
-    ) -> _TrapezoidSystem:
-        """The system of grid indices ``ij`` (K, 2) weighted by positions ``weight_xy``
-        (K, 2) mm; ``checked`` runs :func:`check_samples` on ``ij`` first (once per index set:
-        the compiled passes check their own positions and slopes). The edges and graph (which
-        keeps its factorisations) are kept in ``plans``: a frame's probes share them."""
-
-        def build() -> tuple:
-            if checked:
-                check_samples(ij, weight_xy, np.zeros_like(weight_xy))
-            a, b = trapezoid_edges(ij)
-            return a, b, DifferenceGraph.build(ij.shape[0], a, b)
-
-        a, b, graph = plan_of(plans, "trapezoid_graph", ij, build)
-        length2 = np.empty(a.size)
-        _length2_kernel(np.ascontiguousarray(weight_xy, dtype=float), a, b, length2)
-        if not np.all(length2 > 0):
-            raise RestorationFailed(
-                "integrate: two neighbouring samples sit at the same position"
-            )
-        return cls(a, b, 1.0 / length2, graph)
-
-    def steps(self, xy: Array, slopes: Array) -> Array:
-        """The measured differences (E,) mm: the trapezoid rule's steps
-        (:func:`~restoration.integrate.edge_steps` without neighbours)."""
-        none = np.full(self.a.size, -1, np.int64)
-        return edge_steps(xy, slopes, self.a, self.b, none, none)
 
 
 def _anchored(relative_mm: Array, h0_mm: float) -> Array:

@@ -10,7 +10,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import SuperLU, splu
@@ -163,82 +162,6 @@ def _singular() -> RestorationFailed:
 
 
 @dataclass(frozen=True)
-class TriangularFactors:
-    """A SuperLU factorisation ``Pr A Pc = L U`` (``A`` (m, m)) as CSC arrays, for
-    :func:`lu_solve` inside compiled loops (a SuperLU object cannot enter numba).
-
-    Attributes
-    ----------
-    l_ptr, l_idx, l_val : ndarray
-        CSC arrays of ``L`` (lower triangular); ``l_diag`` (m,) its diagonal.
-    u_ptr, u_idx, u_val : ndarray
-        CSC arrays of ``U`` (upper triangular); ``u_diag`` (m,) its diagonal.
-    perm_r, perm_c : (m,) ndarray of int
-        SuperLU's row and column permutations: ``y[perm_r] = b``, ``x = z[perm_c]``.
-    """
-
-    l_ptr: IntArray
-    l_idx: IntArray
-    l_val: Array
-    l_diag: Array
-    u_ptr: IntArray
-    u_idx: IntArray
-    u_val: Array
-    u_diag: Array
-    perm_r: IntArray
-    perm_c: IntArray
-
-    @classmethod
-    def of(cls, lu: SuperLU) -> TriangularFactors:
-        """The factors of ``lu``."""
-        lower, upper = lu.L.tocsc(), lu.U.tocsc()
-        arrays = []
-        for m in (lower, upper):
-            arrays += [
-                m.indptr.astype(np.int64), m.indices.astype(np.int64),
-                np.ascontiguousarray(m.data, dtype=float), m.diagonal().astype(float),
-            ]
-        return cls(*arrays, lu.perm_r.astype(np.int64), lu.perm_c.astype(np.int64))
-
-    @property
-    def arrays(self) -> tuple:
-        """All ten arrays, in the order of :func:`lu_solve`'s parameters."""
-        return (
-            self.l_ptr, self.l_idx, self.l_val, self.l_diag,
-            self.u_ptr, self.u_idx, self.u_val, self.u_diag, self.perm_r, self.perm_c,
-        )
-
-
-@njit(cache=True, nogil=True)
-def lu_solve(
-    l_ptr, l_idx, l_val, l_diag, u_ptr, u_idx, u_val, u_diag, perm_r, perm_c, b, out
-):  # pragma: no cover
-    """``out`` (m,) = ``A^-1 b`` from the factors of :class:`TriangularFactors`: the forward
-    and back substitutions of ``SuperLU.solve``, column by column (same result to rounding).
-    ``b`` (m,) is left unchanged."""
-    m = b.size
-    y = np.empty(m)
-    for i in range(m):
-        y[perm_r[i]] = b[i]
-    for j in range(m):  # L y' = y, column-oriented: each solved entry updates those below
-        yj = y[j] / l_diag[j]
-        y[j] = yj
-        for p in range(l_ptr[j], l_ptr[j + 1]):
-            i = l_idx[p]
-            if i > j:
-                y[i] -= l_val[p] * yj
-    for j in range(m - 1, -1, -1):  # U z = y', from the last column up
-        zj = y[j] / u_diag[j]
-        y[j] = zj
-        for p in range(u_ptr[j], u_ptr[j + 1]):
-            i = u_idx[p]
-            if i < j:
-                y[i] -= u_val[p] * zj
-    for i in range(m):
-        out[i] = y[perm_c[i]]
-
-
-@dataclass(frozen=True)
 class DifferenceGraph:
     """The structure of ``min sum_e w_e (h[b_e] - h[a_e] - d_e)^2``, prepared once per edge set.
 
@@ -281,9 +204,6 @@ class DifferenceGraph:
     source: IntArray
     sign: Array
     _factors: dict[bytes, SuperLU] = field(default_factory=dict, repr=False, compare=False)
-    _triangular: dict[bytes, TriangularFactors] = field(
-        default_factory=dict, repr=False, compare=False
-    )
 
     @classmethod
     def build(cls, n: int, a: IntArray, b: IntArray) -> DifferenceGraph:
@@ -342,18 +262,6 @@ class DifferenceGraph:
                 self._factors.clear()
             self._factors[key] = lu
         return lu
-
-    def triangular(self, w: Array) -> TriangularFactors:
-        """The factors of :meth:`_factor` for edge weights ``w`` (E',), as plain arrays for
-        compiled solves (:func:`lu_solve`), cached with the factorisation."""
-        key = w.tobytes()
-        found = self._triangular.get(key)
-        if found is None:
-            found = TriangularFactors.of(self._factor(w))
-            if len(self._triangular) >= 8:
-                self._triangular.clear()
-            self._triangular[key] = found
-        return found
 
 
 def solve_differences(

@@ -542,8 +542,8 @@ def test_compiled_blend_is_the_numpy_steps_exactly(max_edge_ratio):
             )
 
 
-def test_lu_solve_is_superlu_to_rounding():
-    from restoration.integrate.lattice import TriangularFactors, lu_solve
+def test_ldl_solve_is_superlu_to_rounding():
+    from restoration.integrate.ldl import pinned_laplacian_ldl
 
     ij, xy = grid(jitter_mm=2.0, seed=3)
     keep = holes(ij)
@@ -551,11 +551,19 @@ def test_lu_solve_is_superlu_to_rounding():
     a, b = zip(*[(k, nb[(i + di, j + dj)]) for k, (i, j) in enumerate(ij[keep])
                  for di, dj in ((1, 0), (0, 1)) if (i + di, j + dj) in nb], strict=True)
     graph = DifferenceGraph.build(int(keep.sum()), np.array(a), np.array(b))
-    w = np.random.default_rng(4).uniform(0.5, 2.0, len(a))
-    factors = graph.triangular(w)
-    assert isinstance(factors, TriangularFactors) and graph.triangular(w) is factors
+    w = np.random.default_rng(4).uniform(0.5, 2.0, graph.edges.size)
+    factors = pinned_laplacian_ldl(ij[keep][graph.node], graph.ea, graph.eb, w)
     rhs = np.random.default_rng(5).normal(size=graph.node.size - 1)
-    got = np.empty_like(rhs)
-    lu_solve(*factors.arrays, rhs, got)
     want = graph._factor(w).solve(rhs)
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_allclose(factors.solve(rhs), want, rtol=0, atol=1e-12 * np.abs(want).max())
+    # A fill-reducing order: L holds a fraction of the dense lower triangle.
+    m = graph.node.size - 1
+    assert factors.l_val.size < 0.1 * m * (m - 1) / 2
+
+
+def test_ldl_refuses_a_node_not_tied_to_the_pinned_one():
+    from restoration.integrate.ldl import pinned_laplacian_ldl
+
+    ij = np.array([[0, 0], [1, 0], [2, 0], [5, 0]])
+    with pytest.raises(RestorationFailed, match="singular"):
+        pinned_laplacian_ldl(ij, np.array([0, 1]), np.array([1, 2]), np.ones(2))

@@ -18,7 +18,6 @@ from restoration.features.detect import (
     _refine_centres,
     detect_spots,
 )
-from restoration.integrate.lattice import integrate_trapezoid
 from restoration.normals import (
     points_on_rays,
     reflection_normals,
@@ -29,7 +28,6 @@ from restoration.reverse_trace import SplinePatches
 from restoration.reverse_trace._kernels import finish_rows, spline_jet, valid_box, warp_rows
 from restoration.reverse_trace._surface import _cell_polynomials
 from restoration.reverse_trace.warp import _pixel_cells, restore_view
-from restoration.surface import _TrapezoidSystem
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
 from wai_core.system import load_rig
@@ -63,18 +61,6 @@ def test_reflection_slopes_are_the_numpy_steps_exactly():
     dirs[3, 2] = -0.1
     with pytest.raises(WaiInputError, match="upwards"):
         reflection_slopes(origin, dirs, spots, heights)
-
-
-def test_trapezoid_system_is_integrate_trapezoid_exactly():
-    jj, ii = np.mgrid[0:20, 0:25]
-    ij = np.c_[ii.ravel(), jj.ravel()][np.random.default_rng(2).random(500) > 0.1]
-    rng = np.random.default_rng(3)
-    xy = ij * [4.0, 3.0] + rng.normal(0, 0.2, ij.shape)
-    wxy = xy + rng.normal(0, 0.1, ij.shape)
-    slopes = rng.normal(0, 0.05, ij.shape)
-    system = _TrapezoidSystem.of(ij, wxy)
-    got = system.graph.solve(system.steps(xy, slopes), system.weights)
-    np.testing.assert_array_equal(got, integrate_trapezoid(ij, xy, slopes, weight_xy_mm=wxy))
 
 
 def test_spline_jet_matches_the_spline_patches_exactly():
