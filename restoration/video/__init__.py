@@ -1,0 +1,34 @@
+"""Image-only baselines for a still scene seen through moving water, and a truth-free score.
+
+They need no rig and no calibration: only a sequence of frames of a still scene
+(:func:`read_frames`). :func:`temporal_mean` is the classic reference;
+:func:`register_frames` registers every frame to the iterated mean by dense optical flow
+(:mod:`~restoration.video.registration`); :func:`lucky_fusion` keeps, per patch, the frames the
+water distorted least (:mod:`~restoration.video.lucky`). For a planar checkerboard,
+:func:`checkerboard_score` measures how far the restored corners are from a homography of a
+regular grid, and :func:`stability_px` how much the raw corners move from frame to frame
+(:mod:`~restoration.video.checkerboard`).
+"""
+
+from restoration.video.checkerboard import (
+    CheckerScore,
+    checkerboard_score,
+    grid_residual_px,
+    stability_px,
+)
+from restoration.video.frames import VIDEO_SUFFIXES, VideoRestoration, read_frames, temporal_mean
+from restoration.video.lucky import lucky_fusion
+from restoration.video.registration import register_frames
+
+__all__ = [
+    "VIDEO_SUFFIXES",
+    "CheckerScore",
+    "VideoRestoration",
+    "checkerboard_score",
+    "grid_residual_px",
+    "lucky_fusion",
+    "read_frames",
+    "register_frames",
+    "stability_px",
+    "temporal_mean",
+]
