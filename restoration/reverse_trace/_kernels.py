@@ -29,52 +29,54 @@ _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @njit(**_JIT)
-def _along(c, p, iy, u):
-    """The cubic in x of power ``p`` of y of cell column ``iy`` of coefficients ``c`` (16, ncy):
-    value, first and second derivative at ``u`` mm from the cell's corner."""
-    c0, c1, c2, c3 = c[p, iy], c[4 + p, iy], c[8 + p, iy], c[12 + p, iy]
+def _along(c, p, u):
+    """The cubic in x of power ``p`` of y of a cell's 16 coefficients ``c`` (index ``4 a +
+    p`` for power ``a`` of x): value, first and second derivative at ``u`` mm from the cell's
+    corner."""
+    c0, c1, c2, c3 = c[p], c[4 + p], c[8 + p], c[12 + p]
     return (c0 + u * (c1 + u * (c2 + u * c3)), c1 + u * (2.0 * c2 + 3.0 * u * c3),
             2.0 * c2 + 6.0 * u * c3)
+
+
+@njit(**_JIT)
+def _cell_of(g, x):
+    """``searchsorted(g[1:-1], x)`` (side left) for ``g[0] <= x <= g[-1]``: the cell of the
+    grid lines ``g`` (increasing) that holds ``x``. Guessed as if the lines were evenly
+    spaced, then moved until it satisfies the definition (for any spacing): no
+    unpredictable branches of a bisection on the near-uniform grids of a surface."""
+    last = g.size - 2
+    i = int((x - g[0]) * ((g.size - 1) / (g[-1] - g[0])))
+    i = min(max(i, 0), last)
+    while i > 0 and not g[i] < x:
+        i -= 1
+    while i < last and g[i + 1] < x:
+        i += 1
+    return i
 
 
 @njit(**_JIT)
 def spline_jet(table, cell_ok, gx, gy, x, y):
     """Height and derivatives ``(h, h_x, h_y, h_xx, h_xy, h_yy)`` of a
     :class:`~restoration.reverse_trace._surface.SplinePatches` table at one point (x, y) mm;
-    NaN off the known surface. ``table`` (ncx + 1, 16, ncy), ``cell_ok`` (ncx ncy,) bool,
+    NaN off the known surface. ``table`` (ncx + 1, ncy, 16), ``cell_ok`` (ncx ncy,) bool,
     ``gx`` (ncx + 1,), ``gy`` (ncy + 1,) mm: as in that class."""
     nan = np.nan
     if not (x >= gx[0] and x <= gx[-1] and y >= gy[0] and y <= gy[-1]):
         return nan, nan, nan, nan, nan, nan
-    # searchsorted(g[1:-1], x), side left: how many interior grid lines lie below x.
-    lo, hi = 0, gx.size - 2
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if gx[mid + 1] < x:
-            lo = mid + 1
-        else:
-            hi = mid
-    ix = lo
-    lo, hi = 0, gy.size - 2
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if gy[mid + 1] < y:
-            lo = mid + 1
-        else:
-            hi = mid
-    iy = lo
+    ix = _cell_of(gx, x)
+    iy = _cell_of(gy, y)
     ncy = gy.size - 1
     if not cell_ok[ix * ncy + iy]:
         return nan, nan, nan, nan, nan, nan
-    c = table[ix]
+    c = table[ix, iy]  # the cell's 16 coefficients, contiguous: two cache lines
     u = x - gx[ix]
     v = y - gy[iy]
     # Along x for each power p of y: value a_p, first b_p and second derivative e_p (scalars:
     # a small array per call would cost more than the arithmetic).
-    a0, b0, e0 = _along(c, 0, iy, u)
-    a1, b1, e1 = _along(c, 1, iy, u)
-    a2, b2, e2 = _along(c, 2, iy, u)
-    a3, b3, e3 = _along(c, 3, iy, u)
+    a0, b0, e0 = _along(c, 0, u)
+    a1, b1, e1 = _along(c, 1, u)
+    a2, b2, e2 = _along(c, 2, u)
+    a3, b3, e3 = _along(c, 3, u)
     # Along y.
     h = a0 + v * (a1 + v * (a2 + v * a3))
     hy = a1 + v * (2.0 * a2 + 3.0 * v * a3)
@@ -328,11 +330,11 @@ def cell_polynomials(grid, knots, vinv):  # pragma: no cover
 
 @njit(**_JIT)
 def spline_table(first_x, poly_x, first_y, poly_y, coeffs):  # pragma: no cover
-    """Power-basis coefficients of a bicubic spline on every grid cell, (ncx + 1, 16, ncy).
+    """Power-basis coefficients of a bicubic spline on every grid cell, (ncx + 1, ncy, 16).
 
     ``coeffs`` (ny, nx) are the spline's B-spline coefficients ``c[j, l]`` (y, x);
     ``first_*``, ``poly_*`` come from :func:`cell_polynomials` for each axis. Entry
-    ``[ix, 4 a + b, iy]`` multiplies ``u^a v^b`` (``u, v`` mm from the cell's corner); slab
+    ``[ix, iy, 4 a + b]`` multiplies ``u^a v^b`` (``u, v`` mm from the cell's corner); slab
     ``ncx`` is NaN (the entry of points off the known surface). Two separable passes: first
     along y for every x coefficient, then along x.
     """
@@ -345,16 +347,16 @@ def spline_table(first_x, poly_x, first_y, poly_y, coeffs):  # pragma: no cover
             for m in range(nx):
                 rows[b, m, iy] = (p0 * coeffs[ky, m] + p1 * coeffs[ky + 1, m]
                                   + p2 * coeffs[ky + 2, m] + p3 * coeffs[ky + 3, m])
-    table = np.empty((ncx + 1, 16, ncy))
+    table = np.empty((ncx + 1, ncy, 16))
     for ix in range(ncx):
         kx = first_x[ix]
+        out = table[ix]
         for a in range(4):
             q0, q1, q2, q3 = poly_x[ix, a, 0], poly_x[ix, a, 1], poly_x[ix, a, 2], poly_x[ix, a, 3]
             for b in range(4):
                 r0, r1, r2, r3 = rows[b, kx], rows[b, kx + 1], rows[b, kx + 2], rows[b, kx + 3]
-                out = table[ix, 4 * a + b]
                 for iy in range(ncy):
-                    out[iy] = q0 * r0[iy] + q1 * r1[iy] + q2 * r2[iy] + q3 * r3[iy]
+                    out[iy, 4 * a + b] = q0 * r0[iy] + q1 * r1[iy] + q2 * r2[iy] + q3 * r3[iy]
     table[ncx] = np.nan
     return table
 

@@ -90,8 +90,8 @@ class SplinePatches:
     ----------
     surface : Heightfield
         The surface tabulated (the one its users check they were given).
-    table : (ncx + 1, 16, ncy) ndarray
-        Power-basis coefficients of each cell ``(iy, ix)`` at ``[ix, :, iy]``; slab ``ncx``
+    table : (ncx + 1, ncy, 16) ndarray
+        Power-basis coefficients of each cell ``(iy, ix)`` at ``[ix, iy]``; slab ``ncx``
         is NaN (the entry of points off the known surface).
     cell_ok : (ncx ncy,) ndarray of bool
         Cells whose four corner samples are known, by ``ix * ncy + iy``.
@@ -118,14 +118,14 @@ class SplinePatches:
         ky, py = _cell_polynomials(surface.y, ty)
         kx, px = _cell_polynomials(surface.x, tx)
         ncy = ky.size
-        # table[ix, 4 * (power of x) + (power of y), iy]: the coefficients of cell (iy, ix),
-        # laid out so that looking up N cells gives 16 contiguous rows of N; slab ncx is the
-        # NaN entry of points off the known surface.
+        # table[ix, iy, 4 * (power of x) + (power of y)]: the coefficients of cell (iy, ix),
+        # contiguous (a point's lookup reads two cache lines); slab ncx is the NaN entry of
+        # points off the known surface.
         self.table = spline_table(kx, px, ky, py, np.ascontiguousarray(coeffs))
         known = np.isfinite(surface.z)
         cell_ok = known[:-1, :-1] & known[1:, :-1] & known[:-1, 1:] & known[1:, 1:]
         self.cell_ok = cell_ok.T.ravel()  # by cell ix * ncy + iy
-        self.offsets = (np.arange(16) * ncy)[:, None]  # of the 16 coefficients from the first
+        self.offsets = np.arange(16)[:, None]  # of the 16 coefficients from the first
         self.x, self.y = surface.x, surface.y
         self.surface = surface
         self.ncy, self.nan_slab = ncy, self.table[:-1].size
@@ -136,8 +136,8 @@ class SplinePatches:
         iy = np.searchsorted(self.y[1:-1], y)
         inside = (x >= self.x[0]) & (x <= self.x[-1]) & (y >= self.y[0]) & (y <= self.y[-1])
         cell = ix * self.ncy + iy
-        # Flat index of coefficient 0 of the cell in table (ncx + 1, 16, ncy): ix 16 ncy + iy.
-        first = np.where(inside & self.cell_ok[cell], cell + 15 * self.ncy * ix, self.nan_slab)
+        # Flat index of coefficient 0 of the cell in table (ncx + 1, ncy, 16): 16 (ix ncy + iy).
+        first = np.where(inside & self.cell_ok[cell], 16 * cell, self.nan_slab)
         c = np.take(self.table, first + self.offsets)  # (16, N)
         u = x - self.x[ix]
         v = y - self.y[iy]
