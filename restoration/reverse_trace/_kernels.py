@@ -364,6 +364,26 @@ def spline_table(first_x, poly_x, first_y, poly_y, coeffs):  # pragma: no cover
 # --- the restored image -----------------------------------------------------------------------
 
 
+@njit(**_JIT)
+def node_warp(truth_status, node_index, node_px, px, status, disp_x, disp_y,
+              node_status):  # pragma: no cover
+    """Scatter the solved nodes into the coarse grid (flat, rows cols): ``node_status`` the
+    truth view's ``truth_status`` with the solve's ``status`` (K,) at ``node_index`` (K,);
+    ``disp_x``, ``disp_y`` (float32) the displacement ``px - node_px`` (K, 2) px of the OK
+    nodes, 0 elsewhere."""
+    for i in range(truth_status.size):
+        node_status[i] = truth_status[i]
+        disp_x[i] = 0.0
+        disp_y[i] = 0.0
+    for k in range(node_index.size):
+        i = node_index[k]
+        node_status[i] = status[k]
+        if status[k] == _OK:
+            disp_x[i] = np.float32(px[k, 0] - node_px[k, 0])
+            disp_y[i] = np.float32(px[k, 1] - node_px[k, 1])
+
+
+
 _LANES = 8
 
 

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration._threads import restore_threads, run_chunks
-from restoration.reverse_trace._kernels import finish_rows, valid_box, warp_rows
+from restoration.reverse_trace._kernels import finish_rows, node_warp, valid_box, warp_rows
 from restoration.reverse_trace._surface import SplinePatches, _surface_model, check_patches
 from restoration.reverse_trace.inverse import _newton, _Optics
 from wai_core.errors import WaiInputError
@@ -404,13 +404,13 @@ def _node_warp(
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.int8]]:
     """Displacement ``u - p`` in columns and in rows (rows, cols) px at the coarse nodes (0 where
     unsolved) and the status of every node (the truth view's where it sees no object)."""
-    node_status = plan.truth_status.copy().ravel()
-    node_status[plan.node_index] = status
-    disp = np.zeros((2, plan.grid_shape[0] * plan.grid_shape[1]), dtype=np.float32)
-    solved = status == RayStatus.OK
-    disp[:, plan.node_index[solved]] = (px[solved] - plan.node_px[solved]).T
-    dx, dy = disp.reshape((2,) + plan.grid_shape)
-    return dx, dy, node_status.reshape(plan.grid_shape)
+    n = plan.grid_shape[0] * plan.grid_shape[1]
+    disp_x, disp_y = np.empty(n, np.float32), np.empty(n, np.float32)
+    node_status = np.empty(n, np.int8)
+    node_warp(plan.truth_status.ravel(), plan.node_index, plan.node_px, px, status, disp_x,
+              disp_y, node_status)
+    return (disp_x.reshape(plan.grid_shape), disp_y.reshape(plan.grid_shape),
+            node_status.reshape(plan.grid_shape))
 
 
 def _pixel_warp(
