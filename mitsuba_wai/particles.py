@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mitsuba_wai.variant import mitsuba
+from mitsuba_wai.water_hit import water_grid, water_intersect
 
 # Light paths per pass (the paper's 800 x 600 film at 8 spp is one pass): 16 bytes per path and
 # bounce come back to the CPU, ~0.2 GB at most.
@@ -245,10 +246,13 @@ def _trace_direct(
     shapes = {shape.id(): shape for shape in scene.shapes()}
     water_bsdf, diffuser = shapes["water"].bsdf(), shapes["diffuser"]
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
-    flags = mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame
     ray, throughput, length = emitter(sensor.shutter_open(), n, seed)
     active = dr.max(throughput) != 0.0
-    si = scene.ray_intersect(ray, flags, True, active)
+    water_mesh = shapes["water"]
+    slope = _slope_bound(water_mesh)
+    # The water's hit on its grid (mitsuba_wai.water_hit): the rays start past the diffuser,
+    # the scene's only other shape, so the water's first hit is the scene's.
+    si = water_intersect(scene, water_mesh, water_grid(water_mesh), ray, slope, active)
     active = active & si.is_valid()
     if water is not None:
         length = length + dr.select(active, si.t, 0.0)
@@ -265,7 +269,7 @@ def _trace_direct(
     si = diffuser.ray_intersect(ray, mi.RayFlags.All, active)
     active = active & si.is_valid()
     # The water lies in the way only of rays flatter than its steepest facet (module notes).
-    flat = -ray.d.z <= _slope_bound(shapes["water"]) * dr.norm(mi.Vector2f(ray.d.x, ray.d.y))
+    flat = -ray.d.z <= slope * dr.norm(mi.Vector2f(ray.d.x, ray.d.y))
     blocked = scene.ray_test(mi.Ray3f(ray.o, ray.d, si.t * (1.0 - 1e-4), ray.time,
                                       ray.wavelengths), active & flat)
     active = active & ~blocked

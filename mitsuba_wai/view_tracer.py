@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 
 from mitsuba_wai import particles
 from mitsuba_wai.variant import mitsuba
+from mitsuba_wai.water_hit import water_grid, water_intersect
 
 __all__ = ["render_view"]
 
@@ -109,9 +110,13 @@ def _direct_radiance(scene: Any, ray: Any, sampler: Any, water: Any, plane: Any)
     from mitsuba_wai.particles import _slope_bound
 
     mi = mitsuba()
-    si = scene.ray_intersect(ray, mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame, True)
+    slope = _slope_bound(water)
+    # The water's hit on its grid (mitsuba_wai.water_hit), the scene's first where the object
+    # plane is not met before it along the ray.
+    si = water_intersect(scene, water, water_grid(water), ray, slope, True)
+    before = plane.ray_intersect(ray, mi.RayFlags.Minimal, si.is_valid()).t < si.t
     hit = si.is_valid()
-    on_water = hit & (si.shape == mi.ShapePtr(water))
+    on_water = hit & (si.shape == mi.ShapePtr(water)) & ~before
     bs, bsdf_weight = water.bsdf().sample(
         mi.BSDFContext(), si, sampler.next_1d(hit), sampler.next_2d(hit), on_water
     )
@@ -123,7 +128,7 @@ def _direct_radiance(scene: Any, ray: Any, sampler: Any, water: Any, plane: Any)
     si_next = plane.ray_intersect(next_ray, mi.RayFlags.All, onward)
     onward = onward & si_next.is_valid()
     d = next_ray.d
-    flat = d.z <= _slope_bound(water) * dr.norm(mi.Vector2f(d.x, d.y))
+    flat = d.z <= slope * dr.norm(mi.Vector2f(d.x, d.y))
     blocked = scene.ray_test(
         mi.Ray3f(next_ray.o, d, si_next.t * (1.0 - 1e-4), ray.time, ray.wavelengths),
         onward & refracted & flat,

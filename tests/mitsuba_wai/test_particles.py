@@ -230,7 +230,9 @@ def test_no_shadow_rays_needed_between_diffuser_and_camera(tiny, monkeypatch):
 def test_two_vertex_tracer_gives_the_general_tracers_image(tiny, monkeypatch):
     # System S's direct tracer follows the same particles: the same flux, and each lands
     # where the general tracer puts it (the diffuser's own intersection rounds differently,
-    # so a splat within float rounding of a pixel border may take the neighbour pixel).
+    # so a splat within float rounding of a pixel border may take the neighbour pixel; the
+    # water's hit on its grid keeps the particle that meets a facet edge exactly, which may
+    # slip through Embree's triangles, one in some 10^4 here).
     from mitsuba_wai import particles
     from mitsuba_wai.dots import DotEmitter
 
@@ -241,9 +243,9 @@ def test_two_vertex_tracer_gives_the_general_tracers_image(tiny, monkeypatch):
     direct, _ = render_particles(scene, 4, 8, SCENE_S_DEPTH, emitter=emitter)
     monkeypatch.setattr(particles, "_direct_scene", lambda *args: False)
     general, _ = render_particles(scene, 4, 8, SCENE_S_DEPTH, emitter=emitter)
-    assert direct.sum() == pytest.approx(general.sum(), rel=1e-6) and direct.sum() > 0
+    assert direct.sum() == pytest.approx(general.sum(), rel=1e-4) and direct.sum() > 0
     moved = np.abs(direct - general).sum() / general.sum()
-    assert moved < 1e-5
+    assert moved < 1e-4
     h, w = direct.shape[:2]
     yy, xx = np.mgrid[:h, :w]
     for img in (direct, general):
