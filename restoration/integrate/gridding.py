@@ -2,6 +2,9 @@
 :func:`to_heightfield` fills the grid nodes inside the samples' gap-free Delaunay triangles
 (:func:`gap_free_triangles`, found by a vectorised triangle scan) with one of the
 :data:`GRIDDERS`: the tangent blend, a Hermite-fitted bicubic spline, or Clough-Tocher.
+With the samples' lattice indices, the tangent blend's triangles are found on the lattice
+(:func:`~restoration.integrate.triangulate.lattice_delaunay`, qhull's where the lattice
+leaves them ambiguous).
 The default tangent blend runs the gap filter, the scan and the blend as one compiled pass
 (:func:`_blend_kernel`, the NumPy steps' arithmetic: ~1 ms of array passes become ~0.1 ms)."""
 
@@ -32,6 +35,7 @@ from restoration.integrate.spline import (
     _median_spacing,
     _solve_normal,
 )
+from restoration.integrate.triangulate import lattice_delaunay
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
 
@@ -262,8 +266,24 @@ def gap_free_triangles(
     return simplices[short if keep is None else short & keep]
 
 
+@njit(cache=True, nogil=True)
+def _nearest_kernel(xy, simplices, nearest):  # pragma: no cover
+    """Each sample's shortest triangle edge, ``nearest`` (K,) mm (inf where none): over a
+    Delaunay triangulation, the nearest-neighbour distance."""
+    nearest[:] = np.inf
+    for t in range(simplices.shape[0]):  # edge k joins corners k and k + 1
+        for k in range(3):
+            i, j = simplices[t, k], simplices[t, (k + 1) % 3]
+            ex, ey = xy[i, 0] - xy[j, 0], xy[i, 1] - xy[j, 1]
+            length = math.sqrt(ex * ex + ey * ey)
+            nearest[i] = min(nearest[i], length)
+            nearest[j] = min(nearest[j], length)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def _blend_kernel(xy, heights, slopes, simplices, keep, ratio, gx, gy, z):  # pragma: no cover
+def _blend_kernel(
+    xy, heights, slopes, simplices, keep, ratio, nearest, gx, gy, z
+):  # pragma: no cover
     """:func:`gap_free_triangles`, :func:`_scan_triangles` and :func:`_tangent_blend` in one
     pass over the triangles, writing the blend into ``z`` (m * n,) (NaN elsewhere untouched).
 
@@ -278,9 +298,12 @@ def _blend_kernel(xy, heights, slopes, simplices, keep, ratio, gx, gy, z):  # pr
     simplices : (T, 3) ndarray of int
         Delaunay triangles.
     keep : (T,) ndarray of bool
-        Triangles that may be blended (the others still give the nearest-neighbour distances).
+        Triangles that may be blended.
     ratio : float
         The gap threshold of :func:`gap_free_triangles`.
+    nearest : (K,) ndarray
+        Each sample's nearest-neighbour distance, mm (:func:`_nearest_kernel` of the whole
+        triangulation).
     gx, gy : (n,), (m,) ndarray
         Node coordinates, mm.
     z : (m * n,) ndarray
@@ -291,16 +314,12 @@ def _blend_kernel(xy, heights, slopes, simplices, keep, ratio, gx, gy, z):  # pr
     nx, ny = gx.size, gy.size
     step = gx[1] - gx[0]
     gx0, gy0 = gx[0], gy[0]
-    nearest = np.full(xy.shape[0], np.inf)
     length = np.empty((n_tri, 3))
-    for t in range(n_tri):  # edge k joins corners k and k + 1; nearest: shortest edge at a node
+    for t in range(n_tri):  # edge k joins corners k and k + 1
         for k in range(3):
             i, j = simplices[t, k], simplices[t, (k + 1) % 3]
             ex, ey = xy[i, 0] - xy[j, 0], xy[i, 1] - xy[j, 1]
             length[t, k] = math.sqrt(ex * ex + ey * ey)
-        for k in range(3):
-            v = simplices[t, k]
-            nearest[v] = min(nearest[v], min(length[t, k], length[t, (k + 2) % 3]))
     px, py = np.empty(3), np.empty(3)
     gvx, gvy, dx, dy, c = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     bx, by = np.empty(3), np.empty(3)
@@ -430,7 +449,9 @@ def to_heightfield(
     lattice_ij : (K, 2) array_like of int, optional
         The samples' dot indices on the projector lattice, when they have them: triangles whose
         corners lie more than ``max_lattice_step`` dots apart are dropped too
-        (:func:`lattice_bridges`).
+        (:func:`lattice_bridges`). The tangent blend then finds the others on the lattice
+        (:func:`~restoration.integrate.triangulate.lattice_delaunay`: the same triangles,
+        without qhull).
     max_lattice_step : int
         See ``lattice_ij``.
 
@@ -448,20 +469,31 @@ def to_heightfield(
         if g is None or g.shape != xy.shape or not np.all(np.isfinite(g)):
             raise WaiInputError(f"to_heightfield: {method} needs finite slopes of shape (K, 2)")
     gx, gy = _grid_axes(xy, spacing_mm)
+    z = np.full(gy.size * gx.size, np.nan)
+    ratio = np.inf if max_edge_ratio is None else float(max_edge_ratio)
+    found = None
+    if method == "tangent_blend" and lattice_ij is not None:
+        found = lattice_delaunay(xy, np.asarray(lattice_ij), max_lattice_step)
+    if found is not None:  # qhull's triangles of small lattice span, found on the lattice
+        simplices, nearest = found
+        _blend_kernel(xy, h, np.ascontiguousarray(g), simplices, np.ones(len(simplices), bool),
+                      ratio, nearest, gx, gy, z)
+        return Heightfield(gx, gy, z.reshape(gy.size, gx.size))
     try:
         tri = Delaunay(xy)
     except QhullError:
         raise RestorationFailed(
             "to_heightfield: samples are collinear (no area to grid)"
         ) from None
-    z = np.full(gy.size * gx.size, np.nan)
     keep = None if lattice_ij is None else ~lattice_bridges(tri.simplices, lattice_ij,
                                                              max_lattice_step)
     if method == "tangent_blend":  # gaps, scan and blend in one compiled pass
-        ratio = np.inf if max_edge_ratio is None else float(max_edge_ratio)
-        _blend_kernel(xy, h, np.ascontiguousarray(g), tri.simplices.astype(np.int64),
-                      np.ones(len(tri.simplices), bool) if keep is None else keep, ratio,
-                      gx, gy, z)
+        simplices = tri.simplices.astype(np.int64)
+        nearest = np.empty(xy.shape[0])
+        _nearest_kernel(xy, simplices, nearest)
+        _blend_kernel(xy, h, np.ascontiguousarray(g), simplices,
+                      np.ones(len(simplices), bool) if keep is None else keep, ratio,
+                      nearest, gx, gy, z)
     else:
         simplices = gap_free_triangles(tri, max_edge_ratio, keep)
         spans = _scan_triangles(xy[simplices], gx, gy)

@@ -567,3 +567,56 @@ def test_ldl_refuses_a_node_not_tied_to_the_pinned_one():
     ij = np.array([[0, 0], [1, 0], [2, 0], [5, 0]])
     with pytest.raises(RestorationFailed, match="singular"):
         pinned_laplacian_ldl(ij, np.array([0, 1]), np.array([1, 2]), np.ones(2))
+
+
+def _small_span_delaunay(xy, ij, max_step):
+    """qhull's triangles whose corners lie at most ``max_step`` dots apart, as sorted triples."""
+    simplices = Delaunay(xy).simplices
+    corners = ij[simplices]
+    span = (corners.max(axis=1) - corners.min(axis=1)).max(axis=1)
+    return {tuple(sorted(t)) for t in simplices[span <= max_step].tolist()}
+
+
+@pytest.mark.parametrize(("jitter_mm", "keystoned"), [(2.0, False), (6.0, False), (1.0, True)])
+def test_lattice_delaunay_is_qhulls_small_span_triangles(jitter_mm, keystoned):
+    """Holes, a keystoned footprint, and a jitter of 0.6 spacings that folds the lattice's map
+    to the plane in places: the same triangles as qhull's, and the nearest-neighbour distances
+    of a k-d tree."""
+    from scipy.spatial import cKDTree
+
+    from restoration.integrate.triangulate import lattice_delaunay
+
+    ij, xy = keystone(jitter_mm) if keystoned else grid(jitter_mm=jitter_mm, seed=8)
+    keep = holes(ij)
+    ij, xy = ij[keep], xy[keep]
+    for max_step in (1, 2, 3):
+        simplices, nearest = lattice_delaunay(xy, ij, max_step)
+        got = {tuple(sorted(t)) for t in simplices.tolist()}
+        assert len(got) == len(simplices)
+        assert got == _small_span_delaunay(xy, ij, max_step)
+    np.testing.assert_array_equal(nearest, cKDTree(xy).query(xy, k=2)[0][:, 1])
+
+
+def test_gridding_on_the_lattice_is_the_qhull_gridding(monkeypatch):
+    import restoration.integrate.gridding as gridding
+
+    ij, xy = grid(jitter_mm=3.0, seed=9)
+    keep = holes(ij)
+    ij, xy = ij[keep], xy[keep]
+    z, g = sinusoid(xy)
+    fast = to_heightfield(xy, z, g, 2.0, lattice_ij=ij).z
+    monkeypatch.setattr(gridding, "lattice_delaunay", lambda *args: None)
+    slow = to_heightfield(xy, z, g, 2.0, lattice_ij=ij).z
+    np.testing.assert_array_equal(np.isnan(fast), np.isnan(slow))
+    np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-12)
+
+
+def test_lattice_delaunay_leaves_cocircular_samples_to_qhull():
+    """A regular lattice: every cell's four corners on one circle, two Delaunay choices."""
+    from restoration.integrate.triangulate import lattice_delaunay
+
+    ij, xy = grid()
+    assert lattice_delaunay(xy, ij, 2) is None
+    z, g = paraboloid(xy)
+    hf = to_heightfield(xy, z, g, 5.0, lattice_ij=ij)
+    assert np.isfinite(hf.z).mean() > 0.9
