@@ -73,10 +73,11 @@ def grid_residual_px(
     Parameters
     ----------
     corners : (cols * rows, 2) array_like
-        Corners (x, y) in px, ``cols`` per row, rows in order.
+        Corners (x, y) in px, ``cols`` per row, rows in order; NaN rows (lost corners, as
+        :func:`track_corners` leaves them) are left out.
     pattern : (cols, rows)
     used : (cols * rows,) array_like of bool, optional
-        The corners to fit and score (at least 4); all by default.
+        The corners to fit and score (at least 4); all finite ones by default.
 
     Returns
     -------
@@ -96,7 +97,9 @@ def grid_residual_px(
     pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
     if pts.shape[0] != cols * rows:
         raise WaiInputError(f"{pts.shape[0]} corners do not fill a {cols}x{rows} pattern")
-    mask = np.ones(len(pts), bool) if used is None else np.asarray(used, bool).ravel()
+    mask = np.isfinite(pts).all(axis=1)
+    if used is not None:
+        mask &= np.asarray(used, bool).ravel()
     if np.count_nonzero(mask) < 4:
         return float("nan")
     j, i = np.mgrid[0:rows, 0:cols]
