@@ -446,6 +446,9 @@ def build_parser() -> argparse.ArgumentParser:
     from wai.calibrate_cli import add_calibrate
 
     add_calibrate(sub, _Help, SCENE_HELP)
+    from wai.dataset_cli import add_dataset
+
+    add_dataset(sub, _Help, SCENE_HELP)
     return parser
 
 

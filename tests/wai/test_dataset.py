@@ -1,0 +1,141 @@
+"""``wai dataset``: the store, its resumption, its refusals and the warp against the renders."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+from skimage.metrics import structural_similarity
+
+from wai.cli import main
+from wai.dataset import (
+    ARRAYS,
+    DATASET_FILE,
+    MANIFEST_FILE,
+    flat_pixel_of,
+    read_frame,
+    read_manifest,
+    sample_params,
+)
+from wai_core import load_system
+from wai_core.optics import trace_to_object
+
+SIZE = "120x90"
+# Seed 4 draws windy frames first: coarse meshes, quick renders.
+ARGS = ["--size", SIZE, "--spp", "2", "--seed", "4", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("ds") / "d"
+    assert main(["dataset", "--frames", "2", "--out", str(out), *ARGS]) == 0
+    return out
+
+
+def test_store_holds_the_datasets_and_the_manifest(store: Path) -> None:
+    with h5py.File(store / DATASET_FILE, "r") as f:
+        assert int(f.attrs["frames"]) == 2
+        assert f.attrs["seed"] == 4
+        assert "numpy" in f.attrs["versions"]
+        for name in ARRAYS:
+            assert f[name].shape[0] == 2 and f[name].chunks[0] == 1
+        assert f["view"].shape[1:] == (90, 120, 3)
+        assert f["height_mm"].shape[1:] == (f["y_mm"].size, f["x_mm"].size)
+        assert f["normals"].shape[1:] == (*f["height_mm"].shape[1:], 3)
+    with open(store / MANIFEST_FILE) as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["frame"]) for r in rows] == [0, 1]
+    for r, p in zip(rows, (sample_params(4, 0), sample_params(4, 1)), strict=True):
+        assert float(r["wind_speed_m_s"]) == p.wind_speed_m_s
+        assert int(r["wave_seed"]) == p.wave_seed
+    rec = read_frame(store, 1)
+    assert rec.params == sample_params(4, 1)
+    # The normals are the stored heights' own: (-dz/dx, -dz/dy, 1), normalised.
+    with h5py.File(store / DATASET_FILE, "r") as f:
+        x, y = f["x_mm"][:], f["y_mm"][:]
+    gy, gx = np.gradient(rec.height_mm.astype(float), y, x)
+    n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    np.testing.assert_allclose(rec.normals[2:-2, 2:-2], n[2:-2, 2:-2], atol=2e-3)
+    assert np.ptp(rec.height_mm) > 1.0  # a sea state, not flat water
+    assert 0.5 <= rec.params.wind_speed_m_s <= 2.0
+
+
+def test_resume_adds_frames_and_keeps_the_first(store: Path, tmp_path: Path) -> None:
+    before = [read_frame(store, i) for i in range(2)]
+    assert main(["dataset", "--frames", "3", "--out", str(store), *ARGS]) == 0
+    assert [p.frame for p in read_manifest(store)] == [0, 1, 2]
+    for i, rec in enumerate(before):
+        again = read_frame(store, i)
+        assert again.params == rec.params
+        for name in ARRAYS:
+            np.testing.assert_array_equal(getattr(again, name), getattr(rec, name))
+    # Frame 2 is a new sea state, not a copy.
+    assert read_frame(store, 2).params == sample_params(4, 2)
+    assert not np.array_equal(read_frame(store, 2).height_mm, before[1].height_mm)
+
+
+def test_warp_reproduces_the_distorted_view(store: Path) -> None:
+    for i in range(2):
+        rec = read_frame(store, i)
+        truth = rec.view_truth.astype(np.float32)
+        view = rec.view.astype(np.float32)
+        warp = rec.warp_px
+        ok = np.isfinite(warp[..., 0])
+        assert ok.mean() > 0.5  # camera v's top rows see the TIR band
+        mapped = cv2.remap(truth, np.where(ok, warp[..., 0], -10), np.where(ok, warp[..., 1], -10),
+                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+        good = ok & np.all(np.isfinite(mapped), axis=-1)
+        assert good.mean() > 0.4
+        err_warped = np.abs(mapped - view)[good].mean()
+        err_unwarped = np.abs(truth - view)[good].mean()
+        # The waves displace the checkerboard by pixels: undone, the views agree up to noise
+        # and interpolation at the squares' edges.
+        assert err_warped < 0.4 * err_unwarped
+        m = good[..., None]
+        ssim = structural_similarity(np.where(m, mapped, 0), np.where(m, view, 0),
+                                     channel_axis=-1, data_range=1.0)
+        assert ssim > 0.85
+
+
+def test_flat_pixel_of_inverts_the_flat_forward_map() -> None:
+    cfg = load_system("paper")
+    cam = cfg.camera_v.camera()
+    rng = np.random.default_rng(3)
+    cols, rows = rng.uniform(0, 799, 500), rng.uniform(300, 599, 500)
+    pts = trace_to_object(cam, None, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm,
+                          cols, rows).object_mm
+    ok = np.all(np.isfinite(pts), axis=-1)
+    assert ok.mean() > 0.5  # the rest is totally reflected
+    c, r = flat_pixel_of(cfg, pts[ok])
+    np.testing.assert_allclose(c, cols[ok], atol=1e-6)
+    np.testing.assert_allclose(r, rows[ok], atol=1e-6)
+
+
+def test_bad_out_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("x")
+    assert main(["dataset", "--frames", "1", "--out", str(a_file), *ARGS]) == 2
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    with h5py.File(foreign / DATASET_FILE, "w") as f:
+        f.attrs["owner"] = "someone else"
+    assert main(["dataset", "--frames", "1", "--out", str(foreign), *ARGS]) == 2
+    with h5py.File(foreign / DATASET_FILE, "r") as f:
+        assert dict(f.attrs) == {"owner": "someone else"}
+    not_h5 = tmp_path / "not_h5"
+    not_h5.mkdir()
+    (not_h5 / DATASET_FILE).write_bytes(b"plain bytes")
+    assert main(["dataset", "--frames", "1", "--out", str(not_h5), *ARGS]) == 2
+    err = capsys.readouterr().err
+    assert err.count("--out") == 3 and len(err.strip().splitlines()) == 3
+
+
+def test_other_seed_is_refused(store: Path) -> None:
+    args = [a if a != "4" else "5" for a in ARGS]
+    assert main(["dataset", "--frames", "4", "--out", str(store), *args]) == 2
+    assert int(h5py.File(store / DATASET_FILE, "r").attrs["frames"]) >= 2
