@@ -39,15 +39,21 @@ def surface_buffers(
     faces : (3 F,) ndarray of uint32
         Triangles counter-clockwise seen from above; cells touching an unknown sample left out.
     """
-    xx, yy = np.meshgrid(surface.x, surface.y)
+    m, n = surface.z.shape
     valid = np.isfinite(surface.z).ravel()
-    z = np.nan_to_num(surface.z.ravel(), nan=float(np.nanmean(surface.z)))
-    vertices = np.stack([xx.ravel(), yy.ravel(), z], axis=1)
-    faces = grid_faces(surface.y.size, surface.x.size)
-    faces = faces[valid[faces].all(axis=1)]
-    normals = np.nan_to_num(surface.grid_normals().reshape(-1, 3), nan=0.0)
-    normals[~valid] = (0.0, 0.0, 1.0)
-    return (vertices.astype(np.float32).ravel(), normals.astype(np.float32).ravel(),
+    whole = bool(valid.all())
+    vertices = np.empty((m * n, 3), dtype=np.float32)
+    vertices[:, 0] = np.tile(surface.x, m)
+    vertices[:, 1] = np.repeat(surface.y, n)
+    vertices[:, 2] = surface.z.ravel() if whole else np.nan_to_num(
+        surface.z.ravel(), nan=float(np.nanmean(surface.z)))
+    faces = grid_faces(m, n)
+    normals = surface.grid_normals().reshape(-1, 3)
+    if not whole:  # holes: the cells around them left out, up where the height is unknown
+        faces = faces[valid[faces].all(axis=1)]
+        normals = np.nan_to_num(normals, nan=0.0)
+        normals[~valid] = (0.0, 0.0, 1.0)
+    return (vertices.ravel(), normals.astype(np.float32).ravel(),
             faces.astype(np.uint32).ravel())
 
 

@@ -6,8 +6,8 @@ bits of a pixel, changes from run to run (two renders of the same seed differ by
 thousand pixels). This tracer follows Mitsuba's ``ptracer`` step by step (same emitter, sensor
 and BSDF sampling, same random numbers in the same order, same shading-normal corrections), but
 instead of splatting it returns each connection's pixel and value, and the image is summed on
-the CPU with :func:`numpy.bincount` in sample order, in float64: a fixed order, whatever the
-number of threads or the device.
+the CPU in sample order, in float64 (:func:`numpy.bincount`'s sums, all channels in one compiled
+pass): a fixed order, whatever the number of threads or the device.
 
 Water (:func:`render_particles_water`): no Mitsuba medium (``ptracer`` has none), but each
 path's length in the water is known, so every camera connection is weighted by Beer-Lambert's
@@ -38,6 +38,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -346,6 +347,18 @@ def _connect(
     return pixel, rgb * kept * direct, rgb * kept * (1.0 - direct), bad
 
 
+@numba.njit(cache=True, nogil=True)
+def _splat(total: NDArray, pixel: NDArray, values: NDArray, lit: NDArray) -> None:
+    """Add each path's value ``values[c, i]`` (3, n) to ``total[c, pixel[i]]`` (3, W H + 1),
+    float64, in path order: :func:`numpy.bincount`'s sums, bit for bit (the same on every
+    run), the lit channels ``lit`` (3,) in one pass."""
+    for i in range(pixel.size):
+        p = pixel[i]
+        for c in range(3):
+            if lit[c]:
+                total[c, p] += np.float64(values[c, i])
+
+
 def render_particles(
     scene: Any, spp: int, seed: int, max_depth: int, stratified: bool = False,
     emitter: Any = None, camera: Any = None,
@@ -449,9 +462,9 @@ def _render(
             idx = np.asarray(pixel)
             for total, rgb in zip(totals, rgbs, strict=True):
                 values = np.asarray(rgb)
-                # bincount adds in array order (in float64): the same sum on every run.
-                for c in range(3):
-                    total[c] += np.bincount(idx, weights=values[c], minlength=n_pix + 1)
+                # A channel that no light reaches adds nothing (a dot colour without it).
+                lit = np.array([values[c].any() for c in range(3)])
+                _splat(total, idx, values, lit)
     bad = bad[:n_pix]
     images = []
     for total in totals:

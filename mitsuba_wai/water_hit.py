@@ -29,8 +29,9 @@ from wai_core.heightfield import grid_faces
 
 __all__ = ["WaterGrid", "water_grid", "water_intersect"]
 
-# Newton steps before the check (each a facet's plane; steep rays settle in two or three).
-_STEPS = 4
+# Newton steps before the last facet's (each a facet's plane): the paper's steep rays settle
+# in one and the last; the few others go to Embree.
+_STEPS = 1
 
 
 @dataclass(frozen=True)
