@@ -19,7 +19,11 @@ from restoration.video.frames import to_grey_u8
 from wai_core.errors import WaiInputError
 
 __all__ = [
-    "CheckerScore", "checkerboard_score", "grid_residual_px", "stability_px", "track_corners",
+    "CheckerScore",
+    "checkerboard_score",
+    "grid_residual_px",
+    "stability_px",
+    "track_corners",
 ]
 
 DETECT_FLAGS = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY

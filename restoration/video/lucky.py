@@ -155,6 +155,7 @@ def lucky_fusion(
     else:
         ncc = _ncc_maps(warped, ref_u8.astype(np.float32) / 255.0, patch_px)
         badness = 1.0 - _patch_means(ncc, patch_px, cy, cx)
+    # A patch partly mapped from beyond the image border ranks below every full one.
     badness = badness + 1e3 * (1.0 - _patch_means(inside, patch_px, cy, cx))
 
     # Top-k frames per patch, weighted by how much better they are than the k-th.
@@ -173,9 +174,7 @@ def lucky_fusion(
     for i in range(n):
         canvas = np.zeros((h, w), np.float32)
         np.add.at(canvas, (cy[:, None], cx[None, :]), weights[i])
-        pixel_w[i] = cv2.sepFilter2D(
-            canvas, -1, window, window, borderType=cv2.BORDER_CONSTANT
-        )
+        pixel_w[i] = cv2.sepFilter2D(canvas, -1, window, window, borderType=cv2.BORDER_CONSTANT)
     pixel_w *= inside
     image = masked_mean(warped, pixel_w, ref)
     valid = inside.mean(axis=0) >= MIN_VALID_SHARE

@@ -75,9 +75,7 @@ def warp_to_reference(
     for i in range(n):
         u = flows[i]
         mx, my = gx + u[..., 0], gy + u[..., 1]
-        warped[i] = cv2.remap(
-            frames[i], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-        )
+        warped[i] = cv2.remap(frames[i], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         inside[i] = (mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)
         magnitude[i] = np.hypot(u[..., 0], u[..., 1])
     return warped, inside, magnitude

@@ -55,8 +55,13 @@ def warp(img: np.ndarray, field: np.ndarray) -> np.ndarray:
     """``img`` sampled at x + field(x): what a camera sees through a wavy surface."""
     h, w = img.shape[:2]
     gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    return cv2.remap(img, gx + field[..., 0], gy + field[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(
+        img,
+        gx + field[..., 0],
+        gy + field[..., 1],
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
 
 
 @pytest.fixture(scope="module")
