@@ -6,7 +6,8 @@ They need no rig and no calibration: only a sequence of frames of a still scene
 (:mod:`~restoration.video.registration`); :func:`lucky_fusion` keeps, per patch, the frames the
 water distorted least (:mod:`~restoration.video.lucky`). For a planar checkerboard,
 :func:`checkerboard_score` measures how far the restored corners are from a homography of a
-regular grid, and :func:`stability_px` how much the raw corners move from frame to frame
+regular grid, :func:`track_corners` follows its corners through raw frames the detector misses,
+and :func:`stability_px` how much they move from frame to frame
 (:mod:`~restoration.video.checkerboard`).
 """
 
@@ -15,6 +16,7 @@ from restoration.video.checkerboard import (
     checkerboard_score,
     grid_residual_px,
     stability_px,
+    track_corners,
 )
 from restoration.video.frames import VIDEO_SUFFIXES, VideoRestoration, read_frames, temporal_mean
 from restoration.video.lucky import lucky_fusion
@@ -31,4 +33,5 @@ __all__ = [
     "register_frames",
     "stability_px",
     "temporal_mean",
+    "track_corners",
 ]

@@ -22,8 +22,8 @@ from restoration.video import (
     register_frames,
     stability_px,
     temporal_mean,
+    track_corners,
 )
-from restoration.video.checkerboard import track_corners
 from wai_core.errors import WaiInputError
 
 CMU = Path(__file__).resolve().parents[3] / "shared" / "data" / "cmu-water" / "checkboard.avi"
