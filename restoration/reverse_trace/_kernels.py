@@ -232,8 +232,10 @@ def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, frac
 @njit(**_JIT)
 def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls,
                  fracs, tol, max_iter, targets, q0, px, status, q, iters):  # pragma: no cover
-    """Solve targets ``chunk, chunk + n_chunks, ...`` of the N targets (N, 2) mm from surface
-    points ``q0`` (N, 2) mm. The targets are independent: any thread may run any chunk.
+    """Solve the ``chunk``-th of ``n_chunks`` equal runs of consecutive targets of the N
+    targets (N, 2) mm from surface points ``q0`` (N, 2) mm. The targets are independent: any
+    thread may run any chunk. Consecutive targets are neighbouring nodes, which read
+    neighbouring cells of the spline table: a run keeps them in cache.
 
     Parameters
     ----------
@@ -265,7 +267,8 @@ def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, came
         Out: iterations run.
     """
     state, trial = np.empty(11), np.empty(11)
-    for t in range(chunk, targets.shape[0], n_chunks):
+    n = targets.shape[0]
+    for t in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
         s, it = _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs,
                            tol, max_iter, targets[t, 0], targets[t, 1], q0[t, 0], q0[t, 1],
                            px, q, t, state, trial)

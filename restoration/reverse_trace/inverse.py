@@ -89,7 +89,8 @@ def _newton(
     n = len(targets)
     px, q = np.full((n, 2), np.nan), np.full((n, 3), np.nan)
     status, iters = np.empty(n, np.int8), np.zeros(n, np.int64)
-    # A few chunks per thread: targets near the edge of Snell's window take more steps.
+    # A few chunks per thread: targets near the edge of Snell's window take more steps, and a
+    # thread that finishes its run early takes the next.
     run_chunks(
         newton_chunk, max(min(4 * restore_threads(), n), 1), flat, h0, *surf,
         np.r_[optics.center, optics.n_water, optics.z_object], proj, _FD_STEP_MM, _PULLS,
