@@ -267,7 +267,7 @@ def _trace_direct(
     throughput = throughput * bsdf_val * dr.abs((cos_wi * wo_dot_n) / (cos_wo * wi_dot_n))
     active = active & dr.any(throughput != 0.0)
     ray = si.spawn_ray(wo_world)
-    si = diffuser.ray_intersect(ray, mi.RayFlags.All, active)
+    si = diffuser.ray_intersect(ray, mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame, active)
     active = active & si.is_valid()
     # The water lies in the way only of rays flatter than its steepest facet (module notes).
     flat = -ray.d.z <= slope * dr.norm(mi.Vector2f(ray.d.x, ray.d.y))

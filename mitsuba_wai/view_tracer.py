@@ -125,7 +125,8 @@ def _direct_radiance(scene: Any, ray: Any, sampler: Any, water: Any, plane: Any)
     spawned = si.spawn_ray(si.to_world(bs.wo))
     next_ray = mi.Ray3f(dr.select(on_water, spawned.o, ray.o),
                         dr.select(on_water, spawned.d, ray.d), ray.time, ray.wavelengths)
-    si_next = plane.ray_intersect(next_ray, mi.RayFlags.All, onward)
+    si_next = plane.ray_intersect(
+        next_ray, mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame, onward)
     onward = onward & si_next.is_valid()
     d = next_ray.d
     flat = d.z <= slope * dr.norm(mi.Vector2f(d.x, d.y))
