@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from restoration.features import ReferenceGrid, prepare_reference
 from restoration.observations import Observations
 from restoration.options import SurfaceOptions
-from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, restore_view
+from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, ViewState, restore_view
 from restoration.surface import Anchor
 from restoration.undistort import PinholeRemap, check_no_port, pinhole_panel_px
 from wai_core.config import SystemConfig, config_from_dict
@@ -131,14 +131,17 @@ class RigCalibration:
     def restore_view(
         self, distorted: NDArray, surface: Heightfield,
         warp_step_px: int = SurfaceOptions.warp_step_px, gain: float = 1.0,
-        patches: SplinePatches | None = None,
+        patches: SplinePatches | None = None, state: ViewState | None = None,
     ) -> Restoration:
         """The view ``distorted`` ((H, W, 3)) restored into the flat-water view's geometry by
         reverse ray tracing through ``surface`` (absolute heights, mm), solving every
         ``warp_step_px``-th pixel, on the radiance scale: ``gain`` is divided out of the
         restored pixels (:attr:`view_gain` for a raw view; 1 for one already divided).
         Resampling is linear, so this equals dividing first, without a copy of the view.
-        ``patches``: the surface's spline table when the frame has built it already."""
+        ``patches``: the surface's spline table when the frame has built it already;
+        ``state``: a sequence's :class:`~restoration.reverse_trace.ViewState` (each frame's
+        solve starts from the previous frame's; the view then agrees with a cold start's to
+        the solver's tolerance)."""
         cfg = self.cfg
         distorted = np.asarray(distorted)
         if not np.issubdtype(distorted.dtype, np.floating):  # integer captures
@@ -146,7 +149,7 @@ class RigCalibration:
         return restore_view(
             distorted, self.camera_v, surface, cfg.water.h0_mm, cfg.water.n_water,
             cfg.object_z_mm, warp_step_px=warp_step_px, gain=gain,
-            plan=self.view_plan(warp_step_px), patches=patches,
+            plan=self.view_plan(warp_step_px), patches=patches, state=state,
         )
 
     def image_size(self, name: str) -> tuple[int, int]:

@@ -20,9 +20,10 @@ Modules
     resamples into (:class:`ViewPlan`).
 
 A caller that restores many frames keeps one :class:`ViewPlan` per camera and passes it to
-every :func:`restore_view`; one frame that both restores its view and checks its surface
-(:func:`restoration.consistency.spot_consistency`) builds one :class:`SplinePatches` and passes
-it to both.
+every :func:`restore_view` (a sequence may also pass one :class:`ViewState`, which starts each
+frame's solve from the previous frame's); one frame that both restores its view and checks its
+surface (:func:`restoration.consistency.spot_consistency`) builds one :class:`SplinePatches`
+and passes it to both.
 """
 
 from restoration.reverse_trace._surface import SplinePatches
@@ -32,7 +33,7 @@ from restoration.reverse_trace.inverse import (
     find_pixels,
     solve_pixels,
 )
-from restoration.reverse_trace.warp import Restoration, ViewPlan, restore_view
+from restoration.reverse_trace.warp import Restoration, ViewPlan, ViewState, restore_view
 from wai_core.optics import RayStatus, TraceResult, status_counts, trace_to_object
 
 __all__ = [
@@ -43,6 +44,7 @@ __all__ = [
     "SplinePatches",
     "TraceResult",
     "ViewPlan",
+    "ViewState",
     "find_pixels",
     "restore_view",
     "solve_pixels",

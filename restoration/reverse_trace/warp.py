@@ -23,7 +23,12 @@ from numpy.typing import NDArray
 
 from restoration._threads import restore_threads, run_chunks
 from restoration.reverse_trace._kernels import finish_rows, node_warp, valid_box, warp_rows
-from restoration.reverse_trace._surface import SplinePatches, _surface_model, check_patches
+from restoration.reverse_trace._surface import (
+    SplinePatches,
+    _FlatWater,
+    _surface_model,
+    check_patches,
+)
 from restoration.reverse_trace.inverse import _newton, _Optics
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
@@ -314,6 +319,52 @@ class ViewPlan:
             )
 
 
+@dataclass(eq=False)
+class ViewState:
+    """A sequence's warp between frames: where each frame's warp solve starts.
+
+    A video's surface moves little between frames, so each node's Newton iteration starts
+    where the previous frame's converged (nodes that did not start at their flat-water
+    crossing, as without a state; a warm start that fails is solved again from there). The
+    view then differs from a cold start's by less than the solver's tolerance
+    (``_WARP_TOL_PX``) where both converge. Per sequence, never per rig (one calibration may
+    serve several sequences at once): create one per sequence and pass it to every frame's
+    :func:`restore_view`, in order. A state of another plan (camera, water or step) is
+    started afresh.
+
+    Attributes
+    ----------
+    surface_mm : (K, 2) ndarray or None
+        The last frame's surface point of each node of the plan, mm (NaN where unsolved).
+    plan_key : tuple or None
+        What that plan was built for.
+
+    Examples
+    --------
+    >>> ViewState().surface_mm is None
+    True
+    """
+
+    surface_mm: Array | None = field(default=None, repr=False)
+    plan_key: tuple | None = field(default=None, repr=False)
+
+    def start(self, plan: ViewPlan) -> tuple[Array, BoolArray]:
+        """Start points (K, 2) mm of ``plan``'s nodes, and which of them are warm."""
+        key = _plan_key(plan.camera, plan.h0_mm, plan.n_water, plan.z_object_mm, plan.step_px)
+        if self.surface_mm is None or self.plan_key != key:
+            return plan.node_q0, np.zeros(len(plan.node_q0), bool)
+        warm = np.isfinite(self.surface_mm[:, 0])
+        return np.where(warm[:, None], self.surface_mm, plan.node_q0), warm
+
+    def update(self, plan: ViewPlan, surface_mm: Array, status: NDArray[np.int8]) -> None:
+        """Keep a frame's solved surface points (K, 3) mm and statuses (K,)."""
+        q = surface_mm[:, :2].copy()
+        q[status != RayStatus.OK] = np.nan
+        self.surface_mm = q
+        self.plan_key = _plan_key(plan.camera, plan.h0_mm, plan.n_water, plan.z_object_mm,
+                                  plan.step_px)
+
+
 def _plan_key(camera: PinholeCamera, h0: float, n: float, z: float, step: int) -> tuple:
     """What a :class:`ViewPlan` depends on, comparable by value."""
     pose = camera.pose
@@ -477,6 +528,31 @@ def _counts(cell: NDArray[np.int8], plan: ViewPlan, n_valid: int) -> dict[str, i
     return counts
 
 
+def _solve_nodes(
+    camera: PinholeCamera, model: _FlatWater | SplinePatches, optics: _Optics, plan: ViewPlan,
+    state: ViewState | None,
+) -> tuple[Array, NDArray[np.int8]]:
+    """Pixels (K, 2) and statuses (K,) of the plan's nodes: started at their flat-water
+    crossings, or where ``state`` says (warm starts that fail solved again from there);
+    ``state`` then takes this frame's solution."""
+    targets = plan.targets[:, :2]
+    if state is None:
+        px, st, _, _ = _newton(camera, model, optics, targets, plan.node_q0, _WARP_TOL_PX,
+                               _WARP_ITER)
+        return px, st
+    if not isinstance(state, ViewState):
+        raise WaiInputError(f"restore_view: state must be a ViewState, got {type(state)}")
+    start, warm = state.start(plan)
+    px, st, q, _ = _newton(camera, model, optics, targets, start, _WARP_TOL_PX, _WARP_ITER)
+    redo = np.flatnonzero(warm & (st != RayStatus.OK))
+    if redo.size:
+        px[redo], st[redo], q[redo], _ = _newton(
+            camera, model, optics, targets[redo], plan.node_q0[redo], _WARP_TOL_PX, _WARP_ITER
+        )
+    state.update(plan, q, st)
+    return px, st
+
+
 def restore_view(
     distorted: NDArray,
     camera: PinholeCamera,
@@ -489,6 +565,7 @@ def restore_view(
     *,
     plan: ViewPlan | None = None,
     patches: SplinePatches | None = None,
+    state: ViewState | None = None,
 ) -> Restoration:
     """Undo the refraction of ``surface_est``: resample the distorted view into the flat-water view.
 
@@ -526,6 +603,10 @@ def restore_view(
         The spline table of ``surface_est`` (that very object, else
         :class:`~wai_core.errors.WaiInputError`), e.g. shared with
         :func:`restoration.consistency.spot_consistency`; built for this call when omitted.
+    state : ViewState, optional
+        A sequence's warp so far: the solve starts from the previous frame's and the state
+        takes this frame's (the view then agrees with a cold start's to the solver's
+        tolerance, not to the bit). None: every node starts at its flat-water crossing.
 
     Returns
     -------
@@ -551,9 +632,7 @@ def restore_view(
             model = _surface_model(surface_est, h0_mm, patches)
             optics = _Optics(camera.pose.center_lab_mm, float(n_water), float(z_object_mm))
         with timings("solve"):
-            px, st, _, _ = _newton(
-                camera, model, optics, plan.targets[:, :2], plan.node_q0, _WARP_TOL_PX, _WARP_ITER
-            )
+            px, st = _solve_nodes(camera, model, optics, plan, state)
         with timings("upsample"):
             disp_x, disp_y, node_status = _node_warp(plan, px, st)
         with timings("remap"):

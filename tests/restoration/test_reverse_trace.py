@@ -7,6 +7,7 @@ restoration's.
 
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ from restoration.reverse_trace import (
     RayStatus,
     SplinePatches,
     ViewPlan,
+    ViewState,
     find_pixels,
     restore_view,
     solve_pixels,
@@ -331,3 +333,58 @@ def test_a_plan_or_table_of_something_else_is_refused(small_cam, optics):
     with pytest.raises(WaiInputError, match="warp_step_px"):
         ViewPlan.build(small_cam, *optics, 0)
 
+
+
+def test_a_reused_plan_leaves_earlier_frames_views_alone(small_cam, optics):
+    """The plan's scratch arrays serve frame after frame: a view handed out stays as it was
+    when the next frame restores, and each equals what a fresh plan gives. While another
+    frame holds the scratch (a thread), and after pickling, the views are the same."""
+    h0 = optics[0]
+    waves = [_wavy(h0), _tilted(h0)]
+    images = [_render(small_cam, w, optics)[0].astype(np.float32) for w in waves]
+    fresh = [restore_view(img, small_cam, w, *optics, gain=1.5)
+             for img, w in zip(images, waves, strict=True)]
+    plan = ViewPlan.build(small_cam, *optics)
+    first = restore_view(images[0], small_cam, waves[0], *optics, gain=1.5, plan=plan)
+    kept = first.image.copy(), first.valid.copy()
+    second = restore_view(images[1], small_cam, waves[1], *optics, gain=1.5, plan=plan)
+    assert not np.array_equal(first.image, second.image)  # two different frames
+    np.testing.assert_array_equal(first.image, kept[0])
+    np.testing.assert_array_equal(first.valid, kept[1])
+    for got, want in ((first, fresh[0]), (second, fresh[1])):
+        np.testing.assert_array_equal(got.image, want.image)
+        np.testing.assert_array_equal(got.map_px, want.map_px)  # upsampled when read
+    with plan.workspace.borrow(*plan.image_shape):  # held elsewhere: fresh arrays
+        held = restore_view(images[0], small_cam, waves[0], *optics, gain=1.5, plan=plan)
+    np.testing.assert_array_equal(held.image, fresh[0].image)
+    copied = pickle.loads(pickle.dumps(plan))
+    again = restore_view(images[1], small_cam, waves[1], *optics, gain=1.5, plan=copied)
+    np.testing.assert_array_equal(again.image, fresh[1].image)
+
+
+def test_a_warm_start_agrees_with_a_cold_one_to_the_tolerance(small_cam, optics):
+    """A sequence's state starts each frame's solve at the previous frame's solution: the
+    warp agrees with a cold start's to the solver's tolerance (second order in its last step,
+    well below 0.05 px) wherever both restore, and no node a cold start solves is lost. A
+    state of another plan starts cold (the same view to the bit)."""
+    h0 = optics[0]
+    x, y, xx, yy = _grid()
+    frames = [Heightfield(x, y, h0 + 3.0 * np.sin((xx - 4.0 * k) / 40.0) * np.cos(yy / 50.0))
+              for k in range(3)]
+    images = [_render(small_cam, f, optics)[0] for f in frames]
+    plan = ViewPlan.build(small_cam, *optics, 5)
+    state = ViewState()
+    for img, surface in zip(images, frames, strict=True):
+        cold = restore_view(img, small_cam, surface, *optics, warp_step_px=5, plan=plan)
+        warm = restore_view(img, small_cam, surface, *optics, warp_step_px=5, plan=plan,
+                            state=state)
+        both = cold.valid & warm.valid
+        assert both.sum() > 0.9 * cold.valid.sum() and warm.counts["ok"] >= cold.counts["ok"]
+        assert np.abs(warm.map_px[both] - cold.map_px[both]).max() < 0.01
+    other = ViewPlan.build(small_cam, *optics, 4)
+    got = restore_view(images[0], small_cam, frames[0], *optics, warp_step_px=4, plan=other,
+                       state=state)
+    want = restore_view(images[0], small_cam, frames[0], *optics, warp_step_px=4)
+    np.testing.assert_array_equal(got.map_px, want.map_px)
+    with pytest.raises(WaiInputError, match="state"):
+        restore_view(images[0], small_cam, frames[0], *optics, state="warm")
