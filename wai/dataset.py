@@ -29,12 +29,15 @@ leaves a readable file and a rerun continues from there (:func:`write_dataset`).
 from __future__ import annotations
 
 import csv
+import functools
 import io
+import itertools
 import json
 import multiprocessing
 import os
 import platform
 import subprocess
+from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -48,6 +51,7 @@ from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
 
 __all__ = [
+    "ARRAYS",
     "DATASET_FILE",
     "MANIFEST_FILE",
     "DatasetSpec",
@@ -454,24 +458,57 @@ class FrameMaker:
         )
 
 
-# One FrameMaker per worker process, built by the pool's initializer.
-_WORKER: dict[str, FrameMaker] = {}
+# The FrameMaker of each spec a worker process has rendered for (its scenes stay loaded
+# between frames).
+_MAKERS: dict[DatasetSpec, FrameMaker] = {}
 
 
-def _init_worker(spec: DatasetSpec, threads: int) -> None:
+def _make_cached(spec: DatasetSpec, index: int) -> FrameRecord:
+    """Frame ``index`` of ``spec``, by this process's FrameMaker of it."""
+    if spec not in _MAKERS:
+        _MAKERS[spec] = FrameMaker(spec)
+    return _MAKERS[spec].make(index)
+
+
+def _init_worker(threads: int) -> None:
     from wai.threads import limit_native_threads
 
     limit_native_threads(threads)
-    _WORKER["maker"] = FrameMaker(spec)
 
 
-def _make_in_worker(index: int) -> FrameRecord:
-    return _WORKER["maker"].make(index)
+def _frames_on_dask(
+    spec: DatasetSpec, indices: Sequence[int], scheduler: str
+) -> Iterator[FrameRecord]:
+    """The frames ``indices`` in order, rendered by the workers of a running Dask cluster; a
+    window of twice the workers' threads is in flight (the rest waits, not the memory)."""
+    try:
+        from distributed import Client
+    except ModuleNotFoundError as exc:
+        raise WaiInputError(f"--scheduler needs Dask's distributed ({exc})") from None
+    try:
+        client = Client(scheduler, timeout=30)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise WaiInputError(f"--scheduler {scheduler}: no Dask scheduler there ({exc})") from None
+    with client:
+        window = max(2, 2 * sum(client.nthreads().values()))
+        todo = iter(indices)
+        pending = deque(client.submit(_make_cached, spec, i, pure=False)
+                        for i in itertools.islice(todo, window))
+        while pending:
+            rec = pending.popleft().result()
+            for i in itertools.islice(todo, 1):
+                pending.append(client.submit(_make_cached, spec, i, pure=False))
+            yield rec
 
 
-def _frames(spec: DatasetSpec, indices: Sequence[int], workers: int) -> Iterator[FrameRecord]:
-    """The frames ``indices`` in order: rendered here (``workers`` <= 1) or in ``workers``
-    spawned processes."""
+def _frames(
+    spec: DatasetSpec, indices: Sequence[int], workers: int, scheduler: str | None = None
+) -> Iterator[FrameRecord]:
+    """The frames ``indices`` in order: rendered here (``workers`` <= 1), in ``workers``
+    spawned processes, or on the Dask cluster at ``scheduler``."""
+    if scheduler is not None:
+        yield from _frames_on_dask(spec, indices, scheduler)
+        return
     if workers <= 1:
         maker = FrameMaker(spec)
         for i in indices:
@@ -479,8 +516,8 @@ def _frames(spec: DatasetSpec, indices: Sequence[int], workers: int) -> Iterator
         return
     threads = max(1, (os.cpu_count() or 1) // workers)
     ctx = multiprocessing.get_context("spawn")
-    with ctx.Pool(workers, initializer=_init_worker, initargs=(spec, threads)) as pool:
-        yield from pool.imap(_make_in_worker, indices)
+    with ctx.Pool(workers, initializer=_init_worker, initargs=(threads,)) as pool:
+        yield from pool.imap(functools.partial(_make_cached, spec), indices)
 
 
 def _versions() -> dict[str, str]:
@@ -593,6 +630,7 @@ def write_dataset(
     spec: DatasetSpec = DatasetSpec(),
     *,
     workers: int = 0,
+    scheduler: str | None = None,
     progress: bool = True,
 ) -> Path:
     """Render frames ``0 .. frames - 1`` of ``spec`` into ``out_dir/dataset.h5`` and its
@@ -608,6 +646,9 @@ def write_dataset(
     workers : int
         Processes rendering frames (spawned; 0 or 1: in this process). The store is written
         here, in frame order.
+    scheduler : str, optional
+        A running Dask scheduler's address (``tcp://host:8786``) whose workers render the
+        frames instead (they need this package, not the store's file system).
     progress : bool
         Show a progress bar.
 
@@ -632,6 +673,9 @@ def write_dataset(
         raise WaiInputError(f"--frames must be >= 1, not {frames}")
     if workers < 0:
         raise WaiInputError(f"--workers must be >= 0, not {workers}")
+    if scheduler is not None and workers > 0:
+        raise WaiInputError("--workers and --scheduler exclude each other: the scheduler's "
+                            "workers render")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise WaiInputError(f"--out {out}: exists and is not a folder")
@@ -646,7 +690,7 @@ def write_dataset(
         bar = tqdm(total=frames, initial=min(done, frames), desc="dataset", unit="frame",
                    disable=not progress)
         with bar:
-            for rec in _frames(spec, todo, workers):
+            for rec in _frames(spec, todo, workers, scheduler):
                 _append(f, rec, x_mm, y_mm)
                 _write_manifest(f, out / MANIFEST_FILE)
                 bar.update(1)

@@ -49,6 +49,9 @@ def add_dataset(sub: argparse._SubParsersAction, formatter: type, scene_help: st
                    help="sensor noise, exposure and read noise drawn per frame")
     p.add_argument("--workers", type=int, default=0,
                    help="processes rendering frames (0: here)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="a running Dask scheduler (tcp://host:8786) whose workers render the "
+                   "frames (default: none; --workers decides)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_dataset)
 
@@ -73,6 +76,7 @@ def run_dataset(args: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     before = _frames_in(args.out)
     path = write_dataset(args.out, args.frames, spec, workers=args.workers,
+                         scheduler=args.scheduler,
                          progress=not args.quiet)
     elapsed = time.perf_counter() - t0
     with h5py.File(path, "r") as f:

@@ -139,3 +139,22 @@ def test_other_seed_is_refused(store: Path) -> None:
     args = [a if a != "4" else "5" for a in ARGS]
     assert main(["dataset", "--frames", "4", "--out", str(store), *args]) == 2
     assert int(h5py.File(store / DATASET_FILE, "r").attrs["frames"]) >= 2
+
+
+def test_dask_workers_render_the_same_frames(store: Path, tmp_path: Path) -> None:
+    import logging
+
+    from distributed import LocalCluster
+
+    from wai.dataset import DatasetSpec, write_dataset
+
+    spec = DatasetSpec(seed=4, spp=2, size_px=(120, 90))
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                      dashboard_address=None, silence_logs=logging.ERROR) as cluster:
+        write_dataset(tmp_path / "d", 2, spec, scheduler=cluster.scheduler_address,
+                      progress=False)
+    for i in range(2):
+        a, b = read_frame(tmp_path / "d", i), read_frame(store, i)
+        assert a.params == b.params
+        for name in ARRAYS:
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
