@@ -348,15 +348,19 @@ def _connect(
 
 
 @numba.njit(cache=True, nogil=True)
-def _splat(total: NDArray, pixel: NDArray, values: NDArray, lit: NDArray) -> None:
-    """Add each path's value ``values[c, i]`` (3, n) to ``total[c, pixel[i]]`` (3, W H + 1),
+def _splat(total: NDArray, pixel: NDArray, r: NDArray, g: NDArray, b: NDArray,
+           lit: NDArray) -> None:
+    """Add each path's value (``r, g, b``: (n,) each) to ``total[pixel[i]]`` (W H + 1, 3),
     float64, in path order: :func:`numpy.bincount`'s sums, bit for bit (the same on every
     run), the lit channels ``lit`` (3,) in one pass."""
     for i in range(pixel.size):
         p = pixel[i]
-        for c in range(3):
-            if lit[c]:
-                total[c, p] += np.float64(values[c, i])
+        if lit[0]:
+            total[p, 0] += np.float64(r[i])
+        if lit[1]:
+            total[p, 1] += np.float64(g[i])
+        if lit[2]:
+            total[p, 2] += np.float64(b[i])
 
 
 def render_particles(
@@ -449,7 +453,8 @@ def _render(
     n_images = 1 if water is None else 2
     if not scene.emitters():  # e.g. an overcast sky: no light, as Mitsuba's ptracer says
         return [np.zeros((height, width, 3), dtype=np.float32)] * n_images, 0
-    totals = [np.zeros((3, n_pix + 1)) for _ in range(n_images)]
+    # Pixel-major, as the image is laid out (no transposition at the end).
+    totals = [np.zeros((n_pix + 1, 3)) for _ in range(n_images)]
     bad = np.zeros(n_pix + 1, dtype=bool)
     for k, spp_k in enumerate(pass_split(spp, n_pix)):
         pass_seed = (int(seed) + k * PASS_SEED_STRIDE) % 2**32
@@ -461,14 +466,15 @@ def _render(
                 bad[np.asarray(nonfinite)] = True
             idx = np.asarray(pixel)
             for total, rgb in zip(totals, rgbs, strict=True):
-                values = np.asarray(rgb)
+                # Channel by channel: each a view of Dr.Jit's buffer (the Color3f as a whole
+                # would be copied into one (3, n) array first).
+                r, g, b = (np.asarray(rgb[c]) for c in range(3))
                 # A channel that no light reaches adds nothing (a dot colour without it).
-                lit = np.array([values[c].any() for c in range(3)])
-                _splat(total, idx, values, lit)
+                _splat(total, idx, r, g, b, np.array([r.any(), g.any(), b.any()]))
     bad = bad[:n_pix]
     images = []
     for total in totals:
-        total = total[:, :n_pix]
-        total[:, bad] = 0.0
-        images.append(total.T.reshape(height, width, 3).astype(np.float32))
+        total = total[:n_pix]
+        total[bad] = 0.0
+        images.append(total.reshape(height, width, 3).astype(np.float32))
     return images, int(bad.sum())

@@ -37,10 +37,8 @@ from mitsuba_wai.water_hit import water_grid, water_intersect
 __all__ = ["render_view"]
 
 
-def _trace_pass(
-    scene: Any, spp: int, seed: int, lens: Any = None
-) -> tuple[NDArray[np.float32], int]:
-    """Sum (3, W * H) of each pixel's radiance over one pass's camera samples (non-finite
+def _trace_pass(scene: Any, spp: int, seed: int, lens: Any = None) -> tuple[Any, int]:
+    """Sum (Color3f, W * H) of each pixel's radiance over one pass's camera samples (non-finite
     where a sample is) and their number ``s`` per pixel: ``spp`` as the sampler takes it
     (``multijitter`` rounds 5 up to 6, as in ``mi.render``); with ``lens``
     (:class:`mitsuba_wai.lens.CameraLens`) the rays are its, not the sensor's."""
@@ -84,7 +82,7 @@ def _trace_pass(
     dr.eval(radiance)
     pixel_sum = dr.block_sum(radiance, spp, mode="evaluated")
     dr.eval(pixel_sum)
-    return np.asarray(pixel_sum), spp
+    return pixel_sum, spp
 
 
 def _direct_parts(scene: Any) -> tuple[Any, Any] | None:
@@ -179,16 +177,39 @@ def render_view(
     if spp < 1:
         raise ValueError("spp must be at least 1")
     width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
+    passes = particles.pass_split(spp, width * height, particles.MAX_PASS_SAMPLES)
+    if len(passes) == 1:
+        return _mean_image(*_trace_pass(scene, spp, int(seed) % 2**32, lens), width, height)
     total = np.zeros((height, width, 3))
     bad = np.zeros((height, width), dtype=bool)
     count = 0
-    passes = particles.pass_split(spp, width * height, particles.MAX_PASS_SAMPLES)
     for k, spp_k in enumerate(passes):
         sums, taken = _trace_pass(scene, spp_k, (int(seed) + k) % 2**32, lens)
-        sums = sums.T.reshape(height, width, 3)
+        sums = np.stack([np.asarray(sums[c]) for c in range(3)], axis=1)
+        sums = sums.reshape(height, width, 3)
         bad |= ~np.isfinite(sums).all(axis=2)
         total += sums
         count += taken
     image = (total / count).astype(np.float32)
     image[bad] = 0.0
     return image, int(bad.sum())
+
+
+def _mean_image(sums: Any, count: int, width: int, height: int) -> tuple[NDArray[np.float32], int]:
+    """One pass's image: the pixels' sums (Color3f, W * H) over their ``count`` samples, the
+    non-finite pixels zeroed, laid out (H, W, 3) in Dr.Jit, as the passes' float64 mean
+    rounds it (a float32 quotient is the float64 one rounded: double rounding is innocuous
+    for a division, 53 >= 2 * 24 + 2 bits) and the number of pixels zeroed."""
+    import drjit as dr
+
+    mi = mitsuba()
+    mean = sums / count
+    bad = ~(dr.isfinite(mean.x) & dr.isfinite(mean.y) & dr.isfinite(mean.z))
+    mean = dr.select(bad, 0.0, mean)
+    n = width * height
+    flat = dr.zeros(mi.Float, 3 * n)
+    index = dr.arange(mi.UInt32, n) * 3
+    for c in range(3):
+        dr.scatter(flat, mean[c], index + c)
+    dr.eval(flat)
+    return np.array(flat, dtype=np.float32).reshape(height, width, 3), int(dr.count(bad)[0])

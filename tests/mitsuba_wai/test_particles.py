@@ -263,9 +263,9 @@ def test_splat_sums_as_bincount():
     n_pix = 50
     pixel = rng.integers(0, n_pix + 1, 20000).astype(np.uint32)
     values = rng.normal(size=(3, pixel.size)).astype(np.float32) * 1e-3
-    total = np.zeros((3, n_pix + 1))
-    particles._splat(total, pixel, values, np.array([True, False, True]))
+    total = np.zeros((n_pix + 1, 3))
+    particles._splat(total, pixel, *values, np.array([True, False, True]))
     for c in (0, 2):
         expected = np.bincount(pixel, weights=values[c], minlength=n_pix + 1)
-        assert total[c].tobytes() == expected.tobytes()
-    assert not total[1].any()
+        assert total[:, c].tobytes() == expected.tobytes()
+    assert not total[:, 1].any()
