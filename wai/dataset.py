@@ -556,21 +556,21 @@ def _open_store(path: Path, spec: DatasetSpec, cfg: SystemConfig) -> Any:
         f.attrs["versions"] = json.dumps(_versions(), sort_keys=True)
         f.attrs["frames"] = 0
         return f
+    # Checked read-only: a file that is refused is not touched.
     try:
-        f = h5py.File(path, "a")
+        with h5py.File(path, "r") as f:
+            attrs = {k: _plain(f.attrs.get(k)) for k in _IDENTITY}
     except OSError:
         raise WaiInputError(f"--out {path.parent}: {path.name} exists and is not an HDF5 "
                             "file of wai dataset") from None
-    if f.attrs.get("format") != FORMAT:
-        f.close()
+    if attrs["format"] != FORMAT:
         raise WaiInputError(f"--out {path.parent}: {path.name} exists and is not a store of "
                             "wai dataset")
-    differ = [k for k in _IDENTITY if _plain(f.attrs.get(k)) != _plain(want[k])]
+    differ = [k for k in _IDENTITY if attrs[k] != _plain(want[k])]
     if differ:
-        f.close()
         raise WaiInputError(f"--out {path.parent}: holds a dataset of other "
                             f"{', '.join(differ)}; choose another --out to make this one")
-    return f
+    return h5py.File(path, "a")
 
 
 def _plain(value: Any) -> Any:
