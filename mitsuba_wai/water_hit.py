@@ -14,7 +14,7 @@ and the shading normal interpolated from the vertex normals by the hit's barycen
 Rays this cannot settle (not steep enough, no settled facet after the steps, or a crossing off
 the grid, where the mesh may or may not lie in the way) are left to Embree, so the answer is
 the mesh's for every ray: the grid only saves Embree's traversal for the rays it can settle,
-in the repository's scenes all of system S's and nearly all of system V's.
+in the repository's scenes nearly all of them.
 """
 
 from __future__ import annotations
