@@ -31,6 +31,7 @@ cannot support comes back with status ``failed`` and the reason (the methods cat
 raises :class:`~wai_core.errors.WaiInputError`.
 """
 
+from restoration import video
 from restoration.alterman import AltermanCalibration
 from restoration.calibration import Calibration, LevelTrack, RigCalibration
 from restoration.consistency import Consistency
@@ -94,4 +95,5 @@ __all__ = [
     "restore_folder",
     "restore_sequence",
     "score",
+    "video",
 ]

@@ -116,6 +116,7 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     run_experiment(
         args.name, args.config, args.out, seeds=args.seeds if exp.seeds is not None else None,
         quick=args.quick, sweep=SweepOptions.from_args(args) if exp.sweep else None,
+        methods=getattr(args, "method", None),
     )
     return 0
 
@@ -145,6 +146,11 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
             from wai.sweep import add_sweep_arguments
 
             add_sweep_arguments(q)
+        if exp.methods:
+            q.add_argument("--method", action="append", metavar="SPEC",
+                           help="a method of one's own to compare too: module:Class, "
+                           "path/to/file.py:Class or an installed entry point (repeatable; "
+                           "docs/methods.md) (default: the built-in ones only)")
         q.set_defaults(func=_cmd_experiment)
 
 

@@ -84,7 +84,7 @@ def test_run_experiment_runs_the_registrys_runner_with_its_seeds(monkeypatch, tm
     calls = []
 
     def recorder(name):
-        return lambda *args: calls.append((name, *args))
+        return lambda *args, **kw: calls.append((name, *args))
 
     for name, exp in experiments.EXPERIMENTS.items():
         monkeypatch.setitem(experiments.EXPERIMENTS, name,
@@ -98,3 +98,14 @@ def test_run_experiment_runs_the_registrys_runner_with_its_seeds(monkeypatch, tm
     assert calls[-1][2:4] == (Path("renders/paper"), 4)
     with pytest.raises(WaiInputError, match="no experiment 'nope'"):
         experiments.run_experiment("nope")
+    with pytest.raises(WaiInputError, match="takes no --method"):
+        experiments.run_experiment("paper", methods=["mine.py:Mine"])
+
+
+def test_compare_takes_methods_of_ones_own_and_refuses_bad_ones_before_rendering(tmp_path):
+    """--method reaches the comparison; a name that resolves to nothing stops it with one
+    line (exit code 2) before any sequence is rendered."""
+    argv = ["experiment", "compare", "--quick", "--out", str(tmp_path / "c"), "--workers", "0",
+            "--no-progress", "--method", "no_such_module_xyz:Thing"]
+    assert main(argv) == 2
+    assert not (tmp_path / "c" / "cases").exists()

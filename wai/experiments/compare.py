@@ -1,0 +1,225 @@
+"""``wai experiment compare``: every method on the same rendered sequences, with truth.
+
+The field's two families side by side: methods that restore each frame from a rig
+(structured light; any method of one's own through :class:`restoration.Method`, given as
+``--method SPEC``), and methods that restore a still scene from video alone
+(:mod:`restoration.video`: the temporal mean, registration by optical flow, lucky-region
+fusion). Each case (sea state, seed, degradation) is one rendered sequence; every method runs
+on it. Scores against the truth: the view's SSIM and PSNR against the flat-water view (on the
+pixels the method restored and the object covers), corner STD against the truth's corners,
+surface RMSE where the method gives a surface; and its cost: ms per frame and the frames it
+needs (1 for a per-frame method, the sequence for a video method). The cases run as a sweep
+(:mod:`wai.sweep`): locally, on a Dask cluster, resumable.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wai.sweep import SweepOptions, is_error, run_sweep
+from wai_core.config import with_keys
+from wai_core.io import atomic_write_bytes, write_json
+from wai_core.system import load_rig
+
+FPS = 30.0
+"""Frame rate of the rendered sequences."""
+VIDEO_METHODS = ("mean", "registration", "lucky")
+"""The image-only baselines (:mod:`restoration.video`)."""
+FRAME_METHODS = ("structured-light", "wai/examples/plugin_method.py:AsSeen")
+"""The per-frame methods compared by default: the paper's, and the unrestored view as a
+method of one's own (its floor)."""
+DEGRADATIONS: dict[str, dict[str, Any]] = {"none": {}, "sensor": {"sensor.enabled": True}}
+"""The degradations of a case, as configuration keys."""
+SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "ms_per_frame", "frames_needed",
+          "frames_ok", "frames")
+
+
+def case_name(point: dict[str, Any]) -> str:
+    return f"U{point['wind']:g}_seed{point['seed']:03d}_{point['degradation']}"
+
+
+def compare_points(methods: list[str], seeds: int, quick: bool) -> list[dict[str, Any]]:
+    """Every (case, method): sea states, seeds and degradations crossed with the methods."""
+    winds = (1.0,) if quick else (1.0, 1.5)
+    degradations = ("none",) if quick else tuple(DEGRADATIONS)
+    return [{"wind": w, "seed": s, "degradation": d, "method": m}
+            for w in winds for s in range(seeds) for d in degradations for m in methods]
+
+
+def render_case(config: str, point: dict[str, Any], root: Path, frames: int) -> Path:
+    """The case's sequence, rendered into ``root/cases/NAME`` unless it is there."""
+    from mitsuba_wai.sequence import render_sequence
+    from wai_core.sequence import is_sequence, read_sequence
+
+    folder = root / "cases" / case_name(point)
+    if is_sequence(folder) and len(read_sequence(folder).frames) == frames:
+        return folder
+    cfg = load_rig(config).replace("waves", wind_speed_m_s=point["wind"], seed=point["seed"])
+    cfg = with_keys(cfg, DEGRADATIONS[point["degradation"]])
+    render_sequence(cfg, folder, frames, FPS, progress=False, overwrite=True)
+    return folder
+
+
+def _view_scores(result: Any, distorted: np.ndarray, cal: Any, truth: Any) -> dict[str, Any]:
+    from restoration import score
+
+    s = score(result, distorted, cal, truth)
+    out = {"ssim": s.restored["ssim"], "psnr_db": s.restored["psnr_db"],
+           "corner_std_px": s.corner_std_restored_px}
+    out["rmse_mm"] = s.rmse_mm if s.surface is not None else None
+    return out
+
+
+def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
+    """A per-frame method over the sequence: means over its frames with a view."""
+    from restoration import LevelTrack, get_method
+    from restoration.folder import restore_frame
+    from restoration.sequence import load_sequence
+    from wai_core.sequence import read_sequence
+
+    seq = read_sequence(folder)
+    method = get_method(spec)
+    cal, _ = load_sequence(folder)
+    track = LevelTrack()
+    rows = []
+    for frame in seq.frame_dirs:
+        done = restore_frame(frame, cal, method, track, flat_from=[folder])
+        res, m = done.result, done.metrics
+        row = {"ok": res.ok, "ms": res.timings_ms.get("end_to_end")}
+        if done.scores is not None and done.scores.restored is not None:
+            row.update(ssim=done.scores.restored["ssim"],
+                       psnr_db=done.scores.restored["psnr_db"],
+                       corner_std_px=m.get("corner_std_restored_px"),
+                       rmse_mm=m.get("wai_rmse_mm"))
+        rows.append(row)
+    mean = {key: _mean([r.get(key) for r in rows])
+            for key in ("ssim", "psnr_db", "corner_std_px", "rmse_mm")}
+    return {**mean, "ms_per_frame": float(np.median([r["ms"] for r in rows if r["ms"]])),
+            "frames_needed": 1, "frames_ok": sum(r["ok"] for r in rows), "frames": len(rows),
+            "method_name": method.name}
+
+
+def _video_method(folder: Path, name: str) -> dict[str, Any]:
+    """A video method over the sequence's views: one fused image, scored against the truth
+    of the first frame (the flat-water view is every frame's)."""
+    from restoration import RestoredView, RestoreResult, Truth
+    from restoration.sequence import load_sequence
+    from restoration.video import lucky_fusion, register_frames, temporal_mean
+    from wai_core.sequence import read_sequence
+
+    cal, images = load_sequence(folder)
+    views = np.stack([cal.radiance(im["view"]) for im in images]).astype(np.float32)
+    run = {"mean": temporal_mean, "registration": register_frames, "lucky": lucky_fusion}[name]
+    fused = run(np.clip(views, 0.0, 1.0))
+    truth = Truth.from_folder(read_sequence(folder).frame_dirs[0], cal)
+    result = RestoreResult(name, view=RestoredView(fused.image, fused.valid))
+    return {**_view_scores(result, views[0], cal, truth), "ms_per_frame": fused.ms_per_frame,
+            "frames_needed": len(views), "frames_ok": len(views), "frames": len(views),
+            "method_name": name}
+
+
+def _mean(values: list[Any]) -> float | None:
+    v = np.array([x for x in values if x is not None], float)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else None
+
+
+def evaluate(point: dict[str, Any]) -> dict[str, Any]:
+    """One sweep point: the method on its case's sequence (rendered beforehand)."""
+    folder = Path(point["folder"])
+    if point["method"] in VIDEO_METHODS:
+        return _video_method(folder, point["method"])
+    return _frame_method(folder, point["method"])
+
+
+def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per method: the means of its scores over the cases, and its cases."""
+    out = []
+    for method in dict.fromkeys(r["method"] for r in rows):
+        part = [r for r in rows if r["method"] == method and not is_error(r.get("status"))]
+        entry = {"method": method, "name": part[0]["method_name"] if part else method,
+                 "cases": len(part)}
+        entry.update({k: _mean([r.get(k) for r in part]) for k in SCORES})
+        out.append(entry)
+    return out
+
+
+def _figure(summary: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for e in summary:
+        if e["ms_per_frame"] is None:
+            continue
+        for ax, key in zip(axes, ("corner_std_px", "ssim"), strict=True):
+            if e[key] is not None:
+                ax.plot(e["ms_per_frame"], e[key], "o")
+                ax.annotate(e["name"], (e["ms_per_frame"], e[key]), fontsize=8,
+                            xytext=(4, 4), textcoords="offset points")
+    axes[0].set_ylabel("corner STD against the truth, px (lower is better)")
+    axes[1].set_ylabel("view SSIM against the flat-water view (higher is better)")
+    for ax in axes:
+        ax.set_xscale("log")
+        ax.set_xlabel("ms per frame (2-core VM)")
+    fig.suptitle("Speed against accuracy, every method on the same rendered sequences")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def report(summary: list[dict[str, Any]], command: str) -> str:
+    def f(v: Any, spec: str) -> str:
+        return "-" if v is None else format(v, spec)
+
+    lines = [f"# Methods compared (`{command}`)", "",
+             "| method | frames needed | ok / frames | view SSIM | PSNR dB | corner STD px | "
+             "surface RMSE mm | ms per frame |", "|" + " --- |" * 8]
+    for e in summary:
+        lines.append(
+            f"| {e['name']} | {f(e['frames_needed'], '.0f')} | {f(e['frames_ok'], '.0f')} / "
+            f"{f(e['frames'], '.0f')} | {f(e['ssim'], '.4f')} | {f(e['psnr_db'], '.2f')} | "
+            f"{f(e['corner_std_px'], '.3f')} | {f(e['rmse_mm'], '.4f')} | "
+            f"{f(e['ms_per_frame'], '.1f')} |")
+    return "\n".join(lines) + "\n"
+
+
+def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
+                sweep: SweepOptions | None = None, methods: list[str] | None = None
+                ) -> list[dict[str, Any]]:
+    """The experiment into ``out``: renders, the sweep's table, the summary, chart, report."""
+    from tqdm import tqdm
+
+    from restoration import method_class
+
+    specs = [*FRAME_METHODS, *(methods or []), *VIDEO_METHODS]
+    for spec in specs:  # a bad name fails here, before any render
+        if spec not in VIDEO_METHODS:
+            method_class(spec)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    frames = 8 if quick else 30
+    points = compare_points(list(dict.fromkeys(specs)), seeds, quick)
+    cases = {case_name(p): p for p in points}
+    for name, p in tqdm(cases.items(), desc="render", unit="case"):
+        folder = render_case(str(config), p, out, frames)
+        for q in points:
+            if case_name(q) == name:
+                q["folder"] = str(folder)
+    sweep = SweepOptions() if sweep is None else sweep
+    rows = run_sweep(points, evaluate, out / "compare.csv",
+                     key=("wind", "seed", "degradation", "method"), **sweep.kwargs())
+    summary = summarize(rows)
+    command = f"wai experiment compare --seeds {seeds}" + (" --quick" if quick else "")
+    text = report(summary, command)
+    write_json(out / "compare_summary.json", {"command": command, "methods": summary})
+    atomic_write_bytes(out / "compare.md", text.encode())
+    _figure(summary, out / "compare.png")
+    print(text)
+    return summary
+
