@@ -95,6 +95,8 @@ def select_variant(requested: str = "auto") -> str:
     raises ``RuntimeError`` (a programming error, not bad input).
     """
     global _chosen
+    if _chosen is not None and requested in ("auto", _chosen):
+        return _chosen  # set already: no library search (the tracers ask on every call)
     if requested != "auto" and requested not in SUPPORTED:
         raise WaiInputError(
             f"{requested}: not a variant these renders run on (use auto, {', '.join(SUPPORTED)})"
