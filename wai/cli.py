@@ -313,6 +313,22 @@ def _bench_sizes(args: argparse.Namespace) -> _BenchRun:
     return bench_sizes(args.config, args.out, args.runs, sizes), print_sizes, []
 
 
+def _bench_capture(args: argparse.Namespace) -> _BenchRun:
+    from wai.bench.capture import bench_capture, parse_board, print_capture
+
+    return bench_capture(args.video, parse_board(args.board)), print_capture, []
+
+
+def _capture_options(p: argparse.ArgumentParser) -> None:
+    from wai.bench.capture import DEFAULT_VIDEO
+
+    p.add_argument("--video", type=Path, default=DEFAULT_VIDEO,
+                   help="a video file or a folder of frames of a planar checkerboard seen "
+                   f"through water (default: {DEFAULT_VIDEO}, the CMU capture)")
+    p.add_argument("--board", default="8x6",
+                   help="the board's inner corners, COLSxROWS (default: 8x6, the CMU board)")
+
+
 def _bench_accuracy(args: argparse.Namespace) -> _BenchRun:
     from wai.bench.accuracy import print_accuracy, run_accuracy
 
@@ -405,6 +421,9 @@ _BENCHES = {
                       lambda p: _timed_options(p, restores=True), _bench_restore),
     "sizes": _Bench("the restoration's cost against camera size: ms per frame and per "
                     "megapixel, printed", _sizes_options, _bench_sizes),
+    "capture": _Bench("the image-only baselines on a real capture of a checkerboard: the "
+                      "corners' residual from a grid, raw frames and temporal mean beside",
+                      _capture_options, _bench_capture),
     "accuracy": _Bench("scores over seeds with an error budget", _accuracy_options,
                        _bench_accuracy),
     "surfaces": _Bench("analytic steep and sharp-crested surfaces", _surfaces_options,

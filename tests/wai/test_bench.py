@@ -223,3 +223,16 @@ def test_bench_sizes_names_its_option(text):
 
     with pytest.raises(WaiInputError, match="^--sizes"):
         parse_sizes(text)
+
+
+@pytest.mark.parametrize("text", ["8", "8x", "axb", "1x6"])
+def test_bench_capture_names_its_board_option(text):
+    from wai.bench.capture import parse_board
+    from wai_core.errors import WaiInputError
+
+    with pytest.raises(WaiInputError, match="^--board"):
+        parse_board(text)
+
+
+def test_bench_capture_names_a_missing_video(tmp_path):
+    assert main(["bench", "capture", "--video", str(tmp_path / "none.avi")]) == 2
