@@ -236,7 +236,8 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "with the rig's config, and pattern, pattern_flat, view as EXR, PNG or TIFF). Scores are "
         "computed where the folder holds truth (heightfield.npz, view_truth.*), else skipped.",
     )
-    p.add_argument("dir", type=Path, help="the folder to restore")
+    p.add_argument("dir", type=Path, help="the folder to restore (a video file or a folder "
+                   "of frames too, for the video methods)")
     p.add_argument(
         "--integrator", default=None, choices=_integrators(),
         help="slope integrator (paper: the paper's central differences, eq. 10-13); default: "
@@ -251,7 +252,9 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "--method",
         default="structured-light",
         help="restoration method: structured-light, alterman (the sun-and-pinhole baseline, on "
-        "a folder rendered from the alterman scene), a method of one's own as module:Class, "
+        "a folder rendered from the alterman scene), the video methods registration, lucky "
+        "and mean (from a video file, a folder of frames or a sequence; no scene.json), a "
+        "method of one's own as module:Class, "
         "or the name an installed package registers (entry points 'wai.methods'; "
         "docs/methods.md) (default: structured-light)",
     )
@@ -279,6 +282,12 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "the level then comes from the data alone, not from the reference's water.h0_mm "
         "(default: referred, which cancels the rig's common errors; docs/rig.md)",
     )
+    p.add_argument("--out", type=Path, default=None,
+                   help="video methods: output folder (default: DIR/restore, or "
+                   "renders/NAME_restore for a video file NAME)")
+    p.add_argument("--board", default=None,
+                   help="video methods: score the restored view of a planar checkerboard with "
+                   "COLSxROWS inner corners (default: none)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_restore)
 

@@ -13,8 +13,15 @@ from restoration import SurfaceOptions, get_method, restore_folder
 def run_restore(args: argparse.Namespace) -> None:
     """CLI entry: restore ``args.dir``, print the summary, and warn on a frame whose status is
     not ``ok``."""
+    from wai.restore_video_cli import VIDEO_METHODS, run_restore_video
     from wai_core.errors import WaiInputError
 
+    if args.method in VIDEO_METHODS:
+        run_restore_video(args)
+        return
+    if args.out is not None or args.board is not None:
+        raise WaiInputError(f"--out and --board are for the video methods "
+                            f"({', '.join(VIDEO_METHODS)}), not {args.method}")
     if not args.dir.is_dir():
         raise WaiInputError(f"restore folder not found: {args.dir}")
     if args.refine is not None and args.refine < 0:

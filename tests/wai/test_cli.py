@@ -75,3 +75,27 @@ def test_negative_refine_names_the_option(capsys, tmp_path):
     assert main(["restore", str(tmp_path), "--refine", "-1"]) == 2
     err = capsys.readouterr().err
     assert "--refine" in err and len(err.strip().splitlines()) == 1
+
+
+def test_video_methods_restore_a_folder_of_frames(tmp_path, capsys):
+    """A folder of numbered frames, no scene.json: the registration baseline writes its
+    restored view and metrics; per-frame methods refuse the video options."""
+    import cv2
+    import numpy as np
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    rng = np.random.default_rng(3)
+    board = np.kron((np.indices((6, 8)).sum(axis=0) % 2), np.ones((16, 16))) * 200 + 20
+    for k in range(4):
+        shift = rng.normal(0, 1.0, 2)
+        m = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+        img = cv2.warpAffine(board.astype(np.uint8), m, board.shape[::-1],
+                             borderMode=cv2.BORDER_REFLECT)
+        cv2.imwrite(str(frames / f"frame_{k:02d}.png"), img)
+    out = tmp_path / "out"
+    assert main(["restore", str(frames), "--method", "registration", "--out", str(out)]) == 0
+    assert {p.name for p in out.iterdir()} >= {"restored.png", "metrics.json"}
+    assert "4 frames fused" in capsys.readouterr().out
+    assert main(["restore", str(frames), "--out", str(out)]) == 2
+    assert "--out and --board are for the video methods" in capsys.readouterr().err

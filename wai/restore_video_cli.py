@@ -1,0 +1,82 @@
+"""``wai restore PATH --method registration|lucky|mean``: a still scene restored from video
+alone (:mod:`restoration.video`), from a video file, a folder of frames or a sequence folder,
+with no ``scene.json``; writes ``restored.png``/``.exr``, its mask and ``metrics.json``."""
+
+from __future__ import annotations
+
+import argparse
+import platform
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from wai_core.errors import WaiInputError
+
+VIDEO_METHODS = ("registration", "lucky", "mean")
+"""The image-only methods ``wai restore --method`` takes besides the per-frame ones."""
+
+
+def out_folder(path: Path) -> Path:
+    """Where a video's restoration goes by default: ``DIR/restore`` for a folder,
+    ``renders/NAME_restore`` for a video file (never beside it: a capture's folder may be
+    shared or read-only)."""
+    return path / "restore" if path.is_dir() else Path("renders") / f"{path.stem}_restore"
+
+
+def _frames(path: Path) -> Any:
+    """The frames of a sequence folder (its views, on the object's radiance scale), of a
+    folder of images, or of a video file."""
+    from restoration.video import read_frames
+    from wai_core.sequence import is_sequence
+
+    if path.is_dir() and is_sequence(path):
+        from restoration.sequence import load_sequence
+
+        cal, images = load_sequence(path)
+        return np.clip(np.stack([cal.radiance(im["view"]) for im in images]), 0, 1)
+    return read_frames(path)
+
+
+def run_restore_video(args: argparse.Namespace) -> None:
+    """Restore ``args.dir`` by ``args.method``; print what a person reads first."""
+    import cv2
+
+    from restoration.video import checkerboard_score, lucky_fusion, register_frames, temporal_mean
+    from wai_core.io import atomic_dir, check_output_dir, write_exr, write_json, write_png
+
+    path = Path(args.dir)
+    if not path.exists():
+        raise WaiInputError(f"restore: no such file or folder: {path}")
+    board = None
+    if args.board:
+        from wai.bench.capture import parse_board
+
+        board = parse_board(args.board)
+    target = Path(args.out) if args.out is not None else out_folder(path)
+    check_output_dir(target, "restore", remedy="choose another --out")
+    frames = _frames(path)
+    run = {"registration": register_frames, "lucky": lucky_fusion, "mean": temporal_mean}
+    res = run[args.method](frames)
+    metrics: dict[str, Any] = {
+        "method": res.method, "source": str(path), "frames": int(res.frames_used),
+        "ms_per_frame": float(res.ms_per_frame), "valid_fraction": float(res.valid.mean()),
+        "versions": {"python": platform.python_version(), "numpy": np.__version__,
+                     "opencv": cv2.__version__},
+    }
+    if board is not None:
+        s = checkerboard_score(res.image, board)
+        metrics["checkerboard"] = {"board": list(board), "found": bool(s.found),
+                                   "rms_px": float(s.rms_px) if s.found else None}
+    image = res.image if res.image.ndim == 3 else np.repeat(res.image[..., None], 3, axis=2)
+    with atomic_dir(target, command="restore", remedy="choose another --out") as tmp:
+        write_exr(tmp / "restored.exr", image.astype(np.float32))
+        write_png(tmp / "restored.png", image, exposure=1.0)
+        write_png(tmp / "restored_mask.png", (res.valid * np.uint8(255)).astype(np.uint8))
+        write_json(tmp / "metrics.json", metrics)
+    print(f"{res.method}: {res.frames_used} frames fused in {res.ms_per_frame:.1f} ms per frame; "
+          f"{metrics['valid_fraction']:.0%} of the pixels valid; wrote {target}")
+    if "checkerboard" in metrics:
+        c = metrics["checkerboard"]
+        print("checkerboard: " + (f"corners {c['rms_px']:.3f} px (RMS) from a grid's homography"
+                                  if c["found"] else "the full board is not found"))
