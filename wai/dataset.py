@@ -60,6 +60,7 @@ __all__ = [
     "FrameRecord",
     "Ranges",
     "flat_pixel_of",
+    "frame_config",
     "read_frame",
     "read_manifest",
     "sample_params",
@@ -103,6 +104,14 @@ class Ranges:
     signal_level: tuple[float, float] = (0.2, 0.8)
     read_noise_e: tuple[float, float] = (2.0, 10.0)
 
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            lo, hi = getattr(self, f.name)
+            if not lo < hi:
+                raise ValueError(f"Ranges.{f.name}: needs lo < hi, not {lo}, {hi}")
+        if self.wind_speed_m_s[0] <= 0:
+            raise ValueError("Ranges.wind_speed_m_s: the wind must be > 0")
+
     def to_json(self) -> str:
         """The ranges as the JSON the store records."""
         return json.dumps(asdict(self), sort_keys=True)
@@ -137,8 +146,10 @@ def sample_params(
     >>> p == sample_params(0, 3)
     True
     """
-    if seed < 0 or index < 0:
+    if seed < 0:
         raise WaiInputError(f"--seed must be >= 0, not {seed}")
+    if index < 0:
+        raise ValueError(f"frame index must be >= 0, not {index}")
     rng = np.random.default_rng([int(seed), int(index)])
     r = ranges
     # Draw every value in a fixed order, degradations included, so turning them on does not
@@ -207,7 +218,15 @@ class DatasetSpec:
 
 
 def frame_config(base: SystemConfig, p: FrameParams) -> SystemConfig:
-    """``base`` with frame ``p``'s sea state (and sensor, when degraded)."""
+    """``base`` with frame ``p``'s sea state (and sensor, when degraded).
+
+    Examples
+    --------
+    >>> from wai_core import load_system
+    >>> cfg = frame_config(load_system("paper"), FrameParams(0, 1.5, 90.0, 12.0, 3))
+    >>> cfg.waves.wind_speed_m_s, cfg.waves.seed, cfg.sensor.enabled
+    (1.5, 3, False)
+    """
     cfg = base.replace("waves", wind_speed_m_s=p.wind_speed_m_s,
                        wind_direction_deg=p.wind_direction_deg, time_s=p.time_s,
                        seed=p.wave_seed)

@@ -67,7 +67,12 @@ def method_options(args: argparse.Namespace) -> SurfaceOptions:
     choices = {"integrator": args.integrator, "n_refine": args.refine, "anchor": anchor,
                "fit_spots": True if args.fit else None,
                "flat_referenced": False if args.as_detected else None}
-    return get_method(args.method, **choices).options
+    try:
+        return get_method(args.method, **choices).options
+    except WaiInputError as exc:
+        if str(exc).startswith("--"):
+            raise
+        raise WaiInputError(f"--method: {exc}") from None
 
 
 def compile_notice(quiet: bool) -> bool:
