@@ -37,6 +37,7 @@ import multiprocessing
 import os
 import platform
 import subprocess
+import time
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field, fields
@@ -63,6 +64,7 @@ __all__ = [
     "frame_config",
     "read_frame",
     "read_manifest",
+    "read_runs",
     "sample_params",
     "true_view_warp",
     "write_dataset",
@@ -474,7 +476,8 @@ class FrameMaker:
         )
         # With the sensor on, the views are its reading, already scaled by the exposure.
         gain = 1.0 if cfg.sensor.enabled else radiance_gain(cfg.water.n_water)
-        return cfg, self.surface(cfg), images, gain
+        # Level 0's mesh is the storage grid: the same heights, not synthesised twice.
+        return cfg, mesh if level == 0 else self.surface(cfg), images, gain
 
     def make(self, index: int) -> FrameRecord:
         """Frame ``index``, rendered and reduced to what the store holds."""
@@ -492,8 +495,7 @@ class FrameMaker:
         )
 
 
-# The FrameMaker of each spec a worker process has rendered for (its scenes stay loaded
-# between frames).
+# A worker process's FrameMaker of each spec (its scenes stay loaded between frames).
 _MAKERS: dict[DatasetSpec, FrameMaker] = {}
 
 
@@ -504,25 +506,11 @@ def _make_cached(spec: DatasetSpec, index: int) -> FrameRecord:
     return _MAKERS[spec].make(index)
 
 
-def _init_worker(threads: int) -> None:
-    from wai.threads import limit_native_threads
-
-    limit_native_threads(threads)
-
-
 def _frames_on_dask(
-    spec: DatasetSpec, indices: Sequence[int], scheduler: str
+    client: Any, spec: DatasetSpec, indices: Sequence[int]
 ) -> Iterator[FrameRecord]:
-    """The frames ``indices`` in order, rendered by the workers of a running Dask cluster; a
+    """The frames ``indices`` in order, rendered by the workers of ``client``'s cluster; a
     window of twice the workers' threads is in flight (the rest waits, not the memory)."""
-    try:
-        from distributed import Client
-    except ModuleNotFoundError as exc:
-        raise WaiInputError(f"--scheduler needs Dask's distributed ({exc})") from None
-    try:
-        client = Client(scheduler, timeout=30)
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise WaiInputError(f"--scheduler {scheduler}: no Dask scheduler there ({exc})") from None
     with client:
         window = max(2, 2 * sum(client.nthreads().values()))
         todo = iter(indices)
@@ -535,23 +523,42 @@ def _frames_on_dask(
             yield rec
 
 
-def _frames(
-    spec: DatasetSpec, indices: Sequence[int], workers: int, scheduler: str | None = None
-) -> Iterator[FrameRecord]:
-    """The frames ``indices`` in order: rendered here (``workers`` <= 1), in ``workers``
-    spawned processes, or on the Dask cluster at ``scheduler``."""
-    if scheduler is not None:
-        yield from _frames_on_dask(spec, indices, scheduler)
-        return
-    if workers <= 1:
-        maker = FrameMaker(spec)
-        for i in indices:
-            yield maker.make(i)
-        return
-    threads = max(1, (os.cpu_count() or 1) // workers)
+def _dask_client(scheduler: str) -> Any:
+    try:
+        from distributed import Client
+    except ModuleNotFoundError as exc:
+        raise WaiInputError(f"--scheduler needs Dask's distributed ({exc})") from None
+    try:
+        return Client(scheduler, timeout=30)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise WaiInputError(f"--scheduler {scheduler}: no Dask scheduler there ({exc})") from None
+
+
+def _frames_in_pool(spec: DatasetSpec, indices: Sequence[int], n: int) -> Iterator[FrameRecord]:
+    from wai.threads import limit_native_threads
+
+    threads = max(1, (os.cpu_count() or 1) // n)
     ctx = multiprocessing.get_context("spawn")
-    with ctx.Pool(workers, initializer=_init_worker, initargs=(threads,)) as pool:
+    with ctx.Pool(n, initializer=limit_native_threads, initargs=(threads,)) as pool:
         yield from pool.imap(functools.partial(_make_cached, spec), indices)
+
+
+def _frames(
+    spec: DatasetSpec, indices: Sequence[int], workers: int, scheduler: str | None = None,
+    maker: FrameMaker | None = None,
+) -> tuple[Iterator[FrameRecord], str]:
+    """The frames ``indices`` in order, rendered here (``workers`` <= 1, by ``maker`` if
+    given), in ``workers`` spawned processes, or on the Dask cluster at ``scheduler``; and
+    what renders them, in words."""
+    if scheduler is not None:
+        client = _dask_client(scheduler)
+        threads = client.nthreads()
+        return (_frames_on_dask(client, spec, indices),
+                f"Dask {scheduler}: {len(threads)} workers, {sum(threads.values())} threads")
+    if workers <= 1:
+        maker = maker or FrameMaker(spec)
+        return (maker.make(i) for i in indices), "this process"
+    return _frames_in_pool(spec, indices, workers), f"{workers} worker processes"
 
 
 def _versions() -> dict[str, str]:
@@ -720,18 +727,46 @@ def write_dataset(
     try:
         done = _trim(f)
         todo = list(range(done, frames))
-        x_mm, y_mm = _grid_axes(spec, cfg) if todo else (None, None)
-        bar = tqdm(total=frames, initial=min(done, frames), desc="dataset", unit="frame",
-                   disable=not progress)
-        with bar:
-            for rec in _frames(spec, todo, workers, scheduler):
-                _append(f, rec, x_mm, y_mm)
-                _write_manifest(f, out / MANIFEST_FILE)
-                bar.update(1)
+        t0 = time.perf_counter()
+        # Here, the frames' maker gives the grid (its wave field is synthesised once).
+        maker = FrameMaker(spec) if todo and scheduler is None and workers <= 1 else None
+        with tqdm(total=frames, initial=min(done, frames), desc="dataset", unit="frame",
+                  disable=not progress) as bar:
+            if todo:
+                x_mm, y_mm = (maker.x_mm, maker.y_mm) if maker else _grid_axes(spec, cfg)
+                made, renderers = _frames(spec, todo, workers, scheduler, maker)
+                for rec in made:
+                    _append(f, rec, x_mm, y_mm)
+                    _write_manifest(f, out / MANIFEST_FILE)
+                    bar.update(1)
+                _record_run(f, done, len(todo), time.perf_counter() - t0, renderers)
         _write_manifest(f, out / MANIFEST_FILE)
     finally:
         f.close()
     return path
+
+
+def _record_run(f: Any, first: int, frames: int, seconds: float, renderers: str) -> None:
+    """Append a run's throughput to the store's ``runs`` attribute (a JSON list), with the
+    reference workload's time on this machine now (:func:`wai.bench.timing.reference_workload`)
+    to compare machines by."""
+    from wai.bench.timing import reference_workload
+
+    ref = reference_workload()
+    runs = json.loads(f.attrs.get("runs", "[]"))
+    runs.append({"first_frame": first, "frames": frames, "seconds": round(seconds, 3),
+                 "frames_per_s": frames / seconds, "renderers": renderers,
+                 "cores": os.cpu_count(), "reference": ref["workload"],
+                 "reference_ms": ref["median_ms"]})
+    f.attrs["runs"] = json.dumps(runs)
+
+
+def read_runs(out_dir: str | Path) -> list[dict[str, Any]]:
+    """The runs that wrote a dataset folder's frames, oldest first (docs/dataset.md)."""
+    import h5py
+
+    with h5py.File(Path(out_dir) / DATASET_FILE, "r") as f:
+        return list(json.loads(f.attrs.get("runs", "[]")))
 
 
 def read_manifest(out_dir: str | Path) -> list[FrameParams]:

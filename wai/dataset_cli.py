@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import re
-import time
 from pathlib import Path
 
 from wai_core.errors import WaiInputError
@@ -62,7 +61,7 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
 
 
 def run_dataset(args: argparse.Namespace) -> None:
-    """Write the dataset ``args`` describes and print the frames' rate."""
+    """Write the dataset ``args`` describes and print how fast its new frames came."""
     import h5py
 
     from wai.dataset import DatasetSpec, write_dataset
@@ -73,27 +72,27 @@ def run_dataset(args: argparse.Namespace) -> None:
         config=str(args.config), seed=int(args.seed), spp=args.spp,
         size_px=parse_size(args.size) if args.size else None, degrade=bool(args.degrade),
     )
-    t0 = time.perf_counter()
-    before = _frames_in(args.out)
+    before = len(_runs_in(args.out))
     path = write_dataset(args.out, args.frames, spec, workers=args.workers,
-                         scheduler=args.scheduler,
-                         progress=not args.quiet)
-    elapsed = time.perf_counter() - t0
+                         scheduler=args.scheduler, progress=not args.quiet)
     with h5py.File(path, "r") as f:
         total = int(f.attrs["frames"])
-    made = total - before
-    rate = f", {made / elapsed:.3g} frames/s" if made > 0 else ""
-    print(f"{path}: {total} frames ({made} new{rate})")
+    runs = _runs_in(args.out)
+    if len(runs) == before:
+        print(f"{path}: {total} frames, none made (--frames {args.frames})")
+        return
+    r = runs[-1]
+    print(f"{path}: {total} frames; made {r['frames']} (from frame {r['first_frame']}) in "
+          f"{r['seconds']:.1f} s, {r['frames_per_s']:.3g} frames/s, by {r['renderers']} on "
+          f"{r['cores']} cores (reference {r['reference']}: {r['reference_ms']:.1f} ms)")
 
 
-def _frames_in(out: Path) -> int:
-    """The frames an existing store holds (0: none or unreadable; the writer checks it)."""
-    import h5py
-
-    from wai.dataset import DATASET_FILE
+def _runs_in(out: Path) -> list[dict]:
+    """The runs an existing store records (none: no store, or unreadable; the writer checks
+    it)."""
+    from wai.dataset import read_runs
 
     try:
-        with h5py.File(out / DATASET_FILE, "r") as f:
-            return int(f.attrs.get("frames", 0))
-    except OSError:
-        return 0
+        return read_runs(out)
+    except (OSError, ValueError):
+        return []
