@@ -2,9 +2,11 @@
 the restored movie and a distorted/restored side-by-side one.
 
 One calibration serves the whole sequence (the flat-water reference is detected once); a
-:class:`~restoration.calibration.LevelTrack` starts each frame's level search at the previous
-frame's level. Temporal scores say whether the restoration is stable in time: the view of a
-still object should not move, so the mean absolute change between consecutive restored frames
+:class:`~restoration.tracking.SequenceState` starts each frame's level search at the previous
+frame's level, labels its spots by tracking the previous frames' (full matching where that
+fails its checks) and starts its warp solve at the previous frame's. Temporal scores say
+whether the restoration is stable in time: the view of a still object should not move, so the
+mean absolute change between consecutive restored frames
 (on pixels restored in both) is compared with the same for the distorted frames.
 
 A folder of one's own captures (numbered images or frame folders, :mod:`wai_core.sequence`)
@@ -39,6 +41,7 @@ from restoration.folder import (
 from restoration.methods import Method, as_method
 from restoration.options import SurfaceOptions
 from restoration.result import Status
+from restoration.tracking import SequenceState
 from restoration.view_check import match_sequence
 from wai_core.io import atomic_dir, atomic_write_bytes, check_output_dir, to_srgb8, write_json
 from wai_core.sequence import SequenceRecord, read_sequence
@@ -55,7 +58,7 @@ __all__ = [
 COLUMNS = (
     "frame", "time_s", "status", "wai_rmse_mm", "wai_rmse_demeaned_mm", "distorted_ssim",
     "restored_ssim", "corner_std_restored_px", "residual_median_px", "anchor_mm",
-    "features_used", "end_to_end_ms", "change_distorted", "change_restored", "view_ncc",
+    "features_used", "tracked", "end_to_end_ms", "change_distorted", "change_restored", "view_ncc",
 )
 """Columns of ``frames.csv``: one row per frame (the change columns compare with the previous
 frame; ``view_ncc`` is the restored view's agreement with ``view_flat`` or the sequence's median
@@ -94,6 +97,12 @@ class SequenceRestore:
             f"{s['change_restored']:.4f} (mean |difference|, 1 = white)"
         )
         lines.append(f"restoration {s['end_to_end_ms']:.1f} ms per frame (median)")
+        if s.get("tracking"):
+            lines.append(
+                f"labels tracked from the previous frames on {s['frames_tracked']} frames, "
+                f"matched in full on {s['frames_matched']} ({s['track_fallbacks']} where "
+                "tracking failed its checks)"
+            )
         return lines
 
 
@@ -114,6 +123,7 @@ def restore_sequence(
     movie: bool = True,
     progress: bool = False,
     rig: Mapping[str, Any] | None = None,
+    track: bool = True,
 ) -> SequenceRestore:
     """Restore every frame of a sequence folder (any layout of :mod:`wai_core.sequence`),
     each as :func:`~restoration.folder.restore_frame` with the sequence's one calibration and
@@ -138,6 +148,11 @@ def restore_sequence(
     rig : mapping of str to value, optional
         Configuration keys that replace the sequence's, as :func:`restoration.restore_folder`'s
         (a rig file's calibrated intrinsics).
+    track : bool
+        Reuse the previous frames (:class:`~restoration.tracking.SequenceState`): labels
+        tracked from their spots (full matching where tracking fails its checks), the warp
+        solve started at the previous frame's (default True); False restores every frame on
+        its own, the level search's start aside.
 
     Returns
     -------
@@ -153,7 +168,7 @@ def restore_sequence(
         frame_outs = () if seq.captured else (d / "restore" for d in seq.frame_dirs)
         for target in (out, *frame_outs):
             check_output_dir(target, "restore", remedy=RESTORE_REMEDY)
-    track = LevelTrack()
+    track = SequenceState(track=track)
     rows, restored, distorted, masks, results, staged = [], [], [], [], [], []
     # Each frame's restore/ is written to a temporary folder and all are renamed into place
     # together at the end: an interrupted run leaves every old output as it was.
@@ -193,6 +208,8 @@ def restore_sequence(
         bar.close()
         _flag_moving_views(results, rows, restored, masks, distorted, staged)
         summary = _summary(seq, rows)
+        summary.update(tracking=track.track, frames_tracked=track.tracked,
+                       frames_matched=track.matched, track_fallbacks=track.fallbacks)
         if write:
             tmp = out_tmp if out_tmp is not None else stack.enter_context(
                 atomic_dir(out, command="restore", remedy=RESTORE_REMEDY))
@@ -245,6 +262,7 @@ def _row(
         row.update(
             anchor_mm=result.surface.anchor.anchor_mm,
             features_used=len(result.surface.ij),
+            tracked=int(result.features.counts.get("tracked", 0)),
         )
         if result.consistency is not None:
             row["residual_median_px"] = result.consistency.median_px

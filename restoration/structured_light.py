@@ -9,6 +9,7 @@ through that surface (:mod:`restoration.reverse_trace`). Reads only images and c
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -25,6 +26,7 @@ from restoration.features import (
     features_from_code,
     features_from_reference,
 )
+from restoration.features.track import TrackedSpots
 from restoration.fit import fit_level
 from restoration.normals import projector_rays
 from restoration.observations import Observations
@@ -32,6 +34,7 @@ from restoration.options import StructuredLightOptions, checked_options
 from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, RestoreResult, Status
 from restoration.reverse_trace import SplinePatches
 from restoration.surface import COMPILED_INTEGRATORS, SurfaceEstimate, reconstruct
+from restoration.tracking import SequenceState
 from wai_core.config import SystemConfig
 from wai_core.timings import Timings
 
@@ -357,7 +360,9 @@ class StructuredLight:
             The rig; its flat-water reference is prepared on the first call and kept.
         track : LevelTrack, optional
             A sequence's level: the search starts at the previous frame's level, and the
-            track takes this frame's.
+            track takes this frame's. A :class:`~restoration.tracking.SequenceState` also
+            tracks the labels from the previous frames' spots and starts the warp solve at
+            the previous frame's.
 
         Returns
         -------
@@ -374,10 +379,12 @@ class StructuredLight:
         """
         options = self.options
         timings = Timings()
+        state = track if isinstance(track, SequenceState) else None
         try:
             reference = cal.prepare(images["pattern_flat"])
             with timings("features"):
-                features = match_features(images["pattern"], reference, cal.cfg)
+                features = match_features(images["pattern"], reference, cal.cfg,
+                                          () if state is None else state.history)
             with timings("surface"):
                 obs = cal.observe(features.ij, features.spot_px,
                                   flat_referenced=options.flat_referenced)
@@ -390,6 +397,8 @@ class StructuredLight:
                     obs = obs if shifted_obs is None else shifted_obs
                 heightfield = surface.heightfield  # a patch too small to grid fails here
         except RestorationFailed as exc:
+            if state is not None:
+                state.take(None, ok=False)
             return RestoreResult(self.name, Status.FAILED, str(exc))
         if track is not None:
             track.update(surface.anchor)
@@ -406,7 +415,8 @@ class StructuredLight:
                 lambda: _timed_check(surface, spots, cal, reference, patches)
             )
             view = cal.restore_view(images["view"], heightfield, options.warp_step_px,
-                                    gain=cal.view_gain, patches=patches)
+                                    gain=cal.view_gain, patches=patches,
+                                    state=None if state is None else state.view_state)
             check, check_ms = checked()
         timings.add("consistency", check_ms)
         timings.add("end_to_end", timings.total("features", "surface", "reverse_trace"))
@@ -414,6 +424,8 @@ class StructuredLight:
             features, reference, surface, check,
             view_has_signal(images["view"], cal.view_gain), options,
         )
+        if state is not None:
+            state.take(features, ok=status == Status.OK)
         return RestoreResult(
             self.name, status, message, features, surface, view, timings.to_dict(),
             features.counts, check, reference_rms_px=float(reference.rms_px),
@@ -421,11 +433,16 @@ class StructuredLight:
         )
 
 
-def match_features(pattern: NDArray, reference: ReferenceGrid, cfg: SystemConfig) -> Matches:
+def match_features(
+    pattern: NDArray, reference: ReferenceGrid, cfg: SystemConfig,
+    history: Sequence[TrackedSpots] = (),
+) -> Matches:
     """The wavy pattern's features, labelled with grid indices: the coded pattern decoded dot
-    by dot, the plain one matched by ordering (:mod:`restoration.features`)."""
-    match = features_from_code if cfg.pattern.code != "none" else features_from_reference
-    return match(pattern, reference, cfg)
+    by dot, the plain one matched by ordering (:mod:`restoration.features`), or tracked from
+    ``history``, a video's previous frames' labelled spots (most recent first)."""
+    if cfg.pattern.code != "none":
+        return features_from_code(pattern, reference, cfg)
+    return features_from_reference(pattern, reference, cfg, history=history)
 
 
 def _timed_check(

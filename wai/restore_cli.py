@@ -91,7 +91,8 @@ def run_restore_sequence(
     """A sequence folder: every frame, the per-frame table, the movies and temporal scores."""
     from restoration.sequence import restore_sequence
 
-    done = restore_sequence(args.dir, args.method, options, progress=not args.quiet, rig=rig)
+    done = restore_sequence(args.dir, args.method, options, progress=not args.quiet, rig=rig,
+                            track=not getattr(args, "no_track", False))
     for line in done.summary_lines():
         print(line)
     print(f"per-frame table, movies and figures: {done.out}")

@@ -1,0 +1,88 @@
+"""A video's state between frames: what each frame of a sequence reuses from the previous ones.
+
+A :class:`SequenceState` is a :class:`~restoration.calibration.LevelTrack` (the level search
+starts at the previous frame's level) that also carries the last frames' labelled spots, from
+which the next frame's labels are tracked (:mod:`restoration.features.track`; full matching
+where tracking fails its checks), and the view's :class:`~restoration.reverse_trace.ViewState`
+(each frame's warp solve starts at the previous frame's solution). Only a frame whose status
+is ``ok`` passes its spots on: after any other the next frame is matched in full. Per
+sequence, never per rig, and in order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from restoration.calibration import LevelTrack
+from restoration.features import Matches
+from restoration.features.track import TrackedSpots
+from restoration.reverse_trace import ViewState
+
+__all__ = ["HISTORY", "SequenceState"]
+
+HISTORY = 3
+"""Frames of labelled spots kept (the prediction extrapolates up to three positions)."""
+
+
+@dataclass
+class SequenceState(LevelTrack):
+    """A sequence's level, labelled spots and warp between frames.
+
+    Parameters
+    ----------
+    track : bool
+        Reuse the previous frames' spots and warp (default True); False: only the level, as
+        a plain :class:`~restoration.calibration.LevelTrack` (every frame matched in full,
+        every warp solved cold).
+
+    Attributes
+    ----------
+    spots : tuple of TrackedSpots
+        The labelled spots of the last ``ok`` frames in a row, most recent first (at most
+        :data:`HISTORY`).
+    view : ViewState
+        The warp solve's state.
+    tracked, matched : int
+        Frames so far labelled by tracking, and matched in full.
+    fallbacks : int
+        Of the matched frames, those where tracking was tried and refused.
+
+    Examples
+    --------
+    >>> state = SequenceState()
+    >>> state.history, state.start_mm
+    ((), None)
+    >>> SequenceState(track=False).view_state is None
+    True
+    """
+
+    track: bool = True
+    spots: tuple[TrackedSpots, ...] = ()
+    view: ViewState = field(default_factory=ViewState)
+    tracked: int = 0
+    matched: int = 0
+    fallbacks: int = 0
+
+    @property
+    def history(self) -> tuple[TrackedSpots, ...]:
+        """What the next frame's tracking starts from (empty when tracking is off)."""
+        return self.spots if self.track else ()
+
+    @property
+    def view_state(self) -> ViewState | None:
+        """The warp's state for the next frame's view, None when tracking is off."""
+        return self.view if self.track else None
+
+    def take(self, features: Matches | None, ok: bool) -> None:
+        """Count a frame's labelling and keep its spots when its status is ``ok`` (forget
+        them otherwise, so that the next frame is matched in full)."""
+        if features is not None:
+            if features.counts.get("tracked"):
+                self.tracked += 1
+            else:
+                self.matched += 1
+                self.fallbacks += int(features.counts.get("track_fallback", 0))
+        if not (ok and features is not None and self.track):
+            self.spots = ()
+            return
+        self.spots = (TrackedSpots.of(features), *self.spots)[:HISTORY]
