@@ -8,13 +8,19 @@ water distorted least (:mod:`~restoration.video.lucky`). For a planar checkerboa
 :func:`checkerboard_score` measures how far the restored corners are from a homography of a
 regular grid, :func:`track_corners` follows its corners through raw frames the detector misses,
 and :func:`stability_px` how much they move from frame to frame
-(:mod:`~restoration.video.checkerboard`).
+(:mod:`~restoration.video.checkerboard`). :func:`grid_score` scores the part of a board a view
+shows, by default against the map of a grid seen from under flat water
+(:mod:`~restoration.video.gridscore`), for a camera that looks up at a board in air.
 """
 
 from restoration.video.checkerboard import (
+    FLAT_WATER_TRIM,
+    GRID_MODELS,
     CheckerScore,
+    GridScore,
     checkerboard_score,
     grid_residual_px,
+    grid_score,
     stability_px,
     track_corners,
 )
@@ -23,11 +29,15 @@ from restoration.video.lucky import lucky_fusion
 from restoration.video.registration import register_frames
 
 __all__ = [
+    "FLAT_WATER_TRIM",
+    "GRID_MODELS",
     "VIDEO_SUFFIXES",
     "CheckerScore",
+    "GridScore",
     "VideoRestoration",
     "checkerboard_score",
     "grid_residual_px",
+    "grid_score",
     "lucky_fusion",
     "read_frames",
     "register_frames",

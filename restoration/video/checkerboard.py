@@ -1,9 +1,12 @@
 """A truth-free score for a view of a planar checkerboard: how far its corners are from a grid.
 
 A pinhole camera maps a plane by a homography, so the inner corners of a flat checkerboard seen
-through still water (or well restored) lie exactly on a homography of a regular grid. The
+through a flat window (or well restored) lie exactly on a homography of a regular grid. The
 residual of the best such homography measures what distortion is left, with no ground truth
 and no calibration; the corners' frame-to-frame motion measures how much the water moves them.
+A camera under the water looking up at a board in air sees it through refraction even when
+the water is still: ``model="flat-water"`` (:mod:`~restoration.video.gridscore`) fits that
+smooth map instead, and :func:`grid_score` scores the part of a board a view shows.
 """
 
 from __future__ import annotations
@@ -16,12 +19,17 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from restoration.video.frames import to_grey_u8
+from restoration.video.gridscore import FLAT_WATER_MIN_CORNERS, flat_water_residuals_px
 from wai_core.errors import WaiInputError
 
 __all__ = [
+    "FLAT_WATER_TRIM",
+    "GRID_MODELS",
     "CheckerScore",
+    "GridScore",
     "checkerboard_score",
     "grid_residual_px",
+    "grid_score",
     "stability_px",
     "track_corners",
 ]
@@ -33,7 +41,18 @@ RING_CONTRAST = 0.15
 """A tracked corner is kept when the ring around it swings by at least this share of the grey
 range (0-255) between its two dark and two light arcs."""
 
+GRID_MODELS = ("homography", "flat-water")
+"""The maps of a regular grid :func:`grid_residual_px` fits: a plane seen by a pinhole camera;
+a plane in air seen by a camera under flat water (:mod:`~restoration.video.gridscore`)."""
+
+FLAT_WATER_TRIM = 0.1
+"""Share of the worst corners the flat-water score leaves out: where the board meets the
+black band beyond Snell's window the detector takes the band for a dark square and misplaces
+the corners along it."""
+
 _RING_SAMPLES = 32
+_MIN_GRID = (4, 4)
+"""The smallest board :func:`grid_score` looks for (it takes the largest one found)."""
 
 
 @dataclass(frozen=True)
@@ -70,9 +89,14 @@ def _check_pattern(pattern: Sequence[int]) -> tuple[int, int]:
 
 
 def grid_residual_px(
-    corners: ArrayLike, pattern: Sequence[int], used: ArrayLike | None = None
+    corners: ArrayLike,
+    pattern: Sequence[int],
+    used: ArrayLike | None = None,
+    model: str = "homography",
+    trim: float | None = None,
+    n_water: float = 4.0 / 3.0,
 ) -> float:
-    """RMS distance (px) of corners from the least-squares homography of a regular grid.
+    """RMS distance (px) of corners from the least-squares map of a regular grid.
 
     Parameters
     ----------
@@ -81,13 +105,23 @@ def grid_residual_px(
         :func:`track_corners` leaves them) are left out.
     pattern : (cols, rows)
     used : (cols * rows,) array_like of bool, optional
-        The corners to fit and score (at least 4); all finite ones by default.
+        The corners to fit and score; all finite ones by default.
+    model : {"homography", "flat-water"}
+        ``"homography"``: a plane seen by a pinhole camera (at least 4 corners).
+        ``"flat-water"``: a board in air seen from under flat water, fitted robustly
+        (:func:`~restoration.video.gridscore.flat_water_residuals_px`; square cells, at
+        least :data:`~restoration.video.gridscore.FLAT_WATER_MIN_CORNERS` corners).
+    trim : float in [0, 0.5], optional
+        Share of the corners furthest from the model left out of the RMS; by default 0 for
+        the homography, :data:`FLAT_WATER_TRIM` for flat water.
+    n_water : float
+        The water's refractive index (``"flat-water"`` only).
 
     Returns
     -------
     float
-        0 for any homography of a regular grid; grows with the distortion; NaN when fewer
-        than 4 corners are used.
+        0 for any view of a regular grid the model describes; grows with the distortion; NaN
+        when too few corners are used.
 
     Examples
     --------
@@ -98,21 +132,33 @@ def grid_residual_px(
     0.0
     """
     cols, rows = _check_pattern(pattern)
+    if model not in GRID_MODELS:
+        raise WaiInputError(f"model must be one of {', '.join(GRID_MODELS)}, not {model!r}")
+    trim = (FLAT_WATER_TRIM if model == "flat-water" else 0.0) if trim is None else float(trim)
+    if not 0.0 <= trim <= 0.5:
+        raise WaiInputError(f"trim must lie in [0, 0.5], got {trim}")
     pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
     if pts.shape[0] != cols * rows:
         raise WaiInputError(f"{pts.shape[0]} corners do not fill a {cols}x{rows} pattern")
     mask = np.isfinite(pts).all(axis=1)
     if used is not None:
         mask &= np.asarray(used, bool).ravel()
-    if np.count_nonzero(mask) < 4:
-        return float("nan")
     j, i = np.mgrid[0:rows, 0:cols]
     ideal = np.c_[i.ravel(), j.ravel()].astype(np.float64)[mask]
-    hom, _ = cv2.findHomography(ideal, pts[mask], 0)
-    if hom is None:
-        return float("nan")
-    fitted = cv2.perspectiveTransform(ideal[None], hom)[0]
-    return float(np.sqrt(np.mean(np.sum((fitted - pts[mask]) ** 2, axis=1))))
+    if model == "flat-water":
+        if np.count_nonzero(mask) < FLAT_WATER_MIN_CORNERS:
+            return float("nan")
+        dist = flat_water_residuals_px(pts[mask], ideal, n_water)
+    else:
+        if np.count_nonzero(mask) < 4:
+            return float("nan")
+        hom, _ = cv2.findHomography(ideal, pts[mask], 0)
+        if hom is None:
+            return float("nan")
+        fitted = cv2.perspectiveTransform(ideal[None], hom)[0]
+        dist = np.linalg.norm(fitted - pts[mask], axis=1)
+    kept = np.sort(dist)[: max(1, int(round(dist.size * (1.0 - trim))))]
+    return float(np.sqrt(np.mean(kept**2)))
 
 
 def _grey(image: ArrayLike) -> NDArray[np.uint8]:
@@ -160,6 +206,111 @@ def checkerboard_score(image: ArrayLike, pattern: Sequence[int]) -> CheckerScore
         rms = grid_residual_px(corners, (cols, rows))
         return CheckerScore(True, 1.0, rms, corners, (cols, rows))
     return CheckerScore(False, 0.0, float("nan"), np.zeros((0, 2)), (cols, rows))
+
+
+@dataclass(frozen=True)
+class GridScore:
+    """The corner-grid score of the part of a board that one view shows.
+
+    Attributes
+    ----------
+    found : bool
+        The detector found a board of at least 4 x 4 inner corners (the largest it could).
+    pattern : tuple of int
+        The found part's inner corners (cols, rows) in the detector's order (its rows may
+        run down the image's columns); (0, 0) when not found.
+    corners : (cols * rows, 2) ndarray of float64
+        Its corners (x, y) in px, ``cols`` per row.
+    used : (cols * rows,) ndarray of bool
+        The corners scored: those whose neighbourhood the view restored.
+    rms_px : float
+        :func:`grid_residual_px` of the used corners under ``model``; NaN when not found or
+        too few were used.
+    fraction : float
+        Corners used over the board's inner corners; NaN when the board was not given.
+    model : str
+        The grid map fitted (:data:`GRID_MODELS`).
+    """
+
+    found: bool
+    pattern: tuple[int, int]
+    corners: NDArray[np.float64]
+    used: NDArray[np.bool_]
+    rms_px: float
+    fraction: float
+    model: str
+
+
+def grid_score(
+    image: ArrayLike,
+    board: Sequence[int] | None = None,
+    valid: ArrayLike | None = None,
+    model: str = "flat-water",
+    trim: float | None = None,
+    n_water: float = 4.0 / 3.0,
+) -> GridScore:
+    """Find the largest part of a checkerboard a view shows and score its corners' grid.
+
+    For views that cut the board (it runs off the image, into Snell's window's edge, or into
+    what a restoration left out): ``cv2.findChessboardCornersSBWithMeta`` with
+    ``CALIB_CB_LARGER`` returns the largest regular block of corners it can follow.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) array_like
+        The view: float on the [0, 1] scale (NaN counts as black), or uint8.
+    board : (cols, rows), optional
+        The whole board's inner corners, for :attr:`GridScore.fraction`.
+    valid : (H, W) array_like of bool, optional
+        Pixels the view holds (a restoration's mask); others are blacked out and corners
+        within 2 px of them are not scored.
+    model, trim, n_water
+        As :func:`grid_residual_px` (flat water by default: a camera under water looking up).
+
+    Returns
+    -------
+    GridScore
+
+    Examples
+    --------
+    A board larger than the view, seen straight on:
+
+    >>> import numpy as np
+    >>> y, x = np.mgrid[0:120, 0:160]
+    >>> board = (((x + 7) // 20 + (y + 3) // 20) % 2).astype(np.float32)
+    >>> s = grid_score(board, board=(12, 9), model="homography")
+    >>> s.found, sorted(s.pattern), s.rms_px < 0.1, round(s.fraction, 3)
+    (True, [5, 7], True, 0.324)
+    """
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        img = np.nan_to_num(img.astype(np.float32), nan=0.0)
+    mask = None
+    if valid is not None:
+        mask = np.asarray(valid, bool)
+        if mask.shape != img.shape[:2]:
+            raise WaiInputError(f"valid mask {mask.shape} does not match the image {img.shape}")
+        img = np.where(mask if img.ndim == 2 else mask[..., None], img, 0).astype(img.dtype)
+    whole = float("nan") if board is None else float(np.prod(_check_pattern(board)))
+    grey = _grey(img)
+    ok, found, meta = cv2.findChessboardCornersSBWithMeta(
+        grey, _MIN_GRID, DETECT_FLAGS | cv2.CALIB_CB_LARGER
+    )
+    if not ok or found is None or meta is None:
+        return GridScore(False, (0, 0), np.zeros((0, 2)), np.zeros(0, bool), float("nan"),
+                         0.0 if board is not None else whole, model)
+    rows, cols = meta.shape[:2]
+    corners = found.reshape(-1, 2).astype(np.float64)
+    used = np.ones(len(corners), bool)
+    if mask is not None:
+        inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8), borderValue=0)
+        c = np.rint(corners).astype(int)
+        inside = (c[:, 0] >= 0) & (c[:, 1] >= 0) & (c[:, 0] < mask.shape[1])
+        inside &= c[:, 1] < mask.shape[0]
+        used[inside] = inner[c[inside, 1], c[inside, 0]] > 0
+        used[~inside] = False
+    rms = grid_residual_px(corners, (cols, rows), used, model, trim, n_water)
+    return GridScore(True, (cols, rows), corners, used, rms, float(used.sum() / whole), model)
 
 
 def _ring_contrast(grey: NDArray[np.float32], pts: NDArray, radius: float) -> NDArray:
