@@ -480,19 +480,24 @@ class FrameMaker:
         return cfg, mesh if level == 0 else self.surface(cfg), images, gain
 
     def make(self, index: int) -> FrameRecord:
-        """Frame ``index``, rendered and reduced to what the store holds."""
+        """Frame ``index``, rendered and reduced to what the store holds, with BLAS on one
+        thread: its idle threads would spin beside Dr.Jit's, and the waves' sums come out the
+        same bits in every process, whatever its thread count."""
+        from threadpoolctl import threadpool_limits
+
         p = sample_params(self.spec.seed, index, self.spec.ranges, self.spec.degrade)
-        cfg, surf, images, gain = self.render(index)
-        return FrameRecord(
-            params=p,
-            view=(images["view"] / gain).astype(np.float16),
-            view_truth=(images["view_truth"] / gain).astype(np.float16),
-            pattern=images["pattern"].mean(axis=-1).astype(np.float16),
-            pattern_flat=images["pattern_flat"].mean(axis=-1).astype(np.float16),
-            height_mm=surf.z.astype(np.float32),
-            normals=surf.grid_normals().astype(np.float32),
-            warp_px=true_view_warp(cfg, surf),
-        )
+        with threadpool_limits(1, user_api="blas"):
+            cfg, surf, images, gain = self.render(index)
+            return FrameRecord(
+                params=p,
+                view=(images["view"] / gain).astype(np.float16),
+                view_truth=(images["view_truth"] / gain).astype(np.float16),
+                pattern=images["pattern"].mean(axis=-1).astype(np.float16),
+                pattern_flat=images["pattern_flat"].mean(axis=-1).astype(np.float16),
+                height_mm=surf.z.astype(np.float32),
+                normals=surf.grid_normals().astype(np.float32),
+                warp_px=true_view_warp(cfg, surf),
+            )
 
 
 # A worker process's FrameMaker of each spec (its scenes stay loaded between frames).
@@ -506,9 +511,8 @@ def _make_cached(spec: DatasetSpec, index: int) -> FrameRecord:
     return _MAKERS[spec].make(index)
 
 
-def _frames_on_dask(
-    client: Any, spec: DatasetSpec, indices: Sequence[int]
-) -> Iterator[FrameRecord]:
+def _frames_on_dask(client: Any, spec: DatasetSpec, indices: Sequence[int]
+                    ) -> Iterator[FrameRecord]:
     """The frames ``indices`` in order, rendered by the workers of ``client``'s cluster; a
     window of twice the workers' threads is in flight (the rest waits, not the memory)."""
     with client:
@@ -551,13 +555,11 @@ def _frames(
     given), in ``workers`` spawned processes, or on the Dask cluster at ``scheduler``; and
     what renders them, in words."""
     if scheduler is not None:
-        client = _dask_client(scheduler)
-        threads = client.nthreads()
+        threads = (client := _dask_client(scheduler)).nthreads()
         return (_frames_on_dask(client, spec, indices),
                 f"Dask {scheduler}: {len(threads)} workers, {sum(threads.values())} threads")
     if workers <= 1:
-        maker = maker or FrameMaker(spec)
-        return (maker.make(i) for i in indices), "this process"
+        return map((maker or FrameMaker(spec)).make, indices), "this process"
     return _frames_in_pool(spec, indices, workers), f"{workers} worker processes"
 
 
@@ -747,9 +749,8 @@ def write_dataset(
 
 
 def _record_run(f: Any, first: int, frames: int, seconds: float, renderers: str) -> None:
-    """Append a run's throughput to the store's ``runs`` attribute (a JSON list), with the
-    reference workload's time on this machine now (:func:`wai.bench.timing.reference_workload`)
-    to compare machines by."""
+    """Append a run's throughput to the store's ``runs`` (JSON), with the reference workload's
+    time here and now to compare machines by (:func:`wai.bench.timing.reference_workload`)."""
     from wai.bench.timing import reference_workload
 
     ref = reference_workload()

@@ -19,6 +19,7 @@ from wai.dataset import (
     flat_pixel_of,
     read_frame,
     read_manifest,
+    read_runs,
     sample_params,
 )
 from wai_core import load_system
@@ -65,9 +66,18 @@ def test_store_holds_the_datasets_and_the_manifest(store: Path) -> None:
     assert 0.5 <= rec.params.wind_speed_m_s <= 2.0
 
 
-def test_resume_adds_frames_and_keeps_the_first(store: Path, tmp_path: Path) -> None:
+def test_resume_adds_frames_and_keeps_the_first(
+    store: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     before = [read_frame(store, i) for i in range(2)]
     assert main(["dataset", "--frames", "3", "--out", str(store), *ARGS]) == 0
+    # The run's throughput, printed and recorded after the first run's.
+    printed = capsys.readouterr().out
+    first, run = read_runs(store)[-2:]
+    assert (first["first_frame"], first["frames"], run["first_frame"], run["frames"]) == (
+        0, 2, 2, 1)
+    assert "3 frames; made 1 (from frame 2)" in printed and "by this process" in printed
+    assert f"{run['frames_per_s']:.3g} frames/s" in printed
     assert [p.frame for p in read_manifest(store)] == [0, 1, 2]
     for i, rec in enumerate(before):
         again = read_frame(store, i)
@@ -100,6 +110,35 @@ def test_warp_reproduces_the_distorted_view(store: Path) -> None:
         ssim = structural_similarity(np.where(m, mapped, 0), np.where(m, view, 0),
                                      channel_axis=-1, data_range=1.0)
         assert ssim > 0.85
+
+
+def test_stored_warp_is_the_trace_through_the_true_surface(store: Path) -> None:
+    # Independent of the writer's tracing: each frame's sea state synthesised again from its
+    # parameters on the stored grid, each pixel traced through it (trace_to_object) and taken
+    # back through flat water (flat_pixel_of, checked against trace_to_object below).
+    from mitsuba_wai.waves import sea_surface
+    from wai.dataset import frame_config
+
+    base = load_system("paper").replace("camera_v", width_px=120, height_px=90)
+    cam, w = base.camera_v.camera(), base.water
+    cols, rows = cam.pixel_grid()
+    with h5py.File(store / DATASET_FILE, "r") as f:
+        x, y = f["x_mm"][:], f["y_mm"][:]
+    for i in range(2):
+        rec = read_frame(store, i)
+        cfg = frame_config(base, rec.params)
+        surf = sea_surface(cfg.waves).grid(x, y, cfg.waves.time_s, mean_level_mm=w.h0_mm)
+        # The stored heights are that surface (float32: about 1e-5 mm at the water level).
+        np.testing.assert_allclose(rec.height_mm, surf.z, rtol=0, atol=1e-4)
+        points = trace_to_object(cam, surf, w.h0_mm, w.n_water, cfg.object_z_mm, cols,
+                                 rows).object_mm
+        want = np.stack(flat_pixel_of(cfg, points), axis=-1)
+        ok = np.isfinite(want[..., 0])
+        assert ok.mean() > 0.5
+        np.testing.assert_array_equal(np.isfinite(rec.warp_px[..., 0]), ok)
+        np.testing.assert_allclose(rec.warp_px[ok], want[ok], rtol=0, atol=1e-3)
+        moved = np.hypot(*(want[ok] - np.stack([cols, rows], axis=-1)[ok]).T)
+        assert np.percentile(moved, 90) > 0.5  # the waves move the pixels: not the identity
 
 
 def test_flat_pixel_of_inverts_the_flat_forward_map() -> None:
