@@ -377,9 +377,23 @@ class StructuredLight:
             For bad input: a wrongly sized image, NaN or inf in one, a configuration whose
             geometry cannot work.
         """
+        state = track if isinstance(track, SequenceState) else None
+        start_mm = None if state is None else state.start_mm
+        result = self._restore(images, cal, track, state)
+        if state is not None and state.refuses(result):  # matched in full after all
+            state.start_mm = start_mm
+            result = self._restore(images, cal, track, state)
+            result.features.counts["track_fallback"] = 1
+        return result
+
+    def _restore(
+        self, images: dict[str, NDArray], cal: Calibration, track: LevelTrack | None,
+        state: SequenceState | None,
+    ) -> RestoreResult:
+        """:meth:`__call__` once, ``state`` the sequence's when ``track`` is one."""
         options = self.options
         timings = Timings()
-        state = track if isinstance(track, SequenceState) else None
+
         try:
             reference = cal.prepare(images["pattern_flat"])
             with timings("features"):
@@ -425,7 +439,7 @@ class StructuredLight:
             view_has_signal(images["view"], cal.view_gain), options,
         )
         if state is not None:
-            state.take(features, ok=status == Status.OK)
+            state.take(features, ok=status == Status.OK, residual_px=check.median_px)
         return RestoreResult(
             self.name, status, message, features, surface, view, timings.to_dict(),
             features.counts, check, reference_rms_px=float(reference.rms_px),

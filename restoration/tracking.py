@@ -16,12 +16,19 @@ from dataclasses import dataclass, field
 from restoration.calibration import LevelTrack
 from restoration.features import Matches
 from restoration.features.track import TrackedSpots
+from restoration.result import RestoreResult
 from restoration.reverse_trace import ViewState
 
 __all__ = ["HISTORY", "SequenceState"]
 
 HISTORY = 3
 """Frames of labelled spots kept (the prediction extrapolates up to three positions)."""
+
+TRACK_RESIDUAL = 3.0
+"""A tracked frame whose surface misses its spots by more than this many times the previous
+frame's median miss (:class:`~restoration.consistency.Consistency`) is matched again in
+full: labels that passed tracking's checks but are wrong in a part of the pattern give
+normals that describe no surface."""
 
 
 @dataclass
@@ -46,6 +53,9 @@ class SequenceState(LevelTrack):
         Frames so far labelled by tracking, and matched in full.
     fallbacks : int
         Of the matched frames, those where tracking was tried and refused.
+    residual_px : float or None
+        The last ``ok`` frame's median miss of its spots, px (what a tracked frame's is
+        compared with).
 
     Examples
     --------
@@ -62,6 +72,8 @@ class SequenceState(LevelTrack):
     tracked: int = 0
     matched: int = 0
     fallbacks: int = 0
+    residual_px: float | None = None
+    _refused: bool = field(default=False, init=False, repr=False)
 
     @property
     def history(self) -> tuple[TrackedSpots, ...]:
@@ -73,16 +85,34 @@ class SequenceState(LevelTrack):
         """The warp's state for the next frame's view, None when tracking is off."""
         return self.view if self.track else None
 
-    def take(self, features: Matches | None, ok: bool) -> None:
-        """Count a frame's labelling and keep its spots when its status is ``ok`` (forget
-        them otherwise, so that the next frame is matched in full)."""
-        if features is not None:
-            if features.counts.get("tracked"):
-                self.tracked += 1
-            else:
-                self.matched += 1
-                self.fallbacks += int(features.counts.get("track_fallback", 0))
+    def take(self, features: Matches | None, ok: bool, residual_px: float | None = None) -> None:
+        """Count a frame's labelling and keep its spots, and its median miss of them
+        ``residual_px``, when its status is ``ok`` (forget them otherwise, so that the next
+        frame is matched in full). A tracked frame that is not ``ok``, or whose surface misses
+        its spots by more than :data:`TRACK_RESIDUAL` times the last ``ok`` frame did, is
+        refused instead (:meth:`refuses`)."""
+        self._refused = False
+        if features is not None and features.counts.get("tracked"):
+            prior = self.residual_px
+            if not ok or (prior is not None and residual_px is not None
+                          and not residual_px <= TRACK_RESIDUAL * prior):
+                self._refused = True
+                self.fallbacks += 1
+                self.spots = ()
+                return
+            self.tracked += 1
+        elif features is not None:
+            self.matched += 1
+            self.fallbacks += int(features.counts.get("track_fallback", 0))
         if not (ok and features is not None and self.track):
             self.spots = ()
             return
         self.spots = (TrackedSpots.of(features), *self.spots)[:HISTORY]
+        self.residual_px = residual_px
+
+    def refuses(self, result: RestoreResult) -> bool:
+        """Whether the frame just restored (``result``) was refused by :meth:`take`: restored
+        from tracked labels that its surface does not bear out, it must be matched again in
+        full (counted as a fallback; its full match then counts as matched)."""
+        refused, self._refused = self._refused, False
+        return refused and result.restored

@@ -36,10 +36,10 @@ from restoration.features.reference import ReferenceGrid
 
 __all__ = ["TRACK_KEEP", "TrackedSpots", "track_spots"]
 
-TRACK_KEEP = 0.9
+TRACK_KEEP = 0.8
 """A tracked labelling must keep at least this fraction of the previous frame's labels."""
 
-TRACK_FIRST = 0.8
+TRACK_FIRST = 0.7
 """Fewest of the previous frame's labels, as a fraction, that the predicted positions alone
 must find again before the rest is labelled from their neighbours."""
 
@@ -120,6 +120,29 @@ def _neighbour_prediction(
 _EXTRAPOLATE = ((1.0,), (2.0, -1.0), (3.0, -3.0, 1.0))
 
 
+MAX_STEP_RATIO = 1.7
+"""Largest ratio between consecutive steps along a grid line (the region growing's): a
+larger one skips or doubles a spot."""
+
+
+def _steady_steps(
+    back: IntArray, match: IntArray, spot_px: FloatArray, nodes: IntArray, idx: IntArray
+) -> BoolArray:
+    """Which claims (node ``nodes[k]`` takes spot ``idx[k]``) keep, along every grid line
+    through two labelled nodes behind it, the step to them within :data:`MAX_STEP_RATIO` of
+    the step between them either way."""
+    n = len(match)
+    pos = np.full((n + 1, 2), np.nan)
+    on = np.flatnonzero(match >= 0)
+    pos[on] = spot_px[match[on]]
+    one, two = pos[back[nodes, :8]], pos[back[nodes, 8:]]  # (K, 8, 2)
+    here = spot_px[idx][:, None, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.linalg.norm(here - one, axis=2) / np.linalg.norm(one - two, axis=2)
+    wild = (ratio > MAX_STEP_RATIO) | (ratio < 1.0 / MAX_STEP_RATIO)  # NaN: no such line
+    return ~wild.any(axis=1)
+
+
 def _predicted(lat: _Lattice, n: int, history: Sequence[TrackedSpots]) -> FloatArray:
     """Where each of the ``n`` lattice nodes' spot should be now (G, 2) px, NaN where unknown:
     extrapolated from the most recent frames of ``history`` (most recent first, at most
@@ -146,7 +169,7 @@ def track_spots(
     *,
     order_margin_px: float | None = None,
     max_shift: int = 6,
-    rounds: int = 3,
+    rounds: int = 2,
 ) -> Matches | None:
     """Label ``spots`` from the previous frame's labelled spots, or None where that fails.
 
@@ -226,12 +249,22 @@ def track_spots(
             tab.nbrs8, match, base, spots.centres_px, cand[mine], known)
         at[~mine], count[~mine] = _neighbour_prediction(
             tab.nbrs8, match, ref.ref_px, spots.centres_px, cand[~mine])
-        cand, at = cand[count >= 2], at[count >= 2]
-        inside = outline.inside(at, spacing[cand])
-        cand, at = cand[inside], at[inside]
-        nodes, idx, empty = _claim(cand, at, spacing, lookup, usable, taken)
+        # As the region growing: a node predicted more than two spacings outside the visible
+        # outline is given up; one seen empty counts against a shift only well inside it.
+        near = (count >= 2) & outline.inside(at, -2.0 * spacing[cand])
+        cand, at = cand[near], at[near]
+        # An unlit node has no spot of its own (its nearest is a neighbour's): it is never
+        # claimed, but seen empty it is evidence for the labelling's shift.
+        lit = ref.lit[cand]
+        nodes, idx, empty = _claim(cand[lit], at[lit], spacing, lookup, usable, taken)
+        dark = _claim(cand[~lit], at[~lit], spacing, lookup, usable, np.ones_like(taken))[2]
+        empty = np.concatenate([empty, dark])
+        inside = np.zeros(n, bool)
+        inside[cand[outline.inside(at, spacing[cand])]] = True
         absent[:] = False
-        absent[empty] = True
+        absent[empty] = inside[empty]
+        steady = _steady_steps(tab.back, match, spots.centres_px, nodes, idx)
+        nodes, idx = nodes[steady], idx[steady]
         if len(nodes) == 0:
             break
         match[nodes] = idx

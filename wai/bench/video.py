@@ -9,7 +9,14 @@ per core in every worker. The restored frame travels back to the parent as 8-bit
 display or an encoder takes).
 
 The sequence is rendered once into ``--out`` (default ``renders/bench_video``): consecutive
-frames 1/30 s apart, so the waves move as in a real recording.
+frames 1/30 s apart, so the waves move as in a real recording. It is played forth and back
+(0, 1, .., n - 1, n - 2, .., 1, 0, 1, ..), so that every frame follows one of its neighbours in
+time, and each worker restores a contiguous run of that order with its own
+:class:`~restoration.tracking.SequenceState`: with tracking (the default) each frame's labels
+are tracked from the previous frames' spots and its warp solve starts at the previous
+frame's; ``track=False`` (``--no-track``) restores every frame on its own. One period of the
+order is also restored both ways and scored against the frames' truth: statuses and surface
+RMSE with tracking and without.
 """
 
 from __future__ import annotations
@@ -45,51 +52,131 @@ def sequence_folder(config: str, out: Path, n_frames: int) -> Path:
     return folder
 
 
-def _init_worker(folder: str) -> None:
+def played(index: int, n: int) -> int:
+    """The frame shown at step ``index`` of a sequence of ``n`` frames played forth and back
+    (0, 1, .., n - 1, n - 2, .., 1, 0, ..).
+
+    Examples
+    --------
+    >>> [played(k, 3) for k in range(6)]
+    [0, 1, 2, 1, 0, 1]
+    """
+    if n < 2:
+        return 0
+    k = index % (2 * n - 2)
+    return k if k < n else 2 * n - 2 - k
+
+
+def _init_worker(folder: str, track: bool) -> None:
     """Load the calibration and every frame's images; prepare the reference; warm up."""
-    from restoration import LevelTrack, StructuredLight
+    from restoration import StructuredLight
     from restoration.sequence import load_sequence
 
     limit_native_threads(1)  # numba's pool too: the workers are the parallelism here
     cal, frames = load_sequence(folder)
     restore = StructuredLight()
     restore(frames[0], cal)  # prepares the reference and warms every code path
-    _STATE.update(cal=cal, frames=frames, restore=restore, track=LevelTrack())
+    _STATE.update(cal=cal, frames=frames, restore=restore, track=track, state=None, last=None)
 
 
-def _restore_frame(index: int) -> tuple[np.ndarray, float]:
-    """Restore frame ``index`` (modulo the sequence); the 8-bit image and the worker's ms."""
+def _restore_frame(index: int) -> tuple[np.ndarray, float, int]:
+    """Restore step ``index`` of the played order; the 8-bit image, the worker's ms and
+    whether its labels were tracked. A worker's state follows its own run of steps."""
+    from restoration.tracking import SequenceState
+
     frames = _STATE["frames"]
+    if _STATE["last"] is None or index != _STATE["last"] + 1:  # not the step after its last
+        _STATE["state"] = SequenceState(track=_STATE["track"])
+    _STATE["last"] = index
     t0 = time.perf_counter()
-    res = _STATE["restore"](frames[index % len(frames)], _STATE["cal"], _STATE["track"])
+    res = _STATE["restore"](frames[played(index, len(frames))], _STATE["cal"], _STATE["state"])
     ms = 1e3 * (time.perf_counter() - t0)
     img8 = (np.clip(res.view.image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    return img8, ms
+    return img8, ms, int(res.restored and res.features.counts.get("tracked", 0))
 
 
-def throughput(folder: Path, workers: int, n_frames: int) -> dict[str, Any]:
-    """Frames per second over ``n_frames`` restorations spread over ``workers`` processes."""
+def throughput(folder: Path, workers: int, n_frames: int, track: bool = True) -> dict[str, Any]:
+    """Frames per second over ``n_frames`` restorations spread over ``workers`` processes, each
+    a contiguous run of the played order."""
     # Spawned workers load OpenBLAS and numba's pool before any task: they must inherit one
     # thread each.
     with scoped_environ({name: "1" for name in THREAD_VARIABLES}):
         ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, _init_worker, (str(folder),)) as pool:
-            pool.map(_restore_frame, range(workers), chunksize=1)  # every worker is ready
+        with ctx.Pool(workers, _init_worker, (str(folder), track)) as pool:
+            # Every worker is ready (a warm-up restoration each, from step -2: no worker's
+            # state follows on from it).
+            pool.map(_restore_frame, [-2] * workers, chunksize=1)
+            run = -(-n_frames // workers)
             t0 = time.perf_counter()
-            worker_ms = [ms for _, ms in pool.imap(_restore_frame, range(n_frames), chunksize=1)]
+            done = list(pool.imap(_restore_frame, range(n_frames), chunksize=run))
             wall = time.perf_counter() - t0
     return {
         "workers": workers,
         "frames": n_frames,
         "wall_s": wall,
         "fps": n_frames / wall,
-        "worker_ms_median": float(np.median(worker_ms)),
+        "worker_ms_median": float(np.median([ms for _, ms, _ in done])),
+        "tracked": int(sum(t for _, _, t in done)),
     }
 
 
+def accuracy(folder: Path, cal: Any, images: list[dict[str, Any]]) -> dict[str, Any]:
+    """One period of the played order restored with tracking and without, each scored against
+    its frame's truth: statuses, surface RMSE (mm) per step, and the largest difference."""
+    from restoration import StructuredLight
+    from restoration.scoring import Truth, score
+    from restoration.tracking import SequenceState
+    from wai_core.sequence import read_sequence
+
+    dirs = read_sequence(folder).frame_dirs
+    steps = [played(k, len(images)) for k in range(max(2 * len(images) - 2, 1))]
+    truths = {k: Truth.from_folder(dirs[k], cal) for k in set(steps)}
+    restore = StructuredLight()
+    out: dict[str, Any] = {"frames": steps}
+    for track in (True, False):
+        state = SequenceState(track=track)
+        statuses, rmse, tracked = [], [], []
+        for k in steps:
+            res = restore(images[k], cal, state)
+            statuses.append(res.status.value)
+            tracked.append(int(res.features.counts.get("tracked", 0)) if res.restored else 0)
+            sc = score(res, cal.radiance(images[k]["view"]), cal, truths[k]) if (
+                res.has_view and truths[k] is not None) else None
+            rmse.append(None if sc is None or sc.surface is None else float(sc.rmse_mm))
+        out["tracked" if track else "untracked"] = {
+            "statuses": statuses, "rmse_mm": rmse, "tracked": tracked,
+            "mean_rmse_mm": _mean(rmse),
+        }
+    a, b = out["tracked"]["rmse_mm"], out["untracked"]["rmse_mm"]
+    diffs = [abs(x - y) for x, y in zip(a, b, strict=True) if x is not None and y is not None]
+    out["max_rmse_difference_mm"] = max(diffs) if diffs else None
+    out["statuses_equal"] = out["tracked"]["statuses"] == out["untracked"]["statuses"]
+    return out
+
+
+def _mean(values: list[float | None]) -> float | None:
+    vals = [v for v in values if v is not None and np.isfinite(v)]
+    return float(np.mean(vals)) if vals else None
+
+
+def _stage_medians(results: list[Any]) -> dict[str, float]:
+    """Median ms of each stage over restorations: the frame's stages and, prefixed, the
+    features' and the view's own steps."""
+    table: dict[str, list[float]] = {}
+    for res in results:
+        parts = {**res.timings_ms}
+        if res.restored:
+            parts.update({f"features.{k}": v for k, v in res.features.timings_ms.items()})
+            parts.update({f"view.{k}": v for k, v in res.view.timings_ms.items()})
+        for key, ms in parts.items():
+            table.setdefault(key, []).append(float(ms))
+    return {key: float(np.median(v)) for key, v in table.items()}
+
+
 def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: int,
-                frames: int, sequence: int) -> dict[str, Any]:
-    """Latency (one process) and throughput for 1 .. ``workers`` worker processes.
+                frames: int, sequence: int, *, track: bool = True) -> dict[str, Any]:
+    """Latency (one process) and throughput for 1 .. ``workers`` worker processes, with
+    tracking or without, and the accuracy both ways (:func:`accuracy`).
 
     Parameters
     ----------
@@ -105,6 +192,8 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
         Frames restored per worker count.
     sequence : int
         Distinct frames rendered.
+    track : bool
+        Each frame reuses the previous ones (:class:`~restoration.tracking.SequenceState`).
     """
     check_runs(runs)
     for name, value in (("workers", workers), ("frames", frames), ("sequence", sequence)):
@@ -112,17 +201,18 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
             raise WaiInputError(f"--{name} must be at least 1, got {value}")
     out = Path(out or "renders/bench_video")
     folder = sequence_folder(config, out, sequence)
-    from restoration import LevelTrack, StructuredLight
+    from restoration import StructuredLight
     from restoration.sequence import load_sequence
+    from restoration.tracking import SequenceState
 
     cal, images = load_sequence(folder)
-    restore, track = StructuredLight(), LevelTrack()
-    restore(images[0], cal, track)
+    restore, state = StructuredLight(), SequenceState(track=track)
+    restore(images[0], cal)  # prepares the reference and warms every code path
     reference = reference_workload()
-    samples = []
-    for k in range(runs * len(images)):
+    samples, results = [], []
+    for k in range(runs * max(2 * len(images) - 2, 1)):
         t0 = time.perf_counter()
-        restore(images[k % len(images)], cal, track)
+        results.append(restore(images[played(k, len(images))], cal, state))
         samples.append(time.perf_counter() - t0)
     counts = sorted({1, workers})
     return {
@@ -130,8 +220,13 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
         "reference": reference,
         "sequence": str(folder),
         "frames_in_sequence": len(images),
+        "tracking": track,
         "latency": summarize(samples),
-        "throughput": [throughput(folder, w, frames) for w in counts],
+        "latency_tracked": state.tracked,
+        "latency_fallbacks": state.fallbacks,
+        "stages_ms": _stage_medians(results),
+        "throughput": [throughput(folder, w, frames, track) for w in counts],
+        "accuracy": accuracy(folder, cal, images),
     }
 
 
@@ -149,9 +244,30 @@ def print_video(res: dict[str, Any]) -> None:
         f"reference workload ({ref['workload']}) in the same run: median {ref['median_ms']:.1f} "
         f"ms; latency = {lat['median_ms'] / ref['median_ms']:.2f} x reference"
     )
+    mode = "with tracking" if res["tracking"] else "without tracking (--no-track)"
+    print(f"{mode}: labels tracked on {res['latency_tracked']} of {lat['runs']} frames "
+          f"({res['latency_fallbacks']} matched in full after tracking failed its checks)")
+    stages = res["stages_ms"]
+    print("stages (median ms): " + ", ".join(
+        f"{k} {stages[k]:.1f}" for k in ("features.detect", "features.match", "surface",
+                                         "view.solve", "view.remap", "reverse_trace",
+                                         "consistency") if k in stages))
     for t in res["throughput"]:
         print(
             f"throughput, {t['workers']} worker(s): {t['fps']:.1f} frames/s "
             f"({t['frames']} frames in {t['wall_s']:.2f} s; {t['worker_ms_median']:.1f} ms "
-            "per frame inside a worker)"
+            f"per frame inside a worker; {t['tracked']} tracked)"
         )
+    acc = res["accuracy"]
+    on, off = acc["tracked"], acc["untracked"]
+    print(
+        f"accuracy over {len(acc['frames'])} frames: mean surface RMSE "
+        f"{_mm(on['mean_rmse_mm'])} with tracking ({sum(on['tracked'])} tracked), "
+        f"{_mm(off['mean_rmse_mm'])} without; largest per-frame difference "
+        f"{_mm(acc['max_rmse_difference_mm'])}; statuses "
+        f"{'the same' if acc['statuses_equal'] else 'DIFFER'}"
+    )
+
+
+def _mm(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.4f} mm"
