@@ -51,8 +51,14 @@ black band beyond Snell's window the detector takes the band for a dark square a
 the corners along it."""
 
 _RING_SAMPLES = 32
-_MIN_GRID = (4, 4)
-"""The smallest board :func:`grid_score` looks for (it takes the largest one found)."""
+_MAX_STEP_RATIO = 1.8
+"""Neighbouring steps along a detected row or column differ by less than this factor (more
+near Snell's window's edge, where refraction squeezes the cells, than through the waves); a
+grid that jumps a corner doubles one."""
+_GRID_STARTS = ((4, 4), (5, 5), (3, 3))
+"""Boards :func:`grid_score` asks the detector for in turn (it grows each to the largest
+regular block it can follow), until one gives a grid of at least 4 x 4 corners that skips
+none."""
 
 
 @dataclass(frozen=True)
@@ -108,12 +114,13 @@ def grid_residual_px(
         The corners to fit and score; all finite ones by default.
     model : {"homography", "flat-water"}
         ``"homography"``: a plane seen by a pinhole camera (at least 4 corners).
-        ``"flat-water"``: a board in air seen from under flat water, fitted robustly
+        ``"flat-water"``: a board in air seen from under flat water
         (:func:`~restoration.video.gridscore.flat_water_residuals_px`; square cells, at
         least :data:`~restoration.video.gridscore.FLAT_WATER_MIN_CORNERS` corners).
     trim : float in [0, 0.5], optional
-        Share of the corners furthest from the model left out of the RMS; by default 0 for
-        the homography, :data:`FLAT_WATER_TRIM` for flat water.
+        Share of the corners furthest from the model left out of the RMS (and, for flat
+        water, out of a second fit); by default 0 for the homography,
+        :data:`FLAT_WATER_TRIM` for flat water.
     n_water : float
         The water's refractive index (``"flat-water"`` only).
 
@@ -148,7 +155,7 @@ def grid_residual_px(
     if model == "flat-water":
         if np.count_nonzero(mask) < FLAT_WATER_MIN_CORNERS:
             return float("nan")
-        dist = flat_water_residuals_px(pts[mask], ideal, n_water)
+        dist = flat_water_residuals_px(pts[mask], ideal, n_water, trim)
     else:
         if np.count_nonzero(mask) < 4:
             return float("nan")
@@ -215,7 +222,7 @@ class GridScore:
     Attributes
     ----------
     found : bool
-        The detector found a board of at least 4 x 4 inner corners (the largest it could).
+        The detector found a block of at least 4 x 4 inner corners that skips none.
     pattern : tuple of int
         The found part's inner corners (cols, rows) in the detector's order (its rows may
         run down the image's columns); (0, 0) when not found.
@@ -253,7 +260,9 @@ def grid_score(
 
     For views that cut the board (it runs off the image, into Snell's window's edge, or into
     what a restoration left out): ``cv2.findChessboardCornersSBWithMeta`` with
-    ``CALIB_CB_LARGER`` returns the largest regular block of corners it can follow.
+    ``CALIB_CB_LARGER`` returns the largest regular block of corners it can follow from a
+    small start. On a view cut into pieces it may join every other row; such a grid is
+    refused (halfway between its neighbours lie corners, not edges) and the next start tried.
 
     Parameters
     ----------
@@ -290,17 +299,23 @@ def grid_score(
         mask = np.asarray(valid, bool)
         if mask.shape != img.shape[:2]:
             raise WaiInputError(f"valid mask {mask.shape} does not match the image {img.shape}")
-        img = np.where(mask if img.ndim == 2 else mask[..., None], img, 0).astype(img.dtype)
+        fill = img[mask].mean() if mask.any() else 0  # grey: neither a dark nor a light square
+        img = np.where(mask if img.ndim == 2 else mask[..., None], img, fill).astype(img.dtype)
     whole = float("nan") if board is None else float(np.prod(_check_pattern(board)))
     grey = _grey(img)
-    ok, found, meta = cv2.findChessboardCornersSBWithMeta(
-        grey, _MIN_GRID, DETECT_FLAGS | cv2.CALIB_CB_LARGER
-    )
-    if not ok or found is None or meta is None:
+    for start in _GRID_STARTS:
+        ok, found, meta = cv2.findChessboardCornersSBWithMeta(
+            grey, start, DETECT_FLAGS | cv2.CALIB_CB_LARGER
+        )
+        if not ok or found is None or meta is None:
+            continue
+        rows, cols = meta.shape[:2]
+        corners = found.reshape(-1, 2).astype(np.float64)
+        if not _skips_corners(grey, corners, (cols, rows)):
+            break
+    else:
         return GridScore(False, (0, 0), np.zeros((0, 2)), np.zeros(0, bool), float("nan"),
                          0.0 if board is not None else whole, model)
-    rows, cols = meta.shape[:2]
-    corners = found.reshape(-1, 2).astype(np.float64)
     used = np.ones(len(corners), bool)
     if mask is not None:
         inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8), borderValue=0)
@@ -311,6 +326,30 @@ def grid_score(
         used[~inside] = False
     rms = grid_residual_px(corners, (cols, rows), used, model, trim, n_water)
     return GridScore(True, (cols, rows), corners, used, rms, float(used.sum() / whole), model)
+
+
+def _skips_corners(grey: NDArray[np.uint8], corners: NDArray, pattern: tuple[int, int]) -> bool:
+    """True when a detected grid steps over corners: on a view cut into pieces the detector
+    may join every other row or column, or jump a corner in one. Halfway between two
+    neighbours of a true grid lies an edge (no ring contrast), and a step along a row or
+    column is close to the next (:data:`_MAX_STEP_RATIO`); a skipped corner breaks both."""
+    cols, rows = pattern
+    if min(cols, rows) < 4:
+        return True
+    grid = corners.reshape(rows, cols, 2)
+    steps = [np.linalg.norm(np.diff(grid, axis=a), axis=2) for a in (1, 0)]
+    ratios = np.r_[(steps[0][:, 1:] / steps[0][:, :-1]).ravel(),
+                   (steps[1][1:] / steps[1][:-1]).ravel()]
+    if np.any(np.maximum(ratios, 1.0 / ratios) > _MAX_STEP_RATIO):
+        return True
+    along = (grid[:, 1:] + grid[:, :-1]) / 2.0, (grid[1:] + grid[:-1]) / 2.0
+    radius = max(2.0, float(min(np.median(st) for st in steps)) / 4.0)
+    grey_f = grey.astype(np.float32)
+    return any(
+        float(np.median(_ring_contrast(grey_f, mid.reshape(-1, 2), radius)))
+        >= RING_CONTRAST * 255.0
+        for mid in along
+    )
 
 
 def _ring_contrast(grey: NDArray[np.float32], pts: NDArray, radius: float) -> NDArray:

@@ -35,8 +35,6 @@ _START_SCALE = (0.03, 0.1, 0.3, 1.0)
 """Grid spacing over board height tried as starts."""
 _START_OFFSETS = np.linspace(-1.0, 1.0, 5)
 """Grid centre from the nadir tried as starts, in units of the grid's extent."""
-_ROBUST_SCALE_PX = 0.5
-"""Soft-L1 scale, px: corners further than this from the model count less in the fit."""
 
 
 def _to_direction_tangents(q: NDArray, depth: float, n: float) -> NDArray:
@@ -57,14 +55,40 @@ def _apply_homography(h8: NDArray, p: NDArray) -> NDArray:
     return x[:, :2] / x[:, 2:]
 
 
+def _start(x: NDArray, g: NDArray, n: float) -> NDArray | None:
+    """The best of a small set of grid placements, each with its linear homography fit."""
+    extent = float(np.abs(g).max()) or 1.0
+    best: tuple[float, NDArray] | None = None
+    for depth in _START_DEPTH:
+        for spacing in _START_SCALE:
+            for ox in _START_OFFSETS * spacing * extent * 2.0:
+                for oy in _START_OFFSETS * spacing * extent * 2.0:
+                    p = _to_direction_tangents(spacing * g + [ox, oy], depth, n)
+                    hom, _ = cv2.findHomography(p, x, 0)
+                    if hom is None or abs(hom[2, 2]) < 1e-12:
+                        continue
+                    h8 = (hom / hom[2, 2]).ravel()[:8]
+                    err = float(np.mean(np.sum((_apply_homography(h8, p) - x) ** 2, axis=1)))
+                    if best is None or err < best[0]:
+                        best = (err, np.r_[np.sqrt(depth), np.log(spacing), ox, oy, h8])
+    return None if best is None else best[1]
+
+
+def _model(z: NDArray, g: NDArray, n: float) -> NDArray:
+    # z: sqrt(depth ratio), log(spacing), grid offset (2), homography (8).
+    return _apply_homography(z[4:], _to_direction_tangents(np.exp(z[1]) * g + z[2:4],
+                                                           z[0] ** 2, n))
+
+
 def flat_water_residuals_px(
-    corners: NDArray, grid: NDArray, n_water: float = 4.0 / 3.0
+    corners: NDArray, grid: NDArray, n_water: float = 4.0 / 3.0, trim: float = 0.0
 ) -> NDArray[np.float64]:
     """Distances (px) of corners from the best flat-water image of a regular square grid.
 
     The fit starts from the best of a small set of grid placements (a linear homography fit
-    for each), then refines all 12 parameters by trust-region least squares with a soft-L1
-    loss, so that a few corners the detector misplaces do not bend the model.
+    for each) and refines all 12 parameters by least squares (Levenberg-Marquardt). With
+    ``trim``, it is then fitted again without that share of the corners furthest from it
+    (trimmed least squares), so that a few corners the detector misplaced do not bend it.
 
     Parameters
     ----------
@@ -74,11 +98,13 @@ def flat_water_residuals_px(
         Each corner's (column, row) index on the board.
     n_water : float
         Refractive index of the water.
+    trim : float in [0, 0.5]
+        Share of the corners left out of the second fit.
 
     Returns
     -------
     (M,) ndarray of float64
-        Each corner's distance from the fitted model, px.
+        Each corner's distance from the fitted model, px (NaN when no start could be fitted).
 
     Examples
     --------
@@ -101,29 +127,15 @@ def flat_water_residuals_px(
     centre = pts.mean(axis=0)
     unit = float(np.sqrt(np.mean(np.sum((pts - centre) ** 2, axis=1)))) or 1.0
     x = (pts - centre) / unit  # conditioned image coordinates
-    extent = float(np.abs(g).max()) or 1.0
-
-    best: tuple[float, NDArray] | None = None
-    for depth in _START_DEPTH:
-        for spacing in _START_SCALE:
-            for ox in _START_OFFSETS * spacing * extent * 2.0:
-                for oy in _START_OFFSETS * spacing * extent * 2.0:
-                    p = _to_direction_tangents(spacing * g + [ox, oy], depth, n_water)
-                    hom, _ = cv2.findHomography(p, x, 0)
-                    if hom is None or abs(hom[2, 2]) < 1e-12:
-                        continue
-                    h8 = (hom / hom[2, 2]).ravel()[:8]
-                    err = float(np.mean(np.sum((_apply_homography(h8, p) - x) ** 2, axis=1)))
-                    if best is None or err < best[0]:
-                        best = (err, np.r_[np.sqrt(depth), np.log(spacing), ox, oy, h8])
-    if best is None:
+    z = _start(x, g, n_water)
+    if z is None:
         return np.full(len(pts), np.nan)
+    keep = np.ones(len(pts), bool)
+    for _ in range(2 if trim > 0 else 1):
+        def residual(zz: NDArray, keep: NDArray = keep) -> NDArray:
+            return (_model(zz, g[keep], n_water) - x[keep]).ravel()
 
-    def residual(z: NDArray) -> NDArray:
-        # z: sqrt(depth ratio), log(spacing), grid offset (2), homography (8).
-        p = _to_direction_tangents(np.exp(z[1]) * g + z[2:4], z[0] ** 2, n_water)
-        return (_apply_homography(z[4:], p) - x).ravel()
-
-    sol = least_squares(residual, best[1], method="trf", loss="soft_l1",
-                        f_scale=_ROBUST_SCALE_PX / unit)
-    return np.sqrt(np.sum(residual(sol.x).reshape(-1, 2) ** 2, axis=1)) * unit
+        z = least_squares(residual, z, method="lm").x
+        dist = np.linalg.norm(_model(z, g, n_water) - x, axis=1)
+        keep = dist <= np.quantile(dist, 1.0 - trim)
+    return dist * unit
