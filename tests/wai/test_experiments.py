@@ -109,3 +109,29 @@ def test_compare_takes_methods_of_ones_own_and_refuses_bad_ones_before_rendering
             "--no-progress", "--method", "no_such_module_xyz:Thing"]
     assert main(argv) == 2
     assert not (tmp_path / "c" / "cases").exists()
+
+
+def test_compare_reports_the_truth_free_grid_score_and_its_rank_agreement():
+    """The table has the grid score's columns; Kendall's tau is +1 when the grid residual
+    orders the methods as corner STD does, -1 when it reverses them, and no verdict with
+    fewer than three methods scored by both."""
+    from wai.experiments.compare import SCORES, rank_agreement, report
+
+    assert {"grid_px", "grid_fraction"} <= set(SCORES)
+
+    def entry(name, std, grid):
+        e = dict.fromkeys(SCORES)
+        return {**e, "name": name, "corner_std_px": std, "grid_px": grid, "grid_fraction": 0.5}
+
+    same = [entry("a", 0.1, 0.05), entry("b", 1.5, 1.2), entry("c", 2.8, 3.5), entry("d", 1.8, 1.3)]
+    assert rank_agreement(same) == (pytest.approx(1.0), 4)
+    text = report(same, "cmd")
+    assert "grid px (no truth)" in text and "corners found" in text
+    assert "| 1.200 | 50% |" in text
+    assert "orders the methods as corner STD does: Kendall tau = 1.00 over 4 methods" in text
+    reversed_ = [entry(e["name"], e["corner_std_px"], 1.0 / e["grid_px"]) for e in same]
+    assert rank_agreement(reversed_)[0] == pytest.approx(-1.0)
+    assert "Kendall tau = -1.00" in report(reversed_, "cmd")
+    few = [same[0], same[1], entry("e", None, 1.0)]
+    assert rank_agreement(few) == (None, 2)
+    assert "Too few methods with both scores (2)" in report(few, "cmd")

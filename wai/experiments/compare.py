@@ -8,7 +8,10 @@ fusion). Each case (sea state, seed, degradation) is one rendered sequence; ever
 on it. Scores against the truth: the view's SSIM and PSNR against the flat-water view (on the
 pixels the method restored and the object covers), corner STD against the truth's corners,
 surface RMSE where the method gives a surface; and its cost: ms per frame and the frames it
-needs (1 for a per-frame method, the sequence for a video method). The cases run as a sweep
+needs (1 for a per-frame method, the sequence for a video method). Beside them, a score that
+needs no truth (what a real capture allows): how far the view's checkerboard corners lie from
+the map of a regular grid seen through flat water (:func:`restoration.video.grid_score`), and
+whether it ranks the methods as corner STD does (Kendall's tau). The cases run as a sweep
 (:mod:`wai.sweep`): locally, on a Dask cluster, resumable.
 """
 
@@ -33,8 +36,11 @@ FRAME_METHODS = ("structured-light", "wai/examples/plugin_method.py:AsSeen")
 method of one's own (its floor)."""
 DEGRADATIONS: dict[str, dict[str, Any]] = {"none": {}, "sensor": {"sensor.enabled": True}}
 """The degradations of a case, as configuration keys."""
-SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "ms_per_frame", "frames_needed",
-          "frames_ok", "frames")
+SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "grid_px", "grid_fraction",
+          "ms_per_frame", "frames_needed", "frames_ok", "frames")
+GRID_FRAMES = 8
+"""Frames of a per-frame method the truth-free grid score looks at, evenly spaced (finding a
+partial board costs more than a structured-light restoration)."""
 
 
 def case_name(point: dict[str, Any]) -> str:
@@ -73,6 +79,17 @@ def _view_scores(result: Any, distorted: np.ndarray, cal: Any, truth: Any) -> di
     return out
 
 
+def _grid(image: np.ndarray, valid: np.ndarray, cal: Any) -> dict[str, Any]:
+    """The truth-free grid score of one view: residual px (None where no board was found)
+    and the share of the board's inner corners it scored."""
+    from restoration.video import grid_score
+
+    nx, ny = cal.cfg.object.squares
+    g = grid_score(image, (nx - 1, ny - 1), valid, n_water=cal.cfg.water.n_water)
+    return {"grid_px": g.rms_px if np.isfinite(g.rms_px) else None,
+            "grid_fraction": g.fraction}
+
+
 def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
     """A per-frame method over the sequence: means over its frames with a view."""
     from restoration import LevelTrack, get_method
@@ -85,10 +102,14 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
     cal, _ = load_sequence(folder)
     track = LevelTrack()
     rows = []
-    for frame in seq.frame_dirs:
+    n = len(seq.frame_dirs)
+    gridded = set(np.linspace(0, n - 1, min(n, GRID_FRAMES)).round().astype(int).tolist())
+    for k, frame in enumerate(seq.frame_dirs):
         done = restore_frame(frame, cal, method, track, flat_from=[folder])
         res, m = done.result, done.metrics
         row = {"ok": res.ok, "ms": res.timings_ms.get("end_to_end")}
+        if k in gridded and res.has_view:
+            row.update(_grid(res.view.image, res.view.valid, cal))
         if done.scores is not None and done.scores.restored is not None:
             row.update(ssim=done.scores.restored["ssim"],
                        psnr_db=done.scores.restored["psnr_db"],
@@ -96,7 +117,8 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
                        rmse_mm=m.get("wai_rmse_mm"))
         rows.append(row)
     mean = {key: _mean([r.get(key) for r in rows])
-            for key in ("ssim", "psnr_db", "corner_std_px", "rmse_mm")}
+            for key in ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "grid_px",
+                        "grid_fraction")}
     return {**mean, "ms_per_frame": float(np.median([r["ms"] for r in rows if r["ms"]])),
             "frames_needed": 1, "frames_ok": sum(r["ok"] for r in rows), "frames": len(rows),
             "method_name": method.name}
@@ -116,7 +138,8 @@ def _video_method(folder: Path, name: str) -> dict[str, Any]:
     fused = run(np.clip(views, 0.0, 1.0))
     truth = Truth.from_folder(read_sequence(folder).frame_dirs[0], cal)
     result = RestoreResult(name, view=RestoredView(fused.image, fused.valid))
-    return {**_view_scores(result, views[0], cal, truth), "ms_per_frame": fused.ms_per_frame,
+    return {**_view_scores(result, views[0], cal, truth), **_grid(fused.image, fused.valid, cal),
+            "ms_per_frame": fused.ms_per_frame,
             "frames_needed": len(views), "frames_ok": len(views), "frames": len(views),
             "method_name": name}
 
@@ -173,19 +196,45 @@ def _figure(summary: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def rank_agreement(summary: list[dict[str, Any]]) -> tuple[float | None, int]:
+    """Kendall's tau between the truth-free grid residual and corner STD over the methods
+    that have both (1: the same order, -1: reversed; None under 3 methods), and their count."""
+    from scipy.stats import kendalltau
+
+    pairs = [(e["grid_px"], e["corner_std_px"]) for e in summary
+             if e.get("grid_px") is not None and e.get("corner_std_px") is not None]
+    if len(pairs) < 3:
+        return None, len(pairs)
+    tau = kendalltau(*np.array(pairs).T).statistic
+    return (float(tau) if np.isfinite(tau) else None), len(pairs)
+
+
 def report(summary: list[dict[str, Any]], command: str) -> str:
     def f(v: Any, spec: str) -> str:
         return "-" if v is None else format(v, spec)
 
     lines = [f"# Methods compared (`{command}`)", "",
              "| method | frames needed | ok / frames | view SSIM | PSNR dB | corner STD px | "
-             "surface RMSE mm | ms per frame |", "|" + " --- |" * 8]
+             "surface RMSE mm | grid px (no truth) | corners found | ms per frame |",
+             "|" + " --- |" * 10]
     for e in summary:
         lines.append(
             f"| {e['name']} | {f(e['frames_needed'], '.0f')} | {f(e['frames_ok'], '.0f')} / "
             f"{f(e['frames'], '.0f')} | {f(e['ssim'], '.4f')} | {f(e['psnr_db'], '.2f')} | "
             f"{f(e['corner_std_px'], '.3f')} | {f(e['rmse_mm'], '.4f')} | "
+            f"{f(e.get('grid_px'), '.3f')} | {f(e.get('grid_fraction'), '.0%')} | "
             f"{f(e['ms_per_frame'], '.1f')} |")
+    tau, count = rank_agreement(summary)
+    lines += ["", "Grid px: RMS distance of the view's checkerboard corners from the best map of "
+              "a regular grid seen through flat water (no truth read); corners found: the share "
+              "of the board's inner corners it scored."]
+    if tau is None:
+        lines.append(f"Too few methods with both scores ({count}) to compare their rankings.")
+    else:
+        verdict = ("orders the methods as corner STD does" if np.isclose(tau, 1.0)
+                   else "and corner STD rank the methods")
+        lines.append(f"The truth-free score {verdict}: Kendall tau = {tau:.2f} over {count} "
+                     "methods (1: the same order, -1: reversed).")
     return "\n".join(lines) + "\n"
 
 
@@ -217,7 +266,9 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
     summary = summarize(rows)
     command = f"wai experiment compare --seeds {seeds}" + (" --quick" if quick else "")
     text = report(summary, command)
-    write_json(out / "compare_summary.json", {"command": command, "methods": summary})
+    tau, _ = rank_agreement(summary)
+    write_json(out / "compare_summary.json",
+               {"command": command, "methods": summary, "kendall_tau_grid_corner_std": tau})
     atomic_write_bytes(out / "compare.md", text.encode())
     _figure(summary, out / "compare.png")
     print(text)
