@@ -256,13 +256,14 @@ def grid_score(
     trim: float | None = None,
     n_water: float = 4.0 / 3.0,
 ) -> GridScore:
-    """Find the largest part of a checkerboard a view shows and score its corners' grid.
+    """Find a part of a checkerboard a view shows and score its corners' grid.
 
     For views that cut the board (it runs off the image, into Snell's window's edge, or into
     what a restoration left out): ``cv2.findChessboardCornersSBWithMeta`` with
     ``CALIB_CB_LARGER`` returns the largest regular block of corners it can follow from a
-    small start. On a view cut into pieces it may join every other row; such a grid is
-    refused (halfway between its neighbours lie corners, not edges) and the next start tried.
+    small start. On a view cut into pieces it may join every other row or jump a corner;
+    such a grid is refused (halfway between its neighbours lie corners, not edges; or one
+    step is twice the next) and the next start tried.
 
     Parameters
     ----------
@@ -271,8 +272,9 @@ def grid_score(
     board : (cols, rows), optional
         The whole board's inner corners, for :attr:`GridScore.fraction`.
     valid : (H, W) array_like of bool, optional
-        Pixels the view holds (a restoration's mask); others are blacked out and corners
-        within 2 px of them are not scored.
+        Pixels the view holds (a restoration's mask); the others are filled with the held
+        pixels' mean grey (neither a dark nor a light square) and corners within 2 px of
+        them are not scored.
     model, trim, n_water
         As :func:`grid_residual_px` (flat water by default: a camera under water looking up).
 
@@ -299,7 +301,7 @@ def grid_score(
         mask = np.asarray(valid, bool)
         if mask.shape != img.shape[:2]:
             raise WaiInputError(f"valid mask {mask.shape} does not match the image {img.shape}")
-        fill = img[mask].mean() if mask.any() else 0  # grey: neither a dark nor a light square
+        fill = img[mask].mean() if mask.any() else 0
         img = np.where(mask if img.ndim == 2 else mask[..., None], img, fill).astype(img.dtype)
     whole = float("nan") if board is None else float(np.prod(_check_pattern(board)))
     grey = _grey(img)

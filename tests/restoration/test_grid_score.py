@@ -143,3 +143,19 @@ def test_nothing_to_find_and_bad_input():
     with pytest.raises(WaiInputError, match="valid"):
         grid_score(np.zeros((60, 80)), valid=np.ones((6, 8), bool))
     assert np.isnan(grid_residual_px(grid, (4, 4), np.arange(16) < 12, model="flat-water"))
+
+
+def test_a_grid_that_skips_corners_is_refused():
+    """The detector may join every other row of a board cut into pieces, or jump a corner:
+    halfway between such neighbours lies a corner, not an edge, and one step doubles."""
+    from restoration.video.checkerboard import _skips_corners
+
+    y, x = np.mgrid[0:240, 0:320]
+    image = ((((x + 7) // 20 + (y + 3) // 20) % 2) * 255).astype(np.uint8)
+    s = grid_score(image, model="homography")
+    assert s.found and s.rms_px < 0.1 and min(s.pattern) >= 8
+    cols, rows = s.pattern
+    grid = s.corners.reshape(rows, cols, 2)
+    assert not _skips_corners(image, s.corners, s.pattern)
+    for part in (grid[::2], grid[np.r_[0:3, 4:rows]]):  # every other row; row 3 jumped
+        assert _skips_corners(image, part.reshape(-1, 2), (cols, part.shape[0]))
