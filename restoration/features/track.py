@@ -39,9 +39,13 @@ __all__ = ["TRACK_KEEP", "TrackedSpots", "track_spots"]
 TRACK_KEEP = 0.8
 """A tracked labelling must keep at least this fraction of the previous frame's labels."""
 
-TRACK_FIRST = 0.7
+TRACK_FIRST = 0.9
 """Fewest of the previous frame's labels, as a fraction, that the predicted positions alone
 must find again before the rest is labelled from their neighbours."""
+
+TRACK_MISS = 0.1
+"""Largest median distance, in spacings, between the predicted and the found spots for the
+tracked labels to be trusted."""
 
 TRACK_REACH = 0.35
 """Farthest a tracked spot may lie from its prediction, in units of the local spacing (the
@@ -226,6 +230,12 @@ def track_spots(
     pred = _predicted(tab.lat, n, history[:len(_EXTRAPOLATE)])
     known = np.isfinite(pred[:, 0])
     nodes, idx, _ = _claim(np.flatnonzero(known), pred[known], spacing, lookup, usable, taken)
+    # Where spots move by a good part of a spacing between frames, the extrapolation misses by
+    # a part of one too, and a spot's nearest prediction may be its neighbour's: a small
+    # typical miss is what makes the nearest spot's label trustworthy.
+    miss = np.linalg.norm(spots.centres_px[idx] - pred[nodes], axis=1) / spacing[nodes]
+    if len(nodes) == 0 or np.median(miss) > TRACK_MISS:
+        return None
     match[nodes] = idx
     taken[idx] = True
     n_first = len(nodes)
