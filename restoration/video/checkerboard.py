@@ -55,7 +55,7 @@ _MAX_STEP_RATIO = 1.8
 """Neighbouring steps along a detected row or column differ by less than this factor (more
 near Snell's window's edge, where refraction squeezes the cells, than through the waves); a
 grid that jumps a corner doubles one."""
-_GRID_STARTS = ((4, 4), (5, 5), (3, 3))
+_GRID_STARTS = ((4, 4), (6, 6), (5, 5), (3, 3), (8, 8))
 """Boards :func:`grid_score` asks the detector for in turn (it grows each to the largest
 regular block it can follow), until one gives a grid of at least 4 x 4 corners that skips
 none."""
