@@ -135,3 +135,17 @@ def test_compare_reports_the_truth_free_grid_score_and_its_rank_agreement():
     few = [same[0], same[1], entry("e", None, 1.0)]
     assert rank_agreement(few) == (None, 2)
     assert "Too few methods with both scores (2)" in report(few, "cmd")
+
+
+def test_compare_ranks_methods_within_each_case():
+    from wai.experiments.compare import case_agreement, report
+
+    def row(seed, method, std, grid):
+        return {"wind": 1.0, "seed": seed, "degradation": "none", "method": method,
+                "status": "ok", "corner_std_px": std, "grid_px": grid}
+
+    rows = [row(0, "a", 0.1, 0.2), row(0, "b", 1.0, 0.9), row(0, "c", 2.0, 3.0),
+            row(1, "a", 0.1, 3.0), row(1, "b", 1.0, 0.9), row(1, "c", 2.0, 0.2)]
+    taus = case_agreement(rows)
+    assert taus == [pytest.approx(1.0), pytest.approx(-1.0)]
+    assert "Within each case: tau = 1.00, -1.00." in report([], "cmd", taus)

@@ -209,7 +209,18 @@ def rank_agreement(summary: list[dict[str, Any]]) -> tuple[float | None, int]:
     return (float(tau) if np.isfinite(tau) else None), len(pairs)
 
 
-def report(summary: list[dict[str, Any]], command: str) -> str:
+def case_agreement(rows: list[dict[str, Any]]) -> list[float | None]:
+    """:func:`rank_agreement` within each case (sea state, seed, degradation): the methods
+    compared on the same sequence."""
+    cases: dict[tuple, list[dict[str, Any]]] = {}
+    for r in rows:
+        if not is_error(r.get("status")):
+            cases.setdefault((r["wind"], r["seed"], r["degradation"]), []).append(r)
+    return [rank_agreement(part)[0] for part in cases.values()]
+
+
+def report(summary: list[dict[str, Any]], command: str,
+           case_taus: list[float | None] | None = None) -> str:
     def f(v: Any, spec: str) -> str:
         return "-" if v is None else format(v, spec)
 
@@ -235,6 +246,9 @@ def report(summary: list[dict[str, Any]], command: str) -> str:
                    else "and corner STD rank the methods")
         lines.append(f"The truth-free score {verdict}: Kendall tau = {tau:.2f} over {count} "
                      "methods (1: the same order, -1: reversed).")
+    if case_taus:
+        each = ", ".join("-" if t is None else f"{t:.2f}" for t in case_taus)
+        lines.append(f"Within each case: tau = {each}.")
     return "\n".join(lines) + "\n"
 
 
@@ -265,10 +279,12 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
                      key=("wind", "seed", "degradation", "method"), **sweep.kwargs())
     summary = summarize(rows)
     command = f"wai experiment compare --seeds {seeds}" + (" --quick" if quick else "")
-    text = report(summary, command)
+    case_taus = case_agreement(rows)
+    text = report(summary, command, case_taus)
     tau, _ = rank_agreement(summary)
     write_json(out / "compare_summary.json",
-               {"command": command, "methods": summary, "kendall_tau_grid_corner_std": tau})
+               {"command": command, "methods": summary, "kendall_tau_grid_corner_std": tau,
+                "kendall_tau_per_case": case_taus})
     atomic_write_bytes(out / "compare.md", text.encode())
     _figure(summary, out / "compare.png")
     print(text)
