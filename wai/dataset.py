@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from wai.threads import limit_native_threads
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
@@ -481,8 +482,7 @@ class FrameMaker:
 
     def make(self, index: int) -> FrameRecord:
         """Frame ``index``, rendered and reduced to what the store holds, with BLAS on one
-        thread: its idle threads would spin beside Dr.Jit's, and the waves' sums come out the
-        same bits in every process, whatever its thread count."""
+        thread: idle ones would spin beside Dr.Jit's, and the sums are the same in any process."""
         from threadpoolctl import threadpool_limits
 
         p = sample_params(self.spec.seed, index, self.spec.ranges, self.spec.degrade)
@@ -504,11 +504,18 @@ class FrameMaker:
 _MAKERS: dict[DatasetSpec, FrameMaker] = {}
 
 
-def _make_cached(spec: DatasetSpec, index: int) -> FrameRecord:
-    """Frame ``index`` of ``spec``, by this process's FrameMaker of it."""
-    if spec not in _MAKERS:
-        _MAKERS[spec] = FrameMaker(spec)
-    return _MAKERS[spec].make(index)
+def _make_cached(spec: DatasetSpec, index: int, host_threads: dict[str, int] | None = None
+                 ) -> FrameRecord:
+    """Frame ``index`` of ``spec``, by this process's FrameMaker of it; on a Dask worker, with
+    the native pools sized to the cores over the cluster's threads on its host."""
+    if host_threads is not None:
+        from distributed import get_worker
+        from distributed.comm import get_address_host
+
+        host = get_address_host(get_worker().address)
+        limit_native_threads(max(1, (os.cpu_count() or 1) // host_threads.get(host, 1)))
+    maker = _MAKERS[spec] if spec in _MAKERS else _MAKERS.setdefault(spec, FrameMaker(spec))
+    return maker.make(index)
 
 
 def _frames_on_dask(client: Any, spec: DatasetSpec, indices: Sequence[int]
@@ -516,44 +523,39 @@ def _frames_on_dask(client: Any, spec: DatasetSpec, indices: Sequence[int]
     """The frames ``indices`` in order, rendered by the workers of ``client``'s cluster; a
     window of twice the workers' threads is in flight (the rest waits, not the memory)."""
     with client:
-        window = max(2, 2 * sum(client.nthreads().values()))
-        todo = iter(indices)
-        pending = deque(client.submit(_make_cached, spec, i, pure=False)
+        info = [(w["host"], w["nthreads"]) for w in client.scheduler_info()["workers"].values()]
+        hosts = {h: sum(n for k, n in info if k == h) for h, _ in info}
+        window, todo = max(2, 2 * sum(hosts.values())), iter(indices)
+        pending = deque(client.submit(_make_cached, spec, i, hosts, pure=False)
                         for i in itertools.islice(todo, window))
         while pending:
             rec = pending.popleft().result()
             for i in itertools.islice(todo, 1):
-                pending.append(client.submit(_make_cached, spec, i, pure=False))
+                pending.append(client.submit(_make_cached, spec, i, hosts, pure=False))
             yield rec
 
 
 def _dask_client(scheduler: str) -> Any:
     try:
         from distributed import Client
+
+        return Client(scheduler, timeout=30)
     except ModuleNotFoundError as exc:
         raise WaiInputError(f"--scheduler needs Dask's distributed ({exc})") from None
-    try:
-        return Client(scheduler, timeout=30)
     except (OSError, TimeoutError, ValueError) as exc:
         raise WaiInputError(f"--scheduler {scheduler}: no Dask scheduler there ({exc})") from None
 
 
 def _frames_in_pool(spec: DatasetSpec, indices: Sequence[int], n: int) -> Iterator[FrameRecord]:
-    from wai.threads import limit_native_threads
-
     threads = max(1, (os.cpu_count() or 1) // n)
-    ctx = multiprocessing.get_context("spawn")
-    with ctx.Pool(n, initializer=limit_native_threads, initargs=(threads,)) as pool:
+    with multiprocessing.get_context("spawn").Pool(n, limit_native_threads, (threads,)) as pool:
         yield from pool.imap(functools.partial(_make_cached, spec), indices)
 
 
-def _frames(
-    spec: DatasetSpec, indices: Sequence[int], workers: int, scheduler: str | None = None,
-    maker: FrameMaker | None = None,
-) -> tuple[Iterator[FrameRecord], str]:
-    """The frames ``indices`` in order, rendered here (``workers`` <= 1, by ``maker`` if
-    given), in ``workers`` spawned processes, or on the Dask cluster at ``scheduler``; and
-    what renders them, in words."""
+def _frames(spec: DatasetSpec, indices: Sequence[int], workers: int, scheduler: str | None,
+            maker: FrameMaker | None) -> tuple[Iterator[FrameRecord], str]:
+    """The frames ``indices`` in order, rendered here (``workers`` <= 1, by ``maker``), in
+    ``workers`` spawned processes or on the Dask cluster at ``scheduler``; who, in words."""
     if scheduler is not None:
         threads = (client := _dask_client(scheduler)).nthreads()
         return (_frames_on_dask(client, spec, indices),
@@ -564,8 +566,7 @@ def _frames(
 
 
 def _versions() -> dict[str, str]:
-    """The software the store was written with (``git`` commit where the source is a
-    checkout)."""
+    """The software the store was written with (``git`` commit of a checkout)."""
     from importlib.metadata import PackageNotFoundError, version
 
     out = {"python": platform.python_version(), "numpy": np.__version__}
@@ -754,12 +755,10 @@ def _record_run(f: Any, first: int, frames: int, seconds: float, renderers: str)
     from wai.bench.timing import reference_workload
 
     ref = reference_workload()
-    runs = json.loads(f.attrs.get("runs", "[]"))
-    runs.append({"first_frame": first, "frames": frames, "seconds": round(seconds, 3),
-                 "frames_per_s": frames / seconds, "renderers": renderers,
-                 "cores": os.cpu_count(), "reference": ref["workload"],
-                 "reference_ms": ref["median_ms"]})
-    f.attrs["runs"] = json.dumps(runs)
+    f.attrs["runs"] = json.dumps([*json.loads(f.attrs.get("runs", "[]")), {
+        "first_frame": first, "frames": frames, "seconds": round(seconds, 3),
+        "frames_per_s": frames / seconds, "renderers": renderers, "cores": os.cpu_count(),
+        "reference": ref["workload"], "reference_ms": ref["median_ms"]}])
 
 
 def read_runs(out_dir: str | Path) -> list[dict[str, Any]]:
