@@ -1,7 +1,7 @@
 """A truth-free score for a view of a planar checkerboard: how far its corners are from a grid.
 
 A pinhole camera maps a plane by a homography, so the inner corners of a flat checkerboard seen
-through a flat window (or well restored) lie exactly on a homography of a regular grid. The
+with nothing between (or well restored) lie exactly on a homography of a regular grid. The
 residual of the best such homography measures what distortion is left, with no ground truth
 and no calibration; the corners' frame-to-frame motion measures how much the water moves them.
 A camera under the water looking up at a board in air sees it through refraction even when
