@@ -101,7 +101,7 @@ class SequenceRestore:
             lines.append(
                 f"labels tracked from the previous frames on {s['frames_tracked']} frames, "
                 f"matched in full on {s['frames_matched']} ({s['track_fallbacks']} where "
-                "tracking failed its checks)"
+                f"tracking failed its checks, {s['track_skipped']} not tried after failures)"
             )
         return lines
 
@@ -209,7 +209,8 @@ def restore_sequence(
         _flag_moving_views(results, rows, restored, masks, distorted, staged)
         summary = _summary(seq, rows)
         summary.update(tracking=track.track, frames_tracked=track.tracked,
-                       frames_matched=track.matched, track_fallbacks=track.fallbacks)
+                       frames_matched=track.matched, track_fallbacks=track.fallbacks,
+                       track_skipped=track.skipped)
         if write:
             tmp = out_tmp if out_tmp is not None else stack.enter_context(
                 atomic_dir(out, command="restore", remedy=RESTORE_REMEDY))

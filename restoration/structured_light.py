@@ -379,26 +379,27 @@ class StructuredLight:
         """
         state = track if isinstance(track, SequenceState) else None
         start_mm = None if state is None else state.start_mm
-        result = self._restore(images, cal, track, state)
+        history = () if state is None else state.next_history()
+        result = self._restore(images, cal, track, state, history)
         if state is not None and state.refuses(result):  # matched in full after all
             state.start_mm = start_mm
-            result = self._restore(images, cal, track, state)
+            result = self._restore(images, cal, track, state, ())
             result.features.counts["track_fallback"] = 1
         return result
 
     def _restore(
         self, images: dict[str, NDArray], cal: Calibration, track: LevelTrack | None,
-        state: SequenceState | None,
+        state: SequenceState | None, history: Sequence[TrackedSpots],
     ) -> RestoreResult:
-        """:meth:`__call__` once, ``state`` the sequence's when ``track`` is one."""
+        """:meth:`__call__` once, ``state`` the sequence's when ``track`` is one, the labels
+        tracked from ``history`` where it holds any."""
         options = self.options
         timings = Timings()
 
         try:
             reference = cal.prepare(images["pattern_flat"])
             with timings("features"):
-                features = match_features(images["pattern"], reference, cal.cfg,
-                                          () if state is None else state.history)
+                features = match_features(images["pattern"], reference, cal.cfg, history)
             with timings("surface"):
                 obs = cal.observe(features.ij, features.spot_px,
                                   flat_referenced=options.flat_referenced)
@@ -439,7 +440,8 @@ class StructuredLight:
             view_has_signal(images["view"], cal.view_gain), options,
         )
         if state is not None:
-            state.take(features, ok=status == Status.OK, residual_px=check.median_px)
+            state.take(features, ok=status == Status.OK, residual_px=check.median_px,
+                       tried=bool(history))
         return RestoreResult(
             self.name, status, message, features, surface, view, timings.to_dict(),
             features.counts, check, reference_rms_px=float(reference.rms_px),

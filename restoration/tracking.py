@@ -19,10 +19,13 @@ from restoration.features.track import TrackedSpots
 from restoration.result import RestoreResult
 from restoration.reverse_trace import ViewState
 
-__all__ = ["HISTORY", "SequenceState"]
+__all__ = ["HISTORY", "MAX_WAIT", "TRACK_RESIDUAL", "SequenceState"]
 
 HISTORY = 3
 """Frames of labelled spots kept (the prediction extrapolates up to three positions)."""
+
+MAX_WAIT = 8
+"""Most frames matched in full, without trying, between refused attempts to track."""
 
 TRACK_RESIDUAL = 3.0
 """A tracked frame whose surface misses its spots by more than this many times the previous
@@ -56,11 +59,14 @@ class SequenceState(LevelTrack):
     residual_px : float or None
         The last ``ok`` frame's median miss of its spots, px (what a tracked frame's is
         compared with).
+    skipped : int
+        Frames matched in full without trying to track them, after refused attempts (see
+        :meth:`next_history`).
 
     Examples
     --------
     >>> state = SequenceState()
-    >>> state.history, state.start_mm
+    >>> state.next_history(), state.start_mm
     ((), None)
     >>> SequenceState(track=False).view_state is None
     True
@@ -73,24 +79,39 @@ class SequenceState(LevelTrack):
     matched: int = 0
     fallbacks: int = 0
     residual_px: float | None = None
+    skipped: int = 0
     _refused: bool = field(default=False, init=False, repr=False)
+    _failures: int = field(default=0, init=False, repr=False)
+    _wait: int = field(default=0, init=False, repr=False)
 
-    @property
-    def history(self) -> tuple[TrackedSpots, ...]:
-        """What the next frame's tracking starts from (empty when tracking is off)."""
-        return self.spots if self.track else ()
+    def next_history(self) -> tuple[TrackedSpots, ...]:
+        """What the next frame's tracking starts from: empty when tracking is off, when no
+        ``ok`` frame came just before, and while waiting after refused attempts (1, 3, 7
+        frames after 1, 2, 3 refusals in a row, then :data:`MAX_WAIT`; where spots move too
+        far between frames every attempt would be refused, and each costs a part of a full
+        match). Counts down that wait: call it once per frame."""
+        if not (self.track and self.spots):
+            return ()
+        if self._wait > 0:
+            self._wait -= 1
+            self.skipped += 1
+            return ()
+        return self.spots
 
     @property
     def view_state(self) -> ViewState | None:
         """The warp's state for the next frame's view, None when tracking is off."""
         return self.view if self.track else None
 
-    def take(self, features: Matches | None, ok: bool, residual_px: float | None = None) -> None:
+    def take(
+        self, features: Matches | None, ok: bool, residual_px: float | None = None,
+        tried: bool = False,
+    ) -> None:
         """Count a frame's labelling and keep its spots, and its median miss of them
         ``residual_px``, when its status is ``ok`` (forget them otherwise, so that the next
-        frame is matched in full). A tracked frame that is not ``ok``, or whose surface misses
-        its spots by more than :data:`TRACK_RESIDUAL` times the last ``ok`` frame did, is
-        refused instead (:meth:`refuses`)."""
+        frame is matched in full); ``tried``: tracking was tried on it. A tracked frame that
+        is not ``ok``, or whose surface misses its spots by more than :data:`TRACK_RESIDUAL`
+        times the last ``ok`` frame did, is refused instead (:meth:`refuses`)."""
         self._refused = False
         if features is not None and features.counts.get("tracked"):
             prior = self.residual_px
@@ -99,16 +120,26 @@ class SequenceState(LevelTrack):
                 self._refused = True
                 self.fallbacks += 1
                 self.spots = ()
+                self._failed()
                 return
             self.tracked += 1
+            self._failures = 0
         elif features is not None:
             self.matched += 1
             self.fallbacks += int(features.counts.get("track_fallback", 0))
+            if tried:  # the frames before may not lead to this one: start afresh from it
+                self._failed()
+                self.spots = ()
         if not (ok and features is not None and self.track):
             self.spots = ()
             return
         self.spots = (TrackedSpots.of(features), *self.spots)[:HISTORY]
         self.residual_px = residual_px
+
+    def _failed(self) -> None:
+        """One more refused attempt in a row: wait longer before the next."""
+        self._failures += 1
+        self._wait = min(2**self._failures - 1, MAX_WAIT)
 
     def refuses(self, result: RestoreResult) -> bool:
         """Whether the frame just restored (``result``) was refused by :meth:`take`: restored

@@ -82,6 +82,9 @@ def test_a_jump_in_time_falls_back_to_full_matching(clips):
     jumped = tracked[-1]
     assert jumped.features.counts["tracked"] == 0
     assert jumped.features.counts["track_fallback"] == 1 and state.fallbacks == 1
+    # After a refused attempt the next frame is matched without trying, the one after tried.
+    assert state.next_history() == () and state.skipped == 1
+    assert len(state.next_history()) == 1
     # Matched in full: the labels of a frame restored on its own.
     np.testing.assert_array_equal(jumped.features.ij, plain[-1].features.ij)
     assert jumped.status == plain[-1].status

@@ -224,6 +224,7 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
         "latency": summarize(samples),
         "latency_tracked": state.tracked,
         "latency_fallbacks": state.fallbacks,
+        "latency_skipped": state.skipped,
         "stages_ms": _stage_medians(results),
         "throughput": [throughput(folder, w, frames, track) for w in counts],
         "accuracy": accuracy(folder, cal, images),
@@ -246,7 +247,8 @@ def print_video(res: dict[str, Any]) -> None:
     )
     mode = "with tracking" if res["tracking"] else "without tracking (--no-track)"
     print(f"{mode}: labels tracked on {res['latency_tracked']} of {lat['runs']} frames "
-          f"({res['latency_fallbacks']} matched in full after tracking failed its checks)")
+          f"({res['latency_fallbacks']} matched in full after tracking failed its checks, "
+          f"{res['latency_skipped']} without trying after failures)")
     stages = res["stages_ms"]
     print("stages (median ms): " + ", ".join(
         f"{k} {stages[k]:.1f}" for k in ("features.detect", "features.match", "surface",
