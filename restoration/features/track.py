@@ -7,9 +7,11 @@ rejected last frame) are then predicted from their tracked neighbours' displacem
 labelled the same way. The result is checked as region growing's labels are
 (:func:`~restoration.features.match.match_distorted`): eq. 33's ordering, lit nodes, one
 connected piece, and the lit/unlit evidence of the pattern's boundary and marker dots must not
-prefer another lattice shift. A labelling that fails a check, or finds too few of the previous
-frame's labels again, is refused (None) and the caller matches the frame in full: tracking
-pays where spots move well under half a lattice spacing between frames.
+prefer another lattice shift. A labelling is refused (None, and the caller matches the frame
+in full) when it fails a check, finds too few of the previous frame's labels again, or when
+the extrapolated spots are found more than a tenth of a spacing away (median): where spots
+move by a good part of a spacing between frames, a spot's nearest prediction may be its
+neighbour's.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from restoration.features.match import (
 )
 from restoration.features.reference import ReferenceGrid
 
-__all__ = ["TRACK_KEEP", "TrackedSpots", "track_spots"]
+__all__ = ["TRACK_FIRST", "TRACK_KEEP", "TRACK_MISS", "TrackedSpots", "track_spots"]
 
 TRACK_KEEP = 0.8
 """A tracked labelling must keep at least this fraction of the previous frame's labels."""
