@@ -123,7 +123,7 @@ def restore_sequence(
     movie: bool = True,
     progress: bool = False,
     rig: Mapping[str, Any] | None = None,
-    track: bool = True,
+    track: bool = False,
 ) -> SequenceRestore:
     """Restore every frame of a sequence folder (any layout of :mod:`wai_core.sequence`),
     each as :func:`~restoration.folder.restore_frame` with the sequence's one calibration and
@@ -151,8 +151,9 @@ def restore_sequence(
     track : bool
         Reuse the previous frames (:class:`~restoration.tracking.SequenceState`): labels
         tracked from their spots (full matching where tracking fails its checks), the warp
-        solve started at the previous frame's (default True); False restores every frame on
-        its own, the level search's start aside.
+        solve started at the previous frame's; False (the default) restores every frame on
+        its own, the level search's start aside. Tracking takes only where spots move by
+        under a tenth of the dot spacing between frames (a fast camera; docs/results.md).
 
     Returns
     -------

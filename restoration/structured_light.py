@@ -26,7 +26,7 @@ from restoration.features import (
     features_from_code,
     features_from_reference,
 )
-from restoration.features.track import TrackedSpots
+from restoration.features.track import TrackedSpots, features_tracked
 from restoration.fit import fit_level
 from restoration.normals import projector_rays
 from restoration.observations import Observations
@@ -400,6 +400,9 @@ class StructuredLight:
             reference = cal.prepare(images["pattern_flat"])
             with timings("features"):
                 features = match_features(images["pattern"], reference, cal.cfg, history)
+            if state is not None:  # a sequence's frames all say whether they were tracked
+                features.counts.setdefault("tracked", 0)
+                features.counts.setdefault("track_fallback", 0)
             with timings("surface"):
                 obs = cal.observe(features.ij, features.spot_px,
                                   flat_referenced=options.flat_referenced)
@@ -458,7 +461,9 @@ def match_features(
     ``history``, a video's previous frames' labelled spots (most recent first)."""
     if cfg.pattern.code != "none":
         return features_from_code(pattern, reference, cfg)
-    return features_from_reference(pattern, reference, cfg, history=history)
+    if history:
+        return features_tracked(pattern, reference, cfg, history)
+    return features_from_reference(pattern, reference, cfg)
 
 
 def _timed_check(

@@ -288,10 +288,11 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--board", default=None,
                    help="video methods: score the restored view of a planar checkerboard with "
                    "COLSxROWS inner corners (default: none)")
-    p.add_argument("--no-track", action="store_true",
-                   help="structured light, sequences: match every frame in full and solve every "
-                   "warp cold (default: labels tracked from the previous frames and the warp "
-                   "started at the previous frame's, full matching where tracking fails)")
+    p.add_argument("--track", action="store_true",
+                   help="structured light, sequences: label each frame's spots by tracking the "
+                   "previous frames' (full matching where that fails its checks) and start the "
+                   "warp at the previous frame's (default: every frame matched in full, cold; "
+                   "tracking needs spots that move under a tenth of the dot spacing per frame)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_restore)
 
@@ -366,7 +367,7 @@ def _bench_video(args: argparse.Namespace) -> _BenchRun:
     from wai.bench.video import bench_video, print_video
 
     result = bench_video(args.config, args.out, args.runs, args.workers, args.frames,
-                         args.sequence, track=not args.no_track)
+                         args.sequence, track=args.track)
     return result, print_video, []
 
 
@@ -412,9 +413,9 @@ def _video_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="worker processes (and 1)")
     p.add_argument("--frames", type=int, default=60, help="frames restored per count")
     p.add_argument("--sequence", type=int, default=6, help="distinct frames rendered")
-    p.add_argument("--no-track", action="store_true",
-                   help="restore every frame on its own (default: labels tracked from the "
-                   "previous frames, the warp started at the previous frame's)")
+    p.add_argument("--track", action="store_true",
+                   help="labels tracked from the previous frames, the warp started at the "
+                   "previous frame's (default: every frame restored on its own)")
 
 
 @dataclass(frozen=True)

@@ -92,7 +92,7 @@ def run_restore_sequence(
     from restoration.sequence import restore_sequence
 
     done = restore_sequence(args.dir, args.method, options, progress=not args.quiet, rig=rig,
-                            track=not getattr(args, "no_track", False))
+                            track=getattr(args, "track", False))
     for line in done.summary_lines():
         print(line)
     print(f"per-frame table, movies and figures: {done.out}")

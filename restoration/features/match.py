@@ -10,9 +10,7 @@ steps from the two images (:func:`find_features`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -40,9 +38,6 @@ from restoration.features.reference import (
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.timings import Timings
-
-if TYPE_CHECKING:
-    from restoration.features.track import TrackedSpots
 
 
 @dataclass(frozen=True)
@@ -636,15 +631,10 @@ def visible_outline(ref: ReferenceGrid, cfg: SystemConfig) -> FloatArray:
 
 def features_from_reference(
     pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig, *, min_features: int = 16,
-    history: Sequence[TrackedSpots] = (),
 ) -> Matches:
-    """Detect the spots of one wavy frame and match them to a prepared reference grid.
-
-    With ``history`` (a video's previous frames' labelled spots, most recent first) the spots
-    are first labelled by tracking (:func:`restoration.features.track.track_spots`), and
-    matched in full only where tracking's labels fail its checks: ``counts['tracked']`` is 1
-    for a tracked frame, 0 for a matched one, and ``counts['track_fallback']`` 1 where
-    tracking was tried and refused.
+    """Detect the spots of one wavy frame and match them to a prepared reference grid
+    (:func:`restoration.features.track.features_tracked` labels them from a video's previous
+    frames first).
 
     Raises
     ------
@@ -653,19 +643,11 @@ def features_from_reference(
     RestorationFailed
         On fewer than ``min_features`` matches.
     """
-    from restoration.features.track import track_spots  # it builds on this module
-
     timings = Timings()
     with timings("detect"):
         wavy = detect_frame(pattern_img, ref, cfg)
     with timings("match"):
-        visible = visible_outline(ref, cfg)
-        matches = track_spots(ref, wavy, history, visible) if history else None
-        if matches is None:
-            matches = match_distorted(ref, wavy, visible_px=visible)
-            matches.counts.update(tracked=0, track_fallback=int(bool(history)))
-        else:
-            matches.counts["track_fallback"] = 0
+        matches = match_distorted(ref, wavy, visible_px=visible_outline(ref, cfg))
     if len(matches) < min_features:
         raise RestorationFailed(f"too few features matched: {len(matches)} (need {min_features})")
     matches.timings_ms.update(timings.ms)

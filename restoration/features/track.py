@@ -20,7 +20,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
+from restoration.errors import RestorationFailed
 from restoration.features._lattice import _Lattice
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from restoration.features.detect import Spots
@@ -30,13 +32,19 @@ from restoration.features.match import (
     _largest_component,
     _Outline,
     _SpotLookup,
+    detect_frame,
+    match_distorted,
+    visible_outline,
 )
 from restoration.features.match import (
     _order_violations as order_pairs_bad,
 )
 from restoration.features.reference import ReferenceGrid
+from wai_core.config import SystemConfig
+from wai_core.timings import Timings
 
-__all__ = ["TRACK_FIRST", "TRACK_KEEP", "TRACK_MISS", "TrackedSpots", "track_spots"]
+__all__ = ["TRACK_FIRST", "TRACK_KEEP", "TRACK_MISS", "TrackedSpots", "features_tracked",
+           "track_spots"]
 
 TRACK_KEEP = 0.8
 """A tracked labelling must keep at least this fraction of the previous frame's labels."""
@@ -323,3 +331,36 @@ def track_spots(
         ref.ij[kept], ref.ref_px[kept], spots.centres_px[match[kept]], ref.observed[kept],
         counts, alt_shifts=np.asarray(tied, np.int64),
     )
+
+
+def features_tracked(
+    pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig,
+    history: Sequence[TrackedSpots], *, min_features: int = 16,
+) -> Matches:
+    """:func:`~restoration.features.match.features_from_reference` with the spots labelled
+    by tracking ``history`` (a video's previous frames' labelled spots, most recent first)
+    and matched in full only where tracking's labels fail its checks.
+
+    ``counts['tracked']`` is 1 for a tracked frame, 0 for a matched one, and
+    ``counts['track_fallback']`` 1 where tracking was tried and refused.
+
+    Raises
+    ------
+    RestorationFailed
+        On fewer than ``min_features`` matches.
+    """
+    timings = Timings()
+    with timings("detect"):
+        wavy = detect_frame(pattern_img, ref, cfg)
+    with timings("match"):
+        visible = visible_outline(ref, cfg)
+        matches = track_spots(ref, wavy, history, visible) if history else None
+        if matches is None:
+            matches = match_distorted(ref, wavy, visible_px=visible)
+            matches.counts.update(tracked=0, track_fallback=int(bool(history)))
+        else:
+            matches.counts["track_fallback"] = 0
+    if len(matches) < min_features:
+        raise RestorationFailed(f"too few features matched: {len(matches)} (need {min_features})")
+    matches.timings_ms.update(timings.ms)
+    return matches

@@ -12,9 +12,9 @@ The sequence is rendered once into ``--out`` (default ``renders/bench_video``): 
 frames 1/30 s apart, so the waves move as in a real recording. It is played forth and back
 (0, 1, .., n - 1, n - 2, .., 1, 0, 1, ..), so that every frame follows one of its neighbours in
 time, and each worker restores a contiguous run of that order with its own
-:class:`~restoration.tracking.SequenceState`: with tracking (the default) each frame's labels
-are tracked from the previous frames' spots and its warp solve starts at the previous
-frame's; ``track=False`` (``--no-track``) restores every frame on its own. One period of the
+:class:`~restoration.tracking.SequenceState`: with tracking (``track=True``, ``--track``)
+each frame's labels are tracked from the previous frames' spots and its warp solve starts at
+the previous frame's; by default every frame is restored on its own. One period of the
 order is also restored both ways and scored against the frames' truth: statuses and surface
 RMSE with tracking and without.
 """
@@ -95,7 +95,7 @@ def _restore_frame(index: int) -> tuple[np.ndarray, float, int]:
     return img8, ms, int(res.restored and res.features.counts.get("tracked", 0))
 
 
-def throughput(folder: Path, workers: int, n_frames: int, track: bool = True) -> dict[str, Any]:
+def throughput(folder: Path, workers: int, n_frames: int, track: bool = False) -> dict[str, Any]:
     """Frames per second over ``n_frames`` restorations spread over ``workers`` processes, each
     a contiguous run of the played order."""
     # Spawned workers load OpenBLAS and numba's pool before any task: they must inherit one
@@ -174,7 +174,7 @@ def _stage_medians(results: list[Any]) -> dict[str, float]:
 
 
 def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: int,
-                frames: int, sequence: int, *, track: bool = True) -> dict[str, Any]:
+                frames: int, sequence: int, *, track: bool = False) -> dict[str, Any]:
     """Latency (one process) and throughput for 1 .. ``workers`` worker processes, with
     tracking or without, and the accuracy both ways (:func:`accuracy`).
 
@@ -245,7 +245,7 @@ def print_video(res: dict[str, Any]) -> None:
         f"reference workload ({ref['workload']}) in the same run: median {ref['median_ms']:.1f} "
         f"ms; latency = {lat['median_ms'] / ref['median_ms']:.2f} x reference"
     )
-    mode = "with tracking" if res["tracking"] else "without tracking (--no-track)"
+    mode = "with tracking (--track)" if res["tracking"] else "without tracking"
     print(f"{mode}: labels tracked on {res['latency_tracked']} of {lat['runs']} frames "
           f"({res['latency_fallbacks']} matched in full after tracking failed its checks, "
           f"{res['latency_skipped']} without trying after failures)")
