@@ -36,6 +36,7 @@ def test_every_example_is_listed_and_packaged():
     assert (ROOT / "examples").resolve() == (ROOT / "wai" / "examples").resolve()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("script", EXAMPLES, ids=[p.stem for p in EXAMPLES])
 def test_example_runs_quick(script, tmp_path):
     here = tmp_path / "cwd"

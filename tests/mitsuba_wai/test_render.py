@@ -111,6 +111,7 @@ def test_heightfield_not_covering_the_patch_leaves_nothing(small_cfg, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("system", ["S", "V"])
 def test_water_interface_has_the_expectation_of_mitsubas_dielectric(small_cfg, system):
     # Same scene, Mitsuba's own stochastic dielectric at many spp vs the one-branch interface:

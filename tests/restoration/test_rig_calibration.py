@@ -16,6 +16,7 @@ LENS = {"camera_v.distortion": [-0.2, 0.05, 0.0, 0.0, 0.0],
         "camera_v.principal_offset_px": [15.0, -10.0]}
 
 
+@pytest.mark.slow
 def test_a_distorted_lens_off_centre_is_recovered():
     cfg = with_keys(load_system("paper"), LENS)
     dev = cfg.camera_v

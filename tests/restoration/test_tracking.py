@@ -15,6 +15,8 @@ from restoration.tracking import SequenceState
 from wai_core.sequence import read_sequence
 from wai_core.system import load_rig
 
+pytestmark = pytest.mark.slow  # a rendered sequence restored twice; tracking is opt-in
+
 # Spots move well under half a lattice spacing between frames this close in time.
 FPS, FRAMES = 240.0, 4
 

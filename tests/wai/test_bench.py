@@ -169,6 +169,7 @@ def test_mapping_omits_what_it_cannot_compute_and_never_overwrites_a_measurement
     assert stage_times(SimpleNamespace()) == ({}, [])
 
 
+@pytest.mark.slow
 def test_bench_video_reports_latency_and_throughput(quick_toml, tmp_path, capsys):
     # One rendered frame restored by one worker process: the figures must be consistent
     # (throughput over n frames cannot beat n times the in-worker time by more than the

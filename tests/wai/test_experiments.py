@@ -32,6 +32,7 @@ def test_correspondence_limit_follows_eq_35(paper_cfg):
     assert lim["theta_flat_deg"] == pytest.approx(50.0, abs=0.1)  # 90° - 40° elevation
 
 
+@pytest.mark.slow
 def test_paper_experiment_quick(tmp_path):
     out = tmp_path / "paper"
     assert main(["experiment", "paper", "--quick", "--out", str(out)]) == 0

@@ -58,6 +58,7 @@ def test_windowed_centroid_of_a_known_blob():
     assert np.isnan(c[1]).all()  # a window that leaves the image gives no centroid
 
 
+@pytest.mark.slow
 def test_default_renderer_agrees_with_stock_mitsuba(paper_cfg):
     """Dots drawn directly, the view traced directly and the one-branch water BSDF against
     Mitsuba's own projector, ptracer, path and dielectric (small films, waves at U = 1)."""
