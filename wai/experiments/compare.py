@@ -269,12 +269,12 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
     frames = 8 if quick else 30
     points = compare_points(list(dict.fromkeys(specs)), seeds, quick)
     cases = {case_name(p): p for p in points}
-    for name, p in tqdm(cases.items(), desc="render", unit="case"):
+    sweep = SweepOptions() if sweep is None else sweep
+    for name, p in tqdm(cases.items(), desc="render", unit="case", disable=not sweep.progress):
         folder = render_case(str(config), p, out, frames)
         for q in points:
             if case_name(q) == name:
                 q["folder"] = str(folder)
-    sweep = SweepOptions() if sweep is None else sweep
     rows = run_sweep(points, evaluate, out / "compare.csv",
                      key=("wind", "seed", "degradation", "method"), **sweep.kwargs())
     summary = summarize(rows)
