@@ -538,7 +538,6 @@ def _frames_on_dask(client: Any, spec: DatasetSpec, indices: Sequence[int]
 def _dask_client(scheduler: str) -> Any:
     try:
         from distributed import Client
-
         return Client(scheduler, timeout=30)
     except ModuleNotFoundError as exc:
         raise WaiInputError(f"--scheduler needs Dask's distributed ({exc})") from None
@@ -730,8 +729,7 @@ def write_dataset(
     try:
         done = _trim(f)
         todo = list(range(done, frames))
-        t0 = time.perf_counter()
-        # Here, the frames' maker gives the grid (its wave field is synthesised once).
+        t0 = time.perf_counter()  # the run's time: its processes' start and scene loads too
         maker = FrameMaker(spec) if todo and scheduler is None and workers <= 1 else None
         with tqdm(total=frames, initial=min(done, frames), desc="dataset", unit="frame",
                   disable=not progress) as bar:
@@ -750,8 +748,7 @@ def write_dataset(
 
 
 def _record_run(f: Any, first: int, frames: int, seconds: float, renderers: str) -> None:
-    """Append a run's throughput to the store's ``runs`` (JSON), with the reference workload's
-    time here and now to compare machines by (:func:`wai.bench.timing.reference_workload`)."""
+    """Append a run's throughput and the reference workload's time now to ``attrs['runs']``."""
     from wai.bench.timing import reference_workload
 
     ref = reference_workload()
@@ -762,7 +759,11 @@ def _record_run(f: Any, first: int, frames: int, seconds: float, renderers: str)
 
 
 def read_runs(out_dir: str | Path) -> list[dict[str, Any]]:
-    """The runs that wrote a dataset folder's frames, oldest first (docs/dataset.md)."""
+    """The runs that wrote a dataset folder's frames, oldest first (keys: docs/dataset.md).
+
+    >>> read_runs("datasets/d1")[-1]["frames_per_s"]   # doctest: +SKIP
+    0.146
+    """
     import h5py
 
     with h5py.File(Path(out_dir) / DATASET_FILE, "r") as f:
