@@ -30,6 +30,8 @@ from wai.dataset import (
 )
 from wai_core.scenes import resolve_scene
 
+pytestmark = pytest.mark.slow  # 100 frames rendered; CI runs it (scripts/test.sh --all)
+
 FRAMES = 100
 SEED = 7
 PAPER_MESH = "mesh_points_per_wavelength = 48"
