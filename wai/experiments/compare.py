@@ -38,6 +38,8 @@ DEGRADATIONS: dict[str, dict[str, Any]] = {"none": {}, "sensor": {"sensor.enable
 """The degradations of a case, as configuration keys."""
 SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "grid_px", "grid_fraction",
           "ms_per_frame", "frames_needed", "frames_ok", "frames")
+COUNTS = ("frames_ok", "frames")
+"""Scores summed over a method's cases, not averaged."""
 GRID_FRAMES = 8
 """Frames of a per-frame method the truth-free grid score looks at, evenly spaced (finding a
 partial board costs more than a structured-light restoration)."""
@@ -159,13 +161,17 @@ def evaluate(point: dict[str, Any]) -> dict[str, Any]:
 
 
 def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per method: the means of its scores over the cases, and its cases."""
+    """Per method: the means of its scores over the cases, its frames (``frames_ok`` and
+    ``frames`` summed over the cases: a failed frame is counted, not averaged away), and its
+    cases."""
     out = []
     for method in dict.fromkeys(r["method"] for r in rows):
         part = [r for r in rows if r["method"] == method and not is_error(r.get("status"))]
         entry = {"method": method, "name": part[0]["method_name"] if part else method,
                  "cases": len(part)}
         entry.update({k: _mean([r.get(k) for r in part]) for k in SCORES})
+        for k in COUNTS:
+            entry[k] = int(sum(int(float(r[k])) for r in part if r.get(k) not in (None, "")))
         out.append(entry)
     return out
 
