@@ -245,10 +245,12 @@ def print_video(res: dict[str, Any]) -> None:
         f"reference workload ({ref['workload']}) in the same run: median {ref['median_ms']:.1f} "
         f"ms; latency = {lat['median_ms'] / ref['median_ms']:.2f} x reference"
     )
-    mode = "with tracking (--track)" if res["tracking"] else "without tracking"
-    print(f"{mode}: labels tracked on {res['latency_tracked']} of {lat['runs']} frames "
-          f"({res['latency_fallbacks']} matched in full after tracking failed its checks, "
-          f"{res['latency_skipped']} without trying after failures)")
+    if res["tracking"]:
+        print(f"with tracking (--track): labels tracked on {res['latency_tracked']} of "
+              f"{lat['runs']} frames ({res['latency_fallbacks']} matched in full after tracking "
+              f"failed its checks, {res['latency_skipped']} without trying after failures)")
+    else:
+        print("every frame matched in full (--track: labels tracked from the previous frames)")
     stages = res["stages_ms"]
     print("stages (median ms): " + ", ".join(
         f"{k} {stages[k]:.1f}" for k in ("features.detect", "features.match", "surface",
@@ -258,7 +260,8 @@ def print_video(res: dict[str, Any]) -> None:
         print(
             f"throughput, {t['workers']} worker(s): {t['fps']:.1f} frames/s "
             f"({t['frames']} frames in {t['wall_s']:.2f} s; {t['worker_ms_median']:.1f} ms "
-            f"per frame inside a worker; {t['tracked']} tracked)"
+            f"per frame inside a worker" + (f"; {t['tracked']} tracked)" if res["tracking"]
+                                              else ")")
         )
     acc = res["accuracy"]
     on, off = acc["tracked"], acc["untracked"]
