@@ -400,7 +400,7 @@ class StructuredLight:
             reference = cal.prepare(images["pattern_flat"])
             with timings("features"):
                 features = match_features(images["pattern"], reference, cal.cfg, history)
-            if state is not None:  # a sequence's frames all say whether they were tracked
+            if state is not None and state.track:  # each frame says whether it was tracked
                 features.counts.setdefault("tracked", 0)
                 features.counts.setdefault("track_fallback", 0)
             with timings("surface"):
