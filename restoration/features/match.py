@@ -298,6 +298,24 @@ def order_violations(
     return _order_violations(pairs, ref_px, spot_px, margin_px, lookup)
 
 
+def _kept_order_violations(
+    ref: ReferenceGrid, tab: _LatticeTables, kept: IntArray, spot_px: FloatArray,
+    lookup: _SpotLookup | None, order_margin_px: float | None,
+) -> BoolArray:
+    """Which of the labelled nodes ``kept`` (their spots ``spot_px``) break eq. 33's order
+    with a labelled grid neighbour (i + 1 or j + 1); the margin half the reference's pixel
+    scale unless ``order_margin_px`` is given."""
+    # Positions in ``kept``; the tables name a missing neighbour len(ref.ij): -1 here.
+    where = np.full(len(ref.ij) + 1, -1)
+    where[kept] = np.arange(len(kept))
+    pairs = []
+    for step in (0, 2):  # _DIRS4: (1, 0), (0, 1)
+        nb = where[tab.nbrs4[kept, step]]
+        pairs.append((np.flatnonzero(nb >= 0), nb[nb >= 0]))
+    margin = 0.5 * ref.pixel_scale if order_margin_px is None else order_margin_px
+    return _order_violations(pairs, ref.ref_px[kept], spot_px, margin, lookup)
+
+
 def _order_violations(
     pairs: list[tuple[IntArray, IntArray]],
     ref_px: FloatArray,
@@ -518,15 +536,7 @@ def match_distorted(
 
     kept = np.flatnonzero(match >= 0)
     spot_px = spots.centres_px[match[kept]]
-    # Grid neighbours (i + 1 or j + 1) among the kept nodes, as positions in ``kept``.
-    where = np.full(len(ref.ij) + 1, -1)
-    where[kept] = np.arange(len(kept))
-    pairs = []
-    for step in (0, 2):  # _DIRS4: (1, 0), (0, 1)
-        nb = where[tab.nbrs4[kept, step]]
-        pairs.append((np.flatnonzero(nb >= 0), nb[nb >= 0]))
-    margin = 0.5 * ref.pixel_scale if order_margin_px is None else order_margin_px
-    bad = _order_violations(pairs, ref.ref_px[kept], spot_px, margin, lookup)
+    bad = _kept_order_violations(ref, tab, kept, spot_px, lookup, order_margin_px)
     reason[kept[bad]] = _ORDER
     unlit = ~ref.lit[kept] & ~bad
     reason[kept[unlit]] = _UNLIT

@@ -29,15 +29,13 @@ from restoration.features.detect import Spots
 from restoration.features.match import (
     Matches,
     _anchor_shift,
+    _kept_order_violations,
     _largest_component,
     _Outline,
     _SpotLookup,
     detect_frame,
     match_distorted,
     visible_outline,
-)
-from restoration.features.match import (
-    _order_violations as order_pairs_bad,
 )
 from restoration.features.reference import ReferenceGrid
 from wai_core.config import SystemConfig
@@ -292,14 +290,7 @@ def track_spots(
 
     kept = np.flatnonzero(match >= 0)
     spot_px = spots.centres_px[match[kept]]
-    where = np.full(n + 1, -1)
-    where[kept] = np.arange(len(kept))
-    pairs = []
-    for step in (0, 2):  # _DIRS4: (1, 0), (0, 1)
-        nb = where[tab.nbrs4[kept, step]]
-        pairs.append((np.flatnonzero(nb >= 0), nb[nb >= 0]))
-    margin = 0.5 * ref.pixel_scale if order_margin_px is None else order_margin_px
-    bad = order_pairs_bad(pairs, ref.ref_px[kept], spot_px, margin, lookup)
+    bad = _kept_order_violations(ref, tab, kept, spot_px, lookup, order_margin_px)
     unlit = ~ref.lit[kept]
     # Tracked labels are the previous frame's, which broke no order and sat on lit dots: a
     # tracked spot that now does is a wrong label, not a dropped one.
