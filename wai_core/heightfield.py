@@ -88,9 +88,38 @@ class Heightfield:
         """Slopes ``(dz/dx, dz/dy)`` at points (dimensionless); NaN outside."""
         return self._eval(x, y, 1, 0), self._eval(x, y, 0, 1)
 
+    def height_gradient(self, x: ArrayLike, y: ArrayLike) -> tuple[Array, Array, Array]:
+        """Height (mm) and slopes ``(dz/dx, dz/dy)`` at points in one compiled pass (the
+        values of :meth:`height` and :meth:`gradient` to rounding); NaN outside.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> x = y = np.linspace(0.0, 30.0, 7)
+        >>> hf = Heightfield(x, y, 0.1 * x[None, :] + 0.2 * y[:, None])
+        >>> h, gx, gy = hf.height_gradient(np.array([12.5]), np.array([3.0]))
+        >>> [round(float(v), 9) for v in (h[0], gx[0], gy[0])]
+        [1.85, 0.1, 0.2]
+        """
+        from wai_core._bispline import height_gradient
+
+        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        ok = self.contains(x, y)
+        out = [np.full(x.shape, np.nan) for _ in range(3)]
+        if ok.any():
+            ty, tx, c = self._spline.tck  # first axis y (rows of z)
+            coef = np.ascontiguousarray(c).reshape(ty.size - 4, tx.size - 4)
+            n = int(ok.sum())
+            h, gx, gy = np.empty(n), np.empty(n), np.empty(n)
+            height_gradient(ty, tx, coef, np.ascontiguousarray(y[ok]),
+                            np.ascontiguousarray(x[ok]), h, gx, gy)
+            for o, v in zip(out, (h, gx, gy), strict=True):
+                o[ok] = v
+        return out[0], out[1], out[2]
+
     def normal(self, x: ArrayLike, y: ArrayLike) -> Array:
         """Unit normals pointing up (into the air), shape (..., 3)."""
-        gx, gy = self.gradient(x, y)
+        _, gx, gy = self.height_gradient(x, y)
         n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
@@ -154,8 +183,7 @@ class Heightfield:
             t = (z_ref - o[..., 2]) / d[..., 2]
         for _ in range(n_iter):
             p = o + t[..., None] * d
-            h = self.height(p[..., 0], p[..., 1])
-            gx, gy = self.gradient(p[..., 0], p[..., 1])
+            h, gx, gy = self.height_gradient(p[..., 0], p[..., 1])
             f = p[..., 2] - h
             df = d[..., 2] - gx * d[..., 0] - gy * d[..., 1]
             with np.errstate(divide="ignore", invalid="ignore"):

@@ -83,3 +83,32 @@ def test_holes_are_continued_by_the_nearest_known_tangent_plane():
     between = filled[:, 22:26]
     assert np.all((between >= np.minimum(edge, z[:, 22])[:, None] - 1e-12)
                   & (between <= np.maximum(edge[:, None], z[:, 22:26]) + 1e-12))
+
+
+def test_joint_height_and_slopes_are_exact_on_a_cubic_and_fitpacks_elsewhere():
+    # A bicubic interpolating spline reproduces any cubic in x and y exactly (non-uniform
+    # grid too): the one-pass evaluation must give the polynomial's height and slopes.
+    x = np.r_[0.0, 2.0, 3.5, np.linspace(5.0, 40.0, 12)]
+    y = np.linspace(-10.0, 20.0, 9)
+    xx, yy = np.meshgrid(x, y)
+
+    def cubic(x, y):
+        return 0.002 * x**3 - 0.01 * x * y**2 + 0.3 * y - 0.05 * x * y + 1.0
+
+    hf = Heightfield(x, y, cubic(xx, yy))
+    rng = np.random.default_rng(4)
+    px = np.r_[rng.uniform(x[0], x[-1], 2000), x[0], x[-1], 3.5]
+    py = np.r_[rng.uniform(y[0], y[-1], 2000), y[0], y[-1], 20.0]
+    h, gx, gy = hf.height_gradient(px, py)
+    np.testing.assert_allclose(h, cubic(px, py), atol=1e-10)
+    np.testing.assert_allclose(gx, 0.006 * px**2 - 0.01 * py**2 - 0.05 * py, atol=1e-10)
+    np.testing.assert_allclose(gy, -0.02 * px * py + 0.3 - 0.05 * px, atol=1e-10)
+    # On waves (no closed form) it is FITPACK's value; outside the grid NaN, as height().
+    z = np.sin(0.3 * xx) * np.cos(0.2 * yy)
+    waves = Heightfield(x, y, z)
+    h, gx, gy = waves.height_gradient(np.r_[px, 50.0], np.r_[py, 0.0])
+    np.testing.assert_allclose(h[:-1], waves.height(px, py), atol=1e-12)
+    ref_gx, ref_gy = waves.gradient(px, py)
+    np.testing.assert_allclose(gx[:-1], ref_gx, atol=1e-12)
+    np.testing.assert_allclose(gy[:-1], ref_gy, atol=1e-12)
+    assert np.isnan([h[-1], gx[-1], gy[-1]]).all()
