@@ -38,6 +38,9 @@ DEGRADATIONS: dict[str, dict[str, Any]] = {"none": {}, "sensor": {"sensor.enable
 """The degradations of a case, as configuration keys."""
 SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "grid_px", "grid_fraction",
           "ms_per_frame", "frames_needed", "frames_ok", "frames")
+MIN_CORNERS = 10
+"""Fewest corners, found in the truth, the distorted and the restored view alike, for a corner
+STD (two corners have a spread, but not one that says much: a blurred view shows few)."""
 COUNTS = ("frames_ok", "frames")
 """Scores summed over a method's cases, not averaged."""
 GRID_FRAMES = 8
@@ -76,7 +79,7 @@ def _view_scores(result: Any, distorted: np.ndarray, cal: Any, truth: Any) -> di
 
     s = score(result, distorted, cal, truth)
     out = {"ssim": s.restored["ssim"], "psnr_db": s.restored["psnr_db"],
-           "corner_std_px": s.corner_std_restored_px}
+           "corner_std_px": _corner_std(s.corner_std_restored_px, s.corners_common)}
     out["rmse_mm"] = s.rmse_mm if s.surface is not None else None
     return out
 
@@ -90,6 +93,11 @@ def _grid(image: np.ndarray, valid: np.ndarray, cal: Any) -> dict[str, Any]:
     g = grid_score(image, (nx - 1, ny - 1), valid, n_water=cal.cfg.water.n_water)
     return {"grid_px": g.rms_px if np.isfinite(g.rms_px) else None,
             "grid_fraction": g.fraction}
+
+
+def _corner_std(std_px: float | None, corners: int) -> float | None:
+    """A view's corner STD, None on fewer than :data:`MIN_CORNERS` corners."""
+    return std_px if corners >= MIN_CORNERS else None
 
 
 def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
@@ -115,7 +123,8 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
         if done.scores is not None and done.scores.restored is not None:
             row.update(ssim=done.scores.restored["ssim"],
                        psnr_db=done.scores.restored["psnr_db"],
-                       corner_std_px=m.get("corner_std_restored_px"),
+                       corner_std_px=_corner_std(m.get("corner_std_restored_px"),
+                                                 m.get("corners_common", 0)),
                        rmse_mm=m.get("wai_rmse_mm"))
         rows.append(row)
     mean = {key: _mean([r.get(key) for r in rows])
@@ -242,9 +251,10 @@ def report(summary: list[dict[str, Any]], command: str,
             f"{f(e.get('grid_px'), '.3f')} | {f(e.get('grid_fraction'), '.0%')} | "
             f"{f(e['ms_per_frame'], '.1f')} |")
     tau, count = rank_agreement(summary)
-    lines += ["", "Grid px: RMS distance of the view's checkerboard corners from the best map of "
-              "a regular grid seen through flat water (no truth read); corners found: the share "
-              "of the board's inner corners it scored."]
+    lines += ["", f"Corner STD: over the views that show at least {MIN_CORNERS} of the truth's "
+              "corners. Grid px: RMS distance of the view's checkerboard corners from the best "
+              "map of a regular grid seen through flat water (no truth read); corners found: "
+              "the share of the board's inner corners it scored."]
     if tau is None:
         lines.append(f"Too few methods with both scores ({count}) to compare their rankings.")
     else:
