@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from restoration.video.checkerboard import DETECT_SEED
 from wai_core.config import DeviceConfig
 from wai_core.errors import WaiInputError
 from wai_core.io import write_json
@@ -121,6 +122,7 @@ def _as_uint8(image: NDArray) -> NDArray[np.uint8]:
 def find_corners(image: NDArray, board: BoardSpec) -> NDArray[np.float32] | None:
     """The board's inner corners (cols * rows, 2) px in ``image``, or None when not found."""
     flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    cv2.setRNGSeed(DETECT_SEED)  # the detector draws from OpenCV's generator
     found, corners = cv2.findChessboardCornersSB(_as_uint8(image), (board.cols, board.rows),
                                                  flags=flags)
     return corners.reshape(-1, 2) if found else None

@@ -159,3 +159,21 @@ def test_a_grid_that_skips_corners_is_refused():
     assert not _skips_corners(image, s.corners, s.pattern)
     for part in (grid[::2], grid[np.r_[0:3, 4:rows]]):  # every other row; row 3 jumped
         assert _skips_corners(image, part.reshape(-1, 2), (cols, part.shape[0]))
+
+
+def test_a_distorted_views_score_does_not_depend_on_opencvs_random_state():
+    """``findChessboardCornersSB`` draws from OpenCV's random generator, and on a distorted
+    view the board it grows can depend on the draw (on this image 1.28, 4.83 or 7.27 px). The data:
+    the registration baseline's fused view of `wai experiment compare`'s case U = 1.5 m/s,
+    seed 0, no degradation (30 frames, float16)."""
+    from tests.conftest import ROOT
+
+    data = np.load(ROOT / "tests" / "data" / "fused_registration_U1.5_seed0.npz")
+    image, valid = data["image"].astype(np.float32), data["valid"]
+    scores = []
+    for seed in (0, 7, 8):  # states that gave three boards before the seed was fixed
+        cv2.setRNGSeed(seed)
+        scores.append(grid_score(image, valid=valid))
+    assert all(s.found for s in scores)
+    assert len({s.rms_px for s in scores}) == 1
+    assert all(np.array_equal(s.corners, scores[0].corners) for s in scores)
