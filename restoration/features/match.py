@@ -10,6 +10,7 @@ steps from the two images (:func:`find_features`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -653,11 +654,23 @@ def features_from_reference(
     RestorationFailed
         On fewer than ``min_features`` matches.
     """
+    return labelled_features(
+        pattern_img, ref, cfg,
+        lambda wavy, visible: match_distorted(ref, wavy, visible_px=visible), min_features,
+    )
+
+
+def labelled_features(
+    pattern_img: NDArray, ref: ReferenceGrid, cfg: SystemConfig,
+    label: Callable[[Spots, FloatArray], Matches], min_features: int,
+) -> Matches:
+    """The frame's spots detected, then labelled by ``label(spots, visible_px)``, both timed;
+    :class:`RestorationFailed` on fewer than ``min_features`` labels."""
     timings = Timings()
     with timings("detect"):
         wavy = detect_frame(pattern_img, ref, cfg)
     with timings("match"):
-        matches = match_distorted(ref, wavy, visible_px=visible_outline(ref, cfg))
+        matches = label(wavy, visible_outline(ref, cfg))
     if len(matches) < min_features:
         raise RestorationFailed(f"too few features matched: {len(matches)} (need {min_features})")
     matches.timings_ms.update(timings.ms)

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration.errors import RestorationFailed
 from restoration.features._lattice import _Lattice
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from restoration.features.detect import Spots
@@ -33,13 +32,11 @@ from restoration.features.match import (
     _largest_component,
     _Outline,
     _SpotLookup,
-    detect_frame,
+    labelled_features,
     match_distorted,
-    visible_outline,
 )
 from restoration.features.reference import ReferenceGrid
 from wai_core.config import SystemConfig
-from wai_core.timings import Timings
 
 __all__ = ["TRACK_FIRST", "TRACK_KEEP", "TRACK_MISS", "TrackedSpots", "features_tracked",
            "track_spots"]
@@ -340,18 +337,13 @@ def features_tracked(
     RestorationFailed
         On fewer than ``min_features`` matches.
     """
-    timings = Timings()
-    with timings("detect"):
-        wavy = detect_frame(pattern_img, ref, cfg)
-    with timings("match"):
-        visible = visible_outline(ref, cfg)
+    def label(wavy: Spots, visible: FloatArray) -> Matches:
         matches = track_spots(ref, wavy, history, visible) if history else None
         if matches is None:
             matches = match_distorted(ref, wavy, visible_px=visible)
             matches.counts.update(tracked=0, track_fallback=int(bool(history)))
         else:
             matches.counts["track_fallback"] = 0
-    if len(matches) < min_features:
-        raise RestorationFailed(f"too few features matched: {len(matches)} (need {min_features})")
-    matches.timings_ms.update(timings.ms)
-    return matches
+        return matches
+
+    return labelled_features(pattern_img, ref, cfg, label, min_features)
