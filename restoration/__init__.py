@@ -56,6 +56,7 @@ from restoration.options import (
     SurfaceOptions,
 )
 from restoration.result import STATUSES, RestoredView, RestoreResult, Status
+from restoration.rig_score import RigGridScore, rig_grid_score
 from restoration.scoring import Scores, Truth, score
 from restoration.sequence import SequenceRestore, restore_sequence
 from restoration.structured_light import StructuredLight
@@ -79,6 +80,7 @@ __all__ = [
     "RestoreResult",
     "RestoredView",
     "RigCalibration",
+    "RigGridScore",
     "Scores",
     "SequenceRestore",
     "Status",
@@ -94,6 +96,7 @@ __all__ = [
     "method_names",
     "restore_folder",
     "restore_sequence",
+    "rig_grid_score",
     "score",
     "video",
 ]

@@ -37,7 +37,10 @@ method of one's own (its floor)."""
 DEGRADATIONS: dict[str, dict[str, Any]] = {"none": {}, "sensor": {"sensor.enabled": True}}
 """The degradations of a case, as configuration keys."""
 SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "grid_px", "grid_fraction",
-          "ms_per_frame", "frames_needed", "frames_ok", "frames")
+          "rig_px", "rig_fraction", "ms_per_frame", "frames_needed", "frames_ok", "frames")
+TRUTH_FREE = ("grid_px", "rig_px")
+"""The truth-free scores, each ranked against corner STD: the free flat-water grid (what an
+uncalibrated capture allows) and the calibrated rig's corners."""
 MIN_CORNERS = 10
 """Fewest corners, found in the truth, the distorted and the restored view alike, for a corner
 STD (two corners have a spread, but not one that says much: a blurred view shows few)."""
@@ -84,6 +87,15 @@ def _view_scores(result: Any, distorted: np.ndarray, cal: Any, truth: Any) -> di
     return out
 
 
+def _rig(image: np.ndarray, valid: np.ndarray, cal: Any) -> dict[str, Any]:
+    """The truth-free score against the calibrated rig's flat-water corners: spread px
+    (None under its corner minimum) and the share of the expected corners found."""
+    from restoration import rig_grid_score
+
+    s = rig_grid_score(image, cal.cfg, valid)
+    return {"rig_px": s.std_px if np.isfinite(s.std_px) else None, "rig_fraction": s.fraction}
+
+
 def _grid(image: np.ndarray, valid: np.ndarray, cal: Any) -> dict[str, Any]:
     """The truth-free grid score of one view: residual px (None where no board was found)
     and the share of the board's inner corners it scored."""
@@ -118,6 +130,8 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
         done = restore_frame(frame, cal, method, track, flat_from=[folder])
         res, m = done.result, done.metrics
         row = {"ok": res.ok, "ms": res.timings_ms.get("end_to_end")}
+        if res.has_view:
+            row.update(_rig(res.view.image, res.view.valid, cal))
         if k in gridded and res.has_view:
             row.update(_grid(res.view.image, res.view.valid, cal))
         if done.scores is not None and done.scores.restored is not None:
@@ -129,7 +143,7 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
         rows.append(row)
     mean = {key: _mean([r.get(key) for r in rows])
             for key in ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "grid_px",
-                        "grid_fraction")}
+                        "grid_fraction", "rig_px", "rig_fraction")}
     return {**mean, "ms_per_frame": float(np.median([r["ms"] for r in rows if r["ms"]])),
             "frames_needed": 1, "frames_ok": sum(r["ok"] for r in rows), "frames": len(rows),
             "method_name": method.name}
@@ -150,6 +164,7 @@ def _video_method(folder: Path, name: str) -> dict[str, Any]:
     truth = Truth.from_folder(read_sequence(folder).frame_dirs[0], cal)
     result = RestoreResult(name, view=RestoredView(fused.image, fused.valid))
     return {**_view_scores(result, views[0], cal, truth), **_grid(fused.image, fused.valid, cal),
+            **_rig(fused.image, fused.valid, cal),
             "ms_per_frame": fused.ms_per_frame,
             "frames_needed": len(views), "frames_ok": len(views), "frames": len(views),
             "method_name": name}
@@ -211,13 +226,15 @@ def _figure(summary: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
-def rank_agreement(summary: list[dict[str, Any]]) -> tuple[float | None, int]:
-    """Kendall's tau between the truth-free grid residual and corner STD over the methods
-    that have both (1: the same order, -1: reversed; None under 3 methods), and their count."""
+def rank_agreement(summary: list[dict[str, Any]], key: str = "grid_px"
+                   ) -> tuple[float | None, int]:
+    """Kendall's tau between a truth-free score (:data:`TRUTH_FREE`) and corner STD over the
+    methods that have both (1: the same order, -1: reversed; None under 3 methods), and their
+    count."""
     from scipy.stats import kendalltau
 
-    pairs = [(e["grid_px"], e["corner_std_px"]) for e in summary
-             if e.get("grid_px") is not None and e.get("corner_std_px") is not None]
+    pairs = [(e[key], e["corner_std_px"]) for e in summary
+             if e.get(key) is not None and e.get("corner_std_px") is not None]
     if len(pairs) < 3:
         return None, len(pairs)
     tau = kendalltau(*np.array(pairs).T).statistic
@@ -241,20 +258,23 @@ def report(summary: list[dict[str, Any]], command: str,
 
     lines = [f"# Methods compared (`{command}`)", "",
              "| method | frames needed | ok / frames | view SSIM | PSNR dB | corner STD px | "
-             "surface RMSE mm | grid px (no truth) | corners found | ms per frame |",
-             "|" + " --- |" * 10]
+             "surface RMSE mm | grid px (no truth) | corners found | rig px (no truth) | "
+             "ms per frame |",
+             "|" + " --- |" * 11]
     for e in summary:
         lines.append(
             f"| {e['name']} | {f(e['frames_needed'], '.0f')} | {f(e['frames_ok'], '.0f')} / "
             f"{f(e['frames'], '.0f')} | {f(e['ssim'], '.4f')} | {f(e['psnr_db'], '.2f')} | "
             f"{f(e['corner_std_px'], '.3f')} | {f(e['rmse_mm'], '.4f')} | "
             f"{f(e.get('grid_px'), '.3f')} | {f(e.get('grid_fraction'), '.0%')} | "
-            f"{f(e['ms_per_frame'], '.1f')} |")
+            f"{f(e.get('rig_px'), '.3f')} | {f(e['ms_per_frame'], '.1f')} |")
     tau, count = rank_agreement(summary)
     lines += ["", f"Corner STD: over the views that show at least {MIN_CORNERS} of the truth's "
               "corners. Grid px: RMS distance of the view's checkerboard corners from the best "
               "map of a regular grid seen through flat water (no truth read); corners found: "
-              "the share of the board's inner corners it scored."]
+              "the share of the board's inner corners it scored. Rig px: spread of the "
+              "corners about the calibrated rig's flat-water corners, less a common shift "
+              "(no truth read; restoration.rig_grid_score)."]
     if tau is None:
         lines.append(f"Too few methods with both scores ({count}) to compare their rankings.")
     else:
@@ -262,6 +282,10 @@ def report(summary: list[dict[str, Any]], command: str,
                    else "and corner STD rank the methods")
         lines.append(f"The truth-free score {verdict}: Kendall tau = {tau:.2f} over {count} "
                      "methods (1: the same order, -1: reversed).")
+    rig_tau, rig_count = rank_agreement(summary, "rig_px")
+    if rig_tau is not None:
+        lines.append(f"Against the calibrated rig's corners: Kendall tau = {rig_tau:.2f} over "
+                     f"{rig_count} methods.")
     if case_taus:
         each = ", ".join("-" if t is None else f"{t:.2f}" for t in case_taus)
         lines.append(f"Within each case: tau = {each}.")
@@ -300,6 +324,7 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
     tau, _ = rank_agreement(summary)
     write_json(out / "compare_summary.json",
                {"command": command, "methods": summary, "kendall_tau_grid_corner_std": tau,
+                "kendall_tau_rig_corner_std": rank_agreement(summary, "rig_px")[0],
                 "kendall_tau_per_case": case_taus})
     atomic_write_bytes(out / "compare.md", text.encode())
     _figure(summary, out / "compare.png")
