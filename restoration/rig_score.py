@@ -111,7 +111,7 @@ def rig_grid_score(
                             f"{cam.height_px} x {cam.width_px} pixels")
     win = corner_window_px(cam) if win is None else int(win)
     expected, in_view = predict_corners(cfg, None, margin_px=win + 1)
-    found, ok = refine_corners(np.nan_to_num(img.astype(np.float32)), expected, win)
+    found, ok = refine_corners(img, expected, win)
     if valid is not None:
         ok &= _window_valid(np.asarray(valid, bool), found, win)
     found[~ok] = np.nan

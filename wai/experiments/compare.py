@@ -38,9 +38,6 @@ DEGRADATIONS: dict[str, dict[str, Any]] = {"none": {}, "sensor": {"sensor.enable
 """The degradations of a case, as configuration keys."""
 SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "grid_px", "grid_fraction",
           "rig_px", "rig_fraction", "ms_per_frame", "frames_needed", "frames_ok", "frames")
-TRUTH_FREE = ("grid_px", "rig_px")
-"""The truth-free scores, each ranked against corner STD: the free flat-water grid (what an
-uncalibrated capture allows) and the calibrated rig's corners."""
 MIN_CORNERS = 10
 """Fewest corners, found in the truth, the distorted and the restored view alike, for a corner
 STD (two corners have a spread, but not one that says much: a blurred view shows few)."""
@@ -132,8 +129,8 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
         row = {"ok": res.ok, "ms": res.timings_ms.get("end_to_end")}
         if res.has_view:
             row.update(_rig(res.view.image, res.view.valid, cal))
-        if k in gridded and res.has_view:
-            row.update(_grid(res.view.image, res.view.valid, cal))
+            if k in gridded:
+                row.update(_grid(res.view.image, res.view.valid, cal))
         if done.scores is not None and done.scores.restored is not None:
             row.update(ssim=done.scores.restored["ssim"],
                        psnr_db=done.scores.restored["psnr_db"],
@@ -228,9 +225,10 @@ def _figure(summary: list[dict[str, Any]], path: Path) -> None:
 
 def rank_agreement(summary: list[dict[str, Any]], key: str = "grid_px"
                    ) -> tuple[float | None, int]:
-    """Kendall's tau between a truth-free score (:data:`TRUTH_FREE`) and corner STD over the
-    methods that have both (1: the same order, -1: reversed; None under 3 methods), and their
-    count."""
+    """Kendall's tau between a truth-free score (``"grid_px"``: the free flat-water grid, what
+    an uncalibrated capture allows; ``"rig_px"``: the calibrated rig's corners) and corner STD
+    over the methods that have both (1: the same order, -1: reversed; None under 3
+    methods), and their count."""
     from scipy.stats import kendalltau
 
     pairs = [(e[key], e["corner_std_px"]) for e in summary
