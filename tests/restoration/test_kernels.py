@@ -110,9 +110,12 @@ def test_segment_moments_are_bincounts():
     np.testing.assert_array_equal(peak, [smooth[lab == i].max() for i in range(7)])
 
 
-def test_windowed_centroid_matches_a_direct_evaluation():
-    """One elongated spot, away from others: the compiled window (exponentials by recurrence)
-    against the window evaluated pixel by pixel."""
+@pytest.mark.parametrize("n_iter", [2, 4])
+def test_windowed_centroid_matches_a_direct_evaluation(n_iter):
+    """One elongated spot, away from others, from a start 2 px off (so the window moves by a
+    whole pixel, past what a moved window may reuse): the compiled window (exponentials by
+    recurrence, later steps by a separable factor) against the window evaluated pixel by
+    pixel at every step."""
     pad, h, w = 48, 64, 64
     yy, xx = np.mgrid[0:h, 0:w].astype(float)
     cov = np.array([[4.0, 1.5], [1.5, 2.0]])
@@ -123,8 +126,8 @@ def test_windowed_centroid_matches_a_direct_evaluation():
     padded[pad:-pad, pad:-pad] = spot
     labels = np.zeros(padded.shape, np.int32)
     labels[pad:-pad, pad:-pad] = spot > 0.25
-    start = np.array([[29.8, 32.1]])
-    got = _refine_centres(padded, labels, 2, np.array([1]), start, cov[None], n_iter=2)
+    start = np.array([[28.4, 33.2]])
+    got = _refine_centres(padded, labels, 2, np.array([1]), start, cov[None], n_iter=n_iter)
     # Direct: the same box (3.5 sd + 1, rounded up to 3 px) and steps.
     half = 3 * ((np.ceil(3.5 * np.sqrt(np.diag(cov)) + 1.0).astype(int) + 2) // 3)
     base = np.rint(start[0]).astype(int)
@@ -132,13 +135,13 @@ def test_windowed_centroid_matches_a_direct_evaluation():
     fy, fx = np.mgrid[-half[1] : half[1] + 1, -half[0] : half[0] + 1]
     inv = np.linalg.inv(_WINDOW_VAR * cov)
     s = start[0] - base
-    for _ in range(2):
+    for _ in range(n_iter):
         r = np.stack([fx - s[0], fy - s[1]], axis=-1)
         wgt = np.exp(-0.5 * np.einsum("...i,ij,...j", r, inv, r)) * box
         m = np.array([np.sum(wgt * fx), np.sum(wgt * fy)]) / wgt.sum()
         s = s + np.clip(_WINDOW_GAIN * (m - s), -1.0, 1.0)
     np.testing.assert_allclose(got[0], s + base, atol=1e-10)
-    assert np.abs(got[0] - centre).max() < 0.01
+    assert np.abs(got[0] - centre).max() < (0.01 if n_iter > 2 else 0.5)
 
 
 def _numpy_cell_polynomials(grid, knots):
