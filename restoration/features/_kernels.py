@@ -532,8 +532,8 @@ def centroid_chunk(chunk, n_chunks, padded, labels, pad, spot_of, base, half, in
 
     The first step weighs the box once (:func:`_weigh`); the later ones move that window by a
     separable factor (:func:`_shifted_sums`) while it has moved at most a pixel along each
-    axis (so neither factor's exponent passes ~430: boxes of 48 px, window eigenvalues of at
-    least 2.5 (0.3 px)^2), and weigh it afresh past that.
+    axis and neither factor's exponent can pass 600 (well inside float64), and weigh it afresh
+    otherwise.
 
     Parameters
     ----------
@@ -578,11 +578,12 @@ def centroid_chunk(chunk, n_chunks, padded, labels, pad, spot_of, base, half, in
         wx, wy = sx, sy  # where the weighed box's window is centred
         for k in range(n_iter):
             dx, dy = sx - wx, sy - wy
-            if k == 0 or abs(dx) > 1.0 or abs(dy) > 1.0:
+            ux, uy = a * dx + b * dy, b * dx + c * dy
+            if k == 0 or abs(dx) > 1.0 or abs(dy) > 1.0 or max(abs(ux) * hx, abs(uy) * hy) > 600.0:
                 tot, mx, my = _weigh(raw, box, hx, hy, a, b, c, sx, sy, decay)
                 wx, wy = sx, sy
             else:
-                tot, mx, my = _shifted_sums(box, hx, hy, a * dx + b * dy, b * dx + c * dy, ex)
+                tot, mx, my = _shifted_sums(box, hx, hy, ux, uy, ex)
             if tot > 0.0:
                 # A step longer than a pixel means noise dominates the window.
                 sx += min(max(gain * (mx / tot - sx), -1.0), 1.0)
