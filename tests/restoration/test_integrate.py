@@ -212,6 +212,26 @@ def test_island_is_left_unknown(name):
         )
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_largest_piece_matches_a_graph_library(seed):
+    """The largest connected piece of random sparse graphs (many pieces, ties included) is
+    scipy's largest connected component, the lowest-numbered of equal ones."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    from restoration.integrate.lattice import largest_piece
+
+    rng = np.random.default_rng(seed)
+    n = 400
+    a, b = rng.integers(0, n, (2, 260 + 40 * seed))
+    _, labels = connected_components(sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)))
+    expected = labels == np.bincount(labels).argmax()
+    np.testing.assert_array_equal(largest_piece(n, a, b), expected)
+    # Two disjoint paths of equal length: the one holding node 0 wins.
+    two = largest_piece(8, np.array([5, 6, 7, 0, 1, 2]), np.array([6, 7, 4, 1, 2, 3]))
+    np.testing.assert_array_equal(two, np.arange(8) < 4)
+
+
 def test_bad_input():
     ij, xy = grid()
     _, g = plane(xy)

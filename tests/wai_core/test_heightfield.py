@@ -112,3 +112,27 @@ def test_joint_height_and_slopes_are_exact_on_a_cubic_and_fitpacks_elsewhere():
     np.testing.assert_allclose(gx[:-1], ref_gx, atol=1e-12)
     np.testing.assert_allclose(gy[:-1], ref_gy, atol=1e-12)
     assert np.isnan([h[-1], gx[-1], gy[-1]]).all()
+
+
+@pytest.mark.parametrize("shape", [(4, 4), (9, 31), (118, 102)])
+def test_even_grids_interpolate_like_fitpack(shape):
+    """On evenly spaced axes the spline's coefficients are solved without FITPACK: the same
+    knots and coefficients as scipy's interpolating RectBivariateSpline, to rounding, and
+    exact on a bicubic."""
+    from scipy.interpolate import RectBivariateSpline
+
+    from wai_core.heightfield import interpolating_spline
+
+    m, n = shape
+    x, y = 12.5 + 0.8 * np.arange(n), -40.0 + 1.3 * np.arange(m)
+    z = np.random.default_rng(m).standard_normal((m, n))
+    fast, ref = interpolating_spline(x, y, z), RectBivariateSpline(y, x, z, kx=3, ky=3)
+    for mine, theirs in zip(fast.get_knots(), ref.get_knots(), strict=True):
+        np.testing.assert_array_equal(mine, theirs)
+    np.testing.assert_allclose(fast.get_coeffs(), ref.get_coeffs(), rtol=0, atol=1e-11)
+    xx, yy = np.meshgrid(x, y)
+    cubic = 1e-3 * xx**3 - 2e-4 * xx * yy**2 + 0.1 * yy
+    hf = Heightfield(x, y, cubic)
+    px, py = x[0] + 0.37 * (x[-1] - x[0]), y[0] + 0.61 * (y[-1] - y[0])
+    expected = 1e-3 * px**3 - 2e-4 * px * py**2 + 0.1 * py
+    np.testing.assert_allclose(hf.height(px, py), expected, rtol=1e-12, atol=1e-9)
