@@ -37,10 +37,9 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from restoration.integrate.lattice import line_neighbours
 from restoration.integrate.plans import IntegrationPlans, plan_of
 from restoration.integrate.rules import edge_step
-from restoration.surface import SurfaceEstimate, trapezoid_edges
+from restoration.surface import SurfaceEstimate, edges_and_lines, trapezoid_edges
 
 N_SETS = 4
 """Interleaved edge sets whose separate minima measure the anchor's standard error."""
@@ -94,15 +93,18 @@ def _edges(
     """:func:`~restoration.surface.trapezoid_edges` of ``ij``, the samples before and after
     each on its lattice line (all -1 for the ``trapezoid`` rule), and each edge's set, kept
     in ``plans`` when given: a search evaluates every probe on the same samples."""
-    return plan_of(plans, "anchor_edges", ij, lambda: _build_edges(ij, trapezoid), trapezoid)
+    return plan_of(plans, "anchor_edges", ij, lambda: _build_edges(ij, trapezoid, plans),
+                   trapezoid)
 
 
-def _build_edges(ij: NDArray, trapezoid: bool) -> tuple[NDArray, ...]:
-    a, b = trapezoid_edges(ij)
+def _build_edges(
+    ij: NDArray, trapezoid: bool, plans: IntegrationPlans | None
+) -> tuple[NDArray, ...]:
     if trapezoid:
+        a, b = trapezoid_edges(ij)
         before = after = np.full(a.size, -1, np.int64)
     else:
-        before, after = line_neighbours(ij, a, b)
+        a, b, before, after = edges_and_lines(ij, plans)
     sets = ((ij[a, 0] % 2) + 2 * (ij[a, 1] % 2)).astype(np.int64)
     return a, b, before, after, sets
 

@@ -469,7 +469,10 @@ def _prepared(
 
     def build() -> tuple:
         check_samples(ij, weight_xy, np.zeros_like(weight_xy))
-        a, b = trapezoid_edges(ij)
+        if fourth_order:
+            a, b, before, after = edges_and_lines(ij, plans)
+        else:
+            a, b = trapezoid_edges(ij)
         length2 = np.empty(a.size)
         _length2_kernel(weight_xy, a, b, length2)
         if not np.all(length2 > 0):
@@ -482,9 +485,9 @@ def _prepared(
         pos = np.cumsum(keep) - 1
         ea, eb, w = pos[a[inside]], pos[b[inside]], 1.0 / length2[inside]
         kept_ij = ij[keep]
-        if fourth_order:
+        if fourth_order and not keep.all():
             before, after = line_neighbours(kept_ij, ea, eb)
-        else:
+        elif not fourth_order:
             before = after = np.full(ea.size, -1, np.int64)
         factors = pinned_laplacian_ldl(kept_ij, ea, eb, w).arrays
         return None if keep.all() else keep, ea, eb, before, after, w, factors
@@ -658,6 +661,20 @@ def trapezoid_edges(ij: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[n
     a = np.concatenate([np.flatnonzero(row >= 0) for row in nb])
     b = np.concatenate([row[row >= 0] for row in nb])
     return a, b
+
+
+def edges_and_lines(
+    ij: NDArray[np.int64], plans: IntegrationPlans | None = None
+) -> tuple[NDArray[np.int64], ...]:
+    """:func:`trapezoid_edges` ``a, b`` of ``ij`` (K, 2) and the samples before and after each
+    edge on its lattice line (:func:`~restoration.integrate.line_neighbours`), kept in
+    ``plans``: the integration and the level search's residuals read the same ones."""
+
+    def build() -> tuple[NDArray[np.int64], ...]:
+        a, b = trapezoid_edges(ij)
+        return (a, b, *line_neighbours(ij, a, b))
+
+    return plan_of(plans, "edges_and_lines", ij, build)
 
 
 def _anchored(relative_mm: Array, h0_mm: float) -> Array:
