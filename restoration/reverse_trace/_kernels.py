@@ -28,7 +28,7 @@ _NOT_CONVERGED = int(RayStatus.NOT_CONVERGED)
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _along(c, p, u):
     """The cubic in x of power ``p`` of y of a cell's 16 coefficients ``c`` (index ``4 a +
     p`` for power ``a`` of x): value, first and second derivative at ``u`` mm from the cell's
@@ -38,7 +38,7 @@ def _along(c, p, u):
             2.0 * c2 + 6.0 * u * c3)
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _cell_of(g, x):
     """``searchsorted(g[1:-1], x)`` (side left) for ``g[0] <= x <= g[-1]``: the cell of the
     grid lines ``g`` (increasing) that holds ``x``. Guessed as if the lines were evenly
@@ -54,7 +54,7 @@ def _cell_of(g, x):
     return i
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def spline_jet(table, cell_ok, gx, gy, x, y):
     """Height and derivatives ``(h, h_x, h_y, h_xx, h_xy, h_yy)`` of a
     :class:`~restoration.reverse_trace._surface.SplinePatches` table at one point (x, y) mm;
@@ -97,7 +97,7 @@ def _sign(a):
     return a  # 0 or NaN
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _residual(optics, x, y, h, hx, hy, tx, ty):
     """How far the air ray through surface point (x, y) misses its target ``(tx, ty)``.
 
@@ -134,7 +134,7 @@ def _residual(optics, x, y, h, hx, hy, tx, ty):
 _QX, _QY, _H, _HX, _HY, _R0, _R1, _J00, _J01, _J10, _J11 = range(11)
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _evaluate(flat, h0, table, cell_ok, gx, gy, optics, fd, qx, qy, tx, ty, out):
     """Fill ``out`` (11,) for surface point (qx, qy) mm and target (tx, ty) mm; return its
     status. The Jacobian is a forward difference of step ``fd`` mm, the shifted heights and
@@ -163,7 +163,7 @@ def _evaluate(flat, h0, table, cell_ok, gx, gy, optics, fd, qx, qy, tx, ty, out)
     return status
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _project(camera, x, y, z):
     """Pixel ``(col, row)`` of a lab point mm; ``camera`` (15,): R (row-major), t (mm), focal
     (px), principal point (px) (:meth:`PinholeCamera.project`)."""
@@ -174,7 +174,7 @@ def _project(camera, x, y, z):
     return cols, rows
 
 
-@njit(**_JIT)
+@njit(inline="always", **_JIT)
 def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs, tol,
                max_iter, tx, ty, q0x, q0y, px_out, q_out, t, state, trial):
     """Newton for target ``t``; writes ``px_out[t]`` and ``q_out[t]`` when it converges and
