@@ -460,13 +460,24 @@ def peak_axis_moments(lab, smooth, cols, rows, peak, origin, mean, cos, sin,
     return m2, m4
 
 
+@njit(inline="always", **_JIT)
+def _kept(img, lab, spot_of, spot, col):  # pragma: no cover
+    """Pixel ``col`` of a row ``img`` of the raw image, 0 where ``lab`` marks another kept
+    segment than ``spot``."""
+    o = spot_of[lab[col]]
+    return img[col] if o < 0 or o == spot else 0.0
+
+
 @njit(**_JIT)
-def _weigh(raw, box, hx, hy, a, b, c, sx, sy, decay):  # pragma: no cover
-    """Write ``raw`` (2 hy + 1, 2 hx + 1) times the window ``w = exp(-q / 2)``, ``q = (f -
-    s)^T [[a, b], [b, c]] (f - s)`` of pixel offsets ``f = (fx, fy)`` from the box's centre,
-    into ``box``, and return its ``sum``, ``sum fx`` and ``sum fy``. Along each row the
-    exponential comes from a recurrence, walking out from the row's maximum (``decay =
-    exp(-a)``): three exponentials per row instead of one per pixel, to ~1e-14 relative."""
+def _weigh(padded, labels, spot_of, spot, row0, col0, box, hx, hy, a, b, c, sx, sy,
+           decay):  # pragma: no cover
+    """Write the raw box of spot ``spot`` (2 hy + 1, 2 hx + 1), rows from ``row0`` and columns
+    from ``col0`` of ``padded`` (pixels of the other kept segments blanked: see
+    :func:`centroid_chunk`), times the window ``w = exp(-q / 2)``, ``q = (f - s)^T [[a, b],
+    [b, c]] (f - s)`` of pixel offsets ``f = (fx, fy)`` from the box's centre, into ``box``,
+    and return its ``sum``, ``sum fx`` and ``sum fy``. Along each row the exponential comes
+    from a recurrence, walking out from the row's maximum (``decay = exp(-a)``): three
+    exponentials per row instead of one per pixel, to ~1e-14 relative."""
     tot, mx, my = 0.0, 0.0, 0.0
     for row in range(2 * hy + 1):
         fy = row - hy
@@ -478,9 +489,10 @@ def _weigh(raw, box, hx, hy, a, b, c, sx, sy, decay):  # pragma: no cover
         # Ratios of neighbouring weights to the right and to the left of j0.
         right = math.exp(-0.5 * (a * (2.0 * dx + 1.0) + 2.0 * b * dy))
         left = math.exp(-0.5 * (a * (1.0 - 2.0 * dx) - 2.0 * b * dy))
+        img, lab = padded[row0 + row], labels[row0 + row]
         e = e0
         for fx in range(j0, hx + 1):
-            v = e * raw[row, fx + hx]
+            v = e * _kept(img, lab, spot_of, spot, col0 + fx + hx)
             box[row, fx + hx] = v
             tot += v
             mx += v * fx
@@ -489,7 +501,7 @@ def _weigh(raw, box, hx, hy, a, b, c, sx, sy, decay):  # pragma: no cover
             right *= decay
         e = e0 * left
         for fx in range(j0 - 1, -hx - 1, -1):
-            v = e * raw[row, fx + hx]
+            v = e * _kept(img, lab, spot_of, spot, col0 + fx + hx)
             box[row, fx + hx] = v
             tot += v
             mx += v * fx
@@ -560,18 +572,13 @@ def centroid_chunk(chunk, n_chunks, padded, labels, pad, spot_of, base, half, in
     out : (P, 2) ndarray
         Out: the centres, px.
     """
-    raw = np.empty((2 * pad + 1, 2 * pad + 1))
     box = np.empty((2 * pad + 1, 2 * pad + 1))
     ex = np.empty(2 * pad + 1)
     for s in range(chunk, start.shape[0], n_chunks):
         hx, hy = half[s, 0], half[s, 1]
         bx, by = base[s, 0], base[s, 1]
+        # The raw image around the spot, the other kept segments blanked, read by _weigh.
         top, left = by - hy + pad, bx - hx + pad
-        # The raw image around the spot, the other kept segments blanked.
-        for r in range(2 * hy + 1):
-            for c in range(2 * hx + 1):
-                o = spot_of[labels[top + r, left + c]]
-                raw[r, c] = padded[top + r, left + c] if o < 0 or o == s else 0.0
         a, b, c = inv_win[s, 0], inv_win[s, 1], inv_win[s, 2]
         decay = math.exp(-a)
         sx, sy = start[s, 0] - bx, start[s, 1] - by
@@ -580,7 +587,8 @@ def centroid_chunk(chunk, n_chunks, padded, labels, pad, spot_of, base, half, in
             dx, dy = sx - wx, sy - wy
             ux, uy = a * dx + b * dy, b * dx + c * dy
             if k == 0 or abs(dx) > 1.0 or abs(dy) > 1.0 or max(abs(ux) * hx, abs(uy) * hy) > 600.0:
-                tot, mx, my = _weigh(raw, box, hx, hy, a, b, c, sx, sy, decay)
+                tot, mx, my = _weigh(padded, labels, spot_of, s, top, left, box, hx, hy, a, b,
+                                     c, sx, sy, decay)
                 wx, wy = sx, sy
             else:
                 tot, mx, my = _shifted_sums(box, hx, hy, ux, uy, ex)
