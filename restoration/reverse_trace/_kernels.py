@@ -98,8 +98,9 @@ def _sign(a):
 
 
 @njit(inline="always", **_JIT)
-def _residual(optics, x, y, h, hx, hy, tx, ty):
-    """How far the air ray through surface point (x, y) misses its target ``(tx, ty)``.
+def _residual(optics, x, y, h, hx, hy, hxx, hxy, hyy, tx, ty):
+    """How far the air ray through surface point (x, y) misses its target ``(tx, ty)``, and
+    the miss's derivatives in ``x`` and ``y``.
 
     The air direction seen through surface point ``(x, y, h)`` mm with slopes ``(hx, hy)`` is
     eq. 18-20: the ray from the camera centre refracted by vector Snell, with the normal turned
@@ -109,25 +110,62 @@ def _residual(optics, x, y, h, hx, hy, tx, ty):
     hemisphere. Object-plane distances grow like ``tan`` towards the edge of Snell's window
     and make Newton crawl there; the chart stays smooth up to the horizon.
 
+    The derivatives are carried along the same expressions (forward mode), the surface moving
+    with the point: ``h`` by its slopes, the slopes by the second derivatives ``hxx, hxy,
+    hyy`` (a forward difference took two more evaluations of the miss).
+
     ``optics`` (5,): camera centre (mm), refractive index, object-plane height (mm). Returns
     the residual ``(r_x, r_y)`` (dimensionless, zero at the solution), the air direction's
-    vertical component ``t_z`` (the ray misses the object plane unless > 0) and ``k = 1 - n^2
-    sin^2`` of the incidence (negative under total internal reflection).
+    vertical component ``t_z`` (the ray misses the object plane unless > 0), ``k = 1 - n^2
+    sin^2`` of the incidence (negative under total internal reflection) and the Jacobian
+    ``d r_x / dx, d r_x / dy, d r_y / dx, d r_y / dy`` (per mm).
     """
     cx, cy, cz, n, z_object = optics[0], optics[1], optics[2], optics[3], optics[4]
     wx, wy, wz = x - cx, y - cy, h - cz
     inv_w = 1.0 / math.sqrt(wx * wx + wy * wy + wz * wz)
     inv_m = 1.0 / math.sqrt(1.0 + hx * hx + hy * hy)
-    cos = (wz - wx * hx - wy * hy) * (inv_w * inv_m)
+    p = wz - wx * hx - wy * hy
+    cos = p * (inv_w * inv_m)
     k = (1.0 - n * n) + (n * n) * (cos * cos)
     kk = 0.0 if k < 0.0 else k  # np.maximum(k, 0): NaN stays NaN
+    root = math.sqrt(kk)
+    sign = _sign(cos)
     a_w = n * inv_w
-    a_m = (n * cos - _sign(cos) * math.sqrt(kk)) * inv_m
+    a_m = (n * cos - sign * root) * inv_m
     ax, ay, az = a_w * wx + a_m * hx, a_w * wy + a_m * hy, a_w * wz - a_m
     ex, ey, ez = tx - x, ty - y, z_object - h
-    b = 1.0 / (math.sqrt(ex * ex + ey * ey + ez * ez) + ez)
+    dist = math.sqrt(ex * ex + ey * ey + ez * ez)
+    b = 1.0 / (dist + ez)
     a = 1.0 / (1.0 + az)
-    return ax * a - ex * b, ay * a - ey * b, az, k
+    # Along x, then along y: the point moves by (1, 0) or (0, 1), its height by the slope.
+    v = (n, wx, wy, wz, hx, hy, inv_w, inv_m, p, cos, kk, root, sign, a_w, a_m, ax, ay, a,
+         ex, ey, ez, dist, b)
+    j00, j10 = _miss_derivative(v, 1.0, 0.0, hx, hxx, hxy)
+    j01, j11 = _miss_derivative(v, 0.0, 1.0, hy, hxy, hyy)
+    return ax * a - ex * b, ay * a - ey * b, az, k, j00, j01, j10, j11
+
+
+@njit(inline="always", **_JIT)
+def _miss_derivative(v, dx, dy, dh, dhx, dhy):
+    """Derivative of :func:`_residual`'s miss ``(r_x, r_y)`` along a move ``(dx, dy)`` of the
+    surface point, its height changing by ``dh`` and its slopes by ``(dhx, dhy)``; ``v``: the
+    miss's intermediate values."""
+    n, wx, wy, wz, hx, hy, inv_w, inv_m, p, cos, kk, root, sign, a_w, a_m, ax, ay, a = v[:18]
+    ex, ey, ez, dist, b = v[18:]
+    d_inv_w = -inv_w * inv_w * inv_w * (wx * dx + wy * dy + wz * dh)
+    d_inv_m = -inv_m * inv_m * inv_m * (hx * dhx + hy * dhy)
+    dp = dh - (dx * hx + wx * dhx) - (dy * hy + wy * dhy)
+    dcos = dp * (inv_w * inv_m) + p * (d_inv_w * inv_m + inv_w * d_inv_m)
+    droot = n * n * cos * dcos / root if kk > 0.0 else 0.0
+    da_w = n * d_inv_w
+    da_m = (n * dcos - sign * droot) * inv_m + (n * cos - sign * root) * d_inv_m
+    dax = da_w * wx + a_w * dx + da_m * hx + a_m * dhx
+    day = da_w * wy + a_w * dy + da_m * hy + a_m * dhy
+    daz = da_w * wz + a_w * dh - da_m
+    ddist = -(ex * dx + ey * dy + ez * dh) / dist
+    db = -b * b * (ddist - dh)
+    da = -a * a * daz
+    return dax * a + ax * da + dx * b - ex * db, day * a + ay * da + dy * b - ey * db
 
 
 # Newton state of one target: surface point, height and slopes there, residual, Jacobian.
@@ -135,24 +173,18 @@ _QX, _QY, _H, _HX, _HY, _R0, _R1, _J00, _J01, _J10, _J11 = range(11)
 
 
 @njit(inline="always", **_JIT)
-def _evaluate(flat, h0, table, cell_ok, gx, gy, optics, fd, qx, qy, tx, ty, out):
+def _evaluate(flat, h0, table, cell_ok, gx, gy, optics, qx, qy, tx, ty, out):
     """Fill ``out`` (11,) for surface point (qx, qy) mm and target (tx, ty) mm; return its
-    status. The Jacobian is a forward difference of step ``fd`` mm, the shifted heights and
-    slopes taken from the second derivatives at q."""
+    status."""
     if flat:
         h, hx, hy, hxx, hxy, hyy = h0, 0.0, 0.0, 0.0, 0.0, 0.0
     else:
         h, hx, hy, hxx, hxy, hyy = spline_jet(table, cell_ok, gx, gy, qx, qy)
-    d = fd
-    r0, r1, tz, k = _residual(optics, qx + 0.0, qy + 0.0, h, hx, hy, tx, ty)
-    s0, s1, _, _ = _residual(optics, qx + d, qy + 0.0, h + d * hx, hx + d * hxx, hy + d * hxy,
-                             tx, ty)
-    t0, t1, _, _ = _residual(optics, qx + 0.0, qy + d, h + d * hy, hx + d * hxy, hy + d * hyy,
-                             tx, ty)
+    r0, r1, tz, k, j00, j01, j10, j11 = _residual(optics, qx, qy, h, hx, hy, hxx, hxy, hyy,
+                                                  tx, ty)
     out[_QX], out[_QY], out[_H], out[_HX], out[_HY] = qx, qy, h, hx, hy
     out[_R0], out[_R1] = r0, r1
-    out[_J00], out[_J01] = (s0 - r0) / d, (t0 - r0) / d
-    out[_J10], out[_J11] = (s1 - r1) / d, (t1 - r1) / d
+    out[_J00], out[_J01], out[_J10], out[_J11] = j00, j01, j10, j11
     status = _MISSED_OBJECT
     if tz > 0.0:
         status = _OK
@@ -175,17 +207,17 @@ def _project(camera, x, y, z):
 
 
 @njit(inline="always", **_JIT)
-def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs, tol,
+def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, pulls, fracs, tol,
                max_iter, tx, ty, q0x, q0y, px_out, q_out, t, state, trial):
     """Newton for target ``t``; writes ``px_out[t]`` and ``q_out[t]`` when it converges and
     returns ``(status, iterations run)``. ``state``, ``trial`` (11,): scratch (the caller's,
     reused across targets: two allocations per target cost as much as a Newton step)."""
-    status = _evaluate(flat, h0, table, cell_ok, gx, gy, optics, fd, q0x, q0y, tx, ty, state)
+    status = _evaluate(flat, h0, table, cell_ok, gx, gy, optics, q0x, q0y, tx, ty, state)
     if status == _TIR or status == _MISSED_OBJECT:
         # Beyond the edge of Snell's window: pull towards the nadir, the mildest pull first.
         nx, ny = optics[0], optics[1]
         for p in range(pulls.size):
-            s = _evaluate(flat, h0, table, cell_ok, gx, gy, optics, fd,
+            s = _evaluate(flat, h0, table, cell_ok, gx, gy, optics,
                           nx + pulls[p] * (state[_QX] - nx), ny + pulls[p] * (state[_QY] - ny),
                           tx, ty, trial)
             if s == _OK:
@@ -218,7 +250,7 @@ def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, frac
         s = _OK
         moved = False
         for f in range(fracs.size):
-            s = _evaluate(flat, h0, table, cell_ok, gx, gy, optics, fd,
+            s = _evaluate(flat, h0, table, cell_ok, gx, gy, optics,
                           state[_QX] + fracs[f] * sx, state[_QY] + fracs[f] * sy, tx, ty, trial)
             if s == _OK and trial[_R0] ** 2 + trial[_R1] ** 2 < r2:
                 state[:] = trial
@@ -230,7 +262,7 @@ def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, frac
 
 
 @njit(**_JIT)
-def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls,
+def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, camera, pulls,
                  fracs, tol, max_iter, targets, q0, px, status, q, iters):  # pragma: no cover
     """Solve the ``chunk``-th of ``n_chunks`` equal runs of consecutive targets of the N
     targets (N, 2) mm from surface points ``q0`` (N, 2) mm. The targets are independent: any
@@ -249,8 +281,6 @@ def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, came
         Camera centre (mm), refractive index, object-plane height (mm).
     camera : (15,) ndarray
         Projection constants (:func:`_project`).
-    fd : float
-        Finite-difference step, mm.
     pulls, fracs : ndarray
         Factors of the pulls towards the nadir, and of the damped steps (full step first).
     tol : float
@@ -269,7 +299,7 @@ def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, came
     state, trial = np.empty(11), np.empty(11)
     n = targets.shape[0]
     for t in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
-        s, it = _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, fd, pulls, fracs,
+        s, it = _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, pulls, fracs,
                            tol, max_iter, targets[t, 0], targets[t, 1], q0[t, 0], q0[t, 1],
                            px, q, t, state, trial)
         status[t] = s

@@ -7,8 +7,8 @@ y)`` where the ray crosses the water rather than the pixel itself: for a candida
 ray from the camera centre to ``(x, y, h(x, y))`` and the normal there are explicit, so each
 Newton step needs one surface evaluation instead of a nested ray-surface intersection; the
 pixel is the projection of ``q``. Newton drives the angle between the refracted ray and the
-direction to the target to zero (``_kernels._residual``); its Jacobian is a forward finite
-difference in ``q``. It inverts :func:`wai_core.optics.trace_to_object`.
+direction to the target to zero (``_kernels._residual``, which carries its Jacobian in ``q``
+along). It inverts :func:`wai_core.optics.trace_to_object`.
 """
 
 from __future__ import annotations
@@ -31,8 +31,6 @@ BoolArray = NDArray[np.bool_]
 
 #: Newton stops when the pixel moves less than this between iterates, pixels.
 DEFAULT_TOL_PX = 1e-3
-#: Finite-difference step of the Jacobian, mm on the water surface.
-_FD_STEP_MM = 1e-4
 #: Step halvings tried when a Newton step leaves the surface or hits TIR.
 _MAX_HALVINGS = 4
 #: Pulls of a TIR start towards the nadir, and the factor of each.
@@ -93,7 +91,7 @@ def _newton(
     # thread that finishes its run early takes the next.
     run_chunks(
         newton_chunk, max(min(4 * restore_threads(), n), 1), flat, h0, *surf,
-        np.r_[optics.center, optics.n_water, optics.z_object], proj, _FD_STEP_MM, _PULLS,
+        np.r_[optics.center, optics.n_water, optics.z_object], proj, _PULLS,
         _FRACS, float(tol_px), int(max_iter), targets, np.ascontiguousarray(q0, dtype=float),
         px, status, q, iters,
     )

@@ -25,7 +25,13 @@ from restoration.normals import (
     slopes_from_normals,
 )
 from restoration.reverse_trace import SplinePatches
-from restoration.reverse_trace._kernels import finish_rows, spline_jet, valid_box, warp_rows
+from restoration.reverse_trace._kernels import (
+    _residual,
+    finish_rows,
+    spline_jet,
+    valid_box,
+    warp_rows,
+)
 from restoration.reverse_trace._surface import _cell_polynomials
 from restoration.reverse_trace.warp import _pixel_cells, restore_view
 from wai_core.errors import WaiInputError
@@ -162,6 +168,34 @@ def _numpy_cell_polynomials(grid, knots):
     binom = np.array([[1, 0, 0, 0], [1, 1, 0, 0], [1, 2, 1, 0], [1, 3, 3, 1]], dtype=float)
     shift = binom * s0 ** np.maximum(a[:, None] - a, 0) * s1**a
     return k, np.einsum("cab,caj->cbj", shift, poly[k])
+
+
+def test_refraction_miss_carries_its_jacobian():
+    """The Newton solve's Jacobian, carried along the refraction (forward mode), is the
+    derivative of the miss: central differences on a tilted quadric surface (its height and
+    slopes moving with the point), across Snell's window, to 1e-6 of the largest entry."""
+
+    def surface(x, y):  # height mm, slopes and second derivatives
+        return (150.0 + 0.002 * x * x + 0.001 * x * y - 0.0015 * y * y + 0.05 * x,
+                0.004 * x + 0.001 * y + 0.05, 0.001 * x - 0.003 * y, 0.004, 0.001, -0.003)
+
+    optics = np.array([3.0, -2.0, -300.0, 1.333, 400.0])  # camera centre, n, object plane
+    rng = np.random.default_rng(1)
+    checked, eps = 0, 1e-5
+    for x, y, tx, ty in rng.uniform([-60, -60, -300, -300], [60, 60, 300, 300], (100, 4)):
+        r = _residual(optics, x, y, *surface(x, y), tx, ty)
+        if r[3] < 0.1:  # near or past total internal reflection the miss is not smooth
+            continue
+
+        def miss(u, v):
+            return np.array(_residual(optics, u, v, *surface(u, v), tx, ty)[:2])
+
+        along_x = (miss(x + eps, y) - miss(x - eps, y)) / (2 * eps)
+        along_y = (miss(x, y + eps) - miss(x, y - eps)) / (2 * eps)
+        want = np.array([along_x[0], along_y[0], along_x[1], along_y[1]])
+        np.testing.assert_allclose(r[4:], want, rtol=0, atol=1e-6 * np.abs(want).max())
+        checked += 1
+    assert checked > 50
 
 
 def test_cell_polynomials_match_scipy_b_splines():
