@@ -187,7 +187,7 @@ def test_refraction_miss_carries_its_jacobian():
         if r[3] < 0.1:  # near or past total internal reflection the miss is not smooth
             continue
 
-        def miss(u, v):
+        def miss(u, v, tx=tx, ty=ty):
             return np.array(_residual(optics, u, v, *surface(u, v), tx, ty)[:2])
 
         along_x = (miss(x + eps, y) - miss(x - eps, y)) / (2 * eps)
