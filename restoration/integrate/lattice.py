@@ -125,8 +125,8 @@ def largest_piece(n: int, a: IntArray, b: IntArray) -> NDArray[np.bool_]:
 @njit(cache=True, nogil=True)
 def _largest_piece_kernel(a, b, keep):  # pragma: no cover
     """Mark in ``keep`` (n,) the largest piece of the graph with edges ``a-b`` (E,), by
-    union-find with each piece rooted at its lowest node; returns its size. (A sparse-graph
-    library call cost ~1 ms a frame here, for a few thousand edges.)"""
+    union-find with each piece rooted at its lowest node; returns its size. (scipy's sparse
+    graph routines took ~0.5 ms a frame here, for ~1500 edges.)"""
     n = keep.size
     root = np.arange(n)
     for e in range(a.size):
