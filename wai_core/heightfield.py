@@ -246,6 +246,7 @@ def interpolating_spline(x: Array, y: Array, z: Array) -> RectBivariateSpline:
     _banded_solve(*_collocation_lu(y.size), coeffs)
     across = np.ascontiguousarray(coeffs.T)
     _banded_solve(*_collocation_lu(x.size), across)
+    # scipy's constructor from knots and coefficients (its own, private but long-standing).
     return RectBivariateSpline._from_tck((_knots(y), _knots(x), across.T.ravel(), 3, 3))
 
 
