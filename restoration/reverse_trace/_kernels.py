@@ -419,40 +419,59 @@ def node_warp(truth_status, node_index, node_px, px, status, disp_x, disp_y,
 
 
 
-_LANES = 8
-
-
-@njit(inline="always", **_JIT)
-def _warp_pixel(j, col_t, col_f, lx, sx, ly, sy, fr, lo, wx, hy, mx_row, my_row, valid_row):
-    """Pixel ``j`` of a row in a solved cell of :func:`warp_rows`: its sampling column and
-    row and validity written; returns 1 if valid, else 0."""
-    tx = col_t[j]
-    mx = col_f[j] + (lx + tx * sx)
-    my = fr + (ly + tx * sy)
-    mx_row[j], my_row[j] = mx, my
-    ok = (mx >= lo) & (mx <= wx) & (my >= lo) & (my <= hy)
-    valid_row[j] = ok
-    return np.int64(ok)
-
-
 @njit(**_JIT)
-def warp_rows(chunk, n_chunks, disp_x, disp_y, cell_ok, col_i, col_t, row_i, row_t, map_x,
-              map_y, valid, per_row, first, last):  # pragma: no cover
-    """Upsample a coarse warp to the pixels of rows ``chunk, chunk + n_chunks, ...``, with its
-    validity. The rows are independent: any thread may run any chunk.
+def warp_node_rows(disp_x, disp_y, cell_ok, col_i, col_t):  # pragma: no cover
+    """The coarse warp interpolated along x at every pixel column of each node row: the
+    displacements (rows, W) float32 and whether each column's cell is solved (rows - 1, W).
+    :func:`warp_rows` then interpolates between two of these rows: both steps are plain
+    passes over contiguous columns, which vectorise (a per-pixel lookup of the cell's nodes
+    does not).
 
     Parameters
     ----------
-    chunk, n_chunks : int
-        This chunk, and how many there are.
     disp_x, disp_y : (rows, cols) ndarray of float32
-        Warp displacement ``u - p`` at the coarse nodes, px; interpolated bilinearly.
+        Warp displacement ``u - p`` at the coarse nodes, px.
     cell_ok : (rows - 1, cols - 1) ndarray of bool
         Cells whose four nodes were solved.
-    col_i, row_i : (W,), (H,) ndarray of int
-        Cell of each pixel column (row), non-decreasing; a last pixel lying exactly on the
-        last node belongs to the cell before it.
-    col_t, row_t : (W,), (H,) ndarray of float32
+    col_i : (W,) ndarray of int
+        Cell of each pixel column, non-decreasing; a last pixel lying exactly on the last node
+        belongs to the cell before it.
+    col_t : (W,) ndarray of float32
+        Its fraction of the way across that cell.
+    """
+    n_rows = disp_x.shape[0]
+    w = col_i.size
+    along_x = np.empty((n_rows, w), np.float32)
+    along_y = np.empty((n_rows, w), np.float32)
+    ok = np.empty((n_rows - 1, w), np.bool_)
+    for i in range(n_rows):
+        x, y = disp_x[i], disp_y[i]
+        for j in range(w):
+            c, t = col_i[j], col_t[j]
+            along_x[i, j] = x[c] + t * (x[c + 1] - x[c])
+            along_y[i, j] = y[c] + t * (y[c + 1] - y[c])
+    for i in range(n_rows - 1):
+        for j in range(w):
+            ok[i, j] = cell_ok[i, col_i[j]]
+    return along_x, along_y, ok
+
+
+@njit(**_JIT)
+def warp_rows(r0, r1, along_x, along_y, ok_x, row_i, row_t, map_x, map_y, valid, per_row,
+              first, last):  # pragma: no cover
+    """Upsample a coarse warp to the pixels of rows ``r0`` to ``r1 - 1``, with its validity.
+    The rows are independent: any thread may run any range.
+
+    Parameters
+    ----------
+    r0, r1 : int
+        The rows, from ``r0`` to one before ``r1``.
+    along_x, along_y, ok_x
+        The warp at the node rows and the cells' validity, per pixel column
+        (:func:`warp_node_rows`).
+    row_i : (H,) ndarray of int
+        Cell of each pixel row, non-decreasing (as ``col_i`` of :func:`warp_node_rows`).
+    row_t : (H,) ndarray of float32
         Its fraction of the way across that cell.
     map_x, map_y : (H, W) ndarray of float32
         Out: the sampling column and row ``u`` of every pixel.
@@ -463,64 +482,29 @@ def warp_rows(chunk, n_chunks, disp_x, disp_y, cell_ok, col_i, col_t, row_i, row
         and 0 where none): :func:`valid_box` reduces them.
     """
     h, w = map_x.shape
-    n_cols = disp_x.shape[1]
     lo = np.float32(-0.5)
     wx, hy = np.float32(w - 0.5), np.float32(h - 0.5)
-    # The warp along a row at every node column, then the pixels cell by cell: a cell's
-    # pixels are one short loop with the cell's constants (its validity tested once), the
-    # same float32 operations as interpolating pixel by pixel.
-    node_x = np.empty(n_cols, np.float32)
-    node_y = np.empty(n_cols, np.float32)
     col_f = np.arange(w).astype(np.float32)
-    for r in range(chunk, h, n_chunks):
+    for r in range(r0, r1):
         iy, ty = row_i[r], row_t[r]
-        x0, x1, y0, y1 = disp_x[iy], disp_x[iy + 1], disp_y[iy], disp_y[iy + 1]
-        for ix in range(n_cols):
-            node_x[ix] = x0[ix] + ty * (x1[ix] - x0[ix])
-            node_y[ix] = y0[ix] + ty * (y1[ix] - y0[ix])
-        ok_row = cell_ok[iy]
+        x0, x1, y0, y1 = along_x[iy], along_x[iy + 1], along_y[iy], along_y[iy + 1]
+        ok_row = ok_x[iy]
         mx_row, my_row, valid_row = map_x[r], map_y[r], valid[r]
         fr = np.float32(r)
         n_ok = 0
+        for j in range(w):
+            mx = col_f[j] + (x0[j] + ty * (x1[j] - x0[j]))
+            my = fr + (y0[j] + ty * (y1[j] - y0[j]))
+            ok = ok_row[j] & (mx >= lo) & (mx <= wx) & (my >= lo) & (my <= hy)
+            mx_row[j], my_row[j], valid_row[j] = mx, my, ok
+            n_ok += ok
         lo_c, hi_c = w, 0
-        c = 0
-        while c < w:
-            ix = col_i[c]
-            e = c
-            while e < w and col_i[e] == ix:
-                e += 1
-            lx, ly = node_x[ix], node_y[ix]
-            sx, sy = node_x[ix + 1] - lx, node_y[ix + 1] - ly
-            if ok_row[ix]:
-                # Blocks of _LANES pixels: a loop of constant length is unrolled into SIMD
-                # (a cell's few pixels are too short a loop for the vectoriser); the rest alone.
-                cnt = 0
-                j0 = c
-                while j0 + _LANES <= e:
-                    for k in range(_LANES):
-                        cnt += _warp_pixel(j0 + k, col_t, col_f, lx, sx, ly, sy, fr, lo, wx,
-                                           hy, mx_row, my_row, valid_row)
-                    j0 += _LANES
-                for j in range(j0, e):
-                    cnt += _warp_pixel(j, col_t, col_f, lx, sx, ly, sy, fr, lo, wx, hy, mx_row,
-                                       my_row, valid_row)
-                if cnt:
-                    n_ok += cnt
-                    j = c
-                    while not valid_row[j]:
-                        j += 1
-                    lo_c = min(lo_c, j)
-                    j = e
-                    while not valid_row[j - 1]:
-                        j -= 1
-                    hi_c = max(hi_c, j)
-            else:
-                for j in range(c, e):
-                    tx = col_t[j]
-                    mx_row[j] = col_f[j] + (lx + tx * sx)
-                    my_row[j] = fr + (ly + tx * sy)
-                    valid_row[j] = False
-            c = e
+        if n_ok:
+            lo_c, hi_c = 0, w
+            while not valid_row[lo_c]:
+                lo_c += 1
+            while not valid_row[hi_c - 1]:
+                hi_c -= 1
         per_row[r], first[r], last[r] = n_ok, lo_c, hi_c
 
 
@@ -542,23 +526,25 @@ def valid_box(per_row, first, last, w):  # pragma: no cover
 
 
 @njit(**_JIT)
-def finish_rows(chunk, n_chunks, out, valid, box, gain):  # pragma: no cover
-    """Rows ``chunk, chunk + n_chunks, ...`` of the resampled image ``out`` (H, W, C): inside
-    ``box`` (4,) (first and one past the last row, then column, where ``cv2.remap`` wrote)
-    divided by ``gain`` (of its type), and 0 where ``valid`` (H, W) is not set; 0 outside it
-    (``out`` comes uninitialised, which spares a pass zeroing the whole image)."""
+def finish_rows(rows0, rows1, out, valid, box, gain):  # pragma: no cover
+    """Rows ``rows0`` to ``rows1 - 1`` of the resampled image ``out`` (H, W, C): inside ``box``
+    (4,) (first and one past the last row, then column, where ``cv2.remap`` wrote) divided by
+    ``gain`` (of its type; 1 leaves them as they are), and 0 where ``valid`` (H, W) is not
+    set; 0 outside it (``out`` comes uninitialised, which spares a pass zeroing the whole
+    image)."""
     h, w, n_ch = out.shape
     r0, r1, c0, c1 = box[0], box[1], box[2], box[3]
-    for r in range(chunk, h, n_chunks):
+    for r in range(rows0, rows1):
         row = out[r].reshape(-1)  # contiguous: the division vectorises
         if r < r0 or r >= r1:
             row[:] = 0.0
             continue
         row[: c0 * n_ch] = 0.0
         row[c1 * n_ch :] = 0.0
-        part = row[c0 * n_ch : c1 * n_ch]
-        for j in range(part.size):  # from 0: no negative-index check, so it vectorises
-            part[j] = part[j] / gain
+        if gain != 1.0:
+            part = row[c0 * n_ch : c1 * n_ch]
+            for j in range(part.size):  # from 0: no negative-index check, so it vectorises
+                part[j] = part[j] / gain
         valid_row = valid[r]
         for c in range(c0, c1):
             if not valid_row[c]:

@@ -21,8 +21,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration._threads import restore_threads, run_chunks
-from restoration.reverse_trace._kernels import finish_rows, node_warp, valid_box, warp_rows
+from restoration._threads import restore_threads, run_beside
+from restoration.reverse_trace._kernels import (
+    finish_rows,
+    node_warp,
+    valid_box,
+    warp_node_rows,
+    warp_rows,
+)
 from restoration.reverse_trace._surface import (
     SplinePatches,
     _FlatWater,
@@ -57,15 +63,18 @@ class _CoarseWarp:
     pixel_cells: tuple[NDArray[np.intp], NDArray[np.float32], NDArray[np.intp],
                        NDArray[np.float32]]
 
+    def along_x(self) -> tuple[NDArray[np.float32], NDArray[np.float32], BoolArray]:
+        """The warp interpolated along x at every pixel column of each node row, and each
+        column's cell validity (:func:`~restoration.reverse_trace._kernels.warp_node_rows`)."""
+        col_i, col_t = self.pixel_cells[:2]
+        return warp_node_rows(self.disp_x, self.disp_y, self.cell_ok, col_i, col_t)
+
     def maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Sampling columns and rows (H, W): the very values the restored image sampled."""
         h, w = self.pixel_cells[2].size, self.pixel_cells[0].size
         scratch = _WarpScratch.new(h, w)
-        run_chunks(
-            warp_rows, 4 * restore_threads(), self.disp_x, self.disp_y, self.cell_ok,
-            *self.pixel_cells, scratch.map_x, scratch.map_y, np.empty((h, w), bool),
-            scratch.per_row, scratch.first, scratch.last,
-        )
+        warp_rows(0, h, *self.along_x(), *self.pixel_cells[2:], scratch.map_x, scratch.map_y,
+                  np.empty((h, w), bool), scratch.per_row, scratch.first, scratch.last)
         return scratch.map_x, scratch.map_y
 
 
@@ -476,45 +485,48 @@ def _pixel_warp(
     the coarse warp (the full-size maps on demand).
 
     A pixel is valid when the four nodes of its cell were solved and its sampling position
-    lies inside the distorted image. One compiled pass over the rows, in chunks shared by the
-    restoration's threads (:func:`~restoration.reverse_trace._kernels.warp_rows`), upsamples
-    the warp into the plan's scratch maps and tests it; ``cv2.remap`` samples the image in
-    the valid pixels' bounding box (exact bilinear weights on float maps since OpenCV 5; the
-    fixed-point maps of ``cv2.convertMaps`` would round the position to 1/32 px and measured
-    no faster); the box is then divided by the gain, and its invalid pixels and everything
-    outside it zeroed, in chunks of rows
-    (:func:`~restoration.reverse_trace._kernels.finish_rows`). The image and validity are
-    new arrays (the caller keeps them); the maps are not kept.
+    lies inside the distorted image. The rows are done in two bands, one on each of the
+    restoration's threads when it has two (a band's work, a few ms, outweighs the hand-off
+    to the other thread; finer chunks did not). In each band a compiled pass upsamples the
+    warp into the plan's scratch maps and tests it
+    (:func:`~restoration.reverse_trace._kernels.warp_rows`); ``cv2.remap`` samples the image
+    in the band's valid pixels' bounding box (exact bilinear weights on float maps since
+    OpenCV 5; the fixed-point maps of ``cv2.convertMaps`` would round the position to 1/32 px
+    and measured no faster); the box is then divided by the gain, and its invalid pixels and
+    the band's rows outside it zeroed (:func:`~restoration.reverse_trace._kernels.finish_rows`).
+    The image and validity are new arrays (the caller keeps them); the maps are not kept.
     Displacements are interpolated, not positions: they vary slowly, so float32 costs nothing.
     """
     h, w = plan.image_shape
     cell = _cell_status(node_status)
     cell_ok = cell == RayStatus.OK
     coarse = _CoarseWarp(disp_x, disp_y, cell_ok, plan.pixel_cells)
+    along = coarse.along_x()
     valid = np.empty((h, w), bool)
+    out = np.empty(img.shape, dtype=img.dtype)
+    gain = img.dtype.type(gain)
     with plan.workspace.borrow(h, w) as scratch:
-        map_x, map_y = scratch.map_x, scratch.map_y
-        run_chunks(
-            warp_rows, 4 * restore_threads(), disp_x, disp_y, cell_ok, *plan.pixel_cells,
-            map_x, map_y, valid, scratch.per_row, scratch.first, scratch.last,
-        )
-        n_valid, box = valid_box(scratch.per_row, scratch.first, scratch.last, w)
-        r0, r1, c0, c1 = (int(v) for v in box)
-        # Only the valid pixels' bounding box is sampled (views: cv2 writes into the result);
-        # the rest is zeroed. Half-pixel border: replicate rather than blend with black. The
-        # box is then divided by the gain, its invalid pixels and everything outside it
-        # zeroed, in one pass over the rows (so the result is not zeroed first: a full pass
-        # less).
-        if not n_valid:
-            return np.zeros(img.shape, dtype=img.dtype), valid, _counts(cell, plan, 0), coarse
-        out = np.empty(img.shape, dtype=img.dtype)
-        cv2.remap(img, map_x[r0:r1, c0:c1], map_y[r0:r1, c0:c1], cv2.INTER_LINEAR,
-                  dst=out[r0:r1, c0:c1], borderMode=cv2.BORDER_REPLICATE)
-    run_chunks(
-        finish_rows, 4 * restore_threads(), out.reshape(h, w, -1), valid, box,
-        img.dtype.type(gain),
-    )
-    return out, valid, _counts(cell, plan, int(n_valid)), coarse
+
+        def band(r0: int, r1: int) -> int:
+            """Rows r0 to r1 - 1 sampled and finished; their valid pixels."""
+            warp_rows(r0, r1, *along, *plan.pixel_cells[2:], scratch.map_x, scratch.map_y,
+                      valid, scratch.per_row, scratch.first, scratch.last)
+            n, box = valid_box(scratch.per_row[r0:r1], scratch.first[r0:r1],
+                               scratch.last[r0:r1], w)
+            if n:  # only the box is sampled (views: cv2 writes into the result)
+                box[:2] += r0
+                b0, b1, c0, c1 = (int(v) for v in box)
+                # Half-pixel border: replicate rather than blend with black.
+                cv2.remap(img, scratch.map_x[b0:b1, c0:c1], scratch.map_y[b0:b1, c0:c1],
+                          cv2.INTER_LINEAR, dst=out[b0:b1, c0:c1],
+                          borderMode=cv2.BORDER_REPLICATE)
+            finish_rows(r0, r1, out.reshape(h, w, -1), valid, box, gain)
+            return int(n)
+
+        mid = h // 2 if restore_threads() > 1 else h
+        lower = run_beside(lambda: band(mid, h))
+        n_valid = band(0, mid) + lower()
+    return out, valid, _counts(cell, plan, n_valid), coarse
 
 
 def _counts(cell: NDArray[np.int8], plan: ViewPlan, n_valid: int) -> dict[str, int]:

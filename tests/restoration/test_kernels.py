@@ -30,6 +30,7 @@ from restoration.reverse_trace._kernels import (
     finish_rows,
     spline_jet,
     valid_box,
+    warp_node_rows,
     warp_rows,
 )
 from restoration.reverse_trace._surface import _cell_polynomials
@@ -227,9 +228,11 @@ def test_warp_rows_are_the_bilinear_upsampling():
     map_x, map_y = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
     valid = np.empty((h, w), bool)
     per_row, first, last = np.empty(h, np.int64), np.empty(h, np.int64), np.empty(h, np.int64)
-    cells = (*_pixel_cells(w, n_cols, step), *_pixel_cells(h, n_rows, step))
-    for k in range(3):  # in 3 chunks of rows
-        warp_rows(k, 3, dx, dy, cell_ok, *cells, map_x, map_y, valid, per_row, first, last)
+    col_i, col_t = _pixel_cells(w, n_cols, step)
+    along = warp_node_rows(dx, dy, cell_ok, col_i, col_t)
+    for r0, r1 in ((0, 10), (10, 11), (11, h)):  # in 3 bands of rows
+        warp_rows(r0, r1, *along, *_pixel_cells(h, n_rows, step), map_x, map_y, valid,
+                  per_row, first, last)
     n_valid, box = valid_box(per_row, first, last, w)
     # Oracle: bilinear interpolation of the node grid, pixel by pixel.
     rows, cols = np.mgrid[0:h, 0:w]
@@ -256,15 +259,15 @@ def test_finish_rows_divides_the_box_and_zeroes_the_rest():
     uninitialised)."""
     rng = np.random.default_rng(9)
     h, w, box = 11, 17, np.array([2, 9, 3, 14])
-    for n_ch in (1, 3):
+    for n_ch, gain in ((1, 1.7), (3, 1.7), (3, 1.0)):
         out = rng.random((h, w, n_ch)).astype(np.float32) + 1.0
         valid = rng.random((h, w)) <= 0.7
-        gain = np.float32(1.7)
+        gain = np.float32(gain)
         want = np.zeros_like(out)
         inner = (slice(box[0], box[1]), slice(box[2], box[3]))
         want[inner] = np.where(valid[inner][..., None], out[inner] / gain, 0.0)
-        for k in range(3):  # in 3 chunks of rows
-            finish_rows(k, 3, out, valid, box, gain)
+        for r0, r1 in ((0, 4), (4, 5), (5, h)):  # in 3 bands of rows
+            finish_rows(r0, r1, out, valid, box, gain)
         np.testing.assert_array_equal(out, want)
 
 
