@@ -5,8 +5,9 @@ A video restorer sees one frame after another. Latency is the time one process t
 restores when frames are spread over worker processes, one per core, each holding the
 calibration (the flat-water reference is prepared once per worker, not per frame) and
 restoring with one thread: the restoration's parallel kernels would otherwise run one thread
-per core in every worker. The restored frame travels back to the parent as 8-bit RGB (what a
-display or an encoder takes).
+per core in every worker. Each restored frame travels to the parent as 8-bit RGB (what a
+display or an encoder takes) as soon as it is done, through a slot of shared memory that the
+parent frees once it has copied the frame out.
 
 The sequence is rendered once into ``--out`` (default ``renders/bench_video``): consecutive
 frames 1/30 s apart, so the waves move as in a real recording. It is played forth and back
@@ -79,9 +80,12 @@ def _init_worker(folder: str, track: bool) -> None:
     _STATE.update(cal=cal, frames=frames, restore=restore, track=track, state=None, last=None)
 
 
-def _restore_frame(index: int) -> tuple[np.ndarray, float, int]:
-    """Restore step ``index`` of the played order; the 8-bit image, the worker's ms and
-    whether its labels were tracked. A worker's state follows its own run of steps."""
+def _restore_frame(index: int, out: np.ndarray) -> tuple[float, int]:
+    """Restore step ``index`` of the played order into ``out`` (H, W, 3) as 8-bit RGB; the
+    worker's ms and whether its labels were tracked. A worker's state follows its own run of
+    steps."""
+    import cv2
+
     from restoration.tracking import SequenceState
 
     frames = _STATE["frames"]
@@ -91,33 +95,113 @@ def _restore_frame(index: int) -> tuple[np.ndarray, float, int]:
     t0 = time.perf_counter()
     res = _STATE["restore"](frames[played(index, len(frames))], _STATE["cal"], _STATE["state"])
     ms = 1e3 * (time.perf_counter() - t0)
-    img8 = (np.clip(res.view.image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    return img8, ms, int(res.restored and res.features.counts.get("tracked", 0))
+    # One pass, rounded and saturated at 255 (the restored radiance is not negative).
+    cv2.convertScaleAbs(res.view.image, dst=out, alpha=255.0)
+    return ms, int(res.restored and res.features.counts.get("tracked", 0))
 
 
-def throughput(folder: Path, workers: int, n_frames: int, track: bool = False) -> dict[str, Any]:
+def _stream(k: int, folder: str, track: bool, steps: list[int], shm_name: str,
+            shape: tuple[int, ...], free: Any, results: Any, go: Any) -> None:
+    """Worker ``k``: restore ``steps`` in order, each into a free slot of its shared frames,
+    and post ``(k, slot, ms, tracked)`` as each is done."""
+    from multiprocessing.shared_memory import SharedMemory
+
+    try:
+        _init_worker(folder, track)
+        shm = SharedMemory(shm_name)
+        slots = np.ndarray((_SLOTS, *shape), np.uint8, buffer=shm.buf)
+        _restore_frame(-2, slots[0])  # from step -2: no state follows on from it
+        results.put(("ready", k))
+        go.wait()
+        for index in steps:
+            slot = free.get()
+            ms, tracked = _restore_frame(index, slots[slot])
+            results.put((k, slot, ms, tracked))
+        del slots
+        shm.close()
+    except BaseException as exc:  # the parent reports it and stops the other workers
+        results.put(("failed", f"{type(exc).__name__}: {exc}"))
+
+
+_SLOTS = 3
+"""Restored frames a worker may hand over before the parent has taken the first."""
+
+
+def throughput(folder: Path, workers: int, n_frames: int, shape: tuple[int, ...],
+               track: bool = False) -> dict[str, Any]:
     """Frames per second over ``n_frames`` restorations spread over ``workers`` processes, each
-    a contiguous run of the played order."""
+    a contiguous run of the played order, the restored 8-bit frames ``shape`` (H, W, 3)
+    streamed to this process as they are done (through shared memory: a slot each, freed
+    once this process has copied the frame out, as a display would)."""
+    from multiprocessing.shared_memory import SharedMemory
+
+    run = -(-n_frames // workers)
+    runs = [list(range(k * run, min((k + 1) * run, n_frames))) for k in range(workers)]
+    nbytes = _SLOTS * int(np.prod(shape))
     # Spawned workers load OpenBLAS and numba's pool before any task: they must inherit one
     # thread each.
-    with scoped_environ({name: "1" for name in THREAD_VARIABLES}):
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, _init_worker, (str(folder), track)) as pool:
-            # Every worker is ready (a warm-up restoration each, from step -2: no worker's
-            # state follows on from it).
-            pool.map(_restore_frame, [-2] * workers, chunksize=1)
-            run = -(-n_frames // workers)
-            t0 = time.perf_counter()
-            done = list(pool.imap(_restore_frame, range(n_frames), chunksize=run))
-            wall = time.perf_counter() - t0
+    ctx = mp.get_context("spawn")
+    results, go = ctx.Queue(), ctx.Event()
+    free = [ctx.Queue() for _ in range(workers)]
+    shms = [SharedMemory(create=True, size=nbytes) for _ in range(workers)]
+    procs = []
+    try:
+        with scoped_environ({name: "1" for name in THREAD_VARIABLES}):
+            for k in range(workers):
+                for slot in range(_SLOTS):
+                    free[k].put(slot)
+                procs.append(ctx.Process(
+                    target=_stream, daemon=True,
+                    args=(k, str(folder), track, runs[k], shms[k].name, shape, free[k], results,
+                          go),
+                ))
+                procs[-1].start()
+        for _ in range(workers):  # every worker warmed up
+            _message(results, procs)
+        slots = [np.ndarray((_SLOTS, *shape), np.uint8, buffer=shm.buf) for shm in shms]
+        shown = np.empty(shape, np.uint8)
+        done = []
+        t0 = time.perf_counter()
+        go.set()
+        for _ in range(n_frames):
+            k, slot, ms, tracked = _message(results, procs)
+            np.copyto(shown, slots[k][slot])
+            free[k].put(slot)
+            done.append((ms, tracked))
+        wall = time.perf_counter() - t0
+        del slots
+    finally:
+        for proc in procs:
+            proc.join(timeout=30)
+            if proc.is_alive():
+                proc.terminate()
+        for shm in shms:
+            shm.close()
+            shm.unlink()
     return {
         "workers": workers,
         "frames": n_frames,
         "wall_s": wall,
         "fps": n_frames / wall,
-        "worker_ms_median": float(np.median([ms for _, ms, _ in done])),
-        "tracked": int(sum(t for _, _, t in done)),
+        "worker_ms_median": float(np.median([ms for ms, _ in done])),
+        "tracked": int(sum(t for _, t in done)),
     }
+
+
+def _message(results: Any, procs: list[Any]) -> tuple:
+    """The next message from the workers; RuntimeError when one failed or died."""
+    import queue
+
+    while True:
+        try:
+            msg = results.get(timeout=1.0)
+        except queue.Empty:
+            if any(p.exitcode not in (None, 0) for p in procs):
+                raise RuntimeError("a video worker process died") from None
+            continue
+        if msg[0] == "failed":
+            raise RuntimeError(f"a video worker failed: {msg[1]}")
+        return msg
 
 
 def accuracy(folder: Path, cal: Any, images: list[dict[str, Any]]) -> dict[str, Any]:
@@ -159,17 +243,21 @@ def _mean(values: list[float | None]) -> float | None:
     return float(np.mean(vals)) if vals else None
 
 
-def _stage_medians(results: list[Any]) -> dict[str, float]:
-    """Median ms of each stage over restorations: the frame's stages and, prefixed, the
-    features' and the view's own steps."""
+def _stage_times(res: Any) -> dict[str, float]:
+    """A restoration's stages (ms) and, prefixed, the features' and the view's own steps."""
+    parts = {**res.timings_ms}
+    if res.restored:
+        parts.update({f"features.{k}": v for k, v in res.features.timings_ms.items()})
+        parts.update({f"view.{k}": v for k, v in res.view.timings_ms.items()})
+    return {key: float(ms) for key, ms in parts.items()}
+
+
+def _stage_medians(timings: list[dict[str, float]]) -> dict[str, float]:
+    """Median ms of each stage over restorations (:func:`_stage_times` of each)."""
     table: dict[str, list[float]] = {}
-    for res in results:
-        parts = {**res.timings_ms}
-        if res.restored:
-            parts.update({f"features.{k}": v for k, v in res.features.timings_ms.items()})
-            parts.update({f"view.{k}": v for k, v in res.view.timings_ms.items()})
+    for parts in timings:
         for key, ms in parts.items():
-            table.setdefault(key, []).append(float(ms))
+            table.setdefault(key, []).append(ms)
     return {key: float(np.median(v)) for key, v in table.items()}
 
 
@@ -209,11 +297,14 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
     restore, state = StructuredLight(), SequenceState(track=track)
     restore(images[0], cal)  # prepares the reference and warms every code path
     reference = reference_workload()
-    samples, results = [], []
+    samples, timings = [], []
     for k in range(runs * max(2 * len(images) - 2, 1)):
         t0 = time.perf_counter()
-        results.append(restore(images[played(k, len(images))], cal, state))
+        res = restore(images[played(k, len(images))], cal, state)
         samples.append(time.perf_counter() - t0)
+        # Only the timings are kept: a video restorer shows each frame and lets it go (kept,
+        # every frame's new image would cost the next one fresh memory, ~6 us a page here).
+        timings.append(_stage_times(res))
     counts = sorted({1, workers})
     return {
         "machine": machine(),
@@ -225,8 +316,9 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
         "latency_tracked": state.tracked,
         "latency_fallbacks": state.fallbacks,
         "latency_skipped": state.skipped,
-        "stages_ms": _stage_medians(results),
-        "throughput": [throughput(folder, w, frames, track) for w in counts],
+        "stages_ms": _stage_medians(timings),
+        "throughput": [throughput(folder, w, frames, images[0]["view"].shape, track)
+                       for w in counts],
         "accuracy": accuracy(folder, cal, images),
     }
 
