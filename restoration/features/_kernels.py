@@ -468,6 +468,41 @@ def _kept(img, lab, spot_of, spot, col):  # pragma: no cover
     return img[col] if o < 0 or o == spot else 0.0
 
 
+@njit(inline="always", **_JIT)
+def _weigh_row(img, lab, spot_of, spot, col0, hx, out, j0, e0, right, left, decay,
+               fy):  # pragma: no cover
+    """One row of :func:`_weigh`: the raw pixels (of row ``img``, labels ``lab``) times the
+    window, walking out from column ``j0`` where the window is ``e0``; ``right`` and ``left``
+    are the ratios of the weights next to it to ``e0``, and each step further multiplies the
+    ratio by ``decay``. Writes the row into ``out`` and returns its ``sum``, ``sum fx`` and
+    ``sum fy``."""
+    tot, mx, my = 0.0, 0.0, 0.0
+    e = e0
+    for fx in range(j0, hx + 1):
+        v = e * _kept(img, lab, spot_of, spot, col0 + fx + hx)
+        out[fx + hx] = v
+        tot += v
+        mx += v * fx
+        my += v * fy
+        e *= right
+        right *= decay
+    e = e0 * left
+    for fx in range(j0 - 1, -hx - 1, -1):
+        v = e * _kept(img, lab, spot_of, spot, col0 + fx + hx)
+        out[fx + hx] = v
+        tot += v
+        mx += v * fx
+        my += v * fy
+        left *= decay
+        e *= left
+    return tot, mx, my
+
+
+# Largest |exponent| the row recurrences of _weigh start from: exp(-0.5 x 1200) is far inside
+# float64, so no row's first weight underflows and no ratio overflows.
+_MAX_EXPONENT = 1200.0
+
+
 @njit(**_JIT)
 def _weigh(padded, labels, spot_of, spot, row0, col0, box, hx, hy, a, b, c, sx, sy,
            decay):  # pragma: no cover
@@ -475,10 +510,41 @@ def _weigh(padded, labels, spot_of, spot, row0, col0, box, hx, hy, a, b, c, sx, 
     from ``col0`` of ``padded`` (pixels of the other kept segments blanked: see
     :func:`centroid_chunk`), times the window ``w = exp(-q / 2)``, ``q = (f - s)^T [[a, b],
     [b, c]] (f - s)`` of pixel offsets ``f = (fx, fy)`` from the box's centre, into ``box``,
-    and return its ``sum``, ``sum fx`` and ``sum fy``. Along each row the exponential comes
-    from a recurrence, walking out from the row's maximum (``decay = exp(-a)``): three
-    exponentials per row instead of one per pixel, to ~1e-14 relative."""
+    and return its ``sum``, ``sum fx`` and ``sum fy``.
+
+    No exponential per pixel (``decay = exp(-a)``): each row walks out from the window's
+    centre column, its weight there and the ratios to the next pixels passed from row to row
+    by constant factors (seven exponentials per box, to ~1e-14 relative). A window so
+    elongated that a row's start would leave float64's range walks each row out from its own
+    maximum instead, with three exponentials per row.
+    """
     tot, mx, my = 0.0, 0.0, 0.0
+    js = min(max(int(math.floor(sx + 0.5)), -hx), hx)
+    dx = js - sx
+    top, bottom = -hy - sy, hy - sy  # the first and last rows' offsets
+    # q at column js, and the exponents of the right and left ratios there, on the first and
+    # last rows (all linear or convex in the row: these bound every row's).
+    q_top = a * dx * dx + 2.0 * b * dx * top + c * top * top
+    q_bottom = a * dx * dx + 2.0 * b * dx * bottom + c * bottom * bottom
+    r_top, r_bottom = a * (2.0 * dx + 1.0) + 2.0 * b * top, a * (2.0 * dx + 1.0) + 2.0 * b * bottom
+    l_top, l_bottom = a * (1.0 - 2.0 * dx) - 2.0 * b * top, a * (1.0 - 2.0 * dx) - 2.0 * b * bottom
+    if max(q_top, q_bottom, abs(r_top), abs(r_bottom), abs(l_top), abs(l_bottom)) < _MAX_EXPONENT:
+        e0 = math.exp(-0.5 * q_top)
+        grow = math.exp(-0.5 * (2.0 * b * dx + c * (2.0 * top + 1.0)))  # e0's next-row factor
+        grow_step = math.exp(-c)
+        right, left = math.exp(-0.5 * r_top), math.exp(-0.5 * l_top)
+        right_step, left_step = math.exp(-b), math.exp(b)
+        for row in range(2 * hy + 1):
+            t, x, y = _weigh_row(padded[row0 + row], labels[row0 + row], spot_of, spot, col0,
+                                 hx, box[row], js, e0, right, left, decay, row - hy)
+            tot += t
+            mx += x
+            my += y
+            e0 *= grow
+            grow *= grow_step
+            right *= right_step
+            left *= left_step
+        return tot, mx, my
     for row in range(2 * hy + 1):
         fy = row - hy
         dy = fy - sy
@@ -486,28 +552,13 @@ def _weigh(padded, labels, spot_of, spot, row0, col0, box, hx, hy, a, b, c, sx, 
         j0 = min(max(int(math.floor(sx - b * dy / a + 0.5)), -hx), hx)
         dx = j0 - sx
         e0 = math.exp(-0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
-        # Ratios of neighbouring weights to the right and to the left of j0.
         right = math.exp(-0.5 * (a * (2.0 * dx + 1.0) + 2.0 * b * dy))
         left = math.exp(-0.5 * (a * (1.0 - 2.0 * dx) - 2.0 * b * dy))
-        img, lab = padded[row0 + row], labels[row0 + row]
-        e = e0
-        for fx in range(j0, hx + 1):
-            v = e * _kept(img, lab, spot_of, spot, col0 + fx + hx)
-            box[row, fx + hx] = v
-            tot += v
-            mx += v * fx
-            my += v * fy
-            e *= right
-            right *= decay
-        e = e0 * left
-        for fx in range(j0 - 1, -hx - 1, -1):
-            v = e * _kept(img, lab, spot_of, spot, col0 + fx + hx)
-            box[row, fx + hx] = v
-            tot += v
-            mx += v * fx
-            my += v * fy
-            left *= decay
-            e *= left
+        t, x, y = _weigh_row(padded[row0 + row], labels[row0 + row], spot_of, spot, col0, hx,
+                             box[row], j0, e0, right, left, decay, fy)
+        tot += t
+        mx += x
+        my += y
     return tot, mx, my
 
 
@@ -516,10 +567,16 @@ def _shifted_sums(box, hx, hy, ux, uy, ex):  # pragma: no cover
     """``sum``, ``sum fx`` and ``sum fy`` of ``box`` (2 hy + 1, 2 hx + 1) times ``exp(ux fx +
     uy fy)``: a window written by :func:`_weigh` moved by ``d``, with ``u = A d``, up to a
     constant factor (``q(f - s - d) = q(f - s) - 2 (f - s)^T A d + q(d)``). The factor is
-    separable, so a pixel costs two multiply-adds and a row one exponential; ``ex`` (2 hx + 1)
-    is scratch space."""
-    for j in range(2 * hx + 1):
-        ex[j] = math.exp(ux * (j - hx))
+    separable, so a pixel costs two multiply-adds; its values come by products from the
+    centre column out and from row to row (``|ux| hx`` and ``|uy| hy`` stay under 600: see
+    :func:`centroid_chunk`). ``ex`` (2 hx + 1) is scratch space."""
+    step = math.exp(ux)
+    back = 1.0 / step
+    ex[hx] = 1.0
+    for k in range(1, hx + 1):
+        ex[hx + k] = ex[hx + k - 1] * step
+        ex[hx - k] = ex[hx - k + 1] * back
+    g, g_step = math.exp(-uy * hy), math.exp(uy)  # exp(uy fy), from fy = -hy
     tot, mx, my = 0.0, 0.0, 0.0
     for row in range(2 * hy + 1):
         s0, s1 = 0.0, 0.0
@@ -528,10 +585,10 @@ def _shifted_sums(box, hx, hy, ux, uy, ex):  # pragma: no cover
             s0 += v
             s1 += v * (j - hx)
         fy = row - hy
-        g = math.exp(uy * fy)
         tot += g * s0
         mx += g * s1
         my += g * fy * s0
+        g *= g_step
     return tot, mx, my
 
 

@@ -118,14 +118,18 @@ def test_segment_moments_are_bincounts():
 
 
 @pytest.mark.parametrize("n_iter", [2, 4])
-def test_windowed_centroid_matches_a_direct_evaluation(n_iter):
-    """One elongated spot, away from others, from a start 2 px off (so the window moves by a
-    whole pixel, past what a moved window may reuse): the compiled window (exponentials by
+@pytest.mark.parametrize("cov", [[[4.0, 1.5], [1.5, 2.0]], [[30.0, 29.95], [29.95, 30.0]]],
+                         ids=["elongated", "thin-streak"])
+def test_windowed_centroid_matches_a_direct_evaluation(n_iter, cov):
+    """One spot, away from others, from a start 2 px off (so the window moves by a whole
+    pixel, past what a moved window may reuse): the compiled window (exponentials by
     recurrence, later steps by a separable factor) against the window evaluated pixel by
-    pixel at every step."""
+    pixel at every step. The thin diagonal streak's window is so narrow across its rows that
+    a recurrence down the box's centre column would leave float64's range: the kernel then
+    starts each row at its own maximum."""
     pad, h, w = 48, 64, 64
     yy, xx = np.mgrid[0:h, 0:w].astype(float)
-    cov = np.array([[4.0, 1.5], [1.5, 2.0]])
+    cov = np.array(cov)
     centre = np.array([30.3, 31.6])
     d = np.stack([xx - centre[0], yy - centre[1]], axis=-1)
     spot = np.exp(-0.5 * np.einsum("...i,ij,...j", d, np.linalg.inv(cov), d))
@@ -141,6 +145,8 @@ def test_windowed_centroid_matches_a_direct_evaluation(n_iter):
     box = spot[base[1] - half[1] : base[1] + half[1] + 1, base[0] - half[0] : base[0] + half[0] + 1]
     fy, fx = np.mgrid[-half[1] : half[1] + 1, -half[0] : half[0] + 1]
     inv = np.linalg.inv(_WINDOW_VAR * cov)
+    if cov[0, 1] > 20:  # the streak: the window's exponent down the centre column passes 1200
+        assert inv[1, 1] * half[1] ** 2 > 1200
     s = start[0] - base
     for _ in range(n_iter):
         r = np.stack([fx - s[0], fy - s[1]], axis=-1)
@@ -148,7 +154,8 @@ def test_windowed_centroid_matches_a_direct_evaluation(n_iter):
         m = np.array([np.sum(wgt * fx), np.sum(wgt * fy)]) / wgt.sum()
         s = s + np.clip(_WINDOW_GAIN * (m - s), -1.0, 1.0)
     np.testing.assert_allclose(got[0], s + base, atol=1e-10)
-    assert np.abs(got[0] - centre).max() < (0.01 if n_iter > 2 else 0.5)
+    if cov[0, 1] < 20:
+        assert np.abs(got[0] - centre).max() < (0.01 if n_iter > 2 else 0.5)
 
 
 def _numpy_cell_polynomials(grid, knots):
