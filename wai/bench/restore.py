@@ -230,7 +230,8 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
     dict
         ``end_to_end_ms`` and ``stages_ms``: medians, ms, as printed before (``stages_ms`` keeps
         the pipeline's own keys, so there ``reverse_trace`` is the whole view stage);
-        ``stages``: summaries under the report's stage names (see :func:`stage_times`),
+        ``stages``: summaries under the report's stage names (see :func:`stage_times`), each
+        with its ``share`` of the end-to-end median,
         ``derived`` and ``notes`` on them; ``warmup_ms``, ``peak_rss_mib`` and
         ``tracemalloc_peak_mib``; ``reference``: the reference workload timed in the same run
         and ``end_to_end_per_reference``, the end-to-end median in units of it.
@@ -263,6 +264,8 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
     stages["end_to_end"] = [s * 1e3 for s in samples]
     summaries = {n: summarize([ms / 1e3 for ms in stages[n]]) for n in ordered(list(stages))}
     e2e = summaries["end_to_end"]
+    for summary in summaries.values():  # the stage's budget: its share of the frame
+        summary["share"] = summary["median_ms"] / e2e["median_ms"]
     return {
         "render_dir": str(render_dir),
         "machine": machine(),

@@ -156,14 +156,20 @@ def reference_workload(runs: int = 5) -> dict[str, Any]:
 def print_stage_table(
     stages: dict[str, dict[str, Any]], derived: list[str], notes: dict[str, str], runs: int
 ) -> None:
-    """One line per stage: median, min, max and IQR in ms; derived stages marked and explained."""
-    print(f"{'stage':28s} {'median':>9s} {'min':>9s} {'max':>9s} {'IQR':>8s}  (ms, {runs} runs)")
+    """One line per stage: median, min, max and IQR in ms, and the median's share of the
+    end-to-end median (when there is one); derived stages marked and explained. Parts (dotted
+    names) and derived stages overlap the stages they belong to, so the shares do not add
+    up to 100 %."""
+    total = stages.get("end_to_end", {}).get("median_ms")
+    print(f"{'stage':28s} {'median':>9s} {'min':>9s} {'max':>9s} {'IQR':>8s} {'share':>6s}"
+          f"  (ms, {runs} runs)")
     for name, s in stages.items():
         mark = " *" if name in derived else ""
         label = f"  {name}" if "." in name else name  # parts under their stage
+        share = f"{100.0 * s['median_ms'] / total:5.0f}%" if total else ""
         print(
             f"{label:28s} {s['median_ms']:9.2f} {s['min_ms']:9.2f} {s['max_ms']:9.2f} "
-            f"{s['iqr_ms']:8.2f}{mark}"
+            f"{s['iqr_ms']:8.2f} {share:>6s}{mark}"
         )
     for name in derived:
         print(f"  * {name} = {notes.get(name, '')}")
