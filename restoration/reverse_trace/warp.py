@@ -486,8 +486,8 @@ def _pixel_warp(
 
     A pixel is valid when the four nodes of its cell were solved and its sampling position
     lies inside the distorted image. The rows are done in two bands, one on each of the
-    restoration's threads when it has two (a band's work, a few ms, outweighs the hand-off
-    to the other thread; finer chunks did not). In each band a compiled pass upsamples the
+    restoration's threads when it has two (one hand-off for a band's few milliseconds of
+    work: warp, remap and finish together). In each band a compiled pass upsamples the
     warp into the plan's scratch maps and tests it
     (:func:`~restoration.reverse_trace._kernels.warp_rows`); ``cv2.remap`` samples the image
     in the band's valid pixels' bounding box (exact bilinear weights on float maps since

@@ -61,6 +61,10 @@ def test_a_new_seed_reuses_the_compiled_kernel(view_scene):
 def test_direct_trace_is_the_general_one(view_scene, monkeypatch):
     # The two-shape scene's direct trace (water BSDF called directly, the object plane's own
     # intersection) follows the same samples as the general one: equal to float rounding.
+    # The object plane is hit two ways (its own plane, Mitsuba's intersection), whose float32
+    # hit points differ by rounding; the board's texture turns that into up to ~3e-4 of the
+    # largest value on a few pixels on some processors (AVX-512 code), ~1e-6 on the mean.
+    # Other samples would differ by the noise: up to ~0.6 of it, ~1e-2 on the mean.
     from mitsuba_wai import view_tracer
 
     assert view_tracer._direct_parts(view_scene) is not None
@@ -68,4 +72,6 @@ def test_direct_trace_is_the_general_one(view_scene, monkeypatch):
     monkeypatch.setattr(view_tracer, "_direct_parts", lambda scene: None)
     general, _ = render_view(view_scene, 4, 7)
     assert direct.mean() > 0
-    assert np.abs(direct - general).max() < 1e-4 * general.max()
+    diff = np.abs(direct - general)
+    assert diff.max() < 1e-3 * general.max()
+    assert diff.mean() < 1e-5 * general.max()
