@@ -354,36 +354,6 @@ def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal
 
 
 @njit(**_JIT)
-def count_rows(chunk, n_chunks, labels, count):  # pragma: no cover
-    """Labelled pixels (label > 0) of rows ``chunk, chunk + n_chunks, ...`` of ``labels``:
-    row ``r``'s into ``count[r + 1]``."""
-    h, w = labels.shape
-    for r in range(chunk, h, n_chunks):
-        n = 0
-        for c in range(w):
-            if labels[r, c] > 0:
-                n += 1
-        count[r + 1] = n
-
-
-@njit(**_JIT)
-def fill_rows(chunk, n_chunks, labels, smooth, padded, pad, start, rows, cols, lab, val,
-              raw):  # pragma: no cover
-    """The labelled pixels of rows ``chunk, chunk + n_chunks, ...``, row ``r``'s from
-    ``start[r]`` on, in raster order: row, column and label (int32), smoothed value (float64)
-    and raw value (float32, from ``padded``, the image inside a frame of ``pad`` pixels)."""
-    h, w = labels.shape
-    for r in range(chunk, h, n_chunks):
-        k = start[r]
-        for c in range(w):
-            if labels[r, c] > 0:
-                rows[k], cols[k], lab[k] = r, c, labels[r, c]
-                val[k] = smooth[r, c]
-                raw[k] = padded[r + pad, c + pad]
-                k += 1
-
-
-@njit(**_JIT)
 def _accumulate(first, second, i, wk, xk, yk):  # pragma: no cover
     """Add pixel weight ``wk`` at offsets ``(xk, yk)`` to label ``i``'s sums of ``w``, ``w x``,
     ``w y`` (``first``) and ``w x^2``, ``w x y``, ``w y^2`` (``second``)."""
@@ -396,28 +366,37 @@ def _accumulate(first, second, i, wk, xk, yk):  # pragma: no cover
 
 
 @njit(**_JIT)
-def segment_moments(lab, smooth, raw, cols, rows, cx, cy, n):  # pragma: no cover
-    """Per label (n,), over the pixels (N,) in pixel order, with weights ``w = max(smooth,
-    0)`` at offsets ``(x, y) = (cols - cx, rows - cy)``: sums of ``w``, ``w x``, ``w y``
-    (``first`` (n, 3)) and of ``w x^2``, ``w x y``, ``w y^2`` (``second`` (n, 3)), the peak of
-    ``smooth`` (-inf without pixels), the sum of ``raw`` (float64) and the pixel count. One
-    pass that makes the weights and offsets as it goes (no pixel-sized temporaries). Returns
-    ``first, second, peak, flux, area``."""
-    first = np.zeros((n, 3))
-    second = np.zeros((n, 3))
-    peak = np.full(n, -np.inf)
-    flux = np.zeros(n)
-    area = np.zeros(n, np.int64)
-    for k in range(lab.size):
-        i, sk = lab[k], smooth[k]
-        wk = max(sk, 0.0)
-        xk = np.float64(cols[k]) - cx
-        yk = np.float64(rows[k]) - cy
-        _accumulate(first, second, i, wk, xk, yk)
-        peak[i] = max(peak[i], sk)
-        flux[i] += np.float64(raw[k])
-        area[i] += 1
-    return first, second, peak, flux, area
+def segmented_pixels(labels, smooth, padded, pad, n, count, cx, cy):  # pragma: no cover
+    """The labelled pixels (label > 0) of ``labels`` (h, w), ``count`` of them, and the sums
+    of every label (n,) over them, in one pass in raster order.
+
+    Returns the pixels' rows, columns and labels (int32), smoothed values (float64, from
+    ``smooth``) and raw values (float32, from ``padded``, the image inside a frame of ``pad``
+    pixels); then per label, with weights ``w = max(smooth, 0)`` at offsets ``(x, y) =
+    (col - cx, row - cy)``: the sums of ``w``, ``w x``, ``w y`` (``first`` (n, 3)) and of ``w
+    x^2``, ``w x y``, ``w y^2`` (``second`` (n, 3)), the peak of ``smooth`` (-inf without
+    pixels), the sum of the raw values (float64) and the pixel count.
+    """
+    h, w = labels.shape
+    rows, cols = np.empty(count, np.int32), np.empty(count, np.int32)
+    lab, val, raw = np.empty(count, np.int32), np.empty(count), np.empty(count, np.float32)
+    first, second = np.zeros((n, 3)), np.zeros((n, 3))
+    peak, flux, area = np.full(n, -np.inf), np.zeros(n), np.zeros(n, np.int64)
+    k = 0
+    for r in range(h):
+        label_row, smooth_row, raw_row = labels[r], smooth[r], padded[r + pad]
+        for c in range(w):
+            i = label_row[c]
+            if i > 0 and k < count:  # count: the caller's, never written past
+                sk, rk = np.float64(smooth_row[c]), raw_row[c + pad]
+                rows[k], cols[k], lab[k], val[k], raw[k] = r, c, i, sk, rk
+                _accumulate(first, second, i, max(sk, 0.0), np.float64(c) - cx,
+                            np.float64(r) - cy)
+                peak[i] = max(peak[i], sk)
+                flux[i] += np.float64(rk)
+                area[i] += 1
+                k += 1
+    return rows, cols, lab, val, raw, first, second, peak, flux, area
 
 
 @njit(**_JIT)
@@ -430,7 +409,7 @@ def _above_peak(k, i, lab, smooth, cols, rows, peak, origin):  # pragma: no cove
 
 @njit(**_JIT)
 def peak_moments(lab, smooth, cols, rows, peak, origin, n):  # pragma: no cover
-    """``first`` and ``second`` as :func:`segment_moments` gives them, of the part of each
+    """``first`` and ``second`` as :func:`segmented_pixels` gives them, of the part of each
     segment above 0.2 x its peak, offsets from ``origin`` (:func:`_above_peak`), made pixel by
     pixel (no pixel-sized temporaries)."""
     first = np.zeros((n, 3))

@@ -20,11 +20,9 @@ from numpy.typing import NDArray
 from restoration._threads import restore_threads, run_beside, run_chunks
 from restoration.features._kernels import (
     centroid_chunk,
-    count_rows,
-    fill_rows,
     peak_axis_moments,
     peak_moments,
-    segment_moments,
+    segmented_pixels,
 )
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from wai_core.errors import WaiInputError
@@ -347,23 +345,6 @@ class _Pixels:
     smooth: FloatArray
     raw: NDArray[np.float32]
 
-    @classmethod
-    def of(
-        cls, labels: NDArray[np.int32], smooth: NDArray, padded: NDArray, pad: int
-    ) -> _Pixels:
-        """Pixels of ``labels`` > 0; raw values from ``padded``, the image in a frame of
-        ``pad`` pixels. Rows are counted, then copied, in chunks shared by the restoration's
-        threads."""
-        h = labels.shape[0]
-        start = np.zeros(h + 1, np.int64)
-        run_chunks(count_rows, _chunks(h), labels, start)
-        start = np.cumsum(start)  # row r's pixels from start[r]
-        n = int(start[-1])
-        out = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n, np.int32),
-               np.empty(n), np.empty(n, np.float32))
-        run_chunks(fill_rows, _chunks(h), labels, smooth, padded, pad, start, *out)
-        return cls(*out)
-
 
 @dataclass(frozen=True)
 class _Segments:
@@ -377,17 +358,21 @@ class _Segments:
     area: IntArray  # pixels in the segment
 
 
-def _segment_stats(px: _Pixels, n: int, shape: tuple[int, ...]) -> _Segments:
-    """Moments of every segment at once, from the list of segmented pixels (no segment loop)."""
-    h, w = shape
+def _segmented(
+    labels: NDArray[np.int32], n: int, count: int, smooth: NDArray, padded: NDArray, pad: int
+) -> tuple[_Pixels, _Segments]:
+    """The ``count`` pixels of ``labels`` (h, w) > 0 (of ``n`` labels) with their smoothed and
+    raw values (``padded``: the image in a frame of ``pad`` pixels), and every segment's
+    moments, in one compiled pass (no segment loop)."""
+    h, w = labels.shape
     # Coordinates from the image centre: the raw second moments lose < 1e-10 px^2 that way.
     # Weights max(smooth, 0); peak, flux and area in the same pass.
-    first, second, peak, flux, area = segment_moments(
-        px.lab, px.smooth, px.raw, px.cols, px.rows, 0.5 * (w - 1), 0.5 * (h - 1), n
+    *pixels, first, second, peak, flux, area = segmented_pixels(
+        labels, smooth, padded, pad, n, count, 0.5 * (w - 1), 0.5 * (h - 1)
     )
     tot, mean, cov = _moments(first, second)
     mean += [0.5 * (w - 1), 0.5 * (h - 1)]
-    return _Segments(tot, mean, cov, peak, flux, area)
+    return _Pixels(*pixels), _Segments(tot, mean, cov, peak, flux, area)
 
 
 def _spot_covariance(cov_seg: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -683,13 +668,12 @@ def detect_spots(
             smooth, local_radius_px, rel_level, max(2.0 * noise, tiny), bg, sc.wide_px,
             wide_blur_px=sc.wide_blur_px, store=store, labels_out=framed[pad:-pad, pad:-pad],
         )
-        px = _Pixels.of(labels, smooth, padded, pad)
+        px, seg = _segmented(labels, n, int(np.count_nonzero(mask)), smooth, padded, pad)
         edge = np.zeros(n, bool)  # the segment has a pixel in the image's outer rows or columns
         edge[np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])] = True
         n_saturated = (
             None if saturated_px is None else np.bincount(labels[saturated_px], minlength=n)
         )
-        seg = _segment_stats(px, n, (h, w))
         good = (seg.peak > max(snr_min * noise, tiny)) & (seg.area >= min_area_px) & (seg.tot > 0)
         good[0] = False  # label 0 is the background
         good &= seg.flux > rel_flux * _typical_flux(seg.flux[good])

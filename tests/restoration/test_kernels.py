@@ -11,7 +11,7 @@ import pytest
 from scipy.interpolate import BSpline
 from scipy.spatial import cKDTree
 
-from restoration.features._kernels import nearest_two, segment_moments, spot_cells
+from restoration.features._kernels import nearest_two, segmented_pixels, spot_cells
 from restoration.features.detect import (
     _WINDOW_GAIN,
     _WINDOW_VAR,
@@ -99,22 +99,35 @@ def test_nearest_two_is_the_kd_tree_answer():
         assert best == (iq[0] if np.isfinite(dq[0]) else len(pts) - 1)
 
 
-def test_segment_moments_are_bincounts():
+def test_segmented_pixels_are_the_labelled_pixels_and_their_bincounts():
     rng = np.random.default_rng(6)
-    lab = rng.integers(0, 7, 1000).astype(np.int32)
-    smooth, raw = rng.normal(size=1000), rng.random(1000).astype(np.float32)
-    cols, rows = rng.integers(0, 50, 1000).astype(np.int32), rng.integers(0, 40, 1000)
-    first, second, peak, flux, area = segment_moments(
-        lab, smooth, raw, cols, rows.astype(np.int32), 24.5, 19.5, 7
+    h, w, pad = 40, 50, 3
+    labels = rng.integers(0, 7, (h, w)).astype(np.int32)
+    smooth = rng.normal(size=(h, w)).astype(np.float32)
+    padded = np.zeros((h + 2 * pad, w + 2 * pad), np.float32)
+    padded[pad:-pad, pad:-pad] = rng.random((h, w))
+    count = int(np.count_nonzero(labels))
+    rows, cols, lab, val, raw, first, second, peak, flux, area = segmented_pixels(
+        labels, smooth, padded, pad, 7, count, 24.5, 19.5
     )
-    w, x, y = np.clip(smooth, 0.0, None), cols - 24.5, rows - 19.5
-    for col, v in enumerate((np.ones(1000), x, y)):
-        np.testing.assert_allclose(first[:, col], np.bincount(lab, w * v, 7), rtol=1e-12)
+    want_rows, want_cols = np.nonzero(labels)  # raster order
+    np.testing.assert_array_equal(rows, want_rows)
+    np.testing.assert_array_equal(cols, want_cols)
+    np.testing.assert_array_equal(lab, labels[want_rows, want_cols])
+    np.testing.assert_array_equal(val, smooth[want_rows, want_cols].astype(float))
+    np.testing.assert_array_equal(raw, padded[pad:-pad, pad:-pad][want_rows, want_cols])
+    w_, x, y = np.clip(val, 0.0, None), cols - 24.5, rows - 19.5
+    for col, v in enumerate((np.ones(count), x, y)):
+        np.testing.assert_allclose(first[:, col], np.bincount(lab, w_ * v, 7), rtol=1e-12)
     for col, v in enumerate((x * x, x * y, y * y)):
-        np.testing.assert_allclose(second[:, col], np.bincount(lab, w * v, 7), rtol=1e-12)
+        np.testing.assert_allclose(second[:, col], np.bincount(lab, w_ * v, 7), rtol=1e-12)
     np.testing.assert_allclose(flux, np.bincount(lab, raw.astype(float), 7), rtol=1e-12)
     np.testing.assert_array_equal(area, np.bincount(lab, minlength=7))
-    np.testing.assert_array_equal(peak, [smooth[lab == i].max() for i in range(7)])
+    np.testing.assert_array_equal(peak[1:], [val[lab == i].max() for i in range(1, 7)])
+    assert peak[0] == -np.inf  # no pixel of the background is listed
+    # A count short of the labelled pixels is never written past.
+    short = segmented_pixels(labels, smooth, padded, pad, 7, count - 5, 24.5, 19.5)
+    np.testing.assert_array_equal(short[0], want_rows[: count - 5])
 
 
 @pytest.mark.parametrize("n_iter", [2, 4])
