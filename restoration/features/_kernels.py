@@ -219,7 +219,6 @@ def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal
     matched = np.zeros(n + 1, np.bool_)
     blocked = np.zeros(n + 1, np.bool_)
     blocked[n] = True
-    touch = np.zeros(n + 1, np.bool_)
     dirty = np.zeros(n + 1, np.bool_)
     disp = np.zeros((n + 1, 2))
     pos = base.copy()
@@ -234,6 +233,8 @@ def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal
     acc_spot = np.empty(n, np.int64)
     front = np.empty(n, np.int64)
     t = np.empty((8, 2))
+    in_front = np.zeros(n + 1, np.bool_)
+    n_front = 0
     acc[0], acc_spot[0], n_acc = seed_node, seed_spot, 1
     while True:
         for a in range(n_acc):
@@ -246,15 +247,27 @@ def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal
                 pos[node, d] = base[node, d] + moved
             matched[node] = True
             blocked[node] = True
-            for k in range(4):
-                touch[nbrs4[node, k]] = True
             for k in range(16):
                 dirty[fwd[node, k]] = True
-        n_front = 0
-        for node in range(n):
-            if touch[node] and not blocked[node]:
-                front[n_front] = node
-                n_front += 1
+        # The frontier (unblocked 4-neighbours of matched nodes), kept from wave to wave: its
+        # blocked nodes leave it, the accepted nodes' neighbours join it. No wave's outcome
+        # depends on the frontier's order.
+        kept = 0
+        for f in range(n_front):
+            node = front[f]
+            if blocked[node]:
+                in_front[node] = False
+            else:
+                front[kept] = node
+                kept += 1
+        n_front = kept
+        for a in range(n_acc):
+            for k in range(4):
+                nb = nbrs4[acc[a], k]
+                if not blocked[nb] and not in_front[nb]:
+                    in_front[nb] = True
+                    front[n_front] = nb
+                    n_front += 1
         if n_front == 0:
             break
         for f in range(n_front):
