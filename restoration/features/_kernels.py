@@ -522,8 +522,8 @@ def _weigh(padded, labels, spot_of, spot, row0, col0, box, hx, hy, a, b, c, sx, 
     l_top, l_bottom = a * (1.0 - 2.0 * dx) - 2.0 * b * top, a * (1.0 - 2.0 * dx) - 2.0 * b * bottom
     if max(q_top, q_bottom, abs(r_top), abs(r_bottom), abs(l_top), abs(l_bottom)) < _MAX_EXPONENT:
         e0 = math.exp(-0.5 * q_top)
-        grow = math.exp(-0.5 * (2.0 * b * dx + c * (2.0 * top + 1.0)))  # e0's next-row factor
-        grow_step = math.exp(-c)
+        down = math.exp(-0.5 * (2.0 * b * dx + c * (2.0 * top + 1.0)))  # e0's next-row factor
+        down_step = math.exp(-c)
         right, left = math.exp(-0.5 * r_top), math.exp(-0.5 * l_top)
         right_step, left_step = math.exp(-b), math.exp(b)
         for row in range(2 * hy + 1):
@@ -532,8 +532,8 @@ def _weigh(padded, labels, spot_of, spot, row0, col0, box, hx, hy, a, b, c, sx, 
             tot += t
             mx += x
             my += y
-            e0 *= grow
-            grow *= grow_step
+            e0 *= down
+            down *= down_step
             right *= right_step
             left *= left_step
         return tot, mx, my
