@@ -234,11 +234,16 @@ def view_has_signal(view: NDArray, gain: float = 1.0) -> bool:
 def spots_of(obs: Observations, ij: NDArray) -> NDArray:
     """The detected spots (K, 2) px of the samples with grid indices ``ij`` (K, 2), which are
     a subset of the observations' (the integrator may drop some)."""
+    return obs.spot_px[_rows_of(obs, ij)]
+
+
+def _rows_of(obs: Observations, ij: NDArray) -> NDArray[np.intp]:
+    """The observations' rows (K,) of the samples with grid indices ``ij`` (K, 2)."""
     base = int(np.abs(obs.ij).max()) + 1 if len(obs) else 1
     keys = (obs.ij[:, 0] + base) * (2 * base + 1) + obs.ij[:, 1] + base
     order = np.argsort(keys)
     want = (ij[:, 0] + base) * (2 * base + 1) + ij[:, 1] + base
-    return obs.spot_px[order[np.searchsorted(keys, want, sorter=order)]]
+    return order[np.searchsorted(keys, want, sorter=order)]
 
 
 def fit_to_spots(
@@ -266,14 +271,17 @@ def fit_to_spots(
 
 def consistency_of(
     surface: SurfaceEstimate, spots_px: NDArray, cal: Calibration, reference: ReferenceGrid,
-    patches: SplinePatches | None = None,
+    patches: SplinePatches | None = None, rays: tuple[NDArray, NDArray] | None = None,
 ) -> Consistency:
     """The forward check of ``surface`` against its samples' spots (restoration.consistency),
-    through the surface's spline table ``patches`` when it is built already."""
-    origin, dirs = projector_rays(cal.panel_px(surface.ij), cal.projector)
+    through the surface's spline table ``patches`` when it is built already, along its
+    samples' projector ``rays`` (origin (3,) mm, directions (K, 3)) when they are known
+    (else from ``cal``)."""
+    origin, dirs = projector_rays(cal.panel_px(surface.ij), cal.projector) if rays is None \
+        else rays
     return spot_consistency(
         surface.heightfield, surface.points_mm, origin, dirs, spots_px, cal.camera_s,
-        cal.diffuser_z_mm, float(np.nanmedian(reference.spacing_px)), patches=patches,
+        cal.diffuser_z_mm, reference.median_spacing_px, patches=patches,
     )
 
 
@@ -284,7 +292,7 @@ def frame_status(
     """The truth-free verdict on a restored frame (see :mod:`restoration.result`)."""
     in_view = max(int(reference.counts.get("predicted_in_view", 0)), 1)
     seen = int(reference.counts.get("observed", 0))
-    spacing = float(np.nanmedian(reference.spacing_px))
+    spacing = reference.median_spacing_px
     if reference.rms_px > REFERENCE_RMS_FRACTION * spacing:
         return Status.BAD_REFERENCE, (
             f"pattern_flat is not flat water for this rig: its {seen} spots lie "
@@ -422,7 +430,8 @@ class StructuredLight:
             return RestoreResult(self.name, Status.FAILED, str(exc))
         if track is not None:
             track.update(surface.anchor)
-        spots = spots_of(obs, surface.ij)
+        rows = _rows_of(obs, surface.ij)
+        spots = obs.spot_px[rows]
         with timings("surface"):
             if options.fit_spots:
                 surface = fit_to_spots(surface, spots, cal)
@@ -431,8 +440,9 @@ class StructuredLight:
             # The check and the view evaluate one spline table of the surface; the check runs
             # beside the view (it reads neither the view nor its results).
             patches = SplinePatches(heightfield)
+            rays = (obs.origin_mm, obs.dirs[rows])
             checked = run_beside(
-                lambda: _timed_check(surface, spots, cal, reference, patches)
+                lambda: _timed_check(surface, spots, cal, reference, patches, rays)
             )
             view = cal.restore_view(images["view"], heightfield, options.warp_step_px,
                                     gain=cal.view_gain, patches=patches,
@@ -450,7 +460,7 @@ class StructuredLight:
         return RestoreResult(
             self.name, status, message, features, surface, view, timings.to_dict(),
             features.counts, check, reference_rms_px=float(reference.rms_px),
-            reference_spacing_px=float(np.nanmedian(reference.spacing_px)),
+            reference_spacing_px=reference.median_spacing_px,
         )
 
 
@@ -470,10 +480,10 @@ def match_features(
 
 def _timed_check(
     surface: SurfaceEstimate, spots_px: NDArray, cal: Calibration, reference: ReferenceGrid,
-    patches: SplinePatches,
+    patches: SplinePatches, rays: tuple[NDArray, NDArray],
 ) -> tuple[Consistency, float]:
     """:func:`consistency_of` and its wall time, ms (it runs on another thread)."""
     timings = Timings()
     with timings("check"):
-        check = consistency_of(surface, spots_px, cal, reference, patches)
+        check = consistency_of(surface, spots_px, cal, reference, patches, rays)
     return check, timings.ms["check"]

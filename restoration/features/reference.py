@@ -88,6 +88,9 @@ class ReferenceGrid:
         Each node's flat-water spot less its calibrated prediction, pixels (read-only;
         :func:`flat_shifts`): what refers a frame's spots to the flat reference
         (:meth:`flat_shift_at`). None when the grid was built without a configuration.
+    median_spacing_px : float
+        The median of the finite ``spacing_px``, pixels (NaN when none is): the spacing a
+        frame's checks and statuses are scaled by.
     """
 
     ij: IntArray
@@ -106,11 +109,15 @@ class ReferenceGrid:
     spot_scales: SpotScales = field(init=False, repr=False, compare=False)
     pred_px: FloatArray | None = field(default=None, repr=False, compare=False)
     shift_px: FloatArray | None = field(default=None, repr=False, compare=False)
+    median_spacing_px: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # Neighbour tables for the per-frame matching: they depend on the lattice only.
         object.__setattr__(self, "tables", _LatticeTables.of(self.ij, self.lit))
         object.__setattr__(self, "spot_scales", _scales_for(self.detect_sigma_px))
+        finite = self.spacing_px[np.isfinite(self.spacing_px)]
+        object.__setattr__(self, "median_spacing_px",
+                           float(np.median(finite)) if finite.size else float("nan"))
 
     def lit_at(self, ij: NDArray) -> BoolArray:
         """Whether each lattice index ``ij`` (K, 2) is a lit dot of this lattice."""
