@@ -38,7 +38,7 @@ class _Features(SimpleNamespace):
 def _status(n_matched, ambiguous, observed=1000, in_view=1000, median_px=0.2, rms_px=0.3):
     features = _Features(n=n_matched, counts={"labels_ambiguous": int(ambiguous)})
     reference = SimpleNamespace(counts={"predicted_in_view": in_view, "observed": observed},
-                                rms_px=rms_px, spacing_px=np.full(in_view, 13.0))
+                                rms_px=rms_px, median_spacing_px=13.0)
     surface = SimpleNamespace(anchor=Anchor("integrability"))
     check = SimpleNamespace(consistent=median_px <= 1.0, median_px=median_px, threshold_px=1.0)
     return frame_status(features, reference, surface, check, True, StructuredLightOptions())
