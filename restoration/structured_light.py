@@ -277,8 +277,9 @@ def consistency_of(
     through the surface's spline table ``patches`` when it is built already, along its
     samples' projector ``rays`` (origin (3,) mm, directions (K, 3)) when they are known
     (else from ``cal``)."""
-    origin, dirs = projector_rays(cal.panel_px(surface.ij), cal.projector) if rays is None \
-        else rays
+    if rays is None:
+        rays = projector_rays(cal.panel_px(surface.ij), cal.projector)
+    origin, dirs = rays
     return spot_consistency(
         surface.heightfield, surface.points_mm, origin, dirs, spots_px, cal.camera_s,
         cal.diffuser_z_mm, reference.median_spacing_px, patches=patches,

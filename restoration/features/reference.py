@@ -89,8 +89,8 @@ class ReferenceGrid:
         :func:`flat_shifts`): what refers a frame's spots to the flat reference
         (:meth:`flat_shift_at`). None when the grid was built without a configuration.
     median_spacing_px : float
-        The median of the finite ``spacing_px``, pixels (NaN when none is): the spacing a
-        frame's checks and statuses are scaled by.
+        The median of ``spacing_px`` where it is not NaN, pixels (NaN when it is all NaN):
+        the spacing a frame's checks and statuses are scaled by.
     """
 
     ij: IntArray
@@ -115,9 +115,9 @@ class ReferenceGrid:
         # Neighbour tables for the per-frame matching: they depend on the lattice only.
         object.__setattr__(self, "tables", _LatticeTables.of(self.ij, self.lit))
         object.__setattr__(self, "spot_scales", _scales_for(self.detect_sigma_px))
-        finite = self.spacing_px[np.isfinite(self.spacing_px)]
+        known = self.spacing_px[~np.isnan(self.spacing_px)]  # np.nanmedian, without its warning
         object.__setattr__(self, "median_spacing_px",
-                           float(np.median(finite)) if finite.size else float("nan"))
+                           float(np.median(known)) if known.size else float("nan"))
 
     def lit_at(self, ij: NDArray) -> BoolArray:
         """Whether each lattice index ``ij`` (K, 2) is a lit dot of this lattice."""
