@@ -418,7 +418,6 @@ def node_warp(truth_status, node_index, node_px, px, status, disp_x, disp_y,
             disp_y[i] = np.float32(px[k, 1] - node_px[k, 1])
 
 
-
 @njit(**_JIT)
 def warp_node_rows(disp_x, disp_y, cell_ok, col_i, col_t):  # pragma: no cover
     """The coarse warp interpolated along x at every pixel column of each node row: the
