@@ -367,7 +367,7 @@ def _bench_video(args: argparse.Namespace) -> _BenchRun:
     from wai.bench.video import bench_video, print_video
 
     result = bench_video(args.config, args.out, args.runs, args.workers, args.frames,
-                         args.sequence, track=args.track)
+                         args.sequence, track=args.track, fps=args.fps)
     return result, print_video, []
 
 
@@ -413,6 +413,8 @@ def _video_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="worker processes (and 1)")
     p.add_argument("--frames", type=int, default=60, help="frames restored per count")
     p.add_argument("--sequence", type=int, default=6, help="distinct frames rendered")
+    p.add_argument("--fps", type=float, default=30.0,
+                   help="frame rate of the rendered sequence, frames/s (the camera's)")
     p.add_argument("--track", action="store_true",
                    help="labels tracked from the previous frames, the warp started at the "
                    "previous frame's (default: every frame restored on its own)")

@@ -13,6 +13,7 @@ from mitsuba_wai.render import render_folder
 from tests.conftest import PAPER_TOML
 from wai.bench.restore import stage_times
 from wai.cli import build_parser, main
+from wai_core.sequence import read_sequence
 
 STAGES = (
     "render_s",
@@ -104,7 +105,7 @@ DOCUMENTED = [
     "bench restore --runs 10 --json", "bench accuracy --seeds 10",
     "bench accuracy --seeds 10 --config coded.toml --out renders/bench_acc_coded",
     "bench accuracy --seeds 10 --camera 1280x960", "bench surfaces --phi 0.8", "bench inputs",
-    "bench video --workers 2 --frames 60",
+    "bench video --workers 2 --frames 60", "bench video --workers 2 --fps 120 --track",
 ]
 
 
@@ -183,6 +184,7 @@ def test_bench_video_reports_latency_and_throughput(quick_toml, tmp_path, capsys
     assert one["workers"] == 1 and one["frames"] == 3
     assert one["fps"] <= 1e3 / one["worker_ms_median"] * 1.05
     assert (tmp_path / "v" / "sequence" / "frame000" / "scene.json").is_file()
+    assert read_sequence(tmp_path / "v" / "sequence").fps == res["fps_rendered"] == 30.0
     assert main([*args[:-1]]) == 0  # a rerun renders nothing new and prints the report
     assert "throughput, 1 worker(s)" in capsys.readouterr().out
 
@@ -190,6 +192,13 @@ def test_bench_video_reports_latency_and_throughput(quick_toml, tmp_path, capsys
 def test_bench_video_rejects_zero_workers(tmp_path, capsys):
     assert main(["bench", "video", "--workers", "0", "--out", str(tmp_path)]) == 2
     assert "--workers" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("fps", ["0", "-30", "nan"])
+def test_bench_video_rejects_a_frame_rate_that_is_not_positive(fps, tmp_path, capsys):
+    assert main(["bench", "video", "--fps", fps, "--out", str(tmp_path / "v")]) == 2
+    assert "--fps" in capsys.readouterr().err
+    assert not (tmp_path / "v").exists()
 
 
 @pytest.mark.parametrize("camera", ["abc", "800x", "8x8"])

@@ -10,7 +10,9 @@ display or an encoder takes) as soon as it is done, through a slot of shared mem
 parent frees once it has copied the frame out.
 
 The sequence is rendered once into ``--out`` (default ``renders/bench_video``): consecutive
-frames 1/30 s apart, so the waves move as in a real recording. It is played forth and back
+frames 1/30 s apart by default (``--fps``: the camera's frame rate), so the waves move as in a
+real recording; where spots move a small part of a dot spacing between frames (~120 frames/s
+and faster on the paper's rig) tracking can label them. It is played forth and back
 (0, 1, .., n - 1, n - 2, .., 1, 0, 1, ..), so that every frame follows one of its neighbours in
 time, and each worker restores a contiguous run of that order with its own
 :class:`~restoration.tracking.SequenceState`: with tracking (``track=True``, ``--track``)
@@ -34,22 +36,25 @@ from wai.sweep import THREAD_VARIABLES, limit_native_threads, scoped_environ
 from wai_core.errors import WaiInputError
 
 FPS = 30.0
-"""Frame rate of the rendered sequence."""
+"""Frame rate of the rendered sequence by default, frames/s."""
 
 # Per worker process: the calibration and the frames' images, loaded by _init_worker.
 _STATE: dict[str, Any] = {}
 
 
-def sequence_folder(config: str, out: Path, n_frames: int) -> Path:
-    """The sequence of ``n_frames`` frames at :data:`FPS` in ``out/sequence``, rendered once
-    (by :func:`mitsuba_wai.sequence.render_sequence`, what ``wai render --frames`` runs)."""
+def sequence_folder(config: str, out: Path, n_frames: int, fps: float = FPS) -> Path:
+    """The sequence of ``n_frames`` frames at ``fps`` frames/s in ``out/sequence``, rendered
+    once (by :func:`mitsuba_wai.sequence.render_sequence`, what ``wai render --frames`` runs;
+    again when the frame count or rate differ)."""
     from mitsuba_wai.sequence import render_sequence
     from wai_core.sequence import is_sequence, read_sequence
     from wai_core.system import load_rig
 
     folder = out / "sequence"
-    if not (is_sequence(folder) and len(read_sequence(folder).frames) == n_frames):
-        render_sequence(load_rig(config), folder, n_frames, FPS, progress=False)
+    if not is_sequence(folder) or (
+        (len(read_sequence(folder).frames), read_sequence(folder).fps) != (n_frames, fps)
+    ):
+        render_sequence(load_rig(config), folder, n_frames, fps, progress=False)
     return folder
 
 
@@ -262,7 +267,8 @@ def _stage_medians(timings: list[dict[str, float]]) -> dict[str, float]:
 
 
 def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: int,
-                frames: int, sequence: int, *, track: bool = False) -> dict[str, Any]:
+                frames: int, sequence: int, *, track: bool = False,
+                fps: float = FPS) -> dict[str, Any]:
     """Latency (one process) and throughput for 1 .. ``workers`` worker processes, with
     tracking or without, and the accuracy both ways (:func:`accuracy`).
 
@@ -282,13 +288,17 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
         Distinct frames rendered.
     track : bool
         Each frame reuses the previous ones (:class:`~restoration.tracking.SequenceState`).
+    fps : float
+        Frame rate of the rendered sequence, frames/s (the camera's).
     """
     check_runs(runs)
+    if not (np.isfinite(fps) and fps > 0):
+        raise WaiInputError(f"--fps must be a positive frame rate, got {fps}")
     for name, value in (("workers", workers), ("frames", frames), ("sequence", sequence)):
         if value < 1:
             raise WaiInputError(f"--{name} must be at least 1, got {value}")
     out = Path(out or "renders/bench_video")
-    folder = sequence_folder(config, out, sequence)
+    folder = sequence_folder(config, out, sequence, fps)
     from restoration import StructuredLight
     from restoration.sequence import load_sequence
     from restoration.tracking import SequenceState
@@ -311,6 +321,7 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
         "reference": reference,
         "sequence": str(folder),
         "frames_in_sequence": len(images),
+        "fps_rendered": float(fps),
         "tracking": track,
         "latency": summarize(samples),
         "latency_tracked": state.tracked,
@@ -329,8 +340,8 @@ def print_video(res: dict[str, Any]) -> None:
     print(
         f"latency (one process): median {lat['median_ms']:.1f} ms "
         f"({1e3 / lat['median_ms']:.1f} frames/s), IQR {lat['iqr_ms']:.1f} ms, "
-        f"{lat['runs']} restorations of {res['frames_in_sequence']} frames, "
-        f"{res['machine']['cores']} cores"
+        f"{lat['runs']} restorations of {res['frames_in_sequence']} frames at "
+        f"{res['fps_rendered']:g} frames/s, {res['machine']['cores']} cores"
     )
     ref = res["reference"]
     print(
