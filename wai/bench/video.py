@@ -51,9 +51,8 @@ def sequence_folder(config: str, out: Path, n_frames: int, fps: float = FPS) -> 
     from wai_core.system import load_rig
 
     folder = out / "sequence"
-    if not is_sequence(folder) or (
-        (len(read_sequence(folder).frames), read_sequence(folder).fps) != (n_frames, fps)
-    ):
+    rec = read_sequence(folder) if is_sequence(folder) else None
+    if rec is None or (len(rec.frames), rec.fps) != (n_frames, fps):
         render_sequence(load_rig(config), folder, n_frames, fps, progress=False)
     return folder
 
