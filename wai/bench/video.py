@@ -104,6 +104,10 @@ def _restore_frame(index: int, out: np.ndarray) -> tuple[float, int]:
     return ms, int(res.restored and res.features.counts.get("tracked", 0))
 
 
+_SLOTS = 3
+"""Restored frames a worker may hand over before the parent has taken the first."""
+
+
 def _stream(k: int, folder: str, track: bool, steps: list[int], shm_name: str,
             shape: tuple[int, ...], free: Any, results: Any, go: Any) -> None:
     """Worker ``k``: restore ``steps`` in order, each into a free slot of its shared frames,
@@ -125,10 +129,6 @@ def _stream(k: int, folder: str, track: bool, steps: list[int], shm_name: str,
         shm.close()
     except BaseException as exc:  # the parent reports it and stops the other workers
         results.put(("failed", f"{type(exc).__name__}: {exc}"))
-
-
-_SLOTS = 3
-"""Restored frames a worker may hand over before the parent has taken the first."""
 
 
 def throughput(folder: Path, workers: int, n_frames: int, shape: tuple[int, ...],
