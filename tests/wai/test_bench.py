@@ -173,8 +173,10 @@ def test_mapping_omits_what_it_cannot_compute_and_never_overwrites_a_measurement
 @pytest.mark.slow
 def test_bench_video_reports_latency_and_throughput(quick_toml, tmp_path, capsys):
     # One rendered frame restored by one worker process: the figures must be consistent
-    # (throughput over n frames cannot beat n times the in-worker time by more than the
-    # number of workers), and the sequence is rendered once, then reused.
+    # (each worker restores its frames one after another inside the timed wall, so the wall
+    # cannot be shorter than the workers' summed time over their number; a median of three
+    # frames can exceed their mean, so it is no bound), and the sequence is rendered once,
+    # then reused.
     args = ["bench", "video", "--config", str(quick_toml), "--out", str(tmp_path / "v"),
             "--sequence", "1", "--frames", "3", "--workers", "1", "--runs", "1", "--json"]
     assert main(args) == 0
@@ -182,7 +184,8 @@ def test_bench_video_reports_latency_and_throughput(quick_toml, tmp_path, capsys
     assert res["latency"]["median_ms"] > 0
     (one,) = res["throughput"]
     assert one["workers"] == 1 and one["frames"] == 3
-    assert one["fps"] <= 1e3 / one["worker_ms_median"] * 1.05
+    assert one["wall_s"] >= one["worker_ms_total"] / 1e3 / one["workers"]
+    assert one["fps"] == pytest.approx(one["frames"] / one["wall_s"])
     assert (tmp_path / "v" / "sequence" / "frame000" / "scene.json").is_file()
     assert read_sequence(tmp_path / "v" / "sequence").fps == res["fps_rendered"] == 30.0
     assert main([*args[:-1]]) == 0  # a rerun renders nothing new and prints the report
