@@ -68,10 +68,15 @@ class RigCalibration:
     view_gain : float
         The view image divided by this is the object's radiance scale (1 for captures, n^2 for
         renders).
+    rig : dict or None
+        The rig applied over the folder's configuration (:func:`restoration.with_rig`):
+        ``{"file": path or None, "config_keys": {...}}``, recorded in ``metrics.json``; None
+        when the configuration is the folder's own.
     """
 
     cfg: SystemConfig
     view_gain: float = 1.0
+    rig: dict[str, Any] | None = field(default=None, compare=False)
     _view_plans: dict[int, ViewPlan] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )

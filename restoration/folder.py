@@ -98,7 +98,7 @@ def restore_folder(
     write: bool = True,
     track: LevelTrack | None = None,
     progress: bool = False,
-    rig: Mapping[str, Any] | None = None,
+    rig: Mapping[str, Any] | str | Path | None = None,
 ) -> FolderRestore:
     """Restore the frame in ``folder``, score it where truth exists, write the outputs.
 
@@ -122,9 +122,10 @@ def restore_folder(
         A sequence's level (see :class:`~restoration.calibration.LevelTrack`).
     progress : bool
         Show a progress bar.
-    rig : mapping of str to value, optional
-        Configuration keys (``"camera_v.distortion"``: value) that replace the folder's, e.g.
-        the calibrated intrinsics of a rig file (:func:`restoration.rig_calibration.read_rig`).
+    rig : mapping of str to value, or str or Path, optional
+        Configuration keys (``"camera_v.distortion"``: value) that replace the folder's, or the
+        path of a rig file holding them (``wai calibrate``'s; :func:`with_rig`); recorded in
+        ``metrics.json`` under ``rig``.
 
     Returns
     -------
@@ -164,10 +165,21 @@ def restore_folder(
     return done
 
 
-def with_rig(cal: CalibrationT, rig: Mapping[str, Any] | None) -> CalibrationT:
-    """``cal`` with the configuration keys of ``rig`` applied (checked; ``cal`` itself when
-    there are none)."""
-    return cal if not rig else replace(cal, cfg=with_keys(cal.cfg, dict(rig)))
+def with_rig(cal: CalibrationT, rig: Mapping[str, Any] | str | Path | None) -> CalibrationT:
+    """``cal`` with a rig applied: the configuration keys of ``rig`` (a mapping, or a rig
+    file's path, read by :func:`~restoration.rig_calibration.read_rig`), checked, and
+    recorded in :attr:`~restoration.calibration.RigCalibration.rig`; ``cal`` itself when there
+    are none."""
+    if rig is None or (isinstance(rig, Mapping) and not rig):
+        return cal
+    source = None
+    if not isinstance(rig, Mapping):
+        from restoration.rig_calibration import read_rig
+
+        source, rig = str(Path(rig).resolve()), read_rig(rig)
+    keys = dict(rig)
+    return replace(cal, cfg=with_keys(cal.cfg, keys),
+                   rig={"file": source, "config_keys": keys})
 
 
 def restore_frame(
@@ -226,7 +238,7 @@ def restore_frame(
         step("score" if scored else "score (skipped)")
     truth = Truth.from_folder(folder, cal) if scored and result.has_view else None
     scores = None if truth is None else score(result, cal.radiance(images["view"]), cal, truth)
-    metrics = folder_metrics(method, result, scores, scored, seed)
+    metrics = folder_metrics(method, result, scores, scored, seed, rig=cal.rig)
     return FolderRestore(folder, None, cal, images, result, truth, scores, metrics)
 
 
@@ -281,10 +293,12 @@ def check_files(
 
 
 def folder_metrics(
-    method: Method, result: RestoreResult, scores: Scores | None, scored: bool, seed: Any
+    method: Method, result: RestoreResult, scores: Scores | None, scored: bool, seed: Any,
+    rig: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """``metrics.json``: the truth-free summary, the scores (or why there are none), the
-    options and the render's ``seed`` (from its ``scene.json``)."""
+    options, the render's ``seed`` (from its ``scene.json``) and the ``rig`` applied, if any
+    (:func:`with_rig`)."""
     metrics = result.summary()
     if scores is not None:
         metrics.update(scores.to_dict())
@@ -297,6 +311,8 @@ def folder_metrics(
         )
     metrics["options"] = method.options.to_dict()
     metrics["seed"] = seed
+    if rig is not None:
+        metrics["rig"] = rig
     return metrics
 
 
@@ -405,18 +421,28 @@ def _num(value: Any, spec: str, unit: str = "") -> str:
     return f"{value:{spec}}{unit}"
 
 
+STATUS_DOCS = 'docs/outputs.md, "Frame status"'
+"""Where a frame's statuses are explained."""
+
+
+def status_line(status: str, message: str) -> str:
+    """The frame's truth-free status, in words."""
+    if status == Status.OK:
+        return f"status ok: every truth-free check passed ({STATUS_DOCS})"
+    return f"status {status}: {message} ({STATUS_DOCS})"
+
+
 def summary_lines(m: dict[str, Any]) -> list[str]:
-    """The figures of a ``metrics.json`` a person reads first, one line each."""
+    """The figures of a ``metrics.json`` a person reads first, one line each: the status
+    first, the end-to-end time last, each term said in words where it appears."""
     status = m.get("status", Status.OK)
     if "features_used" not in m and "view_valid_fraction" not in m:
         return [f"{m['method']}: cannot run ({status}): {m['message']}"]
-    lines = []
-    if status != Status.OK:
-        lines.append(f"status {status}: {m['message']}")
+    lines = [status_line(status, m.get("message", ""))]
     if "wai_rmse_mm" in m:
         lines.append(
-            f"surface RMSE {_num(m['wai_rmse_mm'], '.3f', ' mm')} (de-meaned "
-            f"{_num(m['wai_rmse_demeaned_mm'], '.3f', ' mm')}, max "
+            f"surface RMSE {_num(m['wai_rmse_mm'], '.3f', ' mm')} against the true surface "
+            f"(de-meaned {_num(m['wai_rmse_demeaned_mm'], '.3f', ' mm')}, max "
             f"{_num(m['wai_max_abs_mm'], '.3f', ' mm')}) from {m['features_used']} features "
             f"({m['features_rejected']} rejected)"
         )
@@ -431,7 +457,9 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
     if "corner_std_restored_px" in m:
         lines.append(
             f"corner STD {_num(m['corner_std_distorted_px'], '.2f', ' px')} -> "
-            f"{_num(m['corner_std_restored_px'], '.2f', ' px')} on {m['corners_common']} corners"
+            f"{_num(m['corner_std_restored_px'], '.2f', ' px')} on {m['corners_common']} corners "
+            "(the spread of the checkerboard's corners about their flat-water positions, a "
+            "common shift not counted; 0 is perfect)"
         )
     if "restored" in m:
         d, r = m["distorted"], m["restored"]
@@ -445,11 +473,26 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
     if "anchor" in m:
         lines.append(anchor_line(m["anchor"]))
     if "flat_reference" in m:
-        ref = m["flat_reference"]
-        lines.append(f"flat-water reference {ref['rms_px']:.2f} px RMS from the calibration "
-                     f"({ref['rms_of_spacing']:.1%} of the dot spacing; docs/rig.md)")
-    lines.append(f"end to end {m['timings_ms']['end_to_end']:.1f} ms")
+        lines.append(flat_reference_line(m["flat_reference"]))
+    if m.get("rig"):
+        lines.append(rig_line(m["rig"]))
+    lines.append(f"restoration {m['timings_ms']['end_to_end']:.1f} ms end to end (this frame's "
+                 "features, surface and view; reading and writing files not counted)")
     return lines
+
+
+def flat_reference_line(ref: dict[str, Any]) -> str:
+    """The flat-water reference's residual (the calibration's check, docs/rig.md), in words."""
+    return (f"flat-water reference {ref['rms_px']:.2f} px RMS from the calibration "
+            f"({ref['rms_of_spacing']:.1%} of the dot spacing: the flat-water spots against "
+            "where the rig predicts them; docs/rig.md)")
+
+
+def rig_line(rig: dict[str, Any]) -> str:
+    """Which rig was applied over the folder's configuration."""
+    keys = ", ".join(sorted(rig["config_keys"]))
+    source = f"rig file {rig['file']}" if rig.get("file") else "a rig"
+    return f"{source} applied: {keys}"
 
 
 def anchor_line(anchor: dict[str, Any]) -> str:
@@ -457,7 +500,8 @@ def anchor_line(anchor: dict[str, Any]) -> str:
     level = f"mean level {_num(anchor.get('anchor_mm'), '.2f', ' mm')}"
     sigma = anchor.get("sigma_mm")
     if anchor.get("method") == "integrability":
-        return f"{level} from integrability (+- {_num(sigma, '.2f', ' mm')})"
+        return (f"{level} from integrability (+- {_num(sigma, '.2f', ' mm')}: the level at "
+                "which the measured slopes fit one surface best)")
     if anchor.get("method") == "gauge_fallback":
         why = "not pinned" if sigma is None or not np.isfinite(sigma) else f"+- {sigma:.2f} mm"
         return f"{level} from the gauge (integrability {why}: too little curvature)"

@@ -159,6 +159,9 @@ def method_class(spec: str) -> type:
             found = getattr(_import(module), attr)
         except (ImportError, AttributeError, OSError) as exc:
             raise WaiInputError(f"method {spec!r}: cannot import it ({exc})") from None
+        except (Exception, SystemExit) as exc:  # the module's own code failed while importing
+            raise WaiInputError(f"method {spec!r}: importing it raised "
+                                f"{type(exc).__name__}: {exc}") from None
         return _checked_class(found, spec)
     plugin = _plugins().get(spec)
     if plugin is None:
@@ -166,8 +169,9 @@ def method_class(spec: str) -> type:
                             "or module:Class)")
     try:
         found = plugin.load()
-    except (ImportError, AttributeError) as exc:
-        raise WaiInputError(f"method {spec!r}: its entry point does not load ({exc})") from None
+    except (Exception, SystemExit) as exc:
+        raise WaiInputError(f"method {spec!r}: its entry point does not load "
+                            f"({type(exc).__name__}: {exc})") from None
     return _checked_class(found, spec)
 
 

@@ -223,6 +223,10 @@ def read_rig(path: str | Path) -> dict[str, Any]:
         record = json.loads(path.read_text())
     except FileNotFoundError:
         raise WaiInputError(f"{path}: rig file not found") from None
+    except IsADirectoryError:
+        raise WaiInputError(f"{path}: is a folder, not a rig file") from None
+    except OSError as exc:
+        raise WaiInputError(f"{path}: cannot read the rig file ({exc.strerror})") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise WaiInputError(f"{path}: not a rig file (JSON): {exc}") from None
     keys = record.get("config_keys") if isinstance(record, dict) else None

@@ -33,9 +33,11 @@ from restoration.folder import (
     RESTORE_REMEDY,
     FolderRestore,
     check_files,
+    flat_reference_line,
     folder_metrics,
     load_view_flat,
     restore_frame,
+    rig_line,
     with_rig,
 )
 from restoration.methods import Method, as_method
@@ -97,6 +99,10 @@ class SequenceRestore:
             f"{s['change_restored']:.4f} (mean |difference|, 1 = white)"
         )
         lines.append(f"restoration {s['end_to_end_ms']:.1f} ms per frame (median)")
+        if s.get("flat_reference"):
+            lines.append(flat_reference_line(s["flat_reference"]))
+        if s.get("rig"):
+            lines.append(rig_line(s["rig"]))
         if s.get("tracking"):
             lines.append(
                 f"labels tracked from the previous frames on {s['frames_tracked']} frames, "
@@ -122,7 +128,7 @@ def restore_sequence(
     write: bool = True,
     movie: bool = True,
     progress: bool = False,
-    rig: Mapping[str, Any] | None = None,
+    rig: Mapping[str, Any] | str | Path | None = None,
     track: bool = False,
 ) -> SequenceRestore:
     """Restore every frame of a sequence folder (any layout of :mod:`wai_core.sequence`),
@@ -145,9 +151,9 @@ def restore_sequence(
         is present).
     progress : bool
         A progress bar over the frames.
-    rig : mapping of str to value, optional
-        Configuration keys that replace the sequence's, as :func:`restoration.restore_folder`'s
-        (a rig file's calibrated intrinsics).
+    rig : mapping of str to value, or str or Path, optional
+        Configuration keys that replace the sequence's, or a rig file's path, as
+        :func:`restoration.restore_folder`'s (a rig file's calibrated intrinsics).
     track : bool
         Reuse the previous frames (:class:`~restoration.tracking.SequenceState`): labels
         tracked from their spots (full matching where tracking fails its checks), the warp
@@ -212,6 +218,13 @@ def restore_sequence(
         summary.update(tracking=track.track, frames_tracked=track.tracked,
                        frames_matched=track.matched, track_fallbacks=track.fallbacks,
                        track_skipped=track.skipped)
+        # The rig's own check, the same for every frame (one reference per calibration).
+        reference = next((r.summary().get("flat_reference") for r in results
+                          if r.reference_rms_px is not None), None)
+        if reference is not None:
+            summary["flat_reference"] = reference
+        if cal.rig is not None:
+            summary["rig"] = cal.rig
         if write:
             tmp = out_tmp if out_tmp is not None else stack.enter_context(
                 atomic_dir(out, command="restore", remedy=RESTORE_REMEDY))
@@ -478,7 +491,7 @@ def restore_captured_frame(
     view_flat = load_view_flat(cal, *dict.fromkeys((seq.frame_dirs[k], seq.folder)))
     result = method(images, cal, track)
     check_files(files, cal, images, result, view_flat)
-    metrics = folder_metrics(method, result, None, True, seq.record.get("seed"))
+    metrics = folder_metrics(method, result, None, True, seq.record.get("seed"), rig=cal.rig)
     return FolderRestore(seq.frame_dirs[k], None, cal, images, result, None, None, metrics)
 
 

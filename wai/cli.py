@@ -139,7 +139,9 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
         q.add_argument("--config", default="paper", help=SCENE_HELP)
         q.add_argument("--out", type=Path, default=Path("renders") / name, help="output folder")
         if exp.seeds is not None:
-            q.add_argument("--seeds", type=int, default=exp.seeds, help="seeds 0..K-1")
+            q.add_argument("--seeds", type=int, default=None,
+                           help=f"seeds 0..K-1 (default: {exp.seeds}; with --quick: "
+                           f"{exp.quick_seeds})")
         q.add_argument("--quick", action="store_true",
                        help=f"a small version, for CI and a first look: {exp.quick}")
         if exp.sweep:
@@ -283,8 +285,8 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "(default: referred, which cancels the rig's common errors; docs/rig.md)",
     )
     p.add_argument("--out", type=Path, default=None,
-                   help="video methods: output folder (default: DIR/restore, or "
-                   "renders/NAME_restore for a video file NAME)")
+                   help="video methods: output folder (default: DIR/restore_METHOD, or "
+                   "renders/NAME_restore_METHOD for a video file NAME: one folder per method)")
     p.add_argument("--board", default=None,
                    help="video methods: score the restored view of a planar checkerboard with "
                    "COLSxROWS inner corners (default: none)")

@@ -31,7 +31,8 @@ def run_restore(args: argparse.Namespace) -> None:
     if getattr(args, "rig", None) is not None:  # read before any work: a bad file stops here
         from restoration.rig_calibration import read_rig
 
-        rig = read_rig(args.rig)
+        read_rig(args.rig)
+        rig = args.rig
     from wai_core.sequence import is_sequence
 
     cold = compile_notice(args.quiet)
@@ -40,7 +41,7 @@ def run_restore(args: argparse.Namespace) -> None:
         return
     done = restore_folder(args.dir, args.method, options, progress=not args.quiet, rig=rig)
     for line in done.summary_lines():
-        if cold and line.startswith("end to end"):
+        if cold and line.startswith("restoration "):
             line += " (includes compiling the kernels once)"
         print(line)
     status = done.result.status
@@ -72,6 +73,15 @@ def method_options(args: argparse.Namespace) -> SurfaceOptions:
     except WaiInputError as exc:
         if str(exc).startswith("--"):
             raise
+        if str(exc).startswith("unknown method"):
+            from restoration import method_names
+            from wai.restore_video_cli import VIDEO_METHODS
+
+            raise WaiInputError(
+                f"--method: unknown method {args.method!r}: per frame "
+                f"{', '.join(method_names())}; from video {', '.join(VIDEO_METHODS)}; or one's "
+                "own as module:Class or path/to/file.py:Class (docs/methods.md)"
+            ) from None
         raise WaiInputError(f"--method: {exc}") from None
 
 
@@ -86,7 +96,7 @@ def compile_notice(quiet: bool) -> bool:
 
 
 def run_restore_sequence(
-    args: argparse.Namespace, options: SurfaceOptions, rig: dict[str, Any] | None = None
+    args: argparse.Namespace, options: SurfaceOptions, rig: Any = None
 ) -> None:
     """A sequence folder: every frame, the per-frame table, the movies and temporal scores."""
     from restoration.sequence import restore_sequence

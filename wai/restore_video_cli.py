@@ -17,11 +17,13 @@ VIDEO_METHODS = ("registration", "lucky", "mean")
 """The image-only methods ``wai restore --method`` takes besides the per-frame ones."""
 
 
-def out_folder(path: Path) -> Path:
-    """Where a video's restoration goes by default: ``DIR/restore`` for a folder,
-    ``renders/NAME_restore`` for a video file (never beside it: a capture's folder may be
-    shared or read-only)."""
-    return path / "restore" if path.is_dir() else Path("renders") / f"{path.stem}_restore"
+def out_folder(path: Path, method: str) -> Path:
+    """Where a video's restoration by ``method`` goes by default: ``DIR/restore_METHOD`` for a
+    folder, ``renders/NAME_restore_METHOD`` for a video file (never beside it: a capture's
+    folder may be shared or read-only). One folder per method: restoring by another method
+    never replaces a previous one's results, nor a per-frame restoration's ``DIR/restore``."""
+    name = f"restore_{method}"
+    return path / name if path.is_dir() else Path("renders") / f"{path.stem}_{name}"
 
 
 def _frames(path: Path) -> Any:
@@ -53,7 +55,7 @@ def run_restore_video(args: argparse.Namespace) -> None:
         from wai.bench.capture import parse_board
 
         board = parse_board(args.board)
-    target = Path(args.out) if args.out is not None else out_folder(path)
+    target = Path(args.out) if args.out is not None else out_folder(path, args.method)
     check_output_dir(target, "restore", remedy="choose another --out")
     frames = _frames(path)
     run = {"registration": register_frames, "lucky": lucky_fusion, "mean": temporal_mean}

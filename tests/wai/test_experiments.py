@@ -71,7 +71,7 @@ def test_command_line_hands_typed_arguments_to_each_experiment(tmp_path, monkeyp
     out = tmp_path / "b"
     argv = ["experiment", "budget", "--quick", "--out", str(out), "--workers", "0", "--no-progress"]
     assert main(argv) == 0
-    assert calls["budget"] == (("paper", out, 3, True, SweepOptions(workers=0, progress=False)), {})
+    assert calls["budget"] == (("paper", out, 1, True, SweepOptions(workers=0, progress=False)), {})
     assert main(["experiment", "validate", "--config", "x.toml"]) == 0
     assert calls["validate"] == ("x.toml", Path("renders/validate"), False)
 
@@ -97,6 +97,11 @@ def test_run_experiment_runs_the_registrys_runner_with_its_seeds(monkeypatch, tm
         assert out == tmp_path / name and seeds == experiments.EXPERIMENTS[name].seeds
     experiments.run_experiment("paper", seeds=4)
     assert calls[-1][2:4] == (Path("renders/paper"), 4)
+    # --quick takes the quick default unless --seeds is given (what --help says it does)
+    experiments.run_experiment("compare", quick=True)
+    assert calls[-1][3] == experiments.EXPERIMENTS["compare"].quick_seeds == 1
+    experiments.run_experiment("compare", seeds=3, quick=True)
+    assert calls[-1][3] == 3
     with pytest.raises(WaiInputError, match="no experiment 'nope'"):
         experiments.run_experiment("nope")
     with pytest.raises(WaiInputError, match="takes no --method"):

@@ -11,7 +11,7 @@ renders one frame in memory and scores this method beside the structured light o
 takes it by its file (or ``module:Class``, or an installed package's entry point in the
 group ``wai.methods``)::
 
-    wai restore renders/demo --method examples/plugin_method.py:AsSeen
+    wai restore renders/demo --method wai.examples.plugin_method:AsSeen
 """
 
 from __future__ import annotations

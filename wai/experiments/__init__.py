@@ -74,7 +74,7 @@ def _run_compare(config: str | Path, out: Path, seeds: int | None, quick: bool,
                  sweep: SweepOptions, methods: list[str] | None = None) -> None:
     from wai.experiments.compare import run_compare
 
-    run_compare(config, out, seeds or 1, quick, sweep, methods)
+    run_compare(config, out, seeds, quick, sweep, methods)
 
 
 def _run_seawater(config: str | Path, out: Path, seeds: int | None, quick: bool,
@@ -107,6 +107,8 @@ class Experiment:
         Runs it (:func:`run_experiment` calls it).
     seeds : int or None
         The default of ``--seeds`` (seeds 0..K-1); None: the experiment has no ``--seeds``.
+    quick_seeds : int or None
+        The default of ``--seeds`` with ``--quick`` (an explicit ``--seeds`` wins).
     sweep : bool
         A sweep on the Dask runner (:mod:`wai.sweep`): the runner's options apply.
     methods : bool
@@ -119,6 +121,7 @@ class Experiment:
     duration: str
     run: Runner
     seeds: int | None = None
+    quick_seeds: int | None = None
     sweep: bool = False
     methods: bool = False
 
@@ -161,6 +164,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         duration="about 35 s with --quick; roughly 2 min without (10 seeds, 8 amplitudes)",
         run=_run_paper,
         seeds=10,
+        quick_seeds=2,
     ),
     "alterman": Experiment(
         summary="Alterman's sun sensor beside the structured light (Fig. 13-14, Table 2)",
@@ -175,6 +179,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         duration="about 50 s with --quick; roughly 5 min without (3 seeds, 6 sun angles)",
         run=_run_alterman,
         seeds=3,
+        quick_seeds=1,
     ),
     "tradeoffs": Experiment(
         summary="speed against accuracy of each choice (spacing, integrator, spp, warp step)",
@@ -191,6 +196,7 @@ EXPERIMENTS: dict[str, Experiment] = {
                   "frames, spp up to 32, 3 timed restorations per variant)",
         run=_run_tradeoffs,
         seeds=2,
+        quick_seeds=2,
         sweep=True,
     ),
     "stability": Experiment(
@@ -209,6 +215,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         duration="about 7 min with --quick; roughly 25 min without (144 frames against 44)",
         run=_run_stability,
         seeds=2,
+        quick_seeds=2,
         sweep=True,
     ),
     "budget": Experiment(
@@ -231,6 +238,7 @@ EXPERIMENTS: dict[str, Experiment] = {
                   "3 seeds)",
         run=_run_budget,
         seeds=3,
+        quick_seeds=1,
         sweep=True,
     ),
     "calibration": Experiment(
@@ -253,6 +261,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         duration="about 2 min with --quick; roughly 12 min without (10 seeds, 20 renders)",
         run=_run_calibration,
         seeds=10,
+        quick_seeds=1,
     ),
     "compare": Experiment(
         summary="every method on the same rendered sequences: structured light, one's own, "
@@ -275,6 +284,7 @@ EXPERIMENTS: dict[str, Experiment] = {
                  "2 seeds, 2 degradations, 30 frames)",
         run=_run_compare,
         seeds=2,
+        quick_seeds=1,
         sweep=True,
         methods=True,
     ),
@@ -319,7 +329,7 @@ def run_experiment(name: str, config: str | Path = "paper", out: str | Path | No
         The output folder; None: ``renders/<name>``.
     seeds : int or None
         Seeds 0..seeds-1, for the experiments that have seeds; None: its
-        :attr:`Experiment.seeds`.
+        :attr:`Experiment.seeds`, or :attr:`Experiment.quick_seeds` with ``quick``.
     quick : bool
         The small version (:attr:`Experiment.quick`).
     sweep : SweepOptions or None
@@ -340,7 +350,9 @@ def run_experiment(name: str, config: str | Path = "paper", out: str | Path | No
         raise WaiInputError(f"no experiment {name!r}: one of {', '.join(EXPERIMENTS)}")
     exp = EXPERIMENTS[name]
     out = Path("renders") / name if out is None else Path(out)
-    args = (config, out, exp.seeds if seeds is None else seeds, quick,
+    if seeds is None:
+        seeds = exp.quick_seeds if quick else exp.seeds
+    args = (config, out, seeds, quick,
             SweepOptions() if sweep is None else sweep)
     if exp.methods:
         exp.run(*args, methods=list(methods or []))

@@ -125,7 +125,8 @@ def oracle_level_errors(done: Any) -> dict[str, float]:
     unknown mean level costs)."""
     import dataclasses
 
-    from restoration.alterman import DEFAULT_OPTIONS, reconstruct_alterman
+    from restoration import AltermanOptions
+    from restoration.alterman import reconstruct_alterman
     from restoration.metrics import surface_errors
     from restoration.normals import spots_on_diffuser
     from wai_core.heightfield import load_heightfield
@@ -137,7 +138,7 @@ def oracle_level_errors(done: Any) -> dict[str, float]:
     spots = spots_on_diffuser(m.spot_px, lay.camera, lay.screen_z_mm)
     est = reconstruct_alterman(
         m.ij, lay.pinholes_mm[lay.index_of(m.ij)], spots,
-        dataclasses.replace(lay, h0_mm=level), DEFAULT_OPTIONS,
+        dataclasses.replace(lay, h0_mm=level), AltermanOptions(),
     )
     e = surface_errors(est.heightfield, truth)
     return {"oracle_level_rmse_mm": e["rmse_mm"],
@@ -499,9 +500,9 @@ def run_alterman(config: str | Path, out: str | Path, seeds: int, quick: bool = 
     out : str or Path
         The output folder (made if missing).
     seeds : int
-        Seeds 0..seeds-1 (seed 0 only with ``quick``).
+        Seeds 0..seeds-1.
     quick : bool
-        Seed 0 only, sun at 15 and 60 deg.
+        The sun at 15 and 60 deg only.
     command : str or None
         The command line the report quotes; None: ``wai experiment alterman`` and this
         process's arguments after it.
@@ -509,7 +510,7 @@ def run_alterman(config: str | Path, out: str | Path, seeds: int, quick: bool = 
     system = sensor_system(config)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    seed_list = [0] if quick else list(range(seeds))
+    seed_list = list(range(seeds))
     angles = QUICK_ANGLES_DEG if quick else ANGLES_DEG
     rows, paper = structured_light_rows(system, seed_list, out)
     rows += sun_rows(system, seed_list, angles, out, paper)

@@ -219,7 +219,8 @@ def _versions() -> dict[str, str]:
 
 
 def run_calibration(config: str | Path, out: Path, seeds: int | None, quick: bool) -> None:
-    """The experiment: seeds 0..seeds-1 (one with ``quick``), written into ``out``."""
+    """The experiment: seeds 0..seeds-1 (10 when None), written into ``out``; ``quick``: 8
+    checkerboard views per camera."""
     cfg = load_system(config)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -230,7 +231,7 @@ def run_calibration(config: str | Path, out: Path, seeds: int | None, quick: boo
                                       "rms_before_px": flat.rms_before_px,
                                       "rms_after_px": flat.rms_after_px}
     calibrated = {"checkerboards": boards, "flat_water": {**boards, **flat.config_keys}}
-    n = 1 if quick else int(seeds or 10)
+    n = int(seeds or 10)
     rows: list[dict[str, Any]] = []
     for seed in tqdm(range(n), desc="calibration", unit="seed"):
         rows += run_seed(cfg, seed, out, calibrated)

@@ -31,7 +31,7 @@ FPS = 30.0
 """Frame rate of the rendered sequences."""
 VIDEO_METHODS = ("mean", "registration", "lucky")
 """The image-only baselines (:mod:`restoration.video`)."""
-FRAME_METHODS = ("structured-light", "wai/examples/plugin_method.py:AsSeen")
+FRAME_METHODS = ("structured-light", "wai.examples.plugin_method:AsSeen")
 """The per-frame methods compared by default: the paper's, and the unrestored view as a
 method of one's own (its floor)."""
 DEGRADATIONS: dict[str, dict[str, Any]] = {"none": {}, "sensor": {"sensor.enabled": True}}
