@@ -63,6 +63,7 @@ from mitsuba_wai.variant import mitsuba, select_variant
 from mitsuba_wai.view_tracer import render_view
 from wai_core.config import SensorConfig, SystemConfig
 from wai_core.heightfield import Heightfield
+from wai_core.images import record_previews
 from wai_core.io import (
     atomic_dir,
     check_output_dir,
@@ -338,8 +339,9 @@ def scene_record(
 def write_images(
     folder: Path, images: dict[str, NDArray], view_gain: float, sensor: SensorConfig | None = None
 ) -> None:
-    """Each image as ``NAME.exr`` and a ``NAME.png`` preview; views (``view*``) are shown at
-    the exposure that undoes the radiance gain, others at their own 99.5th percentile.
+    """Each image as ``NAME.exr`` and a ``NAME.png`` preview, recorded as the tool's own
+    (:func:`wai_core.images.record_previews`); views (``view*``) are shown at the exposure
+    that undoes the radiance gain, others at their own 99.5th percentile.
 
     With an enabled ``sensor`` the images are ``DN / full scale`` and ``NAME.png`` is the
     camera's integer image at the ADC depth (:func:`wai_core.sensor.integer_image`)."""
@@ -354,6 +356,8 @@ def write_images(
             continue
         exposure = 1.0 / view_gain if name.startswith("view") else None
         write_png(folder / f"{name}.png", img, exposure=exposure)
+    # The previews are the tool's own: they never make the frame's images ambiguous.
+    record_previews(folder, {f"{name}.png": (f"{name}.exr", img) for name, img in images.items()})
 
 
 def write_surface(folder: Path, surface: Heightfield) -> None:

@@ -105,6 +105,12 @@ class RigCalibration:
         """Whether image ``name`` is resampled into its device's ideal pinhole."""
         return self.DEVICES.get(name, "") in self._remaps
 
+    def recorded(self, name: str) -> NDArray[np.bool_] | None:
+        """(H, W) bool: the pixels of image ``name`` in its device's ideal pinhole
+        (:meth:`to_pinhole`) that hold the camera's data; None for an ideal device (all)."""
+        remap = self._remaps.get(self.DEVICES.get(name, ""))
+        return None if remap is None else remap.seen
+
     def to_pinhole(self, name: str, image: NDArray) -> NDArray:
         """Image ``name`` of a real device resampled into its ideal pinhole's geometry (the
         one every stage models; :mod:`restoration.undistort`); itself for an ideal device.
@@ -151,11 +157,15 @@ class RigCalibration:
         distorted = np.asarray(distorted)
         if not np.issubdtype(distorted.dtype, np.floating):  # integer captures
             distorted = distorted.astype(np.float64)
-        return restore_view(
+        view = restore_view(
             distorted, self.camera_v, surface, cfg.water.h0_mm, cfg.water.n_water,
             cfg.object_z_mm, warp_step_px=warp_step_px, gain=gain,
             plan=self.view_plan(warp_step_px), patches=patches, state=state,
         )
+        remap = self._remaps.get("camera_v")
+        if remap is not None:  # a real lens: its pinhole image holds no data past the sensor
+            view.restrict(remap.seen_at(view.map_cols, view.map_rows))
+        return view
 
     def image_size(self, name: str) -> tuple[int, int]:
         """``(height, width)`` in pixels that image ``name`` must have."""

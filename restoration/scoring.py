@@ -42,11 +42,17 @@ class Truth:
     surface : Heightfield or None
         Absolute heights, mm, lab frame (``heightfield.npz``).
     view : (H, W, 3) ndarray or None
-        The view through flat water at h0, divided by the gain (``view_truth.exr``).
+        The view through flat water at h0, divided by the gain (``view_truth.exr``), in
+        camera v's ideal pinhole.
+    recorded : (H, W) ndarray of bool or None
+        Where :attr:`view` holds the camera's data: a real lens's image resampled into its
+        pinhole has none past the sensor's edge
+        (:attr:`~restoration.undistort.PinholeRemap.seen`); None: everywhere.
     """
 
     surface: Heightfield | None = None
     view: NDArray | None = None
+    recorded: NDArray | None = None
 
     @classmethod
     def from_folder(cls, folder: str | Path, cal: RigCalibration) -> Truth | None:
@@ -60,7 +66,7 @@ class Truth:
             view = cal.to_pinhole("view_truth", read_image(view_file)) / cal.view_gain
         if surface is None and view is None:
             return None
-        return cls(surface, view)
+        return cls(surface, view, cal.recorded("view_truth"))
 
 
 @dataclass
@@ -181,6 +187,8 @@ def score(
         out.error_map_mm = surf["error_map_mm"]
     if truth.view is not None:
         seen = truth.view.mean(axis=2) > OBJECT_MIN_LEVEL
+        if truth.recorded is not None:
+            seen &= truth.recorded
         mask = result.view.valid & seen
         out.distorted = image_metrics(distorted_view, truth.view, mask)
         out.restored = image_metrics(result.view.image, truth.view, mask)

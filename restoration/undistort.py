@@ -15,6 +15,7 @@ restoration refuses it (:func:`check_no_port`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -42,7 +43,7 @@ def check_no_port(dev: DeviceConfig, name: str) -> None:
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PinholeRemap:
     """Where each pixel of a device's ideal pinhole lies in its real image.
 
@@ -83,6 +84,24 @@ class PinholeRemap:
             x, y = distort(x, y, optics.distortion)
         cx, cy = optics.principal_px
         return cls((f * x + cx).astype(np.float32), (f * y + cy).astype(np.float32))
+
+    @cached_property
+    def seen(self) -> NDArray[np.bool_]:
+        """(H, W) bool: the ideal pixels whose bilinear sample lies wholly on the real sensor
+        (all four neighbours inside it); elsewhere :meth:`apply` gives 0 or a blend with 0,
+        no data of the real image."""
+        h, w = self.map_cols.shape
+        return ((self.map_cols >= 0) & (self.map_cols <= w - 1)
+                & (self.map_rows >= 0) & (self.map_rows <= h - 1))
+
+    def seen_at(self, map_cols: NDArray[np.float32], map_rows: NDArray[np.float32]
+                ) -> NDArray[np.bool_]:
+        """Whether a bilinear sample of an image :meth:`apply` made, at ideal pixels
+        ``(map_cols, map_rows)`` (any shape), draws on :attr:`seen` pixels only."""
+        seen = self.seen.astype(np.float32)
+        at = cv2.remap(seen, np.asarray(map_cols, np.float32), np.asarray(map_rows, np.float32),
+                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return at >= 1.0 - 1e-6
 
     def apply(self, image: ArrayLike) -> NDArray:
         """``image`` (H, W) or (H, W, C) of the real device resampled into the ideal pinhole

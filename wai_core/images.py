@@ -8,6 +8,9 @@ keeps its three channels in RGB order; a grey image is (H, W).
 
 from __future__ import annotations
 
+import hashlib
+import json
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +19,10 @@ from numpy.typing import NDArray
 from wai_core.errors import WaiInputError
 from wai_core.io import read_exr
 
-__all__ = ["IMAGE_SUFFIXES", "find_image", "image_conflict", "locate_image", "read_image"]
+__all__ = [
+    "IMAGE_SUFFIXES", "PREVIEWS_FILE", "copy_preview_records", "find_image", "image_conflict",
+    "image_digest", "locate_image", "read_image", "record_previews",
+]
 
 IMAGE_SUFFIXES = (".exr", ".png", ".tif", ".tiff")
 """Suffixes tried, in order, for an image named by its stem (``pattern`` -> ``pattern.exr``)."""
@@ -109,6 +115,90 @@ def find_image(folder: str | Path, stem: str) -> Path:
     raise WaiInputError(f"image not found in {folder}: tried {tried}")
 
 
+PREVIEWS_FILE = ".wai-previews.json"
+"""The record, in a folder the tool wrote images into, of the previews it wrote beside them:
+for each preview file its SHA-256 and the image it shows (file name and
+:func:`image_digest`). A preview recorded there, unchanged, of the very image beside it is
+never taken for a second, differing file of that image (:func:`image_conflict`)."""
+
+
+def image_digest(image: NDArray) -> str:
+    """A digest of an image's values as float32 (every 4th row and column, and the shape):
+    the same for an image and its float32 EXR read back, different for another frame.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> a = np.arange(48, dtype=np.float32).reshape(4, 4, 3)
+    >>> same = image_digest(a) == image_digest(a.astype(np.float64))
+    >>> same, image_digest(a) == image_digest(a + 1)
+    (True, False)
+    """
+    img = np.asarray(image, np.float32)
+    h = hashlib.sha256(repr(img.shape).encode())
+    h.update(np.ascontiguousarray(img[::4, ::4]).tobytes())
+    return h.hexdigest()
+
+
+def _file_sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _read_previews(folder: Path) -> dict:
+    try:
+        record = json.loads((folder / PREVIEWS_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return record if isinstance(record, dict) else {}
+
+
+def _write_previews(folder: Path, record: dict) -> None:
+    from wai_core.io import atomic_write_bytes
+
+    atomic_write_bytes(folder / PREVIEWS_FILE, json.dumps(record, indent=1).encode())
+
+
+def record_previews(folder: str | Path, previews: Mapping[str, tuple[str, NDArray]]) -> None:
+    """Record previews just written into ``folder`` (:data:`PREVIEWS_FILE`, merged with the
+    folder's record).
+
+    Parameters
+    ----------
+    folder : str or Path
+    previews : mapping of str to (str, ndarray)
+        Preview file name: (the image file it shows, that image's values as written).
+    """
+    folder = Path(folder)
+    record = _read_previews(folder)
+    for name, (image_name, image) in previews.items():
+        record[name] = {"sha256": _file_sha256(folder / name), "image": image_name,
+                        "image_digest": image_digest(image)}
+    _write_previews(folder, record)
+
+
+def copy_preview_records(src: str | Path, dst: str | Path, names: Iterable[str]) -> None:
+    """Carry the records of previews ``names`` from folder ``src`` to ``dst`` (files linked or
+    copied from one to the other)."""
+    found = _read_previews(Path(src))
+    entries = {n: found[n] for n in names if n in found}
+    if entries:
+        record = _read_previews(Path(dst))
+        record.update(entries)
+        _write_previews(Path(dst), record)
+
+
+def _own_preview(other: Path, chosen: Path, image: NDArray, record: dict) -> bool:
+    """Whether ``other`` is a preview the tool recorded, unchanged, of ``chosen``'s image."""
+    entry = record.get(other.name)
+    if not isinstance(entry, dict) or entry.get("image") != chosen.name:
+        return False
+    try:
+        same_file = entry.get("sha256") == _file_sha256(other)
+    except OSError:
+        return False
+    return same_file and entry.get("image_digest") == image_digest(image)
+
+
 def _correlation(a: NDArray, b: NDArray) -> float:
     a, b = a - a.mean(), b - b.mean()
     den = float(np.sqrt((a * a).sum() * (b * b).sum()))
@@ -124,8 +214,10 @@ def image_conflict(folder: str | Path, stem: str, image: NDArray) -> str | None:
     ``image`` (the one :func:`find_image` chose), e.g. ``pattern.exr`` beside a
     ``pattern.png`` of another frame.
 
-    A preview of the same image (a render's ``NAME.png``: sRGB at its own exposure, or a
-    sensor's integer counts) is not a conflict; see :data:`SAME_IMAGE_CORRELATION`.
+    A preview the tool wrote of this very image (recorded in :data:`PREVIEWS_FILE`, unchanged)
+    is never a conflict. Another file is compared by content: a preview of the same image (sRGB
+    at its own exposure, or a sensor's integer counts) is not a conflict; see
+    :data:`SAME_IMAGE_CORRELATION`.
 
     Parameters
     ----------
@@ -154,6 +246,10 @@ def image_conflict(folder: str | Path, stem: str, image: NDArray) -> str | None:
     chosen = find_image(folder, stem)
     others = [p for s in IMAGE_SUFFIXES if (p := Path(folder) / f"{stem}{s}").is_file()
               and p != chosen]
+    if not others:
+        return None
+    record = _read_previews(Path(folder))
+    others = [p for p in others if not _own_preview(p, chosen, image, record)]
     if not others:
         return None
     used = np.asarray(image, np.float64)

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from wai_core.errors import WaiInputError
-from wai_core.images import IMAGE_SUFFIXES, locate_image
+from wai_core.images import IMAGE_SUFFIXES, copy_preview_records, locate_image
 from wai_core.io import read_json
 
 __all__ = [
@@ -344,3 +344,4 @@ def link_reference(sequence_dir: Path, frame_dir: Path) -> None:
                 os.link(src, dst)
             except OSError:  # another file system, or links not allowed
                 shutil.copy2(src, dst)
+    copy_preview_records(sequence_dir, frame_dir, (f"{stem}.png" for stem in REFERENCE_IMAGES))

@@ -69,7 +69,9 @@ class ReferenceGrid:
     counts : dict of str to int
         ``predicted_in_view``, ``observed``, ``unmatched_predicted``, ``unassigned_spots``.
     rms_px : float
-        RMS distance between detected and calibration-predicted centres, pixels.
+        RMS distance between detected and calibration-predicted centres, pixels: over every
+        matched spot from :func:`match_reference`, over the spots the image does not cut
+        from :func:`prepare_reference` (:func:`whole_spots_rms`).
     spot_sigma_px : float
         Calibrated spot standard deviation in camera s (:func:`spot_sigma_px`), pixels: the
         length that the pixel-scale constants of detection and matching follow; NaN when the
@@ -108,6 +110,7 @@ class ReferenceGrid:
     visible_px: FloatArray | None = field(default=None, repr=False, compare=False)
     spot_scales: SpotScales = field(init=False, repr=False, compare=False)
     pred_px: FloatArray | None = field(default=None, repr=False, compare=False)
+    fit_px: FloatArray | None = field(default=None, repr=False, compare=False)
     shift_px: FloatArray | None = field(default=None, repr=False, compare=False)
     median_spacing_px: float = field(init=False, repr=False, compare=False)
 
@@ -420,13 +423,38 @@ def match_reference(
         counts=counts,
         rms_px=rms,
         pred_px=pred,
+        fit_px=moved,
     )
 
 
 FLAT_SHIFT_MAX_PX = 1.0
-"""A flat-water spot further than this from its prediction (pixels, at the tuned spot size;
-scaled with it) is not trusted to refer frames to: a spot the image's edge cuts, or a stray
-match. The rig's own error lies below it (docs/results.md, "Calibrating a real rig")."""
+"""A flat-water spot further than this (pixels, at the tuned spot size; scaled with it) from
+the plane projective map of the predictions that fits the whole grid is not trusted to refer
+frames to: a stray match. A calibration error of camera s moves every spot by that map, not
+away from it (docs/results.md, "Calibrating a real rig")."""
+
+
+def whole_in_image(ref: ReferenceGrid, image_shape: tuple[int, int]) -> BoolArray:
+    """(G,) bool: the nodes whose flat-water spot lies further than four spot sigmas from the
+    image's edge, so that the image does not cut it (a cut spot's centroid is pulled
+    inwards by pixels)."""
+    h, w = image_shape
+    edge = 4.0 * (ref.spot_sigma_px if np.isfinite(ref.spot_sigma_px) else _TUNED_SIGMA_PX)
+    x, y = ref.ref_px[:, 0], ref.ref_px[:, 1]
+    return (x > edge - 0.5) & (y > edge - 0.5) & (x < w - 0.5 - edge) & (y < h - 0.5 - edge)
+
+
+def whole_spots_rms(ref: ReferenceGrid, image_shape: tuple[int, int]) -> float:
+    """RMS distance, pixels, between the flat-water spots the image does not cut
+    (:func:`whole_in_image`) and their calibration-predicted centres: the calibration's
+    check (docs/rig.md). NaN without a prediction or such a spot."""
+    if ref.pred_px is None:
+        return float("nan")
+    used = ref.observed & whole_in_image(ref, image_shape)
+    if not used.any():
+        return float("nan")
+    d = ref.ref_px[used] - ref.pred_px[used]
+    return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
 
 
 def flat_shifts(ref: ReferenceGrid, image_shape: tuple[int, int]) -> FloatArray:
@@ -436,7 +464,8 @@ def flat_shifts(ref: ReferenceGrid, image_shape: tuple[int, int]) -> FloatArray:
     calibrated model puts flat water, so what displaces both images alike (an error of camera
     s's intrinsics or of the projector's, the spot's centroid bias from the reflectance across
     it) drops out, as it does in the dot shifts the paper measures. Shifts near the image's
-    edge (within four spot sigmas) or beyond :data:`FLAT_SHIFT_MAX_PX` are not trusted; a lit
+    edge (:func:`whole_in_image`) or off the grid's projective fit by more than
+    :data:`FLAT_SHIFT_MAX_PX` are not trusted; a lit
     node without a trusted shift takes the mean of its trusted neighbours', else zero.
 
     Examples
@@ -453,13 +482,14 @@ def flat_shifts(ref: ReferenceGrid, image_shape: tuple[int, int]) -> FloatArray:
     shift = np.full(ref.ref_px.shape, np.nan)
     if ref.pred_px is None:
         return np.zeros(ref.ref_px.shape)
-    h, w = image_shape
-    edge = 4.0 * (ref.spot_sigma_px if np.isfinite(ref.spot_sigma_px) else _TUNED_SIGMA_PX)
-    x, y = ref.ref_px[:, 0], ref.ref_px[:, 1]
-    inside = (x > edge - 0.5) & (y > edge - 0.5) & (x < w - 0.5 - edge) & (y < h - 0.5 - edge)
+    inside = whole_in_image(ref, image_shape)
     d = ref.ref_px - ref.pred_px
-    trusted = ref.observed & inside & (np.hypot(d[:, 0], d[:, 1]) <= FLAT_SHIFT_MAX_PX
-                                       * ref.pixel_scale)
+    # A stray spot departs from the plane projective map that fits the whole grid (what a
+    # calibration error of camera s is): measured from that fit, not from the prediction,
+    # a rig a pixel off keeps every shift.
+    fit = ref.pred_px if ref.fit_px is None else ref.fit_px
+    stray = np.hypot(*(ref.ref_px - fit).T) > FLAT_SHIFT_MAX_PX * ref.pixel_scale
+    trusted = ref.observed & inside & ~stray
     shift[trusted] = d[trusted]
     nbr = ref.tables.nbrs8  # (G, 8) neighbour nodes, G where absent
     vals = np.vstack([shift, np.full((1, 2), np.nan)])[nbr]
@@ -499,7 +529,7 @@ def prepare_reference(
         ref, spot_sigma_px=float(sigma), outline_px=outline, visible_px=_visible_outline(cfg)
     )
     shape = (cfg.camera_s.height_px, cfg.camera_s.width_px)
-    ref = replace(ref, shift_px=flat_shifts(ref, shape))
+    ref = replace(ref, shift_px=flat_shifts(ref, shape), rms_px=whole_spots_rms(ref, shape))
     if ref.counts["observed"] < min_features:
         raise RestorationFailed(f"too few features on flat water: {ref.counts['observed']}")
     return ref

@@ -133,6 +133,20 @@ class Restoration:
         from :attr:`map_cols` and :attr:`map_rows`."""
         return cv2.merge([self.map_cols, self.map_rows])
 
+    def restrict(self, sampled_ok: NDArray[np.bool_]) -> None:
+        """Take back the restored pixels whose sample of the distorted image is not data:
+        ``sampled_ok`` (H, W) False where the warp's sample falls on pixels the camera did not
+        record (a real lens's image resampled into its pinhole: past the sensor's edge). They
+        become 0, not valid, and are counted as ``out_of_view``."""
+        lost = self.valid & ~sampled_ok
+        n = int(lost.sum())
+        if n == 0:
+            return
+        self.valid[lost] = False
+        self.image[lost] = 0
+        self.counts["ok"] = self.counts.get("ok", 0) - n
+        self.counts["out_of_view"] = self.counts.get("out_of_view", 0) + n
+
     @property
     def warp_px(self) -> NDArray[np.float32]:
         """The warp as (H, W, 2) ``(col, row)`` pixels of the distorted image; NaN where not

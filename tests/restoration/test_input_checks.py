@@ -73,6 +73,36 @@ def test_a_png_preview_of_the_same_exr_is_not_ambiguous(frames, tmp_path):
     assert restore_folder(folder, write=False).result.status == "ok"
 
 
+def test_the_tools_own_preview_never_makes_its_frame_ambiguous(frames, tmp_path):
+    """A preview the render recorded as its own is never a second image, however little it
+    correlates with the EXR (a coded pattern's colour preview, a clipped exposure); once the
+    EXR beside it is another frame's, the stale preview is a differing file again."""
+    from wai_core.images import PREVIEWS_FILE, record_previews
+
+    folder = _case(frames, tmp_path, flat_view=False)
+    assert (frames[0] / PREVIEWS_FILE).is_file()  # the render recorded its previews
+    pattern = read_exr(folder / "pattern.exr")
+    glare = np.clip(pattern * 50.0 / pattern.max(), 0, 1)  # a preview that clips every spot
+    write_png(folder / "pattern.png", glare, exposure=1.0)
+    assert restore_folder(folder, write=False).result.status == "ambiguous_input"  # unrecorded
+    record_previews(folder, {"pattern.png": ("pattern.exr", pattern)})
+    result = restore_folder(folder, write=False).result
+    assert result.status == "ok" and not result.warnings
+    write_exr(folder / "pattern.exr", read_exr(frames[1] / "pattern.exr"))
+    result = restore_folder(folder, write=False).result
+    assert result.status == "ambiguous_input" and "pattern.png" in result.message
+
+
+def test_a_coded_pattern_render_restores_ok(quick_cfg, tmp_path):
+    """``[pattern] code = "colour"``: the render's colour previews leave its status alone."""
+    folder = tmp_path / "coded"
+    render_folder(quick_cfg.replace("pattern", code="colour"), folder, progress=False)
+    done = restore_folder(folder, write=False)
+    assert done.result.status == "ok", done.result.message
+    assert "decoded" in done.result.features.counts
+    assert done.metrics["wai_rmse_mm"] < 0.1  # 0.016-0.042 mm on unseen surfaces
+
+
 @pytest.mark.parametrize("wrong", ["turned", "other moment"])
 def test_a_wrong_view_is_a_view_mismatch_against_the_flat_view(frames, tmp_path, wrong):
     folder = _case(frames, tmp_path)

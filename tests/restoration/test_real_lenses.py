@@ -94,3 +94,43 @@ def test_the_flat_water_pattern_pins_camera_s_where_a_checkerboard_leaves_it(len
     assert keys["camera_s.focal_mm"] == pytest.approx(true.camera_s.focal_mm, rel=3e-4)
     np.testing.assert_allclose(keys["camera_s.principal_offset_px"], [15.0, -10.0], atol=0.2)
     assert fit.rms_after_px < 0.5 * fit.rms_before_px and fit.n_spots > 500
+
+
+PINCUSHION = {"camera_v.distortion": [0.12, 0.0, 0.0, 0.0, 0.0],
+              "camera_v.principal_offset_px": [-9.0, 0.0]}
+
+
+@pytest.fixture(scope="module")
+def view_lenses(paper_cfg, tmp_path_factory):
+    """One sea through camera v's ideal lens and through a pincushion lens off centre, whose
+    ideal pinhole sees past the real sensor's edge."""
+    cfg = paper_cfg.replace("render", spp_pattern=4, spp_view=4)
+    out = {}
+    for name, lens in (("ideal", {}), ("pincushion", PINCUSHION)):
+        out[name] = tmp_path_factory.mktemp(name) / "frame"
+        render_folder(with_keys(cfg, lens), out[name], progress=False)
+    return out
+
+
+def test_a_real_lens_restores_no_pixel_its_sensor_did_not_record(view_lenses):
+    """Every restored pixel's sample lies on the real sensor (OpenCV's projection of its ray
+    through the lens), and the restored view scores as well as the ideal lens's."""
+    ideal = restore_folder(view_lenses["ideal"], write=False)
+    real = restore_folder(view_lenses["pincushion"], write=False)
+    assert real.result.status == "ok", real.result.message
+    view = real.result.view
+    dev = real.cal.cfg.camera_v
+    f = dev.focal_mm * dev.width_px / dev.sensor_width_mm
+    centre = np.array([(dev.width_px - 1) / 2, (dev.height_px - 1) / 2])
+    u = view.map_px[view.valid].astype(float)  # the pinhole pixels sampled
+    rays = np.column_stack([(u - centre) / f, np.ones(len(u))])
+    k = np.array([[f, 0, centre[0] + PINCUSHION["camera_v.principal_offset_px"][0]],
+                  [0, f, centre[1] + PINCUSHION["camera_v.principal_offset_px"][1]], [0, 0, 1]])
+    px, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), k,
+                              np.array(PINCUSHION["camera_v.distortion"]))
+    px = px[:, 0]
+    assert np.all((px >= -1e-3).all(axis=1) & (px[:, 0] <= dev.width_px - 1 + 1e-3)
+                  & (px[:, 1] <= dev.height_px - 1 + 1e-3))
+    assert (~view.valid).sum() > (~ideal.result.view.valid).sum()  # the band is left out
+    psnr = {n: d.metrics["restored"]["psnr_db"] for n, d in (("ideal", ideal), ("real", real))}
+    assert psnr["real"] > psnr["ideal"] - 1.0, psnr

@@ -227,6 +227,22 @@ def test_bench_inputs_flags_every_wrong_input_and_passes_the_right_ones(quick_to
     assert status["view turned 180 deg, with view_flat"] == "view_mismatch"
     assert status["view 0.5 s later, with view_flat"] == "view_mismatch"
     assert "bad_reference" in capsys.readouterr().out
+    # A calibration that is off: every ok frame is right (the truth agrees), and the
+    # flat-water residual moves as the error does.
+    by = {r["case"]: r for r in rows}
+    right, pp1 = by["right images"], by["camera s principal point +1 px"]
+    for r in rows:  # (1 spp: the views' noise sets the corners' spread)
+        if r["case"].startswith("camera") and r["status"] == "ok":
+            assert r["corner_std_px"] <= 1.3 * right["corner_std_px"], r
+    # A principal point 1 px off moves every predicted spot by 1 px (the residual reads about
+    # one pixel), and flat-water and wavy spots alike: referred to the reference, it cancels.
+    assert pp1["status"] == "ok"
+    assert pp1["rmse_mm"] == pytest.approx(right["rmse_mm"], rel=0.05, abs=0.002)
+    assert pp1["reference_rms_spacings"] == pytest.approx(1 / 13.05, rel=0.15)  # 13.05 px apart
+    assert by["camera s principal point +3 px"]["status"] == "bad_reference"
+    f01 = by["camera s focal length +0.1 %"]["reference_rms_spacings"]
+    f1 = by["camera s focal length +1 %"]["reference_rms_spacings"]
+    assert right["reference_rms_spacings"] < 0.01 < f01 < f1  # docs/rig.md: 1 % for a good rig
 
 
 @pytest.mark.parametrize("text", ["", "800", "10x10", "640x480,axb"])
