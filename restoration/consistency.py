@@ -39,13 +39,20 @@ from restoration.reverse_trace._surface import SplinePatches, check_patches
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 
-__all__ = ["INCONSISTENT_FRACTION", "Consistency", "spot_consistency"]
+__all__ = ["GROSS_FRACTION", "INCONSISTENT_FRACTION", "Consistency", "spot_consistency"]
 
 Array = NDArray[np.float64]
 
 INCONSISTENT_FRACTION = 0.025
 """Median spot residual, as a fraction of the median dot spacing in px, above which a frame's
 surface cannot be right (see the module notes)."""
+GROSS_FRACTION = 0.2
+"""A sample whose residual exceeds this fraction of the median dot spacing is not reproduced at
+all: a spot given the wrong dot's label, or a detection that is no single spot. The surface
+around it follows that sample, not the water. On the paper's rig (13 px spacing) that is 2.6
+px, 20-80 times the detector's own error; of 120 frames restored right, six hold one such
+sample (a merged or cut spot) and none two, while the frames wrong over a region hold 3-6 of
+them, side by side (docs/results.md, "Knowing when a frame is wrong")."""
 _NEWTON_STEPS = 3  # ray-surface hit, started at the sample: it moves by well under a cell
 
 
@@ -103,6 +110,27 @@ class Consistency:
         """Whether the median residual is within the threshold."""
         return bool(self.median_px <= self.threshold_px)
 
+    @property
+    def gross_px(self) -> float:
+        """The residual beyond which a sample is not reproduced at all (see
+        :data:`GROSS_FRACTION`), px."""
+        return self.threshold_px * GROSS_FRACTION / INCONSISTENT_FRACTION
+
+    @property
+    def gross(self) -> NDArray[np.bool_]:
+        """(K,) bool: the samples the surface does not reproduce at all (residual above
+        :attr:`gross_px`)."""
+        return np.nan_to_num(self.residual_px, nan=0.0) > self.gross_px
+
+    def where_gross(self) -> str:
+        """Where the :attr:`gross` samples lie, in words (their count and the middle of them,
+        lab mm)."""
+        g = self.gross
+        if not g.any():
+            return "nowhere"
+        x, y = np.median(self.xy_mm[g], axis=0)
+        return f"{int(g.sum())} spots around x = {x:.0f}, y = {y:.0f} mm"
+
     def summary(self) -> dict[str, Any]:
         """Plain values for ``metrics.json`` (``confident_fraction``: of the samples, those
         whose residual is within the threshold)."""
@@ -113,6 +141,7 @@ class Consistency:
             "threshold_px": self.threshold_px,
             "consistent": self.consistent,
             "n_predicted": self.n_predicted,
+            "n_gross": int(self.gross.sum()),
             "confident_fraction": float(np.mean(self.residual_px[finite] <= self.threshold_px))
             if finite.any() else 0.0,
         }

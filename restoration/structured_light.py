@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -162,6 +163,10 @@ def _estimate_surface(
 
 
 # Most label shifts tried when the pattern leaves the labels ambiguous (each costs a surface).
+MAX_REJECTION_ROUNDS = 2
+"""Times a frame's surface is estimated again without the samples it did not reproduce at all
+(:attr:`~restoration.consistency.Consistency.gross`); what is left after them marks the frame
+``inconsistent``."""
 MAX_SHIFT_CANDIDATES = 24
 # A shifted labelling must keep this fraction of the features on lit dots to be considered.
 MIN_SHIFT_KEEP = 0.8
@@ -319,6 +324,11 @@ def frame_status(
             f"the surface misses the detected spots by {check.median_px:.2f} px (median; "
             f"threshold {check.threshold_px:.2f} px)"
         )
+    if check.gross.any():
+        return Status.INCONSISTENT, (
+            f"the surface misses {check.where_gross()} by more than {check.gross_px:.1f} px "
+            "(a fifth of the dot spacing): it is wrong there"
+        )
     if not view_ok:
         return Status.DARK_VIEW, "the view image holds no signal (all pixels alike)"
     if options.anchor == "integrability" and surface.anchor.method == "gauge_fallback":
@@ -424,32 +434,33 @@ class StructuredLight:
                         features, surface, reference, cal, options
                     )
                     obs = obs if shifted_obs is None else shifted_obs
-                heightfield = surface.heightfield  # a patch too small to grid fails here
+                surface.heightfield  # noqa: B018  (a patch too small to grid fails here)
+            surface, view, check = self._view_and_check(images, cal, obs, surface, reference,
+                                                        state, timings)
+            rejected_xy = np.zeros((0, 2))
+            for _ in range(MAX_REJECTION_ROUNDS):
+                if not check.gross.any():
+                    break
+                # Samples the surface does not reproduce at all pull it off the water around
+                # them: the surface is estimated again without them, and left unknown where
+                # they were the nearest samples.
+                drop = check.gross | unchecked_beside(surface.ij, check)
+                features = without_samples(features, surface.ij[drop])
+                rejected_xy = np.vstack([rejected_xy, check.xy_mm[drop]])
+                with timings("surface"):
+                    obs = cal.observe(features.ij, features.spot_px,
+                                      flat_referenced=options.flat_referenced)
+                    surface = estimate_surface(obs, cal, options,
+                                               None if track is None else track.start_mm)
+                surface, view, check = self._view_and_check(images, cal, obs, surface,
+                                                            reference, state, timings,
+                                                            rejected_xy)
         except RestorationFailed as exc:
             if state is not None:
                 state.take(None, ok=False)
             return RestoreResult(self.name, Status.FAILED, str(exc))
         if track is not None:
             track.update(surface.anchor)
-        rows = _rows_of(obs, surface.ij)
-        spots = obs.spot_px[rows]
-        with timings("surface"):
-            if options.fit_spots:
-                surface = fit_to_spots(surface, spots, cal)
-                heightfield = surface.heightfield
-        with timings("reverse_trace"):
-            # The check and the view evaluate one spline table of the surface; the check runs
-            # beside the view (it reads neither the view nor its results).
-            patches = SplinePatches(heightfield)
-            rays = (obs.origin_mm, obs.dirs[rows])
-            checked = run_beside(
-                lambda: _timed_check(surface, spots, cal, reference, patches, rays)
-            )
-            view = cal.restore_view(images["view"], heightfield, options.warp_step_px,
-                                    gain=cal.view_gain, patches=patches,
-                                    state=None if state is None else state.view_state)
-            check, check_ms = checked()
-        timings.add("consistency", check_ms)
         timings.add("end_to_end", timings.total("features", "surface", "reverse_trace"))
         status, message = frame_status(
             features, reference, surface, check,
@@ -463,6 +474,71 @@ class StructuredLight:
             features.counts, check, reference_rms_px=float(reference.rms_px),
             reference_spacing_px=reference.median_spacing_px,
         )
+
+
+    def _view_and_check(
+        self, images: dict[str, NDArray], cal: Calibration, obs: Observations,
+        surface: SurfaceEstimate, reference: ReferenceGrid, state: SequenceState | None,
+        timings: Timings, rejected_xy_mm: NDArray | None = None,
+    ) -> tuple[SurfaceEstimate, Any, Consistency]:
+        """The surface refitted to its spots (when the options say so) and left unknown near
+        the samples rejected (``rejected_xy_mm`` (R, 2)), the view restored through it and the
+        forward check of it; their times added to ``timings``."""
+        options = self.options
+        rows = _rows_of(obs, surface.ij)
+        spots = obs.spot_px[rows]
+        with timings("surface"):
+            if options.fit_spots:
+                surface = fit_to_spots(surface, spots, cal)
+            if rejected_xy_mm is not None:
+                surface = surface.unknown_near(rejected_xy_mm)
+            heightfield = surface.heightfield
+        with timings("reverse_trace"):
+            # The check and the view evaluate one spline table of the surface; the check runs
+            # beside the view (it reads neither the view nor its results).
+            patches = SplinePatches(heightfield)
+            rays = (obs.origin_mm, obs.dirs[rows])
+            checked = run_beside(
+                lambda: _timed_check(surface, spots, cal, reference, patches, rays)
+            )
+            view = cal.restore_view(images["view"], heightfield, options.warp_step_px,
+                                    gain=cal.view_gain, patches=patches,
+                                    state=None if state is None else state.view_state)
+            check, check_ms = checked()
+        timings.add("consistency", check_ms)
+        return surface, view, check
+
+
+UNCHECKED_REACH = 2
+"""Lattice steps from a sample the surface did not reproduce within which the samples the
+check could not reach (at the surface's edge) are left out with it."""
+
+
+def unchecked_beside(ij: NDArray, check: Consistency) -> NDArray[np.bool_]:
+    """(K,) bool: the samples (grid indices ``ij`` (K, 2)) whose residual the check could not
+    compute, within :data:`UNCHECKED_REACH` dots of one it found wrong
+    (:attr:`~restoration.consistency.Consistency.gross`): a wrong label seldom comes alone,
+    and these could not say whether they share it."""
+    gross = check.gross
+    unchecked = np.isnan(check.residual_px)
+    if not (gross.any() and unchecked.any()):
+        return np.zeros(len(ij), bool)
+    steps = np.abs(ij[unchecked][:, None, :] - ij[gross][None, :, :]).max(axis=2)
+    out = np.zeros(len(ij), bool)
+    out[np.flatnonzero(unchecked)[steps.min(axis=1) <= UNCHECKED_REACH]] = True
+    return out
+
+
+def without_samples(features: Matches, ij: NDArray) -> Matches:
+    """``features`` without the samples whose grid indices are ``ij`` (K, 2), counted as
+    ``rejected_inconsistent``: spots the surface built from them did not reproduce at all."""
+    drop = (features.ij[:, None, :] == np.asarray(ij)[None, :, :]).all(axis=2).any(axis=1)
+    counts = {**features.counts, "rejected_inconsistent":
+              features.counts.get("rejected_inconsistent", 0) + int(drop.sum())}
+    keep = ~drop
+    return replace(features, ij=features.ij[keep], ref_px=features.ref_px[keep],
+                   spot_px=features.spot_px[keep], observed=features.observed[keep],
+                   counts=counts)
 
 
 def match_features(

@@ -202,6 +202,39 @@ class SurfaceEstimate:
         object.__setattr__(new, "_heightfield", heightfield)
         return new
 
+    def unknown_near(self, rejected_xy_mm: Array) -> SurfaceEstimate:
+        """This estimate with its surface left unknown (NaN) at the grid nodes nearer to one of
+        ``rejected_xy_mm`` (R, 2), samples left out as wrong, than to any sample kept: what
+        the surface there would be is a guess from the samples around.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> xy = np.array([[x, y] for y in range(0, 30, 10) for x in range(0, 30, 10)], float)
+        >>> est = SurfaceEstimate(np.zeros((9, 2), np.int64), np.column_stack([xy, np.zeros(9)]),
+        ...                       np.tile([0.0, 0.0, 1.0], (9, 1)), np.zeros((9, 2)), 0, np.nan,
+        ...                       grid_spacing_mm=1.0)
+        >>> hf = est.unknown_near(np.array([[30.0, 30.0]])).heightfield
+        >>> bool(np.isnan(hf.z[-1, -1])), bool(np.isnan(hf.z[0, 0]))
+        (True, False)
+        """
+        from scipy.spatial import cKDTree
+
+        hf = self.heightfield
+        rejected = np.asarray(rejected_xy_mm, dtype=float).reshape(-1, 2)
+        known = np.isfinite(hf.z)
+        if not len(rejected) or not known.any():
+            return self
+        xx, yy = np.meshgrid(hf.x, hf.y)
+        nodes = np.column_stack([xx[known], yy[known]])
+        d_kept, _ = cKDTree(self.points_mm[:, :2]).query(nodes)
+        d_rejected, _ = cKDTree(rejected).query(nodes)
+        z = hf.z.copy()
+        z.ravel()[np.flatnonzero(known.ravel())[d_rejected < d_kept]] = np.nan
+        new = replace(self, anchor=replace(self.anchor))
+        object.__setattr__(new, "_heightfield", replace(hf, z=z))
+        return new
+
     @property
     def heightfield(self) -> Heightfield:
         """Absolute heights on a regular grid, mm; NaN outside the samples' convex hull and over

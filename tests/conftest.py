@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -33,3 +37,51 @@ def shrink(cfg: SystemConfig, factor: int = 4, spp: int = 4) -> SystemConfig:
 @pytest.fixture(scope="package")
 def small_cfg(paper_cfg) -> SystemConfig:
     return shrink(paper_cfg)
+
+
+@dataclasses.dataclass(frozen=True)
+class Installed:
+    """The package as ``pip install`` puts it: built into a wheel from the checkout's files,
+    installed into a folder of its own (``site``; its dependencies are this environment's),
+    and run from another folder (``elsewhere``), as a user runs it."""
+
+    site: Path
+    elsewhere: Path
+    numba_cache: Path
+
+    def run(self, *args: str, timeout: float = 600, cwd: Path | None = None
+            ) -> subprocess.CompletedProcess:
+        """``python -m wai ARGS`` from :attr:`elsewhere` (or ``cwd``), the installed copy
+        first on the path."""
+        env = {**os.environ, "PYTHONPATH": str(self.site),
+               "NUMBA_CACHE_DIR": str(self.numba_cache)}
+        return subprocess.run([sys.executable, "-m", "wai", *args], cwd=cwd or self.elsewhere,
+                              env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def _checkout_files() -> list[str]:
+    """The checkout's files a wheel is built from: tracked and untracked, git's ignores left
+    out (the virtual environment, renders, caches)."""
+    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others",
+                             "--exclude-standard"], cwd=ROOT, capture_output=True, check=True)
+    return [name for name in listed.stdout.decode().split("\0")
+            if name and (ROOT / name).is_file()]
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory) -> Installed:
+    """A plain install of the package (see :class:`Installed`), once per test module."""
+    root = tmp_path_factory.mktemp("install")
+    src, wheels, site = root / "src", root / "wheels", root / "site"
+    for name in _checkout_files():
+        (src / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(ROOT / name, src / name)
+    pip = [sys.executable, "-m", "pip", "-q", "--disable-pip-version-check"]
+    subprocess.run([*pip, "wheel", "--no-deps", str(src), "-w", str(wheels)], check=True,
+                   capture_output=True, timeout=600)
+    wheel = next(wheels.glob("*.whl"))
+    subprocess.run([*pip, "install", "--no-deps", "--target", str(site), str(wheel)],
+                   check=True, capture_output=True, timeout=600)
+    elsewhere = root / "elsewhere"
+    elsewhere.mkdir()
+    return Installed(site, elsewhere, root / "numba-cache")

@@ -336,11 +336,10 @@ def _bench_capture(args: argparse.Namespace) -> _BenchRun:
 
 
 def _capture_options(p: argparse.ArgumentParser) -> None:
-    from wai.bench.capture import DEFAULT_VIDEO
-
-    p.add_argument("--video", type=Path, default=DEFAULT_VIDEO,
+    p.add_argument("--video", type=Path, required=True,
                    help="a video file or a folder of frames of a planar checkerboard seen "
-                   f"through water (default: {DEFAULT_VIDEO}, the CMU capture)")
+                   "through water, such as Tian & Narasimhan's CMU capture (docs/results.md, "
+                   "\"A real capture\")")
     p.add_argument("--board", default="8x6",
                    help="the board's inner corners, COLSxROWS (default: 8x6, the CMU board)")
 

@@ -61,7 +61,9 @@ class Matches:
         Lattice nodes dropped: ``rejected_order`` (break eq. 33 with a grid neighbour),
         ``rejected_merged`` (their spot is a merged blob), ``rejected_ambiguous`` (two candidate
         spots, or a spot claimed by two nodes), ``rejected_border`` (spot cut by the image or
-        diffuser edge, or saturated), ``rejected_unlit`` (matched to a node that is not a lit dot).
+        diffuser edge, or saturated), ``rejected_unlit`` (matched to a node that is not a lit dot);
+        after the surface, ``rejected_inconsistent`` (spots the surface built with them did not
+        reproduce at all: :func:`restoration.structured_light.without_samples`).
         ``unmatched_reference``: dots seen on flat water but lost in the wavy image.
         ``unassigned_spots``: detected spots given to no dot. ``anchor_di``, ``anchor_dj``:
         lattice shift applied to the proximity labelling; ``anchor_candidates``: how many shifts

@@ -265,3 +265,15 @@ def test_bench_capture_names_its_board_option(text):
 
 def test_bench_capture_names_a_missing_video(tmp_path):
     assert main(["bench", "capture", "--video", str(tmp_path / "none.avi")]) == 2
+
+
+def test_accuracy_verdicts_set_the_status_beside_the_truth():
+    from wai.bench.accuracy import verdict_counts
+
+    def run(seed, status, right):
+        return {"seed": seed, "verdict": {"status": status, "right": right}}
+
+    v = verdict_counts([run(0, "ok", True), run(1, "ok", False), run(2, "inconsistent", True),
+                        run(3, "failed", False)])
+    assert v["statuses"] == {"ok": 2, "inconsistent": 1, "failed": 1}
+    assert (v["ok_but_wrong"], v["right_but_flagged"], v["right"]) == ([1], [2], 2)

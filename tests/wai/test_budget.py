@@ -51,6 +51,30 @@ def test_summary_finds_where_rmse_passes_each_limit_and_counts_flags():
     assert s["detection"]["bad"] == 2 and s["detection"]["detection_rate"] == 0.5
 
 
+def test_summary_counts_the_frames_that_fail_beside_the_mean_of_those_that_did_not():
+    """A magnitude where one frame of two fails has a fine mean RMSE over the frame that gave
+    a surface: its ok share (50 %) says what the mean hides, and the reach stops before it."""
+    def row(m, seed, rmse, status="ok"):
+        return {"effect": "capillary", "magnitude": m, "seed": seed, "status": "ok",
+                "method_status": status, "wai_rmse_mm": rmse, "wai_rmse_demeaned_mm": rmse,
+                "corner_std_restored_px": 0.1, "residual_median_px": 0.05}
+
+    rows = [row(0.0, 0, 0.02) | {"effect": "none"}, row(0.0, 1, 0.02) | {"effect": "none"},
+            row(3.0, 0, 0.03), row(3.0, 1, 0.03), row(4.0, 0, 0.04),
+            row(4.0, 1, None, "failed"), row(6.0, 0, None, "sparse"), row(6.0, 1, 0.05)]
+    eff = budget_summary(rows)["effects"]["capillary"]
+    at = {e["magnitude"]: e for e in eff["entries"]}
+    assert at[4.0]["rmse_mm"] == pytest.approx(0.04)  # the mean of the frame with a surface
+    assert (at[3.0]["ok_fraction"], at[4.0]["ok_fraction"], at[4.0]["failed_fraction"]) == (
+        1.0, 0.5, 0.5)
+    assert at[6.0]["sparse_fraction"] == 0.5
+    assert eff["reach"] == 3.0
+    from wai.experiments.budget import budget_markdown
+
+    text = budget_markdown(budget_summary(rows), "cmd")
+    assert "| 4 | 2 | 50% | 50% | 0% |" in text
+
+
 def test_with_keys_names_an_unknown_key():
     with pytest.raises(WaiInputError, match="water.nope"):
         with_keys(load_system("paper"), {"water.nope": 1})

@@ -130,9 +130,54 @@ def run_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Any]:
     return {
         "seed": seed,
         "metrics": {k: v for k, v in metrics.items() if not k.startswith("timings")},
+        "verdict": truth_verdict(done),
         "error_budget": budget,
         "corner_floor_px": corner_floor_px(done, truth),
         "spot_noise": spot_noise_px(cal.cfg, result.features, truth),
+    }
+
+
+WRONG_CORNER_STD_PX = 0.3
+"""A restored view whose corner STD exceeds this (px) is wrong somewhere."""
+WRONG_SURFACE_MM = 0.5
+"""A surface node off the truth by more than this (mm) is restored wrongly."""
+RIGHT_SHARE = 0.99
+"""A frame is right where it restored when at least this share of its surface nodes is within
+:data:`WRONG_SURFACE_MM` and its corner STD within :data:`WRONG_CORNER_STD_PX`."""
+
+
+def truth_verdict(done: Any) -> dict[str, Any]:
+    """What the truth says of ``done`` (a FolderRestore) beside its truth-free status: the
+    share of its surface nodes within :data:`WRONG_SURFACE_MM` of the truth, its corner STD,
+    and whether it is right where it restored (:data:`RIGHT_SHARE`); ``right`` is False for a
+    frame that restored nothing."""
+    status = str(done.result.status.value)
+    scores = done.scores
+    if scores is None or scores.error_map_mm is None:
+        return {"status": status, "within_mm_share": None, "corner_std_px": None,
+                "right": False}
+    err = np.abs(scores.error_map_mm)
+    err = err[np.isfinite(err)]
+    share = float(np.mean(err <= WRONG_SURFACE_MM)) if err.size else 0.0
+    std = scores.corner_std_restored_px
+    right = share >= RIGHT_SHARE and (std is None or not std > WRONG_CORNER_STD_PX)
+    return {"status": status, "within_mm_share": share, "corner_std_px": std,
+            "right": bool(right)}
+
+
+def verdict_counts(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """How the truth-free statuses of ``runs`` agree with the truth (:func:`truth_verdict`):
+    the statuses, the ``ok`` frames that are wrong somewhere, and the right frames flagged."""
+    statuses: dict[str, int] = {}
+    for r in runs:
+        statuses[r["verdict"]["status"]] = statuses.get(r["verdict"]["status"], 0) + 1
+    ok = [r for r in runs if r["verdict"]["status"] == "ok"]
+    right = [r for r in runs if r["verdict"]["right"]]
+    return {
+        "frames": len(runs), "statuses": statuses,
+        "ok_but_wrong": [r["seed"] for r in ok if not r["verdict"]["right"]],
+        "right_but_flagged": [r["seed"] for r in right if r["verdict"]["status"] != "ok"],
+        "right": len(right),
     }
 
 
@@ -254,6 +299,7 @@ def run_accuracy(config: str | Path, out: str | Path, seeds: int, wind: float | 
         "spp": [cfg.render.spp_pattern, cfg.render.spp_view],
         "seeds": list(range(seeds)),
         "summary": summarize_runs(runs),
+        "verdicts": verdict_counts(runs),
         "runs": runs,
     }
     write_json(out / "accuracy.json", result)
@@ -266,5 +312,12 @@ def print_accuracy(res: dict[str, Any]) -> None:
     print(f"{len(res['seeds'])} seeds, U = {res['wind_speed_m_s']} m/s, {res['surface']} surface")
     for k, v in s.items():
         print(f"  {k:38s} {v['mean']:10.4f} ± {v['std']:.4f}")
+    v = res.get("verdicts")
+    if v:
+        print(f"statuses {v['statuses']}; right where restored (truth: corner STD <= "
+              f"{WRONG_CORNER_STD_PX:g} px, {RIGHT_SHARE:.0%} of the surface within "
+              f"{WRONG_SURFACE_MM:g} mm): {v['right']} of {v['frames']}; ok but wrong: "
+              f"{len(v['ok_but_wrong'])} {v['ok_but_wrong']}; right but flagged: "
+              f"{len(v['right_but_flagged'])} {v['right_but_flagged']}")
 
 

@@ -20,8 +20,6 @@ import numpy as np
 from wai.bench.timing import machine, reference_workload
 from wai_core.errors import WaiInputError
 
-DEFAULT_VIDEO = Path("../shared/data/cmu-water/checkboard.avi")
-"""Tian & Narasimhan's CMU capture, where the project's shared data keeps it."""
 SAME_CORNER_PX = 8.0
 """A fused image's corner and the mean's are the same corner within this distance, px."""
 

@@ -29,7 +29,10 @@ from wai.experiments.stability import BAD_RMSE_MM, detection_rates
 from wai.sweep import SweepOptions, run_sweep
 from wai_core.io import atomic_write_bytes, write_json
 
-__all__ = ["ADDED_LIMIT_MM", "EFFECTS", "Effect", "budget_points", "budget_summary", "run_budget"]
+__all__ = [
+    "ADDED_LIMIT_MM", "EFFECTS", "OK_SHARE", "Effect", "budget_points", "budget_summary",
+    "run_budget",
+]
 
 
 @dataclass(frozen=True)
@@ -148,11 +151,13 @@ def _status(row: dict[str, Any]) -> str:
 
 
 def budget_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per effect and magnitude: frames, statuses, mean RMSE (absolute, de-meaned; over all
-    frames that gave a surface), corner STD, residual; each effect's magnitude at which the
-    RMSE passes the baseline's by :data:`ADDED_LIMIT_MM` (``"+0.05"``) and passes
-    :data:`~wai.experiments.stability.BAD_RMSE_MM` (``"1"``); and the detection of ruined
-    frames."""
+    """Per effect and magnitude: frames, statuses and the shares of frames ``ok``, failed and
+    ``sparse``, mean RMSE (absolute, de-meaned; over the frames that gave a surface), corner
+    STD, residual; each effect's magnitude at which the RMSE passes the baseline's by
+    :data:`ADDED_LIMIT_MM` (``"+0.05"``) and passes
+    :data:`~wai.experiments.stability.BAD_RMSE_MM` (``"1"``), and its ``reach`` (the largest
+    magnitude up to which every one has :data:`OK_SHARE` of its frames ``ok``; None when the
+    first does not); and the detection of ruined frames."""
     base = [r for r in rows if r.get("effect") == "none"]
     out: dict[str, Any] = {"baseline": _entry(0.0, base), "effects": {}}
     for name in EFFECTS:
@@ -167,19 +172,35 @@ def budget_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         for key, limit in limits.items():
             over = [e["magnitude"] for e in entries if not e["rmse_mm"] <= limit]
             crossing[key] = over[0] if over else None
+        # The reach: magnitudes up to the first where fewer than OK_SHARE of frames are ok.
+        reach = None
+        for e in entries:
+            if e["ok_fraction"] < OK_SHARE:
+                break
+            reach = e["magnitude"]
         out["effects"][name] = {"label": EFFECTS[name].label, "entries": entries,
-                                "passes_mm": crossing}
+                                "passes_mm": crossing, "reach": reach}
     effect_rows = [r for r in rows if r.get("effect") != "none"]
     out["detection"] = detection_rates([{**r, "sweep": r.get("effect")} for r in effect_rows])
     return out
+
+
+OK_SHARE = 0.95
+"""The share of frames that must restore ``ok`` at an effect's magnitude for the model to
+reach it (a magnitude where more fail is past the restoration's reach, whatever the RMSE of
+the frames that gave a surface)."""
 
 
 def _entry(magnitude: float, group: list[dict[str, Any]]) -> dict[str, Any]:
     statuses: dict[str, int] = {}
     for r in group:
         statuses[_status(r)] = statuses.get(_status(r), 0) + 1
+    n = max(len(group), 1)
     return {
         "magnitude": magnitude, "frames": len(group), "statuses": statuses,
+        "ok_fraction": statuses.get("ok", 0) / n,
+        "failed_fraction": (statuses.get("failed", 0) + statuses.get("error", 0)) / n,
+        "sparse_fraction": statuses.get("sparse", 0) / n,
         "rmse_mm": _stat(group, "wai_rmse_mm"),
         "rmse_min_mm": _stat(group, "wai_rmse_mm", np.min),
         "rmse_max_mm": _stat(group, "wai_rmse_mm", np.max),
@@ -245,31 +266,37 @@ def budget_markdown(summary: dict[str, Any], command: str) -> str:
              f"statuses {base['statuses']}; per seed {base['rmse_min_mm']:.4f} .. "
              f"{base['rmse_max_mm']:.4f} mm, so differences of a few hundredths of a mm are "
              "the seeds' spread, not the effect.", "",
-             "| effect | realistic magnitude | RMSE there (mm) | passes baseline + "
-             f"{ADDED_LIMIT_MM:g} mm at | passes {BAD_RMSE_MM:g} mm at | must the model include "
-             "it? |", "|" + " --- |" * 6]
+             f"The RMSE columns average the frames that gave a surface; the share of frames "
+             f"`ok` says how many did (an effect is within reach up to the last magnitude "
+             f"where at least {OK_SHARE:.0%} of the frames restore `ok`).", "",
+             "| effect | realistic magnitude | frames ok there | RMSE there (mm) | reach "
+             f"({OK_SHARE:.0%} ok) up to | passes baseline + {ADDED_LIMIT_MM:g} mm at | passes "
+             f"{BAD_RMSE_MM:g} mm at | must the model include it? |", "|" + " --- |" * 8]
     for name, eff in summary["effects"].items():
         real = EFFECTS[name].realistic
         at = next((e for e in eff["entries"] if e["magnitude"] == real), None)
         rmse = at["rmse_mm"] if at else float("nan")
+        share = f"{at['ok_fraction']:.0%} of {at['frames']}" if at else "-"
         verdict = _verdict(at, base)
         p = eff["passes_mm"]
-        lines.append(f"| {name} | {real:g} | {rmse:.4f} | {_fmt(p['+0.05'])} | {_fmt(p['1'])} "
-                     f"| {verdict} |")
+        reach = "none of the magnitudes" if eff.get("reach") is None else f"{eff['reach']:g}"
+        lines.append(f"| {name} | {real:g} | {share} | {rmse:.4f} | {reach} | "
+                     f"{_fmt(p['+0.05'])} | {_fmt(p['1'])} | {verdict} |")
     lines += ["", f"Ruined frames (RMSE over {rates['bad_rmse_mm']:g} mm or failed): "
               f"{rates['bad']} of {rates['frames']}, flagged by the truth-free status: "
               f"{_pct(rates['detection_rate'])} (statuses {rates['bad_statuses']}); good "
               f"frames flagged: {_pct(rates['false_alarm_rate'])}.", ""]
     for name, eff in summary["effects"].items():
         lines += [f"## {name}: {eff['label']}", "",
-                  "| magnitude | frames | statuses | RMSE (mm) | de-meaned (mm) | corner STD "
-                  "(px) | residual (px) |", "|" + " --- |" * 7]
+                  "| magnitude | frames | ok | failed | sparse | statuses | RMSE (mm) | "
+                  "de-meaned (mm) | corner STD (px) | residual (px) |", "|" + " --- |" * 10]
         for e in [summary["baseline"]] + eff["entries"]:
             st = ", ".join(f"{k} {v}" for k, v in sorted(e["statuses"].items()))
             mag = "off" if e is summary["baseline"] else f"{e['magnitude']:g}"
-            lines.append(f"| {mag} | {e['frames']} | {st} | {e['rmse_mm']:.4f} | "
-                         f"{e['rmse_demeaned_mm']:.4f} | {e['corner_std_px']:.3f} | "
-                         f"{e['residual_median_px']:.3f} |")
+            lines.append(f"| {mag} | {e['frames']} | {e['ok_fraction']:.0%} | "
+                         f"{e['failed_fraction']:.0%} | {e['sparse_fraction']:.0%} | {st} | "
+                         f"{e['rmse_mm']:.4f} | {e['rmse_demeaned_mm']:.4f} | "
+                         f"{e['corner_std_px']:.3f} | {e['residual_median_px']:.3f} |")
         lines.append("")
     return "\n".join(lines)
 
