@@ -76,7 +76,7 @@ class RigCalibration:
 
     cfg: SystemConfig
     view_gain: float = 1.0
-    rig: dict[str, Any] | None = field(default=None, compare=False)
+    rig: dict[str, Any] | None = field(default=None, compare=False, kw_only=True)
     _view_plans: dict[int, ViewPlan] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )

@@ -27,6 +27,7 @@ from restoration.features import (
     features_from_code,
     features_from_reference,
 )
+from restoration.features.match import MAX_LABEL_SHIFT
 from restoration.features.track import TrackedSpots, features_tracked
 from restoration.fit import fit_level
 from restoration.normals import projector_rays
@@ -224,6 +225,12 @@ def resolve_label_shift(
             best = (residual, candidate, obs, est)
     _, chosen, obs, est = best
     chosen.counts["label_shift_candidates"] = tried
+    # The slopes integrating best at the edge of the shifts tried: the best labelling may lie
+    # beyond them (its minimum is not bracketed).
+    total = (chosen.counts.get("anchor_di", 0) + chosen.counts.get("label_shift_di", 0),
+             chosen.counts.get("anchor_dj", 0) + chosen.counts.get("label_shift_dj", 0))
+    chosen.counts["label_shift_at_edge"] = int(
+        obs is not None and max(abs(v) for v in total) >= MAX_LABEL_SHIFT)
     return chosen, obs, est
 
 
@@ -318,6 +325,11 @@ def frame_status(
         return Status.SPARSE, (
             f"only {len(features)} of the {in_view} dots in view were matched, and nothing in "
             "the pattern pins their labels (they may be shifted by whole dots)"
+        )
+    if features.counts.get("label_shift_at_edge"):
+        return Status.SPARSE, (
+            "nothing in the pattern pins the labels, and the slopes integrate best at the "
+            f"edge of the shifts tried ({MAX_LABEL_SHIFT} dots): they may be shifted further"
         )
     if not check.consistent:
         return Status.INCONSISTENT, (

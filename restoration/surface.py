@@ -214,8 +214,8 @@ class SurfaceEstimate:
         >>> est = SurfaceEstimate(np.zeros((9, 2), np.int64), np.column_stack([xy, np.zeros(9)]),
         ...                       np.tile([0.0, 0.0, 1.0], (9, 1)), np.zeros((9, 2)), 0, np.nan,
         ...                       grid_spacing_mm=1.0)
-        >>> hf = est.unknown_near(np.array([[30.0, 30.0]])).heightfield
-        >>> bool(np.isnan(hf.z[-1, -1])), bool(np.isnan(hf.z[0, 0]))
+        >>> z = est.unknown_near(np.array([[17.0, 17.0]])).heightfield.z  # nodes 1 mm apart
+        >>> bool(np.isnan(z[17, 17])), bool(np.isnan(z[0, 0]))
         (True, False)
         """
         from scipy.spatial import cKDTree

@@ -233,8 +233,12 @@ def _is_empty(folder: Path) -> bool:
 
 
 def _foreign_entries(folder: Path, limit: int = 3) -> str:
+    """``, holding A, B, C`` of ``folder``'s entries, those the tool did not write first (they
+    are why the folder is not its own)."""
     try:
-        names = sorted(p.name for p in folder.iterdir())
+        marker = output_marker(folder)
+        own = _marked_names(marker) if marker is not None else frozenset()
+        names = sorted((p.name for p in folder.iterdir()), key=lambda n: (n in own, n))
     except OSError:
         return ""
     more = f", ... ({len(names)} entries)" if len(names) > limit else ""

@@ -93,6 +93,9 @@ class Matches:
         return int(self.ij.shape[0])
 
 
+MAX_LABEL_SHIFT = 6
+"""Largest whole-lattice shift of the labels the anchoring tries, dots (each way)."""
+
 # A growth that matches fewer than this fraction of the flat-water dots is tried once more from
 # another seed (see match_distorted).
 REGROW_BELOW = 0.5
@@ -434,7 +437,7 @@ def match_distorted(
     visible_px: FloatArray | None = None,
     prior_px: FloatArray | None = None,
     anchor: bool = True,
-    max_shift: int = 6,
+    max_shift: int = MAX_LABEL_SHIFT,
 ) -> Matches:
     """Label the wavy-water spots with grid indices (robust ordering-based correspondence).
 

@@ -26,6 +26,7 @@ from restoration.features._lattice import _Lattice
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from restoration.features.detect import Spots
 from restoration.features.match import (
+    MAX_LABEL_SHIFT,
     Matches,
     _anchor_shift,
     _kept_order_violations,
@@ -177,7 +178,7 @@ def track_spots(
     visible_px: FloatArray,
     *,
     order_margin_px: float | None = None,
-    max_shift: int = 6,
+    max_shift: int = MAX_LABEL_SHIFT,
     rounds: int = 2,
 ) -> Matches | None:
     """Label ``spots`` from the previous frame's labelled spots, or None where that fails.

@@ -40,7 +40,8 @@ def _status(n_matched, ambiguous, observed=1000, in_view=1000, median_px=0.2, rm
     reference = SimpleNamespace(counts={"predicted_in_view": in_view, "observed": observed},
                                 rms_px=rms_px, median_spacing_px=13.0)
     surface = SimpleNamespace(anchor=Anchor("integrability"))
-    check = SimpleNamespace(consistent=median_px <= 1.0, median_px=median_px, threshold_px=1.0)
+    check = SimpleNamespace(consistent=median_px <= 1.0, median_px=median_px, threshold_px=1.0,
+                            gross=np.zeros(3, bool))
     return frame_status(features, reference, surface, check, True, StructuredLightOptions())
 
 

@@ -1,0 +1,43 @@
+"""Every ``wai experiment`` at ``--quick`` (and one seed where it has seeds), as a user runs it:
+from a plain install (a wheel of the checkout in a folder of its own), in another folder. The
+slow tier."""
+
+from __future__ import annotations
+
+import pytest
+
+from wai.experiments import EXPERIMENTS
+
+pytestmark = pytest.mark.slow
+
+
+def _args(name: str) -> list[str]:
+    exp = EXPERIMENTS[name]
+    args = ["experiment", name, "--quick", "--out", name]
+    if exp.seeds is not None:
+        args += ["--seeds", "1"]
+    if exp.sweep:
+        args += ["--workers", "2", "--no-progress"]
+    return args
+
+
+WRITES = {"validate": "validate.json", "paper": "report.md", "alterman": "report.md",
+          "tradeoffs": "tradeoffs.md", "stability": "stability.md", "budget": "budget.md",
+          "calibration": "calibration.md", "compare": "compare.md",
+          "seawater": "seawater_snr.json"}
+"""A file each experiment's help says it writes."""
+
+
+def test_every_experiment_is_run_here():
+    assert set(WRITES) == set(EXPERIMENTS)
+
+
+@pytest.mark.parametrize("name", list(EXPERIMENTS))
+def test_every_experiment_runs_quick_from_a_plain_install(installed, name):
+    done = installed.run(*_args(name), timeout=900)
+    assert done.returncode == 0, (name, done.stderr[-3000:])
+    assert WRITES[name] in EXPERIMENTS[name].description
+    report = installed.elsewhere / name / WRITES[name]
+    assert report.is_file() and report.stat().st_size > 0
+    if name == "compare":  # the method of one's own it compares by default, by module name
+        assert "as-seen" in (installed.elsewhere / name / "compare.csv").read_text()
