@@ -168,6 +168,11 @@ MAX_REJECTION_ROUNDS = 2
 """Times a frame's surface is estimated again without the samples it did not reproduce at all
 (:attr:`~restoration.consistency.Consistency.gross`); what is left after them marks the frame
 ``inconsistent``."""
+SHARP_MINIMUM_RATIO = 1 / 3
+"""The right labelling's integration residual sits far below every shifted one's (0.09 of the
+runner-up's on the paper's seed 4); between two wrong ones a dot apart it changes 2-3x (0.43
+on a U = 1.5 m/s frame whose labels lay 7 dots off). A best labelling at the edge of the shifts
+tried whose residual is above this fraction of the runner-up's is not taken as pinned."""
 MAX_SHIFT_CANDIDATES = 24
 # A shifted labelling must keep this fraction of the features on lit dots to be considered.
 MIN_SHIFT_KEEP = 0.8
@@ -200,11 +205,14 @@ def resolve_label_shift(
 
     A labelling shifted by whole dots pairs every spot with a neighbouring projector ray: the
     normals then describe no surface, and the integration residual grows (on the paper's rig
-    by 2-3x per dot of shift). ``counts`` gains ``label_shift_candidates`` (tried) and
-    ``label_shift_di/dj`` (applied on top of the pattern's choice). Returns the chosen
-    features, their observations (None when the pattern's own labelling won) and surface.
+    by 2-3x per dot of shift). ``counts`` gains ``label_shift_candidates`` (tried),
+    ``label_shift_di/dj`` (applied on top of the pattern's choice) and
+    ``label_shift_at_edge`` (1 when the best lies at the edge of the shifts tried without a
+    sharp minimum: :data:`SHARP_MINIMUM_RATIO`). Returns the chosen features, their
+    observations (None when the pattern's own labelling won) and surface.
     """
     best = (integration_residual_mm(surface), features, None, surface)
+    residuals = [best[0]]
     tried = 1
     for shift in features.alt_shifts[:MAX_SHIFT_CANDIDATES]:
         if not shift.any():
@@ -221,16 +229,20 @@ def resolve_label_shift(
             continue
         tried += 1
         residual = integration_residual_mm(est, obs.plans)
+        residuals.append(residual)
         if residual < best[0]:
             best = (residual, candidate, obs, est)
     _, chosen, obs, est = best
     chosen.counts["label_shift_candidates"] = tried
-    # The slopes integrating best at the edge of the shifts tried: the best labelling may lie
-    # beyond them (its minimum is not bracketed).
+    # The slopes integrating best at the edge of the shifts tried, and not far better than
+    # at the runner-up: the residual is still falling there, and the best labelling may lie
+    # beyond the shifts tried.
     total = (chosen.counts.get("anchor_di", 0) + chosen.counts.get("label_shift_di", 0),
              chosen.counts.get("anchor_dj", 0) + chosen.counts.get("label_shift_dj", 0))
+    runner_up = sorted(residuals)[1] if len(residuals) > 1 else np.inf
     chosen.counts["label_shift_at_edge"] = int(
-        obs is not None and max(abs(v) for v in total) >= MAX_LABEL_SHIFT)
+        obs is not None and max(abs(v) for v in total) >= MAX_LABEL_SHIFT
+        and best[0] > SHARP_MINIMUM_RATIO * runner_up)
     return chosen, obs, est
 
 
