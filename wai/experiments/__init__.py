@@ -126,8 +126,9 @@ class Experiment:
     methods: bool = False
 
 
-# Durations: measured on a 2-core machine (CPU rendering, llvm_ad_rgb) with --quick; the full
-# runs are estimated from the quick ones by their number and size of frames.
+# Durations: --quick measured on an idle 2-core machine (CPU rendering, llvm_ad_rgb; the
+# restoration's kernels already compiled); the full runs estimated from the quick ones by their
+# number and size of frames.
 EXPERIMENTS: dict[str, Experiment] = {
     "validate": Experiment(
         summary="the renderer against stock Mitsuba, the geometric model against the render",
@@ -145,7 +146,7 @@ EXPERIMENTS: dict[str, Experiment] = {
             "spp_tradeoff.png and validate.json into --out, and prints the tables."
         ),
         quick="2 wave cases, spp 2/8/32 and 1/4, one run each, the reference at 64 / 16 spp",
-        duration="about 2.5 min with --quick; roughly 20 min without (3 times the cases, spp "
+        duration="about 40 s with --quick; roughly 20 min without (3 times the cases, spp "
                   "up to 64 and a 256-spp reference, 3 runs each)",
         run=_run_validate,
     ),
@@ -161,7 +162,7 @@ EXPERIMENTS: dict[str, Experiment] = {
             "one render folder per seed (seedNNN/, with restore/) into --out."
         ),
         quick="2 seeds, 3 amplitude factors",
-        duration="about 35 s with --quick; roughly 2 min without (10 seeds, 8 amplitudes)",
+        duration="about 15 s with --quick; roughly 2 min without (10 seeds, 8 amplitudes)",
         run=_run_paper,
         seeds=10,
         quick_seeds=2,
@@ -176,7 +177,7 @@ EXPERIMENTS: dict[str, Experiment] = {
             "fig14_rmse_vs_sun.png and the render folders (seedNNN/) into --out."
         ),
         quick="seed 0 only, sun at 15 and 60 deg",
-        duration="about 50 s with --quick; roughly 5 min without (3 seeds, 6 sun angles)",
+        duration="about 20 s with --quick; roughly 5 min without (3 seeds, 6 sun angles)",
         run=_run_alterman,
         seeds=3,
         quick_seeds=1,
@@ -192,7 +193,7 @@ EXPERIMENTS: dict[str, Experiment] = {
             "and tradeoffs_series.json into --out, and prints the report."
         ),
         quick="3 spacings, 2 spp, 3 warp steps, one timed restoration per variant",
-        duration="about 85 s with --quick --workers 0; roughly 5 min without --quick (28 "
+        duration="about 25 s with --quick; roughly 5 min without --quick (28 "
                   "frames, spp up to 32, 3 timed restorations per variant)",
         run=_run_tradeoffs,
         seeds=2,
@@ -212,7 +213,7 @@ EXPERIMENTS: dict[str, Experiment] = {
             "the report."
         ),
         quick="2-3 values per sweep, 2 sea states of the coded sweep",
-        duration="about 7 min with --quick; roughly 25 min without (144 frames against 44)",
+        duration="about 2 min with --quick; roughly 25 min without (144 frames against 44)",
         run=_run_stability,
         seeds=2,
         quick_seeds=2,
@@ -234,10 +235,10 @@ EXPERIMENTS: dict[str, Experiment] = {
             "budget_summary.json into --out, and prints the report."
         ),
         quick="one magnitude per effect (two for polarisation)",
-        duration="about 2 min with --quick --seeds 1; roughly 8 min without (36 magnitudes, "
-                  "3 seeds)",
+        duration="about 30 s with --quick --seeds 1; roughly 45 min without (37 "
+                  "magnitudes, 20 seeds: enough to say whether 95 % of frames restore ok)",
         run=_run_budget,
-        seeds=3,
+        seeds=20,
         quick_seeds=1,
         sweep=True,
     ),
@@ -258,7 +259,7 @@ EXPERIMENTS: dict[str, Experiment] = {
             "into --out."
         ),
         quick="one seed, 8 checkerboard views per camera",
-        duration="about 2 min with --quick; roughly 12 min without (10 seeds, 20 renders)",
+        duration="about 25 s with --quick; roughly 12 min without (10 seeds, 20 renders)",
         run=_run_calibration,
         seeds=10,
         quick_seeds=1,
@@ -297,7 +298,7 @@ EXPERIMENTS: dict[str, Experiment] = {
             "Writes seawater_snr.json into --out and prints the table."
         ),
         quick="4 samples per pixel (the packaged paper scene's own count)",
-        duration="about 15 s, with or without --quick on the paper scene (its own spp is 4)",
+        duration="about 5 s, with or without --quick on the paper scene (its own spp is 4)",
         run=_run_seawater,
     ),
 }

@@ -110,7 +110,7 @@ EFFECTS: dict[str, Effect] = {
                         (0.005,), 0.01,
                         lambda m: {"water.roughness": m, "render.spp_pattern": 64}),
     "capillary": Effect(
-        "spectrum cutoff (x omega_p), gravity-capillary waves", (4.0, 6.0), (4.0,), 4.0,
+        "spectrum cutoff (x omega_p), gravity-capillary waves", (3.0, 4.0, 6.0), (4.0,), 4.0,
         lambda m: {"waves.dispersion": "capillary", "waves.omega_max_rel": m},
     ),
 }
