@@ -119,8 +119,11 @@ def run_checkerboards(args: argparse.Namespace, cfg: Any) -> None:
     from tqdm import tqdm
 
     from mitsuba_wai.checkerboards import Board, render_checkerboards
-    from wai_core.io import atomic_dir, write_json, write_png
+    from mitsuba_wai.memory import check_render_memory
+    from wai_core.io import atomic_dir, check_output_dir, write_json, write_png
 
+    check_output_dir(args.out, "render", args.overwrite, label=f"--out {args.out}")
+    check_render_memory(cfg, str(args.config), views=args.checkerboards)
     board = Board()
     seed = cfg.waves.seed
     with atomic_dir(args.out, command="render", overwrite=args.overwrite) as tmp:

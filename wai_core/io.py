@@ -21,6 +21,9 @@ Output policy (:func:`atomic_dir` with ``command``, :func:`check_output_dir`)
   They are removed on any exception, ``KeyboardInterrupt`` included; a later run removes the
   ones a killed run left (its process gone, the marker naming the same command), and only
   those.
+- An output written in place (``wai dataset``'s store, continued by a rerun) is checked by
+  :func:`check_output_dir` like the others and marked with :func:`mark_output` before its
+  first file is written.
 - :func:`catch_signals` (used by the ``wai`` command) turns SIGINT / SIGTERM into exceptions so
   that this clean-up also runs when the process is interrupted or terminated.
 """
@@ -166,6 +169,14 @@ def _write_marker(folder: Path, command: str, files: list[str] | None) -> None:
         "pid": os.getpid(),
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     })
+
+
+def mark_output(folder: str | Path, command: str, files: list[str]) -> None:
+    """Mark ``folder`` as a complete output of ``command`` holding ``files``, for an output
+    written in place rather than through :func:`atomic_dir` (a store a rerun continues, such as
+    ``wai dataset``'s): :func:`check_output_dir` then accepts it for ``command`` as long as it
+    holds nothing else."""
+    _write_marker(Path(folder), command, sorted(files))
 
 
 def _is_nested_output(path: Path) -> bool:

@@ -21,6 +21,7 @@ import pytest
 
 from tests.conftest import PAPER_TOML, ROOT
 from wai.cli import main
+from wai_core.config import load_config
 from wai_core.io import OUTPUT_MARKER, atomic_dir, output_marker
 
 ALTERMAN_TOML = ROOT / "scenes" / "alterman.toml"
@@ -436,3 +437,72 @@ def test_a_cold_kernel_cache_is_noticed(tmp_path):
     cold = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
                           text=True, check=True, cwd=ROOT)
     assert cold.stdout.strip() == "False"
+
+
+def _sized_scene(folder: Path, section: str, width: int, height: int) -> Path:
+    """The paper's scene with one device's panel resized (same field of view)."""
+    import re
+
+    text = PAPER_TOML.read_text()
+    head, _, rest = text.partition(f"[{section}]")
+    rest = re.sub(r"width_px = \d+", f"width_px = {width}", rest, count=1)
+    rest = re.sub(r"height_px = \d+", f"height_px = {height}", rest, count=1)
+    path = folder / f"{section}_{width}.toml"
+    path.write_text(f"{head}[{section}]{rest}")
+    return path
+
+
+BOARDS = ["--checkerboards", "3"]  # seen by the cameras alone
+
+
+@pytest.mark.parametrize("section, extra", [
+    ("camera_s", []), ("camera_v", []), ("projector", []), ("camera_s", BOARDS),
+    ("camera_v", BOARDS)])
+def test_a_render_too_large_for_the_memory_is_refused_first(capfd, tmp_path, monkeypatch,
+                                                            section, extra):
+    from wai_core import memory
+
+    monkeypatch.setattr(memory, "available_bytes", lambda: 2**30)
+    scene = _sized_scene(tmp_path, section, 20000, 20000)
+    before = snapshot(tmp_path)
+    code, err, _ = run(capfd, "render", scene, "--out", tmp_path / "o", "--quiet", *extra)
+    assert (code, len(err)) == (2, 1), err
+    assert err[0].startswith(f"wai: error: {scene}: [{section}] 20000 x 20000 px")
+    # 4e8 pixels: at least a float32 RGB image of each (12 bytes a pixel), far above 1 GiB.
+    need_gib = float(err[0].split("about ")[1].split(" GiB")[0])
+    assert need_gib > 4e8 * 12 / 2**30 and "1.0 GiB is available" in err[0]
+    assert snapshot(tmp_path) == before
+
+
+def test_the_paper_sized_render_fits_where_the_large_one_does_not(capfd, tmp_path, monkeypatch,
+                                                                 inputs):
+    from wai_core import memory
+
+    monkeypatch.setattr(memory, "available_bytes", lambda: 2**30)
+    code, err, _ = run(capfd, "render", inputs["tiny"], "--out", tmp_path / "o", "--spp", "1",
+                       "--quiet")
+    assert (code, err) == (0, [])
+
+
+def _peak_rss_mib(*argv) -> float:
+    """The peak resident memory of ``wai ARGV`` in a child process, MiB."""
+    proc = subprocess.Popen([sys.executable, "-m", "wai", *map(str, argv)], cwd=ROOT,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)},
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _, status, usage = os.wait4(proc.pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
+    return usage.ru_maxrss / 1024
+
+
+@pytest.mark.slow
+def test_the_render_memory_estimate_follows_the_measured_peak(tmp_path, inputs):
+    # The estimate is of the work's memory, the imports' left out: the peak of a render at
+    # 2400 x 1800 px less that of a 100 x 75 one, against the estimates' difference.
+    from mitsuba_wai.memory import render_bytes
+
+    big = _sized_scene(tmp_path, "camera_s", 2400, 1800)
+    peaks = [_peak_rss_mib("render", scene, "--out", tmp_path / scene.stem, "--spp", "1",
+                           "--quiet") for scene in (inputs["tiny"], big)]
+    estimates = [render_bytes(load_config(scene)) / 2**20 for scene in (inputs["tiny"], big)]
+    ratio = (estimates[1] - estimates[0]) / (peaks[1] - peaks[0])
+    assert 0.75 < ratio < 1.33, (peaks, estimates)
