@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,6 +54,7 @@ __all__ = [
     "load_sequence",
     "restore_captured_frame",
     "restore_sequence",
+    "sequence_frames",
     "write_movie",
 ]
 
@@ -451,11 +452,20 @@ def load_sequence(
 ) -> tuple[RigCalibration, list[dict[str, NDArray]]]:
     """The calibration and every frame's images of a sequence folder, in order (what a video
     benchmark restores in a loop)."""
+    cal, frames = sequence_frames(folder, method)
+    return cal, list(frames)
+
+
+def sequence_frames(
+    folder: str | Path, method: str | Method = "structured-light"
+) -> tuple[RigCalibration, Iterator[dict[str, NDArray]]]:
+    """:func:`load_sequence` one frame at a time: the calibration, and the frames' images in
+    order, each read when the iterator reaches it."""
     seq = read_sequence(folder)
     cal = _calibration(seq, as_method(method))
     if not seq.captured:
-        return cal, [cal.load_images(d) for d in seq.frame_dirs]
-    return cal, [cal.load_files(_frame_files(seq, k, cal)) for k in range(len(seq.frames))]
+        return cal, (cal.load_images(d) for d in seq.frame_dirs)
+    return cal, (cal.load_files(_frame_files(seq, k, cal)) for k in range(len(seq.frames)))
 
 
 def restore_captured_frame(

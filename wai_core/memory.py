@@ -51,9 +51,9 @@ def check_memory(need_bytes: float, what: str, work: str) -> None:
     ...     check_memory(2**60, "--size 64x48", "rendering")
     ... except WaiInputError as exc:
     ...     print(str(exc).split(";")[0])
-    --size 64x48: rendering needs about 1073741824.0 GiB of memory
+    --size 64x48: rendering needs about 1.07e+09 GiB of memory
     """
     available = available_bytes()
     if need_bytes > available:
-        raise WaiInputError(f"{what}: {work} needs about {need_bytes / GIB:.1f} GiB of memory; "
-                            f"{available / GIB:.1f} GiB is available")
+        raise WaiInputError(f"{what}: {work} needs about {need_bytes / GIB:.3g} GiB of memory; "
+                            f"{available / GIB:.3g} GiB is available")
