@@ -39,7 +39,7 @@ import signal
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -297,11 +297,7 @@ def check_output_dir(
         if real == cwd or real in cwd.parents:
             raise WaiInputError(f"{label}: is the current folder or contains it; name a new "
                                 "folder for the output")
-        anchor = path.parent
-        while not anchor.exists() and anchor != anchor.parent:
-            anchor = anchor.parent
-        if not anchor.is_dir():
-            raise WaiInputError(f"{label}: {anchor} is a file, not a folder")
+        anchor = _existing_folder(path, label)
         if path.is_symlink():
             raise WaiInputError(f"{label}: is a symbolic link; name the folder itself")
         _check_name_length(path, anchor, label)
@@ -318,11 +314,67 @@ def check_output_dir(
                 )
     except OSError as exc:
         raise WaiInputError(f"{label}: {exc.strerror or exc}") from None
-    try:
-        os.rmdir(tempfile.mkdtemp(prefix=".wai-probe-", dir=anchor))
-    except OSError as exc:
-        raise WaiInputError(f"{label}: cannot write in {anchor}: {exc.strerror or exc}") from None
+    _probe_writable(anchor, label)
     return path
+
+
+def check_output_file(final: str | Path, label: str, is_own: Callable[[Path], bool],
+                      remedy: str) -> Path:
+    """Check, before any work, that a file may be written at ``final`` (atomically, through a
+    temporary file beside it): every existing part of its path a folder, its folder writable,
+    and an existing ``final`` a regular file that the tool wrote (``is_own``), never a folder,
+    a symbolic link or a file of the user's.
+
+    Parameters
+    ----------
+    final : path
+        The file.
+    label : str
+        How the message names it (``--out rig.json``).
+    is_own : callable
+        Whether an existing file is one the tool wrote (and may replace).
+    remedy : str
+        What the message for a file of the user's tells them to do.
+
+    Returns
+    -------
+    Path
+        ``final`` made absolute.
+
+    Raises
+    ------
+    WaiInputError
+        In one line naming ``label``.
+    """
+    path = Path(os.path.abspath(final))
+    try:
+        anchor = _existing_folder(path, label)
+        if path.is_symlink() or (path.exists() and not path.is_file()):
+            raise WaiInputError(f"{label}: exists and is not a regular file")
+        if path.exists() and not is_own(path):
+            raise WaiInputError(f"{label}: exists and was not written by wai; {remedy}")
+    except OSError as exc:
+        raise WaiInputError(f"{label}: {exc.strerror or exc}") from None
+    _probe_writable(anchor, label)
+    return path
+
+
+def _existing_folder(path: Path, label: str) -> Path:
+    """The nearest existing folder above ``path``; a file there is refused."""
+    anchor = path.parent
+    while not anchor.exists() and anchor != anchor.parent:
+        anchor = anchor.parent
+    if not anchor.is_dir():
+        raise WaiInputError(f"{label}: {anchor} is a file, not a folder")
+    return anchor
+
+
+def _probe_writable(folder: Path, label: str) -> None:
+    """Refuse a folder in which nothing can be created (probed with a temporary folder)."""
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".wai-probe-", dir=folder))
+    except OSError as exc:
+        raise WaiInputError(f"{label}: cannot write in {folder}: {exc.strerror or exc}") from None
 
 
 # Longest suffix atomic_dir adds to a name: ".NAME.tmp-PID-XXXXXXXX" (PIDs up to 2^22).
