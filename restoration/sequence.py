@@ -114,9 +114,10 @@ class SequenceRestore:
 
 
 def frame_change(a: NDArray, b: NDArray, mask: NDArray | None = None) -> float:
-    """Mean absolute difference of two images (H, W, 3) over ``mask`` (H, W) (all pixels by
-    default), on the object's radiance scale; NaN when nothing is compared."""
-    diff = np.abs(np.asarray(a, float) - np.asarray(b, float)).mean(axis=-1)
+    """Mean absolute difference of two images (H, W, 3) or grey (H, W) over ``mask`` (H, W)
+    (all pixels by default), on the object's radiance scale; NaN when nothing is compared."""
+    diff = np.abs(np.asarray(a, float) - np.asarray(b, float))
+    diff = diff.mean(axis=-1) if diff.ndim == 3 else diff
     sel = diff if mask is None else diff[mask]
     return float(sel.mean()) if sel.size else float("nan")
 
@@ -379,9 +380,9 @@ def side_by_side_frame(distorted: NDArray, restored: NDArray, valid: NDArray) ->
     """
     import cv2
 
-    from restoration.figures import mark_not_restored
+    from restoration.figures import as_rgb8, mark_not_restored
 
-    left = to_srgb8(distorted, 1.0)
+    left = as_rgb8(to_srgb8(distorted, 1.0))
     right = mark_not_restored(to_srgb8(restored, 1.0), valid)
     h, w = left.shape[:2]
     scale = max(0.4, w / 800)  # text in proportion to the view
@@ -410,10 +411,10 @@ def side_by_side_frame(distorted: NDArray, restored: NDArray, valid: NDArray) ->
 def write_movie(
     stem: Path, frames: list[NDArray], fps: float, masks: list[NDArray] | None = None
 ) -> Path:
-    """Write frames (H, W, 3) as ``stem.mp4`` (OpenCV's MPEG-4 writer), or ``stem.gif`` where
-    no MP4 encoder is present: linear frames are tone-mapped, 8-bit ones (already drawn, as by
-    :func:`side_by_side_frame`) written as they are; pixels outside ``masks`` are hatched
-    grey (:func:`restoration.figures.mark_not_restored`).
+    """Write frames (H, W, 3) or grey (H, W) as ``stem.mp4`` (OpenCV's MPEG-4 writer), or
+    ``stem.gif`` where no MP4 encoder is present: linear frames are tone-mapped, 8-bit ones
+    (already drawn, as by :func:`side_by_side_frame`) written as they are; pixels outside
+    ``masks`` are hatched grey (:func:`restoration.figures.mark_not_restored`).
 
     Returns
     -------
@@ -422,11 +423,11 @@ def write_movie(
     """
     import cv2
 
-    from restoration.figures import mark_not_restored
+    from restoration.figures import as_rgb8, mark_not_restored
 
     frames8 = []
     for k, f in enumerate(frames):
-        img = f if f.dtype == np.uint8 else to_srgb8(f, 1.0)
+        img = as_rgb8(f if f.dtype == np.uint8 else to_srgb8(f, 1.0))
         if masks is not None:
             img = mark_not_restored(img, masks[k])
         frames8.append(img)
