@@ -144,6 +144,15 @@ class ObjectConfig:
     squares: tuple[int, int] = (16, 12)
 
 
+SKIMAGE_TEXTURES = (
+    "astronaut", "binary_blobs", "brick", "camera", "cat", "cell", "checkerboard", "chelsea",
+    "clock", "coffee", "coins", "colorwheel", "grass", "gravel", "horse", "hubble_deep_field",
+    "immunohistochemistry", "logo", "microaneurysms", "moon", "page", "retina", "rocket",
+    "shepp_logan_phantom", "text",
+)
+"""The scikit-image sample images ``[object].texture = "skimage:NAME"`` takes: the 2-D grey
+and colour images that ship with scikit-image (no download)."""
+
 SAMPLINGS = ("stratified", "independent")
 """Values of ``[render].sampling``."""
 PARTICLE_SHARES = ("emitted", "delivered")
@@ -424,6 +433,10 @@ def validate(cfg: SystemConfig) -> None:
         raise WaiInputError("config: [diffuser].z_mm must lie between the projector and the water")
     if cfg.object.height_above_water_mm <= 0:
         raise WaiInputError("config: [object].height_above_water_mm must be positive")
+    texture = cfg.object.texture
+    if texture.startswith("skimage:") and texture.partition(":")[2] not in SKIMAGE_TEXTURES:
+        raise WaiInputError(f"config: [object].texture {texture!r} is not a scikit-image sample "
+                            f"image (skimage: one of {', '.join(SKIMAGE_TEXTURES)})")
     wv = cfg.waves
     if wv.wind_speed_m_s < 0 or wv.n_frequencies < 1 or wv.n_directions < 1:
         raise WaiInputError("config: [waves] needs wind_speed >= 0 and at least one component")

@@ -83,6 +83,10 @@ def inputs(tmp_path):
              z=np.full((5, 11), 150.0))
     files["typo"] = tmp_path / "typo.toml"
     files["typo"].write_text(PAPER_TOML.read_text().replace("h0_mm = ", "h0_mmm = "))
+    for name in ("__class__", "download_all", "lbp_frontal_face_cascade_filename"):
+        files[name] = tmp_path / f"texture{name}.toml"  # not sample images: a traceback once
+        files[name].write_text(PAPER_TOML.read_text().replace(
+            'texture = "checkerboard"', f'texture = "skimage:{name}"'))
     files["foreign"] = tmp_path / "mine"
     files["foreign"].mkdir()
     (files["foreign"] / "notes.txt").write_text("keep me")
@@ -166,6 +170,9 @@ BAD = [
      lambda f, t: [f["tiny"], "--heightfield", t / "nowhere" / "h.npz", "--out", t / "o"],
      "heightfield file not found"),
     ("config-typo", lambda f, t: [f["typo"], "--out", t / "o"], "unknown key [water].h0_mmm"),
+    *[(f"texture-skimage-{name}", lambda f, t, name=name: [f[name], "--out", t / "o"],
+       f"[object].texture 'skimage:{name}' is not a scikit-image sample image")
+      for name in ("__class__", "download_all", "lbp_frontal_face_cascade_filename")],
     ("config-missing", lambda f, t: [t / "nowhere" / "scene.toml", "--out", t / "o"],
      "not found"),
     ("scene-name-unknown", lambda f, t: ["papper", "--out", t / "o"], "papper"),

@@ -1,5 +1,7 @@
 """Configuration loading: the paper's file parses; mistakes name the key."""
 
+import dataclasses
+
 import pytest
 
 from wai_core.config import config_from_dict, load_config
@@ -80,3 +82,13 @@ def test_only_the_devices_are_required_and_the_message_says_so(paper_cfg):
     del data["camera_s"]
     with pytest.raises(WaiInputError, match=r"missing section \[camera_s\].*every other"):
         config_from_dict(data)
+
+
+def test_every_accepted_skimage_texture_is_an_image_that_ships_with_scikit_image(paper_cfg):
+    from mitsuba_wai.textures import object_texture
+    from wai_core.config import SKIMAGE_TEXTURES
+
+    for name in SKIMAGE_TEXTURES:
+        obj = dataclasses.replace(paper_cfg.object, texture=f"skimage:{name}")
+        img = object_texture(obj)
+        assert img.ndim == 3 and img.shape[2] == 3 and 0 <= img.min() <= img.max() <= 1, name
