@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
-from restoration.methods import Method, as_method
+from restoration.methods import Method, as_method, run_method
 from restoration.options import SurfaceOptions
 from restoration.result import RestoreResult, Status
 from restoration.scoring import Scores, Truth, score, surface_profile
@@ -230,7 +230,7 @@ def restore_frame(
     images = cal.load_images(folder)
     view_flat = load_view_flat(cal, folder, *flat_from)
     t0 = time.perf_counter()
-    result = method(images, cal, track)
+    result = run_method(method, images, cal, track)
     # A method of one's own may time nothing: the call's wall time is its end to end.
     result.timings_ms.setdefault("end_to_end", 1e3 * (time.perf_counter() - t0))
     check_inputs(folder, cal, images, result, view_flat)

@@ -40,7 +40,7 @@ from restoration.folder import (
     rig_line,
     with_rig,
 )
-from restoration.methods import Method, as_method
+from restoration.methods import Method, as_method, run_method
 from restoration.options import SurfaceOptions
 from restoration.result import Status
 from restoration.tracking import SequenceState
@@ -500,7 +500,7 @@ def restore_captured_frame(
     files = _frame_files(seq, k, cal)
     images = cal.load_files(files)
     view_flat = load_view_flat(cal, *dict.fromkeys((seq.frame_dirs[k], seq.folder)))
-    result = method(images, cal, track)
+    result = run_method(method, images, cal, track)
     check_files(files, cal, images, result, view_flat)
     metrics = folder_metrics(method, result, None, True, seq.record.get("seed"), rig=cal.rig)
     return FolderRestore(seq.frame_dirs[k], None, cal, images, result, None, None, metrics)
