@@ -87,6 +87,10 @@ def inputs(tmp_path):
         files[name] = tmp_path / f"texture{name}.toml"  # not sample images: a traceback once
         files[name].write_text(PAPER_TOML.read_text().replace(
             'texture = "checkerboard"', f'texture = "skimage:{name}"'))
+    for section in ("water", "diffuser"):  # the rig's level and screen: no silent default
+        head, _, rest = PAPER_TOML.read_text().partition(f"[{section}]")
+        files[f"no_{section}"] = tmp_path / f"no_{section}.toml"
+        files[f"no_{section}"].write_text(head + rest[rest.index("\n["):])
     files["foreign"] = tmp_path / "mine"
     files["foreign"].mkdir()
     (files["foreign"] / "notes.txt").write_text("keep me")
@@ -173,6 +177,10 @@ BAD = [
     *[(f"texture-skimage-{name}", lambda f, t, name=name: [f[name], "--out", t / "o"],
        f"[object].texture 'skimage:{name}' is not a scikit-image sample image")
       for name in ("__class__", "download_all", "lbp_frontal_face_cascade_filename")],
+    ("config-no-water", lambda f, t: [f["no_water"], "--out", t / "o"],
+     "missing section [water] (the sections that describe the rig"),
+    ("config-no-diffuser", lambda f, t: [f["no_diffuser"], "--out", t / "o"],
+     "missing section [diffuser]"),
     ("config-missing", lambda f, t: [t / "nowhere" / "scene.toml", "--out", t / "o"],
      "not found"),
     ("scene-name-unknown", lambda f, t: ["papper", "--out", t / "o"], "papper"),
