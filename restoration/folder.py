@@ -33,7 +33,8 @@ RESTORE_REMEDY = "move what is not the tool's elsewhere: a restore replaces only
 it never replaces a folder it did not write)."""
 
 __all__ = [
-    "FolderRestore", "check_files", "check_inputs", "restore_folder", "restore_frame", "with_rig",
+    "FolderRestore", "check_files", "check_inputs", "check_rig_geometry", "restore_folder",
+    "restore_frame", "with_rig",
 ]
 
 CalibrationT = TypeVar("CalibrationT", bound=RigCalibration)
@@ -153,6 +154,7 @@ def restore_folder(
     if target is not None:  # refused before any work
         check_output_dir(target, "restore", remedy=RESTORE_REMEDY)
     cal = with_rig(meth.calibration_type.from_record(record), rig)
+    check_rig_geometry(cal, folder / "scene.json")
     done = restore_frame(folder, cal, meth, track, scored=scored, seed=record.get("seed"),
                          step=step)
     step("write" if write else "write (skipped)")
@@ -163,6 +165,17 @@ def restore_folder(
     step("done")
     bar.close()
     return done
+
+
+def check_rig_geometry(cal: RigCalibration, source: Path) -> None:
+    """Refuse, before any work, a structured-light rig (a :class:`Calibration`'s) whose
+    geometry cannot work through flat water (:func:`wai_core.rig_checks.check_rig`), naming
+    ``source``, the ``scene.json`` it came from."""
+    from restoration.calibration import Calibration
+    from wai_core.rig_checks import check_rig
+
+    if isinstance(cal, Calibration):
+        check_rig(cal.cfg, str(source))
 
 
 def with_rig(cal: CalibrationT, rig: Mapping[str, Any] | str | Path | None) -> CalibrationT:

@@ -33,6 +33,7 @@ from restoration.folder import (
     RESTORE_REMEDY,
     FolderRestore,
     check_files,
+    check_rig_geometry,
     flat_reference_line,
     folder_metrics,
     load_view_flat,
@@ -172,6 +173,7 @@ def restore_sequence(
     seq = folder if isinstance(folder, SequenceRecord) else read_sequence(folder)
     meth = as_method(method, options)
     cal = with_rig(_calibration(seq, meth), rig)
+    check_rig_geometry(cal, seq.scene_dir / "scene.json")
     out = seq.folder / "restore"
     if write:  # every output checked before the first frame is restored
         frame_outs = () if seq.captured else (d / "restore" for d in seq.frame_dirs)

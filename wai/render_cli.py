@@ -3,7 +3,8 @@
 Every option is checked before the renders start, and a bad one ends the command with one line
 that names it (exit code 2): numbers that are not finite, a seed out of Mitsuba's range, a
 variant this machine cannot run, an output location that cannot or may not be written (the
-output policy of :mod:`wai_core.io`), a frame too large for the memory available
+output policy of :mod:`wai_core.io`), a rig that sees nothing through flat water
+(:func:`wai_core.rig_checks.check_rig`), a frame too large for the memory available
 (:mod:`mitsuba_wai.memory`), a surface file that is not one, a surface outside the rig.
 """
 
@@ -74,9 +75,9 @@ def _surface_label(args: argparse.Namespace) -> str:
 
 def _prepare(args: argparse.Namespace, cfg: SystemConfig | None = None
              ) -> tuple[Heightfield | None, str]:
-    """The checks every render makes before its long work: the output location, the memory
-    ``cfg``'s frame needs, the surface file, the variant. Returns the surface given (or None)
-    and the variant's name."""
+    """The checks every render makes before its long work: the output location, ``cfg``'s rig
+    geometry and the memory its frame needs, the surface file, the variant. Returns the surface
+    given (or None) and the variant's name."""
     from mitsuba_wai.render import OUTPUT_COMMAND
     from mitsuba_wai.variant import select_variant
 
@@ -85,7 +86,9 @@ def _prepare(args: argparse.Namespace, cfg: SystemConfig | None = None
     )
     if cfg is not None:
         from mitsuba_wai.memory import check_render_memory
+        from wai_core.rig_checks import check_rig
 
+        check_rig(cfg, str(args.config))
         check_render_memory(cfg, str(args.config))
     given = load_heightfield(args.heightfield) if args.heightfield else None
     try:

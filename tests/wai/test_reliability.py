@@ -91,6 +91,9 @@ def inputs(tmp_path):
         head, _, rest = PAPER_TOML.read_text().partition(f"[{section}]")
         files[f"no_{section}"] = tmp_path / f"no_{section}.toml"
         files[f"no_{section}"].write_text(head + rest[rest.index("\n["):])
+    files["camera_s_5m"] = tmp_path / "camera_s_5m.toml"  # moved 5 m along x: t = -R c
+    files["camera_s_5m"].write_text(PAPER_TOML.read_text().replace(
+        "translation_mm = [-286.40, 0.0, 190.0]", "translation_mm = [-5286.40, 0.0, 190.0]"))
     files["foreign"] = tmp_path / "mine"
     files["foreign"].mkdir()
     (files["foreign"] / "notes.txt").write_text("keep me")
@@ -181,6 +184,8 @@ BAD = [
      "missing section [water] (the sections that describe the rig"),
     ("config-no-diffuser", lambda f, t: [f["no_diffuser"], "--out", t / "o"],
      "missing section [diffuser]"),
+    ("rig-camera-s-sees-no-dot", lambda f, t: [f["camera_s_5m"], "--out", t / "o"],
+     "camera_s_5m.toml: camera s sees none of the projector's dots on the diffuser"),
     ("config-missing", lambda f, t: [t / "nowhere" / "scene.toml", "--out", t / "o"],
      "not found"),
     ("scene-name-unknown", lambda f, t: ["papper", "--out", t / "o"], "papper"),
@@ -521,3 +526,20 @@ def test_the_render_memory_estimate_follows_the_measured_peak(tmp_path, inputs):
     estimates = [render_bytes(load_config(scene)) / 2**20 for scene in (inputs["tiny"], big)]
     ratio = (estimates[1] - estimates[0]) / (peaks[1] - peaks[0])
     assert 0.75 < ratio < 1.33, (peaks, estimates)
+
+
+def test_a_folder_whose_rig_sees_nothing_is_refused_before_restoring(capfd, tmp_path, inputs):
+    # The README promises exit code 2 for impossible geometry: camera s moved 5 m in the
+    # folder's scene.json sees none of the dots (it restored to a `failed` frame, exit 0).
+    out = tmp_path / "frame"
+    assert run(capfd, "render", inputs["tiny"], "--out", out, "--spp", "1", "--quiet")[0] == 0
+    record = json.loads((out / "scene.json").read_text())
+    t = record["config"]["camera_s"]["translation_mm"]
+    record["config"]["camera_s"]["translation_mm"] = [t[0] - 5000.0, t[1], t[2]]
+    (out / "scene.json").write_text(json.dumps(record))
+    before = snapshot(tmp_path)
+    code, err, _ = run(capfd, "restore", out, "--quiet")
+    assert (code, len(err)) == (2, 1), err
+    assert err[0].startswith(f"wai: error: {out / 'scene.json'}: camera s sees none of the "
+                             "projector's dots")
+    assert snapshot(tmp_path) == before
