@@ -606,7 +606,8 @@ def read_json(path: str | Path) -> Any:
 
 
 def write_exr(path: str | Path, image: NDArray) -> None:
-    """Write a float image of shape (h, w) or (h, w, 3) as a ZIP-compressed float32 OpenEXR."""
+    """Write a float image of shape (h, w) or (h, w, 3) as a ZIP-compressed float32 OpenEXR
+    (a failed write, a full disk, raises ``OSError``)."""
     import OpenEXR
 
     img = np.ascontiguousarray(np.asarray(image, dtype=np.float32))
@@ -614,8 +615,12 @@ def write_exr(path: str | Path, image: NDArray) -> None:
     header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
-    with OpenEXR.File(header, channels) as f:
-        f.write(str(tmp))
+    try:
+        with OpenEXR.File(header, channels) as f:
+            f.write(str(tmp))
+    except RuntimeError as exc:  # OpenEXR's way of saying the file could not be written
+        tmp.unlink(missing_ok=True)
+        raise OSError(f"cannot write {path}: {exc}") from None
     os.replace(tmp, path)
 
 

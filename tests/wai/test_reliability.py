@@ -543,3 +543,30 @@ def test_a_folder_whose_rig_sees_nothing_is_refused_before_restoring(capfd, tmp_
     assert err[0].startswith(f"wai: error: {out / 'scene.json'}: camera s sees none of the "
                              "projector's dots")
     assert snapshot(tmp_path) == before
+
+
+def test_a_disk_that_fills_while_writing_is_one_line_and_keeps_nothing(capfd, tmp_path, inputs,
+                                                                       monkeypatch):
+    # The renders done, writing the previews meets a full disk (PIL's OSError; OpenEXR's own
+    # RuntimeError is turned into one): one line, exit 2, the temporary folder removed.
+    import errno
+
+    from mitsuba_wai import render as render_mod
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(render_mod, "write_png", full)
+    before = snapshot(tmp_path)
+    code, err, _ = run(capfd, "render", inputs["tiny"], "--out", tmp_path / "o", "--spp", "1",
+                       "--quiet")
+    assert (code, err) == (2, ["wai: error: No space left on device"])
+    assert snapshot(tmp_path) == before
+
+
+def test_an_exr_that_cannot_be_written_raises_an_os_error(tmp_path):
+    from wai_core.io import write_exr
+
+    with pytest.raises(OSError, match="cannot write"):
+        write_exr(tmp_path / "no_such_folder" / "a.exr", np.zeros((4, 4, 3), np.float32))
+    assert list(tmp_path.iterdir()) == []
