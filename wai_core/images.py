@@ -12,6 +12,7 @@ import contextlib
 import os
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -91,15 +92,24 @@ def read_image(path: str | Path) -> NDArray[np.float32]:
     return img
 
 
+_STDERR_LOCK = threading.Lock()  # file descriptor 2 is the process's: one redirection at a time
+
+
 @contextlib.contextmanager
 def _native_stderr() -> Iterator[list[str]]:
     """Within the block, what native libraries write to the process's stderr (file
     descriptor 2: libpng's and libtiff's messages, OpenCV's log) is captured, not shown; the
-    list holds its lines at the end (the decoders' reasons for a one-line message)."""
-    sys.stderr.flush()
-    saved = os.dup(2)
+    list holds its lines at the end (the decoders' reasons for a one-line message). Threads
+    take turns (a lock), so that each restores the descriptor it found."""
     lines: list[str] = []
-    with tempfile.TemporaryFile() as sink:
+    try:
+        sink = tempfile.TemporaryFile()
+    except OSError:  # no room for it: the messages go to the terminal, as before
+        yield lines
+        return
+    with _STDERR_LOCK, sink:
+        sys.stderr.flush()
+        saved = os.dup(2)
         os.dup2(sink.fileno(), 2)
         try:
             yield lines
