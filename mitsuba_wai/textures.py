@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from wai_core.config import ObjectConfig
+from wai_core.config import SKIMAGE_TEXTURES, ObjectConfig
 from wai_core.errors import WaiInputError
 
 # Checkerboard levels: dark and light squares stay off 0 and 1 so tone mapping never clips them.
@@ -31,10 +31,10 @@ def checkerboard(squares: tuple[int, int], px_per_square: int = 64) -> NDArray[n
 def _skimage_image(name: str) -> NDArray:
     from skimage import data
 
-    loader = getattr(data, name, None)
-    if loader is None or not callable(loader):
-        raise WaiInputError(f"texture: scikit-image has no sample image '{name}'")
-    return loader()
+    if name not in SKIMAGE_TEXTURES:
+        raise WaiInputError(f"texture: {name!r} is not a scikit-image sample image (one of "
+                            f"{', '.join(SKIMAGE_TEXTURES)})")
+    return getattr(data, name)()
 
 
 def _file_image(path: Path) -> NDArray:
@@ -63,7 +63,8 @@ def to_rgb_float(img: NDArray) -> NDArray[np.float32]:
 
 def object_texture(obj: ObjectConfig, base_dir: Path | None = None) -> NDArray[np.float32]:
     """The object plane's image (h, w, 3) in [0, 1] for ``ObjectConfig.texture``:
-    ``checkerboard``, ``skimage:<name>`` (e.g. ``skimage:astronaut``) or an image file path
+    ``checkerboard``, ``skimage:<name>`` (one of :data:`wai_core.config.SKIMAGE_TEXTURES`,
+    e.g. ``skimage:astronaut``) or an image file path
     (relative paths resolve against ``base_dir``)."""
     spec = obj.texture
     if spec == "checkerboard":

@@ -47,6 +47,7 @@ from restoration.methods import (
     load_calibration,
     method_class,
     method_names,
+    run_method,
 )
 from restoration.observations import Observations
 from restoration.options import (
@@ -97,6 +98,7 @@ __all__ = [
     "restore_folder",
     "restore_sequence",
     "rig_grid_score",
+    "run_method",
     "score",
     "video",
 ]

@@ -136,7 +136,7 @@ class AltermanCalibration(RigCalibration):
     @classmethod
     def from_system(cls, system: AltermanSystem, view_gain: float = 1.0) -> AltermanCalibration:
         """From a sensor system in memory (e.g. :func:`wai_core.load_system` ``("alterman")``)."""
-        return cls(system.base, view_gain, system, sensor_layout(system))
+        return cls(system.base, view_gain, system=system, layout=sensor_layout(system))
 
     @classmethod
     def from_record(cls, record: dict[str, Any]) -> AltermanCalibration:

@@ -19,6 +19,7 @@ from wai_core.heightfield import Heightfield  # noqa: E402
 from wai_core.io import to_srgb8  # noqa: E402
 
 __all__ = [
+    "as_rgb8",
     "confidence_figure",
     "corner_scatter_figure",
     "error_map_figure",
@@ -103,13 +104,20 @@ NOT_RESTORED_GREY = (150, 110)
 distinct from the black background and from the object's own levels."""
 
 
+def as_rgb8(image8: NDArray) -> NDArray:
+    """An 8-bit image (H, W, 3), or grey (H, W) repeated in three channels: what the figures
+    and movies draw, whether the camera was colour or grey."""
+    img = np.asarray(image8)
+    return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img
+
+
 def mark_not_restored(rgb8: NDArray, valid: NDArray, period_px: int = 8) -> NDArray:
     """``rgb8`` with the pixels outside ``valid`` hatched in two greys (diagonal stripes).
 
     Parameters
     ----------
-    rgb8 : (H, W, 3) ndarray of uint8
-        A displayed image.
+    rgb8 : (H, W, 3) or (H, W) ndarray of uint8
+        A displayed image (grey: drawn in RGB, :func:`as_rgb8`).
     valid : (H, W) ndarray of bool
         Pixels restored (kept as they are).
     period_px : int
@@ -123,7 +131,7 @@ def mark_not_restored(rgb8: NDArray, valid: NDArray, period_px: int = 8) -> NDAr
     rows, cols = np.ogrid[:h, :w]
     light, dark = NOT_RESTORED_GREY
     stripes = np.where((rows + cols) % period_px < period_px // 2, light, dark).astype(np.uint8)
-    return np.where(valid[..., None], rgb8, stripes[..., None])
+    return np.where(valid[..., None], as_rgb8(rgb8), stripes[..., None])
 
 
 def views_figure(
@@ -135,8 +143,9 @@ def views_figure(
 
     Parameters
     ----------
-    panels : list of (title, (H, W, 3) ndarray or None)
-        Linear images on the object's radiance scale (1 = white); None panels are skipped.
+    panels : list of (title, (H, W, 3) or (H, W) ndarray or None)
+        Linear images on the object's radiance scale (1 = white), colour or grey; None panels
+        are skipped.
         A title may carry the scores.
     mask : (H, W) ndarray of bool
         Pixels restored.
@@ -151,7 +160,7 @@ def views_figure(
     fig, axes = plt.subplots(1, len(shown) + 1,
                              figsize=(4.6 * (len(shown) + 1), 4.6 * aspect + 0.9))
     for ax, (title, img) in zip(axes, shown, strict=False):
-        rgb = to_srgb8(img, 1.0)
+        rgb = as_rgb8(to_srgb8(img, 1.0))
         if title.startswith("restored"):
             rgb = mark_not_restored(rgb, mask)
         ax.imshow(rgb)

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
-from restoration.methods import Method, as_method
+from restoration.methods import Method, as_method, run_method
 from restoration.options import SurfaceOptions
 from restoration.result import RestoreResult, Status
 from restoration.scoring import Scores, Truth, score, surface_profile
@@ -33,7 +33,8 @@ RESTORE_REMEDY = "move what is not the tool's elsewhere: a restore replaces only
 it never replaces a folder it did not write)."""
 
 __all__ = [
-    "FolderRestore", "check_files", "check_inputs", "restore_folder", "restore_frame", "with_rig",
+    "FolderRestore", "check_files", "check_inputs", "check_rig_geometry", "restore_folder",
+    "restore_frame", "with_rig",
 ]
 
 CalibrationT = TypeVar("CalibrationT", bound=RigCalibration)
@@ -153,6 +154,7 @@ def restore_folder(
     if target is not None:  # refused before any work
         check_output_dir(target, "restore", remedy=RESTORE_REMEDY)
     cal = with_rig(meth.calibration_type.from_record(record), rig)
+    check_rig_geometry(cal, folder / "scene.json")
     done = restore_frame(folder, cal, meth, track, scored=scored, seed=record.get("seed"),
                          step=step)
     step("write" if write else "write (skipped)")
@@ -163,6 +165,17 @@ def restore_folder(
     step("done")
     bar.close()
     return done
+
+
+def check_rig_geometry(cal: RigCalibration, source: Path) -> None:
+    """Refuse, before any work, a structured-light rig (a :class:`Calibration`'s) whose
+    geometry cannot work through flat water (:func:`wai_core.rig_checks.check_rig`), naming
+    ``source``, the ``scene.json`` it came from."""
+    from restoration.calibration import Calibration
+    from wai_core.rig_checks import check_rig
+
+    if isinstance(cal, Calibration):
+        check_rig(cal.cfg, str(source))
 
 
 def with_rig(cal: CalibrationT, rig: Mapping[str, Any] | str | Path | None) -> CalibrationT:
@@ -230,7 +243,7 @@ def restore_frame(
     images = cal.load_images(folder)
     view_flat = load_view_flat(cal, folder, *flat_from)
     t0 = time.perf_counter()
-    result = method(images, cal, track)
+    result = run_method(method, images, cal, track)
     # A method of one's own may time nothing: the call's wall time is its end to end.
     result.timings_ms.setdefault("end_to_end", 1e3 * (time.perf_counter() - t0))
     check_inputs(folder, cal, images, result, view_flat)

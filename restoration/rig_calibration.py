@@ -26,9 +26,14 @@ from wai_core.errors import WaiInputError
 from wai_core.io import write_json
 
 __all__ = [
-    "UNDETERMINED", "BoardSpec", "DeviceFit", "FlatFit", "calibrate_device", "find_corners",
-    "read_rig", "refine_on_flat_water", "rig_keys", "write_rig",
+    "RIG_FORMAT", "UNDETERMINED", "BoardSpec", "DeviceFit", "FlatFit", "calibrate_device",
+    "find_corners", "is_written_rig", "read_rig", "refine_on_flat_water", "rig_keys",
+    "write_rig",
 ]
+
+RIG_FORMAT = "wai-rig/1"
+"""The ``format`` of a rig file :func:`write_rig` wrote: what tells it from a hand-written one
+(which ``wai restore --rig`` reads alike, and ``wai calibrate --out`` never replaces)."""
 
 UNDETERMINED = (
     "poses (rotation, translation_mm): measure them in the lab frame (docs/rig.md)",
@@ -196,6 +201,8 @@ def write_rig(path: str | Path, fits: dict[str, DeviceFit], devices: dict[str, D
     if flat is not None:
         keys.update(flat.config_keys)
     write_json(path, {
+        "format": RIG_FORMAT,
+        "written_by": "wai calibrate",
         "flat_water": None if flat is None else {
             "config_keys": flat.config_keys, "rms_before_px": flat.rms_before_px,
             "rms_after_px": flat.rms_after_px, "spots": flat.n_spots},
@@ -207,6 +214,16 @@ def write_rig(path: str | Path, fits: dict[str, DeviceFit], devices: dict[str, D
         "versions": {"opencv": cv2.__version__, "numpy": np.__version__,
                      "python": platform.python_version()},
     })
+
+
+def is_written_rig(path: str | Path) -> bool:
+    """Whether ``path`` is a rig file :func:`write_rig` wrote (its ``format`` is
+    :data:`RIG_FORMAT`); any other file, a hand-written rig included, is the user's."""
+    try:
+        record = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(record, dict) and record.get("format") == RIG_FORMAT
 
 
 def read_rig(path: str | Path) -> dict[str, Any]:

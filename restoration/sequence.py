@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +33,7 @@ from restoration.folder import (
     RESTORE_REMEDY,
     FolderRestore,
     check_files,
+    check_rig_geometry,
     flat_reference_line,
     folder_metrics,
     load_view_flat,
@@ -40,7 +41,7 @@ from restoration.folder import (
     rig_line,
     with_rig,
 )
-from restoration.methods import Method, as_method
+from restoration.methods import Method, as_method, run_method
 from restoration.options import SurfaceOptions
 from restoration.result import Status
 from restoration.tracking import SequenceState
@@ -54,6 +55,7 @@ __all__ = [
     "load_sequence",
     "restore_captured_frame",
     "restore_sequence",
+    "sequence_frames",
     "write_movie",
 ]
 
@@ -113,9 +115,10 @@ class SequenceRestore:
 
 
 def frame_change(a: NDArray, b: NDArray, mask: NDArray | None = None) -> float:
-    """Mean absolute difference of two images (H, W, 3) over ``mask`` (H, W) (all pixels by
-    default), on the object's radiance scale; NaN when nothing is compared."""
-    diff = np.abs(np.asarray(a, float) - np.asarray(b, float)).mean(axis=-1)
+    """Mean absolute difference of two images (H, W, 3) or grey (H, W) over ``mask`` (H, W)
+    (all pixels by default), on the object's radiance scale; NaN when nothing is compared."""
+    diff = np.abs(np.asarray(a, float) - np.asarray(b, float))
+    diff = diff.mean(axis=-1) if diff.ndim == 3 else diff
     sel = diff if mask is None else diff[mask]
     return float(sel.mean()) if sel.size else float("nan")
 
@@ -170,6 +173,7 @@ def restore_sequence(
     seq = folder if isinstance(folder, SequenceRecord) else read_sequence(folder)
     meth = as_method(method, options)
     cal = with_rig(_calibration(seq, meth), rig)
+    check_rig_geometry(cal, seq.scene_dir / "scene.json")
     out = seq.folder / "restore"
     if write:  # every output checked before the first frame is restored
         frame_outs = () if seq.captured else (d / "restore" for d in seq.frame_dirs)
@@ -378,9 +382,9 @@ def side_by_side_frame(distorted: NDArray, restored: NDArray, valid: NDArray) ->
     """
     import cv2
 
-    from restoration.figures import mark_not_restored
+    from restoration.figures import as_rgb8, mark_not_restored
 
-    left = to_srgb8(distorted, 1.0)
+    left = as_rgb8(to_srgb8(distorted, 1.0))
     right = mark_not_restored(to_srgb8(restored, 1.0), valid)
     h, w = left.shape[:2]
     scale = max(0.4, w / 800)  # text in proportion to the view
@@ -409,10 +413,10 @@ def side_by_side_frame(distorted: NDArray, restored: NDArray, valid: NDArray) ->
 def write_movie(
     stem: Path, frames: list[NDArray], fps: float, masks: list[NDArray] | None = None
 ) -> Path:
-    """Write frames (H, W, 3) as ``stem.mp4`` (OpenCV's MPEG-4 writer), or ``stem.gif`` where
-    no MP4 encoder is present: linear frames are tone-mapped, 8-bit ones (already drawn, as by
-    :func:`side_by_side_frame`) written as they are; pixels outside ``masks`` are hatched
-    grey (:func:`restoration.figures.mark_not_restored`).
+    """Write frames (H, W, 3) or grey (H, W) as ``stem.mp4`` (OpenCV's MPEG-4 writer), or
+    ``stem.gif`` where no MP4 encoder is present: linear frames are tone-mapped, 8-bit ones
+    (already drawn, as by :func:`side_by_side_frame`) written as they are; pixels outside
+    ``masks`` are hatched grey (:func:`restoration.figures.mark_not_restored`).
 
     Returns
     -------
@@ -421,11 +425,11 @@ def write_movie(
     """
     import cv2
 
-    from restoration.figures import mark_not_restored
+    from restoration.figures import as_rgb8, mark_not_restored
 
     frames8 = []
     for k, f in enumerate(frames):
-        img = f if f.dtype == np.uint8 else to_srgb8(f, 1.0)
+        img = as_rgb8(f if f.dtype == np.uint8 else to_srgb8(f, 1.0))
         if masks is not None:
             img = mark_not_restored(img, masks[k])
         frames8.append(img)
@@ -451,11 +455,20 @@ def load_sequence(
 ) -> tuple[RigCalibration, list[dict[str, NDArray]]]:
     """The calibration and every frame's images of a sequence folder, in order (what a video
     benchmark restores in a loop)."""
+    cal, frames = sequence_frames(folder, method)
+    return cal, list(frames)
+
+
+def sequence_frames(
+    folder: str | Path, method: str | Method = "structured-light"
+) -> tuple[RigCalibration, Iterator[dict[str, NDArray]]]:
+    """:func:`load_sequence` one frame at a time: the calibration, and the frames' images in
+    order, each read when the iterator reaches it."""
     seq = read_sequence(folder)
     cal = _calibration(seq, as_method(method))
     if not seq.captured:
-        return cal, [cal.load_images(d) for d in seq.frame_dirs]
-    return cal, [cal.load_files(_frame_files(seq, k, cal)) for k in range(len(seq.frames))]
+        return cal, (cal.load_images(d) for d in seq.frame_dirs)
+    return cal, (cal.load_files(_frame_files(seq, k, cal)) for k in range(len(seq.frames)))
 
 
 def restore_captured_frame(
@@ -489,7 +502,7 @@ def restore_captured_frame(
     files = _frame_files(seq, k, cal)
     images = cal.load_files(files)
     view_flat = load_view_flat(cal, *dict.fromkeys((seq.frame_dirs[k], seq.folder)))
-    result = method(images, cal, track)
+    result = run_method(method, images, cal, track)
     check_files(files, cal, images, result, view_flat)
     metrics = folder_metrics(method, result, None, True, seq.record.get("seed"), rig=cal.rig)
     return FolderRestore(seq.frame_dirs[k], None, cal, images, result, None, None, metrics)

@@ -4,6 +4,7 @@ checkerboard images, and such images rendered through a scene's true lenses."""
 from __future__ import annotations
 
 import argparse
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -14,19 +15,33 @@ BOARD_FILE = "board.json"
 CAMERAS = ("camera_v", "camera_s")
 
 
-def parse_board(text: str, square_mm: float) -> Any:
-    """``COLSxROWS`` inner corners and the square size as a board spec."""
+def board_spec(cols: Any, rows: Any, square_mm: Any, source: str) -> Any:
+    """A board spec from its inner corners (integers >= 3) and square size (finite, > 0 mm);
+    anything else raises WaiInputError naming ``source`` (the option or the file)."""
     from restoration.rig_calibration import BoardSpec
 
+    def corners(v: Any) -> int | None:
+        whole = isinstance(v, int | float) and not isinstance(v, bool) and float(v).is_integer()
+        return int(v) if whole and v >= 3 else None
+
+    number = isinstance(square_mm, int | float) and not isinstance(square_mm, bool)
+    square = float(square_mm) if number else math.nan
+    if corners(cols) is None or corners(rows) is None or not math.isfinite(square) or square <= 0:
+        raise WaiInputError(f"{source}: a board needs whole numbers of inner corners >= 3 and a "
+                            f"finite square size > 0 mm, not cols {cols!r}, rows {rows!r}, "
+                            f"square_mm {square_mm!r}")
+    return BoardSpec(int(cols), int(rows), float(square))
+
+
+def parse_board(text: str, square_mm: float) -> Any:
+    """``COLSxROWS`` inner corners and the square size as a board spec."""
     m = re.fullmatch(r"(\d+)x(\d+)", text.strip())
-    if m is None or int(m[1]) < 3 or int(m[2]) < 3 or not square_mm > 0:
-        raise WaiInputError(f"--board must be COLSxROWS inner corners (>= 3 each) and "
-                            f"--square-mm > 0, not {text!r} and {square_mm}")
-    return BoardSpec(int(m[1]), int(m[2]), float(square_mm))
+    if m is None:
+        raise WaiInputError(f"--board must be COLSxROWS inner corners (>= 3 each), not {text!r}")
+    return board_spec(int(m[1]), int(m[2]), square_mm, "--board and --square-mm")
 
 
 def _board(args: argparse.Namespace) -> Any:
-    from restoration.rig_calibration import BoardSpec
     from wai_core.io import read_json
 
     if args.board is not None:
@@ -36,24 +51,19 @@ def _board(args: argparse.Namespace) -> Any:
         raise WaiInputError(f"{path}: not found; describe the board with --board COLSxROWS "
                             "--square-mm S")
     spec = read_json(path)
-    try:
-        return BoardSpec(int(spec["cols"]), int(spec["rows"]), float(spec["square_mm"]))
-    except (KeyError, TypeError, ValueError):
-        raise WaiInputError(f"{path}: needs cols, rows and square_mm") from None
+    if not isinstance(spec, dict) or not {"cols", "rows", "square_mm"} <= set(spec):
+        raise WaiInputError(f"{path}: needs cols, rows and square_mm")
+    return board_spec(spec["cols"], spec["rows"], spec["square_mm"], str(path))
 
 
 def check_rig_output(path: Path) -> None:
-    """Refuse to replace anything but a rig file this tool wrote."""
-    import json
+    """Refuse, before any work, an output that cannot be written or would replace a file this
+    tool did not write (a rig file without ``wai calibrate``'s ``format``)."""
+    from restoration.rig_calibration import is_written_rig
+    from wai_core.io import check_output_file
 
-    if not path.exists():
-        return
-    try:
-        ours = path.is_file() and "config_keys" in json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError):
-        ours = False
-    if not ours:
-        raise WaiInputError(f"--out {path}: exists and is not a rig file of wai calibrate")
+    check_output_file(path, f"--out {path}", is_written_rig,
+                      remedy="name a new file: a rig file of one's own is never replaced")
 
 
 def run_calibrate(args: argparse.Namespace) -> None:
@@ -64,10 +74,10 @@ def run_calibrate(args: argparse.Namespace) -> None:
     from wai_core.images import IMAGE_SUFFIXES, read_image
     from wai_core.system import load_system
 
+    check_rig_output(args.out)
     if not args.dir.is_dir():
         raise WaiInputError(f"calibration folder not found: {args.dir}")
-    if args.flat is not None and not args.flat.is_file():
-        raise WaiInputError(f"--flat {args.flat}: not found")
+    flat_image = None if args.flat is None else _read_flat(args.flat)
     board = _board(args)
     cfg = load_system(args.config)
     folders = {c: args.dir / c for c in CAMERAS if (args.dir / c).is_dir()}
@@ -78,7 +88,6 @@ def run_calibrate(args: argparse.Namespace) -> None:
     for camera, paths in files.items():
         if not paths:
             raise WaiInputError(f"{folders[camera]}: no images ({', '.join(IMAGE_SUFFIXES)})")
-    check_rig_output(args.out)
     fits = {}
     for camera, paths in tqdm(files.items(), desc="calibrate", unit="camera",
                               disable=args.quiet):
@@ -93,9 +102,11 @@ def run_calibrate(args: argparse.Namespace) -> None:
 
         if "camera_s" not in fits:
             raise WaiInputError("--flat refines camera s: DIR needs a camera_s/ folder")
-        flat = refine_on_flat_water(with_keys(cfg, rig_keys(fits, devices)),
-                                    read_image(args.flat))
-    write_rig(args.out, fits, devices, board, flat)
+        flat = refine_on_flat_water(with_keys(cfg, rig_keys(fits, devices)), flat_image)
+    try:
+        write_rig(args.out, fits, devices, board, flat)
+    except OSError as exc:
+        raise WaiInputError(f"--out {args.out}: {exc.strerror or exc}") from None
     for camera, fit in fits.items():
         s = fit.sigma
         k1, k2 = fit.distortion[:2]
@@ -113,14 +124,29 @@ def run_calibrate(args: argparse.Namespace) -> None:
     print(f"rig file: {args.out} (wai restore DIR --rig {args.out})")
 
 
+def _read_flat(path: Path) -> Any:
+    """The ``--flat`` image, read before any work."""
+    from wai_core.images import read_image
+
+    if not path.is_file():
+        raise WaiInputError(f"--flat {path}: not found")
+    try:
+        return read_image(path)
+    except WaiInputError as exc:
+        raise WaiInputError(f"--flat {exc}") from None
+
+
 def run_checkerboards(args: argparse.Namespace, cfg: Any) -> None:
     """Render ``args.checkerboards`` board views per camera of ``cfg`` into
     ``args.out/checkerboards/`` with ``board.json`` and the true intrinsics."""
     from tqdm import tqdm
 
     from mitsuba_wai.checkerboards import Board, render_checkerboards
-    from wai_core.io import atomic_dir, write_json, write_png
+    from mitsuba_wai.memory import check_render_memory
+    from wai_core.io import atomic_dir, check_output_dir, write_json, write_png
 
+    check_output_dir(args.out, "render", args.overwrite, label=f"--out {args.out}")
+    check_render_memory(cfg, str(args.config), views=args.checkerboards)
     board = Board()
     seed = cfg.waves.seed
     with atomic_dir(args.out, command="render", overwrite=args.overwrite) as tmp:

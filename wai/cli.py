@@ -500,9 +500,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the exit code.
 
-    Bad input: one line on stderr, exit code 2. SIGINT / SIGTERM: one line, exit code 130 /
-    143, temporary outputs removed (:func:`wai_core.io.catch_signals` turns both into
-    exceptions); an error that follows a signal (a library that swallowed it) counts as it.
+    Bad input: one line on stderr, exit code 2; so is a failure of the environment (an
+    ``OSError``: a full disk, a read-only folder), the outputs' temporary folders removed.
+    SIGINT / SIGTERM: one line, exit code 130 / 143, temporary outputs removed
+    (:func:`wai_core.io.catch_signals` turns both into exceptions); an error that follows a
+    signal (a library that swallowed it) counts as it.
     """
     from wai_core.io import Terminated, catch_signals
 
@@ -516,6 +518,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         except WaiInputError as exc:
             if caught.signum is None:
                 print(f"wai: error: {exc}", file=sys.stderr)
+                return EXIT_BAD_INPUT
+        except OSError as exc:  # the environment: a full disk, a folder made read-only
+            if caught.signum is None:
+                where = f"{exc.filename}: " if exc.filename else ""
+                print(f"wai: error: {where}{exc.strerror or exc}", file=sys.stderr)
                 return EXIT_BAD_INPUT
         except (KeyboardInterrupt, Terminated):
             pass

@@ -47,6 +47,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from wai import dataset_store as store
+from wai.dataset_store import DATASET_FILE, FORMAT, MANIFEST_FILE
 from wai.threads import limit_native_threads
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
@@ -71,10 +73,6 @@ __all__ = [
     "write_dataset",
 ]
 
-DATASET_FILE = "dataset.h5"
-MANIFEST_FILE = "manifest.csv"
-FORMAT = "wai-dataset/1"
-"""The ``format`` attribute of a store this module wrote (what a rerun looks for)."""
 
 # Attributes that must match for a rerun to append to an existing store.
 _IDENTITY = ("format", "seed", "config", "config_json", "ranges", "spp", "size_px", "degrade")
@@ -594,11 +592,8 @@ def _open_store(path: Path, spec: DatasetSpec, cfg: SystemConfig) -> Any:
 
     want = spec.attrs(cfg)
     if not path.exists():
-        f = h5py.File(path, "w")
-        f.attrs.update(want)
-        f.attrs["versions"] = json.dumps(_versions(), sort_keys=True)
-        f.attrs["frames"] = 0
-        return f
+        versions = json.dumps(_versions(), sort_keys=True)
+        return store.create_store(path, {**want, "versions": versions, "frames": 0})
     # Checked read-only: a file that is refused is not touched.
     try:
         with h5py.File(path, "r") as f:
@@ -655,8 +650,6 @@ def _trim(f: Any) -> int:
 
 
 def _write_manifest(f: Any, path: Path) -> None:
-    from wai_core.io import atomic_write_bytes
-
     names = _PARAM_DTYPE.names
     rows = f["params"][: int(f.attrs["frames"])] if "params" in f else []
     buf = io.StringIO()
@@ -664,7 +657,7 @@ def _write_manifest(f: Any, path: Path) -> None:
     w.writerow(names)
     for row in rows:
         w.writerow([repr(v.item()) for v in row])
-    atomic_write_bytes(path, buf.getvalue().encode())
+    store.write_manifest(path, buf.getvalue())
 
 
 def write_dataset(
@@ -703,7 +696,7 @@ def write_dataset(
     Raises
     ------
     WaiInputError
-        ``out_dir`` is a file, or its ``dataset.h5`` is not a store of this spec.
+        ``out_dir`` may not be written, holds another spec, or lacks memory or disk (dataset_store).
 
     Examples
     --------
@@ -720,10 +713,11 @@ def write_dataset(
         raise WaiInputError("--workers and --scheduler exclude each other: the scheduler's "
                             "workers render")
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise WaiInputError(f"--out {out}: exists and is not a folder")
+    store.check_dataset_folder(out)
     cfg = spec.base_config()
-    out.mkdir(parents=True, exist_ok=True)
+    if scheduler is None:  # a cluster's workers have their own memory
+        store.check_dataset_memory(spec, cfg, max(workers, 1))
+    store.mark_dataset_folder(out)
     path = out / DATASET_FILE
     f = _open_store(path, spec, cfg)
     try:
@@ -737,13 +731,16 @@ def write_dataset(
                 x_mm, y_mm = (maker.x_mm, maker.y_mm) if maker else _grid_axes(spec, cfg)
                 made, renderers = _frames(spec, todo, workers, scheduler, maker)
                 for rec in made:
+                    store.reserve_space(f, sum(getattr(rec, a).nbytes for a in ARRAYS),
+                                        int(f.attrs["frames"]))
                     _append(f, rec, x_mm, y_mm)
                     _write_manifest(f, out / MANIFEST_FILE)
                     bar.update(1)
+                store.reserve_space(f, 0, int(f.attrs["frames"]))
                 _record_run(f, done, len(todo), time.perf_counter() - t0, renderers)
         _write_manifest(f, out / MANIFEST_FILE)
     finally:
-        f.close()
+        store.close_store(f)
     return path
 
 

@@ -3,7 +3,9 @@
 Every option is checked before the renders start, and a bad one ends the command with one line
 that names it (exit code 2): numbers that are not finite, a seed out of Mitsuba's range, a
 variant this machine cannot run, an output location that cannot or may not be written (the
-output policy of :mod:`wai_core.io`), a surface file that is not one, a surface outside the rig.
+output policy of :mod:`wai_core.io`), a rig that sees nothing through flat water
+(:func:`wai_core.rig_checks.check_rig`), a frame too large for the memory available
+(:mod:`mitsuba_wai.memory`), a surface file that is not one, a surface outside the rig.
 """
 
 from __future__ import annotations
@@ -71,15 +73,23 @@ def _surface_label(args: argparse.Namespace) -> str:
     return f"[waves] of {args.config}"
 
 
-def _prepare(args: argparse.Namespace) -> tuple[Heightfield | None, str]:
-    """The checks every render makes before its long work: the output location, the surface
-    file, the variant. Returns the surface given (or None) and the variant's name."""
+def _prepare(args: argparse.Namespace, cfg: SystemConfig | None = None
+             ) -> tuple[Heightfield | None, str]:
+    """The checks every render makes before its long work: the output location, ``cfg``'s rig
+    geometry and the memory its frame needs, the surface file, the variant. Returns the surface
+    given (or None) and the variant's name."""
     from mitsuba_wai.render import OUTPUT_COMMAND
     from mitsuba_wai.variant import select_variant
 
     check_output_dir(
         args.out, OUTPUT_COMMAND, getattr(args, "overwrite", False), label=f"--out {args.out}"
     )
+    if cfg is not None:
+        from mitsuba_wai.memory import check_render_memory
+        from wai_core.rig_checks import check_rig
+
+        check_rig(cfg, str(args.config))
+        check_render_memory(cfg, str(args.config))
     given = load_heightfield(args.heightfield) if args.heightfield else None
     try:
         variant = select_variant(args.variant)
@@ -111,7 +121,7 @@ def run_render(args: argparse.Namespace) -> None:
     if sequence:
         run_render_sequence(cfg, args)
         return
-    given, variant = _prepare(args)
+    given, variant = _prepare(args, cfg)
     record = render_folder(
         cfg,
         args.out,
@@ -175,7 +185,7 @@ def run_render_sequence(cfg: SystemConfig, args: argparse.Namespace) -> None:
     from mitsuba_wai.sequence import render_sequence
 
     _check_sequence(args)
-    _, variant = _prepare(args)
+    _, variant = _prepare(args, cfg)
     use_dask = args.scheduler is not None or args.workers > 0
     runner = _dask_runner(args) if use_dask else None
     record = render_sequence(

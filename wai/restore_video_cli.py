@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import platform
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,25 +27,43 @@ def out_folder(path: Path, method: str) -> Path:
     return path / name if path.is_dir() else Path("renders") / f"{path.stem}_{name}"
 
 
-def _frames(path: Path) -> Any:
+def _views(path: Path) -> tuple[Iterator[Any], tuple[int, int, int, int], int]:
     """The frames of a sequence folder (its views, on the object's radiance scale), of a
-    folder of images, or of a video file."""
-    from restoration.video import read_frames
+    folder of images or of a video file, one at a time; their count, height, width and
+    channels; and the bytes per frame a sequence's loader holds beside them."""
+    from restoration.video import frames_shape, iter_frames
     from wai_core.sequence import is_sequence
 
     if path.is_dir() and is_sequence(path):
-        from restoration.sequence import load_sequence
+        from restoration.sequence import sequence_frames
+        from wai_core.sequence import read_sequence
 
-        cal, images = load_sequence(path)
-        return np.clip(np.stack([cal.radiance(im["view"]) for im in images]), 0, 1)
-    return read_frames(path)
+        cal, images = sequence_frames(path)
+        (h, w), (hs, ws) = cal.image_size("view"), cal.image_size("pattern")
+        views = (np.clip(cal.radiance(im["view"]), 0, 1) for im in images)
+        # A sequence's frames are loaded whole: each frame's view and pattern (float32 RGB).
+        return views, (len(read_sequence(path).frames), h, w, 3), 12 * (h * w + hs * ws)
+    return iter_frames(path), frames_shape(path), 0
+
+
+def _check_memory(path: Path, method: str, shape: tuple[int, int, int, int],
+                  loader_bytes: int) -> None:
+    """Refuse a registration or lucky fusion whose frames, loaded whole, would need more
+    memory than is available (:func:`restoration.video.fusion_bytes`)."""
+    from restoration.video import fusion_bytes
+    from wai_core.memory import check_memory
+
+    n, h, w, _ = shape
+    check_memory(fusion_bytes(*shape) + n * loader_bytes,
+                 f"{path} ({n} frames of {w} x {h} px)",
+                 f"--method {method} (every frame in memory; --method mean streams them)")
 
 
 def run_restore_video(args: argparse.Namespace) -> None:
     """Restore ``args.dir`` by ``args.method``; print what a person reads first."""
     import cv2
 
-    from restoration.video import checkerboard_score, lucky_fusion, register_frames, temporal_mean
+    from restoration.video import checkerboard_score, lucky_fusion, register_frames, streamed_mean
     from wai_core.io import atomic_dir, check_output_dir, write_exr, write_json, write_png
 
     path = Path(args.dir)
@@ -57,9 +76,13 @@ def run_restore_video(args: argparse.Namespace) -> None:
         board = parse_board(args.board)
     target = Path(args.out) if args.out is not None else out_folder(path, args.method)
     check_output_dir(target, "restore", remedy="choose another --out")
-    frames = _frames(path)
-    run = {"registration": register_frames, "lucky": lucky_fusion, "mean": temporal_mean}
-    res = run[args.method](frames)
+    frames, shape, loader_bytes = _views(path)
+    if args.method == "mean":
+        res = streamed_mean(frames)
+    else:
+        _check_memory(path, args.method, shape, loader_bytes)
+        run = {"registration": register_frames, "lucky": lucky_fusion}
+        res = run[args.method](np.stack(list(frames)))
     metrics: dict[str, Any] = {
         "method": res.method, "source": str(path), "frames": int(res.frames_used),
         "ms_per_frame": float(res.ms_per_frame), "valid_fraction": float(res.valid.mean()),

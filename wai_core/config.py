@@ -2,12 +2,14 @@
 
 Every section maps to a frozen dataclass. Unknown keys, missing keys and values of the wrong kind
 raise :class:`~wai_core.errors.WaiInputError` naming the key, so a typo never passes silently.
-One rule for what may be left out: the rig's devices, ``[projector]``, ``[camera_s]`` and
-``[camera_v]``, have no default (no pose fits every rig) and are required; every other section,
-and every key of a section that has a default, takes the default its dataclass gives when
-omitted, and ``scene.json`` records every value used. The field's degradations,
-``[sensor]``, ``[motion]``, ``[water_optics]`` and ``[ambient]``, are off by default and cost
-nothing then.
+One rule for what may be left out: the sections that describe the rig and what it looks at,
+everything the restoration reads (:data:`RIG_SECTIONS`: ``[water]``, ``[projector]``,
+``[pattern]``, ``[camera_s]``, ``[camera_v]``, ``[diffuser]``, ``[object]``), are required,
+so a rig of one's own never silently takes the paper's water level or diffuser height; the
+sections that only drive the simulation (``[waves]``, ``[render]``, and the field's
+degradations ``[sensor]``, ``[motion]``, ``[water_optics]``, ``[ambient]``, off by default and
+free then) may be left out. Within a section, a key that has a default (its dataclass's) may be
+left out; the devices' geometry has none. ``scene.json`` records every value used.
 """
 
 from __future__ import annotations
@@ -143,6 +145,15 @@ class ObjectConfig:
     texture: str = "checkerboard"
     squares: tuple[int, int] = (16, 12)
 
+
+SKIMAGE_TEXTURES = (
+    "astronaut", "binary_blobs", "brick", "camera", "cat", "cell", "checkerboard", "chelsea",
+    "clock", "coffee", "coins", "colorwheel", "grass", "gravel", "horse", "hubble_deep_field",
+    "immunohistochemistry", "logo", "microaneurysms", "moon", "page", "retina", "rocket",
+    "shepp_logan_phantom", "text",
+)
+"""The scikit-image sample images ``[object].texture = "skimage:NAME"`` takes: the 2-D grey
+and colour images that ship with scikit-image (no download)."""
 
 SAMPLINGS = ("stratified", "independent")
 """Values of ``[render].sampling``."""
@@ -368,7 +379,10 @@ def parse_section(cls: type, data: Any, name: str) -> Any:
 
 
 DEVICE_SECTIONS = ("projector", "camera_s", "camera_v")
-"""The sections a configuration must give (see the module notes)."""
+"""The devices: their pose and size have no default."""
+RIG_SECTIONS = ("water", "projector", "pattern", "camera_s", "camera_v", "diffuser", "object")
+"""The sections a configuration must give: the rig and what it looks at, everything the
+restoration reads (see the module notes)."""
 
 MAX_WAVE_COMPONENTS = 200_000
 """Most harmonics (``n_frequencies * n_directions``) a sea state may sum (the paper's 64 x 24
@@ -384,12 +398,13 @@ def config_from_dict(data: dict[str, Any]) -> SystemConfig:
     unknown = sorted(set(data) - set(_SECTIONS))
     if unknown:
         raise WaiInputError(f"config: unknown section [{unknown[0]}]")
-    for name in DEVICE_SECTIONS:
-        if name not in data:
-            raise WaiInputError(
-                f"config: missing section [{name}] (the devices [projector], [camera_s] and "
-                "[camera_v] have no default; every other section defaults)"
-            )
+    missing = [name for name in RIG_SECTIONS if name not in data]
+    if missing:
+        raise WaiInputError(
+            f"config: missing section [{missing[0]}] (the sections that describe the rig, "
+            f"{', '.join(f'[{n}]' for n in RIG_SECTIONS)}, are required; only the "
+            "simulation's, [waves], [render] and the degradations, may be left out)"
+        )
     cfg = SystemConfig(**{k: parse_section(_SECTIONS[k], v, k) for k, v in data.items()})
     validate(cfg)
     return cfg
@@ -424,6 +439,10 @@ def validate(cfg: SystemConfig) -> None:
         raise WaiInputError("config: [diffuser].z_mm must lie between the projector and the water")
     if cfg.object.height_above_water_mm <= 0:
         raise WaiInputError("config: [object].height_above_water_mm must be positive")
+    texture = cfg.object.texture
+    if texture.startswith("skimage:") and texture.partition(":")[2] not in SKIMAGE_TEXTURES:
+        raise WaiInputError(f"config: [object].texture {texture!r} is not a scikit-image sample "
+                            f"image (skimage: one of {', '.join(SKIMAGE_TEXTURES)})")
     wv = cfg.waves
     if wv.wind_speed_m_s < 0 or wv.n_frequencies < 1 or wv.n_directions < 1:
         raise WaiInputError("config: [waves] needs wind_speed >= 0 and at least one component")

@@ -8,9 +8,14 @@ keeps its three channels in RGB order; a grey image is (H, W).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
-from collections.abc import Iterable, Mapping
+import os
+import sys
+import tempfile
+import threading
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -70,9 +75,12 @@ def read_image(path: str | Path) -> NDArray[np.float32]:
         raise WaiInputError(f"image not found: {path}")
     import cv2
 
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    with _native_stderr() as said:  # libpng and libtiff print their errors themselves
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
-        raise WaiInputError(f"{path} is not a readable {path.suffix.lstrip('.').upper()} image")
+        why = f" ({'; '.join(said)})" if said else ""
+        raise WaiInputError(f"{path} is not a readable {path.suffix.lstrip('.').upper()} "
+                            f"image{why}")
     if raw.dtype == np.uint8:
         img = raw.astype(np.float32) / 255.0
     elif raw.dtype == np.uint16:
@@ -87,6 +95,35 @@ def read_image(path: str | Path) -> NDArray[np.float32]:
     if not np.all(np.isfinite(img)):
         raise WaiInputError(f"{path}: image holds NaN or inf")
     return img
+
+
+_STDERR_LOCK = threading.Lock()  # file descriptor 2 is the process's: one redirection at a time
+
+
+@contextlib.contextmanager
+def _native_stderr() -> Iterator[list[str]]:
+    """Within the block, what native libraries write to the process's stderr (file
+    descriptor 2: libpng's and libtiff's messages, OpenCV's log) is captured, not shown; the
+    list holds its lines at the end (the decoders' reasons for a one-line message). Threads
+    take turns (a lock), so that each restores the descriptor it found."""
+    lines: list[str] = []
+    try:
+        sink = tempfile.TemporaryFile()
+    except OSError:  # no room for it: the messages go to the terminal, as before
+        yield lines
+        return
+    with _STDERR_LOCK, sink:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            text = sink.read().decode(errors="replace")
+            lines.extend(line.strip() for line in text.splitlines() if line.strip())
 
 
 def locate_image(folder: str | Path, stem: str) -> Path | None:

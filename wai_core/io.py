@@ -21,6 +21,9 @@ Output policy (:func:`atomic_dir` with ``command``, :func:`check_output_dir`)
   They are removed on any exception, ``KeyboardInterrupt`` included; a later run removes the
   ones a killed run left (its process gone, the marker naming the same command), and only
   those.
+- An output written in place (``wai dataset``'s store, continued by a rerun) is checked by
+  :func:`check_output_dir` like the others and marked with :func:`mark_output` before its
+  first file is written.
 - :func:`catch_signals` (used by the ``wai`` command) turns SIGINT / SIGTERM into exceptions so
   that this clean-up also runs when the process is interrupted or terminated.
 """
@@ -36,7 +39,7 @@ import signal
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -168,6 +171,14 @@ def _write_marker(folder: Path, command: str, files: list[str] | None) -> None:
     })
 
 
+def mark_output(folder: str | Path, command: str, files: list[str]) -> None:
+    """Mark ``folder`` as a complete output of ``command`` holding ``files``, for an output
+    written in place rather than through :func:`atomic_dir` (a store a rerun continues, such as
+    ``wai dataset``'s): :func:`check_output_dir` then accepts it for ``command`` as long as it
+    holds nothing else."""
+    _write_marker(Path(folder), command, sorted(files))
+
+
 def _is_nested_output(path: Path) -> bool:
     """A folder inside an output that the tool wrote too (it holds a marker)."""
     if path.is_symlink() or not path.is_dir():
@@ -290,11 +301,7 @@ def check_output_dir(
         if real == cwd or real in cwd.parents:
             raise WaiInputError(f"{label}: is the current folder or contains it; name a new "
                                 "folder for the output")
-        anchor = path.parent
-        while not anchor.exists() and anchor != anchor.parent:
-            anchor = anchor.parent
-        if not anchor.is_dir():
-            raise WaiInputError(f"{label}: {anchor} is a file, not a folder")
+        anchor = _existing_folder(path, label)
         if path.is_symlink():
             raise WaiInputError(f"{label}: is a symbolic link; name the folder itself")
         _check_name_length(path, anchor, label)
@@ -311,11 +318,67 @@ def check_output_dir(
                 )
     except OSError as exc:
         raise WaiInputError(f"{label}: {exc.strerror or exc}") from None
-    try:
-        os.rmdir(tempfile.mkdtemp(prefix=".wai-probe-", dir=anchor))
-    except OSError as exc:
-        raise WaiInputError(f"{label}: cannot write in {anchor}: {exc.strerror or exc}") from None
+    _probe_writable(anchor, label)
     return path
+
+
+def check_output_file(final: str | Path, label: str, is_own: Callable[[Path], bool],
+                      remedy: str) -> Path:
+    """Check, before any work, that a file may be written at ``final`` (atomically, through a
+    temporary file beside it): every existing part of its path a folder, its folder writable,
+    and an existing ``final`` a regular file that the tool wrote (``is_own``), never a folder,
+    a symbolic link or a file of the user's.
+
+    Parameters
+    ----------
+    final : path
+        The file.
+    label : str
+        How the message names it (``--out rig.json``).
+    is_own : callable
+        Whether an existing file is one the tool wrote (and may replace).
+    remedy : str
+        What the message for a file of the user's tells them to do.
+
+    Returns
+    -------
+    Path
+        ``final`` made absolute.
+
+    Raises
+    ------
+    WaiInputError
+        In one line naming ``label``.
+    """
+    path = Path(os.path.abspath(final))
+    try:
+        anchor = _existing_folder(path, label)
+        if path.is_symlink() or (path.exists() and not path.is_file()):
+            raise WaiInputError(f"{label}: exists and is not a regular file")
+        if path.exists() and not is_own(path):
+            raise WaiInputError(f"{label}: exists and was not written by wai; {remedy}")
+    except OSError as exc:
+        raise WaiInputError(f"{label}: {exc.strerror or exc}") from None
+    _probe_writable(anchor, label)
+    return path
+
+
+def _existing_folder(path: Path, label: str) -> Path:
+    """The nearest existing folder above ``path``; a file there is refused."""
+    anchor = path.parent
+    while not anchor.exists() and anchor != anchor.parent:
+        anchor = anchor.parent
+    if not anchor.is_dir():
+        raise WaiInputError(f"{label}: {anchor} is a file, not a folder")
+    return anchor
+
+
+def _probe_writable(folder: Path, label: str) -> None:
+    """Refuse a folder in which nothing can be created (probed with a temporary folder)."""
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".wai-probe-", dir=folder))
+    except OSError as exc:
+        raise WaiInputError(f"{label}: cannot write in {folder}: {exc.strerror or exc}") from None
 
 
 # Longest suffix atomic_dir adds to a name: ".NAME.tmp-PID-XXXXXXXX" (PIDs up to 2^22).
@@ -547,7 +610,8 @@ def read_json(path: str | Path) -> Any:
 
 
 def write_exr(path: str | Path, image: NDArray) -> None:
-    """Write a float image of shape (h, w) or (h, w, 3) as a ZIP-compressed float32 OpenEXR."""
+    """Write a float image of shape (h, w) or (h, w, 3) as a ZIP-compressed float32 OpenEXR
+    (a failed write, a full disk, raises ``OSError``)."""
     import OpenEXR
 
     img = np.ascontiguousarray(np.asarray(image, dtype=np.float32))
@@ -555,8 +619,12 @@ def write_exr(path: str | Path, image: NDArray) -> None:
     header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
-    with OpenEXR.File(header, channels) as f:
-        f.write(str(tmp))
+    try:
+        with OpenEXR.File(header, channels) as f:
+            f.write(str(tmp))
+    except RuntimeError as exc:  # OpenEXR's way of saying the file could not be written
+        tmp.unlink(missing_ok=True)
+        raise OSError(f"cannot write {path}: {exc}") from None
     os.replace(tmp, path)
 
 

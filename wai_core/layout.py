@@ -78,9 +78,9 @@ def lit_dots(cfg: SystemConfig, margin_spacings: float = 2.0) -> NDArray[np.bool
     projected photon on a spot that camera s can see."""
     q, s, _ = flat_pattern_hits(cfg)
     rect = diffuser_rect(cfg)
-    _, panel = dot_grid(cfg.pattern, cfg.projector.camera())
+    ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
     # Spacing of neighbouring spots on the diffuser, from the flat-water model.
-    rows = s.reshape(-1, _grid_side(panel), 3)
+    rows = s.reshape(-1, _dots_per_row(ij), 3)
     spacing = np.nanmedian(np.linalg.norm(np.diff(rows, axis=1), axis=2))
     grow = margin_spacings * spacing
     return (
@@ -92,9 +92,10 @@ def lit_dots(cfg: SystemConfig, margin_spacings: float = 2.0) -> NDArray[np.bool
     )
 
 
-def _grid_side(panel: NDArray) -> int:
-    """Dots per grid row (the grid is square, laid out row by row)."""
-    return int(round(np.sqrt(panel.shape[0])))
+def _dots_per_row(ij: NDArray) -> int:
+    """Dots per grid row (:func:`~wai_core.pattern.dot_grid` lays the grid out row by row; a
+    panel that is not square has rows and columns of different lengths)."""
+    return int(ij[:, 0].max() - ij[:, 0].min() + 1)
 
 
 def dot_weights(cfg: SystemConfig, max_gain: float = 60.0) -> NDArray:

@@ -1,4 +1,5 @@
-"""Checks of a water surface against the rig, before anything is rendered.
+"""Checks of the rig's geometry and of a water surface against it, before anything is rendered
+or restored.
 
 The rig (``lab`` frame, z up, mm) stacks, in the paper's configuration: camera s (z = -190),
 the projector and camera v (z = 0), the diffuser (z_h = 60), the water (h0 = 150) and the object
@@ -7,6 +8,13 @@ is seen through it from below, so over the patch both systems observe the surfac
 above each of them and below the object plane. A surface that does not (a file at the wrong
 height, waves taller than the rig) would render black or meaningless images without any error;
 :func:`check_surface_in_rig` refuses it in one line that says what is wrong and where.
+
+The rig itself must be able to see something through flat water (:func:`check_rig`): the
+devices below the water, camera s below the diffuser and looking up at it, some of the
+projector's dots landing in its view, and camera v seeing the object plane through the water.
+A rig that fails one of these (a camera moved by metres, turned away, a device above the
+water) is impossible geometry: restoring or rendering it would only end in a ``failed`` frame
+or black images, so it is refused up front.
 """
 
 from __future__ import annotations
@@ -15,10 +23,18 @@ import numpy as np
 
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
+from wai_core.geometry import intersect_plane_z
 from wai_core.heightfield import Heightfield
-from wai_core.layout import observed_patch
+from wai_core.layout import (
+    flat_pattern_hits,
+    footprint_on_plane,
+    frame_border_px,
+    object_plane_center,
+    observed_patch,
+    snell_window_hits,
+)
 
-__all__ = ["rig_levels", "check_surface_in_rig"]
+__all__ = ["check_rig", "check_surface_in_rig", "rig_levels"]
 
 
 def rig_levels(cfg: SystemConfig) -> list[tuple[str, float]]:
@@ -92,3 +108,66 @@ def check_surface_in_rig(
                 f"{what}: the surface {word} z = {_mm(z_at)} mm (at x = {xs[at[1]]:.0f}, "
                 f"y = {ys[at[0]]:.0f} mm), {side} {names}; {rule}"
             )
+
+
+def _span(points: np.ndarray) -> str:
+    """``x from A to B, y from C to D mm`` of points (N, >= 2)."""
+    lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    return f"x from {lo[0]:.0f} to {hi[0]:.0f}, y from {lo[1]:.0f} to {hi[1]:.0f} mm"
+
+
+def check_rig(cfg: SystemConfig, what: str = "the rig") -> None:
+    """Refuse a rig whose geometry cannot work through flat water (module notes).
+
+    Parameters
+    ----------
+    cfg : SystemConfig
+    what : str
+        How the message names the rig's source, e.g. ``renders/f1/scene.json``.
+
+    Raises
+    ------
+    WaiInputError
+        E.g. ``renders/f1/scene.json: camera s sees none of the projector's dots on the
+        diffuser through flat water (they land at x from 95 to 477, ...; camera s sees x from
+        5174 to 5799, ...)``.
+
+    Examples
+    --------
+    >>> from wai_core import load_system
+    >>> cfg = load_system("paper")
+    >>> check_rig(cfg)
+    >>> moved = cfg.replace("camera_s", translation_mm=(-5286.4, 0.0, 190.0))  # 5 m along x
+    >>> try:
+    ...     check_rig(moved, "scene.json")
+    ... except WaiInputError as exc:
+    ...     print(str(exc)[:74])
+    scene.json: camera s sees none of the projector's dots on the diffuser thr
+    """
+    h0, zh = cfg.water.h0_mm, cfg.diffuser.z_mm
+    for name, label, ceiling, part in (("projector", "the projector", h0, "the water"),
+                                       ("camera_v", "camera v", h0, "the water"),
+                                       ("camera_s", "camera s", zh, "the diffuser")):
+        z = float(getattr(cfg, name).camera().pose.center_lab_mm[2])
+        if z >= ceiling:
+            raise WaiInputError(f"{what}: {label} is at z = {_mm(z)} mm, not below {part} at "
+                                f"{_mm(ceiling)} mm: it must look up at it from below")
+    cam_s = cfg.camera_s.camera()
+    o, d = cam_s.pixel_rays(*frame_border_px(cam_s))
+    if not np.isfinite(intersect_plane_z(o, d, zh)[0][:, 0]).any():
+        raise WaiInputError(f"{what}: camera s does not look up at the diffuser (z = {_mm(zh)} "
+                            "mm): none of its rays reaches it")
+    _, spots, seen = flat_pattern_hits(cfg)
+    if not seen.any():
+        landed = spots[np.isfinite(spots[:, 0])]
+        where = f"they land at {_span(landed)}" if len(landed) else "none reaches it"
+        raise WaiInputError(
+            f"{what}: camera s sees none of the projector's dots on the diffuser through flat "
+            f"water ({where}; camera s sees {_span(footprint_on_plane(cam_s, zh).T)})")
+    try:
+        object_plane_center(cfg)
+    except ValueError as exc:
+        raise WaiInputError(f"{what}: {exc}") from None
+    if not len(snell_window_hits(cfg)):
+        raise WaiInputError(f"{what}: camera v sees nothing through the water: every ray is "
+                            "totally reflected or misses it")

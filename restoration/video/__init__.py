@@ -1,7 +1,8 @@
 """Image-only baselines for a still scene seen through moving water, and a truth-free score.
 
 They need no rig and no calibration: only a sequence of frames of a still scene
-(:func:`read_frames`). :func:`temporal_mean` is the classic reference;
+(:func:`read_frames`; :func:`iter_frames` one at a time). :func:`temporal_mean` is the classic
+reference (:func:`streamed_mean` for a sequence of any length);
 :func:`register_frames` registers every frame to the iterated mean by dense optical flow
 (:mod:`~restoration.video.registration`); :func:`lucky_fusion` keeps, per patch, the frames the
 water distorted least (:mod:`~restoration.video.lucky`). For a planar checkerboard,
@@ -24,7 +25,16 @@ from restoration.video.checkerboard import (
     stability_px,
     track_corners,
 )
-from restoration.video.frames import VIDEO_SUFFIXES, VideoRestoration, read_frames, temporal_mean
+from restoration.video.frames import (
+    VIDEO_SUFFIXES,
+    VideoRestoration,
+    frames_shape,
+    fusion_bytes,
+    iter_frames,
+    read_frames,
+    streamed_mean,
+    temporal_mean,
+)
 from restoration.video.lucky import lucky_fusion
 from restoration.video.registration import register_frames
 
@@ -36,12 +46,16 @@ __all__ = [
     "GridScore",
     "VideoRestoration",
     "checkerboard_score",
+    "frames_shape",
+    "fusion_bytes",
     "grid_residual_px",
     "grid_score",
+    "iter_frames",
     "lucky_fusion",
     "read_frames",
     "register_frames",
     "stability_px",
+    "streamed_mean",
     "temporal_mean",
     "track_corners",
 ]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import re
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +19,8 @@ from numpy.typing import NDArray
 from wai_core.errors import WaiInputError
 from wai_core.images import IMAGE_SUFFIXES, read_image
 
-__all__ = ["VIDEO_SUFFIXES", "VideoRestoration", "read_frames", "temporal_mean"]
+__all__ = ["VIDEO_SUFFIXES", "VideoRestoration", "frames_shape", "fusion_bytes", "iter_frames",
+           "read_frames", "streamed_mean", "temporal_mean"]
 
 VIDEO_SUFFIXES = (".avi", ".mp4", ".mov", ".mkv")
 """Suffixes :func:`read_frames` opens as a video (with ``cv2.VideoCapture``)."""
@@ -66,43 +68,61 @@ def _natural_key(path: Path) -> tuple:
     return tuple(int(p) if p.isdigit() else p.lower() for p in parts)
 
 
-def _read_video(path: Path, max_frames: int | None) -> Frames:
+def _video_frames(path: Path, max_frames: int | None) -> Iterator[NDArray]:
+    """The video's frames as decoded (BGR or grey, 8 or 16 bit), one at a time."""
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
         raise WaiInputError(f"{path}: not a readable video")
-    frames = []
+    count = 0
     try:
-        while max_frames is None or len(frames) < max_frames:
-            ok, bgr = cap.read()
+        while max_frames is None or count < max_frames:
+            ok, raw = cap.read()
             if not ok:
                 break
-            frames.append(bgr)
+            count += 1
+            yield raw
     finally:
         cap.release()
-    if not frames:
+    if not count:
         raise WaiInputError(f"{path}: the video holds no readable frame")
-    stack = np.stack(frames)
-    scale = 65535.0 if stack.dtype == np.uint16 else 255.0
-    out = stack.astype(np.float32) / np.float32(scale)
-    if out.ndim == 4:
+
+
+def _scaled(raw: NDArray) -> Frames:
+    """A decoded video frame as float32 on [0, 1], colour in RGB order."""
+    scale = 65535.0 if raw.dtype == np.uint16 else 255.0
+    out = raw.astype(np.float32) / np.float32(scale)
+    if out.ndim == 3:
         out = np.ascontiguousarray(out[..., :3][..., ::-1])  # BGR -> RGB
     return out
 
 
-def _read_folder(path: Path, max_frames: int | None) -> Frames:
+def _read_video(path: Path, max_frames: int | None) -> Frames:
+    return np.stack([_scaled(raw) for raw in _video_frames(path, max_frames)])
+
+
+def _folder_files(path: Path, max_frames: int | None) -> list[Path]:
     files = sorted(
         (p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
         key=_natural_key,
     )
     if not files:
         raise WaiInputError(f"{path}: no image ({', '.join(IMAGE_SUFFIXES)}) in the folder")
-    files = files[:max_frames] if max_frames is not None else files
-    images = [read_image(f) for f in files]
-    shape = images[0].shape
-    for f, img in zip(files, images, strict=True):
+    return files[:max_frames] if max_frames is not None else files
+
+
+def _folder_frames(path: Path, max_frames: int | None) -> Iterator[Frames]:
+    """The folder's images in natural order, one at a time, each the first one's shape."""
+    shape = None
+    for f in _folder_files(path, max_frames):
+        img = read_image(f)
+        shape = img.shape if shape is None else shape
         if img.shape != shape:
             raise WaiInputError(f"{f}: shape {img.shape} differs from the first frame's {shape}")
-    return np.stack(images).astype(np.float32, copy=False)
+        yield img
+
+
+def _read_folder(path: Path, max_frames: int | None) -> Frames:
+    return np.stack(list(_folder_frames(path, max_frames))).astype(np.float32, copy=False)
 
 
 def read_frames(path: str | Path, max_frames: int | None = None) -> Frames:
@@ -138,18 +158,111 @@ def read_frames(path: str | Path, max_frames: int | None = None) -> Frames:
     >>> frames.shape, np.round(frames[:, 0, 0] * 255).tolist()
     ((3, 4, 6), [25.0, 50.0, 250.0])
     """
-    path = Path(path)
     if max_frames is not None and max_frames < 1:
         raise WaiInputError(f"max_frames must be at least 1, got {max_frames}")
+    path = _checked_path(path)
     if path.is_dir():
         return _read_folder(path, max_frames)
+    return _read_video(path, max_frames)
+
+
+def _checked_path(path: str | Path) -> Path:
+    """``path`` when it is a folder or a video file, else WaiInputError naming it."""
+    path = Path(path)
+    if path.is_dir():
+        return path
     if not path.exists():
         raise WaiInputError(f"frames not found: {path}")
-    if path.suffix.lower() in VIDEO_SUFFIXES:
-        return _read_video(path, max_frames)
-    raise WaiInputError(
-        f"{path}: neither a folder of images nor a video ({', '.join(VIDEO_SUFFIXES)})"
-    )
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise WaiInputError(
+            f"{path}: neither a folder of images nor a video ({', '.join(VIDEO_SUFFIXES)})"
+        )
+    return path
+
+
+def iter_frames(path: str | Path) -> Iterator[Frames]:
+    """The frames of :func:`read_frames`, one (H, W[, 3]) float32 image at a time: a
+    sequence of any length in the memory of one frame."""
+    path = _checked_path(path)
+    if path.is_dir():
+        yield from _folder_frames(path, None)
+    else:
+        yield from map(_scaled, _video_frames(path, None))
+
+
+def frames_shape(path: str | Path) -> tuple[int, int, int, int]:
+    """``(frames, height, width, channels)`` of a video file or a folder of images, from the
+    video's header or the folder's listing and first image, without reading the frames (a
+    video whose header has no frame count says 0 frames)."""
+    path = _checked_path(path)
+    if path.is_dir():
+        files = _folder_files(path, None)
+        first = read_image(files[0])
+        return len(files), first.shape[0], first.shape[1], first.shape[2] if first.ndim == 3 else 1
+    cap = cv2.VideoCapture(str(path))
+    try:
+        if not cap.isOpened():
+            raise WaiInputError(f"{path}: not a readable video")
+        n, w, h = (int(cap.get(p)) for p in (cv2.CAP_PROP_FRAME_COUNT, cv2.CAP_PROP_FRAME_WIDTH,
+                                             cv2.CAP_PROP_FRAME_HEIGHT))
+    finally:
+        cap.release()
+    return max(n, 0), h, w, 3
+
+
+def fusion_bytes(frames: int, height: int, width: int, channels: int) -> int:
+    """Peak memory of registering or lucky-fusing a sequence, bytes: per frame and pixel the
+    float32 frames (4 bytes a channel) and, while a round of :func:`register_frames` replaces
+    the previous one's, two generations of the warped frames (4 bytes a channel each), of the
+    flow's magnitude (4) and of the inside mask (1), beside the flow (8). :func:`lucky_fusion`
+    registers first, then holds one generation and its weights: less.
+
+    Examples
+    --------
+    >>> round(fusion_bytes(900, 1080, 1920, 3) / 2**30, 1)   # 30 s of 1080p at 30 frames/s
+    93.9
+    """
+    return int(frames) * int(height) * int(width) * (12 * int(channels) + 18)
+
+
+def streamed_mean(frames: Iterable[NDArray]) -> VideoRestoration:
+    """:func:`temporal_mean` of frames given one at a time (:func:`iter_frames`), summed in
+    float64 as they come: the memory of two frames whatever the sequence's length.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> r = streamed_mean(iter([np.zeros((8, 8)), np.ones((8, 8)), np.ones((8, 8))]))
+    >>> round(float(r.image[0, 0]), 4), r.frames_used, r.method
+    (0.6667, 3, 'mean')
+    """
+    t0 = time.perf_counter()
+    total, n = None, 0
+    for frame in frames:
+        img = np.asarray(frame, np.float32)
+        _check_frame(img, n, None if total is None else total.shape)
+        if total is None:
+            total = np.zeros(img.shape, np.float64)
+        total += img
+        n += 1
+    if total is None or n < 2:
+        raise WaiInputError(f"a video baseline needs at least 2 frames, got {n}")
+    ms = (time.perf_counter() - t0) * 1e3 / n
+    return VideoRestoration((total / n).astype(np.float32), np.ones(total.shape[:2], bool), n,
+                            ms, "mean")
+
+
+def _check_frame(img: NDArray, k: int, shape: tuple[int, ...] | None) -> None:
+    """Frame ``k`` of a stream as :func:`check_frames` checks a stack: (H, W) or (H, W, 3), at
+    least 8 x 8 px, finite, and of the first frame's ``shape``."""
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
+        raise WaiInputError(f"frames must be (H, W) or (H, W, 3), frame {k} is {img.shape}")
+    if shape is not None and img.shape != shape:
+        raise WaiInputError(f"frame {k}: shape {img.shape} differs from the first frame's {shape}")
+    if img.shape[0] < 8 or img.shape[1] < 8:
+        raise WaiInputError(f"frames of {img.shape[0]}x{img.shape[1]} px are too small")
+    if not np.all(np.isfinite(img)):
+        raise WaiInputError(f"frame {k} holds NaN or inf")
 
 
 def check_frames(frames: NDArray) -> Frames:

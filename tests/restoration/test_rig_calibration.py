@@ -67,3 +67,96 @@ def test_render_calibrate_and_restore_options_from_the_command_line(tmp_path, ca
     assert main(["restore", str(out), "--rig", str(tmp_path / "mine.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 3 and all(line.startswith("wai: error:") for line in err)
+
+
+@pytest.fixture(scope="module")
+def boards(tmp_path_factory):
+    """Six rendered board views per camera of the paper's rig (``DIR/checkerboards``)."""
+    out = tmp_path_factory.mktemp("boards") / "boards"
+    assert main(["render", "paper", "--checkerboards", "6", "--out", str(out), "--quiet"]) == 0
+    return out / "checkerboards"
+
+
+def _calibrate(capfd, *argv):
+    code = main(["calibrate", *map(str, argv), "--quiet"])
+    out, err = capfd.readouterr()
+    return code, err.strip().splitlines(), out
+
+
+def test_a_rig_file_of_ones_own_is_never_replaced_but_calibrates_own_is(boards, tmp_path,
+                                                                        capfd):
+    mine = tmp_path / "my_rig.json"
+    mine.write_text(json.dumps({"config_keys": {"camera_v.focal_mm": 4.0}}))
+    code, err, _ = _calibrate(capfd, boards, "--out", mine)
+    assert (code, len(err)) == (2, 1) and f"--out {mine}" in err[0]
+    assert "not written by wai" in err[0]
+    assert json.loads(mine.read_text()) == {"config_keys": {"camera_v.focal_mm": 4.0}}
+    assert read_rig(mine) == {"camera_v.focal_mm": 4.0}  # still a rig file to restore with
+    ours = tmp_path / "rig.json"
+    for _ in range(2):  # written, then replaced by the next calibration
+        code, err, _ = _calibrate(capfd, boards, "--out", ours)
+        assert (code, err) == (0, [])
+    assert json.loads(ours.read_text())["format"] == "wai-rig/1"
+
+
+def test_an_output_that_cannot_be_written_is_refused_before_calibrating(boards, tmp_path,
+                                                                        capfd, monkeypatch):
+    import errno
+    import os
+    import tempfile
+
+    import restoration.rig_calibration as rc
+
+    def never(*args, **kwargs):
+        raise AssertionError("calibrated before the output was checked")
+
+    monkeypatch.setattr(rc, "calibrate_device", never)
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("x")
+    (tmp_path / "folder.json").mkdir()
+    cases = {a_file / "rig.json": "file.txt is a file", tmp_path / "folder.json":
+             "not a regular file"}
+    for out, says in cases.items():
+        code, err, _ = _calibrate(capfd, boards, "--out", out)
+        assert (code, len(err)) == (2, 1) and says in err[0] and f"--out {out}" in err[0]
+    real = tempfile.mkdtemp
+
+    def read_only(*args, **kwargs):  # a read-only mount (root ignores the mode bits)
+        if kwargs.get("prefix") == ".wai-probe-":
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(tempfile, "mkdtemp", read_only)
+    code, err, _ = _calibrate(capfd, boards, "--out", tmp_path / "ro" / "rig.json")
+    assert (code, len(err)) == (2, 1) and "Read-only file system" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt", "folder.json"]
+
+
+@pytest.mark.parametrize("board", [
+    {"cols": -8, "rows": 6, "square_mm": 20.0},
+    {"cols": 0, "rows": 6, "square_mm": 20.0},
+    {"cols": 8, "rows": 6, "square_mm": float("nan")},
+    {"cols": 8, "rows": 6, "square_mm": -1},
+    {"cols": 7.5, "rows": 6, "square_mm": 20.0},
+    {"cols": True, "rows": 6, "square_mm": 20.0},
+    {"cols": "8", "rows": 6, "square_mm": 20.0},
+    [8, 6, 20.0],
+])
+def test_a_board_file_that_describes_no_board_is_named_in_one_line(tmp_path, capfd, board):
+    (tmp_path / "camera_v").mkdir()
+    (tmp_path / "board.json").write_text(json.dumps(board))  # NaN as JSON's NaN
+    code, err, _ = _calibrate(capfd, tmp_path, "--out", tmp_path / "rig.json")
+    assert (code, len(err)) == (2, 1) and str(tmp_path / "board.json") in err[0], err
+
+
+def test_an_unreadable_flat_image_is_one_line_without_the_decoders_noise(boards, tmp_path,
+                                                                         capfd):
+    png = (boards / "camera_s").iterdir().__next__().read_bytes()
+    broken = bytearray(png)
+    broken[20:24] = b"\xff\xff\xff\xff"  # the header's checksum: libpng prints an error
+    flat = tmp_path / "corrupt.png"
+    flat.write_bytes(bytes(broken))
+    code, err, _ = _calibrate(capfd, boards, "--flat", flat, "--out", tmp_path / "rig.json")
+    assert (code, len(err)) == (2, 1), err
+    assert err[0].startswith(f"wai: error: --flat {flat} is not a readable PNG image")
+    assert not (tmp_path / "rig.json").exists()

@@ -99,3 +99,45 @@ def test_video_methods_restore_a_folder_of_frames(tmp_path, capsys):
     assert "4 frames fused" in capsys.readouterr().out
     assert main(["restore", str(frames), "--out", str(out)]) == 2
     assert "--out and --board are for the video methods" in capsys.readouterr().err
+
+
+def _clip(path, frames: int, size=(64, 48)):
+    """A video of ``frames`` frames of a board that moves by a pixel or two."""
+    import cv2
+
+    w, h = size
+    board = (np.kron(np.indices((h // 8, w // 8)).sum(axis=0) % 2, np.ones((8, 8))) * 200 + 20)
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h))
+    for k in range(frames):
+        moved = np.roll(board, k % 3 - 1, axis=1).astype(np.uint8)
+        out.write(np.repeat(moved[..., None], 3, axis=2))
+    out.release()
+    return path
+
+
+def test_a_video_too_long_for_the_memory_is_refused_before_reading(tmp_path, capsys,
+                                                                   monkeypatch):
+    # 1 KiB available: registering 12 frames of 64 x 48 px needs more, the mean streams.
+    import json
+
+    from restoration.video import read_frames
+    from wai_core import memory
+
+    clip = _clip(tmp_path / "clip.avi", 12)
+    monkeypatch.setattr(memory, "available_bytes", lambda: 1024)
+    for method in ("registration", "lucky"):
+        code, err = _run(capsys, "restore", str(clip), "--method", method, "--out",
+                         str(tmp_path / method))
+        assert (code, len(err)) == (2, 1), err
+        assert err[0].startswith(f"wai: error: {clip} (12 frames of 64 x 48 px): --method "
+                                 f"{method}") and "GiB of memory" in err[0]
+        # At least the frames themselves, float32 RGB.
+        assert float(err[0].split("about ")[1].split(" GiB")[0]) * 2**30 >= 12 * 64 * 48 * 12 * 0.9
+        assert not (tmp_path / method).exists()
+    assert main(["restore", str(clip), "--method", "mean", "--out", str(tmp_path / "m")]) == 0
+    metrics = json.loads((tmp_path / "m" / "metrics.json").read_text())
+    assert metrics["frames"] == 12
+    from wai_core.io import read_exr
+
+    np.testing.assert_allclose(read_exr(tmp_path / "m" / "restored.exr"),
+                               read_frames(clip).mean(axis=0), atol=1e-6)

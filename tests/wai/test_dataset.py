@@ -185,8 +185,8 @@ def test_bad_out_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     not_h5.mkdir()
     (not_h5 / DATASET_FILE).write_bytes(b"plain bytes")
     assert main(["dataset", "--frames", "1", "--out", str(not_h5), *ARGS]) == 2
-    err = capsys.readouterr().err
-    assert err.count("--out") == 3 and len(err.strip().splitlines()) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all(line.startswith("wai: error: --out ") for line in err)
 
 
 def test_other_seed_is_refused(store: Path) -> None:
@@ -212,3 +212,134 @@ def test_dask_workers_render_the_same_frames(store: Path, tmp_path: Path) -> Non
         assert a.params == b.params
         for name in ARRAYS:
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def _listing(root: Path) -> dict[str, bytes | None]:
+    return {str(p.relative_to(root)): p.read_bytes() if p.is_file() else None
+            for p in sorted(root.rglob("*"))}
+
+
+def test_a_folder_of_the_users_is_never_written_into(tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / MANIFEST_FILE).write_text("my own manifest\n")
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("x")
+    before = _listing(tmp_path)
+    for out in (mine, a_file / "d"):
+        assert main(["dataset", "--frames", "1", "--out", str(out), *ARGS]) == 2
+    assert _listing(tmp_path) == before
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and f"--out {mine}" in err[0] and "manifest.csv" in err[0]
+    assert "file.txt is a file" in err[1]
+
+
+def test_an_unwritable_folder_is_refused_before_rendering(tmp_path: Path, monkeypatch,
+                                                          capsys: pytest.CaptureFixture[str]):
+    # A read-only mount makes creating a file fail with EROFS (root ignores the mode bits).
+    import errno
+    import os
+    import tempfile
+
+    import wai.dataset as dataset
+
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+
+    monkeypatch.setattr(tempfile, "mkdtemp", read_only)
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    monkeypatch.setattr(dataset, "FrameMaker", None)  # rendering would raise TypeError
+    (tmp_path / "empty").mkdir()
+    for out in (tmp_path / "new", tmp_path / "empty"):
+        assert main(["dataset", "--frames", "1", "--out", str(out), *ARGS]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all("Read-only file system" in e and "--out" in e for e in err)
+
+
+def test_a_dataset_too_large_for_the_memory_is_refused_first(tmp_path: Path, monkeypatch,
+                                                             capsys) -> None:
+    from wai_core import memory
+
+    monkeypatch.setattr(memory, "available_bytes", lambda: 2**30)
+    code = main(["dataset", "--frames", "1", "--out", str(tmp_path / "d"), "--size",
+                 "20000x20000", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert (code, len(err)) == (2, 1)
+    assert err[0].startswith("wai: error: --size 20000x20000: rendering a frame needs about ")
+    # Both cameras' 4e8 pixels at the renderer's measured ~170 bytes each, at least.
+    need_gib = float(err[0].split("about ")[1].split(" GiB")[0])
+    assert 4e8 * 170 / 2**30 < need_gib and "1 GiB is available" in err[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_full_disk_stops_between_frames_and_the_rerun_continues(
+    tmp_path: Path, monkeypatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The disk fills after the first frame: the second frame's space cannot be allocated.
+    import errno
+    import os
+
+    import wai.dataset_store as store
+
+    real, calls = os.posix_fallocate, []
+
+    def fills_up(fd, offset, length):
+        calls.append(length)
+        if len(calls) > 2:  # the store's creation, then frame 0
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(fd, offset, length)
+
+    monkeypatch.setattr(store.os, "posix_fallocate", fills_up)
+    out = tmp_path / "d"
+    assert main(["dataset", "--frames", "2", "--out", str(out), *ARGS]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no room for frame 1" in err[0] and "No space left" in err[0]
+    assert [p.frame for p in read_manifest(out)] == [0]
+    assert read_frame(out, 0).params == sample_params(4, 0)
+    monkeypatch.setattr(store.os, "posix_fallocate", real)
+    assert main(["dataset", "--frames", "2", "--out", str(out), *ARGS]) == 0
+    assert [p.frame for p in read_manifest(out)] == [0, 1]
+    assert read_frame(out, 1).params == sample_params(4, 1)
+
+
+def test_a_store_written_before_folders_were_marked_continues(store: Path, tmp_path: Path):
+    import shutil
+
+    from wai_core.io import OUTPUT_MARKER, output_marker
+
+    old = tmp_path / "old"
+    shutil.copytree(store, old)
+    (old / OUTPUT_MARKER).unlink()
+    frames = int(h5py.File(old / DATASET_FILE, "r").attrs["frames"])
+    assert main(["dataset", "--frames", str(frames + 1), "--out", str(old), *ARGS]) == 0
+    assert len(read_manifest(old)) == frames + 1 and output_marker(old)["command"] == "dataset"
+
+
+def test_a_real_full_disk_ends_in_one_line_not_a_crash(tmp_path: Path) -> None:
+    # HDF5 crashes (segmentation fault, exit 139) closing a store whose write met a full disk;
+    # on a 2 MiB file system the space for the first frame is refused before any write.
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import ROOT
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(disk)],
+                             capture_output=True)
+    if mounted.returncode != 0:
+        pytest.skip("mounting a small tmpfs needs root")
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "wai", "dataset", "--frames", "2", "--out",
+             str(disk / "d"), *ARGS], capture_output=True, text=True, cwd=ROOT, timeout=300,
+            env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert proc.returncode == 2, proc.stderr[-2000:]
+        err = proc.stderr.strip().splitlines()
+        assert len(err) == 1 and "no room for frame 0" in err[0], err
+        with h5py.File(disk / "d" / DATASET_FILE, "r") as f:
+            assert int(f.attrs["frames"]) == 0
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)

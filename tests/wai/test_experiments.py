@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.conftest import ROOT
 from wai.cli import main
 from wai.experiments.paper import deflection_curves
 from wai_core.limits import correspondence_limit
@@ -155,3 +156,36 @@ def test_compare_ranks_methods_within_each_case():
     taus = case_agreement(rows)
     assert taus == [pytest.approx(1.0), pytest.approx(-1.0)]
     assert "Within each case: tau = 1.00, -1.00." in report([], "cmd", taus)
+
+
+BROKEN_METHODS = ROOT / "tests" / "restoration" / "broken_methods.py"
+BROKEN = {"Raises": "method 'raises' raised RuntimeError: a bug of mine",
+          "ReturnsNone": "method 'returns-none' returned NoneType, not a RestoreResult",
+          "WrongShape": "method 'wrong-shape' returned a view image of shape (5, 5, 3)",
+          "Exits": "method 'exits' raised SystemExit: 3"}
+
+
+def test_methods_of_ones_own_that_fail_get_an_error_row_and_the_others_run(tmp_path, small_cfg,
+                                                                          capsys):
+    """A method whose call raises, exits or returns no valid result fails its own rows, in one
+    line naming it; the other methods' rows are scored and the report names the failures."""
+    from mitsuba_wai.sequence import render_sequence
+    from wai.experiments.compare import evaluate, report, summarize
+    from wai.sweep import run_sweep
+
+    folder = tmp_path / "case"
+    render_sequence(small_cfg.replace("render", spp_pattern=1, spp_view=1), folder, 2, 30.0,
+                    progress=False)
+    plugin = BROKEN_METHODS
+    specs = ["wai.examples.plugin_method:AsSeen", *(f"{plugin}:{c}" for c in BROKEN)]
+    points = [{"wind": 1.0, "seed": 0, "degradation": "none", "method": m, "folder": str(folder)}
+              for m in specs]
+    rows = run_sweep(points, evaluate, tmp_path / "compare.csv", workers=0, progress=False,
+                     key=("method",))
+    status = {r["method"]: r["status"] for r in rows}
+    assert status[specs[0]] == "ok"
+    for cls, says in BROKEN.items():
+        assert status[f"{plugin}:{cls}"].startswith(f"error: WaiInputError: {says}"), status
+    text = report(summarize(rows), "cmd")
+    assert f"- {plugin}:Raises failed on 1 of 1 cases: error: WaiInputError: method" in text
+    assert "Traceback" not in capsys.readouterr().err

@@ -166,3 +166,30 @@ def test_a_rig_file_s_keys_reach_the_sequence_s_calibration(rendered):
 
     with pytest.raises(WaiInputError, match="camera_v.no_such_key"):
         restore_sequence(rendered, write=False, rig={"camera_v.no_such_key": 1})
+
+
+def test_grey_captures_restore_with_their_figures_and_movies(rendered, tmp_path, capsys):
+    # A monochrome camera's 8-bit PNGs: (H, W) images, drawn in the figures and movies as RGB.
+    def grey(src, dst):
+        cv2.imwrite(str(dst), cv2.imread(str(src), cv2.IMREAD_GRAYSCALE))
+
+    single = tmp_path / "single"
+    capture_scene(rendered, single)
+    for name in ("pattern", "view"):
+        grey(rendered / "frame000" / f"{name}.png", single / f"{name}.png")
+    own = tmp_path / "capture"
+    capture_scene(rendered, own)
+    for k in range(FRAMES):
+        for name in ("pattern", "view"):
+            grey(rendered / f"frame{k:03d}" / f"{name}.png", own / f"{name}_{k:03d}.png")
+    capsys.readouterr()
+    for folder in (single, own):
+        assert main(["restore", str(folder), "--quiet"]) == 0
+        assert capsys.readouterr().err == ""
+    assert cv2.imread(str(single / "restore" / "distorted_vs_restored.png")) is not None
+    from wai_core.io import read_exr
+
+    assert read_exr(single / "restore" / "restored.exr").ndim == 2  # the view stays grey
+    for movie in ("restored", "side_by_side"):
+        assert any((own / "restore" / f"{movie}{ext}").is_file() for ext in (".mp4", ".gif"))
+    assert (own / "restore" / "temporal.png").is_file()

@@ -21,6 +21,7 @@ import pytest
 
 from tests.conftest import PAPER_TOML, ROOT
 from wai.cli import main
+from wai_core.config import load_config
 from wai_core.io import OUTPUT_MARKER, atomic_dir, output_marker
 
 ALTERMAN_TOML = ROOT / "scenes" / "alterman.toml"
@@ -82,6 +83,17 @@ def inputs(tmp_path):
              z=np.full((5, 11), 150.0))
     files["typo"] = tmp_path / "typo.toml"
     files["typo"].write_text(PAPER_TOML.read_text().replace("h0_mm = ", "h0_mmm = "))
+    for name in ("__class__", "download_all", "lbp_frontal_face_cascade_filename"):
+        files[name] = tmp_path / f"texture{name}.toml"  # not sample images: a traceback once
+        files[name].write_text(PAPER_TOML.read_text().replace(
+            'texture = "checkerboard"', f'texture = "skimage:{name}"'))
+    for section in ("water", "diffuser"):  # the rig's level and screen: no silent default
+        head, _, rest = PAPER_TOML.read_text().partition(f"[{section}]")
+        files[f"no_{section}"] = tmp_path / f"no_{section}.toml"
+        files[f"no_{section}"].write_text(head + rest[rest.index("\n["):])
+    files["camera_s_5m"] = tmp_path / "camera_s_5m.toml"  # moved 5 m along x: t = -R c
+    files["camera_s_5m"].write_text(PAPER_TOML.read_text().replace(
+        "translation_mm = [-286.40, 0.0, 190.0]", "translation_mm = [-5286.40, 0.0, 190.0]"))
     files["foreign"] = tmp_path / "mine"
     files["foreign"].mkdir()
     (files["foreign"] / "notes.txt").write_text("keep me")
@@ -165,6 +177,15 @@ BAD = [
      lambda f, t: [f["tiny"], "--heightfield", t / "nowhere" / "h.npz", "--out", t / "o"],
      "heightfield file not found"),
     ("config-typo", lambda f, t: [f["typo"], "--out", t / "o"], "unknown key [water].h0_mmm"),
+    *[(f"texture-skimage-{name}", lambda f, t, name=name: [f[name], "--out", t / "o"],
+       f"[object].texture 'skimage:{name}' is not a scikit-image sample image")
+      for name in ("__class__", "download_all", "lbp_frontal_face_cascade_filename")],
+    ("config-no-water", lambda f, t: [f["no_water"], "--out", t / "o"],
+     "missing section [water] (the sections that describe the rig"),
+    ("config-no-diffuser", lambda f, t: [f["no_diffuser"], "--out", t / "o"],
+     "missing section [diffuser]"),
+    ("rig-camera-s-sees-no-dot", lambda f, t: [f["camera_s_5m"], "--out", t / "o"],
+     "camera_s_5m.toml: camera s sees none of the projector's dots on the diffuser"),
     ("config-missing", lambda f, t: [t / "nowhere" / "scene.toml", "--out", t / "o"],
      "not found"),
     ("scene-name-unknown", lambda f, t: ["papper", "--out", t / "o"], "papper"),
@@ -436,3 +457,116 @@ def test_a_cold_kernel_cache_is_noticed(tmp_path):
     cold = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
                           text=True, check=True, cwd=ROOT)
     assert cold.stdout.strip() == "False"
+
+
+def _sized_scene(folder: Path, section: str, width: int, height: int) -> Path:
+    """The paper's scene with one device's panel resized (same field of view)."""
+    import re
+
+    text = PAPER_TOML.read_text()
+    head, _, rest = text.partition(f"[{section}]")
+    rest = re.sub(r"width_px = \d+", f"width_px = {width}", rest, count=1)
+    rest = re.sub(r"height_px = \d+", f"height_px = {height}", rest, count=1)
+    path = folder / f"{section}_{width}.toml"
+    path.write_text(f"{head}[{section}]{rest}")
+    return path
+
+
+BOARDS = ["--checkerboards", "3"]  # seen by the cameras alone
+
+
+@pytest.mark.parametrize("section, extra", [
+    ("camera_s", []), ("camera_v", []), ("projector", []), ("camera_s", BOARDS),
+    ("camera_v", BOARDS)])
+def test_a_render_too_large_for_the_memory_is_refused_first(capfd, tmp_path, monkeypatch,
+                                                            section, extra):
+    from wai_core import memory
+
+    monkeypatch.setattr(memory, "available_bytes", lambda: 2**30)
+    scene = _sized_scene(tmp_path, section, 20000, 20000)
+    before = snapshot(tmp_path)
+    code, err, _ = run(capfd, "render", scene, "--out", tmp_path / "o", "--quiet", *extra)
+    assert (code, len(err)) == (2, 1), err
+    assert err[0].startswith(f"wai: error: {scene}: [{section}] 20000 x 20000 px")
+    # 4e8 pixels: at least a float32 RGB image of each (12 bytes a pixel), far above 1 GiB.
+    need_gib = float(err[0].split("about ")[1].split(" GiB")[0])
+    assert need_gib > 4e8 * 12 / 2**30 and "1 GiB is available" in err[0]
+    assert snapshot(tmp_path) == before
+
+
+def test_the_paper_sized_render_fits_where_the_large_one_does_not(capfd, tmp_path, monkeypatch,
+                                                                 inputs):
+    from wai_core import memory
+
+    monkeypatch.setattr(memory, "available_bytes", lambda: 2**30)
+    code, err, _ = run(capfd, "render", inputs["tiny"], "--out", tmp_path / "o", "--spp", "1",
+                       "--quiet")
+    assert (code, err) == (0, [])
+
+
+def _peak_rss_mib(*argv) -> float:
+    """The peak resident memory of ``wai ARGV`` in a child process, MiB."""
+    proc = subprocess.Popen([sys.executable, "-m", "wai", *map(str, argv)], cwd=ROOT,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)},
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _, status, usage = os.wait4(proc.pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
+    return usage.ru_maxrss / 1024
+
+
+@pytest.mark.slow
+def test_the_render_memory_estimate_follows_the_measured_peak(tmp_path, inputs):
+    # The estimate is of the work's memory, the imports' left out: the peak of a render at
+    # 2400 x 1800 px less that of a 100 x 75 one, against the estimates' difference.
+    from mitsuba_wai.memory import render_bytes
+
+    big = _sized_scene(tmp_path, "camera_s", 2400, 1800)
+    peaks = [_peak_rss_mib("render", scene, "--out", tmp_path / scene.stem, "--spp", "1",
+                           "--quiet") for scene in (inputs["tiny"], big)]
+    estimates = [render_bytes(load_config(scene)) / 2**20 for scene in (inputs["tiny"], big)]
+    ratio = (estimates[1] - estimates[0]) / (peaks[1] - peaks[0])
+    assert 0.75 < ratio < 1.33, (peaks, estimates)
+
+
+def test_a_folder_whose_rig_sees_nothing_is_refused_before_restoring(capfd, tmp_path, inputs):
+    # The README promises exit code 2 for impossible geometry: camera s moved 5 m in the
+    # folder's scene.json sees none of the dots (it restored to a `failed` frame, exit 0).
+    out = tmp_path / "frame"
+    assert run(capfd, "render", inputs["tiny"], "--out", out, "--spp", "1", "--quiet")[0] == 0
+    record = json.loads((out / "scene.json").read_text())
+    t = record["config"]["camera_s"]["translation_mm"]
+    record["config"]["camera_s"]["translation_mm"] = [t[0] - 5000.0, t[1], t[2]]
+    (out / "scene.json").write_text(json.dumps(record))
+    before = snapshot(tmp_path)
+    code, err, _ = run(capfd, "restore", out, "--quiet")
+    assert (code, len(err)) == (2, 1), err
+    assert err[0].startswith(f"wai: error: {out / 'scene.json'}: camera s sees none of the "
+                             "projector's dots")
+    assert snapshot(tmp_path) == before
+
+
+def test_a_disk_that_fills_while_writing_is_one_line_and_keeps_nothing(capfd, tmp_path, inputs,
+                                                                       monkeypatch):
+    # The renders done, writing the previews meets a full disk (PIL's OSError; OpenEXR's own
+    # RuntimeError is turned into one): one line, exit 2, the temporary folder removed.
+    import errno
+
+    from mitsuba_wai import render as render_mod
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(render_mod, "write_png", full)
+    before = snapshot(tmp_path)
+    code, err, _ = run(capfd, "render", inputs["tiny"], "--out", tmp_path / "o", "--spp", "1",
+                       "--quiet")
+    assert (code, err) == (2, ["wai: error: No space left on device"])
+    assert snapshot(tmp_path) == before
+
+
+def test_an_exr_that_cannot_be_written_raises_an_os_error(tmp_path):
+    from wai_core.io import write_exr
+
+    with pytest.raises(OSError, match="cannot write"):
+        write_exr(tmp_path / "no_such_folder" / "a.exr", np.zeros((4, 4, 3), np.float32))
+    assert list(tmp_path.iterdir()) == []

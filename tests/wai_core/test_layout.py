@@ -45,3 +45,12 @@ def test_observed_patch_inside_the_modelled_surface(paper_cfg):
     assert (ext[:, 0] <= patch[:, 0]).all() and (ext[:, 1] >= patch[:, 1]).all()
     _, _, seen = layout.flat_pattern_hits(paper_cfg)
     assert seen.sum() > 300
+
+
+def test_a_panel_wider_than_tall_lights_the_dots_camera_s_sees(paper_cfg):
+    # The dot grid of a 1600 x 1200 panel has rows longer than its columns (once reshaped as
+    # if it were square: a ValueError before any render).
+    cfg = paper_cfg.replace("projector", width_px=1600, height_px=1200)
+    _, _, seen = layout.flat_pattern_hits(cfg)
+    lit = layout.lit_dots(cfg)
+    assert seen.any() and lit[seen].all() and not lit.all()

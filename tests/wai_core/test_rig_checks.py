@@ -46,3 +46,50 @@ def test_one_bad_sample_is_found_and_located(paper_cfg):
 def test_surfaces_inside_the_rig_pass(paper_cfg):
     for z in (61.0, 150.0, 1100.0):
         check_surface_in_rig(paper_cfg, _flat(z))
+
+
+def _moved(cfg, device, shift_mm):
+    """``cfg`` with ``device``'s centre moved by ``shift_mm`` in the lab frame (t = -R c)."""
+    import dataclasses
+
+    dev = getattr(cfg, device)
+    rot = np.asarray(dev.rotation)
+    centre = dev.camera().pose.center_lab_mm + np.asarray(shift_mm, float)
+    return dataclasses.replace(cfg, **{device: dataclasses.replace(
+        dev, translation_mm=tuple(-rot @ centre))})
+
+
+@pytest.mark.parametrize(
+    "device, shift, needle",
+    [
+        ("camera_s", (5000.0, 0.0, 0.0), "camera s sees none of the projector's dots on the "
+         "diffuser through flat water"),
+        ("camera_s", (0.0, 0.0, 300.0), "camera s is at z = 110.0 mm, not below the diffuser"),
+        ("camera_v", (0.0, 0.0, 2000.0), "camera v is at z = 2000.0 mm, not below the water"),
+        ("projector", (0.0, 0.0, 200.0), "the projector is at z = 200.0 mm, not below the water"),
+    ],
+)
+def test_a_rig_that_sees_nothing_through_flat_water_is_refused(paper_cfg, device, shift,
+                                                               needle):
+    from wai_core.rig_checks import check_rig
+
+    check_rig(paper_cfg)  # the paper's rig works
+    check_rig(_moved(paper_cfg, device, (20.0, 0.0, 0.0)))  # 2 cm off: a rig to check, not refuse
+    with pytest.raises(WaiInputError, match=f"^scene.json: {needle}"):
+        check_rig(_moved(paper_cfg, device, shift), "scene.json")
+
+
+def test_the_dots_and_camera_s_view_are_named_where_they_miss(paper_cfg):
+    # Camera s 5 m along x: its view of the diffuser is 5 m from where flat water sends the
+    # dots (which it does not move); both spans in the message.
+    from wai_core.layout import diffuser_rect, flat_pattern_hits
+    from wai_core.rig_checks import check_rig
+
+    moved = _moved(paper_cfg, "camera_s", (5000.0, 0.0, 0.0))
+    spots = flat_pattern_hits(paper_cfg)[1]
+    spots = spots[np.isfinite(spots[:, 0])]
+    view = diffuser_rect(moved)
+    assert view[0, 0] > spots[:, 0].max()  # disjoint, independently of the check
+    with pytest.raises(WaiInputError) as err:
+        check_rig(moved)
+    assert f"camera s sees x from {view[0, 0]:.0f} to {view[0, 1]:.0f}" in str(err.value)

@@ -183,13 +183,16 @@ def evaluate(point: dict[str, Any]) -> dict[str, Any]:
 
 def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per method: the means of its scores over the cases, its frames (``frames_ok`` and
-    ``frames`` summed over the cases: a failed frame is counted, not averaged away), and its
-    cases."""
+    ``frames`` summed over the cases: a failed frame is counted, not averaged away), its cases,
+    and the cases it failed on (``failed_cases``; ``error``: the first one's status, e.g. a
+    method of one's own that raised)."""
     out = []
     for method in dict.fromkeys(r["method"] for r in rows):
         part = [r for r in rows if r["method"] == method and not is_error(r.get("status"))]
+        failed = [r["status"] for r in rows if r["method"] == method and is_error(r.get("status"))]
         entry = {"method": method, "name": part[0]["method_name"] if part else method,
-                 "cases": len(part)}
+                 "cases": len(part), "failed_cases": len(failed),
+                 "error": failed[0] if failed else None}
         entry.update({k: _mean([r.get(k) for r in part]) for k in SCORES})
         for k in COUNTS:
             entry[k] = int(sum(int(float(r[k])) for r in part if r.get(k) not in (None, "")))
@@ -266,6 +269,12 @@ def report(summary: list[dict[str, Any]], command: str,
             f"{f(e['corner_std_px'], '.3f')} | {f(e['rmse_mm'], '.4f')} | "
             f"{f(e.get('grid_px'), '.3f')} | {f(e.get('grid_fraction'), '.0%')} | "
             f"{f(e.get('rig_px'), '.3f')} | {f(e['ms_per_frame'], '.1f')} |")
+    failed = [e for e in summary if e.get("failed_cases")]
+    if failed:
+        lines.append("")
+    for e in failed:
+        lines.append(f"- {e['name']} failed on {e['failed_cases']} of "
+                     f"{e['failed_cases'] + e['cases']} cases: {e['error']}")
     tau, count = rank_agreement(summary)
     lines += ["", f"Corner STD: over the views that show at least {MIN_CORNERS} of the truth's "
               "corners. Grid px: RMS distance of the view's checkerboard corners from the best "
