@@ -1,7 +1,7 @@
 """Whether the restoration's compiled kernels are cached yet (the first run compiles them).
 
 Every kernel is compiled by numba with ``cache=True``: the first restoration after an install
-compiles them (30-60 s on two cores) and writes them beside the modules (or to numba's
+compiles them (35 s on an idle two-core machine, minutes on a loaded one) and writes them beside the modules (or to numba's
 user-wide cache where the install is read-only, or ``NUMBA_CACHE_DIR``); later processes load
 them in a fraction of a second. :func:`kernels_cached` lets a command say so before it starts;
 :func:`kernel_activity` tells a timing whether it included compiling or loading kernels.
@@ -17,7 +17,8 @@ from collections.abc import Iterator
 __all__ = ["COMPILE_NOTICE", "KernelActivity", "kernel_activity", "kernels_cached"]
 
 COMPILE_NOTICE = (
-    "compiling the restoration's kernels once (30-60 s on 2 cores; cached for later runs)"
+    "compiling the restoration's kernels once (about 35 s on 2 idle cores, longer when they are "
+    "busy; cached for later runs)"
 )
 
 # Modules whose kernels a structured-light frame runs: one cached kernel of each must exist.
