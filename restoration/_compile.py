@@ -1,10 +1,11 @@
 """Whether the restoration's compiled kernels are cached yet (the first run compiles them).
 
 Every kernel is compiled by numba with ``cache=True``: the first restoration after an install
-compiles them (35 s on an idle two-core machine, minutes on a loaded one) and writes them beside the modules (or to numba's
-user-wide cache where the install is read-only, or ``NUMBA_CACHE_DIR``); later processes load
-them in a fraction of a second. :func:`kernels_cached` lets a command say so before it starts;
-:func:`kernel_activity` tells a timing whether it included compiling or loading kernels.
+compiles them (35 s on an idle two-core machine, minutes on a loaded one) and writes them
+beside the modules (or to numba's user-wide cache where the install is read-only, or
+``NUMBA_CACHE_DIR``); later processes load them in a fraction of a second.
+:func:`kernels_cached` lets a command say so before it starts; :func:`kernel_activity` tells
+a timing whether it included compiling or loading kernels.
 """
 
 from __future__ import annotations
