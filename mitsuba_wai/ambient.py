@@ -107,7 +107,7 @@ def sky_image(cfg: SystemConfig) -> NDArray[np.float32]:
     diffuser -> camera s along each pixel's ray; the glow of a uniform field is uniform)."""
     from mitsuba_wai.seawater import coefficients_per_mm
 
-    cam = cfg.camera_s.camera()
+    cam = cfg.rig.camera_s
     value = sky_on_diffuser(cfg)
     image = np.broadcast_to(value, (cam.height_px, cam.width_px, 3)).astype(np.float64)
     w = cfg.water_optics
@@ -128,7 +128,6 @@ def sun_footprint(cfg: SystemConfig, grid: Heightfield) -> NDArray:
     flat-water pre-image (shifted towards the sun by ``(h0 - z_h) tan(theta_w)``), widened by
     ``0.3 (h0 - z_h)`` for the waves' deflection (~17 deg of refracted direction, four times
     the paper's). Beyond the wave mesh the water is a flat skirt (:func:`skirt_mesh`)."""
-    from wai_core.layout import diffuser_rect
 
     a = cfg.ambient
     th = np.radians(a.sun_zenith_deg)
@@ -136,7 +135,7 @@ def sun_footprint(cfg: SystemConfig, grid: Heightfield) -> NDArray:
     lever = cfg.water.h0_mm - cfg.diffuser.z_mm
     towards_sun = -sun_direction(a)[:2]
     shift = lever * np.tan(th_w) * (towards_sun / max(np.linalg.norm(towards_sun), 1e-12))
-    return diffuser_rect(cfg) + shift[:, None] + np.array([-1.0, 1.0]) * 0.3 * lever
+    return cfg.rig.diffuser_rect + shift[:, None] + np.array([-1.0, 1.0]) * 0.3 * lever
 
 
 def skirt_mesh(cfg: SystemConfig, grid: Heightfield) -> object:
@@ -203,17 +202,16 @@ def sun_s_scene(cfg: SystemConfig, water_mesh: object, grid: Heightfield) -> dic
     from mitsuba_wai import mesh as meshes
     from mitsuba_wai.bsdfs import register
     from mitsuba_wai.scenes import rectangle_to_world, sensor_dict, water_bsdf
-    from wai_core.layout import diffuser_rect
 
     register()
     a = cfg.ambient
-    rect = diffuser_rect(cfg)
+    rect = cfg.rig.diffuser_rect
     centre = np.array([rect[0].mean(), rect[1].mean(), cfg.diffuser.z_mm])
     radiance = (a.sun_irradiance * np.asarray(a.sun_color, dtype=float)).tolist()
     return {
         "type": "scene",
         "integrator": {"type": "ptracer", "max_depth": SCENE_SUN_DEPTH, "hide_emitters": True},
-        "sensor": sensor_dict(cfg.camera_s.camera(), rfilter="box"),
+        "sensor": sensor_dict(cfg.rig.camera_s, rfilter="box"),
         "water": water_mesh,
         "skirt": meshes.to_mitsuba(skirt_mesh(cfg, grid), "skirt", water_bsdf(cfg, "A")),
         "diffuser": {

@@ -141,7 +141,7 @@ def render_checkerboards(cfg: SystemConfig, device: str, n: int, seed: int = 0,
     if n < 1:
         raise WaiInputError(f"--checkerboards must be at least 1, not {n}")
     board = Board() if board is None else board
-    optics = DeviceOptics.from_config(getattr(cfg, device))
+    optics = cfg.rig.optics(device)
     if optics.has_port:
         raise WaiInputError(f"checkerboards: [{device}] has a port; boards are rendered in air")
     rng = np.random.default_rng(seed + 1)

@@ -153,7 +153,7 @@ def motion_rates(cfg: SystemConfig, amplitude: float = 1.0) -> dict[str, float]:
     q, s, seen = flat_pattern_hits(cfg)
     horiz = np.linalg.norm((q - s)[seen, :2], axis=1)
     tan_th = float(horiz.max() / lever) if horiz.size else 0.0
-    cam_s = cfg.camera_s.camera()
+    cam_s = cfg.rig.camera_s
     centre = np.array([*np.mean(s[seen], axis=0)[:2], cfg.diffuser.z_mm]) if seen.any() else (
         np.array([*cam_s.pose.center_lab_mm[:2], cfg.diffuser.z_mm])
     )

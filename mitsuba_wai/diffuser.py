@@ -47,7 +47,6 @@ from numpy.typing import NDArray
 from scipy.integrate import quad
 
 from wai_core.config import SystemConfig
-from wai_core.layout import diffuser_rect
 
 __all__ = [
     "PROFILE_CUT_HWHM",
@@ -139,8 +138,8 @@ def blur_sigma_px(cfg: SystemConfig) -> float:
     It holds across the image for a camera facing the screen squarely (the paper's camera s
     looks straight up); for a tilted one it is the scale at the centre, an approximation.
     """
-    cam = cfg.camera_s.camera()
-    rect = diffuser_rect(cfg)
+    cam = cfg.rig.camera_s
+    rect = cfg.rig.diffuser_rect
     centre = np.array([rect[0].mean(), rect[1].mean(), cfg.diffuser.z_mm])
     depth = float((centre - cam.pose.center_lab_mm) @ cam.pose.axis_lab)
     return float(cfg.diffuser.blur_mm) * cam.focal_px / depth

@@ -66,9 +66,7 @@ from mitsuba_wai.particles import kronecker
 from mitsuba_wai.variant import mitsuba
 from wai_core.config import SystemConfig
 from wai_core.geometry import fresnel_reflectance, intersect_plane_z, reflect
-from wai_core.layout import dot_weights
-from wai_core.lens import DeviceOptics
-from wai_core.pattern import dot_colours, dot_grid
+from wai_core.pattern import dot_colours
 
 __all__ = ["DotEmitter"]
 
@@ -124,9 +122,9 @@ class DotEmitter:
     def __init__(self, cfg: SystemConfig) -> None:
 
         mi = mitsuba()
-        projector = cfg.projector.camera()
-        _, panel_px = dot_grid(cfg.pattern, projector)
-        weights = dot_weights(cfg)
+        projector = cfg.rig.projector
+        panel_px = cfg.rig.dot_panel_px
+        weights = cfg.rig.dot_weights
         colours = dot_colours(cfg.pattern, projector)
         lit = weights > 0
         panel_px, weights, colours = panel_px[lit], weights[lit], colours[lit]
@@ -153,7 +151,7 @@ class DotEmitter:
         # Panel coordinates of each dot relative to the principal point, in focal lengths
         # (distorted ones with [projector] distortion; mitsuba_wai.lens: offset, port).
         f = projector.focal_px
-        optics = DeviceOptics.from_config(cfg.projector)
+        optics = cfg.rig.optics("projector")
         self._optics = (CameraLens(optics, cfg.water.n_water) if lens_keys(cfg.projector)
                         else None)
         centre = (panel_px - list(optics.principal_px)) / f

@@ -328,7 +328,7 @@ def scene_lenses(cfg: SystemConfig) -> dict[str, CameraLens | None]:
                 f"config: [{name}].{on[0]} needs [render].sampling = 'stratified' (Mitsuba's "
                 "own view integrator has no lens model)"
             )
-        out[key] = CameraLens(DeviceOptics.from_config(dev), cfg.water.n_water)
+        out[key] = CameraLens(cfg.rig.optics(name), cfg.water.n_water)
     on = lens_keys(cfg.projector)
     if on and cfg.render.sampling != "stratified":
         raise WaiInputError(

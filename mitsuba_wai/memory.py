@@ -11,7 +11,6 @@ runs). :func:`render_bytes` and :func:`checkerboard_bytes` sum them for a config
 from __future__ import annotations
 
 from wai_core.config import SystemConfig
-from wai_core.pattern import dot_grid
 
 __all__ = ["check_render_memory", "checkerboard_bytes", "describe_devices", "render_bytes"]
 
@@ -42,8 +41,7 @@ def _pixels(cfg: SystemConfig, name: str) -> int:
 
 def _panel_bytes(cfg: SystemConfig) -> float:
     """The projector's panel image as it is built: its dots' profiles and its pixels."""
-    projector = cfg.projector.camera()
-    dots = len(dot_grid(cfg.pattern, projector)[0])
+    dots = len(cfg.rig.dot_ij)
     w, h = cfg.projector.width_px, cfg.projector.height_px
     return DOT_PROFILE_BYTES * dots * (w + h) + PANEL_BYTES_PER_PX * w * h
 

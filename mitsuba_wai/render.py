@@ -72,7 +72,7 @@ from wai_core.io import (
     write_json,
     write_png,
 )
-from wai_core.layout import diffuser_rect, object_plane_center, observed_patch, surface_extent
+from wai_core.layout import observed_patch, surface_extent
 from wai_core.rig_checks import check_surface_in_rig
 from wai_core.sensor import integer_image
 from wai_core.timings import Timings
@@ -287,7 +287,7 @@ def scene_record(
 
     devices = {}
     for name in ("projector", "camera_s", "camera_v"):
-        cam = getattr(cfg, name).camera()
+        cam = cfg.rig.device(name)
         devices[name] = {
             "center_lab_mm": cam.pose.center_lab_mm,
             "axis_lab": cam.pose.axis_lab,
@@ -303,10 +303,10 @@ def scene_record(
         "config": cfg.to_dict(),
         "derived": {
             "devices": devices,
-            "diffuser_rect_mm": diffuser_rect(cfg),
+            "diffuser_rect_mm": cfg.rig.diffuser_rect,
             "surface_extent_mm": surface_extent(cfg),
             "observed_patch_mm": observed_patch(cfg),
-            "object_center_mm": object_plane_center(cfg),
+            "object_center_mm": cfg.rig.object_center_mm,
             "object_z_mm": cfg.object_z_mm,
             "mesh_vertices": [int(surface.y.size), int(surface.x.size)],
             "mesh_spacing_mm": float(np.diff(surface.x).mean()),

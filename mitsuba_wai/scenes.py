@@ -30,7 +30,6 @@ from mitsuba_wai.diffuser import diffuser_bsdf
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
-from wai_core.layout import diffuser_rect, dot_weights, object_plane_center
 from wai_core.optics import channel_indices
 from wai_core.pattern import pattern_image
 
@@ -137,7 +136,7 @@ def projector_field_axis(cfg: SystemConfig) -> NDArray:
     sin(psi) y_cam`` of its pose (psi = ``[pattern].polarisation_deg``, from the panel's x axis
     towards y). A ray's field is this axis made transverse to the ray."""
     psi = np.radians(cfg.pattern.polarisation_deg)
-    R = cfg.projector.camera().pose.R
+    R = cfg.rig.projector.pose.R
     axis = np.cos(psi) * R[0] + np.sin(psi) * R[1]
     return axis / np.linalg.norm(axis)
 
@@ -175,10 +174,10 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
     from mitsuba_wai.bsdfs import register
 
     register()
-    projector = cfg.projector.camera()
-    rect = diffuser_rect(cfg)
+    projector = cfg.rig.projector
+    rect = cfg.rig.diffuser_rect
     center = np.array([rect[0].mean(), rect[1].mean(), cfg.diffuser.z_mm])
-    panel = pattern_image(cfg.pattern, projector, dot_weights(cfg))
+    panel = pattern_image(cfg.pattern, projector, cfg.rig.dot_weights)
 
     def projector_dict(image: NDArray) -> dict:
         return {
@@ -206,7 +205,7 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
         "type": "scene",
         "integrator": {"type": "ptracer", "max_depth": pattern_depth(cfg), "hide_emitters": True},
         # Box filter: splats land in one pixel, so centroids stay unbiased and splatting is cheap.
-        "sensor": sensor_dict(cfg.camera_s.camera(), rfilter="box"),
+        "sensor": sensor_dict(cfg.rig.camera_s, rfilter="box"),
         **lights,
         "water": water_mesh,
         # Diffuse transmission from above, pass-through from below (see mitsuba_wai.bsdfs);
@@ -223,13 +222,13 @@ def view_scene(cfg: SystemConfig, water_mesh: object, texture: NDArray) -> dict:
     """System V: camera v, water, the textured object plane as an emitter facing down."""
     import mitsuba as mi
 
-    center = object_plane_center(cfg)
+    center = cfg.rig.object_center_mm
     return {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": SCENE_V_DEPTH, "hide_emitters": False},
         # Multi-jittered pixel samples: stratified and well spread for any count, so edges of
         # the board converge far faster than with independent samples (docs/results.md).
-        "sensor": sensor_dict(cfg.camera_v.camera(), rfilter="box", sampler=VIEW_SAMPLERS[
+        "sensor": sensor_dict(cfg.rig.camera_v, rfilter="box", sampler=VIEW_SAMPLERS[
             cfg.render.sampling]),
         "water": water_mesh,
         "object": {

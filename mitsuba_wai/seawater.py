@@ -65,8 +65,8 @@ def pattern_path_lengths_mm(cfg: SystemConfig) -> NDArray:
     """Flat-water water path of each dot in camera s's view, mm (K,): projector -> surface ->
     diffuser -> camera s."""
     q, s, seen = flat_pattern_hits(cfg)
-    p0 = cfg.projector.camera().pose.center_lab_mm
-    c = cfg.camera_s.camera().pose.center_lab_mm
+    p0 = cfg.rig.projector.pose.center_lab_mm
+    c = cfg.rig.camera_s.pose.center_lab_mm
     q, s = q[seen], s[seen]
     return (np.linalg.norm(q - p0, axis=1) + np.linalg.norm(s - q, axis=1)
             + np.linalg.norm(c - s, axis=1))
@@ -77,13 +77,13 @@ def glow_sigma_px(cfg: SystemConfig, system: str) -> float:
     (``"V"``) image, px (see the module notes)."""
     tan = np.tan(np.radians(cfg.water_optics.glow_sigma_deg))
     if system == "V":
-        cam = cfg.camera_v.camera()
+        cam = cfg.rig.camera_v
         return float(tan * cam.focal_px)
     q, s, seen = flat_pattern_hits(cfg)
-    p0 = cfg.projector.camera().pose.center_lab_mm
+    p0 = cfg.rig.projector.pose.center_lab_mm
     lead = np.linalg.norm(q - p0, axis=1) + np.linalg.norm(s - q, axis=1)
     lead_mm = float(np.mean(lead[seen])) if seen.any() else 2 * cfg.water.h0_mm
-    cam = cfg.camera_s.camera()
+    cam = cfg.rig.camera_s
     depth = abs(float(cam.pose.points_to_cam(np.array([[*cam.pose.center_lab_mm[:2],
                                                         cfg.diffuser.z_mm]]))[0, 2]))
     footprint_mm = depth / cam.focal_px
@@ -110,7 +110,7 @@ def view_path_lengths(scene: object, cfg: SystemConfig) -> NDArray[np.float64]:
     from mitsuba_wai.variant import mitsuba
 
     mi = mitsuba()
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     rows, cols = np.mgrid[0 : cam.height_px, 0 : cam.width_px]
     o, d = cam.pixel_rays(cols.ravel().astype(float), rows.ravel().astype(float))
     d = d / np.linalg.norm(d, axis=1, keepdims=True)

@@ -25,14 +25,13 @@ from restoration.observations import Observations
 from restoration.options import SurfaceOptions
 from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, ViewState, restore_view
 from restoration.surface import Anchor
-from restoration.undistort import PinholeRemap, check_no_port, pinhole_panel_px
+from restoration.undistort import PinholeRemap, check_no_port
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 from wai_core.images import find_image, read_image
 from wai_core.io import read_json
-from wai_core.pattern import dot_grid
 
 __all__ = ["Calibration", "LevelTrack", "RigCalibration", "read_scene_record"]
 
@@ -89,14 +88,14 @@ class RigCalibration:
 
     def __post_init__(self) -> None:
         for device in set(self.DEVICES.values()):
-            check_no_port(getattr(self.cfg, device), device)
+            check_no_port(self.cfg.rig.optics(device), device)
 
     @cached_property
     def _remaps(self) -> dict[str, PinholeRemap]:
         """The pinhole remap of each device whose optics are not its ideal pinhole's."""
         remaps = {}
         for device in set(self.DEVICES.values()):
-            remap = PinholeRemap.of(getattr(self.cfg, device), device)
+            remap = PinholeRemap.of(self.cfg.rig.optics(device), device)
             if remap is not None:
                 remaps[device] = remap
         return remaps
@@ -118,10 +117,10 @@ class RigCalibration:
         remap = self._remaps.get(self.DEVICES.get(name, ""))
         return image if remap is None else remap.apply(image)
 
-    @cached_property
+    @property
     def camera_v(self) -> PinholeCamera:
-        """The observation camera (built once: the view asks for it every frame)."""
-        return self.cfg.camera_v.camera()
+        """The observation camera (the rig's)."""
+        return self.cfg.rig.camera_v
 
     def radiance(self, view: NDArray) -> NDArray:
         """A view image of this rig on the object's radiance scale: divided by
@@ -213,33 +212,27 @@ class Calibration(RigCalibration):
     def __post_init__(self) -> None:
         super().__post_init__()
         # Camera s's spots are mapped to its pinhole as they are detected (features).
-        check_no_port(self.cfg.camera_s, "camera_s")
-        check_no_port(self.cfg.projector, "projector")
+        check_no_port(self.cfg.rig.optics("camera_s"), "camera_s")
+        check_no_port(self.cfg.rig.optics("projector"), "projector")
 
-    @cached_property
+    @property
     def projector(self) -> PinholeCamera:
-        """The projector as a pinhole device (its panel pixels' rays)."""
-        return self.cfg.projector.camera()
+        """The projector as a pinhole device (its panel pixels' rays; the rig's)."""
+        return self.cfg.rig.projector
 
-    @cached_property
+    @property
     def camera_s(self) -> PinholeCamera:
-        """The diffuser camera."""
-        return self.cfg.camera_s.camera()
+        """The diffuser camera (the rig's)."""
+        return self.cfg.rig.camera_s
 
     @property
     def diffuser_z_mm(self) -> float:
         """Height of the diffuser plane, mm."""
         return float(self.cfg.diffuser.z_mm)
 
-    @cached_property
-    def dot_grid(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        """Every dot's grid index ``(i, j)`` (G, 2) and panel position ``(col, row)`` (G, 2)
-        px, row by row (:func:`wai_core.pattern.dot_grid`)."""
-        return dot_grid(self.cfg.pattern, self.projector)
-
     def panel_px(self, ij: NDArray) -> NDArray[np.float64]:
         """Projector panel ``(col, row)`` (K, 2) px of the dots with grid indices ``ij`` (K, 2),
-        as the projector's ideal pinhole has them (:attr:`pinhole_dot_grid`).
+        as the projector's ideal pinhole has them (:attr:`wai_core.rig.Rig.dot_rays_px`).
 
         Examples
         --------
@@ -251,18 +244,8 @@ class Calibration(RigCalibration):
         >>> bool(np.array_equal(step, np.eye(2) * cal.cfg.pattern.spacing_px))
         True
         """
-        grid_ij, panel = self.pinhole_dot_grid
-        ni, nj = int(grid_ij[:, 0].max()), int(grid_ij[:, 1].max())
-        ij = np.asarray(ij)
-        return panel[(ij[:, 1] + nj) * (2 * ni + 1) + (ij[:, 0] + ni)]
-
-    @cached_property
-    def pinhole_dot_grid(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        """:attr:`dot_grid` with the panel positions whose pinhole rays are the dots' real
-        rays (:func:`~restoration.undistort.pinhole_panel_px`; the same for an ideal
-        projector)."""
-        ij, panel = self.dot_grid
-        return ij, pinhole_panel_px(self.cfg.projector, panel)
+        rig = self.cfg.rig
+        return rig.dot_rays_px[rig.dot_index(ij)]
 
     def observe(self, ij: NDArray, spot_px: NDArray, *, flat_referenced: bool = False
                 ) -> Observations:

@@ -38,6 +38,7 @@ from restoration.reverse_trace._kernels import spline_jet
 from restoration.reverse_trace._surface import SplinePatches, check_patches
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
+from wai_core.light_paths import pack_camera, reflected_spot_px
 
 __all__ = ["GROSS_FRACTION", "INCONSISTENT_FRACTION", "Consistency", "spot_consistency"]
 
@@ -186,11 +187,7 @@ def predict_spots_px(
         patches = SplinePatches(surface)
     else:
         check_patches(patches, surface, "predict_spots_px")
-    pose = camera_s.pose
-    camera = np.array([
-        *pose.R.ravel(), *pose.t_mm, camera_s.focal_px, (camera_s.width_px - 1) / 2.0,
-        (camera_s.height_px - 1) / 2.0,
-    ])
+    camera = pack_camera(camera_s)
     px = np.empty((len(dirs), 2))
     _predict_kernel(
         patches.table, patches.cell_ok, patches.x, patches.y,
@@ -204,10 +201,10 @@ def predict_spots_px(
 def _predict_kernel(
     table, cell_ok, gx, gy, origin, dirs, start, camera, z_h, n_steps, px
 ):  # pragma: no cover
-    """:func:`predict_spots_px` one ray at a time into ``px`` (K, 2): the NumPy steps'
-    expressions in their order (ray-surface Newton on the spline table, reflection, diffuser
-    plane, pinhole projection). ``camera`` (15,): ``R`` (row-major), ``t`` (mm), focal length
-    and centre (px) of camera s."""
+    """:func:`predict_spots_px` one ray at a time into ``px`` (K, 2): the ray-surface Newton on
+    the spline table, then system S's reflection to camera s
+    (:func:`wai_core.light_paths.reflected_spot_px`). ``camera`` (15,): camera s packed
+    (:func:`wai_core.light_paths.pack_camera`)."""
     ox, oy, oz = origin[0], origin[1], origin[2]
     for k in range(dirs.shape[0]):
         norm = math.sqrt(dirs[k, 0] * dirs[k, 0] + dirs[k, 1] * dirs[k, 1]
@@ -219,25 +216,7 @@ def _predict_kernel(
             t = t - ((oz + t * dz) - h) / (dz - hx * dx - hy * dy)
         x, y, z = ox + t * dx, oy + t * dy, oz + t * dz
         hx, hy = spline_jet(table, cell_ok, gx, gy, x, y)[1:3]
-        norm = math.sqrt(hx * hx + hy * hy + 1.0)
-        nx, ny, nz = -hx / norm, -hy / norm, 1.0 / norm
-        dot = 2.0 * (dx * nx + dy * ny + dz * nz)
-        rx, ry, rz = dx - dot * nx, dy - dot * ny, dz - dot * nz
-        # intersect_plane_z: hits behind the point, or none, are NaN.
-        s = (z_h - z) / rz
-        if not (np.isfinite(s) and s > 0.0):
-            s = np.nan
-        sx, sy, sz = x + s * rx, y + s * ry, z + s * rz
-        cx = sx * camera[0] + sy * camera[1] + sz * camera[2] + camera[9]
-        cy = sx * camera[3] + sy * camera[4] + sz * camera[5] + camera[10]
-        cz = sx * camera[6] + sy * camera[7] + sz * camera[8] + camera[11]
-        if cz > 0.0:
-            safe = cz if abs(cz) > 1e-12 else 1e-12
-            px[k, 0] = camera[12] * cx / safe + camera[13]
-            px[k, 1] = camera[12] * cy / safe + camera[14]
-        else:  # behind camera s (or NaN)
-            px[k, 0] = np.nan
-            px[k, 1] = np.nan
+        px[k, 0], px[k, 1] = reflected_spot_px(x, y, z, dx, dy, dz, hx, hy, z_h, camera)
 
 
 def spot_consistency(
@@ -286,15 +265,15 @@ def spot_consistency(
     >>> cfg = load_rig("paper")
     >>> from restoration.normals import projector_rays
     >>> from restoration import Calibration
-    >>> from wai_core.forward import spots_through
+    >>> from wai_core.light_paths import spots_through
     >>> ij = np.array([[i, j] for i in range(-3, 4) for j in range(-3, 4)])
     >>> panel = Calibration(cfg).panel_px(ij)
-    >>> o, d = projector_rays(panel, cfg.projector.camera())
+    >>> o, d = projector_rays(panel, cfg.rig.projector)
     >>> x, y = np.linspace(-200, 800, 101), np.linspace(-400, 400, 81)
     >>> flat = Heightfield(x, y, np.full((81, 101), cfg.water.h0_mm))
-    >>> spots = spots_through(cfg, flat, panel)
+    >>> spots = spots_through(cfg.rig, flat, panel)
     >>> q = o + ((cfg.water.h0_mm - o[2]) / d[:, 2])[:, None] * d
-    >>> c = spot_consistency(flat, q, o, d, spots, cfg.camera_s.camera(), cfg.diffuser.z_mm, 13.0)
+    >>> c = spot_consistency(flat, q, o, d, spots, cfg.rig.camera_s, cfg.diffuser.z_mm, 13.0)
     >>> c.median_px < 1e-6, c.consistent
     (True, True)
     """

@@ -40,6 +40,7 @@ from restoration.anchor import N_SETS, anchor_sigma_mm
 from restoration.normals import projector_rays, spots_on_diffuser
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
+from wai_core.light_paths import reflect_to_diffuser
 from wai_core.timings import Timings
 
 __all__ = ["BSplineSurface", "FitResult", "LevelFit", "fit_level", "fit_surface"]
@@ -193,13 +194,11 @@ class FitResult:
 
 
 def _forward(o: Array, d: Array, t: Array, gx: Array, gy: Array, z_h: float) -> Array:
-    """Hit on the diffuser (K, 2), mm, of rays ``o + t d`` reflected about slopes ``gx, gy``."""
-    p = o + t[:, None] * d
+    """Hit on the diffuser (K, 2), mm, of rays ``o + t d`` reflected about slopes ``gx, gy``
+    (system S's path: :func:`wai_core.light_paths.reflect_to_diffuser`)."""
     n = np.stack([-gx, -gy, np.ones_like(gx)], 1)
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    r = d - 2.0 * np.sum(d * n, axis=1, keepdims=True) * n
-    s = (z_h - p[:, 2]) / r[:, 2]
-    return p[:, :2] + s[:, None] * r[:, :2]
+    return reflect_to_diffuser(o + t[:, None] * d, d, n, z_h)[:, :2]
 
 
 def _hits(spline: BSplineSurface, o: Array, d: Array, t: Array, n_iter: int = 6) -> Array:

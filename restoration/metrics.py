@@ -16,7 +16,6 @@ from scipy.ndimage import binary_erosion
 from skimage.metrics import structural_similarity
 
 from restoration.reverse_trace import find_pixels
-from wai_core import layout
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
@@ -159,7 +158,7 @@ def image_metrics(
 def _camera_v(cfg: SystemConfig) -> PinholeCamera:
     if cfg.camera_v is None:
         raise WaiInputError("config: missing section [camera_v]")
-    return cfg.camera_v.camera()
+    return cfg.rig.camera_v
 
 
 def object_plane_center(cfg: SystemConfig) -> Array:
@@ -175,7 +174,7 @@ def object_plane_center(cfg: SystemConfig) -> Array:
     """
     _camera_v(cfg)
     try:
-        center = layout.object_plane_center(cfg)
+        center = cfg.rig.object_center_mm
     except ValueError as exc:
         raise WaiInputError(f"config: {exc}") from None
     if not np.all(np.isfinite(center)):
@@ -199,7 +198,7 @@ def checkerboard_corners_lab(cfg: SystemConfig) -> Array:
     if nx < 2 or ny < 2:
         raise WaiInputError("config: [object].squares needs at least 2 squares along x and y")
     sx, sy = cfg.object.size_mm
-    c = object_plane_center(cfg)
+    c = cfg.rig.object_center_mm
     xs = c[0] - sx / 2 + sx / nx * np.arange(1, nx)
     ys = c[1] - sy / 2 + sy / ny * np.arange(1, ny)
     xx, yy = np.meshgrid(xs, ys)

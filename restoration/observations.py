@@ -59,7 +59,7 @@ class Observations:
     >>> cfg = load_system("paper")
     >>> obs = Observations.build(
     ...     np.array([[0, 0]]), np.array([[400.0, 300.0]]), np.array([[400.0, 300.0]]),
-    ...     cfg.projector.camera(), cfg.camera_s.camera(), cfg.diffuser.z_mm)
+    ...     cfg.rig.projector, cfg.rig.camera_s, cfg.diffuser.z_mm)
     >>> len(obs), obs.spots_mm.shape, bool(np.isclose(obs.spots_mm[0, 2], cfg.diffuser.z_mm))
     (1, (1, 3), True)
     """

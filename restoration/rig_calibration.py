@@ -306,7 +306,8 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0) -
     def predicted(p: NDArray) -> tuple[NDArray, NDArray]:
         c = rig(p)
         _, _, pred, in_view = predict_flat_spots(c)
-        return pinhole_px(c.camera_s, raw_px), np.where(in_view[:, None], pred, np.nan)
+        detected = pinhole_px(c.rig.optics("camera_s"), raw_px)
+        return detected, np.where(in_view[:, None], pred, np.nan)
 
     start = np.array([dev.focal_mm, *dev.principal_offset_px], float)
     scale = np.array([dev.focal_mm * 1e-3, 1.0, 1.0])

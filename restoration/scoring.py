@@ -206,7 +206,7 @@ def score(
         out.corner_std_distorted_px = same["distorted"]["std_px"]
         out.corner_std_restored_px = same["restored"]["std_px"]
         out.corner_std_restored_px800 = angular_px(
-            out.corner_std_restored_px, cal.cfg.camera_v.camera()
+            out.corner_std_restored_px, cal.cfg.rig.camera_v
         )
         out.corners_common = int(common.sum())
         out.corners = {k: v for k, v in corners.items() if k != "points_px"}

@@ -77,7 +77,7 @@ def estimate_surface(
     >>> from wai_core import load_system
     >>> from wai_core.geometry import intersect_plane_z
     >>> cal = Calibration(load_system("paper"))
-    >>> ij = cal.dot_grid[0][np.abs(cal.dot_grid[0]).max(axis=1) <= 6]
+    >>> ij = cal.cfg.rig.dot_ij[np.abs(cal.cfg.rig.dot_ij).max(axis=1) <= 6]
     >>> origin, dirs = cal.projector.pixel_rays(*cal.panel_px(ij).T)
     >>> # Flat water at h0: mirror the rays there and find their spots on the diffuser.
     >>> t = (cal.cfg.water.h0_mm - origin[2]) / dirs[:, 2]

@@ -21,14 +21,13 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from wai_core.config import DeviceConfig
 from wai_core.errors import WaiInputError
 from wai_core.lens import DeviceOptics, distort
 
 __all__ = ["PinholeRemap", "check_no_port", "pinhole_panel_px", "pinhole_px"]
 
 
-def check_no_port(dev: DeviceConfig, name: str) -> None:
+def check_no_port(optics: DeviceOptics, name: str) -> None:
     """Refuse a device with a housing port (``[name] port_thickness_mm > 0``).
 
     Raises
@@ -36,7 +35,7 @@ def check_no_port(dev: DeviceConfig, name: str) -> None:
     WaiInputError
         Naming the config key.
     """
-    if dev.port_thickness_mm > 0:
+    if optics.has_port:
         raise WaiInputError(
             f"[{name}] port_thickness_mm: the restoration models devices without a housing "
             "port (a flat port's rays share no centre)"
@@ -58,10 +57,11 @@ class PinholeRemap:
     >>> import numpy as np
     >>> from wai_core import load_system, with_keys
     >>> cfg = with_keys(load_system("paper"), {"camera_v.principal_offset_px": [3.0, 0.0]})
-    >>> remap = PinholeRemap.of(cfg.camera_v, "camera_v")
+    >>> remap = PinholeRemap.of(cfg.rig.optics("camera_v"), "camera_v")
     >>> real = np.zeros((600, 800), np.float32); real[300, 403] = 1.0
     >>> ideal = remap.apply(real)  # ideal pixel c sees real pixel c + 3
-    >>> int(np.argmax(ideal[300])), PinholeRemap.of(load_system("paper").camera_v, "v") is None
+    >>> ideal_lens = load_system("paper").rig.optics("camera_v")
+    >>> int(np.argmax(ideal[300])), PinholeRemap.of(ideal_lens, "camera_v") is None
     (400, True)
     """
 
@@ -69,10 +69,10 @@ class PinholeRemap:
     map_rows: NDArray[np.float32]
 
     @classmethod
-    def of(cls, dev: DeviceConfig, name: str) -> PinholeRemap | None:
-        """The remap of device ``dev`` (config section ``name``), None for an ideal one."""
-        check_no_port(dev, name)
-        optics = DeviceOptics.from_config(dev)
+    def of(cls, optics: DeviceOptics, name: str) -> PinholeRemap | None:
+        """The remap of a device with ``optics`` (config section ``name``; a rig's
+        :meth:`~wai_core.rig.Rig.optics`), None for an ideal one."""
+        check_no_port(optics, name)
         if optics.ideal:
             return None
         cam = optics.camera
@@ -113,32 +113,24 @@ class PinholeRemap:
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def pinhole_px(dev: DeviceConfig, px: ArrayLike, name: str = "camera_s") -> NDArray:
-    """Pixel positions (K, 2) of the ideal pinhole whose rays are the real device's rays at
-    ``px`` (K, 2): ``px`` itself for an ideal device (the same array); NaN where the lens's
-    distortion cannot be inverted.
+def pinhole_px(optics: DeviceOptics, px: ArrayLike, name: str = "camera_s") -> NDArray:
+    """Pixel positions (K, 2) of the ideal pinhole whose rays are the real device's rays
+    (``optics``: a rig's :meth:`~wai_core.rig.Rig.optics`) at ``px`` (K, 2): ``px`` itself for
+    an ideal device (the same array); NaN where the lens's distortion cannot be inverted.
 
     Examples
     --------
     >>> import numpy as np
     >>> from wai_core import load_system, with_keys
     >>> cfg = with_keys(load_system("paper"), {"camera_s.principal_offset_px": [3.0, 0.0]})
-    >>> pinhole_px(cfg.camera_s, np.array([[402.5, 299.5]]))  # the principal point: the centre
+    >>> pinhole_px(cfg.rig.optics("camera_s"), np.array([[402.5, 299.5]]))  # the centre
     array([[399.5, 299.5]])
     """
-    pts = np.asarray(px, dtype=float)
-    check_no_port(dev, name)
-    optics = DeviceOptics.from_config(dev)
-    if optics.ideal:
-        return np.asarray(px)
-    cam = optics.camera
-    _, d, _ = optics.rays_cam(pts[:, 0], pts[:, 1], 1.0)
-    f = cam.focal_px
-    return np.column_stack([f * d[:, 0] / d[:, 2] + (cam.width_px - 1) / 2.0,
-                            f * d[:, 1] / d[:, 2] + (cam.height_px - 1) / 2.0])
+    check_no_port(optics, name)
+    return optics.pinhole_px(px)
 
 
-def pinhole_panel_px(dev: DeviceConfig, panel_px: ArrayLike) -> NDArray:
+def pinhole_panel_px(optics: DeviceOptics, panel_px: ArrayLike) -> NDArray:
     """Panel positions (K, 2) px whose ideal-pinhole rays are the real rays of the projector's
-    dots at ``panel_px`` (K, 2) px (:func:`pinhole_px`)."""
-    return pinhole_px(dev, panel_px, "projector")
+    dots (``optics``) at ``panel_px`` (K, 2) px (:func:`pinhole_px`)."""
+    return pinhole_px(optics, panel_px, "projector")

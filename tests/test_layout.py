@@ -1,7 +1,8 @@
 """The project's shape: one direction of dependency, no import circles, small modules.
 
 CLI -> experiments/benchmarks -> {mitsuba_wai, restoration} -> wai_core. Imports are read from
-the source (every ``import`` statement, inside functions too), so a lazy import counts.
+the source (every ``import`` statement, inside functions too), so a lazy import counts; those
+under ``if TYPE_CHECKING:`` are for annotations only, never run, and do not.
 """
 
 from __future__ import annotations
@@ -37,6 +38,10 @@ MODULES = _modules()
 def _imports(name: str) -> set[str]:
     """Project modules that module ``name`` imports (resolved to modules, not names)."""
     tree = ast.parse(MODULES[name].read_text())
+    for node in ast.walk(tree):  # annotations' imports are never run: not a dependency
+        if (isinstance(node, ast.If) and isinstance(node.test, ast.Name)
+                and node.test.id == "TYPE_CHECKING"):
+            node.body = []
     found = set()
     package = name if MODULES[name].name == "__init__.py" else name.rpartition(".")[0]
     for node in ast.walk(tree):

@@ -53,6 +53,7 @@ from wai.threads import limit_native_threads
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
+from wai_core.light_paths import flat_pixel_of
 
 __all__ = [
     "ARRAYS",
@@ -63,7 +64,6 @@ __all__ = [
     "FrameParams",
     "FrameRecord",
     "Ranges",
-    "flat_pixel_of",
     "frame_config",
     "read_frame",
     "read_manifest",
@@ -237,72 +237,12 @@ def frame_config(base: SystemConfig, p: FrameParams) -> SystemConfig:
     return cfg
 
 
-def flat_pixel_of(
-    cfg: SystemConfig, points_mm: NDArray, iterations: int = 48
-) -> tuple[NDArray, NDArray]:
-    """The camera-v pixel that sees object-plane points through flat water at ``h0``.
-
-    The inverse of :func:`wai_core.optics.trace_to_object` with ``surface=None``: the ray from
-    the camera centre ``C`` to a point ``P`` refracts once, at a point of the plane ``z = h0``
-    on the segment below ``C``-``P`` at radial distance ``r`` from ``C``, where Snell's law
-    ``n r / sqrt(r^2 + a^2) = (d - r) / sqrt((d - r)^2 + b^2)`` holds (``a``: the camera's
-    depth, ``b``: the object's height above the water, ``d``: the horizontal distance). Its
-    left minus right side grows with ``r`` from <= 0 at 0 to >= 0 at ``d``: bisected.
-
-    Parameters
-    ----------
-    cfg : SystemConfig
-    points_mm : (..., 3) ndarray
-        Points above the water (NaN passes through), mm.
-    iterations : int
-        Bisection steps (each halves the bracket ``[0, d]``).
-
-    Returns
-    -------
-    cols, rows : (...,) ndarray
-        Continuous pixel coordinates (may lie outside the image), NaN where the point is NaN.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from wai_core import load_system
-    >>> from wai_core.optics import trace_to_object
-    >>> cfg = load_system("paper")
-    >>> cam = cfg.camera_v.camera()
-    >>> p = trace_to_object(cam, None, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm,
-    ...                     np.array([10.0, 400.0]), np.array([20.0, 300.0])).object_mm
-    >>> np.round(np.stack(flat_pixel_of(cfg, p)), 6)
-    array([[ 10., 400.],
-           [ 20., 300.]])
-    """
-    cam = cfg.camera_v.camera()
-    c = cam.pose.center_lab_mm
-    h0, n = cfg.water.h0_mm, cfg.water.n_water
-    p = np.asarray(points_mm, dtype=float)
-    delta = p[..., :2] - c[:2]
-    d = np.hypot(delta[..., 0], delta[..., 1])
-    a = h0 - c[2]
-    b = p[..., 2] - h0
-    lo, hi = np.zeros_like(d), d.copy()
-    with np.errstate(invalid="ignore"):
-        for _ in range(iterations):
-            r = 0.5 * (lo + hi)
-            f = n * r / np.hypot(r, a) - (d - r) / np.hypot(d - r, b)
-            lo = np.where(f < 0, r, lo)
-            hi = np.where(f < 0, hi, r)
-        r = 0.5 * (lo + hi)
-        unit = delta / np.where(d > 0, d, 1.0)[..., None]
-    q = np.concatenate([c[:2] + r[..., None] * unit, np.full(d.shape + (1,), h0)], axis=-1)
-    cols, rows, _ = cam.project(q)
-    return cols, rows
-
-
 def true_view_warp(cfg: SystemConfig, surface: Heightfield) -> NDArray[np.float32]:
     """Where each pixel of camera v's view through ``surface`` appears in the flat-water view.
 
     Each pixel's ray is traced through the true surface to the object plane (as
     :func:`wai_core.optics.trace_to_object`), and the object point is taken back to the pixel
-    that sees it through flat water (:func:`flat_pixel_of`).
+    that sees it through flat water (:func:`wai_core.light_paths.flat_pixel_of`).
 
     Parameters
     ----------
@@ -330,7 +270,7 @@ def true_view_warp(cfg: SystemConfig, surface: Heightfield) -> NDArray[np.float3
     >>> bool(np.allclose(warp[ok], np.stack([cols, rows], axis=-1)[ok], atol=1e-3))
     True
     """
-    fc, fr = flat_pixel_of(cfg, _object_points(cfg, surface))
+    fc, fr = flat_pixel_of(cfg.rig, _object_points(cfg, surface))
     return np.stack([fc, fr], axis=-1).astype(np.float32)
 
 
@@ -345,7 +285,7 @@ def _object_points(cfg: SystemConfig, surface: Heightfield) -> NDArray:
     :data:`NEWTON_STEPS` steps to the surface."""
     from wai_core.geometry import intersect_plane_z, refract
 
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     origin, dirs = cam.pixel_rays(*cam.pixel_grid())
     hit, hit_ok = surface.intersect(origin, dirs, n_iter=NEWTON_STEPS)
     normals = surface.normal(hit[..., 0], hit[..., 1])

@@ -15,15 +15,19 @@ left out; the devices' geometry has none. ``scene.json`` records every value use
 from __future__ import annotations
 
 import dataclasses
+import functools
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, get_type_hints
+from typing import TYPE_CHECKING, Any, get_type_hints
 
 import numpy as np
 
 from wai_core.errors import WaiInputError
-from wai_core.geometry import PinholeCamera, Pose
+from wai_core.geometry import pinhole_of
+
+if TYPE_CHECKING:
+    from wai_core.rig import Rig
 
 
 @dataclass(frozen=True)
@@ -76,7 +80,7 @@ class DeviceConfig:
     rotation: tuple[tuple[float, ...], ...]
     translation_mm: tuple[float, float, float]
     # What a real device does that the pinhole model leaves out: renderer only (the geometric
-    # model and the restoration use camera()); all off by default.
+    # model and the restoration use its pinhole, wai_core.rig); all off by default.
     principal_offset_px: tuple[float, float] = (0.0, 0.0)
     """Principal point minus the image centre ``((W - 1) / 2, (H - 1) / 2)``, pixels."""
     distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
@@ -93,13 +97,6 @@ class DeviceConfig:
     focus_mm: float = 0.0
     """Projector only: distance along the axis to the plane in focus, mm (with aperture)."""
 
-    def camera(self) -> PinholeCamera:
-        """The device as a :class:`PinholeCamera` (rotation re-orthonormalised)."""
-        u, _, vt = np.linalg.svd(np.asarray(self.rotation, dtype=float))
-        pose = Pose(u @ vt, np.asarray(self.translation_mm, dtype=float))
-        return PinholeCamera(
-            self.width_px, self.height_px, self.focal_mm, self.sensor_width_mm / self.width_px, pose
-        )
 
 
 @dataclass(frozen=True)
@@ -299,6 +296,22 @@ class SystemConfig:
         """Height of the object plane, mm (z_a = h0 + 1000 in the paper)."""
         return self.water.h0_mm + self.object.height_above_water_mm
 
+    @functools.cached_property
+    def rig(self) -> Rig:
+        """What the devices imply (:class:`wai_core.rig.Rig`), derived once for this
+        configuration: every stage asks it for the cameras, the dot grid and the flat-water
+        geometry."""
+        from wai_core.rig import Rig
+
+        return Rig(self)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The rig is derived: a pickled configuration (a sweep's worker) derives its own.
+        return {k: v for k, v in self.__dict__.items() if k != "rig"}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+
 
 _SECTIONS = {
     "water": WaterConfig,
@@ -471,7 +484,7 @@ def validate(cfg: SystemConfig) -> None:
             raise WaiInputError(f"config: [{name}] needs positive size, focal length and sensor")
         _check_rotation(dev.rotation, name)
         try:
-            dev.camera()
+            pinhole_of(dev)
         except (ValueError, np.linalg.LinAlgError) as exc:
             raise WaiInputError(f"config: [{name}] {exc}") from None
     if cfg.render.spp_pattern < 1 or cfg.render.spp_view < 1:

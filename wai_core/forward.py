@@ -2,7 +2,8 @@
 
 - Spots: each lit dot's projector ray meets the exact surface (Newton ray hit on the bicubic
   heightfield), reflects about the exact normal, meets the diffuser plane and is projected into
-  camera s. That is the chief ray of the dot; the rendered spot is the image of the whole dot.
+  camera s (:func:`wai_core.light_paths.spots_through`). That is the chief ray of the dot; the
+  rendered spot is the image of the whole dot.
 - View: camera v's rays refract at the exact surface (Snell's law) and meet the object plane;
   the texture is sampled there (bilinear). Pixels are supersampled on a regular sub-grid, as a
   box reconstruction filter averages a pixel's area.
@@ -18,20 +19,18 @@ from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 
 from wai_core.config import SystemConfig
-from wai_core.geometry import intersect_plane_z, reflect
 from wai_core.heightfield import Heightfield
-from wai_core.layout import dot_weights, object_plane_center
+from wai_core.light_paths import spots_through
 from wai_core.optics import trace_to_object
-from wai_core.pattern import dot_grid
 
-__all__ = ["predict_spots", "predict_view", "spots_through", "texture_coords"]
+__all__ = ["predict_spots", "predict_view", "texture_coords"]
 
 
 def texture_coords(points_lab_mm: NDArray, cfg: SystemConfig, shape: tuple[int, ...]) -> NDArray:
     """Continuous texture pixel ``(col, row)`` (..., 2) of points on the object plane, for a
     texture of ``shape`` (h, w, ...); outside [-0.5, w - 0.5) x [-0.5, h - 0.5) is off the board.
     Column grows with lab +x, row with lab +y; the texture spans ``cfg.object.size_mm``."""
-    c = object_plane_center(cfg)
+    c = cfg.rig.object_center_mm
     sx, sy = cfg.object.size_mm
     h, w = shape[:2]
     u = ((points_lab_mm[..., 0] - c[0]) / sx + 0.5) * w - 0.5
@@ -39,37 +38,14 @@ def texture_coords(points_lab_mm: NDArray, cfg: SystemConfig, shape: tuple[int, 
     return np.stack([u, v], axis=-1)
 
 
-def spots_through(
-    cfg: SystemConfig, surface: Heightfield | None, panel_px: NDArray
-) -> NDArray:
-    """Camera-s pixels (K, 2) where dots at ``panel_px`` (K, 2) land; NaN where a ray misses.
-
-    ``surface`` None means flat water at h0.
-    """
-    projector = cfg.projector.camera()
-    o, d = projector.pixel_rays(panel_px[:, 0], panel_px[:, 1])
-    if surface is None:
-        q, _ = intersect_plane_z(o, d, cfg.water.h0_mm)
-        n = np.broadcast_to([0.0, 0.0, 1.0], q.shape)
-        ok = np.isfinite(q[:, 0])
-    else:
-        q, ok = surface.intersect(o, d)
-        n = surface.normal(q[:, 0], q[:, 1])
-    s, _ = intersect_plane_z(q, reflect(d, n), cfg.diffuser.z_mm)
-    cols, rows, front = cfg.camera_s.camera().project(s)
-    px = np.stack([cols, rows], axis=1)
-    px[~(ok & front)] = np.nan
-    return px
-
-
 def predict_spots(
     cfg: SystemConfig, surface: Heightfield | None
 ) -> tuple[NDArray, NDArray]:
     """Grid indices (K, 2) and predicted camera-s pixels (K, 2) of every lit dot in view."""
-    ij, panel = dot_grid(cfg.pattern, cfg.projector.camera())
-    lit = dot_weights(cfg) > 0
-    px = spots_through(cfg, surface, panel[lit])
-    cam = cfg.camera_s.camera()
+    ij, panel = cfg.rig.dot_grid
+    lit = cfg.rig.dot_weights > 0
+    px = spots_through(cfg.rig, surface, panel[lit])
+    cam = cfg.rig.camera_s
     seen = np.isfinite(px[:, 0]) & cam.in_image(px[:, 0], px[:, 1])
     return ij[lit][seen], px[seen]
 
@@ -79,7 +55,7 @@ def predict_view(
 ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     """Camera v's image (H, W, 3) of the textured plane through ``surface`` (None: flat water),
     in the texture's units, and a mask of pixels whose rays all reached the object."""
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
     acc = np.zeros((cam.height_px, cam.width_px, texture.shape[2]))
     all_ok = np.ones((cam.height_px, cam.width_px), dtype=bool)

@@ -22,6 +22,7 @@ scikit-image convention), so pixel ``(0, 0)`` covers ``[-0.5, 0.5)`` in both axe
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -269,3 +270,21 @@ def intersect_plane_z(
         t = (z_mm - o[..., 2]) / d[..., 2]
     t = np.where(np.isfinite(t) & (t > 0), t, np.nan)
     return o + t[..., None] * d, t
+
+
+def pinhole_of(dev: Any) -> PinholeCamera:
+    """A device section (:class:`~wai_core.config.DeviceConfig`) as the ideal pinhole it
+    models (the rotation re-orthonormalised): the one place a :class:`PinholeCamera` is made
+    from a configuration (a rig makes each of its devices once: :class:`wai_core.rig.Rig`).
+
+    Examples
+    --------
+    >>> from wai_core import load_system
+    >>> cam = pinhole_of(load_system("paper").camera_s)
+    >>> cam.width_px, round(cam.focal_px, 3)
+    (800, 320.0)
+    """
+    u, _, vt = np.linalg.svd(np.asarray(dev.rotation, dtype=float))
+    pose = Pose(u @ vt, np.asarray(dev.translation_mm, dtype=float))
+    return PinholeCamera(dev.width_px, dev.height_px, dev.focal_mm,
+                         dev.sensor_width_mm / dev.width_px, pose)

@@ -7,22 +7,28 @@
   meets ``z = z_a``.
 - The observed patch is the part of the flat water that either system looks at; a surface given
   as a file must cover it.
+
+These are the formulas; the values a configuration needs again and again (the diffuser's
+extent, the dots lit and their weights, the object's centre) are kept by its rig
+(``cfg.rig``, :class:`wai_core.rig.Rig`), which every stage asks.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numpy.typing import NDArray
 
-from wai_core.config import SystemConfig
 from wai_core.geometry import (
     PinholeCamera,
     fresnel_reflectance,
     intersect_plane_z,
-    reflect,
     refract,
 )
-from wai_core.pattern import dot_grid
+
+if TYPE_CHECKING:
+    from wai_core.config import SystemConfig
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -46,50 +52,32 @@ def footprint_on_plane(camera: PinholeCamera, z_mm: float) -> NDArray:
 
 
 def diffuser_rect(cfg: SystemConfig) -> NDArray:
-    """Extent ``[[x0, x1], [y0, y1]]`` of the diffuser, mm: camera s's view of ``z = z_h``."""
-    return footprint_on_plane(cfg.camera_s.camera(), cfg.diffuser.z_mm)
+    """Extent ``[[x0, x1], [y0, y1]]`` of the diffuser, mm: camera s's view of ``z = z_h``
+    (the rig's :attr:`~wai_core.rig.Rig.diffuser_rect`)."""
+    return cfg.rig.diffuser_rect
 
 
 def flat_pattern_hits(cfg: SystemConfig) -> tuple[NDArray, NDArray, NDArray]:
     """Flat-water path of every dot: water hit ``q`` (K, 3), diffuser hit ``s`` (K, 3), and a
-    mask of the dots whose spot lands on the diffuser inside camera s's view."""
-    projector = cfg.projector.camera()
-    _, panel = dot_grid(cfg.pattern, projector)
-    o, d = projector.pixel_rays(panel[:, 0], panel[:, 1])
-    q, _ = intersect_plane_z(o, d, cfg.water.h0_mm)
-    s, _ = intersect_plane_z(q, reflect(d, UP), cfg.diffuser.z_mm)
-    rect = diffuser_rect(cfg)
-    cam_s = cfg.camera_s.camera()
-    cols, rows, front = cam_s.project(s)
-    seen = (
-        front
-        & cam_s.in_image(cols, rows)
-        & (s[:, 0] >= rect[0, 0])
-        & (s[:, 0] <= rect[0, 1])
-        & (s[:, 1] >= rect[1, 0])
-        & (s[:, 1] <= rect[1, 1])
-    )
-    return q, s, seen
+    mask of the dots whose spot lands on the diffuser inside camera s's view (the rig's
+    :func:`wai_core.light_paths.flat_spots`)."""
+    flat = cfg.rig.flat_spots
+    cam_s = cfg.rig.camera_s
+    seen = (flat.in_front & cam_s.in_image(flat.px[:, 0], flat.px[:, 1])
+            & flat.on_diffuser(cfg.rig.diffuser_rect))
+    return flat.water_mm, flat.diffuser_mm, seen
 
 
 def lit_dots(cfg: SystemConfig, margin_spacings: float = 2.0) -> NDArray[np.bool_]:
     """Dots (K,) worth projecting: those whose flat-water spot lands on the diffuser grown by
     ``margin_spacings`` dot spacings (waves move spots by less). Lighting only these spends every
     projected photon on a spot that camera s can see."""
-    q, s, _ = flat_pattern_hits(cfg)
-    rect = diffuser_rect(cfg)
-    ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
+    rig = cfg.rig
+    s = rig.flat_spots.diffuser_mm
     # Spacing of neighbouring spots on the diffuser, from the flat-water model.
-    rows = s.reshape(-1, _dots_per_row(ij), 3)
+    rows = s.reshape(-1, _dots_per_row(rig.dot_ij), 3)
     spacing = np.nanmedian(np.linalg.norm(np.diff(rows, axis=1), axis=2))
-    grow = margin_spacings * spacing
-    return (
-        np.isfinite(s[:, 0])
-        & (s[:, 0] >= rect[0, 0] - grow)
-        & (s[:, 0] <= rect[0, 1] + grow)
-        & (s[:, 1] >= rect[1, 0] - grow)
-        & (s[:, 1] <= rect[1, 1] + grow)
-    )
+    return rig.flat_spots.on_diffuser(rig.diffuser_rect, margin_spacings * spacing)
 
 
 def _dots_per_row(ij: NDArray) -> int:
@@ -106,12 +94,10 @@ def dot_weights(cfg: SystemConfig, max_gain: float = 60.0) -> NDArray:
     1 under total internal reflection), at most ``max_gain``, so that every spot reaches the
     diffuser about equally bright and gets about as many photons in the particle tracer.
     """
-    lit = lit_dots(cfg).astype(float)
+    lit = cfg.rig.lit.astype(float)
     if cfg.water.surface == "mirror":
         return lit
-    projector = cfg.projector.camera()
-    _, panel = dot_grid(cfg.pattern, projector)
-    _, d = projector.pixel_rays(panel[:, 0], panel[:, 1])
+    d = cfg.rig.flat_spots.dirs
     gain = np.minimum(1.0 / fresnel_reflectance(d[:, 2], cfg.water.n_water), max_gain)
     w = lit * gain
     return w / w.max()
@@ -119,7 +105,7 @@ def dot_weights(cfg: SystemConfig, max_gain: float = 60.0) -> NDArray:
 
 def snell_window_hits(cfg: SystemConfig, step_px: float = 8.0) -> NDArray:
     """Points (N, 3) where camera v's rays that leave the water (flat, not TIR) cross it."""
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     o, d = cam.pixel_rays(*cam.pixel_grid(step_px))
     q, _ = intersect_plane_z(o, d.reshape(-1, 3), cfg.water.h0_mm)
     _, tir = refract(d.reshape(-1, 3), np.broadcast_to(UP, (q.shape[0], 3)), cfg.water.n_water)
@@ -137,7 +123,7 @@ def observed_patch(cfg: SystemConfig, margin_mm: float = 10.0) -> NDArray:
 
 def object_plane_center(cfg: SystemConfig) -> NDArray:
     """Centre (3,) mm of the object rectangle: camera v's axis refracted by flat water, on z_a."""
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     o, axis = cam.pose.center_lab_mm, cam.pose.axis_lab
     q, _ = intersect_plane_z(o, axis, cfg.water.h0_mm)
     d_air, tir = refract(axis, UP, cfg.water.n_water)
@@ -152,7 +138,7 @@ def surface_extent(cfg: SystemConfig, margin_mm: float = 15.0) -> NDArray:
     patch and all of camera v's footprint (its TIR rays must meet water too), plus a margin for
     the waves' deflections. Nothing beyond it is modelled."""
     patch = observed_patch(cfg, margin_mm=0.0)
-    view = footprint_on_plane(cfg.camera_v.camera(), cfg.water.h0_mm)
+    view = footprint_on_plane(cfg.rig.camera_v, cfg.water.h0_mm)
     lo = np.minimum(patch[:, 0], view[:, 0]) - margin_mm
     hi = np.maximum(patch[:, 1], view[:, 1]) + margin_mm
     return np.stack([lo, hi], axis=1)

@@ -40,13 +40,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from wai_core.config import DeviceConfig
-from wai_core.geometry import PinholeCamera
+from wai_core.geometry import PinholeCamera, pinhole_of
+
+if TYPE_CHECKING:
+    from wai_core.config import DeviceConfig
 
 Array = NDArray[np.float64]
 
@@ -271,7 +273,7 @@ class DeviceOptics:
     Attributes
     ----------
     camera : PinholeCamera
-        The ideal device (pose, focal length, image size): ``DeviceConfig.camera()``.
+        The ideal device (pose, focal length, image size): :func:`wai_core.rig.pinhole_of`.
     principal_px : (2,) tuple of float
         Principal point ``(c_x, c_y)``, pixels.
     distortion : (5,) tuple of float
@@ -284,10 +286,10 @@ class DeviceOptics:
     Examples
     --------
     >>> from wai_core import load_system
-    >>> cam = load_system("paper").camera_v
-    >>> optics = DeviceOptics.from_config(cam)
+    >>> rig = load_system("paper").rig
+    >>> optics = rig.optics("camera_v")
     >>> o, d = optics.pixel_rays(399.5, 299.5, n_water=4 / 3)
-    >>> bool(np.allclose(d, cam.camera().pose.axis_lab))
+    >>> bool(np.allclose(d, rig.camera_v.pose.axis_lab))
     True
     """
 
@@ -300,8 +302,13 @@ class DeviceOptics:
 
     @classmethod
     def from_config(cls, dev: DeviceConfig) -> DeviceOptics:
-        """The optics of a ``[projector]`` / ``[camera_s]`` / ``[camera_v]`` section."""
-        cam = dev.camera()
+        """The optics of a ``[projector]`` / ``[camera_s]`` / ``[camera_v]`` section (a rig
+        holds each device's once: :meth:`wai_core.rig.Rig.optics`)."""
+        return cls.of(dev, pinhole_of(dev))
+
+    @classmethod
+    def of(cls, dev: DeviceConfig, cam: PinholeCamera) -> DeviceOptics:
+        """The optics of section ``dev`` around its pinhole ``cam``."""
         cx = (cam.width_px - 1) / 2.0 + float(dev.principal_offset_px[0])
         cy = (cam.height_px - 1) / 2.0 + float(dev.principal_offset_px[1])
         return cls(cam, (cx, cy), tuple(float(v) for v in dev.distortion),
@@ -362,6 +369,27 @@ class DeviceOptics:
         p, w, _ = port_refract((zero, zero, zero), (d[..., 0], d[..., 1], d[..., 2]),
                                *self._port(n_water), np.sqrt)
         return np.stack(p, axis=-1), np.stack(w, axis=-1), d
+
+    def pinhole_px(self, px: ArrayLike) -> Array:
+        """Pixels (K, 2) of the ideal pinhole (:attr:`camera`) whose rays are this device's
+        pinhole rays at ``px`` (K, 2): the principal point and the lens's distortion undone
+        (a port, whose rays share no centre, is not: see :meth:`rays_cam`); ``px`` itself for
+        ideal optics (the same array); NaN where the distortion cannot be inverted.
+
+        Examples
+        --------
+        >>> from wai_core import load_system, with_keys
+        >>> cfg = with_keys(load_system("paper"), {"camera_s.principal_offset_px": [3.0, 0.0]})
+        >>> cfg.rig.optics("camera_s").pinhole_px(np.array([[402.5, 299.5]]))
+        array([[399.5, 299.5]])
+        """
+        if self.ideal:
+            return np.asarray(px)
+        pts = np.asarray(px, dtype=float)
+        d = self.rays_cam(pts[:, 0], pts[:, 1], 1.0)[2]
+        cam, f = self.camera, self.camera.focal_px
+        return np.column_stack([f * d[:, 0] / d[:, 2] + (cam.width_px - 1) / 2.0,
+                                f * d[:, 1] / d[:, 2] + (cam.height_px - 1) / 2.0])
 
     def pixel_rays(self, cols: ArrayLike, rows: ArrayLike, n_water: float) -> tuple[Array, Array]:
         """Rays in the water through continuous pixel coordinates.

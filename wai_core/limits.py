@@ -13,7 +13,6 @@ import numpy as np
 
 from wai_core.config import SystemConfig
 from wai_core.layout import flat_pattern_hits
-from wai_core.pattern import dot_grid
 
 __all__ = ["correspondence_limit", "effective_phi_deg"]
 
@@ -22,7 +21,7 @@ def correspondence_limit(cfg: SystemConfig) -> dict[str, float]:
     """Eq. 35-37 for this geometry: the largest slope amplitude Φ and shortest wavelength λ that
     the pattern spacing D can follow, at the projector's axis."""
     q, _, seen = flat_pattern_hits(cfg)
-    ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
+    ij, _ = cfg.rig.dot_grid
     near_axis = seen & (np.abs(ij[:, 0]) <= 3) & (np.abs(ij[:, 1]) <= 3)
     side = int(round(np.sqrt(len(ij))))
     grid = q.reshape(side, side, 3)
@@ -30,10 +29,10 @@ def correspondence_limit(cfg: SystemConfig) -> dict[str, float]:
     steps_ok = near_axis.reshape(side, side)[:, 1:].ravel()
     d_mm = float(np.median(steps[steps_ok]))
     h0, z_h = cfg.water.h0_mm, cfg.diffuser.z_mm
-    cam = cfg.camera_s.camera()
+    cam = cfg.rig.camera_s
     # Δp: one camera-s pixel's footprint on the diffuser.
     dp_mm = abs(z_h - cam.pose.center_lab_mm[2]) * cam.pixel_pitch_mm / cam.focal_mm
-    axis = cfg.projector.camera().pose.axis_lab
+    axis = cfg.rig.projector.pose.axis_lab
     theta_flat = float(np.arccos(axis[2]))  # reflected angle from the vertical at the axis
     cos2 = np.cos(theta_flat) ** 2
     # Eq. 35 solved for Φ: D (2 h0 - z_h) / h0 - Δp/2 > (h0 - z_h) / cos² θ · dψ/dθ · 2Φ.

@@ -9,13 +9,16 @@ image; the restoration uses the same grid to know each feature's projector ray (
 from __future__ import annotations
 
 import functools
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from wai_core.config import PatternConfig
 from wai_core.geometry import PinholeCamera
+
+if TYPE_CHECKING:
+    from wai_core.config import PatternConfig
 
 
 def dot_grid(pattern: PatternConfig, projector: PinholeCamera) -> tuple[NDArray, NDArray]:

@@ -29,7 +29,6 @@ from wai_core.layout import (
     flat_pattern_hits,
     footprint_on_plane,
     frame_border_px,
-    object_plane_center,
     observed_patch,
     snell_window_hits,
 )
@@ -41,7 +40,7 @@ def rig_levels(cfg: SystemConfig) -> list[tuple[str, float]]:
     """The rig's parts the surface must not reach: ``(name, z_mm)`` for the projector, the
     cameras (their centres), the diffuser and the object plane."""
     levels = [
-        (label, float(getattr(cfg, name).camera().pose.center_lab_mm[2]))
+        (label, float(cfg.rig.device(name).pose.center_lab_mm[2]))
         for name, label in (("projector", "the projector"), ("camera_s", "camera s"),
                             ("camera_v", "camera v"))
     ]
@@ -148,11 +147,11 @@ def check_rig(cfg: SystemConfig, what: str = "the rig") -> None:
     for name, label, ceiling, part in (("projector", "the projector", h0, "the water"),
                                        ("camera_v", "camera v", h0, "the water"),
                                        ("camera_s", "camera s", zh, "the diffuser")):
-        z = float(getattr(cfg, name).camera().pose.center_lab_mm[2])
+        z = float(cfg.rig.device(name).pose.center_lab_mm[2])
         if z >= ceiling:
             raise WaiInputError(f"{what}: {label} is at z = {_mm(z)} mm, not below {part} at "
                                 f"{_mm(ceiling)} mm: it must look up at it from below")
-    cam_s = cfg.camera_s.camera()
+    cam_s = cfg.rig.camera_s
     o, d = cam_s.pixel_rays(*frame_border_px(cam_s))
     if not np.isfinite(intersect_plane_z(o, d, zh)[0][:, 0]).any():
         raise WaiInputError(f"{what}: camera s does not look up at the diffuser (z = {_mm(zh)} "
@@ -165,7 +164,7 @@ def check_rig(cfg: SystemConfig, what: str = "the rig") -> None:
             f"{what}: camera s sees none of the projector's dots on the diffuser through flat "
             f"water ({where}; camera s sees {_span(footprint_on_plane(cam_s, zh).T)})")
     try:
-        object_plane_center(cfg)
+        cfg.rig.object_center_mm  # noqa: B018 (its axis must reach the sky)
     except ValueError as exc:
         raise WaiInputError(f"{what}: {exc}") from None
     if not len(snell_window_hits(cfg)):

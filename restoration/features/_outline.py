@@ -13,13 +13,12 @@ import numpy as np
 from restoration.features._types import BoolArray, FloatArray
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
-from wai_core.layout import diffuser_rect
 
 
 def _diffuser(cfg: SystemConfig) -> FloatArray:
     """Diffuser extent ``[[x0, x1], [y0, y1]]``, mm (:func:`wai_core.layout.diffuser_rect`)."""
     try:
-        return diffuser_rect(cfg)
+        return cfg.rig.diffuser_rect
     except ValueError as exc:
         raise WaiInputError(f"config: {exc}") from None
 
@@ -31,7 +30,7 @@ def _outline_px(cfg: SystemConfig) -> FloatArray:
     (x0, x1), (y0, y1) = _diffuser(cfg)
     z = cfg.diffuser.z_mm
     corners = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
-    cols, rows, _ = cfg.camera_s.camera().project(corners)
+    cols, rows, _ = cfg.rig.camera_s.project(corners)
     out = np.stack([cols, rows], axis=1)
     out.setflags(write=False)
     return out

@@ -84,7 +84,7 @@ from restoration.features.match import (
 from restoration.features.reference import ReferenceGrid
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
-from wai_core.pattern import CODE_LEVELS, dot_codes, dot_grid
+from wai_core.pattern import CODE_LEVELS, dot_codes
 from wai_core.timings import Timings
 
 __all__ = [
@@ -226,8 +226,8 @@ def spot_symbols(
 def node_symbols(ref: ReferenceGrid, cfg: SystemConfig) -> IntArray:
     """Code symbol (G,) of every node of the reference lattice; -1 for virtual and unlit
     nodes (no spot can show their symbol)."""
-    projector = cfg.projector.camera()
-    ij, _ = dot_grid(cfg.pattern, projector)
+    projector = cfg.rig.projector
+    ij = cfg.rig.dot_ij
     codes = dot_codes(cfg.pattern, projector).astype(np.int64)
     lo = ij.min(axis=0)
     side = ij.max(axis=0) - lo + 1

@@ -31,12 +31,9 @@ from restoration.features.detect import (
     _scales_for,
     detect_spots,
 )
-from restoration.undistort import pinhole_panel_px, pinhole_px
+from restoration.undistort import pinhole_px
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
-from wai_core.geometry import intersect_plane_z, reflect
-from wai_core.layout import lit_dots
-from wai_core.pattern import dot_grid
 
 
 @dataclass(frozen=True)
@@ -158,7 +155,8 @@ def predict_flat_spots(
 ) -> tuple[IntArray, FloatArray, FloatArray, BoolArray]:
     """Where every dot of the grid lands in camera s when the water is flat.
 
-    Projector ray through the dot's panel position -> plane ``z = h0`` -> mirror reflection about
+    The rig's flat-water path of every dot (:func:`wai_core.light_paths.flat_spots`): projector
+    ray through the dot's panel position -> plane ``z = h0`` -> mirror reflection about
     ``(0, 0, 1)`` -> diffuser plane ``z = z_h`` -> camera s. Panel -> camera s is then a plane
     projective map (a homography), so grid lines stay straight.
 
@@ -181,28 +179,18 @@ def predict_flat_spots(
         The ray goes up to the water, comes down onto the (finite) diffuser, and the spot is in
         front of and inside camera s.
     """
-    projector = cfg.projector.camera()
-    cam = cfg.camera_s.camera()
-    ij, panel = dot_grid(cfg.pattern, projector)
-    # The dots' real rays (a lens that distorts moves them), as pinhole panel positions.
-    ray_px = pinhole_panel_px(cfg.projector, panel)
-    origin, dirs = projector.pixel_rays(ray_px[:, 0], ray_px[:, 1])
-    hit, _ = intersect_plane_z(origin, dirs, cfg.water.h0_mm)
-    down = reflect(dirs, np.array([0.0, 0.0, 1.0]))
-    spot, _ = intersect_plane_z(hit, down, cfg.diffuser.z_mm)
-    cols, rows, in_front = cam.project(spot)
-    spot_px = np.stack([cols, rows], axis=1)
-    (x0, x1), (y0, y1) = _diffuser(cfg)
+    rig = cfg.rig
+    flat = rig.flat_spots
+    spot_px = flat.px
     with np.errstate(invalid="ignore"):
-        on_diffuser = (spot[:, 0] >= x0) & (spot[:, 0] <= x1)
-        on_diffuser &= (spot[:, 1] >= y0) & (spot[:, 1] <= y1)
         in_view = (
-            (dirs[:, 2] > 0)
-            & on_diffuser
+            flat.upward
+            & flat.on_diffuser(_diffuser(cfg))
             & np.isfinite(spot_px).all(axis=1)
-            & in_front
-            & cam.in_image(cols, rows, margin_px)
+            & flat.in_front
+            & rig.camera_s.in_image(spot_px[:, 0], spot_px[:, 1], margin_px)
         )
+    ij, panel = rig.dot_grid
     return ij.astype(np.int64), panel, spot_px, in_view
 
 
@@ -246,7 +234,7 @@ def pinhole_spots(spots: Spots, cfg: SystemConfig) -> Spots:
     """``spots`` of camera s with their centres in its ideal pinhole's pixels (the model every
     later stage uses; :func:`restoration.undistort.pinhole_px`); the same object for an ideal
     camera. Spots whose centre the lens cannot map are flagged ``border``."""
-    centres = pinhole_px(cfg.camera_s, spots.centres_px)
+    centres = pinhole_px(cfg.rig.optics("camera_s"), spots.centres_px)
     if centres is spots.centres_px:
         return spots
     lost = ~np.isfinite(centres).all(axis=1)
@@ -524,7 +512,7 @@ def prepare_reference(
     flat = pinhole_spots(detect_spots(pattern_flat_img, spot_sigma_px=sigma_ok), cfg)
     flat = flag_diffuser_edge(flat, outline)
     predicted = predict_flat_spots(cfg)
-    ref = match_reference(flat, predicted, lit=lit_dots(cfg) if lit is None else lit)
+    ref = match_reference(flat, predicted, lit=cfg.rig.lit if lit is None else lit)
     ref = replace(
         ref, spot_sigma_px=float(sigma), outline_px=outline, visible_px=_visible_outline(cfg)
     )

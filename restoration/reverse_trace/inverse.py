@@ -24,6 +24,7 @@ from restoration.reverse_trace._surface import SplinePatches, _FlatWater, _surfa
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera, intersect_plane_z
 from wai_core.heightfield import Heightfield
+from wai_core.light_paths import pack_camera
 from wai_core.optics import RayStatus, _check_system
 
 Array = NDArray[np.float64]
@@ -78,11 +79,7 @@ def _newton(
         flat, h0, surf = True, model.h0, _NO_SURFACE
     else:
         flat, h0, surf = False, 0.0, (model.table, model.cell_ok, model.x, model.y)
-    pose = camera.pose
-    proj = np.r_[
-        pose.R.ravel(), pose.t_mm, camera.focal_px,
-        (camera.width_px - 1) / 2.0, (camera.height_px - 1) / 2.0,
-    ]
+    proj = pack_camera(camera)
     targets = np.ascontiguousarray(targets, dtype=float)
     n = len(targets)
     px, q = np.full((n, 2), np.nan), np.full((n, 3), np.nan)

@@ -248,7 +248,7 @@ class ViewPlan:
     --------
     >>> from wai_core import load_rig
     >>> cfg = load_rig("paper")
-    >>> plan = ViewPlan.build(cfg.camera_v.camera(), cfg.water.h0_mm, cfg.water.n_water,
+    >>> plan = ViewPlan.build(cfg.rig.camera_v, cfg.water.h0_mm, cfg.water.n_water,
     ...                       cfg.object_z_mm, 8)
     >>> plan.grid_shape, plan.image_shape
     ((76, 101), (600, 800))

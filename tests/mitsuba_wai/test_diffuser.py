@@ -7,6 +7,7 @@ import pytest
 from scipy.integrate import quad
 
 from mitsuba_wai.variant import select_variant
+from wai_core.geometry import pinhole_of
 
 LN2 = np.log(2.0)
 N_WATER = 4.0 / 3.0
@@ -174,7 +175,7 @@ def test_blur_is_a_gaussian_of_blur_mm_on_the_screen(small_cfg):
     cfg = small_cfg.replace("diffuser", blur_mm=3.0)
     dev = cfg.camera_s
     # Camera s looks straight up at the screen from z = -190 mm to 60 mm (Table 1): 250 mm.
-    depth = cfg.diffuser.z_mm - dev.camera().pose.center_lab_mm[2]
+    depth = cfg.diffuser.z_mm - pinhole_of(dev).pose.center_lab_mm[2]
     assert depth == pytest.approx(250.0)
     f_px = dev.focal_mm * dev.width_px / dev.sensor_width_mm
     assert blur_sigma_px(cfg) == pytest.approx(3.0 * f_px / depth, rel=1e-9)
@@ -213,7 +214,7 @@ def spot_windows(cfg, shape):
     from wai_core.layout import flat_pattern_hits
 
     _, s, seen = flat_pattern_hits(cfg)
-    cam = cfg.camera_s.camera()
+    cam = cfg.rig.camera_s
     cols, rows, ok = cam.project(s[seen])
     r, c = np.round(rows).astype(int), np.round(cols).astype(int)
     keep = ok & (r >= 2) & (c >= 2) & (r < shape[0] - 2) & (c < shape[1] - 2)

@@ -28,7 +28,7 @@ def _draw(emitter, n, seed):
 
 def _chief_rays(cfg):
     """Unit directions (K, 3) of the lit dots' chief rays, lab."""
-    projector = cfg.projector.camera()
+    projector = cfg.rig.projector
     _, panel = dot_grid(cfg.pattern, projector)
     _, dirs = projector.pixel_rays(panel[:, 0], panel[:, 1])
     return dirs[dot_weights(cfg) > 0]
@@ -114,7 +114,7 @@ def test_thin_lens_blur_disk_grows_as_aperture_times_defocus(paper_cfg):
     pin = _emitter(paper_cfg)
     lens = _emitter(_lens_cfg(paper_cfg, aperture, focus))
     dirs = _chief_rays(paper_cfg)
-    projector = paper_cfg.projector.camera()
+    projector = paper_cfg.rig.projector
     axis, centre = projector.pose.axis_lab, projector.pose.center_lab_mm
     dot = int(np.argmax(dirs @ axis))  # the dot nearest the axis
     # The same seed gives the same panel points: particle i of both is the same dot's.

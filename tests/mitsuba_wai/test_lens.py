@@ -21,6 +21,7 @@ from mitsuba_wai.surface_sampling import wave_surface
 from mitsuba_wai.variant import mitsuba, select_variant
 from tests.conftest import shrink
 from wai_core.errors import WaiInputError
+from wai_core.geometry import pinhole_of
 from wai_core.lens import DeviceOptics
 
 K_V = (-0.15, 0.02, 0.001, -0.001, 0.0)
@@ -71,7 +72,7 @@ def test_distorted_view_is_the_pinhole_view_remapped(view_cfg):
     dist = view_cfg.replace("camera_v", distortion=K_V, principal_offset_px=(5.0, -3.0))
     pinhole, ours = _view(view_cfg), _view(dist)
     optics = DeviceOptics.from_config(dist.camera_v)
-    expected, _ = _pinhole_remap(pinhole, optics, view_cfg.camera_v.camera(), 4 / 3)
+    expected, _ = _pinhole_remap(pinhole, optics, view_cfg.rig.camera_v, 4 / 3)
     ok = np.isfinite(expected).all(axis=2)
     assert ok.mean() > 0.6  # barrel distortion: the corners see beyond the pinhole's field
     err = np.abs(ours - expected)[ok].mean()
@@ -89,7 +90,7 @@ def test_port_dims_the_view_by_fresnel_and_n_squared(view_cfg):
     port = view_cfg.replace("camera_v", port_thickness_mm=6.0, port_gap_mm=4.0, port_n=1.52)
     pinhole, ours = _view(view_cfg, tex, spp=4), _view(port, tex, spp=4)
     optics = DeviceOptics.from_config(port.camera_v)
-    cam = view_cfg.camera_v.camera()
+    cam = view_cfg.rig.camera_v
     expected, _ = _pinhole_remap(pinhole, optics, cam, n_w)
     _, _, air = optics.rays_cam(*cam.pixel_grid(), n_w)
     factor = _fresnel_port(np.hypot(air[..., 0], air[..., 1]), 1.52, n_w) / n_w**2
@@ -118,7 +119,7 @@ def _uniform_s_scene(cam):
 def s_camera(paper_cfg):
     select_variant()
     dev = dataclasses.replace(paper_cfg.camera_s, width_px=40, height_px=30)
-    return dev, _uniform_s_scene(dev.camera())
+    return dev, _uniform_s_scene(pinhole_of(dev))
 
 
 def _blocks(image, b=10):
@@ -140,13 +141,13 @@ def test_camera_s_distortion_keeps_a_uniform_surface_uniform(s_camera):
     assert np.abs(_blocks(plain) / level - 1).max() < 0.015
     assert np.abs(_blocks(ours) / level - 1).max() < 0.015
     # The distortion changes the pixels' solid angles across the image by far more than that.
-    c, r = dev.camera().pixel_grid()
+    c, r = pinhole_of(dev).pixel_grid()
 
     def spread(d):
         solid = np.linalg.norm(np.cross(np.gradient(d, axis=1), np.gradient(d, axis=0)), axis=2)
         return solid.max() / solid.min()
 
-    assert spread(optics.rays_cam(c, r, 1.0)[1]) > 1.2 * spread(dev.camera().dirs_cam(c, r))
+    assert spread(optics.rays_cam(c, r, 1.0)[1]) > 1.2 * spread(pinhole_of(dev).dirs_cam(c, r))
 
 
 def test_camera_s_port_passes_fresnel_over_n_squared(s_camera):
@@ -157,7 +158,7 @@ def test_camera_s_port_passes_fresnel_over_n_squared(s_camera):
     plain, _ = render_particles(scene, 4096, 2, 2)
     ours, bad = render_particles(scene, 4096, 2, 2, camera=CameraLens(optics, n_w))
     assert bad == 0
-    _, _, air = optics.rays_cam(*dev.camera().pixel_grid(), n_w)
+    _, _, air = optics.rays_cam(*pinhole_of(dev).pixel_grid(), n_w)
     factor = _fresnel_port(np.hypot(air[..., 0], air[..., 1]), n_p, n_w) / n_w**2
     expected = plain[..., 1].mean() * factor
     assert np.abs(_blocks(ours) / _blocks(expected[..., None].repeat(3, 2)) - 1).max() < 0.015
@@ -180,7 +181,7 @@ def test_camera_s_spots_land_where_the_model_projects_them(paper_cfg):
     for c in (cfg, dist):
         r = FrameRenderer(c, surface, systems=("pattern",))
         images.append(r.render(surface, seed=5, which=("pattern",), spp=4)["pattern"])
-    cam = cfg.camera_s.camera()
+    cam = cfg.rig.camera_s
     ref = _spots(images[0])
     # The undistorted spots' diffuser points, projected by the distorted model.
     o, d = cam.pixel_rays(ref[:, 0], ref[:, 1])
@@ -210,15 +211,14 @@ def _predicted_spots(cfg):
     """Camera s's image of each lit dot's chief ray (numpy model) via the flat water."""
     from wai_core.geometry import intersect_plane_z, reflect
     from wai_core.layout import dot_weights
-    from wai_core.pattern import dot_grid
 
-    _, panel = dot_grid(cfg.pattern, cfg.projector.camera())
+    _, panel = cfg.rig.dot_grid
     panel = panel[dot_weights(cfg) > 0]
     o, d = DeviceOptics.from_config(cfg.projector).pixel_rays(panel[:, 0], panel[:, 1],
                                                              cfg.water.n_water)
     q, _ = intersect_plane_z(o, d, cfg.water.h0_mm)
     s, _ = intersect_plane_z(q, reflect(d, np.array([0.0, 0.0, 1.0])), cfg.diffuser.z_mm)
-    cam = cfg.camera_s.camera()
+    cam = cfg.rig.camera_s
     cols, rows, _ = cam.project(s)
     keep = np.isfinite(cols) & cam.in_image(cols, rows, 8)
     return np.column_stack([cols, rows])[keep]

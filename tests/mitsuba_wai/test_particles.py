@@ -84,7 +84,7 @@ def test_no_emitter_gives_black(tiny):
     scene = mi.load_dict({
         "type": "scene",
         "integrator": {"type": "ptracer", "max_depth": 3},
-        "sensor": sensor_dict(cfg.camera_s.camera()),
+        "sensor": sensor_dict(cfg.rig.camera_s),
     })
     img, bad = render_particles(scene, 2, 0, 3)
     assert bad == 0 and img.shape == (cfg.camera_s.height_px, cfg.camera_s.width_px, 3)
@@ -186,7 +186,6 @@ def test_dot_emitter_gives_every_dot_its_share(paper_cfg):
     from mitsuba_wai.dots import DotEmitter
     from mitsuba_wai.variant import select_variant
     from wai_core.layout import dot_weights
-    from wai_core.pattern import dot_grid
 
     select_variant()
     emitter = DotEmitter(paper_cfg)
@@ -200,11 +199,11 @@ def test_dot_emitter_gives_every_dot_its_share(paper_cfg):
     # Every ray starts on the diffuser plane, its distance travelled from the projector.
     o, t = np.asarray(ray.o), np.asarray(travelled)
     assert np.allclose(o[2], paper_cfg.diffuser.z_mm, atol=2e-3)
-    centre = paper_cfg.projector.camera().pose.center_lab_mm
+    centre = paper_cfg.rig.projector.pose.center_lab_mm
     assert np.allclose(np.linalg.norm(o.T - centre, axis=1), t, rtol=1e-5)
     # Count particles per dot by their nearest dot direction.
-    _, panel = dot_grid(paper_cfg.pattern, paper_cfg.projector.camera())
-    _, dirs = paper_cfg.projector.camera().pixel_rays(panel[:, 0], panel[:, 1])
+    _, panel = paper_cfg.rig.dot_grid
+    _, dirs = paper_cfg.rig.projector.pixel_rays(panel[:, 0], panel[:, 1])
     dirs = dirs[dot_weights(paper_cfg) > 0]
     nearest = np.argmax(d.T @ dirs.T, axis=1)
     counts = np.bincount(nearest, minlength=len(w))

@@ -23,7 +23,7 @@ def flat_frame(small_cfg):
 
 def test_view_goes_dark_at_the_edge_of_snells_window(small_cfg, flat_frame):
     # Geometry alone says which pixels look beyond the critical angle (TIR: no sky).
-    cam = small_cfg.camera_v.camera()
+    cam = small_cfg.rig.camera_v
     _, d = cam.pixel_rays(*cam.pixel_grid())
     _, tir = refract(d, np.array([0, 0, 1.0]), small_cfg.water.n_water)
     lum = flat_frame["view"].mean(axis=2)
@@ -38,13 +38,13 @@ def test_one_way_diffuser_lets_the_beam_through(small_cfg, flat_frame):
     from wai_core.geometry import intersect_plane_z
     from wai_core.layout import flat_pattern_hits
 
-    proj = small_cfg.projector.camera()
+    proj = small_cfg.rig.projector
     o, d = proj.pixel_rays(*proj.pixel_grid(20))
     beam, _ = intersect_plane_z(o, d.reshape(-1, 3), small_cfg.diffuser.z_mm)
     _, s, seen = flat_pattern_hits(small_cfg)
     inside_beam = seen & (s[:, 0] < np.nanmax(beam[:, 0]) - 20) & (np.abs(s[:, 1]) < 50)
     assert inside_beam.sum() > 10
-    cam = small_cfg.camera_s.camera()
+    cam = small_cfg.rig.camera_s
     cols, rows, _ = cam.project(s[inside_beam])
     img = flat_frame["pattern"].sum(axis=2)
     at_spots = img[np.round(rows).astype(int), np.round(cols).astype(int)]

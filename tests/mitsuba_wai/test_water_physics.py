@@ -153,7 +153,7 @@ def test_polarised_reflection_follows_fresnel_s_and_p(theta_deg):
 
 
 def test_projector_field_axis_is_transverse(paper_cfg):
-    R = paper_cfg.projector.camera().pose.R
+    R = paper_cfg.rig.projector.pose.R
     a0 = projector_field_axis(paper_cfg.replace("pattern", polarisation_deg=0.0))
     a90 = projector_field_axis(paper_cfg.replace("pattern", polarisation_deg=90.0))
     # The field lies in the panel, normal to the optical axis, and turns by psi.
@@ -285,7 +285,7 @@ def test_polarised_pattern_fades_near_brewster(paper_cfg):
         images[name] = FrameRenderer(c, flat, systems=("pattern",)).render(
             flat, 3, ("pattern",))["pattern"].sum(-1)
     _, spot, seen = flat_pattern_hits(cfg)
-    projector = cfg.projector.camera()
+    projector = cfg.rig.projector
     _, panel = dot_grid(cfg.pattern, projector)
     _, d = projector.pixel_rays(panel[:, 0], panel[:, 1])
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
@@ -293,7 +293,7 @@ def test_polarised_pattern_fades_near_brewster(paper_cfg):
     critical = np.arcsin(1 / N43)
     sel = seen & (np.abs(d[:, 1]) < 1e-9) & (np.abs(theta - critical) > np.radians(1.0))
     assert sel.sum() >= 20
-    cols, rows, _ = cfg.camera_s.camera().project(spot[sel])
+    cols, rows, _ = cfg.rig.camera_s.project(spot[sel])
     c0, r0 = np.round(cols).astype(int), np.round(rows).astype(int)
     # Each spot's energy: the sum over a 5 x 5 px window around its flat-water centre.
     energy = {k: 25.0 * uniform_filter(im, 5, mode="constant")[r0, c0]

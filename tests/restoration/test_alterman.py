@@ -68,7 +68,7 @@ def _texture(p):
 
 
 def _view(cfg, surface):
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     tr = trace_to_object(
         cam, surface, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm, *cam.pixel_grid()
     )
@@ -212,7 +212,7 @@ def test_wavy_surface_is_recovered_and_restores_the_view(system):
     assert np.nanmean(err) == pytest.approx(h0 - true_mean, abs=0.03)
     flat_truth = _view(cfg, None)
     with_truth = restore_view(
-        images["view"] / cfg.water.n_water**2, cfg.camera_v.camera(), truth, h0,
+        images["view"] / cfg.water.n_water**2, cfg.rig.camera_v, truth, h0,
         cfg.water.n_water, cfg.object_z_mm,
     )
     ours = out.view

@@ -1,6 +1,6 @@
 """The forward-consistency check against spots the exact geometric model puts there.
 
-Spots come from :func:`wai_core.forward.spots_through` on a known analytic surface (no renderer,
+Spots come from :func:`wai_core.light_paths.spots_through` on a known analytic surface (no renderer,
 no detector): the true surface must reproduce them to rounding, a wrong one must not.
 """
 
@@ -10,8 +10,8 @@ import pytest
 from restoration import Calibration
 from restoration.consistency import INCONSISTENT_FRACTION, spot_consistency
 from restoration.normals import projector_rays
-from wai_core.forward import spots_through
 from wai_core.heightfield import Heightfield
+from wai_core.light_paths import spots_through
 
 SPACING_PX = 13.0  # the paper rig's median dot spacing in camera s
 
@@ -28,13 +28,13 @@ def _swell(cfg, amplitude_mm=2.0, offset_mm=0.0, wavelength_mm=160.0):
 def _check(cfg, truth, surface, patches=None):
     ij = np.array([[i, j] for i in range(-12, 13) for j in range(-12, 13)])
     panel = Calibration(cfg).panel_px(ij)
-    spots = spots_through(cfg, truth, panel)
+    spots = spots_through(cfg.rig, truth, panel)
     keep = np.isfinite(spots).all(axis=1)
-    origin, dirs = projector_rays(panel[keep], cfg.projector.camera())
+    origin, dirs = projector_rays(panel[keep], cfg.rig.projector)
     # The samples: where each ray meets the true surface (what a good reconstruction gives).
     hits, _ = truth.intersect(np.broadcast_to(origin, dirs.shape),
                               dirs / np.linalg.norm(dirs, axis=1, keepdims=True))
-    return spot_consistency(surface, hits, origin, dirs, spots[keep], cfg.camera_s.camera(),
+    return spot_consistency(surface, hits, origin, dirs, spots[keep], cfg.rig.camera_s,
                             cfg.diffuser.z_mm, SPACING_PX, patches=patches)
 
 
@@ -96,11 +96,11 @@ def test_compiled_prediction_is_the_numpy_steps(paper_cfg):
     z[150:170, 200:230] = np.nan  # a hole: rays through it leave the known surface
     surface = Heightfield(truth.x, truth.y, z)
     ij = np.array([[i, j] for i in range(-14, 15) for j in range(-14, 15)])
-    origin, dirs = projector_rays(Calibration(paper_cfg).panel_px(ij), paper_cfg.projector.camera())
+    origin, dirs = projector_rays(Calibration(paper_cfg).panel_px(ij), paper_cfg.rig.projector)
     # Starts off the surface by up to 3 mm; unnormalised directions.
     start = origin + ((paper_cfg.water.h0_mm - origin[2]) / dirs[:, 2])[:, None] * dirs
     start[:, 2] += np.linspace(-3.0, 3.0, len(start))
-    args = (surface, origin, 2.0 * dirs, start, paper_cfg.camera_s.camera(),
+    args = (surface, origin, 2.0 * dirs, start, paper_cfg.rig.camera_s,
             paper_cfg.diffuser.z_mm)
     got, want = predict_spots_px(*args), _numpy_prediction(*args)
     assert np.isnan(want).any() and np.isfinite(want).sum() > 500

@@ -30,7 +30,7 @@ from wai_core.forward import predict_spots
 from wai_core.heightfield import Heightfield
 from wai_core.layout import surface_extent
 from wai_core.limits import correspondence_limit
-from wai_core.pattern import CODE_LEVELS, dot_codes, dot_grid
+from wai_core.pattern import CODE_LEVELS, dot_codes
 
 SCENE = "scenes/paper.toml"
 
@@ -55,8 +55,8 @@ def draw(cfg, surface, symbols_of=None, keep=None) -> tuple[np.ndarray, np.ndarr
 
 def true_symbols(cfg, ij) -> np.ndarray:
     """The code's symbol (K,) of the dots ``ij`` (K, 2)."""
-    all_ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
-    codes = dot_codes(cfg.pattern, cfg.projector.camera())
+    all_ij, _ = cfg.rig.dot_grid
+    codes = dot_codes(cfg.pattern, cfg.rig.projector)
     lut = {tuple(k): int(c) for k, c in zip(all_ij.tolist(), codes, strict=True)}
     return np.array([lut[tuple(k)] for k in ij.tolist()])
 
@@ -104,8 +104,8 @@ def test_symbols_read_from_colour(cfg):
     img, _, px = draw(cfg, None)
     sym, conf, green, levels = spot_symbols(img, px, spot_sigma_px(cfg))
     ij, _ = predict_spots(cfg, None)
-    all_ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
-    codes = dot_codes(cfg.pattern, cfg.projector.camera())
+    all_ij, _ = cfg.rig.dot_grid
+    codes = dot_codes(cfg.pattern, cfg.rig.projector)
     lut = {tuple(k): int(c) for k, c in zip(all_ij.tolist(), codes, strict=True)}
     truth = np.array([lut[tuple(k)] for k in ij.tolist()])
     clear = sym >= 0
@@ -188,8 +188,8 @@ def test_wrong_symbols_are_dropped_not_used(cfg, reference):
     """Misprinted dots (their symbol changed) must not come back with a wrong label."""
     surface = wavy(cfg, 1.0)
     ij, _ = predict_spots(cfg, surface)
-    all_ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
-    codes = dot_codes(cfg.pattern, cfg.projector.camera())
+    all_ij, _ = cfg.rig.dot_grid
+    codes = dot_codes(cfg.pattern, cfg.rig.projector)
     lut = {tuple(k): int(c) for k, c in zip(all_ij.tolist(), codes, strict=True)}
     sym = np.array([lut[tuple(k)] for k in ij.tolist()])
     rng = np.random.default_rng(0)

@@ -5,8 +5,8 @@ import numpy as np
 from restoration import Calibration
 from restoration.fit import BSplineSurface, fit_surface
 from restoration.normals import projector_rays
-from wai_core.forward import spots_through
 from wai_core.heightfield import Heightfield
+from wai_core.light_paths import spots_through
 
 
 def _swell(h0, amplitude=1.5):
@@ -30,10 +30,10 @@ def test_the_fit_moves_a_wrong_start_towards_the_spots(paper_cfg):
     truth = _swell(cfg.water.h0_mm)
     ij = np.array([[i, j] for i in range(-10, 11) for j in range(-10, 11)])
     panel = Calibration(cfg).panel_px(ij)
-    spots = spots_through(cfg, truth, panel)
+    spots = spots_through(cfg.rig, truth, panel)
     keep = np.isfinite(spots).all(axis=1)
     ij, panel, spots = ij[keep], panel[keep], spots[keep]
-    origin, dirs = projector_rays(panel, cfg.projector.camera())
+    origin, dirs = projector_rays(panel, cfg.rig.projector)
     unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     hits, _ = truth.intersect(np.broadcast_to(origin, unit.shape), unit)
     gx, gy = truth.gradient(hits[:, 0], hits[:, 1])
@@ -42,7 +42,7 @@ def test_the_fit_moves_a_wrong_start_towards_the_spots(paper_cfg):
     start[:, 2] = cfg.water.h0_mm + 0.6 * (hits[:, 2] - cfg.water.h0_mm)
     like = Heightfield(truth.x, truth.y, truth.z)
     fit = fit_surface(start, 0.6 * np.column_stack([gx, gy]), panel, spots,
-                      cfg.projector.camera(), cfg.camera_s.camera(), cfg.diffuser.z_mm, like)
+                      cfg.rig.projector, cfg.rig.camera_s, cfg.diffuser.z_mm, like)
     assert fit.rms_mm[-1] < 0.2 * fit.rms_mm[0]
     err_before = np.abs(start[:, 2] - hits[:, 2]).mean()
     err_after = np.abs(fit.points_mm[:, 2] - truth.height(fit.points_mm[:, 0],
@@ -53,10 +53,10 @@ def test_the_fit_moves_a_wrong_start_towards_the_spots(paper_cfg):
 def _exact_samples(cfg, truth, n=10):
     ij = np.array([[i, j] for i in range(-n, n + 1) for j in range(-n, n + 1)])
     panel = Calibration(cfg).panel_px(ij)
-    spots = spots_through(cfg, truth, panel)
+    spots = spots_through(cfg.rig, truth, panel)
     keep = np.isfinite(spots).all(axis=1)
     panel, spots = panel[keep], spots[keep]
-    origin, dirs = projector_rays(panel, cfg.projector.camera())
+    origin, dirs = projector_rays(panel, cfg.rig.projector)
     unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     hits, _ = truth.intersect(np.broadcast_to(origin, unit.shape), unit)
     ok = np.isfinite(hits).all(axis=1)
@@ -72,7 +72,7 @@ def _exact_case(cfg, amplitude, start_mm):
     start = hits.copy()
     start[:, 2] += start_mm
     like = Heightfield(truth.x, truth.y, truth.z)
-    args = (panel, spots, cfg.projector.camera(), cfg.camera_s.camera(), cfg.diffuser.z_mm, like)
+    args = (panel, spots, cfg.rig.projector, cfg.rig.camera_s, cfg.diffuser.z_mm, like)
     return truth, start, slopes, args
 
 

@@ -17,7 +17,7 @@ from restoration.features import ReferenceGrid, flat_shifts, predict_flat_spots
 from restoration.structured_light import estimate_surface
 from tests.restoration.test_surface import CFG, H0, IJ, PANEL, features, height_errors, sine_surface
 from wai_core.config import with_keys
-from wai_core.forward import spots_through
+from wai_core.light_paths import spots_through
 
 SWELL = sine_surface(amp=2.0, wavelength=200.0, direction_deg=-20.0)
 
@@ -30,7 +30,7 @@ def swell():
 def believed(keys: dict) -> Calibration:
     """A calibration of the rig with ``keys`` changed, holding the true rig's flat spots."""
     cal = Calibration(with_keys(CFG, keys))
-    true_flat = spots_through(CFG, None, PANEL)
+    true_flat = spots_through(CFG.rig, None, PANEL)
     ij, _, pred, _ = predict_flat_spots(cal.cfg)
     assert np.array_equal(ij, IJ)
     seen = np.isfinite(true_flat).all(axis=1) & np.isfinite(pred).all(axis=1)

@@ -21,7 +21,7 @@ def _board(cfg) -> tuple[int, int]:
 def _flat_view(cfg, supersample: int = 2) -> np.ndarray:
     """Camera v's view of the board through flat water, traced pixel by pixel with Snell's
     law (:func:`wai_core.optics.trace_to_object`, not the renderer), 2 x 2 samples a pixel."""
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     h, w = cfg.camera_v.height_px, cfg.camera_v.width_px
     rows, cols = np.mgrid[0:h, 0:w].astype(float)
     centre = object_plane_center(cfg)

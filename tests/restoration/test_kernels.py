@@ -294,7 +294,7 @@ def test_finish_rows_divides_the_box_and_zeroes_the_rest():
 def test_restore_view_does_not_depend_on_the_thread_count():
     """The Newton chunks and the warp's rows, whichever thread runs them."""
     cfg = load_rig("paper")
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     x = y = np.linspace(-1500.0, 1500.0, 151)
     z = cfg.water.h0_mm + 3.0 * np.sin(x[None, :] / 41.0) * np.cos(y[:, None] / 29.0)
     surface = Heightfield(x, y, z)

@@ -144,7 +144,7 @@ def test_image_metrics_rejects_bad_input(photo):
 
 def test_object_plane_center_by_hand(cfg):
     # Camera v: centre (107, 0, ~0) mm, axis tilted 26 deg towards +x (Table 1's R).
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     o = cam.pose.center_lab_mm
     tilt = np.arctan2(cam.pose.axis_lab[0], cam.pose.axis_lab[2])
     assert np.degrees(tilt) == pytest.approx(26.0, abs=0.05)
@@ -233,7 +233,7 @@ def test_corner_offsets_need_both():
 def test_corners_through_flat_water_are_inside_snells_window(cfg):
     px, ok = predict_corners(cfg, None)
     assert 0 < ok.sum() < 165  # the board is wider than the window: some corners are lost
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     tr = trace_to_object(
         cam, None, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm, px[ok, 0], px[ok, 1]
     )
@@ -246,7 +246,7 @@ def test_fig15_statistic_on_geometric_renders(cfg):
     """Render a checkerboard geometrically (2x2 samples per pixel) through flat water and
     through a wavy surface, restore with the true surface, and score the corners: the wave
     scatters them by pixels, the restoration brings them back to within the detector's noise."""
-    v = cfg.camera_v.camera()
+    v = cfg.rig.camera_v
     cam = PinholeCamera(200, 150, v.focal_mm, v.pixel_pitch_mm * 4, v.pose)
     h0, n, za = cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm
     x, y = np.linspace(0, 660, 67), np.linspace(-330, 330, 67)
@@ -286,13 +286,13 @@ def test_corner_window_and_angular_pixels_follow_the_focal_length():
     from restoration.metrics import CORNER_REF_FOCAL_PX, angular_px, corner_window_px
 
     cfg = load_config(SCENE)
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     assert cam.focal_px == pytest.approx(CORNER_REF_FOCAL_PX)  # the tuning: 800 x 600
     assert corner_window_px(cam) == 5
-    fine = cfg.replace("camera_v", width_px=1600, height_px=1200).camera_v.camera()
+    fine = cfg.replace("camera_v", width_px=1600, height_px=1200).rig.camera_v
     assert corner_window_px(fine) == 10
     assert angular_px(0.3, fine) == pytest.approx(0.15)  # x 800 / 1600
     assert angular_px(0.3, cam) == pytest.approx(0.3)
     assert angular_px(None, cam) is None
-    small = cfg.replace("camera_v", width_px=200, height_px=150).camera_v.camera()
+    small = cfg.replace("camera_v", width_px=200, height_px=150).rig.camera_v
     assert corner_window_px(small) == 2  # at least 2 px

@@ -115,8 +115,8 @@ def test_points_on_rays_is_eq3():
 
 
 def test_spots_and_projector_rays_on_the_paper_rig(cfg):
-    cam = cfg.camera_s.camera()
-    proj = cfg.projector.camera()
+    cam = cfg.rig.camera_s
+    proj = cfg.rig.projector
     # Diffuser points project to pixels, which back-project to the same diffuser points.
     pts = np.column_stack([np.linspace(100, 450, 5), np.linspace(-150, 150, 5), np.full(5, 60.0)])
     cols, rows, _ = cam.project(pts)

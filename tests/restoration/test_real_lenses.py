@@ -33,14 +33,15 @@ def _cv2_pixels(dev, rays_cam):
 
 
 def test_spots_and_images_map_to_the_pinhole_opencv_projects_them_from(paper_cfg):
-    dev = _real(paper_cfg, "camera_s", "camera_v").camera_s
+    real_cfg = _real(paper_cfg, "camera_s", "camera_v")
+    dev, optics = real_cfg.camera_s, real_cfg.rig.optics("camera_s")
     rng = np.random.default_rng(1)
     ideal = rng.uniform([40, 40], [760, 560], (200, 2))  # ideal pinhole pixels
     f = dev.focal_mm * dev.width_px / dev.sensor_width_mm
     rays = np.column_stack([(ideal - [399.5, 299.5]) / f, np.ones(200)])
     real = _cv2_pixels(dev, rays)
-    np.testing.assert_allclose(pinhole_px(dev, real), ideal, atol=1e-6)
-    remap = PinholeRemap.of(dev, "camera_s")
+    np.testing.assert_allclose(pinhole_px(optics, real), ideal, atol=1e-6)
+    remap = PinholeRemap.of(optics, "camera_s")
     rows, cols = np.round(ideal[:, 1]).astype(int), np.round(ideal[:, 0]).astype(int)
     at = _cv2_pixels(dev, np.column_stack([(cols - 399.5) / f, (rows - 299.5) / f,
                                            np.ones(200)]))
@@ -53,7 +54,7 @@ def test_an_ideal_rig_costs_nothing(paper_cfg):
     view = np.zeros((600, 800, 3), np.float32)
     assert cal.to_pinhole("view", view) is view and not cal.resamples("view")
     px = np.array([[1.5, 2.5]])
-    assert pinhole_px(paper_cfg.camera_s, px) is px
+    assert pinhole_px(paper_cfg.rig.optics("camera_s"), px) is px
 
 
 def test_a_housing_port_is_refused_by_name(paper_cfg):

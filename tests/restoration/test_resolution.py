@@ -35,11 +35,11 @@ def _sized(cfg, width, height):
 def _centroid_error_px800(cfg, frame, features):
     """Median distance of the matched spots from the exact spots of their dots' central rays
     through the true surface, in pixels of the 800-px-wide camera s."""
-    origin, dirs = projector_rays(Calibration(cfg).panel_px(features.ij), cfg.projector.camera())
+    origin, dirs = projector_rays(Calibration(cfg).panel_px(features.ij), cfg.rig.projector)
     d = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     start = origin + ((cfg.water.h0_mm - origin[2]) / d[:, 2])[:, None] * d
     exact = predict_spots_px(
-        frame.surface, origin, dirs, start, cfg.camera_s.camera(), cfg.diffuser.z_mm
+        frame.surface, origin, dirs, start, cfg.rig.camera_s, cfg.diffuser.z_mm
     )
     err = np.linalg.norm(features.spot_px - exact, axis=1)
     return float(np.nanmedian(err)) * 800.0 / cfg.camera_s.width_px

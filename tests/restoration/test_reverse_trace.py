@@ -47,7 +47,7 @@ def optics(cfg):
 @pytest.fixture(scope="module")
 def small_cam(cfg):
     """Camera v with 4x fewer pixels per side: same pose and field of view, fast renders."""
-    v = cfg.camera_v.camera()
+    v = cfg.rig.camera_v
     return PinholeCamera(200, 150, v.focal_mm, v.pixel_pitch_mm * 4, v.pose)
 
 
@@ -89,7 +89,7 @@ def _ssim_inside(img, ref, mask):
 
 
 def test_snells_window_edge_is_the_critical_angle(cfg, optics):
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     cols, rows = cam.pixel_grid(step=2)
     tr = trace_to_object(cam, None, *optics, cols, rows)
     _, dirs = cam.pixel_rays(cols, rows)
@@ -107,7 +107,7 @@ def test_snells_window_edge_is_the_critical_angle(cfg, optics):
 
 
 def test_flat_refraction_obeys_snell(cfg, optics):
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     cols, rows = cam.pixel_grid(step=37)
     tr = trace_to_object(cam, None, *optics, cols, rows)
     _, dirs = cam.pixel_rays(cols, rows)
@@ -152,7 +152,7 @@ def test_spline_patches_match_the_heightfield():
 
 @pytest.mark.parametrize("wavy", [False, True])
 def test_find_pixels_inverts_trace_to_object(cfg, optics, wavy):
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     surface = _wavy(optics[0]) if wavy else None
     cols, rows = cam.pixel_grid(step=10)
     tr = trace_to_object(cam, surface, *optics, cols, rows)
@@ -165,7 +165,7 @@ def test_find_pixels_inverts_trace_to_object(cfg, optics, wavy):
 
 
 def test_solve_pixels_reports_why(cfg, optics):
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     h0, n, za = optics
     x, y, xx, _ = _grid()
     patch = Heightfield(x, y, np.where(xx < 160.0, h0, np.nan))  # known only for x < 160 mm
@@ -183,7 +183,7 @@ def test_solve_pixels_reports_why(cfg, optics):
 
 
 def test_find_pixels_rejects_bad_input(cfg, optics):
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     with pytest.raises(WaiInputError):
         find_pixels(cam, None, *optics, np.zeros((4, 2)), np.zeros((4, 2)))
     with pytest.raises(WaiInputError):  # not on the object plane
@@ -196,7 +196,7 @@ def test_find_pixels_rejects_bad_input(cfg, optics):
 
 
 def test_flat_estimate_restores_the_flat_view_exactly(cfg, optics):
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     truth, tr = _render(cam, None, optics)
     h0 = optics[0]
     x, y, xx, _ = _grid()

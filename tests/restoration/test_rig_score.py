@@ -14,7 +14,7 @@ from wai_core.optics import trace_to_object
 def flat_view(paper_cfg):
     """The paper's board as camera v sees it through still water (4 x 4 samples a pixel)."""
     cfg = paper_cfg
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     sub = (np.arange(4) + 0.5) / 4 - 0.5
     rows, cols = np.mgrid[0:cam.height_px, 0:cam.width_px].astype(float)
     img = np.zeros(rows.shape)

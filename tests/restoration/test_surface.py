@@ -18,7 +18,7 @@ from wai_core.geometry import intersect_plane_z, normalize, reflect
 from wai_core.pattern import dot_grid
 
 CFG = load_config("scenes/paper.toml")
-PROJ, CAM = CFG.projector.camera(), CFG.camera_s.camera()
+PROJ, CAM = CFG.rig.projector, CFG.rig.camera_s
 H0, ZH = CFG.water.h0_mm, CFG.diffuser.z_mm
 IJ, PANEL = dot_grid(CFG.pattern, PROJ)
 

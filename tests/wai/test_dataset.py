@@ -16,13 +16,13 @@ from wai.dataset import (
     ARRAYS,
     DATASET_FILE,
     MANIFEST_FILE,
-    flat_pixel_of,
     read_frame,
     read_manifest,
     read_runs,
     sample_params,
 )
 from wai_core import load_system
+from wai_core.light_paths import flat_pixel_of
 from wai_core.optics import trace_to_object
 
 SIZE = "120x90"
@@ -120,7 +120,7 @@ def test_stored_warp_is_the_trace_through_the_true_surface(store: Path) -> None:
     from wai.dataset import frame_config
 
     base = load_system("paper").replace("camera_v", width_px=120, height_px=90)
-    cam, w = base.camera_v.camera(), base.water
+    cam, w = base.rig.camera_v, base.water
     cols, rows = cam.pixel_grid()
     with h5py.File(store / DATASET_FILE, "r") as f:
         x, y = f["x_mm"][:], f["y_mm"][:]
@@ -132,7 +132,7 @@ def test_stored_warp_is_the_trace_through_the_true_surface(store: Path) -> None:
         np.testing.assert_allclose(rec.height_mm, surf.z, rtol=0, atol=1e-4)
         points = trace_to_object(cam, surf, w.h0_mm, w.n_water, cfg.object_z_mm, cols,
                                  rows).object_mm
-        want = np.stack(flat_pixel_of(cfg, points), axis=-1)
+        want = np.stack(flat_pixel_of(cfg.rig, points), axis=-1)
         ok = np.isfinite(want[..., 0])
         assert ok.mean() > 0.5
         np.testing.assert_array_equal(np.isfinite(rec.warp_px[..., 0]), ok)
@@ -143,14 +143,14 @@ def test_stored_warp_is_the_trace_through_the_true_surface(store: Path) -> None:
 
 def test_flat_pixel_of_inverts_the_flat_forward_map() -> None:
     cfg = load_system("paper")
-    cam = cfg.camera_v.camera()
+    cam = cfg.rig.camera_v
     rng = np.random.default_rng(3)
     cols, rows = rng.uniform(0, 799, 500), rng.uniform(300, 599, 500)
     pts = trace_to_object(cam, None, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm,
                           cols, rows).object_mm
     ok = np.all(np.isfinite(pts), axis=-1)
     assert ok.mean() > 0.5  # the rest is totally reflected
-    c, r = flat_pixel_of(cfg, pts[ok])
+    c, r = flat_pixel_of(cfg.rig, pts[ok])
     np.testing.assert_allclose(c, cols[ok], atol=1e-6)
     np.testing.assert_allclose(r, rows[ok], atol=1e-6)
 
@@ -163,7 +163,7 @@ def test_object_points_are_trace_to_objects() -> None:
     for wind in (0.6, 2.0):
         cfg = base.replace("waves", wind_speed_m_s=wind, time_s=3.0, seed=11)
         surf = wave_surface(cfg)
-        cam = cfg.camera_v.camera()
+        cam = cfg.rig.camera_v
         want = trace_to_object(cam, surf, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm,
                                *cam.pixel_grid()).object_mm
         assert np.isfinite(want).mean() > 0.5

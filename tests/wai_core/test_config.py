@@ -12,7 +12,7 @@ from wai_core.errors import WaiInputError
 def test_paper_config_values(paper_cfg):
     assert paper_cfg.water.h0_mm == 150 and paper_cfg.diffuser.z_mm == 60
     assert paper_cfg.object_z_mm == 1150
-    assert paper_cfg.projector.camera().fov_x_deg == pytest.approx(52.0, abs=0.1)
+    assert paper_cfg.rig.projector.fov_x_deg == pytest.approx(52.0, abs=0.1)
 
 
 def test_unknown_key_is_named(paper_cfg):

@@ -8,28 +8,28 @@ from wai_core.geometry import intersect_plane_z, reflect
 
 
 def test_device_centres_from_table1(paper_cfg):
-    assert np.allclose(paper_cfg.projector.camera().pose.center_lab_mm, 0, atol=1e-9)
-    assert np.allclose(paper_cfg.camera_s.camera().pose.center_lab_mm, [286.4, 0, -190], atol=0.01)
-    assert np.allclose(paper_cfg.camera_v.camera().pose.center_lab_mm, [107.0, 0, 0], atol=0.05)
+    assert np.allclose(paper_cfg.rig.projector.pose.center_lab_mm, 0, atol=1e-9)
+    assert np.allclose(paper_cfg.rig.camera_s.pose.center_lab_mm, [286.4, 0, -190], atol=0.01)
+    assert np.allclose(paper_cfg.rig.camera_v.pose.center_lab_mm, [107.0, 0, 0], atol=0.05)
 
 
 def test_projector_axis_reflects_onto_the_diffuser_above_camera_s(paper_cfg):
-    proj = paper_cfg.projector.camera()
+    proj = paper_cfg.rig.projector
     # 40 deg elevation: flat water at x = 150 / tan 40 = 178.8 mm, diffuser at 240 / tan 40.
     q, _ = intersect_plane_z(np.zeros(3), proj.pose.axis_lab, 150.0)
     assert q[0] == pytest.approx(150 / np.tan(np.radians(40)), abs=0.2)
     s, _ = intersect_plane_z(q, reflect(proj.pose.axis_lab, np.array([0, 0, 1.0])), 60.0)
     assert s[0] == pytest.approx(286.1, abs=0.3)
-    cam_s = paper_cfg.camera_s.camera()
+    cam_s = paper_cfg.rig.camera_s
     cols, rows, front = cam_s.project(s)
     assert front and abs(cols - 399.5) < 2 and abs(rows - 299.5) < 2
 
 
 def test_both_systems_look_at_the_same_patch(paper_cfg):
-    cam_v = paper_cfg.camera_v.camera()
+    cam_v = paper_cfg.rig.camera_v
     q, _ = intersect_plane_z(cam_v.pose.center_lab_mm, cam_v.pose.axis_lab, 150.0)
     assert q[0] == pytest.approx(180.2, abs=0.3)
-    q_proj, _ = intersect_plane_z(np.zeros(3), paper_cfg.projector.camera().pose.axis_lab, 150.0)
+    q_proj, _ = intersect_plane_z(np.zeros(3), paper_cfg.rig.projector.pose.axis_lab, 150.0)
     assert abs(q[0] - q_proj[0]) < 2.0
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from wai_core import load_system
+from wai_core.geometry import pinhole_of
 from wai_core.lens import DeviceOptics
 
 N_WATER = 1.34
@@ -22,7 +23,7 @@ def _device(name: str = "camera_v", **keys: object) -> object:
 @pytest.mark.parametrize("name", ["camera_s", "camera_v", "projector"])
 def test_defaults_are_the_pinhole_bit_for_bit(name: str) -> None:
     dev = _device(name)
-    cam, optics = dev.camera(), DeviceOptics.from_config(dev)
+    cam, optics = pinhole_of(dev), DeviceOptics.from_config(dev)
     assert optics.ideal
     cols, rows = cam.pixel_grid(9.7)
     o, d = optics.pixel_rays(cols, rows, N_WATER)
@@ -37,7 +38,7 @@ def test_defaults_are_the_pinhole_bit_for_bit(name: str) -> None:
 def test_projection_matches_opencv() -> None:
     dev = _device("camera_s", distortion=K, principal_offset_px=(6.5, -4.25))
     optics = DeviceOptics.from_config(dev)
-    cam = dev.camera()
+    cam = pinhole_of(dev)
     rng = np.random.default_rng(3)
     # Points in front of the camera within its field (normalised |x|, |y| < 1.1).
     p_cam = np.column_stack([rng.uniform(-1.1, 1.1, 500), rng.uniform(-0.9, 0.9, 500),
@@ -60,7 +61,7 @@ def test_pixel_rays_and_project_round_trip(port_mm: float) -> None:
     dev = _device("camera_v", distortion=K, principal_offset_px=(-3.0, 2.0),
                   port_thickness_mm=port_mm, port_gap_mm=4.0, port_n=1.52)
     optics = DeviceOptics.from_config(dev)
-    cols, rows = dev.camera().pixel_grid(17.0)
+    cols, rows = pinhole_of(dev).pixel_grid(17.0)
     o, d = optics.pixel_rays(cols, rows, N_WATER)
     assert np.isfinite(d).all()
     points = o + d * np.random.default_rng(1).uniform(30, 700, cols.shape)[..., None]
@@ -73,7 +74,7 @@ def test_port_obeys_snell_at_each_face_and_shifts_as_a_plate() -> None:
     t, gap, n_port = 7.0, 3.0, 1.52
     dev = _device("camera_s", port_thickness_mm=t, port_gap_mm=gap, port_n=n_port)
     optics = DeviceOptics.from_config(dev)
-    cam = dev.camera()
+    cam = pinhole_of(dev)
     cols = np.linspace(0, cam.width_px - 1, 9)
     rows = np.full(9, 123.0)
     exit_cam, water_cam, air_cam = optics.rays_cam(cols, rows, N_WATER)
@@ -104,7 +105,7 @@ def test_distortion_beyond_its_fold_is_invalid() -> None:
     # k1 = -0.3: r_d = r (1 - 0.3 r^2) folds at r^2 = 1 / 0.9; points beyond are not imaged.
     dev = _device("camera_s", distortion=(-0.3, 0.0, 0.0, 0.0, 0.0))
     optics = DeviceOptics.from_config(dev)
-    cam = dev.camera()
+    cam = pinhole_of(dev)
     r = np.array([0.5, 1.2])
     p_cam = np.column_stack([r, np.zeros(2), np.ones(2)]) * 100.0
     _, _, valid = optics.project((p_cam - cam.pose.t_mm) @ cam.pose.R, N_WATER)

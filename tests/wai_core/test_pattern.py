@@ -14,7 +14,6 @@ from wai_core.pattern import (
     code_array,
     dot_codes,
     dot_colours,
-    dot_grid,
     pattern_image,
     window_distances,
 )
@@ -41,8 +40,8 @@ def test_window_distances_finds_a_repeat():
 
 def test_windows_are_locally_unique_on_the_paper_grid():
     cfg = load_config(SCENE).replace("pattern", code="colour")
-    codes = dot_codes(cfg.pattern, cfg.projector.camera())
-    ij, _ = dot_grid(cfg.pattern, cfg.projector.camera())
+    codes = dot_codes(cfg.pattern, cfg.rig.projector)
+    ij, _ = cfg.rig.dot_grid
     side = int(ij[:, 0].max() - ij[:, 0].min() + 1)
     words = {}
     grid = codes.reshape(side, side)
@@ -57,7 +56,7 @@ def test_windows_are_locally_unique_on_the_paper_grid():
 
 def test_plain_pattern_unchanged():
     cfg = load_config(SCENE)
-    cam = cfg.projector.camera()
+    cam = cfg.rig.projector
     img = pattern_image(cfg.pattern, cam)
     ratio = img[..., 2] / np.maximum(img[..., 1], 1e-12)
     lit = img[..., 2] > 1e-3
@@ -67,7 +66,7 @@ def test_plain_pattern_unchanged():
 
 def test_coded_panel_keeps_luminance_and_colours():
     cfg = load_config(SCENE)
-    cam = cfg.projector.camera()
+    cam = cfg.rig.projector
     coded = cfg.pattern.__class__(**{**cfg.pattern.__dict__, "code": "colour"})
     plain, col = pattern_image(cfg.pattern, cam), pattern_image(coded, cam)
     np.testing.assert_allclose(plain[..., 1:].sum(-1), col[..., 1:].sum(-1), atol=1e-5)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from wai_core.errors import WaiInputError
+from wai_core.geometry import pinhole_of
 from wai_core.heightfield import Heightfield
 from wai_core.rig_checks import check_surface_in_rig, rig_levels
 
@@ -54,7 +55,7 @@ def _moved(cfg, device, shift_mm):
 
     dev = getattr(cfg, device)
     rot = np.asarray(dev.rotation)
-    centre = dev.camera().pose.center_lab_mm + np.asarray(shift_mm, float)
+    centre = pinhole_of(dev).pose.center_lab_mm + np.asarray(shift_mm, float)
     return dataclasses.replace(cfg, **{device: dataclasses.replace(
         dev, translation_mm=tuple(-rot @ centre))})
 

@@ -40,11 +40,13 @@ from wai_core.io import write_json
 from wai_core.system import load_rig
 
 
-def true_spots(cfg: SystemConfig, truth: Heightfield, panel_px: NDArray) -> NDArray:
-    """Exact camera-s pixels (K, 2) of dots reflected by the true surface (geometry only)."""
-    from wai_core.forward import spots_through
+def true_spots(cfg: SystemConfig, truth: Heightfield, ij: NDArray) -> NDArray:
+    """Exact camera-s pixels (K, 2) of the dots with grid indices ``ij`` (K, 2) reflected by
+    the true surface (geometry only)."""
+    from wai_core.light_paths import spots_through
 
-    return spots_through(cfg, truth, panel_px)
+    rig = cfg.rig
+    return spots_through(rig, truth, rig.dot_panel_px[rig.dot_index(ij)])
 
 
 def _surface_variant(
@@ -70,7 +72,7 @@ def _surface_variant(
     elif name == "trapezoid":
         options = replace(options, integrator="trapezoid")
     elif name == "oracle_spots":
-        spots = true_spots(cfg, truth, cal.panel_px(features.ij))
+        spots = true_spots(cfg, truth, features.ij)
     elif name == "oracle_anchor":
         # The gauge reading replaced by the truth's mean height over the samples.
         obs = cal.observe(features.ij, spots)
@@ -98,9 +100,8 @@ VARIANTS = (
 
 def spot_noise_px(cfg: SystemConfig, features: Any, truth: Heightfield) -> dict[str, float]:
     """Detected minus ray-traced spot centres, pixels: median and 95th percentile of |d|."""
-    from restoration import Calibration
 
-    exact = true_spots(cfg, truth, Calibration(cfg).panel_px(features.ij))
+    exact = true_spots(cfg, truth, features.ij)
     d = np.linalg.norm(features.spot_px - exact, axis=1)
     d = d[np.isfinite(d)]
     return {"median_px": float(np.median(d)), "p95_px": float(np.percentile(d, 95))}

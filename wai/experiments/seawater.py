@@ -38,7 +38,7 @@ def _spot_pixels(cfg: SystemConfig) -> tuple[np.ndarray, np.ndarray]:
     from wai_core.layout import flat_pattern_hits
 
     _, s, seen = flat_pattern_hits(cfg)
-    cols, rows, _ = cfg.camera_s.camera().project(s[seen])
+    cols, rows, _ = cfg.rig.camera_s.project(s[seen])
     return np.rint(rows).astype(int), np.rint(cols).astype(int)
 
 

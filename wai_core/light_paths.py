@@ -1,0 +1,270 @@
+"""The two systems' light paths, each written once, for every stage that follows one.
+
+**System S** (the structured light): a dot's ray leaves the projector through its real optics
+(:func:`dot_rays`), meets the water surface, reflects about the surface's normal there, meets
+the diffuser plane and is imaged by camera s (:func:`spots_from_hits`); :func:`spots_through`
+is the whole path through a surface (or flat water), :func:`flat_spots` the flat-water path of
+every dot of the grid. The forward model (:mod:`wai_core.forward`), the rig's layout
+(:mod:`wai_core.layout`), the flat-water reference and the fit to the spots
+(:mod:`restoration`) call these. The compiled per-frame check of a surface
+(:mod:`restoration.consistency`) follows the same path one ray at a time:
+:func:`reflected_spot_px` is that step in compiled form, beside its vectorised twin, and the
+two agree to rounding (``tests/wai_core/test_light_paths.py``).
+
+**System V** (the observation): camera v's ray through a pixel refracts at the surface and
+meets the object plane (:func:`wai_core.optics.trace_to_object`); back, through flat water, an
+object point is seen at one pixel (:func:`flat_pixel_of`).
+
+A camera enters a compiled kernel as one packed vector (:func:`pack_camera`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numba import njit
+from numpy.typing import ArrayLike, NDArray
+
+from wai_core.geometry import PinholeCamera, intersect_plane_z, reflect
+
+if TYPE_CHECKING:
+    from wai_core.heightfield import Heightfield
+    from wai_core.rig import Rig
+
+__all__ = [
+    "FlatSpots", "SpotHits", "dot_rays", "flat_pixel_of", "flat_spots", "pack_camera",
+    "reflect_to_diffuser", "reflected_spot_px", "spots_from_hits", "spots_through",
+]
+
+Array = NDArray[np.float64]
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def pack_camera(camera: PinholeCamera) -> Array:
+    """A pinhole camera as the (15,) vector compiled kernels take: its rotation ``R``
+    (row-major, lab to camera), translation ``t`` (mm), focal length and image centre (px).
+
+    Examples
+    --------
+    >>> from wai_core import load_system
+    >>> pack_camera(load_system("paper").rig.camera_s)[9:].round(1).tolist()
+    [-286.4, 0.0, 190.0, 320.0, 399.5, 299.5]
+    """
+    pose = camera.pose
+    return np.r_[pose.R.ravel(), pose.t_mm, camera.focal_px,
+                 (camera.width_px - 1) / 2.0, (camera.height_px - 1) / 2.0]
+
+
+def dot_rays(rig: Rig, panel_px: ArrayLike) -> tuple[Array, Array]:
+    """The rays of projector dots at ``panel_px`` (K, 2) panel pixels, through the projector's
+    real optics (its principal point and distortion: :meth:`~wai_core.lens.DeviceOptics.
+    pinhole_px`), as rays of its ideal pinhole.
+
+    Returns
+    -------
+    origin_mm : (3,) ndarray
+        The projector's centre, mm.
+    dirs : (K, 3) ndarray
+        Unit directions, lab frame.
+    """
+    px = rig.optics("projector").pinhole_px(np.asarray(panel_px, dtype=float))
+    return rig.projector.pixel_rays(px[:, 0], px[:, 1])
+
+
+@dataclass(frozen=True)
+class SpotHits:
+    """Where reflected dot rays land: on the diffuser and in camera s.
+
+    Attributes
+    ----------
+    diffuser_mm : (K, 3) ndarray
+        The hit on the diffuser plane, mm (NaN where the reflected ray never reaches it).
+    px : (K, 2) ndarray
+        Camera s's continuous pixel ``(col, row)`` of the hit (NaN where there is none or it
+        lies behind the camera).
+    in_front : (K,) ndarray of bool
+        The hit lies in front of camera s.
+    """
+
+    diffuser_mm: Array
+    px: Array
+    in_front: NDArray[np.bool_]
+
+
+def reflect_to_diffuser(hits_mm: ArrayLike, dirs: ArrayLike, normals: ArrayLike,
+                        z_h_mm: float) -> Array:
+    """Where rays of directions ``dirs`` (K, 3), reflected at surface points ``hits_mm``
+    (K, 3) about unit ``normals`` (K, 3), meet the diffuser plane ``z = z_h_mm``: (K, 3) mm,
+    NaN where a reflected ray never reaches it ahead."""
+    return intersect_plane_z(hits_mm, reflect(dirs, normals), z_h_mm)[0]
+
+
+def spots_from_hits(rig: Rig, hits_mm: ArrayLike, dirs: ArrayLike,
+                    normals: ArrayLike) -> SpotHits:
+    """Reflect rays of directions ``dirs`` (K, 3) at surface points ``hits_mm`` (K, 3) about
+    unit ``normals`` (K, 3) onto the diffuser plane, and image the hits in camera s.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from wai_core import load_system
+    >>> rig = load_system("paper").rig
+    >>> o, d = dot_rays(rig, rig.dot_panel_px[:3])
+    >>> q, _ = intersect_plane_z(o, d, rig.cfg.water.h0_mm)
+    >>> hits = spots_from_hits(rig, q, d, np.tile(UP, (3, 1)))
+    >>> bool(np.allclose(hits.diffuser_mm[:, 2], rig.cfg.diffuser.z_mm))
+    True
+    """
+    on_diffuser = reflect_to_diffuser(hits_mm, dirs, normals, rig.cfg.diffuser.z_mm)
+    cols, rows, front = rig.camera_s.project(on_diffuser)
+    px = np.stack([cols, rows], axis=-1)
+    px[~front] = np.nan
+    return SpotHits(on_diffuser, px, front)
+
+
+def spots_through(rig: Rig, surface: Heightfield | None, panel_px: ArrayLike) -> Array:
+    """Camera-s pixels (K, 2) where the dots at ``panel_px`` (K, 2) land after reflecting off
+    ``surface`` (absolute heights, mm; None: flat water at the rig's ``h0``); NaN where a ray
+    misses the surface, the diffuser or camera s's front."""
+    o, d = dot_rays(rig, panel_px)
+    if surface is None:
+        q, _ = intersect_plane_z(o, d, rig.cfg.water.h0_mm)
+        n = np.broadcast_to(UP, q.shape)
+        ok = np.isfinite(q[:, 0])
+    else:
+        q, ok = surface.intersect(o, d)
+        n = surface.normal(q[:, 0], q[:, 1])
+    px = spots_from_hits(rig, q, d, n).px
+    px[~ok] = np.nan
+    return px
+
+
+@dataclass(frozen=True)
+class FlatSpots:
+    """The flat-water path of every dot of the grid (:func:`flat_spots`).
+
+    Attributes
+    ----------
+    dirs : (G, 3) ndarray
+        Each dot's ray direction from the projector (unit, lab frame).
+    water_mm, diffuser_mm : (G, 3) ndarray
+        Where each dot's ray meets the water at ``h0`` and, reflected, the diffuser, mm.
+    px : (G, 2) ndarray
+        Camera s's pixel of each spot (NaN behind it).
+    upward : (G,) ndarray of bool
+        The dot's ray goes up (it meets the water at all).
+    in_front : (G,) ndarray of bool
+        The spot lies in front of camera s.
+    """
+
+    dirs: Array
+    water_mm: Array
+    diffuser_mm: Array
+    px: Array
+    upward: NDArray[np.bool_]
+    in_front: NDArray[np.bool_]
+
+    def on_diffuser(self, rect_mm: Array, margin_mm: float = 0.0) -> NDArray[np.bool_]:
+        """(G,) bool: the spots on the diffuser's extent ``[[x0, x1], [y0, y1]]`` (mm) grown
+        by ``margin_mm``."""
+        x, y = self.diffuser_mm[:, 0], self.diffuser_mm[:, 1]
+        with np.errstate(invalid="ignore"):
+            return ((x >= rect_mm[0, 0] - margin_mm) & (x <= rect_mm[0, 1] + margin_mm)
+                    & (y >= rect_mm[1, 0] - margin_mm) & (y <= rect_mm[1, 1] + margin_mm))
+
+
+def flat_spots(rig: Rig) -> FlatSpots:
+    """Every dot's path through flat water at the rig's ``h0``: projector (real optics) ->
+    water -> mirror reflection about the vertical -> diffuser -> camera s. Panel -> camera s
+    is then a plane projective map (a homography)."""
+    o, d = dot_rays(rig, rig.dot_panel_px)
+    q, _ = intersect_plane_z(o, d, rig.cfg.water.h0_mm)
+    hits = spots_from_hits(rig, q, d, UP)
+    return FlatSpots(d, q, hits.diffuser_mm, hits.px, d[:, 2] > 0, hits.in_front)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def reflected_spot_px(x, y, z, dx, dy, dz, hx, hy, z_h, camera):  # pragma: no cover
+    """:func:`spots_from_hits` for one ray, compiled, with the vectorised steps' expressions in
+    their order: the ray of unit direction ``(dx, dy, dz)`` at the surface point ``(x, y, z)``
+    whose slopes are ``(hx, hy)``, reflected onto the diffuser plane ``z = z_h`` (NaN where
+    the reflected ray never reaches it ahead) and imaged by the packed camera ``camera``
+    (:func:`pack_camera`); ``(col, row)``, NaN behind the camera."""
+    norm = math.sqrt(hx * hx + hy * hy + 1.0)
+    nx, ny, nz = -hx / norm, -hy / norm, 1.0 / norm
+    dot = 2.0 * (dx * nx + dy * ny + dz * nz)
+    rx, ry, rz = dx - dot * nx, dy - dot * ny, dz - dot * nz
+    s = (z_h - z) / rz
+    if not (np.isfinite(s) and s > 0.0):
+        s = np.nan
+    sx, sy, sz = x + s * rx, y + s * ry, z + s * rz
+    cx = sx * camera[0] + sy * camera[1] + sz * camera[2] + camera[9]
+    cy = sx * camera[3] + sy * camera[4] + sz * camera[5] + camera[10]
+    cz = sx * camera[6] + sy * camera[7] + sz * camera[8] + camera[11]
+    if not cz > 0.0:  # behind the camera (or NaN)
+        return np.nan, np.nan
+    safe = cz if abs(cz) > 1e-12 else 1e-12
+    return camera[12] * cx / safe + camera[13], camera[12] * cy / safe + camera[14]
+
+
+def flat_pixel_of(
+    rig: Rig, points_mm: ArrayLike, iterations: int = 48
+) -> tuple[Array, Array]:
+    """The camera-v pixel that sees object-plane points through flat water at ``h0``.
+
+    The inverse of :func:`wai_core.optics.trace_to_object` with ``surface=None``: the ray from
+    the camera centre ``C`` to a point ``P`` refracts once, at a point of the plane ``z = h0``
+    on the segment below ``C``-``P`` at radial distance ``r`` from ``C``, where Snell's law
+    ``n r / sqrt(r^2 + a^2) = (d - r) / sqrt((d - r)^2 + b^2)`` holds (``a``: the camera's
+    depth, ``b``: the object's height above the water, ``d``: the horizontal distance). Its
+    left minus right side grows with ``r`` from <= 0 at 0 to >= 0 at ``d``: bisected.
+
+    Parameters
+    ----------
+    rig : Rig
+    points_mm : (..., 3) array_like
+        Points above the water (NaN passes through), mm.
+    iterations : int
+        Bisection steps (each halves the bracket ``[0, d]``).
+
+    Returns
+    -------
+    cols, rows : (...,) ndarray
+        Continuous pixel coordinates (may lie outside the image), NaN where the point is NaN.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from wai_core import load_system
+    >>> from wai_core.optics import trace_to_object
+    >>> cfg = load_system("paper")
+    >>> p = trace_to_object(cfg.rig.camera_v, None, cfg.water.h0_mm, cfg.water.n_water,
+    ...                     cfg.object_z_mm, np.array([10.0, 400.0]),
+    ...                     np.array([20.0, 300.0])).object_mm
+    >>> np.round(np.stack(flat_pixel_of(cfg.rig, p)), 6)
+    array([[ 10., 400.],
+           [ 20., 300.]])
+    """
+    cam = rig.camera_v
+    c = cam.pose.center_lab_mm
+    h0, n = rig.cfg.water.h0_mm, rig.cfg.water.n_water
+    p = np.asarray(points_mm, dtype=float)
+    delta = p[..., :2] - c[:2]
+    d = np.hypot(delta[..., 0], delta[..., 1])
+    a = h0 - c[2]
+    b = p[..., 2] - h0
+    lo, hi = np.zeros_like(d), d.copy()
+    with np.errstate(invalid="ignore"):
+        for _ in range(iterations):
+            r = 0.5 * (lo + hi)
+            f = n * r / np.hypot(r, a) - (d - r) / np.hypot(d - r, b)
+            lo = np.where(f < 0, r, lo)
+            hi = np.where(f < 0, hi, r)
+        r = 0.5 * (lo + hi)
+        unit = delta / np.where(d > 0, d, 1.0)[..., None]
+    q = np.concatenate([c[:2] + r[..., None] * unit, np.full(d.shape + (1,), h0)], axis=-1)
+    cols, rows, _ = cam.project(q)
+    return cols, rows
