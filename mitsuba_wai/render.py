@@ -64,17 +64,12 @@ from mitsuba_wai.view_tracer import render_view
 from wai_core.config import SensorConfig, SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.images import record_previews
-from wai_core.io import (
-    atomic_dir,
-    check_output_dir,
-    raise_if_interrupted,
-    write_exr,
-    write_json,
-    write_png,
-)
+from wai_core.io import write_exr, write_json, write_png
 from wai_core.layout import observed_patch, surface_extent
+from wai_core.outputs import atomic_dir, check_output_dir
 from wai_core.rig_checks import check_surface_in_rig
 from wai_core.sensor import integer_image
+from wai_core.signals import raise_if_interrupted
 from wai_core.timings import Timings
 
 # Most samples Mitsuba takes in one wavefront (2^32 - 1); more spp are rendered in passes.
@@ -82,7 +77,7 @@ MAX_WAVEFRONT = 0xFFFFFFFF
 # The sun's particles in system S are seeded this far from the projector's (independent noise).
 AMBIENT_SEED_OFFSET = 0x5BD1E995
 OUTPUT_COMMAND = "render"
-"""Command named in a render folder's output marker (:mod:`wai_core.io`)."""
+"""Command named in a render folder's output marker (:mod:`wai_core.outputs`)."""
 
 
 def render_image(
@@ -380,7 +375,7 @@ class RenderSteps:
     Parameters
     ----------
     out_dir : path
-        The render folder to create (the output policy of :mod:`wai_core.io`).
+        The render folder to create (the output policy of :mod:`wai_core.outputs`).
     steps : sequence of str
         The steps, in the order they run; the last is ``"write"`` (:meth:`write`).
     desc : str
@@ -469,7 +464,7 @@ def render_folder(
 
     Everything that can be checked is checked before the renders start: the surface against
     the rig (:func:`~wai_core.rig_checks.check_surface_in_rig`) and the output location (the
-    output policy of :mod:`wai_core.io`).
+    output policy of :mod:`wai_core.outputs`).
 
     Parameters
     ----------

@@ -31,10 +31,12 @@ from mitsuba_wai.render import (
 )
 from mitsuba_wai.surface_sampling import moving_surface, wave_surface
 from wai_core.config import SystemConfig, config_from_dict
-from wai_core.io import atomic_dir, check_output_dir, raise_if_interrupted, write_json
+from wai_core.io import write_json
 from wai_core.optics import radiance_gain
+from wai_core.outputs import atomic_dir, check_output_dir
 from wai_core.rig_checks import check_surface_in_rig
 from wai_core.sequence import SEQUENCE_FILE, frame_name, frame_times, link_reference
+from wai_core.signals import raise_if_interrupted
 
 __all__ = ["FrameRunner", "render_frames", "render_sequence"]
 
@@ -109,7 +111,7 @@ def render_sequence(
     ----------
     cfg : SystemConfig
     out_dir : path
-        The sequence folder (the output policy of :mod:`wai_core.io` applies).
+        The sequence folder (the output policy of :mod:`wai_core.outputs` applies).
     n_frames : int
         Frames, >= 1.
     fps : float

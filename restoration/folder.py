@@ -26,7 +26,8 @@ from restoration.view_check import match_flat_view
 from wai_core.config import with_keys
 from wai_core.errors import WaiInputError
 from wai_core.images import find_image, image_conflict, locate_image, read_image
-from wai_core.io import atomic_dir, check_output_dir, write_exr, write_json, write_png
+from wai_core.io import write_exr, write_json, write_png
+from wai_core.outputs import atomic_dir, check_output_dir
 
 RESTORE_REMEDY = "move what is not the tool's elsewhere: a restore replaces only its own outputs"
 """What a refused restore folder's message tells the user (``wai restore`` has no --overwrite:
@@ -341,7 +342,7 @@ def write_restore_files(
     figures: bool = True,
 ) -> None:
     """The restore folder's files, into an open temporary folder ``tmp`` (renamed into place
-    by the caller's :func:`~wai_core.io.atomic_dir`): surface, restored view, figures (unless
+    by the caller's :func:`~wai_core.outputs.atomic_dir`): surface, restored view, figures (unless
     ``figures=False``) and ``metrics.json``; only ``metrics.json`` when there is no
     restoration."""
     _write_arrays(tmp, result)

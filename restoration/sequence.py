@@ -46,7 +46,8 @@ from restoration.options import SurfaceOptions
 from restoration.result import Status
 from restoration.tracking import SequenceState
 from restoration.view_check import match_sequence
-from wai_core.io import atomic_dir, atomic_write_bytes, check_output_dir, to_srgb8, write_json
+from wai_core.io import atomic_write_bytes, to_srgb8, write_json
+from wai_core.outputs import atomic_dir, check_output_dir
 from wai_core.sequence import SequenceRecord, read_sequence
 
 __all__ = [

@@ -60,7 +60,7 @@ def check_rig_output(path: Path) -> None:
     """Refuse, before any work, an output that cannot be written or would replace a file this
     tool did not write (a rig file without ``wai calibrate``'s ``format``)."""
     from restoration.rig_calibration import is_written_rig
-    from wai_core.io import check_output_file
+    from wai_core.outputs import check_output_file
 
     check_output_file(path, f"--out {path}", is_written_rig,
                       remedy="name a new file: a rig file of one's own is never replaced")
@@ -143,7 +143,8 @@ def run_checkerboards(args: argparse.Namespace, cfg: Any) -> None:
 
     from mitsuba_wai.checkerboards import Board, render_checkerboards
     from mitsuba_wai.memory import check_render_memory
-    from wai_core.io import atomic_dir, check_output_dir, write_json, write_png
+    from wai_core.io import write_json, write_png
+    from wai_core.outputs import atomic_dir, check_output_dir
 
     check_output_dir(args.out, "render", args.overwrite, label=f"--out {args.out}")
     check_render_memory(cfg, str(args.config), views=args.checkerboards)

@@ -503,10 +503,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     Bad input: one line on stderr, exit code 2; so is a failure of the environment (an
     ``OSError``: a full disk, a read-only folder), the outputs' temporary folders removed.
     SIGINT / SIGTERM: one line, exit code 130 / 143, temporary outputs removed
-    (:func:`wai_core.io.catch_signals` turns both into exceptions); an error that follows a
+    (:func:`wai_core.signals.catch_signals` turns both into exceptions); an error that follows a
     signal (a library that swallowed it) counts as it.
     """
-    from wai_core.io import Terminated, catch_signals
+    from wai_core.signals import Terminated, catch_signals
 
     with catch_signals() as caught:
         try:

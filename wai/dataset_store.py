@@ -1,8 +1,8 @@
 """A dataset folder's checks before the work, and the disk space of its writes (:mod:`wai.dataset`).
 
 A dataset is written in place, frame by frame, and a rerun continues it, so its folder does not
-go through :func:`wai_core.io.atomic_dir`; it follows the output policy otherwise
-(:func:`wai_core.io.check_output_dir`): a new or empty folder, or one that ``wai dataset``
+go through :func:`wai_core.outputs.atomic_dir`; it follows the output policy otherwise
+(:func:`wai_core.outputs.check_output_dir`): a new or empty folder, or one that ``wai dataset``
 marked as its own (``.wai-output.json``) holding nothing but its store and manifest. Any other
 folder, one holding a file of the user's (their own ``manifest.csv``), a regular file, a folder
 that cannot be written, is refused before any frame is rendered; nothing the tool did not write
@@ -53,7 +53,7 @@ def _unmarked_store(out: Path) -> bool:
     manifest, nothing else."""
     import h5py
 
-    from wai_core.io import output_marker
+    from wai_core.outputs import output_marker
 
     if not out.is_dir() or out.is_symlink() or output_marker(out) is not None:
         return False
@@ -81,7 +81,7 @@ def check_dataset_folder(out: str | Path) -> Path:
         Naming ``--out``: a file or a folder that is not ``wai dataset``'s own, a location
         under a file, a folder that cannot be written.
     """
-    from wai_core.io import check_output_dir
+    from wai_core.outputs import check_output_dir
 
     out = Path(out)
     label = f"--out {out}"
@@ -101,7 +101,7 @@ def check_dataset_folder(out: str | Path) -> Path:
 
 def mark_dataset_folder(out: Path) -> None:
     """Create ``out`` if needed and mark it as ``wai dataset``'s own, before its first file."""
-    from wai_core.io import mark_output, output_marker
+    from wai_core.outputs import mark_output, output_marker
 
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -3,7 +3,7 @@
 Every option is checked before the renders start, and a bad one ends the command with one line
 that names it (exit code 2): numbers that are not finite, a seed out of Mitsuba's range, a
 variant this machine cannot run, an output location that cannot or may not be written (the
-output policy of :mod:`wai_core.io`), a rig that sees nothing through flat water
+output policy of :mod:`wai_core.outputs`), a rig that sees nothing through flat water
 (:func:`wai_core.rig_checks.check_rig`), a frame too large for the memory available
 (:mod:`mitsuba_wai.memory`), a surface file that is not one, a surface outside the rig.
 """
@@ -17,7 +17,7 @@ from wai_core.alterman import AltermanSystem, is_alterman_file, load_alterman
 from wai_core.config import SystemConfig, load_config
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield, load_heightfield
-from wai_core.io import check_output_dir
+from wai_core.outputs import check_output_dir
 from wai_core.scenes import resolve_scene
 
 # Mitsuba's sampler seeds are 32-bit.

@@ -64,7 +64,8 @@ def run_restore_video(args: argparse.Namespace) -> None:
     import cv2
 
     from restoration.video import checkerboard_score, lucky_fusion, register_frames, streamed_mean
-    from wai_core.io import atomic_dir, check_output_dir, write_exr, write_json, write_png
+    from wai_core.io import write_exr, write_json, write_png
+    from wai_core.outputs import atomic_dir, check_output_dir
 
     path = Path(args.dir)
     if not path.exists():

@@ -306,7 +306,7 @@ def test_a_full_disk_stops_between_frames_and_the_rerun_continues(
 def test_a_store_written_before_folders_were_marked_continues(store: Path, tmp_path: Path):
     import shutil
 
-    from wai_core.io import OUTPUT_MARKER, output_marker
+    from wai_core.outputs import OUTPUT_MARKER, output_marker
 
     old = tmp_path / "old"
     shutil.copytree(store, old)

@@ -1,4 +1,5 @@
-"""The output policy of wai_core.io: what may be replaced, what is refused, what is cleaned up."""
+"""The output policy of wai_core.outputs: what may be replaced, what is refused, what is cleaned
+up."""
 
 import errno
 import json
@@ -10,19 +11,18 @@ import tempfile
 
 import pytest
 
-from wai_core import io
+from wai_core import outputs, signals
 from wai_core.errors import WaiInputError
-from wai_core.io import (
+from wai_core.outputs import (
     OUTPUT_MARKER,
     atomic_dir,
-    catch_signals,
     check_output_dir,
     is_output_of,
     output_marker,
-    raise_if_interrupted,
     register_output_files,
     remove_leftovers,
 )
+from wai_core.signals import catch_signals, raise_if_interrupted
 
 
 def _write(folder, command="render", files=("a.txt",)):
@@ -110,7 +110,7 @@ def test_unwritable_location_is_refused_before_work(tmp_path, monkeypatch):
             raise OSError(errno.EROFS, os.strerror(errno.EROFS))
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(io.tempfile, "mkdtemp", read_only)
+    monkeypatch.setattr(outputs.tempfile, "mkdtemp", read_only)
     with pytest.raises(WaiInputError, match="cannot write in .*Read-only file system"):
         check_output_dir(tmp_path / "new" / "out", "render", label="--out X")
     assert list(tmp_path.iterdir()) == []
@@ -120,7 +120,7 @@ def test_error_and_interrupt_leave_nothing(tmp_path):
     out = tmp_path / "out"
     _write(out)
     before = sorted(p.name for p in out.iterdir())
-    for exc in (RuntimeError("boom"), KeyboardInterrupt(), io.Terminated()):
+    for exc in (RuntimeError("boom"), KeyboardInterrupt(), signals.Terminated()):
         with pytest.raises(type(exc)):
             with atomic_dir(out, command="render") as tmp:
                 (tmp / "half.txt").write_text("half")
@@ -138,7 +138,7 @@ def test_killed_runs_leftovers_are_removed_and_only_those(tmp_path):
         folder.mkdir()
         (folder / "pattern.exr").write_bytes(b"x")
         if marker:
-            io._write_marker(folder, command, None)
+            outputs._write_marker(folder, command, None)
         return folder
 
     ours = [leftover(f".out.tmp-{dead}-abc"), leftover(f".out.old-{dead}")]
@@ -160,10 +160,10 @@ def test_signals_become_exceptions_and_are_remembered():
             os.kill(os.getpid(), signal.SIGTERM)
             for _ in range(1000):  # the handler runs between bytecodes
                 pass
-        except io.Terminated:
+        except signals.Terminated:
             pass
         assert caught.signum == signal.SIGTERM and caught.exit_code == 143
-        with pytest.raises(io.Terminated):  # e.g. after a library swallowed the exception
+        with pytest.raises(signals.Terminated):  # e.g. after a library swallowed the exception
             raise_if_interrupted()
     raise_if_interrupted()  # outside: nothing caught
     assert signal.getsignal(signal.SIGTERM) == before
