@@ -141,3 +141,13 @@ def test_a_video_too_long_for_the_memory_is_refused_before_reading(tmp_path, cap
 
     np.testing.assert_allclose(read_exr(tmp_path / "m" / "restored.exr"),
                                read_frames(clip).mean(axis=0), atol=1e-6)
+
+
+def test_an_unknown_method_lists_every_method_a_user_can_name(capsys, tmp_path):
+    from restoration import method_names
+    from wai.restore_video_cli import VIDEO_METHODS
+
+    code, err = _run(capsys, "restore", str(tmp_path), "--method", "nope")
+    assert code == 2 and len(err) == 1 and "'nope'" in err[0]
+    for name in (*method_names(), *VIDEO_METHODS, "module:Class"):
+        assert name in err[0], name
