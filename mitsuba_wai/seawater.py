@@ -3,7 +3,7 @@
 Everything below the surface is water: system S's projector, diffuser and camera s, and
 camera v. Per colour channel (R, G, B = 600 / 530 / 460 nm) the water has an absorption
 coefficient ``a`` and a scattering coefficient ``b`` (``[water_optics]``, 1/m; the defaults are
-Smith & Baker's clear ocean, :data:`wai_core.config.SMITH_BAKER_ABSORPTION_PER_M`), ``b``
+Smith & Baker's clear ocean, :data:`wai_core.sections.SMITH_BAKER_ABSORPTION_PER_M`), ``b``
 scaled by ``turbidity``, ``a`` by ``absorption_scale``.
 
 What is modelled

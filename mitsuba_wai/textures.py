@@ -63,7 +63,7 @@ def to_rgb_float(img: NDArray) -> NDArray[np.float32]:
 
 def object_texture(obj: ObjectConfig, base_dir: Path | None = None) -> NDArray[np.float32]:
     """The object plane's image (h, w, 3) in [0, 1] for ``ObjectConfig.texture``:
-    ``checkerboard``, ``skimage:<name>`` (one of :data:`wai_core.config.SKIMAGE_TEXTURES`,
+    ``checkerboard``, ``skimage:<name>`` (one of :data:`wai_core.sections.SKIMAGE_TEXTURES`,
     e.g. ``skimage:astronaut``) or an image file path
     (relative paths resolve against ``base_dir``)."""
     spec = obj.texture

@@ -39,7 +39,8 @@ from numpy.typing import NDArray
 
 from restoration.integrate.plans import IntegrationPlans, plan_of
 from restoration.integrate.rules import edge_step
-from restoration.surface import SurfaceEstimate, edges_and_lines, trapezoid_edges
+from restoration.refine import edges_and_lines, trapezoid_edges
+from restoration.surface import SurfaceEstimate
 
 N_SETS = 4
 """Interleaved edge sets whose separate minima measure the anchor's standard error."""
@@ -90,7 +91,7 @@ def _edge_residual_kernel(points, slopes, a, b, before, after, r):  # pragma: no
 def _edges(
     ij: NDArray, trapezoid: bool = False, plans: IntegrationPlans | None = None
 ) -> tuple[NDArray, ...]:
-    """:func:`~restoration.surface.trapezoid_edges` of ``ij``, the samples before and after
+    """:func:`~restoration.refine.trapezoid_edges` of ``ij``, the samples before and after
     each on its lattice line (all -1 for the ``trapezoid`` rule), and each edge's set, kept
     in ``plans`` when given: a search evaluates every probe on the same samples."""
     return plan_of(plans, "anchor_edges", ij, lambda: _build_edges(ij, trapezoid, plans),

@@ -22,13 +22,7 @@ correspondence. The stage's modules:
 - ``_lattice``, ``_outline``, ``_types``: private helpers shared by the above.
 """
 
-from restoration.features.decode import (
-    Decoded,
-    decode_distorted,
-    features_from_code,
-    node_symbols,
-    spot_symbols,
-)
+from restoration.features.decode import Decoded, decode_distorted, features_from_code
 from restoration.features.detect import Spots, SpotScales, detect_spots
 from restoration.features.match import (
     REGROW_BELOW,
@@ -47,6 +41,7 @@ from restoration.features.reference import (
     prepare_reference,
     spot_sigma_px,
 )
+from restoration.features.symbols import node_symbols, spot_symbols
 
 __all__ = [
     "REGROW_BELOW",

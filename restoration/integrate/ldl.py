@@ -1,5 +1,5 @@
 """Sparse ``L D L^T`` factorisation of a pinned lattice Laplacian, compiled, for solves inside
-compiled loops (:func:`restoration.surface._refine_kernel`).
+compiled loops (:func:`restoration.refine._refine_kernel`).
 
 The unknowns are ordered by nested dissection on their lattice indices (a lattice line
 separates the two halves of a 4-connected lattice), which keeps the fill of ``L`` close to a

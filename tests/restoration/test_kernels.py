@@ -12,12 +12,7 @@ from scipy.interpolate import BSpline
 from scipy.spatial import cKDTree
 
 from restoration.features._kernels import nearest_two, segmented_pixels, spot_cells
-from restoration.features.detect import (
-    _WINDOW_GAIN,
-    _WINDOW_VAR,
-    _refine_centres,
-    detect_spots,
-)
+from restoration.features.detect import _WINDOW_GAIN, _WINDOW_VAR, _refine_centres, detect_spots
 from restoration.normals import (
     points_on_rays,
     reflection_normals,

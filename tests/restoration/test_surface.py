@@ -243,7 +243,7 @@ def test_compiled_refinement_is_the_numpy_loop(sine_case, accelerate, weights, i
     triangular solves and sums differ in order only), islands dropped alike."""
     from restoration import Observations
     from restoration.normals import points_on_rays
-    from restoration.surface import _compiled_refinement, _refinement
+    from restoration.refine import _compiled_refinement, _refinement
     from wai_core.timings import Timings
 
     ij, panel, spots = sine_case[:3]
