@@ -25,9 +25,11 @@ COMPILE_NOTICE = (
 # Modules whose kernels a structured-light frame runs: one cached kernel of each must exist.
 _KERNEL_MODULES = (
     "restoration.features._kernels",
+    "restoration.features._spot_kernels",
     "restoration.integrate.lattice",
     "restoration.reverse_trace._kernels",
     "restoration.anchor",
+    "restoration.refine",
 )
 
 

@@ -134,7 +134,7 @@ class StructuredLightOptions(SurfaceOptions):
         Most refinement passes of that second search (it stops earlier once converged).
     fit_spots : bool
         After the reconstruction, fit a smooth surface and its level to the detected spots
-        through the exact reflection model (:func:`restoration.fit.fit_level`); slower than
+        through the exact reflection model (:func:`restoration.fit_level.fit_level`); slower than
         real time, so off by default (docs/results.md, "Accuracy").
     flat_referenced : bool
         Refer every spot to the flat reference, as the paper's dot shifts do: the spot less

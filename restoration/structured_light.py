@@ -29,7 +29,7 @@ from restoration.features import (
 )
 from restoration.features.match import MAX_LABEL_SHIFT
 from restoration.features.track import TrackedSpots, features_tracked
-from restoration.fit import fit_level
+from restoration.fit_level import fit_level
 from restoration.normals import projector_rays
 from restoration.observations import Observations
 from restoration.options import StructuredLightOptions, checked_options
@@ -274,7 +274,7 @@ def fit_to_spots(
     surface: SurfaceEstimate, spots_px: NDArray, cal: Calibration
 ) -> SurfaceEstimate:
     """``surface`` refitted to its samples' spots through the exact model, its level included
-    (:func:`restoration.fit.fit_level`)."""
+    (:func:`restoration.fit_level.fit_level`)."""
     level = fit_level(
         surface.points_mm, surface.slopes, cal.panel_px(surface.ij), spots_px,
         cal.projector, cal.camera_s, cal.diffuser_z_mm, surface.heightfield,

@@ -80,7 +80,7 @@ class Anchor:
         Most refinement passes each reconstruction allowed.
     fit_rms_mm, fit_iterations, fit_level_offset_mm, fit_level_sigma_mm, fit_level_probes,
     fit_level_probes_converged, fit_level_kept_start, fit_level_reason
-        After a fit to the spots (:func:`restoration.fit.fit_level`): its RMS spot miss as a
+        After a fit to the spots (:func:`restoration.fit_level.fit_level`): its RMS spot miss as a
         height (mm), Gauss-Newton iterations, the level's offset from the reconstruction and
         its standard error (mm), the levels probed and how many converged, whether the
         reconstruction's level was kept, and why.

@@ -275,7 +275,8 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--fit", action="store_true",
         help="structured light: fit the surface and its level to the spots through the exact "
-        "model (restoration.fit.fit_level): ~0.3-1 s more per frame, no more accurate than the "
+        "model (restoration.fit_level.fit_level): ~0.3-1 s more per frame, no more accurate "
+        "than the "
         "default on the mean of the paper's rig (docs/results.md)",
     )
     p.add_argument(

@@ -30,8 +30,8 @@ from restoration.features.match import (
     features_from_reference,
     find_features,
     match_distorted,
-    order_violations,
 )
+from restoration.features.ordering import order_violations
 from restoration.features.reference import (
     ReferenceGrid,
     flag_diffuser_edge,

@@ -13,9 +13,7 @@ from scipy.spatial import cKDTree
 
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from restoration.features.detect import Spots
-from restoration.features.match import (
-    Matches,
-)
+from restoration.features.match import Matches
 from restoration.features.reference import ReferenceGrid
 
 # Opposite neighbour directions in _DIRS8 order ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1),

@@ -12,11 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration._threads import restore_threads, run_beside
-from restoration.features._kernels import (
-    peak_axis_moments,
-    peak_moments,
-    segmented_pixels,
-)
+from restoration.features._spot_kernels import peak_axis_moments, peak_moments, segmented_pixels
 from restoration.features._types import BoolArray, FloatArray, IntArray
 
 

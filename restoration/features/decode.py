@@ -84,13 +84,8 @@ from restoration.features._decode_steps import (
 from restoration.features._segments import _typical_flux
 from restoration.features._types import FloatArray, IntArray
 from restoration.features.detect import Spots
-from restoration.features.match import (
-    Matches,
-    _largest_component,
-    detect_frame,
-    match_distorted,
-    visible_outline,
-)
+from restoration.features.match import Matches, detect_frame, match_distorted, visible_outline
+from restoration.features.ordering import _largest_component
 from restoration.features.reference import ReferenceGrid
 from restoration.features.symbols import (
     MIN_DOT_FLUX,

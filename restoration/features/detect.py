@@ -18,9 +18,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration._threads import run_beside, run_chunks
-from restoration.features._kernels import (
-    centroid_chunk,
-)
 from restoration.features._segments import (
     _chunks,
     _major_axis_kurtosis,
@@ -31,6 +28,7 @@ from restoration.features._segments import (
     _typical_flux,
     _upsample,
 )
+from restoration.features._spot_kernels import centroid_chunk
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from wai_core.errors import WaiInputError
 
@@ -237,7 +235,7 @@ def _refine_centres(
     blanked, so a much brighter neighbour cannot pull the centre. ``padded`` is the raw image
     with ``box_max`` zeros around it (a multiple of 3 px), ``labels`` the segment labels of
     its pixels (of ``n``; 0 in the frame). Compiled loops over the spots, in chunks shared by
-    the restoration's threads (:func:`restoration.features._kernels.centroid_chunk`).
+    the restoration's threads (:func:`restoration.features._spot_kernels.centroid_chunk`).
     """
     if len(keep) == 0:
         return np.zeros((0, 2))

@@ -28,13 +28,15 @@ from restoration.features.detect import Spots
 from restoration.features.match import (
     MAX_LABEL_SHIFT,
     Matches,
+    _Outline,
+    labelled_features,
+    match_distorted,
+)
+from restoration.features.ordering import (
     _anchor_shift,
     _kept_order_violations,
     _largest_component,
-    _Outline,
     _SpotLookup,
-    labelled_features,
-    match_distorted,
 )
 from restoration.features.reference import ReferenceGrid
 from wai_core.config import SystemConfig

@@ -33,7 +33,8 @@ from restoration.reverse_trace.inverse import (
     find_pixels,
     solve_pixels,
 )
-from restoration.reverse_trace.warp import Restoration, ViewPlan, ViewState, restore_view
+from restoration.reverse_trace.plan import ViewPlan, ViewState
+from restoration.reverse_trace.warp import Restoration, restore_view
 from wai_core.optics import RayStatus, TraceResult, status_counts, trace_to_object
 
 __all__ = [

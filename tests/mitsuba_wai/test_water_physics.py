@@ -274,7 +274,7 @@ def test_polarised_pattern_fades_near_brewster(paper_cfg):
     from mitsuba_wai.render import FrameRenderer
     from mitsuba_wai.surface_sampling import wave_surface
     from tests.conftest import shrink
-    from wai_core.layout import dot_grid, flat_pattern_hits
+    from wai_core.layout import flat_pattern_hits
 
     cfg = shrink(paper_cfg, factor=2, spp=4)
     flat = flat_like(wave_surface(cfg), cfg.water.h0_mm)
@@ -286,7 +286,7 @@ def test_polarised_pattern_fades_near_brewster(paper_cfg):
             flat, 3, ("pattern",))["pattern"].sum(-1)
     _, spot, seen = flat_pattern_hits(cfg)
     projector = cfg.rig.projector
-    _, panel = dot_grid(cfg.pattern, projector)
+    panel = cfg.rig.dot_panel_px
     _, d = projector.pixel_rays(panel[:, 0], panel[:, 1])
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     theta = np.arccos(d[:, 2])

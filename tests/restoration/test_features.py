@@ -29,7 +29,8 @@ from restoration.features import (
 from restoration.features._lattice import _LatticeTables
 from restoration.features._segments import _segment
 from restoration.features.detect import _background, _minimum_bias, _noise_sigma
-from restoration.features.match import _anchor_shift, _choose_seed, _SpotLookup
+from restoration.features.match import _choose_seed
+from restoration.features.ordering import _anchor_shift, _SpotLookup
 from wai_core.config import SystemConfig, load_config
 from wai_core.errors import WaiInputError
 

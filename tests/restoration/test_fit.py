@@ -79,7 +79,7 @@ def _exact_case(cfg, amplitude, start_mm):
 def test_the_level_search_finds_the_height_a_damped_fit_keeps(paper_cfg):
     # Exact spots of a swell, a start 0.3 mm too high with the right shape: the plain fit
     # keeps most of the offset (the depth-normal ambiguity), the level search removes it.
-    from restoration.fit import fit_level
+    from restoration.fit_level import fit_level
 
     truth, start, slopes, args = _exact_case(paper_cfg, amplitude=3.0, start_mm=0.3)
 
@@ -101,7 +101,7 @@ def test_the_level_profile_is_unimodal_for_exact_spots(paper_cfg):
     # Every probe fits from the same start with the level held, so the profile is a function
     # of the level alone: on exact spots it falls to one minimum, at the true level, and
     # rises after it (no probe's warm start makes a dip of its own).
-    from restoration.fit import fit_level
+    from restoration.fit_level import fit_level
 
     _, start, slopes, args = _exact_case(paper_cfg, amplitude=3.0, start_mm=0.2)
     found = fit_level(start, slopes, *args, probe_mm=0.1)
@@ -114,7 +114,7 @@ def test_the_level_profile_is_unimodal_for_exact_spots(paper_cfg):
 def test_a_nearly_flat_surface_keeps_its_level(paper_cfg):
     # A swell of 0.1 mm (nearly flat: the level's profile is shallow) started at the right
     # level: the search must not walk away from it.
-    from restoration.fit import fit_level
+    from restoration.fit_level import fit_level
 
     truth, start, slopes, args = _exact_case(paper_cfg, amplitude=0.1, start_mm=0.0)
     found = fit_level(start, slopes, *args)

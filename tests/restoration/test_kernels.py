@@ -11,7 +11,8 @@ import pytest
 from scipy.interpolate import BSpline
 from scipy.spatial import cKDTree
 
-from restoration.features._kernels import nearest_two, segmented_pixels, spot_cells
+from restoration.features._kernels import nearest_two, spot_cells
+from restoration.features._spot_kernels import segmented_pixels
 from restoration.features.detect import _WINDOW_GAIN, _WINDOW_VAR, _refine_centres, detect_spots
 from restoration.normals import (
     points_on_rays,
@@ -29,7 +30,8 @@ from restoration.reverse_trace._kernels import (
     warp_rows,
 )
 from restoration.reverse_trace._surface import _cell_polynomials
-from restoration.reverse_trace.warp import _pixel_cells, restore_view
+from restoration.reverse_trace.plan import _pixel_cells
+from restoration.reverse_trace.warp import restore_view
 from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
 from wai_core.system import load_rig

@@ -12,7 +12,8 @@ the truth and never feed the restoration):
 ``trapezoid``   ours with the trapezoid rule instead of the fourth-order one, in the level
                 search and the integration (the former default);
 ``fit``         ours, then the surface and its level fitted to the spots through the exact model
-                (``StructuredLightOptions(fit_spots=True)``, :func:`restoration.fit.fit_level`);
+                (``StructuredLightOptions(fit_spots=True)``,
+                :func:`restoration.fit_level.fit_level`);
 ``oracle_spots``  the default, fed the exact spot positions ray-traced through the true surface
                 (what is left is integration, gridding and the anchor);
 ``oracle_anchor`` the default with the truth's mean height over the samples as anchor instead
