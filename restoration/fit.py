@@ -36,8 +36,7 @@ from scipy.linalg import solveh_banded
 from scipy.sparse.linalg import spsolve
 from threadpoolctl import threadpool_limits
 
-from restoration.normals import projector_rays, spots_on_diffuser
-from wai_core.geometry import PinholeCamera
+from restoration.observations import Observations
 from wai_core.heightfield import Heightfield
 from wai_core.light_paths import reflect_to_diffuser
 from wai_core.timings import Timings
@@ -275,12 +274,11 @@ class _Rays:
     z_h: float  # the diffuser plane's height, mm
 
     @classmethod
-    def of(cls, panel_px: Array, spot_px: Array, projector: PinholeCamera,
-           camera_s: PinholeCamera, z_h_mm: float) -> _Rays:
-        o, d = projector_rays(panel_px, projector)
-        d = d / np.linalg.norm(d, axis=1, keepdims=True)
-        target = spots_on_diffuser(spot_px, camera_s, z_h_mm)[:, :2]
-        return cls(np.broadcast_to(o, d.shape), d, target, float(z_h_mm))
+    def of(cls, obs: Observations) -> _Rays:
+        """The rays and diffuser spots the observations hold already."""
+        d = obs.dirs / np.linalg.norm(obs.dirs, axis=1, keepdims=True)
+        return cls(np.broadcast_to(obs.origin_mm, d.shape), d, obs.spots_mm[:, :2],
+                   float(obs.z_h_mm))
 
     def t_at(self, z_mm: Array) -> Array:
         """Ray parameters where the rays reach heights ``z_mm`` (K,)."""
@@ -451,11 +449,7 @@ def _knot_step(xy: Array) -> float:
 def fit_surface(
     points_mm: Array,
     slopes: Array,
-    panel_px: Array,
-    spot_px: Array,
-    projector: PinholeCamera,
-    camera_s: PinholeCamera,
-    z_h_mm: float,
+    obs: Observations,
     like: Heightfield,
     *,
     step_mm: float | None = None,
@@ -471,11 +465,9 @@ def fit_surface(
         The reconstruction's samples (reflection points and heights, mm): the warm start.
     slopes : (K, 2) ndarray
         Their slopes.
-    panel_px, spot_px : (K, 2) ndarray
-        Each dot's projector panel position and detected spot in camera s, px.
-    projector, camera_s : PinholeCamera
-    z_h_mm : float
-        Height of the diffuser plane, mm.
+    obs : Observations
+        The samples' dots: their projector rays and their spots on the diffuser plane, one per
+        sample (:meth:`~restoration.observations.Observations.take`).
     like : Heightfield
         The reconstruction's grid: the fitted surface is returned on its nodes and support.
     step_mm : float, optional
@@ -496,7 +488,7 @@ def fit_surface(
         xy = points_mm[:, :2]
         step_mm = _knot_step(xy) if step_mm is None else float(step_mm)
         start = _initial_spline(xy, points_mm[:, 2], slopes, step_mm, smoothness)
-        rays = _Rays.of(panel_px, spot_px, projector, camera_s, z_h_mm)
+        rays = _Rays.of(obs)
     with timings("gauss_newton"):
         fit = _gauss_newton(start, rays, rays.t_at(points_mm[:, 2]), iterations=iterations,
                             tol_mm=tol_mm, smoothness=smoothness)

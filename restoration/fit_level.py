@@ -32,7 +32,7 @@ from restoration.fit import (
     _Rays,
     _result,
 )
-from wai_core.geometry import PinholeCamera
+from restoration.observations import Observations
 from wai_core.heightfield import Heightfield
 from wai_core.timings import Timings
 
@@ -90,11 +90,7 @@ def _level_weights(spline: BSplineSurface, xy: Array) -> Array:
 def fit_level(
     points_mm: Array,
     slopes: Array,
-    panel_px: Array,
-    spot_px: Array,
-    projector: PinholeCamera,
-    camera_s: PinholeCamera,
-    z_h_mm: float,
+    obs: Observations,
     like: Heightfield,
     *,
     probe_mm: float = 0.15,
@@ -119,8 +115,8 @@ def fit_level(
 
     Parameters
     ----------
-    points_mm, slopes, panel_px, spot_px, projector, camera_s, z_h_mm, like
-        As :func:`fit_surface`.
+    points_mm, slopes, obs, like
+        As :func:`~restoration.fit.fit_surface`.
     probe_mm : float
         Spacing of the first three probes around the warm start's level and of the walk, mm.
     iterations : int
@@ -137,7 +133,7 @@ def fit_level(
         xy = points_mm[:, :2]
         # One knot layout for every probe, or their residuals would not compare.
         start = _initial_spline(xy, points_mm[:, 2], slopes, _knot_step(xy), SMOOTHNESS)
-        rays = _Rays.of(panel_px, spot_px, projector, camera_s, z_h_mm)
+        rays = _Rays.of(obs)
         a = _level_weights(start, xy)
         level0 = float(a @ start.coeffs.ravel())
         gn = {"iterations": iterations, "tol_mm": PROBE_TOL_MM, "smoothness": SMOOTHNESS}

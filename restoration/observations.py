@@ -119,3 +119,34 @@ class Observations:
 
     def __len__(self) -> int:
         return int(self.ij.shape[0])
+
+    def rows_of(self, ij: ArrayLike) -> NDArray[np.intp]:
+        """The rows (K,) of the samples with grid indices ``ij`` (K, 2), which must be among
+        these observations' (a surface's samples: the integrator may drop some).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from wai_core import load_system
+        >>> rig = load_system("paper").rig
+        >>> ij = np.array([[0, 0], [1, 0], [0, 1]])
+        >>> obs = Observations.build(ij, rig.dot_panel_px[rig.dot_index(ij)],
+        ...                          np.full((3, 2), 400.0), rig.projector, rig.camera_s, 60.0)
+        >>> obs.rows_of(np.array([[0, 1], [0, 0]])).tolist()
+        [2, 0]
+        """
+        ij = np.asarray(ij)
+        base = int(np.abs(self.ij).max()) + 1 if len(self) else 1
+        keys = (self.ij[:, 0] + base) * (2 * base + 1) + self.ij[:, 1] + base
+        order = np.argsort(keys)
+        want = (ij[:, 0] + base) * (2 * base + 1) + ij[:, 1] + base
+        return order[np.searchsorted(keys, want, sorter=order)]
+
+    def take(self, rows: ArrayLike) -> Observations:
+        """The observations of rows ``rows`` (an index array or a mask), in that order (a new
+        :class:`~restoration.integrate.plans.IntegrationPlans`: another sample set)."""
+        rows = np.asarray(rows)
+        weights = None if self.weight_xy_mm is None else self.weight_xy_mm[rows]
+        return Observations(self.ij[rows], self.panel_px[rows], self.spot_px[rows],
+                            self.spots_mm[rows], self.origin_mm, self.dirs[rows], self.z_h_mm,
+                            weights)

@@ -41,7 +41,7 @@ from wai_core.config import SystemConfig
 from wai_core.timings import Timings
 
 __all__ = [
-    "StructuredLight", "estimate_surface", "fit_to_spots", "match_features", "spots_of",
+    "StructuredLight", "estimate_surface", "fit_to_spots", "match_features",
     "view_has_signal",
 ]
 
@@ -255,30 +255,11 @@ def view_has_signal(view: NDArray, gain: float = 1.0) -> bool:
     return bool(hi - lo > DARK_VIEW_CONTRAST)
 
 
-def spots_of(obs: Observations, ij: NDArray) -> NDArray:
-    """The detected spots (K, 2) px of the samples with grid indices ``ij`` (K, 2), which are
-    a subset of the observations' (the integrator may drop some)."""
-    return obs.spot_px[_rows_of(obs, ij)]
-
-
-def _rows_of(obs: Observations, ij: NDArray) -> NDArray[np.intp]:
-    """The observations' rows (K,) of the samples with grid indices ``ij`` (K, 2)."""
-    base = int(np.abs(obs.ij).max()) + 1 if len(obs) else 1
-    keys = (obs.ij[:, 0] + base) * (2 * base + 1) + obs.ij[:, 1] + base
-    order = np.argsort(keys)
-    want = (ij[:, 0] + base) * (2 * base + 1) + ij[:, 1] + base
-    return order[np.searchsorted(keys, want, sorter=order)]
-
-
-def fit_to_spots(
-    surface: SurfaceEstimate, spots_px: NDArray, cal: Calibration
-) -> SurfaceEstimate:
+def fit_to_spots(surface: SurfaceEstimate, obs: Observations) -> SurfaceEstimate:
     """``surface`` refitted to its samples' spots through the exact model, its level included
-    (:func:`restoration.fit_level.fit_level`)."""
-    level = fit_level(
-        surface.points_mm, surface.slopes, cal.panel_px(surface.ij), spots_px,
-        cal.projector, cal.camera_s, cal.diffuser_z_mm, surface.heightfield,
-    )
+    (:func:`restoration.fit_level.fit_level`); ``obs``: the surface's samples' observations,
+    one per sample."""
+    level = fit_level(surface.points_mm, surface.slopes, obs, surface.heightfield)
     fit = level.fit
     est = surface.refitted(
         fit.heightfield, fit.points_mm, fit.slopes, fit_ms=fit.timings_ms["total"]
@@ -509,11 +490,11 @@ class StructuredLight:
         the samples rejected (``rejected_xy_mm`` (R, 2)), the view restored through it and the
         forward check of it; their times added to ``timings``."""
         options = self.options
-        rows = _rows_of(obs, surface.ij)
+        rows = obs.rows_of(surface.ij)
         spots = obs.spot_px[rows]
         with timings("surface"):
             if options.fit_spots:
-                surface = fit_to_spots(surface, spots, cal)
+                surface = fit_to_spots(surface, obs.take(rows))
             if rejected_xy_mm is not None:
                 surface = surface.unknown_near(rejected_xy_mm)
             heightfield = surface.heightfield

@@ -5,6 +5,7 @@ import numpy as np
 from restoration import Calibration
 from restoration.fit import BSplineSurface, fit_surface
 from restoration.normals import projector_rays
+from restoration.observations import Observations
 from wai_core.heightfield import Heightfield
 from wai_core.light_paths import spots_through
 
@@ -41,8 +42,9 @@ def test_the_fit_moves_a_wrong_start_towards_the_spots(paper_cfg):
     start = hits.copy()
     start[:, 2] = cfg.water.h0_mm + 0.6 * (hits[:, 2] - cfg.water.h0_mm)
     like = Heightfield(truth.x, truth.y, truth.z)
-    fit = fit_surface(start, 0.6 * np.column_stack([gx, gy]), panel, spots,
-                      cfg.rig.projector, cfg.rig.camera_s, cfg.diffuser.z_mm, like)
+    obs = Observations.build(ij, panel, spots, cfg.rig.projector, cfg.rig.camera_s,
+                             cfg.diffuser.z_mm)
+    fit = fit_surface(start, 0.6 * np.column_stack([gx, gy]), obs, like)
     assert fit.rms_mm[-1] < 0.2 * fit.rms_mm[0]
     err_before = np.abs(start[:, 2] - hits[:, 2]).mean()
     err_after = np.abs(fit.points_mm[:, 2] - truth.height(fit.points_mm[:, 0],
@@ -72,8 +74,9 @@ def _exact_case(cfg, amplitude, start_mm):
     start = hits.copy()
     start[:, 2] += start_mm
     like = Heightfield(truth.x, truth.y, truth.z)
-    args = (panel, spots, cfg.rig.projector, cfg.rig.camera_s, cfg.diffuser.z_mm, like)
-    return truth, start, slopes, args
+    obs = Observations.build(np.zeros((len(panel), 2), np.int64), panel, spots,
+                             cfg.rig.projector, cfg.rig.camera_s, cfg.diffuser.z_mm)
+    return truth, start, slopes, (obs, like)
 
 
 def test_the_level_search_finds_the_height_a_damped_fit_keeps(paper_cfg):

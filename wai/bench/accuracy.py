@@ -55,7 +55,7 @@ def _surface_variant(
 ) -> dict[str, float]:
     from restoration import Calibration
     from restoration.metrics import surface_errors
-    from restoration.structured_light import estimate_surface, fit_to_spots, spots_of
+    from restoration.structured_light import estimate_surface, fit_to_spots
 
     cfg = cal.cfg
     spots = features.spot_px
@@ -86,7 +86,7 @@ def _surface_variant(
     obs = cal.observe(features.ij, spots)
     est = estimate_surface(obs, cal, options)
     if name == "fit":
-        est = fit_to_spots(est, spots_of(obs, est.ij), cal)
+        est = fit_to_spots(est, obs.take(obs.rows_of(est.ij)))
     elapsed_ms = 1e3 * (time.perf_counter() - t0)
     err = surface_errors(est.heightfield, truth)
     return {**{k: float(err[k]) for k in ("rmse_mm", "rmse_demeaned_mm", "max_abs_mm")},
