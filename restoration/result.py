@@ -47,10 +47,18 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from restoration.alterman import AltermanSurface
+    from restoration.consistency import Consistency
+    from restoration.features import Matches
+    from restoration.reverse_trace import Restoration
+    from restoration.surface import SurfaceEstimate
+    from restoration.view_check import ViewMatch
 
 __all__ = [
     "REFERENCE_RMS_FRACTION", "SPARSE_FRACTION", "STATUSES", "RestoreResult", "RestoredView",
@@ -168,13 +176,13 @@ class RestoreResult:
     method: str
     status: Status = Status.OK
     message: str = ""
-    features: Any = None
-    surface: Any = None
-    view: Any = None
+    features: Matches | None = None
+    surface: SurfaceEstimate | AltermanSurface | None = None
+    view: Restoration | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
-    consistency: Any = None
-    view_match: Any = None
+    consistency: Consistency | None = None
+    view_match: ViewMatch | None = None
     warnings: list[str] = field(default_factory=list)
     reference_rms_px: float | None = None
     reference_spacing_px: float | None = None

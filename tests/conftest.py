@@ -17,6 +17,16 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER_TOML = ROOT / "scenes" / "paper.toml"
 
 
+def paper_toml_with(**sections: dict) -> str:
+    """The paper's scene file with sections it leaves at their defaults given, e.g.
+    ``paper_toml_with(render={"spp_pattern": 1, "spp_view": 1})``."""
+    text = PAPER_TOML.read_text()
+    for name, keys in sections.items():
+        assert f"\n[{name}]\n" not in text, name
+        text += f"\n[{name}]\n" + "".join(f"{k} = {v!r}\n" for k, v in keys.items())
+    return text
+
+
 @pytest.fixture(scope="package")
 def paper_cfg() -> SystemConfig:
     return load_config(PAPER_TOML)

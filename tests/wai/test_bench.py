@@ -2,7 +2,6 @@
 ``bench restore --json`` keys, and a stage mapping that survives renamed or missing timings."""
 
 import json
-import re
 import shlex
 from pathlib import Path
 from types import SimpleNamespace
@@ -10,7 +9,7 @@ from types import SimpleNamespace
 import pytest
 
 from mitsuba_wai.render import render_folder
-from tests.conftest import PAPER_TOML
+from tests.conftest import paper_toml_with
 from wai.bench.restore import stage_times
 from wai.cli import build_parser, main
 from wai_core.sequence import read_sequence
@@ -34,10 +33,7 @@ STAGES = (
 @pytest.fixture(scope="module")
 def quick_toml(tmp_path_factory):
     """The paper's scene at 1 sample per pixel (the dots stay resolved at 800x600)."""
-    text = PAPER_TOML.read_text()
-    for key in ("spp_pattern", "spp_view"):
-        text, n = re.subn(rf"^{key}\s*=\s*\d+", f"{key} = 1", text, flags=re.MULTILINE)
-        assert n == 1, key
+    text = paper_toml_with(render={"spp_pattern": 1, "spp_view": 1})
     path = tmp_path_factory.mktemp("cfg") / "quick.toml"
     path.write_text(text)
     return path

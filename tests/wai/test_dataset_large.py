@@ -16,6 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
+from tests.conftest import paper_toml_with
 from wai.cli import main
 from wai.dataset import (
     ARRAYS,
@@ -28,22 +29,18 @@ from wai.dataset import (
     read_runs,
     sample_params,
 )
-from wai_core.scenes import resolve_scene
 
 pytestmark = pytest.mark.slow  # 100 frames rendered; CI runs it (scripts/test.sh --all)
 
 FRAMES = 100
 SEED = 7
-PAPER_MESH = "mesh_points_per_wavelength = 48"
 
 
 @pytest.fixture(scope="module")
 def hundred(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[str]]:
     tmp = tmp_path_factory.mktemp("ds100")
-    text = resolve_scene("paper").read_text()
-    assert PAPER_MESH in text
     scene = tmp / "coarse.toml"
-    scene.write_text(text.replace(PAPER_MESH, "mesh_points_per_wavelength = 8"))
+    scene.write_text(paper_toml_with(waves={"mesh_points_per_wavelength": 8}))
     args = ["--size", "64x48", "--spp", "1", "--seed", str(SEED), "--config", str(scene),
             "--quiet"]
     out = tmp / "d"

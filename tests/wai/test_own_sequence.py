@@ -4,14 +4,13 @@ frames, the input folder untouched, and a broken numbering named in one line."""
 
 import csv
 import json
-import re
 import shutil
 
 import cv2
 import numpy as np
 import pytest
 
-from tests.conftest import PAPER_TOML
+from tests.conftest import paper_toml_with
 from wai.cli import main
 from wai_core.errors import WaiInputError
 from wai_core.sequence import read_sequence, sequence_kind
@@ -22,10 +21,7 @@ FRAMES = 3
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory):
     """Three rendered frames of the paper's scene at 1 sample per pixel, restored as rendered."""
-    text = PAPER_TOML.read_text()
-    for key in ("spp_pattern", "spp_view"):
-        text, n = re.subn(rf"^{key}\s*=\s*\d+", f"{key} = 1", text, flags=re.MULTILINE)
-        assert n == 1, key
+    text = paper_toml_with(render={"spp_pattern": 1, "spp_view": 1})
     root = tmp_path_factory.mktemp("own")
     (root / "quick.toml").write_text(text)
     out = root / "seq"
