@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from wai.bench.timing import check_runs, machine, reference_workload, summarize
-from wai.sweep import THREAD_VARIABLES, limit_native_threads, scoped_environ
+from wai.threads import THREAD_VARIABLES, limit_native_threads, scoped_environ
 from wai_core.errors import WaiInputError
 
 FPS = 30.0
