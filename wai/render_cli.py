@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from typing import Any
 
 from wai_core.alterman import AltermanSystem, is_alterman_file, load_alterman
 from wai_core.config import SystemConfig, load_config
@@ -73,6 +74,14 @@ def _surface_label(args: argparse.Namespace) -> str:
     return f"[waves] of {args.config}"
 
 
+def _folder_options(args: argparse.Namespace, given: Heightfield | None) -> dict[str, Any]:
+    """The keyword arguments a render folder (a frame's, a sun-sensor frame's) takes from the
+    command line: the surface given, the progress bar, ``--overwrite``, the surface's label."""
+    return {"heightfield": given, "progress": not args.quiet,
+            "overwrite": getattr(args, "overwrite", False),
+            "surface_label": _surface_label(args)}
+
+
 def _prepare(args: argparse.Namespace, cfg: SystemConfig | None = None
              ) -> tuple[Heightfield | None, str]:
     """The checks every render makes before its long work: the output location, ``cfg``'s rig
@@ -122,14 +131,7 @@ def run_render(args: argparse.Namespace) -> None:
         run_render_sequence(cfg, args)
         return
     given, variant = _prepare(args, cfg)
-    record = render_folder(
-        cfg,
-        args.out,
-        heightfield=given,
-        progress=not args.quiet,
-        overwrite=getattr(args, "overwrite", False),
-        surface_label=_surface_label(args),
-    )
+    record = render_folder(cfg, args.out, **_folder_options(args, given))
     total = sum(record["timings_s"].values())
     print(
         f"rendered {args.out} ({variant}, U={cfg.waves.wind_speed_m_s} m/s, "
@@ -149,14 +151,7 @@ def run_render_alterman(args: argparse.Namespace) -> None:
         sensor = sensor.replace("render", spp=args.spp)
     system = AltermanSystem(base, sensor)
     given, variant = _prepare(args)
-    record = render_alterman_folder(
-        system,
-        args.out,
-        heightfield=given,
-        progress=not args.quiet,
-        overwrite=getattr(args, "overwrite", False),
-        surface_label=_surface_label(args),
-    )
+    record = render_alterman_folder(system, args.out, **_folder_options(args, given))
     total = sum(record["timings_s"].values())
     sun = sensor.sun
     state = f"sun at {sun.zenith_deg} deg" if sun.enabled else "overcast"

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from wai.bench import parse_pair
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import write_json
@@ -245,15 +246,7 @@ def summarize_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 def parse_camera(text: str) -> tuple[int, int]:
     """``"1600x1200"`` as (width, height) px; one-line error naming ``--camera`` otherwise."""
-    from wai_core.errors import WaiInputError
-
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise WaiInputError(f"--camera must be WIDTHxHEIGHT in pixels, not {text!r}") from None
-    if w < 16 or h < 16:
-        raise WaiInputError(f"--camera {text}: at least 16 x 16 pixels")
-    return w, h
+    return parse_pair(text, "--camera", "WIDTHxHEIGHT in pixels", 16, "pixels")
 
 
 def run_accuracy(config: str | Path, out: str | Path, seeds: int, wind: float | None = None,

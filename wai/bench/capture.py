@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from wai.bench import parse_pair
 from wai.bench.timing import machine, reference_workload
 from wai_core.errors import WaiInputError
 
@@ -26,13 +27,7 @@ SAME_CORNER_PX = 8.0
 
 def parse_board(text: str) -> tuple[int, int]:
     """``"8x6"``: inner corners (columns, rows); one-line error naming ``--board``."""
-    try:
-        cols, rows = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise WaiInputError(f"--board must be COLSxROWS inner corners, not {text!r}") from None
-    if cols < 2 or rows < 2:
-        raise WaiInputError(f"--board {text}: at least 2 x 2 inner corners")
-    return cols, rows
+    return parse_pair(text, "--board", "COLSxROWS inner corners", 2, "inner corners")
 
 
 def _on_mean_corners(score: Any, mean: Any, board: tuple[int, int]) -> float | None:

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import csv
 import io
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
+from wai.experiments.outputs import argv_command, output_folder
 from wai_core.alterman import AltermanSystem, load_alterman
 from wai_core.io import atomic_write_bytes, read_exr
 from wai_core.scenes import scene_path
@@ -508,8 +508,7 @@ def run_alterman(config: str | Path, out: str | Path, seeds: int, quick: bool = 
         process's arguments after it.
     """
     system = sensor_system(config)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     seed_list = list(range(seeds))
     angles = QUICK_ANGLES_DEG if quick else ANGLES_DEG
     rows, paper = structured_light_rows(system, seed_list, out)
@@ -518,7 +517,7 @@ def run_alterman(config: str | Path, out: str | Path, seeds: int, quick: bool = 
     atomic_write_bytes(out / "results.csv", csv_text(rows).encode())
     figs = [error_maps_figure(out, seed_list[0], angles), rmse_figure(out, rows, angles)]
     if command is None:
-        command = "wai experiment alterman " + " ".join(sys.argv[3:])
+        command = argv_command("alterman")
     md = report_markdown(command, system, rows, seed_list, angles, figs)
     atomic_write_bytes(out / "report.md", md.encode())
     print(md.split("## Table 2")[0].split("## Surface error")[1])

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from wai.experiments.outputs import output_folder, publish
 from wai_core.config import SystemConfig, with_keys
 from wai_core.io import atomic_write_bytes, write_json
 from wai_core.system import load_system
@@ -222,8 +223,7 @@ def run_calibration(config: str | Path, out: Path, seeds: int | None, quick: boo
     """The experiment: seeds 0..seeds-1 (10 when None), written into ``out``; ``quick``: 8
     checkerboard views per camera."""
     cfg = load_system(config)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     views = 8 if quick else CHECKERBOARD_VIEWS
     boards, fits = calibrated_rig(with_keys(cfg, LENS), out, views)
     flat = refined_on_flat_water(cfg, boards, render_seed(cfg, 0, out)["real"])
@@ -241,6 +241,4 @@ def run_calibration(config: str | Path, out: Path, seeds: int | None, quick: boo
         "calibrated_rig": calibrated, "fits": fits, "summary": summarize(rows),
     })
     _figure(rows, out / "calibration.png")
-    text = report(rows, fits)
-    atomic_write_bytes(out / "calibration.md", text.encode())
-    print(text)
+    publish(out / "calibration.md", report(rows, fits))

@@ -22,9 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from wai.sweep import SweepOptions, is_error, run_sweep
+from wai.experiments.outputs import output_folder, publish, sweep_command, sweep_rows
+from wai.sweep import SweepOptions, is_error
 from wai_core.config import with_keys
-from wai_core.io import atomic_write_bytes, write_json
+from wai_core.io import write_json
 from wai_core.system import load_rig
 
 FPS = 30.0
@@ -311,8 +312,7 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
     for spec in specs:  # a bad name fails here, before any render
         if spec not in VIDEO_METHODS:
             method_class(spec)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     frames = 8 if quick else 30
     points = compare_points(list(dict.fromkeys(specs)), seeds, quick)
     cases = {case_name(p): p for p in points}
@@ -322,10 +322,10 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
         for q in points:
             if case_name(q) == name:
                 q["folder"] = str(folder)
-    rows = run_sweep(points, evaluate, out / "compare.csv",
-                     key=("wind", "seed", "degradation", "method"), **sweep.kwargs())
+    rows = sweep_rows(points, evaluate, out / "compare.csv", sweep,
+                      key=("wind", "seed", "degradation", "method"))
     summary = summarize(rows)
-    command = f"wai experiment compare --seeds {seeds}" + (" --quick" if quick else "")
+    command = sweep_command("compare", seeds, quick)
     case_taus = case_agreement(rows)
     text = report(summary, command, case_taus)
     tau, _ = rank_agreement(summary)
@@ -333,8 +333,7 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
                {"command": command, "methods": summary, "kendall_tau_grid_corner_std": tau,
                 "kendall_tau_rig_corner_std": rank_agreement(summary, "rig_px")[0],
                 "kendall_tau_per_case": case_taus})
-    atomic_write_bytes(out / "compare.md", text.encode())
     _figure(summary, out / "compare.png")
-    print(text)
+    publish(out / "compare.md", text)
     return summary
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 import base64
 import html
 import shutil
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from wai.experiments.outputs import argv_command, output_folder
 from wai_core.config import SystemConfig
 from wai_core.geometry import reflect
 from wai_core.io import atomic_write_bytes, write_json
@@ -433,8 +433,7 @@ def run_paper(config: str | Path, out: str | Path, seeds: int, quick: bool = Fal
     from wai import figures
 
     cfg = load_rig(config)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     seed_list = list(range(seeds))
     factors = [1.0, 2.0, 3.0] if quick else [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0]
     runs = run_seeds(cfg, seed_list, out)
@@ -452,7 +451,7 @@ def run_paper(config: str | Path, out: str | Path, seeds: int, quick: bool = Fal
     )
     figs = figures_from_seed0(cfg, out, runs[0].done)
     if command is None:
-        command = "wai experiment paper " + " ".join(sys.argv[3:])
+        command = argv_command("paper")
     md = report_markdown(command, cfg, runs, fig8, limit, sweep, figs)
     atomic_write_bytes(out / "report.md", md.encode())
     atomic_write_bytes(out / "report.html", markdown_to_html(md, out).encode())

@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from wai.experiments.outputs import output_folder
 from wai_core.config import SAMPLINGS, SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import atomic_write_bytes, write_json
@@ -318,8 +319,7 @@ def run_validate(config: str | Path, out: str | Path, quick: bool = False) -> di
         ``validate.json``.
     """
     cfg = load_rig(config)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     against_mitsuba = reference_table(cfg, quick)
     table = agreement_table(cfg, quick)
     spps = [2, 8, 32] if quick else [1, 2, 3, 4, 8, 16, 32, 64]
