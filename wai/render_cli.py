@@ -87,14 +87,13 @@ def _prepare(args: argparse.Namespace, cfg: SystemConfig | None = None
     """The checks every render makes before its long work: the output location, ``cfg``'s rig
     geometry and the memory its frame needs, the surface file, the variant. Returns the surface
     given (or None) and the variant's name."""
-    from mitsuba_wai.render import OUTPUT_COMMAND
-    from mitsuba_wai.variant import select_variant
+    from mitsuba_wai import OUTPUT_COMMAND, select_variant
 
     check_output_dir(
         args.out, OUTPUT_COMMAND, getattr(args, "overwrite", False), label=f"--out {args.out}"
     )
     if cfg is not None:
-        from mitsuba_wai.memory import check_render_memory
+        from mitsuba_wai import check_render_memory
         from wai_core.rig_checks import check_rig
 
         check_rig(cfg, str(args.config))
@@ -110,7 +109,7 @@ def _prepare(args: argparse.Namespace, cfg: SystemConfig | None = None
 def run_render(args: argparse.Namespace) -> None:
     """Render the configured frame (or ``--frames`` of them) into ``args.out`` and print a
     one-line summary."""
-    from mitsuba_wai.render import render_folder
+    from mitsuba_wai import render_folder
 
     scene = resolve_scene(args.config)  # a packaged scene's name, or a TOML file
     sequence = getattr(args, "frames", 1) != 1
@@ -142,7 +141,7 @@ def run_render(args: argparse.Namespace) -> None:
 def run_render_alterman(args: argparse.Namespace) -> None:
     """Render a sun-sensor frame (a TOML file with ``[base]``); the same overrides apply to the
     base scene, and ``--spp`` to the sun spots as well."""
-    from mitsuba_wai.alterman import render_alterman_folder
+    from mitsuba_wai import render_alterman_folder
 
     system = load_alterman(resolve_scene(args.config))
     base = apply_overrides(system.base, args)
@@ -177,7 +176,7 @@ def _check_sequence(args: argparse.Namespace) -> None:
 def run_render_sequence(cfg: SystemConfig, args: argparse.Namespace) -> None:
     """``--frames N --fps F``: a sequence folder (:mod:`wai_core.sequence`), its frames
     rendered here or on Dask workers (``--workers``, ``--scheduler``)."""
-    from mitsuba_wai.sequence import render_sequence
+    from mitsuba_wai import render_sequence
 
     _check_sequence(args)
     _, variant = _prepare(args, cfg)
@@ -230,7 +229,7 @@ def render_frame_point(point: dict) -> dict:
     import json
     from pathlib import Path
 
-    from mitsuba_wai.sequence import render_frames
+    from mitsuba_wai import render_frames
     from wai_core.config import config_from_dict
 
     cfg = config_from_dict(json.loads(point["config"]))

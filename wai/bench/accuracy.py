@@ -53,9 +53,7 @@ def true_spots(cfg: SystemConfig, truth: Heightfield, ij: NDArray) -> NDArray:
 def _surface_variant(
     name: str, features: Any, cal: Any, truth: Heightfield, options: Any
 ) -> dict[str, float]:
-    from restoration import Calibration
-    from restoration.metrics import surface_errors
-    from restoration.structured_light import estimate_surface, fit_to_spots, spots_of
+    from restoration import Calibration, estimate_surface, fit_to_spots, spots_of, surface_errors
 
     cfg = cal.cfg
     spots = features.spot_px
@@ -111,7 +109,7 @@ def spot_noise_px(cfg: SystemConfig, features: Any, truth: Heightfield) -> dict[
 def run_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Any]:
     """Render, restore and dissect one seed (the restoration runs once; the budget's variants
     rerun only the surface stage on its features)."""
-    from mitsuba_wai.render import render_folder
+    from mitsuba_wai import render_folder
     from restoration import restore_folder
 
     frame = out / f"seed{seed:03d}"

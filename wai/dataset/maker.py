@@ -23,7 +23,7 @@ __all__ = ["FrameMaker", "grid_axes"]
 def grid_axes(spec: DatasetSpec, base: SystemConfig) -> tuple[NDArray, NDArray]:
     """The dataset's storage grid: the wave model's mesh grid at the lowest wind of the range,
     whose waves are the shortest (as fine as any frame's mesh)."""
-    from mitsuba_wai.surface_sampling import wave_surface
+    from mitsuba_wai import wave_surface
 
     grid = wave_surface(base.replace("waves", wind_speed_m_s=spec.ranges.wind_speed_m_s[0]))
     return grid.x, grid.y
@@ -65,7 +65,7 @@ class FrameMaker:
     ) -> Heightfield:
         """The sea state of ``cfg`` at ``time_s`` (default its own) on the storage grid, or
         on mesh ``level`` (spacing times ``2**level``)."""
-        from mitsuba_wai.waves import sea_surface
+        from mitsuba_wai import sea_surface
 
         t = cfg.waves.time_s if time_s is None else time_s
         x, y = _coarser(self.x_mm, level), _coarser(self.y_mm, level)
@@ -73,7 +73,7 @@ class FrameMaker:
 
     def level(self, cfg: SystemConfig) -> int:
         """The coarsest mesh level whose spacing resolves ``cfg``'s shortest wave."""
-        from mitsuba_wai.waves import mesh_spacing_mm, sea_surface
+        from mitsuba_wai import mesh_spacing_mm, sea_surface
 
         span = float(max(self.x_mm[-1] - self.x_mm[0], self.y_mm[-1] - self.y_mm[0]))
         own = mesh_spacing_mm(sea_surface(cfg.waves), cfg.waves.mesh_points_per_wavelength, span)
@@ -85,7 +85,7 @@ class FrameMaker:
         return level
 
     def _renderer(self, level: int, surface: Heightfield) -> Any:
-        from mitsuba_wai.render import FrameRenderer
+        from mitsuba_wai import FrameRenderer
 
         if level not in self._renderers:
             self._renderers[level] = FrameRenderer(self.base, surface)
@@ -94,8 +94,7 @@ class FrameMaker:
     def render(self, index: int) -> tuple[SystemConfig, Heightfield, dict[str, NDArray], float]:
         """Frame ``index``'s configuration, true surface (on the storage grid), images and the
         views' gain: the renders of :func:`mitsuba_wai.render_frame` on the frame's mesh."""
-        from mitsuba_wai.frame_images import render_frame_images
-        from mitsuba_wai.render import render_seed
+        from mitsuba_wai import render_frame_images, render_seed
         from wai_core.optics import radiance_gain
 
         p = sample_params(self.spec.seed, index, self.spec.ranges, self.spec.degrade)

@@ -135,7 +135,7 @@ class DatasetSpec:
 
     def base_config(self) -> SystemConfig:
         """The scene, with ``size_px`` applied to both cameras."""
-        from mitsuba_wai.lens import lens_keys
+        from mitsuba_wai import lens_keys
         from wai_core.system import load_rig
 
         cfg = load_rig(self.config)

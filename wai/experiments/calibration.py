@@ -52,8 +52,8 @@ COLUMNS = ("seed", "lens", "rig", "spots", "status", "wai_rmse_mm", "wai_rmse_de
 def calibrated_rig(real: SystemConfig, out: Path, views: int) -> tuple[dict[str, Any], dict]:
     """The rig keys ``wai calibrate`` finds for the real lenses from ``views`` rendered
     checkerboards per camera, and the fits' summary (each value beside its truth)."""
-    from mitsuba_wai.checkerboards import Board, render_checkerboards
-    from restoration.rig_calibration import calibrate_device
+    from mitsuba_wai import Board, render_checkerboards
+    from restoration import calibrate_device
 
     keys: dict[str, Any] = {}
     fits: dict[str, Any] = {}
@@ -78,7 +78,7 @@ def calibrated_rig(real: SystemConfig, out: Path, views: int) -> tuple[dict[str,
 def refined_on_flat_water(cfg: SystemConfig, boards: dict[str, Any], frame: Path) -> Any:
     """Camera s refined on the rig's flat-water pattern (:func:`restoration.rig_calibration.
     refine_on_flat_water`), starting from the checkerboards' intrinsics."""
-    from restoration.rig_calibration import refine_on_flat_water
+    from restoration import refine_on_flat_water
     from wai_core.images import find_image, read_image
 
     return refine_on_flat_water(with_keys(cfg, boards), read_image(find_image(frame,
@@ -96,7 +96,7 @@ def _row(seed: int, lens: str, rig: str, spots: str, metrics: dict[str, Any]
 def render_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Path]:
     """The seed's ideal-lens and real-lens frames, rendered into ``out`` (a rerun reuses
     them)."""
-    from mitsuba_wai.render import render_folder
+    from mitsuba_wai import render_folder
 
     cfg = cfg.replace("waves", seed=seed)
     folders = {"ideal": out / f"seed{seed:03d}" / "ideal_lens",

@@ -97,10 +97,8 @@ def _other_datasets(
 ) -> dict[str, dict[str, dict[str, float]]]:
     """Table 2's natural images: render V through the same surface, restore with the surface
     the structured light reconstructed for this frame (``done``, a FolderRestore)."""
-    from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import render_seed
-    from restoration.metrics import image_metrics
-    from restoration.scoring import OBJECT_MIN_LEVEL
+    from mitsuba_wai import flat_like, render_seed
+    from restoration import OBJECT_MIN_LEVEL, image_metrics
     from wai_core.heightfield import load_heightfield
 
     truth = load_heightfield(done.folder / "heightfield.npz")
@@ -124,9 +122,7 @@ def _other_datasets(
 
 def run_seeds(cfg: SystemConfig, seeds: list[int], out: Path) -> list[SeedRun]:
     """Render, restore and score each seed on the checkerboard, then the natural images."""
-    from mitsuba_wai.render import FrameRenderer, render_folder
-    from mitsuba_wai.surface_sampling import wave_surface
-    from mitsuba_wai.textures import object_texture
+    from mitsuba_wai import FrameRenderer, object_texture, render_folder, wave_surface
     from restoration import restore_folder
 
     grid = wave_surface(cfg)
@@ -150,11 +146,8 @@ def run_seeds(cfg: SystemConfig, seeds: list[int], out: Path) -> list[SeedRun]:
 def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> list[dict]:
     """Scale the waves' heights by each factor: measured slope amplitude Φ and the fraction of
     dots whose correspondence is correct (against the geometric model's labels)."""
-    from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, render_seed
-    from mitsuba_wai.surface_sampling import wave_surface
-    from restoration import RestorationFailed
-    from restoration.features import features_from_reference, prepare_reference
+    from mitsuba_wai import FrameRenderer, flat_like, render_seed, wave_surface
+    from restoration import RestorationFailed, features_from_reference, prepare_reference
     from wai.experiments.frame_eval import correspondence_counts
     from wai_core.errors import WaiInputError
     from wai_core.forward import predict_spots

@@ -123,7 +123,7 @@ def failure_point(entries: list[dict[str, Any]], harsher: int = 1) -> float | No
 
 def evaluate_sun(point: dict[str, Any]) -> dict[str, Any]:
     """Render and restore Alterman's sun sensor at the point's sun zenith angle."""
-    from mitsuba_wai.alterman import render_alterman_folder
+    from mitsuba_wai import render_alterman_folder
     from restoration import Alterman, restore_folder
     from wai_core.alterman import AltermanSystem, load_alterman
     from wai_core.system import load_rig

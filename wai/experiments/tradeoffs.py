@@ -49,7 +49,7 @@ QUICK = {"spacing": (20, 28, 40), "spp": (4, 8), "warp": (4, 8, 16)}
 
 def integrator_names() -> list[str]:
     """Every registered integrator (:data:`restoration.integrate.INTEGRATORS`)."""
-    from restoration.integrate import INTEGRATORS
+    from restoration import INTEGRATORS
 
     return list(INTEGRATORS)
 
