@@ -15,21 +15,55 @@ renderer. Renders are reproducible bit for bit for a seed: the particle-traced i
 sun spots) come from :mod:`mitsuba_wai.particles`, which sums in a fixed order.
 """
 
+from mitsuba_wai.alterman import SunRenderer, alterman_surface, render_alterman_folder
+from mitsuba_wai.checkerboards import Board, render_checkerboards
+from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense, subframe_plan
 from mitsuba_wai.frame import Frame, render_frame
-from mitsuba_wai.render import FrameRenderer, render_folder
-from mitsuba_wai.sequence import render_sequence
+from mitsuba_wai.frame_images import render_frame_images
+from mitsuba_wai.lens import lens_keys
+from mitsuba_wai.memory import check_render_memory, describe_devices, render_bytes
+from mitsuba_wai.mesh import flat_like
+from mitsuba_wai.reference import render_reference, windowed_centroids
+from mitsuba_wai.render import OUTPUT_COMMAND, FrameRenderer, render_folder, render_seed
+from mitsuba_wai.seawater import coefficients_per_mm, pattern_path_lengths_mm
+from mitsuba_wai.sequence import render_frames, render_sequence
 from mitsuba_wai.surface_sampling import file_surface, wave_surface
+from mitsuba_wai.textures import object_texture
 from mitsuba_wai.variant import select_variant
-from mitsuba_wai.waves import sea_surface
+from mitsuba_wai.waves import mesh_spacing_mm, sea_surface
 
 __all__ = [
+    "OUTPUT_COMMAND",
+    "Board",
     "Frame",
     "FrameRenderer",
+    "SunRenderer",
+    "alterman_surface",
+    "check_render_memory",
+    "coefficients_per_mm",
+    "describe_devices",
     "file_surface",
+    "flat_like",
+    "lens_keys",
+    "mesh_spacing_mm",
+    "object_texture",
+    "pattern_path_lengths_mm",
+    "render_alterman_folder",
+    "render_bytes",
+    "render_checkerboards",
+    "render_exposure",
     "render_folder",
     "render_frame",
+    "render_frame_images",
+    "render_frames",
+    "render_reference",
+    "render_seed",
     "render_sequence",
+    "resolve_exposure",
     "sea_surface",
     "select_variant",
+    "sense",
+    "subframe_plan",
     "wave_surface",
+    "windowed_centroids",
 ]

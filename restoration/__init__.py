@@ -32,11 +32,14 @@ raises :class:`~wai_core.errors.WaiInputError`.
 """
 
 from restoration import video
-from restoration.alterman import AltermanCalibration
+from restoration._compile import COMPILE_NOTICE, kernel_activity, kernels_cached
+from restoration.alterman import AltermanCalibration, reconstruct_alterman
 from restoration.calibration import Calibration, LevelTrack, RigCalibration
 from restoration.consistency import Consistency
 from restoration.errors import RestorationFailed
-from restoration.folder import FolderRestore, restore_folder
+from restoration.features import detect_spots, features_from_reference, prepare_reference
+from restoration.folder import FolderRestore, restore_folder, restore_frame
+from restoration.integrate import COMPARISON_INTEGRATORS, INTEGRATORS
 from restoration.methods import (
     ENTRY_POINT_GROUP,
     METHODS,
@@ -49,6 +52,8 @@ from restoration.methods import (
     method_names,
     run_method,
 )
+from restoration.metrics import image_metrics, surface_errors
+from restoration.normals import spots_on_diffuser
 from restoration.observations import Observations
 from restoration.options import (
     ANCHORS,
@@ -57,20 +62,42 @@ from restoration.options import (
     SurfaceOptions,
 )
 from restoration.result import STATUSES, RestoredView, RestoreResult, Status
+from restoration.rig_calibration import (
+    UNDETERMINED,
+    BoardSpec,
+    calibrate_device,
+    is_written_rig,
+    read_rig,
+    refine_on_flat_water,
+    rig_keys,
+    write_rig,
+)
 from restoration.rig_score import RigGridScore, rig_grid_score
-from restoration.scoring import Scores, Truth, score
-from restoration.sequence import SequenceRestore, restore_sequence
-from restoration.structured_light import StructuredLight
+from restoration.scoring import OBJECT_MIN_LEVEL, Scores, Truth, score
+from restoration.sequence import (
+    SequenceRestore,
+    load_sequence,
+    restore_sequence,
+    sequence_frames,
+)
+from restoration.structured_light import StructuredLight, estimate_surface, fit_to_spots
+from restoration.tracking import SequenceState
 from restoration.view_check import ViewMatch
 
 __all__ = [
     "ANCHORS",
+    "COMPARISON_INTEGRATORS",
+    "COMPILE_NOTICE",
     "ENTRY_POINT_GROUP",
+    "INTEGRATORS",
     "METHODS",
+    "OBJECT_MIN_LEVEL",
     "STATUSES",
+    "UNDETERMINED",
     "Alterman",
     "AltermanCalibration",
     "AltermanOptions",
+    "BoardSpec",
     "Calibration",
     "Consistency",
     "FolderRestore",
@@ -84,6 +111,7 @@ __all__ = [
     "RigGridScore",
     "Scores",
     "SequenceRestore",
+    "SequenceState",
     "Status",
     "StructuredLight",
     "StructuredLightOptions",
@@ -91,14 +119,34 @@ __all__ = [
     "Truth",
     "ViewMatch",
     "as_method",
+    "calibrate_device",
+    "detect_spots",
+    "estimate_surface",
+    "features_from_reference",
+    "fit_to_spots",
     "get_method",
+    "image_metrics",
+    "is_written_rig",
+    "kernel_activity",
+    "kernels_cached",
     "load_calibration",
+    "load_sequence",
     "method_class",
     "method_names",
+    "prepare_reference",
+    "read_rig",
+    "reconstruct_alterman",
+    "refine_on_flat_water",
     "restore_folder",
+    "restore_frame",
     "restore_sequence",
     "rig_grid_score",
+    "rig_keys",
     "run_method",
     "score",
+    "sequence_frames",
+    "spots_on_diffuser",
+    "surface_errors",
     "video",
+    "write_rig",
 ]

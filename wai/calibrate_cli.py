@@ -18,7 +18,7 @@ CAMERAS = ("camera_v", "camera_s")
 def board_spec(cols: Any, rows: Any, square_mm: Any, source: str) -> Any:
     """A board spec from its inner corners (integers >= 3) and square size (finite, > 0 mm);
     anything else raises WaiInputError naming ``source`` (the option or the file)."""
-    from restoration.rig_calibration import BoardSpec
+    from restoration import BoardSpec
 
     def corners(v: Any) -> int | None:
         whole = isinstance(v, int | float) and not isinstance(v, bool) and float(v).is_integer()
@@ -59,7 +59,7 @@ def _board(args: argparse.Namespace) -> Any:
 def check_rig_output(path: Path) -> None:
     """Refuse, before any work, an output that cannot be written or would replace a file this
     tool did not write (a rig file without ``wai calibrate``'s ``format``)."""
-    from restoration.rig_calibration import is_written_rig
+    from restoration import is_written_rig
     from wai_core.outputs import check_output_file
 
     check_output_file(path, f"--out {path}", is_written_rig,
@@ -70,7 +70,7 @@ def run_calibrate(args: argparse.Namespace) -> None:
     """Calibrate every camera folder of ``args.dir`` and write the rig file ``args.out``."""
     from tqdm import tqdm
 
-    from restoration.rig_calibration import UNDETERMINED, calibrate_device, write_rig
+    from restoration import UNDETERMINED, calibrate_device, write_rig
     from wai_core.images import IMAGE_SUFFIXES, read_image
     from wai_core.system import load_system
 
@@ -97,7 +97,7 @@ def run_calibrate(args: argparse.Namespace) -> None:
     devices = {c: getattr(cfg, c) for c in fits}
     flat = None
     if args.flat is not None:
-        from restoration.rig_calibration import refine_on_flat_water, rig_keys
+        from restoration import refine_on_flat_water, rig_keys
         from wai_core.config import with_keys
 
         if "camera_s" not in fits:
@@ -141,8 +141,7 @@ def run_checkerboards(args: argparse.Namespace, cfg: Any) -> None:
     ``args.out/checkerboards/`` with ``board.json`` and the true intrinsics."""
     from tqdm import tqdm
 
-    from mitsuba_wai.checkerboards import Board, render_checkerboards
-    from mitsuba_wai.memory import check_render_memory
+    from mitsuba_wai import Board, check_render_memory, render_checkerboards
     from wai_core.io import write_json, write_png
     from wai_core.outputs import atomic_dir, check_output_dir
 

@@ -73,7 +73,7 @@ def _version() -> str:
 def _integrators() -> list[str]:
     """The integrators ``wai restore`` offers: those that restore the paper's frames ``ok``
     (the grid integrators stay in the library and the sweeps, for comparison)."""
-    from restoration.integrate import COMPARISON_INTEGRATORS, INTEGRATORS
+    from restoration import COMPARISON_INTEGRATORS, INTEGRATORS
 
     return [name for name in INTEGRATORS if name not in COMPARISON_INTEGRATORS]
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 def run_demo(args: argparse.Namespace) -> None:
     """Render + restore the paper's setup into ``args.out`` and print the scores."""
-    from mitsuba_wai.render import render_folder
+    from mitsuba_wai import render_folder
     from restoration import Calibration, restore_folder
     from wai import figures
     from wai_core import load_system

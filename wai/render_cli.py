@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from typing import Any
 
 from wai_core.alterman import AltermanSystem, is_alterman_file, load_alterman
 from wai_core.config import SystemConfig, load_config
@@ -73,19 +74,26 @@ def _surface_label(args: argparse.Namespace) -> str:
     return f"[waves] of {args.config}"
 
 
+def _folder_options(args: argparse.Namespace, given: Heightfield | None) -> dict[str, Any]:
+    """The keyword arguments a render folder (a frame's, a sun-sensor frame's) takes from the
+    command line: the surface given, the progress bar, ``--overwrite``, the surface's label."""
+    return {"heightfield": given, "progress": not args.quiet,
+            "overwrite": getattr(args, "overwrite", False),
+            "surface_label": _surface_label(args)}
+
+
 def _prepare(args: argparse.Namespace, cfg: SystemConfig | None = None
              ) -> tuple[Heightfield | None, str]:
     """The checks every render makes before its long work: the output location, ``cfg``'s rig
     geometry and the memory its frame needs, the surface file, the variant. Returns the surface
     given (or None) and the variant's name."""
-    from mitsuba_wai.render import OUTPUT_COMMAND
-    from mitsuba_wai.variant import select_variant
+    from mitsuba_wai import OUTPUT_COMMAND, select_variant
 
     check_output_dir(
         args.out, OUTPUT_COMMAND, getattr(args, "overwrite", False), label=f"--out {args.out}"
     )
     if cfg is not None:
-        from mitsuba_wai.memory import check_render_memory
+        from mitsuba_wai import check_render_memory
         from wai_core.rig_checks import check_rig
 
         check_rig(cfg, str(args.config))
@@ -101,7 +109,7 @@ def _prepare(args: argparse.Namespace, cfg: SystemConfig | None = None
 def run_render(args: argparse.Namespace) -> None:
     """Render the configured frame (or ``--frames`` of them) into ``args.out`` and print a
     one-line summary."""
-    from mitsuba_wai.render import render_folder
+    from mitsuba_wai import render_folder
 
     scene = resolve_scene(args.config)  # a packaged scene's name, or a TOML file
     sequence = getattr(args, "frames", 1) != 1
@@ -122,14 +130,7 @@ def run_render(args: argparse.Namespace) -> None:
         run_render_sequence(cfg, args)
         return
     given, variant = _prepare(args, cfg)
-    record = render_folder(
-        cfg,
-        args.out,
-        heightfield=given,
-        progress=not args.quiet,
-        overwrite=getattr(args, "overwrite", False),
-        surface_label=_surface_label(args),
-    )
+    record = render_folder(cfg, args.out, **_folder_options(args, given))
     total = sum(record["timings_s"].values())
     print(
         f"rendered {args.out} ({variant}, U={cfg.waves.wind_speed_m_s} m/s, "
@@ -140,7 +141,7 @@ def run_render(args: argparse.Namespace) -> None:
 def run_render_alterman(args: argparse.Namespace) -> None:
     """Render a sun-sensor frame (a TOML file with ``[base]``); the same overrides apply to the
     base scene, and ``--spp`` to the sun spots as well."""
-    from mitsuba_wai.alterman import render_alterman_folder
+    from mitsuba_wai import render_alterman_folder
 
     system = load_alterman(resolve_scene(args.config))
     base = apply_overrides(system.base, args)
@@ -149,14 +150,7 @@ def run_render_alterman(args: argparse.Namespace) -> None:
         sensor = sensor.replace("render", spp=args.spp)
     system = AltermanSystem(base, sensor)
     given, variant = _prepare(args)
-    record = render_alterman_folder(
-        system,
-        args.out,
-        heightfield=given,
-        progress=not args.quiet,
-        overwrite=getattr(args, "overwrite", False),
-        surface_label=_surface_label(args),
-    )
+    record = render_alterman_folder(system, args.out, **_folder_options(args, given))
     total = sum(record["timings_s"].values())
     sun = sensor.sun
     state = f"sun at {sun.zenith_deg} deg" if sun.enabled else "overcast"
@@ -182,7 +176,7 @@ def _check_sequence(args: argparse.Namespace) -> None:
 def run_render_sequence(cfg: SystemConfig, args: argparse.Namespace) -> None:
     """``--frames N --fps F``: a sequence folder (:mod:`wai_core.sequence`), its frames
     rendered here or on Dask workers (``--workers``, ``--scheduler``)."""
-    from mitsuba_wai.sequence import render_sequence
+    from mitsuba_wai import render_sequence
 
     _check_sequence(args)
     _, variant = _prepare(args, cfg)
@@ -235,7 +229,7 @@ def render_frame_point(point: dict) -> dict:
     import json
     from pathlib import Path
 
-    from mitsuba_wai.sequence import render_frames
+    from mitsuba_wai import render_frames
     from wai_core.config import config_from_dict
 
     cfg = config_from_dict(json.loads(point["config"]))

@@ -29,7 +29,7 @@ def run_restore(args: argparse.Namespace) -> None:
     options = method_options(args)
     rig = None
     if getattr(args, "rig", None) is not None:  # read before any work: a bad file stops here
-        from restoration.rig_calibration import read_rig
+        from restoration import read_rig
 
         read_rig(args.rig)
         rig = args.rig
@@ -87,7 +87,7 @@ def method_options(args: argparse.Namespace) -> SurfaceOptions:
 
 def compile_notice(quiet: bool) -> bool:
     """Say so (unless ``quiet``) when this run compiles the kernels; whether it will."""
-    from restoration._compile import COMPILE_NOTICE, kernels_cached
+    from restoration import COMPILE_NOTICE, kernels_cached
 
     cold = not kernels_cached()
     if cold and not quiet:
@@ -99,7 +99,7 @@ def run_restore_sequence(
     args: argparse.Namespace, options: SurfaceOptions, rig: Any = None
 ) -> None:
     """A sequence folder: every frame, the per-frame table, the movies and temporal scores."""
-    from restoration.sequence import restore_sequence
+    from restoration import restore_sequence
 
     done = restore_sequence(args.dir, args.method, options, progress=not args.quiet, rig=rig,
                             track=getattr(args, "track", False))

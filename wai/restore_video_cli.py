@@ -31,11 +31,11 @@ def _views(path: Path) -> tuple[Iterator[Any], tuple[int, int, int, int], int]:
     """The frames of a sequence folder (its views, on the object's radiance scale), of a
     folder of images or of a video file, one at a time; their count, height, width and
     channels; and the bytes per frame a sequence's loader holds beside them."""
-    from restoration.video import frames_shape, iter_frames
+    from restoration import video
     from wai_core.sequence import is_sequence
 
     if path.is_dir() and is_sequence(path):
-        from restoration.sequence import sequence_frames
+        from restoration import sequence_frames
         from wai_core.sequence import read_sequence
 
         cal, images = sequence_frames(path)
@@ -43,18 +43,18 @@ def _views(path: Path) -> tuple[Iterator[Any], tuple[int, int, int, int], int]:
         views = (np.clip(cal.radiance(im["view"]), 0, 1) for im in images)
         # A sequence's frames are loaded whole: each frame's view and pattern (float32 RGB).
         return views, (len(read_sequence(path).frames), h, w, 3), 12 * (h * w + hs * ws)
-    return iter_frames(path), frames_shape(path), 0
+    return video.iter_frames(path), video.frames_shape(path), 0
 
 
 def _check_memory(path: Path, method: str, shape: tuple[int, int, int, int],
                   loader_bytes: int) -> None:
     """Refuse a registration or lucky fusion whose frames, loaded whole, would need more
     memory than is available (:func:`restoration.video.fusion_bytes`)."""
-    from restoration.video import fusion_bytes
+    from restoration import video
     from wai_core.memory import check_memory
 
     n, h, w, _ = shape
-    check_memory(fusion_bytes(*shape) + n * loader_bytes,
+    check_memory(video.fusion_bytes(*shape) + n * loader_bytes,
                  f"{path} ({n} frames of {w} x {h} px)",
                  f"--method {method} (every frame in memory; --method mean streams them)")
 
@@ -63,7 +63,7 @@ def run_restore_video(args: argparse.Namespace) -> None:
     """Restore ``args.dir`` by ``args.method``; print what a person reads first."""
     import cv2
 
-    from restoration.video import checkerboard_score, lucky_fusion, register_frames, streamed_mean
+    from restoration import video
     from wai_core.io import write_exr, write_json, write_png
     from wai_core.outputs import atomic_dir, check_output_dir
 
@@ -79,10 +79,10 @@ def run_restore_video(args: argparse.Namespace) -> None:
     check_output_dir(target, "restore", remedy="choose another --out")
     frames, shape, loader_bytes = _views(path)
     if args.method == "mean":
-        res = streamed_mean(frames)
+        res = video.streamed_mean(frames)
     else:
         _check_memory(path, args.method, shape, loader_bytes)
-        run = {"registration": register_frames, "lucky": lucky_fusion}
+        run = {"registration": video.register_frames, "lucky": video.lucky_fusion}
         res = run[args.method](np.stack(list(frames)))
     metrics: dict[str, Any] = {
         "method": res.method, "source": str(path), "frames": int(res.frames_used),
@@ -91,7 +91,7 @@ def run_restore_video(args: argparse.Namespace) -> None:
                      "opencv": cv2.__version__},
     }
     if board is not None:
-        s = checkerboard_score(res.image, board)
+        s = video.checkerboard_score(res.image, board)
         metrics["checkerboard"] = {"board": list(board), "found": bool(s.found),
                                    "rms_px": float(s.rms_px) if s.found else None}
     image = res.image if res.image.ndim == 3 else np.repeat(res.image[..., None], 3, axis=2)

@@ -157,7 +157,7 @@ def test_flat_pixel_of_inverts_the_flat_forward_map() -> None:
 
 def test_object_points_are_trace_to_objects() -> None:
     from mitsuba_wai import wave_surface
-    from wai.dataset import _object_points
+    from wai.dataset.truth import _object_points
 
     base = load_system("paper").replace("camera_v", width_px=120, height_px=90)
     for wind in (0.6, 2.0):
@@ -242,14 +242,14 @@ def test_an_unwritable_folder_is_refused_before_rendering(tmp_path: Path, monkey
     import os
     import tempfile
 
-    import wai.dataset as dataset
+    import wai.dataset.write as writer
 
     def read_only(*args, **kwargs):
         raise OSError(errno.EROFS, os.strerror(errno.EROFS))
 
     monkeypatch.setattr(tempfile, "mkdtemp", read_only)
     monkeypatch.setattr(tempfile, "mkstemp", read_only)
-    monkeypatch.setattr(dataset, "FrameMaker", None)  # rendering would raise TypeError
+    monkeypatch.setattr(writer, "FrameMaker", None)  # rendering would raise TypeError
     (tmp_path / "empty").mkdir()
     for out in (tmp_path / "new", tmp_path / "empty"):
         assert main(["dataset", "--frames", "1", "--out", str(out), *ARGS]) == 2
@@ -280,7 +280,7 @@ def test_a_full_disk_stops_between_frames_and_the_rerun_continues(
     import errno
     import os
 
-    import wai.dataset_store as store
+    import wai.dataset.store as store
 
     real, calls = os.posix_fallocate, []
 

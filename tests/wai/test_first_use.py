@@ -52,12 +52,12 @@ def test_a_point_whose_worker_died_runs_once_more_and_says_so(tmp_path, capsys):
 
 
 def test_a_sweep_that_cannot_start_leaves_nothing_of_its_own(tmp_path, monkeypatch):
-    import wai.sweep
+    import wai.sweep.backend
 
     def broken(*args, **kwargs):
         raise RuntimeError("no cluster today")
 
-    monkeypatch.setattr(wai.sweep, "_dask_client", broken)
+    monkeypatch.setattr(wai.sweep.backend, "_dask_client", broken)
     mine = tmp_path / "notes.txt"
     mine.write_text("the user's")
     with pytest.raises(RuntimeError, match="no cluster today"):

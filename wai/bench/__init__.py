@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["DEFAULT_OUT", "show"]
+__all__ = ["DEFAULT_OUT", "parse_pair", "show"]
 
 DEFAULT_OUT = {
     "all": Path("renders/bench"),
@@ -41,3 +41,44 @@ def show(result: dict[str, Any], printer: Callable[[dict[str, Any]], None], *, a
     printer(result)
     for path in written:
         print(f"wrote {path}")
+
+
+def parse_pair(text: str, option: str, form: str, minimum: int, unit: str) -> tuple[int, int]:
+    """Two whole numbers written ``AxB`` (``1600x1200``, ``8x6``), each at least ``minimum``.
+
+    Parameters
+    ----------
+    text : str
+        The option's value.
+    option : str
+        The option, as the error names it (``--camera``).
+    form : str
+        What the value should look like, in the error (``WIDTHxHEIGHT in pixels``).
+    minimum : int
+        The least of each number.
+    unit : str
+        What the numbers count, in the error (``pixels``).
+
+    Returns
+    -------
+    (int, int)
+
+    Raises
+    ------
+    WaiInputError
+        One line naming ``option``: not two whole numbers, or one under ``minimum``.
+
+    Examples
+    --------
+    >>> parse_pair("8x6", "--board", "COLSxROWS inner corners", 2, "inner corners")
+    (8, 6)
+    """
+    from wai_core.errors import WaiInputError
+
+    try:
+        a, b = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise WaiInputError(f"{option} must be {form}, not {text!r}") from None
+    if a < minimum or b < minimum:
+        raise WaiInputError(f"{option} {text}: at least {minimum} x {minimum} {unit}")
+    return a, b

@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from wai.bench import parse_pair
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import write_json
@@ -53,9 +54,7 @@ def true_spots(cfg: SystemConfig, truth: Heightfield, ij: NDArray) -> NDArray:
 def _surface_variant(
     name: str, features: Any, cal: Any, truth: Heightfield, options: Any
 ) -> dict[str, float]:
-    from restoration import Calibration
-    from restoration.metrics import surface_errors
-    from restoration.structured_light import estimate_surface, fit_to_spots
+    from restoration import Calibration, estimate_surface, fit_to_spots, surface_errors
 
     cfg = cal.cfg
     spots = features.spot_px
@@ -111,7 +110,7 @@ def spot_noise_px(cfg: SystemConfig, features: Any, truth: Heightfield) -> dict[
 def run_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Any]:
     """Render, restore and dissect one seed (the restoration runs once; the budget's variants
     rerun only the surface stage on its features)."""
-    from mitsuba_wai.render import render_folder
+    from mitsuba_wai import render_folder
     from restoration import restore_folder
 
     frame = out / f"seed{seed:03d}"
@@ -246,15 +245,7 @@ def summarize_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 def parse_camera(text: str) -> tuple[int, int]:
     """``"1600x1200"`` as (width, height) px; one-line error naming ``--camera`` otherwise."""
-    from wai_core.errors import WaiInputError
-
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise WaiInputError(f"--camera must be WIDTHxHEIGHT in pixels, not {text!r}") from None
-    if w < 16 or h < 16:
-        raise WaiInputError(f"--camera {text}: at least 16 x 16 pixels")
-    return w, h
+    return parse_pair(text, "--camera", "WIDTHxHEIGHT in pixels", 16, "pixels")
 
 
 def run_accuracy(config: str | Path, out: str | Path, seeds: int, wind: float | None = None,

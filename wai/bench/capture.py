@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from wai.bench import parse_pair
 from wai.bench.timing import machine, reference_workload
 from wai_core.errors import WaiInputError
 
@@ -26,19 +27,13 @@ SAME_CORNER_PX = 8.0
 
 def parse_board(text: str) -> tuple[int, int]:
     """``"8x6"``: inner corners (columns, rows); one-line error naming ``--board``."""
-    try:
-        cols, rows = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise WaiInputError(f"--board must be COLSxROWS inner corners, not {text!r}") from None
-    if cols < 2 or rows < 2:
-        raise WaiInputError(f"--board {text}: at least 2 x 2 inner corners")
-    return cols, rows
+    return parse_pair(text, "--board", "COLSxROWS inner corners", 2, "inner corners")
 
 
 def _on_mean_corners(score: Any, mean: Any, board: tuple[int, int]) -> float | None:
     """``score``'s (a full ``board``'s) grid residual on the corners it shares with the
     mean's partial board."""
-    from restoration.video import grid_residual_px
+    from restoration import video
 
     if not (score.found and mean.found):
         return None
@@ -46,17 +41,17 @@ def _on_mean_corners(score: Any, mean: Any, board: tuple[int, int]) -> float | N
     same = d.min(axis=1) < SAME_CORNER_PX
     if same.sum() != len(mean.corners):
         return None
-    return float(grid_residual_px(score.corners, board, same))
+    return float(video.grid_residual_px(score.corners, board, same))
 
 
 def _mean_partial(image: np.ndarray, board: tuple[int, int]) -> tuple[Any, tuple[int, int]]:
     """The largest board, one row or column short at a time, the detector finds in the
     blurred mean."""
-    from restoration.video import checkerboard_score
+    from restoration import video
 
     cols, rows = board
     for size in ((cols, rows), (cols, rows - 1), (cols - 1, rows), (cols - 1, rows - 1)):
-        s = checkerboard_score(image, size)
+        s = video.checkerboard_score(image, size)
         if s.found:
             return s, size
     return s, board
@@ -64,25 +59,17 @@ def _mean_partial(image: np.ndarray, board: tuple[int, int]) -> tuple[Any, tuple
 
 def bench_capture(video: str | Path, board: tuple[int, int]) -> dict[str, Any]:
     """Score the raw frames, the temporal mean and each baseline on ``video``."""
-    from restoration.video import (
-        checkerboard_score,
-        grid_residual_px,
-        lucky_fusion,
-        read_frames,
-        register_frames,
-        stability_px,
-        temporal_mean,
-        track_corners,
-    )
+    import restoration as rs
 
     video = Path(video)
     if not video.exists():
         raise WaiInputError(f"--video {video}: no such file or folder")
-    frames = read_frames(video)
+    frames = rs.video.read_frames(video)
     reference = reference_workload()
-    fused = {"mean": temporal_mean(frames), "registration": register_frames(frames),
-             "lucky": lucky_fusion(frames)}
-    scores = {k: checkerboard_score(v.image, board) for k, v in fused.items()}
+    fused = {"mean": rs.video.temporal_mean(frames),
+             "registration": rs.video.register_frames(frames),
+             "lucky": rs.video.lucky_fusion(frames)}
+    scores = {k: rs.video.checkerboard_score(v.image, board) for k, v in fused.items()}
     mean_part, part_board = _mean_partial(fused["mean"].image, board)
     rows = []
     for name, res in fused.items():
@@ -93,16 +80,17 @@ def bench_capture(video: str | Path, board: tuple[int, int]) -> dict[str, Any]:
                      "rms_px": float(s.rms_px) if s.found else None,
                      "rms_on_mean_corners_px": on_mean, "ms_per_frame": res.ms_per_frame,
                      "valid_fraction": float(res.valid.mean())})
-    raw_found = sum(checkerboard_score(f, board).found for f in frames)
+    raw_found = sum(rs.video.checkerboard_score(f, board).found for f in frames)
     best = min((k for k in scores if scores[k].found), key=lambda k: scores[k].rms_px,
                default=None)
     raw = {"input": "raw frames", "board_found_frames": int(raw_found), "frames": len(frames)}
     if best is not None:
-        tracked = track_corners(frames, scores[best].corners, board)
+        tracked = rs.video.track_corners(frames, scores[best].corners, board)
         kept = np.isfinite(tracked[..., 0])
         raw.update(tracked_from=best, corners_kept=float(kept.mean()),
-                   rms_px=float(np.nanmedian([grid_residual_px(c, board) for c in tracked])),
-                   stability_px=float(stability_px(list(tracked))))
+                   rms_px=float(np.nanmedian([rs.video.grid_residual_px(c, board)
+                                              for c in tracked])),
+                   stability_px=float(rs.video.stability_px(list(tracked))))
     return {"video": str(video), "frames": len(frames), "shape": list(frames.shape[1:3]),
             "board": list(board), "mean_partial_board": list(part_board),
             "machine": machine(), "reference": reference, "raw": raw, "rows": rows}

@@ -114,8 +114,8 @@ def bench_inputs(config: str | Path, out: Path) -> dict[str, Any]:
     import numpy as np
 
     import restoration as rs
-    from mitsuba_wai.render import render_folder
-    from restoration.scoring import Truth
+    from mitsuba_wai import render_folder
+    from restoration import Truth
     from wai_core.system import load_rig
 
     cfg = load_rig(config)

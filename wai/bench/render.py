@@ -23,8 +23,7 @@ RENDER_STAGES = {"render_s": "pattern", "render_v": "view"}
 
 def _bench_system(cfg: Any, surface: Any, system: str, runs: int) -> dict[str, Any]:
     """Frames of one system through its own renderer: the surface upload, then the render."""
-    from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, render_seed
+    from mitsuba_wai import FrameRenderer, flat_like, render_seed
 
     renderer = FrameRenderer(cfg, surface, systems=(system,))
     seed = render_seed(cfg)
@@ -60,8 +59,7 @@ def bench_render(config: str | Path, runs: int, variant: str = "auto") -> dict[s
     variant : str
         Mitsuba variant: ``auto`` (GPU, else LLVM), ``llvm_ad_rgb`` or ``cuda_ad_rgb``.
     """
-    from mitsuba_wai.surface_sampling import wave_surface
-    from mitsuba_wai.variant import select_variant
+    from mitsuba_wai import select_variant, wave_surface
     from wai_core import load_system
 
     check_runs(runs)

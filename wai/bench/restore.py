@@ -195,8 +195,7 @@ def _render_dir(render_dir: str | Path | None, config: str | Path, variant: str)
         return Path(render_dir)
     render_dir = Path("renders/bench")
     if not (render_dir / "scene.json").is_file():
-        from mitsuba_wai.render import render_folder
-        from mitsuba_wai.variant import select_variant
+        from mitsuba_wai import render_folder, select_variant
         from wai_core.system import load_rig
 
         # The variant asked for, before render_folder takes "auto": a process cannot switch.

@@ -42,7 +42,7 @@ def render_size(config: str | Path, size: str, out: Path) -> Path:
     holds a render already."""
     folder = out / size
     if not (folder / "scene.json").is_file():
-        from mitsuba_wai.render import render_folder
+        from mitsuba_wai import render_folder
         from wai_core.system import load_rig
 
         w, h = parse_camera(size)

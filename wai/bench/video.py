@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from wai.bench.timing import check_runs, machine, reference_workload, summarize
-from wai.sweep import THREAD_VARIABLES, limit_native_threads, scoped_environ
+from wai.threads import THREAD_VARIABLES, limit_native_threads, scoped_environ
 from wai_core.errors import WaiInputError
 
 FPS = 30.0
@@ -46,7 +46,7 @@ def sequence_folder(config: str, out: Path, n_frames: int, fps: float = FPS) -> 
     """The sequence of ``n_frames`` frames at ``fps`` frames/s in ``out/sequence``, rendered
     once (by :func:`mitsuba_wai.sequence.render_sequence`, what ``wai render --frames`` runs;
     again when the frame count or rate differ)."""
-    from mitsuba_wai.sequence import render_sequence
+    from mitsuba_wai import render_sequence
     from wai_core.sequence import is_sequence, read_sequence
     from wai_core.system import load_rig
 
@@ -74,8 +74,7 @@ def played(index: int, n: int) -> int:
 
 def _init_worker(folder: str, track: bool) -> None:
     """Load the calibration and every frame's images; prepare the reference; warm up."""
-    from restoration import StructuredLight
-    from restoration.sequence import load_sequence
+    from restoration import StructuredLight, load_sequence
 
     limit_native_threads(1)  # numba's pool too: the workers are the parallelism here
     cal, frames = load_sequence(folder)
@@ -90,7 +89,7 @@ def _restore_frame(index: int, out: np.ndarray) -> tuple[float, int]:
     steps."""
     import cv2
 
-    from restoration.tracking import SequenceState
+    from restoration import SequenceState
 
     frames = _STATE["frames"]
     if _STATE["last"] is None or index != _STATE["last"] + 1:  # not the step after its last
@@ -217,9 +216,7 @@ def _message(results: Any, procs: list[Any]) -> tuple:
 def accuracy(folder: Path, cal: Any, images: list[dict[str, Any]]) -> dict[str, Any]:
     """One period of the played order restored with tracking and without, each scored against
     its frame's truth: statuses, surface RMSE (mm) per step, and the largest difference."""
-    from restoration import StructuredLight
-    from restoration.scoring import Truth, score
-    from restoration.tracking import SequenceState
+    from restoration import SequenceState, StructuredLight, Truth, score
     from wai_core.sequence import read_sequence
 
     dirs = read_sequence(folder).frame_dirs
@@ -304,9 +301,7 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
             raise WaiInputError(f"--{name} must be at least 1, got {value}")
     out = Path(out or "renders/bench_video")
     folder = sequence_folder(config, out, sequence, fps)
-    from restoration import StructuredLight
-    from restoration.sequence import load_sequence
-    from restoration.tracking import SequenceState
+    from restoration import SequenceState, StructuredLight, load_sequence
 
     cal, images = load_sequence(folder)
     restore, state = StructuredLight(), SequenceState(track=track)

@@ -17,7 +17,6 @@ import numpy as np
 
 import mitsuba_wai as mw
 import restoration as rs
-from mitsuba_wai.alterman import render_alterman_folder
 from wai.examples import output_folder
 from wai_core import AltermanSystem, Heightfield, load_heightfield, load_system
 
@@ -54,7 +53,7 @@ def main() -> None:
         sensor = AltermanSystem(cfg, sensor.sensor.replace("render", spp=spp))
 
     mw.render_folder(cfg, work / "structured", heightfield=surface, progress=False)
-    render_alterman_folder(sensor, work / "sun", heightfield=surface, progress=False)
+    mw.render_alterman_folder(sensor, work / "sun", heightfield=surface, progress=False)
     for name, folder, method in (("structured light", "structured", "structured-light"),
                                  ("Alterman (sun)", "sun", "alterman")):
         done = rs.restore_folder(work / folder, method)

@@ -79,12 +79,12 @@ def _run_compare(config: str | Path, out: Path, seeds: int | None, quick: bool,
 
 def _run_seawater(config: str | Path, out: Path, seeds: int | None, quick: bool,
                   sweep: SweepOptions) -> None:
+    from wai.experiments.outputs import output_folder
     from wai.experiments.seawater import format_snr, seawater_snr
     from wai_core.io import write_json
 
     res = seawater_snr(config, seed=0, spp=4 if quick else None)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "seawater_snr.json", res)
+    write_json(output_folder(out) / "seawater_snr.json", res)
     print(format_snr(res))
 
 

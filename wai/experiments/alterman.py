@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import csv
 import io
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
+from wai.experiments.outputs import argv_command, output_folder
 from wai_core.alterman import AltermanSystem, load_alterman
 from wai_core.io import atomic_write_bytes, read_exr
 from wai_core.scenes import scene_path
@@ -125,10 +125,7 @@ def oracle_level_errors(done: Any) -> dict[str, float]:
     unknown mean level costs)."""
     import dataclasses
 
-    from restoration import AltermanOptions
-    from restoration.alterman import reconstruct_alterman
-    from restoration.metrics import surface_errors
-    from restoration.normals import spots_on_diffuser
+    from restoration import AltermanOptions, reconstruct_alterman, spots_on_diffuser, surface_errors
     from wai_core.heightfield import load_heightfield
 
     truth = load_heightfield(done.folder / "heightfield.npz")
@@ -152,7 +149,7 @@ def structured_light_rows(
     and each seed's restoration (to compare the sun sensor with on the same region)."""
     import time
 
-    from mitsuba_wai.render import render_folder
+    from mitsuba_wai import render_folder
     from restoration import StructuredLightOptions, restore_folder
 
     rows, restored = [], {}
@@ -181,7 +178,7 @@ def sun_rows(
     (``paper``: the structured light's restoration of each seed)."""
     import time
 
-    from mitsuba_wai.alterman import SunRenderer, alterman_surface, render_alterman_folder
+    from mitsuba_wai import SunRenderer, alterman_surface, render_alterman_folder
     from restoration import Alterman, AltermanOptions, restore_folder
 
     rows = []
@@ -209,7 +206,7 @@ def sun_rows(
 
 def overcast_row(system: AltermanSystem, seed: int, out: Path) -> dict[str, Any]:
     """An overcast frame: the method must decline with ``no_sun``."""
-    from mitsuba_wai.alterman import render_alterman_folder
+    from mitsuba_wai import render_alterman_folder
     from restoration import Alterman, restore_folder
 
     paper = out / f"seed{seed:03d}" / "paper"
@@ -266,7 +263,7 @@ def _estimate(frame: Path) -> Any:
 def error_maps_figure(out: Path, seed: int, angles: tuple[float, ...]) -> str:
     """Fig. 13: absolute height error of Alterman's surface per sun angle (seed ``seed``), as
     is and with the mean offset removed; returns the file name."""
-    from restoration.metrics import surface_errors
+    from restoration import surface_errors
     from wai.figures import plt, save_figure
     from wai_core.heightfield import load_heightfield
 
@@ -508,8 +505,7 @@ def run_alterman(config: str | Path, out: str | Path, seeds: int, quick: bool = 
         process's arguments after it.
     """
     system = sensor_system(config)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     seed_list = list(range(seeds))
     angles = QUICK_ANGLES_DEG if quick else ANGLES_DEG
     rows, paper = structured_light_rows(system, seed_list, out)
@@ -518,7 +514,7 @@ def run_alterman(config: str | Path, out: str | Path, seeds: int, quick: bool = 
     atomic_write_bytes(out / "results.csv", csv_text(rows).encode())
     figs = [error_maps_figure(out, seed_list[0], angles), rmse_figure(out, rows, angles)]
     if command is None:
-        command = "wai experiment alterman " + " ".join(sys.argv[3:])
+        command = argv_command("alterman")
     md = report_markdown(command, system, rows, seed_list, angles, figs)
     atomic_write_bytes(out / "report.md", md.encode())
     print(md.split("## Table 2")[0].split("## Surface error")[1])

@@ -25,9 +25,10 @@ from typing import Any
 import numpy as np
 
 from wai.experiments.frame_eval import evaluate_frame
-from wai.experiments.stability import BAD_RMSE_MM, detection_rates
-from wai.sweep import SweepOptions, run_sweep
-from wai_core.io import atomic_write_bytes, write_json
+from wai.experiments.outputs import output_folder, publish, sweep_command, sweep_rows
+from wai.experiments.stability import BAD_RMSE_MM, detection_rates, status_cell
+from wai.sweep import SweepOptions
+from wai_core.io import write_json
 
 __all__ = [
     "ADDED_LIMIT_MM", "EFFECTS", "OK_SHARE", "Effect", "budget_points", "budget_summary",
@@ -291,7 +292,7 @@ def budget_markdown(summary: dict[str, Any], command: str) -> str:
                   "| magnitude | frames | ok | failed | sparse | statuses | RMSE (mm) | "
                   "de-meaned (mm) | corner STD (px) | residual (px) |", "|" + " --- |" * 10]
         for e in [summary["baseline"]] + eff["entries"]:
-            st = ", ".join(f"{k} {v}" for k, v in sorted(e["statuses"].items()))
+            st = status_cell(e["statuses"])
             mag = "off" if e is summary["baseline"] else f"{e['magnitude']:g}"
             lines.append(f"| {mag} | {e['frames']} | {e['ok_fraction']:.0%} | "
                          f"{e['failed_fraction']:.0%} | {e['sparse_fraction']:.0%} | {st} | "
@@ -353,16 +354,12 @@ def run_budget(config: str | Path, out: str | Path, seeds: int, quick: bool = Fa
     dict
         :func:`budget_summary` of the sweep's rows.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     points = budget_points(config, list(range(seeds)), quick)
-    sweep = SweepOptions() if sweep is None else sweep
-    rows = run_sweep(points, evaluate_frame, out / "budget.csv", **sweep.kwargs())
+    rows = sweep_rows(points, evaluate_frame, out / "budget.csv", sweep)
     summary = budget_summary(rows)
     budget_figure(summary, out / "budget.png")
-    command = f"wai experiment budget --seeds {seeds}" + (" --quick" if quick else "")
-    text = budget_markdown(summary, command)
-    atomic_write_bytes(out / "budget.md", text.encode())
+    text = budget_markdown(summary, sweep_command("budget", seeds, quick))
     write_json(out / "budget_summary.json", summary)
-    print(text)
+    publish(out / "budget.md", text)
     return summary

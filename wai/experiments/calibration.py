@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from wai.experiments.outputs import output_folder, publish
 from wai_core.config import SystemConfig, with_keys
 from wai_core.io import atomic_write_bytes, write_json
 from wai_core.system import load_system
@@ -51,8 +52,8 @@ COLUMNS = ("seed", "lens", "rig", "spots", "status", "wai_rmse_mm", "wai_rmse_de
 def calibrated_rig(real: SystemConfig, out: Path, views: int) -> tuple[dict[str, Any], dict]:
     """The rig keys ``wai calibrate`` finds for the real lenses from ``views`` rendered
     checkerboards per camera, and the fits' summary (each value beside its truth)."""
-    from mitsuba_wai.checkerboards import Board, render_checkerboards
-    from restoration.rig_calibration import calibrate_device
+    from mitsuba_wai import Board, render_checkerboards
+    from restoration import calibrate_device
 
     keys: dict[str, Any] = {}
     fits: dict[str, Any] = {}
@@ -77,7 +78,7 @@ def calibrated_rig(real: SystemConfig, out: Path, views: int) -> tuple[dict[str,
 def refined_on_flat_water(cfg: SystemConfig, boards: dict[str, Any], frame: Path) -> Any:
     """Camera s refined on the rig's flat-water pattern (:func:`restoration.rig_calibration.
     refine_on_flat_water`), starting from the checkerboards' intrinsics."""
-    from restoration.rig_calibration import refine_on_flat_water
+    from restoration import refine_on_flat_water
     from wai_core.images import find_image, read_image
 
     return refine_on_flat_water(with_keys(cfg, boards), read_image(find_image(frame,
@@ -95,7 +96,7 @@ def _row(seed: int, lens: str, rig: str, spots: str, metrics: dict[str, Any]
 def render_seed(cfg: SystemConfig, seed: int, out: Path) -> dict[str, Path]:
     """The seed's ideal-lens and real-lens frames, rendered into ``out`` (a rerun reuses
     them)."""
-    from mitsuba_wai.render import render_folder
+    from mitsuba_wai import render_folder
 
     cfg = cfg.replace("waves", seed=seed)
     folders = {"ideal": out / f"seed{seed:03d}" / "ideal_lens",
@@ -222,8 +223,7 @@ def run_calibration(config: str | Path, out: Path, seeds: int | None, quick: boo
     """The experiment: seeds 0..seeds-1 (10 when None), written into ``out``; ``quick``: 8
     checkerboard views per camera."""
     cfg = load_system(config)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     views = 8 if quick else CHECKERBOARD_VIEWS
     boards, fits = calibrated_rig(with_keys(cfg, LENS), out, views)
     flat = refined_on_flat_water(cfg, boards, render_seed(cfg, 0, out)["real"])
@@ -241,6 +241,4 @@ def run_calibration(config: str | Path, out: Path, seeds: int | None, quick: boo
         "calibrated_rig": calibrated, "fits": fits, "summary": summarize(rows),
     })
     _figure(rows, out / "calibration.png")
-    text = report(rows, fits)
-    atomic_write_bytes(out / "calibration.md", text.encode())
-    print(text)
+    publish(out / "calibration.md", report(rows, fits))

@@ -22,9 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from wai.sweep import SweepOptions, is_error, run_sweep
+from wai.experiments.outputs import output_folder, publish, sweep_command, sweep_rows
+from wai.sweep import SweepOptions, is_error
 from wai_core.config import with_keys
-from wai_core.io import atomic_write_bytes, write_json
+from wai_core.io import write_json
 from wai_core.system import load_rig
 
 FPS = 30.0
@@ -62,7 +63,7 @@ def compare_points(methods: list[str], seeds: int, quick: bool) -> list[dict[str
 
 def render_case(config: str, point: dict[str, Any], root: Path, frames: int) -> Path:
     """The case's sequence, rendered into ``root/cases/NAME`` unless it is there."""
-    from mitsuba_wai.sequence import render_sequence
+    from mitsuba_wai import render_sequence
     from wai_core.sequence import is_sequence, read_sequence
 
     folder = root / "cases" / case_name(point)
@@ -96,10 +97,10 @@ def _rig(image: np.ndarray, valid: np.ndarray, cal: Any) -> dict[str, Any]:
 def _grid(image: np.ndarray, valid: np.ndarray, cal: Any) -> dict[str, Any]:
     """The truth-free grid score of one view: residual px (None where no board was found)
     and the share of the board's inner corners it scored."""
-    from restoration.video import grid_score
+    from restoration import video
 
     nx, ny = cal.cfg.object.squares
-    g = grid_score(image, (nx - 1, ny - 1), valid, n_water=cal.cfg.water.n_water)
+    g = video.grid_score(image, (nx - 1, ny - 1), valid, n_water=cal.cfg.water.n_water)
     return {"grid_px": g.rms_px if np.isfinite(g.rms_px) else None,
             "grid_fraction": g.fraction}
 
@@ -111,9 +112,7 @@ def _corner_std(std_px: float | None, corners: int) -> float | None:
 
 def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
     """A per-frame method over the sequence: means over its frames with a view."""
-    from restoration import LevelTrack, get_method
-    from restoration.folder import restore_frame
-    from restoration.sequence import load_sequence
+    from restoration import LevelTrack, get_method, load_sequence, restore_frame
     from wai_core.sequence import read_sequence
 
     seq = read_sequence(folder)
@@ -149,14 +148,13 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
 def _video_method(folder: Path, name: str) -> dict[str, Any]:
     """A video method over the sequence's views: one fused image, scored against the truth
     of the first frame (the flat-water view is every frame's)."""
-    from restoration import RestoredView, RestoreResult, Truth
-    from restoration.sequence import load_sequence
-    from restoration.video import lucky_fusion, register_frames, temporal_mean
+    from restoration import RestoredView, RestoreResult, Truth, load_sequence, video
     from wai_core.sequence import read_sequence
 
     cal, images = load_sequence(folder)
     views = np.stack([cal.radiance(im["view"]) for im in images]).astype(np.float32)
-    run = {"mean": temporal_mean, "registration": register_frames, "lucky": lucky_fusion}[name]
+    run = {"mean": video.temporal_mean, "registration": video.register_frames,
+           "lucky": video.lucky_fusion}[name]
     fused = run(np.clip(views, 0.0, 1.0))
     truth = Truth.from_folder(read_sequence(folder).frame_dirs[0], cal)
     result = RestoreResult(name, view=RestoredView(fused.image, fused.valid))
@@ -311,8 +309,7 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
     for spec in specs:  # a bad name fails here, before any render
         if spec not in VIDEO_METHODS:
             method_class(spec)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     frames = 8 if quick else 30
     points = compare_points(list(dict.fromkeys(specs)), seeds, quick)
     cases = {case_name(p): p for p in points}
@@ -322,10 +319,10 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
         for q in points:
             if case_name(q) == name:
                 q["folder"] = str(folder)
-    rows = run_sweep(points, evaluate, out / "compare.csv",
-                     key=("wind", "seed", "degradation", "method"), **sweep.kwargs())
+    rows = sweep_rows(points, evaluate, out / "compare.csv", sweep,
+                      key=("wind", "seed", "degradation", "method"))
     summary = summarize(rows)
-    command = f"wai experiment compare --seeds {seeds}" + (" --quick" if quick else "")
+    command = sweep_command("compare", seeds, quick)
     case_taus = case_agreement(rows)
     text = report(summary, command, case_taus)
     tau, _ = rank_agreement(summary)
@@ -333,8 +330,7 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
                {"command": command, "methods": summary, "kendall_tau_grid_corner_std": tau,
                 "kendall_tau_rig_corner_std": rank_agreement(summary, "rig_px")[0],
                 "kendall_tau_per_case": case_taus})
-    atomic_write_bytes(out / "compare.md", text.encode())
     _figure(summary, out / "compare.png")
-    print(text)
+    publish(out / "compare.md", text)
     return summary
 

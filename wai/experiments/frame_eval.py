@@ -133,10 +133,16 @@ def render_frame(cfg: SystemConfig, amplitude: float = 1.0) -> tuple[dict[str, A
     sensor (``[sensor]``) when enabled; returns them (with ``render_s_pattern`` and
     ``render_s_view``, the wavy renders' wall times, and ``subframes``) and the true surface
     (at mid-exposure)."""
-    from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense, subframe_plan
-    from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, render_seed
-    from mitsuba_wai.surface_sampling import wave_surface
+    from mitsuba_wai import (
+        FrameRenderer,
+        flat_like,
+        render_exposure,
+        render_seed,
+        resolve_exposure,
+        sense,
+        subframe_plan,
+        wave_surface,
+    )
 
     h0 = cfg.water.h0_mm
 
@@ -204,8 +210,7 @@ def _timed_restore(images: dict, cal: Any, options: Any, repeats: int) -> tuple[
     result alone when the frame failed). Each variant runs once untimed in a process, and a
     timed restoration that loaded or compiled a kernel all the same (a code path this
     variant's first frame did not take) is run again: the timings are of warm code."""
-    from restoration import StructuredLight
-    from restoration._compile import kernel_activity
+    from restoration import StructuredLight, kernel_activity
 
     method = StructuredLight(options)
     if repr(options) not in _WARMED:  # compile this variant's kernels outside the timing

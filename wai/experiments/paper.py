@@ -9,7 +9,6 @@ from __future__ import annotations
 import base64
 import html
 import shutil
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
+from wai.experiments.outputs import argv_command, output_folder
 from wai_core.config import SystemConfig
 from wai_core.geometry import reflect
 from wai_core.io import atomic_write_bytes, write_json
@@ -97,10 +97,8 @@ def _other_datasets(
 ) -> dict[str, dict[str, dict[str, float]]]:
     """Table 2's natural images: render V through the same surface, restore with the surface
     the structured light reconstructed for this frame (``done``, a FolderRestore)."""
-    from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import render_seed
-    from restoration.metrics import image_metrics
-    from restoration.scoring import OBJECT_MIN_LEVEL
+    from mitsuba_wai import flat_like, render_seed
+    from restoration import OBJECT_MIN_LEVEL, image_metrics
     from wai_core.heightfield import load_heightfield
 
     truth = load_heightfield(done.folder / "heightfield.npz")
@@ -124,9 +122,7 @@ def _other_datasets(
 
 def run_seeds(cfg: SystemConfig, seeds: list[int], out: Path) -> list[SeedRun]:
     """Render, restore and score each seed on the checkerboard, then the natural images."""
-    from mitsuba_wai.render import FrameRenderer, render_folder
-    from mitsuba_wai.surface_sampling import wave_surface
-    from mitsuba_wai.textures import object_texture
+    from mitsuba_wai import FrameRenderer, object_texture, render_folder, wave_surface
     from restoration import restore_folder
 
     grid = wave_surface(cfg)
@@ -150,11 +146,8 @@ def run_seeds(cfg: SystemConfig, seeds: list[int], out: Path) -> list[SeedRun]:
 def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> list[dict]:
     """Scale the waves' heights by each factor: measured slope amplitude Φ and the fraction of
     dots whose correspondence is correct (against the geometric model's labels)."""
-    from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, render_seed
-    from mitsuba_wai.surface_sampling import wave_surface
-    from restoration import RestorationFailed
-    from restoration.features import features_from_reference, prepare_reference
+    from mitsuba_wai import FrameRenderer, flat_like, render_seed, wave_surface
+    from restoration import RestorationFailed, features_from_reference, prepare_reference
     from wai.experiments.frame_eval import correspondence_counts
     from wai_core.errors import WaiInputError
     from wai_core.forward import predict_spots
@@ -433,8 +426,7 @@ def run_paper(config: str | Path, out: str | Path, seeds: int, quick: bool = Fal
     from wai import figures
 
     cfg = load_rig(config)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     seed_list = list(range(seeds))
     factors = [1.0, 2.0, 3.0] if quick else [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0]
     runs = run_seeds(cfg, seed_list, out)
@@ -452,7 +444,7 @@ def run_paper(config: str | Path, out: str | Path, seeds: int, quick: bool = Fal
     )
     figs = figures_from_seed0(cfg, out, runs[0].done)
     if command is None:
-        command = "wai experiment paper " + " ".join(sys.argv[3:])
+        command = argv_command("paper")
     md = report_markdown(command, cfg, runs, fig8, limit, sweep, figs)
     atomic_write_bytes(out / "report.md", md.encode())
     atomic_write_bytes(out / "report.html", markdown_to_html(md, out).encode())

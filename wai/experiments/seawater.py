@@ -123,10 +123,14 @@ def seawater_snr(
         the :func:`spot_snr` values; ``snr_ratio`` (blue-green / red) per distance when both
         are present.
     """
-    from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, render_seed
-    from mitsuba_wai.seawater import coefficients_per_mm, pattern_path_lengths_mm
-    from mitsuba_wai.surface_sampling import wave_surface
+    from mitsuba_wai import (
+        FrameRenderer,
+        coefficients_per_mm,
+        flat_like,
+        pattern_path_lengths_mm,
+        render_seed,
+        wave_surface,
+    )
     from wai_core import sensor as sensors
     from wai_core.system import load_rig
 

@@ -39,9 +39,15 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from wai.experiments.frame_eval import evaluate_frame  # noqa: E402
+from wai.experiments.outputs import (  # noqa: E402
+    output_folder,
+    publish,
+    sweep_command,
+    sweep_rows,
+)
 from wai.figures import save_figure  # noqa: E402
-from wai.sweep import SweepOptions, run_sweep  # noqa: E402
-from wai_core.io import atomic_write_bytes, write_json  # noqa: E402
+from wai.sweep import SweepOptions  # noqa: E402
+from wai_core.io import write_json  # noqa: E402
 from wai_core.scenes import scene_path  # noqa: E402
 
 SWEEPS: dict[str, tuple[str, tuple[float, ...]]] = {
@@ -91,6 +97,17 @@ CODED: tuple[tuple[float, float], ...] = (
 CODED_QUICK: tuple[tuple[float, float], ...] = ((1.0, 1.0), (1.0, 2.0))
 
 
+def status_cell(statuses: dict[str, int]) -> str:
+    """A table cell of the frames' statuses and their counts, by status.
+
+    Examples
+    --------
+    >>> status_cell({"sparse": 1, "ok": 3})
+    'ok 3, sparse 1'
+    """
+    return ", ".join(f"{k} {v}" for k, v in sorted(statuses.items()))
+
+
 def failure_point(entries: list[dict[str, Any]], harsher: int = 1) -> float | None:
     """The first value, from the mildest towards the harshest, at which under half the frames
     ended ok after one at which at least half did; None when the sweep never breaks (or never
@@ -106,7 +123,7 @@ def failure_point(entries: list[dict[str, Any]], harsher: int = 1) -> float | No
 
 def evaluate_sun(point: dict[str, Any]) -> dict[str, Any]:
     """Render and restore Alterman's sun sensor at the point's sun zenith angle."""
-    from mitsuba_wai.alterman import render_alterman_folder
+    from mitsuba_wai import render_alterman_folder
     from restoration import Alterman, restore_folder
     from wai_core.alterman import AltermanSystem, load_alterman
     from wai_core.system import load_rig
@@ -350,7 +367,7 @@ def report_markdown(
                   "| value | frames | statuses | fraction correct | Φ (deg) | Φ_max (deg) | "
                   "RMSE (mm) | SSIM |", "|" + " --- |" * 8]
         for e in entries:
-            st = ", ".join(f"{k} {v}" for k, v in sorted(e["statuses"].items()))
+            st = status_cell(e["statuses"])
             lines.append(
                 f"| {e['value']:g} | {e['frames']} | {st} | {e['fraction_correct']:.3f} | "
                 f"{e['phi_deg']:.2f} | {e['phi_max_deg']:.2f} | {e['wai_rmse_mm']:.3g} | "
@@ -382,24 +399,21 @@ def run_stability(config: str | Path, out: str | Path, seeds: int, quick: bool =
     dict
         :func:`sweep_summary` of the sweep's rows.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     points = stability_points(config, scene_path("alterman"), list(range(seeds)), quick)
-    sweep = SweepOptions() if sweep is None else sweep
-    rows = run_sweep(points, evaluate_point, out / "stability.csv", **sweep.kwargs())
+    rows = sweep_rows(points, evaluate_point, out / "stability.csv", sweep)
     summary = sweep_summary(rows)
     rates = detection_rates(rows)
     stability_figure(rows, summary, out / "stability.png")
     coded = coded_summary(rows)
     coded_figure(rows, out / "coded.png")
     confidence_figure(rows, rates, out / "confidence.png")
-    command = f"wai experiment stability --seeds {seeds}" + (" --quick" if quick else "")
+    command = sweep_command("stability", seeds, quick)
     text = report_markdown(summary, command, rates) + coded_markdown(coded)
-    atomic_write_bytes(out / "stability.md", text.encode())
     # stability.json is the sweep's run record; the summary and the rates go beside it.
     write_json(out / "stability_summary.json",
                {"sweeps": summary, "detection": rates, "coded": coded})
-    print(text)
+    publish(out / "stability.md", text)
     return summary
 
 
@@ -479,7 +493,7 @@ def coded_markdown(coded: list[dict[str, Any]]) -> str:
              "| pattern | U (m/s) | height scale | Φ/Φ_max | frames | statuses | kept labels "
              "correct | dots correct | RMSE ok (mm) | RMSE all (mm) |", "|" + " --- |" * 10]
     for e in coded:
-        st = ", ".join(f"{k} {v}" for k, v in sorted(e["statuses"].items()))
+        st = status_cell(e["statuses"])
         lines.append(
             f"| {e['code']} | {e['wind_mps']:g} | {e['amplitude']:g} | {e['phi_ratio']:.2f} | "
             f"{e['frames']} | {st} | {e['label_precision']:.4f} | {e['fraction_correct']:.3f} "

@@ -31,9 +31,15 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from wai.experiments.frame_eval import REFINEMENTS, evaluate_frame  # noqa: E402
+from wai.experiments.outputs import (  # noqa: E402
+    output_folder,
+    publish,
+    sweep_command,
+    sweep_rows,
+)
 from wai.figures import save_figure  # noqa: E402
-from wai.sweep import SweepOptions, run_sweep  # noqa: E402
-from wai_core.io import atomic_write_bytes, write_json  # noqa: E402
+from wai.sweep import SweepOptions  # noqa: E402
+from wai_core.io import write_json  # noqa: E402
 
 SPACINGS_PX = (16, 20, 24, 28, 36, 48)
 SPPS = (2, 4, 8, 16, 32)
@@ -43,7 +49,7 @@ QUICK = {"spacing": (20, 28, 40), "spp": (4, 8), "warp": (4, 8, 16)}
 
 def integrator_names() -> list[str]:
     """Every registered integrator (:data:`restoration.integrate.INTEGRATORS`)."""
-    from restoration.integrate import INTEGRATORS
+    from restoration import INTEGRATORS
 
     return list(INTEGRATORS)
 
@@ -397,13 +403,9 @@ def run_tradeoffs(config: str | Path, out: str | Path, seeds: int, quick: bool =
     from restoration import StructuredLightOptions
     from wai_core.system import load_rig
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    sweep = SweepOptions() if sweep is None else sweep
-    rows = run_sweep(
-        tradeoff_points(config, list(range(seeds)), quick), evaluate_frame,
-        out / "tradeoffs.csv", **sweep.kwargs(),
-    )
+    out = output_folder(out)
+    rows = sweep_rows(tradeoff_points(config, list(range(seeds)), quick), evaluate_frame,
+                      out / "tradeoffs.csv", sweep)
     cfg, opts = load_rig(config), StructuredLightOptions()
     defaults = {
         "spacing": cfg.pattern.spacing_px,
@@ -414,8 +416,8 @@ def run_tradeoffs(config: str | Path, out: str | Path, seeds: int, quick: bool =
     }
     series = chart_series(rows)
     tradeoff_figure(series, defaults, out / "tradeoffs.png")
-    command = f"wai experiment tradeoffs --seeds {seeds}" + (" --quick" if quick else "")
-    atomic_write_bytes(out / "tradeoffs.md", report_markdown(series, defaults, command).encode())
+    command = sweep_command("tradeoffs", seeds, quick)
     write_json(out / "tradeoffs_series.json", {"defaults": defaults, "series": series})
-    print(report_markdown(series, defaults, command))  # its last line: not_ok_summary
+    # its last line: not_ok_summary
+    publish(out / "tradeoffs.md", report_markdown(series, defaults, command))
     return {"defaults": defaults, "series": series}

@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from wai.experiments.outputs import output_folder
 from wai_core.config import SAMPLINGS, SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import atomic_write_bytes, write_json
@@ -45,7 +46,7 @@ def spot_agreement(
     cfg: SystemConfig, surface: Heightfield | None, pattern: NDArray
 ) -> dict[str, float]:
     """Offsets (px) between detected spots and the model's chief rays."""
-    from restoration.features import detect_spots
+    from restoration import detect_spots
     from wai_core.forward import predict_spots
 
     _, px = predict_spots(cfg, surface)
@@ -65,7 +66,7 @@ def view_agreement(
     cfg: SystemConfig, surface: Heightfield | None, view: NDArray, texture: NDArray
 ) -> dict[str, float]:
     """SSIM/PSNR of the path-traced view against the geometric one, outside TIR and the board."""
-    from restoration.metrics import image_metrics
+    from restoration import image_metrics
     from wai_core.forward import predict_view
 
     predicted, ok = predict_view(cfg, surface, texture)
@@ -87,7 +88,7 @@ def reference_row(
     offsets (windowed centroids about the model's spots, the same windows in both images),
     light in the spots and in the whole image (ratio default / reference), view mean ratio and
     RMS difference (radiance, white = 1)."""
-    from mitsuba_wai.reference import windowed_centroids
+    from mitsuba_wai import windowed_centroids
     from wai_core.forward import predict_spots
 
     flat = bool(np.ptp(surface.z) == 0)
@@ -113,10 +114,7 @@ def reference_row(
 def reference_table(cfg: SystemConfig, quick: bool) -> list[dict[str, Any]]:
     """Renderer vs Mitsuba reference, flat water and U = 1 m/s (seed 0): :func:`reference_row`
     at the default spp, the reference at 64 / 16 spp (``quick``) or 256 / 64."""
-    from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.reference import render_reference
-    from mitsuba_wai.render import FrameRenderer, render_seed
-    from mitsuba_wai.surface_sampling import wave_surface
+    from mitsuba_wai import FrameRenderer, flat_like, render_reference, render_seed, wave_surface
 
     spp = (64, 16) if quick else (256, 64)
     c = cfg.replace("waves", wind_speed_m_s=1.0, seed=0)
@@ -141,10 +139,7 @@ def _cases(quick: bool) -> list[tuple[float, int]]:
 
 def agreement_table(cfg: SystemConfig, quick: bool) -> list[dict[str, Any]]:
     """Spot and view agreement for flat water and each (wind, seed) case at the default spp."""
-    from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer, render_seed
-    from mitsuba_wai.surface_sampling import wave_surface
-    from mitsuba_wai.textures import object_texture
+    from mitsuba_wai import FrameRenderer, flat_like, object_texture, render_seed, wave_surface
 
     texture = object_texture(cfg.object)
     default_grid = wave_surface(cfg)
@@ -176,8 +171,7 @@ def agreement_table(cfg: SystemConfig, quick: bool) -> list[dict[str, Any]]:
 def spp_sweep(cfg: SystemConfig, spps: list[int], runs: int = 2) -> list[dict[str, Any]]:
     """Spot agreement and render time of the pattern against spp, for each ``[render].sampling``
     (U from cfg, seed 0)."""
-    from mitsuba_wai.render import FrameRenderer
-    from mitsuba_wai.surface_sampling import wave_surface
+    from mitsuba_wai import FrameRenderer, wave_surface
 
     surface = wave_surface(cfg)
     rows = []
@@ -212,8 +206,7 @@ def view_spp_sweep(
     """The view's noise against spp, for each ``[render].sampling``: RMS difference from a
     ``reference_spp`` render (two independent ones averaged), on the radiance scale (1 = white),
     and render time (U from cfg, seed 0)."""
-    from mitsuba_wai.render import FrameRenderer
-    from mitsuba_wai.surface_sampling import wave_surface
+    from mitsuba_wai import FrameRenderer, wave_surface
 
     surface = wave_surface(cfg)
     reference = None
@@ -318,8 +311,7 @@ def run_validate(config: str | Path, out: str | Path, quick: bool = False) -> di
         ``validate.json``.
     """
     cfg = load_rig(config)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     against_mitsuba = reference_table(cfg, quick)
     table = agreement_table(cfg, quick)
     spps = [2, 8, 32] if quick else [1, 2, 3, 4, 8, 16, 32, 64]

@@ -114,7 +114,7 @@ def mark_dataset_folder(out: Path) -> None:
 def check_dataset_memory(spec: Any, cfg: SystemConfig, renderers: int) -> None:
     """Refuse a dataset whose frames, rendered by ``renderers`` processes at once on this
     machine, would need more memory than is available (:mod:`mitsuba_wai.memory`)."""
-    from mitsuba_wai.memory import describe_devices, render_bytes
+    from mitsuba_wai import describe_devices, render_bytes
     from wai_core.memory import check_memory
 
     pixels_v = cfg.camera_v.width_px * cfg.camera_v.height_px

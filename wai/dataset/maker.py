@@ -1,0 +1,135 @@
+"""Rendering a dataset's frames, with the scenes loaded once per mesh level (:class:`FrameMaker`).
+
+Each frame is rendered by :mod:`mitsuba_wai` on a mesh as fine as its shortest wave needs, and
+its truth is sampled on one grid shared by the whole dataset (the finest the wind range needs).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from wai.dataset.records import FrameRecord
+from wai.dataset.spec import DatasetSpec, frame_config, sample_params
+from wai.dataset.truth import true_view_warp
+from wai_core.config import SystemConfig
+from wai_core.heightfield import Heightfield
+
+__all__ = ["FrameMaker", "grid_axes"]
+
+
+def grid_axes(spec: DatasetSpec, base: SystemConfig) -> tuple[NDArray, NDArray]:
+    """The dataset's storage grid: the wave model's mesh grid at the lowest wind of the range,
+    whose waves are the shortest (as fine as any frame's mesh)."""
+    from mitsuba_wai import wave_surface
+
+    grid = wave_surface(base.replace("waves", wind_speed_m_s=spec.ranges.wind_speed_m_s[0]))
+    return grid.x, grid.y
+
+
+def _coarser(axis: NDArray, level: int) -> NDArray:
+    """``axis`` over the same span with its spacing times ``2**level`` (>= 5 samples)."""
+    n = max(int(np.ceil((axis.size - 1) / 2**level)) + 1, 5)
+    return np.linspace(axis[0], axis[-1], n)
+
+
+class FrameMaker:
+    """Renders frames of a dataset, with its scenes loaded once per mesh level.
+
+    A frame's mesh is the storage grid (:func:`grid_axes`) with its spacing doubled as often
+    as the frame's shortest wave allows (at most its own ``mesh_points_per_wavelength``
+    spacing): a few mesh levels cover the wind range, each with its renderer loaded on first
+    use, so calm and windy frames both render on meshes their own size.
+
+    Parameters
+    ----------
+    spec : DatasetSpec
+
+    Examples
+    --------
+    >>> maker = FrameMaker(DatasetSpec(size_px=(80, 60), spp=1))     # doctest: +SKIP
+    >>> maker.make(0).view.shape                                        # doctest: +SKIP
+    (60, 80, 3)
+    """
+
+    def __init__(self, spec: DatasetSpec) -> None:
+        self.spec = spec
+        self.base = spec.base_config()
+        self.x_mm, self.y_mm = grid_axes(spec, self.base)
+        self._renderers: dict[int, Any] = {}
+
+    def surface(
+        self, cfg: SystemConfig, time_s: float | None = None, level: int = 0
+    ) -> Heightfield:
+        """The sea state of ``cfg`` at ``time_s`` (default its own) on the storage grid, or
+        on mesh ``level`` (spacing times ``2**level``)."""
+        from mitsuba_wai import sea_surface
+
+        t = cfg.waves.time_s if time_s is None else time_s
+        x, y = _coarser(self.x_mm, level), _coarser(self.y_mm, level)
+        return sea_surface(cfg.waves).grid(x, y, t, mean_level_mm=cfg.water.h0_mm)
+
+    def level(self, cfg: SystemConfig) -> int:
+        """The coarsest mesh level whose spacing resolves ``cfg``'s shortest wave."""
+        from mitsuba_wai import mesh_spacing_mm, sea_surface
+
+        span = float(max(self.x_mm[-1] - self.x_mm[0], self.y_mm[-1] - self.y_mm[0]))
+        own = mesh_spacing_mm(sea_surface(cfg.waves), cfg.waves.mesh_points_per_wavelength, span)
+        fine = float(max(np.diff(self.x_mm).max(), np.diff(self.y_mm).max()))
+        level = 0
+        while (2 ** (level + 1) * fine <= own and _coarser(self.x_mm, level + 1).size > 5
+               and _coarser(self.y_mm, level + 1).size > 5):
+            level += 1
+        return level
+
+    def _renderer(self, level: int, surface: Heightfield) -> Any:
+        from mitsuba_wai import FrameRenderer
+
+        if level not in self._renderers:
+            self._renderers[level] = FrameRenderer(self.base, surface)
+        return self._renderers[level]
+
+    def render(self, index: int) -> tuple[SystemConfig, Heightfield, dict[str, NDArray], float]:
+        """Frame ``index``'s configuration, true surface (on the storage grid), images and the
+        views' gain: the renders of :func:`mitsuba_wai.render_frame` on the frame's mesh."""
+        from mitsuba_wai import render_frame_images, render_seed
+        from wai_core.optics import radiance_gain
+
+        p = sample_params(self.spec.seed, index, self.spec.ranges, self.spec.degrade)
+        cfg = frame_config(self.base, p)
+        level = self.level(cfg)
+        mesh = self.surface(cfg, level=level)
+
+        def surface_at(t: float) -> Heightfield:
+            return self.surface(cfg, t, level)
+
+        cfg, images = render_frame_images(
+            self._renderer(level, mesh), cfg, mesh, render_seed(cfg), spp=self.spec.spp,
+            surface_at=surface_at if cfg.motion.exposure_s > 0 else None,
+        )
+        # With the sensor on, the views are its reading, already scaled by the exposure.
+        gain = 1.0 if cfg.sensor.enabled else radiance_gain(cfg.water.n_water)
+        # Level 0's mesh is the storage grid: the same heights, not synthesised twice.
+        return cfg, mesh if level == 0 else self.surface(cfg), images, gain
+
+    def make(self, index: int) -> FrameRecord:
+        """Frame ``index``, rendered and reduced to what the store holds, with BLAS on one
+        thread: idle ones would spin beside Dr.Jit's, and the sums are the same in any process."""
+        from threadpoolctl import threadpool_limits
+
+        p = sample_params(self.spec.seed, index, self.spec.ranges, self.spec.degrade)
+        with threadpool_limits(1, user_api="blas"):
+            cfg, surf, images, gain = self.render(index)
+            return FrameRecord(
+                params=p,
+                view=(images["view"] / gain).astype(np.float16),
+                view_truth=(images["view_truth"] / gain).astype(np.float16),
+                pattern=images["pattern"].mean(axis=-1).astype(np.float16),
+                pattern_flat=images["pattern_flat"].mean(axis=-1).astype(np.float16),
+                height_mm=surf.z.astype(np.float32),
+                normals=surf.grid_normals().astype(np.float32),
+                warp_px=true_view_warp(cfg, surf),
+            )
+

@@ -1,0 +1,89 @@
+"""Who renders a dataset's frames: this process, spawned worker processes or a Dask cluster.
+
+Whichever renders them, the frames come back in order, to be written by the process that runs
+:func:`wai.dataset.write_dataset`.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import multiprocessing
+import os
+from collections import deque
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+from wai.dataset.maker import FrameMaker
+from wai.dataset.records import FrameRecord
+from wai.dataset.spec import DatasetSpec
+from wai.threads import limit_native_threads
+from wai_core.errors import WaiInputError
+
+__all__ = ["make_frames"]
+
+
+# A worker process's FrameMaker of each spec (its scenes stay loaded between frames).
+_MAKERS: dict[DatasetSpec, FrameMaker] = {}
+
+
+def _make_cached(spec: DatasetSpec, index: int, host_threads: dict[str, int] | None = None
+                 ) -> FrameRecord:
+    """Frame ``index`` of ``spec``, by this process's FrameMaker of it; on a Dask worker, with
+    the native pools sized to the cores over the cluster's threads on its host."""
+    if host_threads is not None:
+        from distributed import get_worker
+        from distributed.comm import get_address_host
+
+        host = get_address_host(get_worker().address)
+        limit_native_threads(max(1, (os.cpu_count() or 1) // host_threads.get(host, 1)))
+    maker = _MAKERS[spec] if spec in _MAKERS else _MAKERS.setdefault(spec, FrameMaker(spec))
+    return maker.make(index)
+
+
+def _frames_on_dask(client: Any, spec: DatasetSpec, indices: Sequence[int]
+                    ) -> Iterator[FrameRecord]:
+    """The frames ``indices`` in order, rendered by the workers of ``client``'s cluster; a
+    window of twice the workers' threads is in flight (the rest waits, not the memory)."""
+    with client:
+        info = [(w["host"], w["nthreads"]) for w in client.scheduler_info()["workers"].values()]
+        hosts = {h: sum(n for k, n in info if k == h) for h, _ in info}
+        window, todo = max(2, 2 * sum(hosts.values())), iter(indices)
+        pending = deque(client.submit(_make_cached, spec, i, hosts, pure=False)
+                        for i in itertools.islice(todo, window))
+        while pending:
+            rec = pending.popleft().result()
+            for i in itertools.islice(todo, 1):
+                pending.append(client.submit(_make_cached, spec, i, hosts, pure=False))
+            yield rec
+
+
+def _dask_client(scheduler: str) -> Any:
+    try:
+        from distributed import Client
+        return Client(scheduler, timeout=30)
+    except ModuleNotFoundError as exc:
+        raise WaiInputError(f"--scheduler needs Dask's distributed ({exc})") from None
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise WaiInputError(f"--scheduler {scheduler}: no Dask scheduler there ({exc})") from None
+
+
+def _frames_in_pool(spec: DatasetSpec, indices: Sequence[int], n: int) -> Iterator[FrameRecord]:
+    threads = max(1, (os.cpu_count() or 1) // n)
+    with multiprocessing.get_context("spawn").Pool(n, limit_native_threads, (threads,)) as pool:
+        yield from pool.imap(functools.partial(_make_cached, spec), indices)
+
+
+def make_frames(spec: DatasetSpec, indices: Sequence[int], workers: int,
+                scheduler: str | None, maker: FrameMaker | None
+                ) -> tuple[Iterator[FrameRecord], str]:
+    """The frames ``indices`` in order, rendered here (``workers`` <= 1, by ``maker``), in
+    ``workers`` spawned processes or on the Dask cluster at ``scheduler``; who, in words."""
+    if scheduler is not None:
+        threads = (client := _dask_client(scheduler)).nthreads()
+        return (_frames_on_dask(client, spec, indices),
+                f"Dask {scheduler}: {len(threads)} workers, {sum(threads.values())} threads")
+    if workers <= 1:
+        return map((maker or FrameMaker(spec)).make, indices), "this process"
+    return _frames_in_pool(spec, indices, workers), f"{workers} worker processes"
+

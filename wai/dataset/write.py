@@ -1,0 +1,117 @@
+"""Writing a dataset: its frames rendered in order into the store, continuing where it stopped."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from wai.dataset import store
+from wai.dataset.maker import FrameMaker, grid_axes
+from wai.dataset.records import ARRAYS, append, open_store, rewrite_manifest, trim
+from wai.dataset.schedule import make_frames
+from wai.dataset.spec import DatasetSpec
+from wai.dataset.store import DATASET_FILE, MANIFEST_FILE
+from wai_core.errors import WaiInputError
+
+__all__ = ["write_dataset"]
+
+
+def write_dataset(
+    out_dir: str | Path,
+    frames: int,
+    spec: DatasetSpec = DatasetSpec(),  # noqa: B008 (frozen: one default is safe)
+    *,
+    workers: int = 0,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> Path:
+    """Render frames ``0 .. frames - 1`` of ``spec`` into ``out_dir/dataset.h5`` and its
+    ``manifest.csv``, continuing an existing store of the same spec from its frame count.
+
+    Parameters
+    ----------
+    out_dir : path
+        The dataset folder (created if missing).
+    frames : int
+        The frames the store holds when done (>= 1); fewer than it holds adds none.
+    spec : DatasetSpec
+    workers : int
+        Processes rendering frames (spawned; 0 or 1: in this process). The store is written
+        here, in frame order.
+    scheduler : str, optional
+        A running Dask scheduler's address (``tcp://host:8786``) whose workers render the
+        frames instead (they need this package, not the store's file system).
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    Path
+        The store, ``out_dir/dataset.h5``.
+
+    Raises
+    ------
+    WaiInputError
+        ``out_dir`` may not be written, holds another spec, or lacks memory or disk
+        (:mod:`wai.dataset.store`).
+
+    Examples
+    --------
+    >>> write_dataset("datasets/d1", 2, DatasetSpec(size_px=(80, 60), spp=1))  # doctest: +SKIP
+    PosixPath('datasets/d1/dataset.h5')
+    """
+    from tqdm import tqdm
+
+    if frames < 1:
+        raise WaiInputError(f"--frames must be >= 1, not {frames}")
+    if workers < 0:
+        raise WaiInputError(f"--workers must be >= 0, not {workers}")
+    if scheduler is not None and workers > 0:
+        raise WaiInputError("--workers and --scheduler exclude each other: the scheduler's "
+                            "workers render")
+    out = Path(out_dir)
+    store.check_dataset_folder(out)
+    cfg = spec.base_config()
+    if scheduler is None:  # a cluster's workers have their own memory
+        store.check_dataset_memory(spec, cfg, max(workers, 1))
+    store.mark_dataset_folder(out)
+    path = out / DATASET_FILE
+    f = open_store(path, spec, cfg)
+    try:
+        done = trim(f)
+        todo = list(range(done, frames))
+        t0 = time.perf_counter()  # the run's time: its processes' start and scene loads too
+        maker = FrameMaker(spec) if todo and scheduler is None and workers <= 1 else None
+        with tqdm(total=frames, initial=min(done, frames), desc="dataset", unit="frame",
+                  disable=not progress) as bar:
+            if todo:
+                x_mm, y_mm = (maker.x_mm, maker.y_mm) if maker else grid_axes(spec, cfg)
+                made, renderers = make_frames(spec, todo, workers, scheduler, maker)
+                for rec in made:
+                    store.reserve_space(f, sum(getattr(rec, a).nbytes for a in ARRAYS),
+                                        int(f.attrs["frames"]))
+                    append(f, rec, x_mm, y_mm)
+                    rewrite_manifest(f, out / MANIFEST_FILE)
+                    bar.update(1)
+                store.reserve_space(f, 0, int(f.attrs["frames"]))
+                _record_run(f, done, len(todo), time.perf_counter() - t0, renderers)
+        rewrite_manifest(f, out / MANIFEST_FILE)
+    finally:
+        store.close_store(f)
+    return path
+
+
+def _record_run(f: Any, first: int, frames: int, seconds: float, renderers: str) -> None:
+    """Append a run's throughput and the reference workload's time now to ``attrs['runs']``."""
+    from wai.bench.timing import reference_workload
+
+    ref = reference_workload()
+    f.attrs["runs"] = json.dumps([*json.loads(f.attrs.get("runs", "[]")), {
+        "first_frame": first, "frames": frames, "seconds": round(seconds, 3),
+        "frames_per_s": frames / seconds, "renderers": renderers, "cores": os.cpu_count(),
+        "reference": ref["workload"], "reference_ms": ref["median_ms"]}])
+
+
