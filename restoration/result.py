@@ -47,18 +47,18 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:
-    from restoration.alterman import AltermanSurface
     from restoration.consistency import Consistency
     from restoration.features import Matches
     from restoration.reverse_trace import Restoration
-    from restoration.surface import SurfaceEstimate
+    from restoration.surface import Anchor
     from restoration.view_check import ViewMatch
+    from wai_core.heightfield import Heightfield
 
 __all__ = [
     "REFERENCE_RMS_FRACTION", "SPARSE_FRACTION", "STATUSES", "RestoreResult", "RestoredView",
@@ -135,6 +135,20 @@ class RestoredView:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
+class SurfaceSamples(Protocol):
+    """What a method's surface offers the result, the scores and the reports (the structured
+    light's :class:`~restoration.surface.SurfaceEstimate` and the sun sensor's
+    :class:`~restoration.alterman.AltermanSurface` alike)."""
+
+    heightfield: Heightfield
+    ij: NDArray[np.int64]
+    points_mm: NDArray[np.float64]
+    slopes: NDArray[np.float64]
+    iterations: int
+    timings_ms: dict[str, float]
+    anchor: Anchor
+
+
 @dataclass
 class RestoreResult:
     """One frame restored (or the status saying why not), from images and calibration only.
@@ -149,7 +163,7 @@ class RestoreResult:
         Why, in words, when the status is not ``ok``.
     features : Matches or None
         Matched features (grid index, flat-water and wavy spot centres in px, counts).
-    surface : SurfaceEstimate or AltermanSurface or None
+    surface : SurfaceSamples or None
         The reconstructed surface (``.heightfield``: absolute heights, mm, lab frame, NaN where
         not reconstructed) and its samples.
     view : Restoration or None
@@ -177,7 +191,7 @@ class RestoreResult:
     status: Status = Status.OK
     message: str = ""
     features: Matches | None = None
-    surface: SurfaceEstimate | AltermanSurface | None = None
+    surface: SurfaceSamples | None = None
     view: Restoration | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)

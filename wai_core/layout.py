@@ -10,12 +10,14 @@
 
 These are the formulas; the values a configuration needs again and again (the diffuser's
 extent, the dots lit and their weights, the object's centre) are kept by its rig
-(``cfg.rig``, :class:`wai_core.rig.Rig`), which every stage asks.
+(``cfg.rig``, :class:`wai_core.rig.Rig`), which every stage asks. The rig is built on these
+formulas, so their configuration parameter (a :class:`~wai_core.config.SystemConfig`) is
+annotated ``Any`` rather than imported back.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,9 +28,6 @@ from wai_core.geometry import (
     intersect_plane_z,
     refract,
 )
-
-if TYPE_CHECKING:
-    from wai_core.config import SystemConfig
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -51,13 +50,13 @@ def footprint_on_plane(camera: PinholeCamera, z_mm: float) -> NDArray:
     return np.array([[p[:, 0].min(), p[:, 0].max()], [p[:, 1].min(), p[:, 1].max()]])
 
 
-def diffuser_rect(cfg: SystemConfig) -> NDArray:
+def diffuser_rect(cfg: Any) -> NDArray:
     """Extent ``[[x0, x1], [y0, y1]]`` of the diffuser, mm: camera s's view of ``z = z_h``
     (the rig's :attr:`~wai_core.rig.Rig.diffuser_rect`)."""
     return cfg.rig.diffuser_rect
 
 
-def flat_pattern_hits(cfg: SystemConfig) -> tuple[NDArray, NDArray, NDArray]:
+def flat_pattern_hits(cfg: Any) -> tuple[NDArray, NDArray, NDArray]:
     """Flat-water path of every dot: water hit ``q`` (K, 3), diffuser hit ``s`` (K, 3), and a
     mask of the dots whose spot lands on the diffuser inside camera s's view (the rig's
     :func:`wai_core.light_paths.flat_spots`)."""
@@ -68,7 +67,7 @@ def flat_pattern_hits(cfg: SystemConfig) -> tuple[NDArray, NDArray, NDArray]:
     return flat.water_mm, flat.diffuser_mm, seen
 
 
-def lit_dots(cfg: SystemConfig, margin_spacings: float = 2.0) -> NDArray[np.bool_]:
+def lit_dots(cfg: Any, margin_spacings: float = 2.0) -> NDArray[np.bool_]:
     """Dots (K,) worth projecting: those whose flat-water spot lands on the diffuser grown by
     ``margin_spacings`` dot spacings (waves move spots by less). Lighting only these spends every
     projected photon on a spot that camera s can see."""
@@ -86,7 +85,7 @@ def _dots_per_row(ij: NDArray) -> int:
     return int(ij[:, 0].max() - ij[:, 0].min() + 1)
 
 
-def dot_weights(cfg: SystemConfig, max_gain: float = 60.0) -> NDArray:
+def dot_weights(cfg: Any, max_gain: float = 60.0) -> NDArray:
     """Brightness (K,) in [0, 1] of each dot on the panel: the paper's "adaptive" pattern.
 
     Dots that cannot reach the diffuser (:func:`lit_dots`) stay dark. On a dielectric surface
@@ -103,7 +102,7 @@ def dot_weights(cfg: SystemConfig, max_gain: float = 60.0) -> NDArray:
     return w / w.max()
 
 
-def snell_window_hits(cfg: SystemConfig, step_px: float = 8.0) -> NDArray:
+def snell_window_hits(cfg: Any, step_px: float = 8.0) -> NDArray:
     """Points (N, 3) where camera v's rays that leave the water (flat, not TIR) cross it."""
     cam = cfg.rig.camera_v
     o, d = cam.pixel_rays(*cam.pixel_grid(step_px))
@@ -112,7 +111,7 @@ def snell_window_hits(cfg: SystemConfig, step_px: float = 8.0) -> NDArray:
     return q[~tir & np.isfinite(q[:, 0])]
 
 
-def observed_patch(cfg: SystemConfig, margin_mm: float = 10.0) -> NDArray:
+def observed_patch(cfg: Any, margin_mm: float = 10.0) -> NDArray:
     """Extent ``[[x0, x1], [y0, y1]]`` (mm) of flat water seen by system S (the dots that reach
     camera s) or system V (camera v inside Snell's window), plus a margin."""
     q, _, seen = flat_pattern_hits(cfg)
@@ -121,7 +120,7 @@ def observed_patch(cfg: SystemConfig, margin_mm: float = 10.0) -> NDArray:
     return np.stack([lo, hi], axis=1)
 
 
-def object_plane_center(cfg: SystemConfig) -> NDArray:
+def object_plane_center(cfg: Any) -> NDArray:
     """Centre (3,) mm of the object rectangle: camera v's axis refracted by flat water, on z_a."""
     cam = cfg.rig.camera_v
     o, axis = cam.pose.center_lab_mm, cam.pose.axis_lab
@@ -133,7 +132,7 @@ def object_plane_center(cfg: SystemConfig) -> NDArray:
     return p
 
 
-def surface_extent(cfg: SystemConfig, margin_mm: float = 15.0) -> NDArray:
+def surface_extent(cfg: Any, margin_mm: float = 15.0) -> NDArray:
     """Extent ``[[x0, x1], [y0, y1]]`` (mm) of the water that must be modelled: the observed
     patch and all of camera v's footprint (its TIR rays must meet water too), plus a margin for
     the waves' deflections. Nothing beyond it is modelled."""

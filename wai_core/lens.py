@@ -40,15 +40,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from wai_core.geometry import PinholeCamera, pinhole_of
-
-if TYPE_CHECKING:
-    from wai_core.config import DeviceConfig
 
 Array = NDArray[np.float64]
 
@@ -301,13 +298,13 @@ class DeviceOptics:
     port_n: float = 1.49
 
     @classmethod
-    def from_config(cls, dev: DeviceConfig) -> DeviceOptics:
+    def from_config(cls, dev: Any) -> DeviceOptics:
         """The optics of a ``[projector]`` / ``[camera_s]`` / ``[camera_v]`` section (a rig
         holds each device's once: :meth:`wai_core.rig.Rig.optics`)."""
         return cls.of(dev, pinhole_of(dev))
 
     @classmethod
-    def of(cls, dev: DeviceConfig, cam: PinholeCamera) -> DeviceOptics:
+    def of(cls, dev: Any, cam: PinholeCamera) -> DeviceOptics:
         """The optics of section ``dev`` around its pinhole ``cam``."""
         cx = (cam.width_px - 1) / 2.0 + float(dev.principal_offset_px[0])
         cy = (cam.height_px - 1) / 2.0 + float(dev.principal_offset_px[1])

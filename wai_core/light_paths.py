@@ -16,13 +16,16 @@ meets the object plane (:func:`wai_core.optics.trace_to_object`); back, through 
 object point is seen at one pixel (:func:`flat_pixel_of`).
 
 A camera enters a compiled kernel as one packed vector (:func:`pack_camera`).
+
+The functions take a configuration's rig (``cfg.rig``, :class:`wai_core.rig.Rig`); the rig is
+built on this module, so the parameters are annotated ``Any`` rather than imported back.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numba import njit
@@ -32,7 +35,6 @@ from wai_core.geometry import PinholeCamera, intersect_plane_z, reflect
 
 if TYPE_CHECKING:
     from wai_core.heightfield import Heightfield
-    from wai_core.rig import Rig
 
 __all__ = [
     "FlatSpots", "SpotHits", "dot_rays", "flat_pixel_of", "flat_spots", "pack_camera",
@@ -58,7 +60,7 @@ def pack_camera(camera: PinholeCamera) -> Array:
                  (camera.width_px - 1) / 2.0, (camera.height_px - 1) / 2.0]
 
 
-def dot_rays(rig: Rig, panel_px: ArrayLike) -> tuple[Array, Array]:
+def dot_rays(rig: Any, panel_px: ArrayLike) -> tuple[Array, Array]:
     """The rays of projector dots at ``panel_px`` (K, 2) panel pixels, through the projector's
     real optics (its principal point and distortion: :meth:`~wai_core.lens.DeviceOptics.
     pinhole_px`), as rays of its ideal pinhole.
@@ -102,7 +104,7 @@ def reflect_to_diffuser(hits_mm: ArrayLike, dirs: ArrayLike, normals: ArrayLike,
     return intersect_plane_z(hits_mm, reflect(dirs, normals), z_h_mm)[0]
 
 
-def spots_from_hits(rig: Rig, hits_mm: ArrayLike, dirs: ArrayLike,
+def spots_from_hits(rig: Any, hits_mm: ArrayLike, dirs: ArrayLike,
                     normals: ArrayLike) -> SpotHits:
     """Reflect rays of directions ``dirs`` (K, 3) at surface points ``hits_mm`` (K, 3) about
     unit ``normals`` (K, 3) onto the diffuser plane, and image the hits in camera s.
@@ -125,7 +127,7 @@ def spots_from_hits(rig: Rig, hits_mm: ArrayLike, dirs: ArrayLike,
     return SpotHits(on_diffuser, px, front)
 
 
-def spots_through(rig: Rig, surface: Heightfield | None, panel_px: ArrayLike) -> Array:
+def spots_through(rig: Any, surface: Heightfield | None, panel_px: ArrayLike) -> Array:
     """Camera-s pixels (K, 2) where the dots at ``panel_px`` (K, 2) land after reflecting off
     ``surface`` (absolute heights, mm; None: flat water at the rig's ``h0``); NaN where a ray
     misses the surface, the diffuser or camera s's front."""
@@ -176,7 +178,7 @@ class FlatSpots:
                     & (y >= rect_mm[1, 0] - margin_mm) & (y <= rect_mm[1, 1] + margin_mm))
 
 
-def flat_spots(rig: Rig) -> FlatSpots:
+def flat_spots(rig: Any) -> FlatSpots:
     """Every dot's path through flat water at the rig's ``h0``: projector (real optics) ->
     water -> mirror reflection about the vertical -> diffuser -> camera s. Panel -> camera s
     is then a plane projective map (a homography)."""
@@ -211,7 +213,7 @@ def reflected_spot_px(x, y, z, dx, dy, dz, hx, hy, z_h, camera):  # pragma: no c
 
 
 def flat_pixel_of(
-    rig: Rig, points_mm: ArrayLike, iterations: int = 48
+    rig: Any, points_mm: ArrayLike, iterations: int = 48
 ) -> tuple[Array, Array]:
     """The camera-v pixel that sees object-plane points through flat water at ``h0``.
 
@@ -224,7 +226,7 @@ def flat_pixel_of(
 
     Parameters
     ----------
-    rig : Rig
+    rig : Any
     points_mm : (..., 3) array_like
         Points above the water (NaN passes through), mm.
     iterations : int

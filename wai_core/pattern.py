@@ -9,7 +9,7 @@ image; the restoration uses the same grid to know each feature's projector ray (
 from __future__ import annotations
 
 import functools
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numba
 import numpy as np
@@ -17,11 +17,8 @@ from numpy.typing import NDArray
 
 from wai_core.geometry import PinholeCamera
 
-if TYPE_CHECKING:
-    from wai_core.config import PatternConfig
 
-
-def dot_grid(pattern: PatternConfig, projector: PinholeCamera) -> tuple[NDArray, NDArray]:
+def dot_grid(pattern: Any, projector: PinholeCamera) -> tuple[NDArray, NDArray]:
     """Grid indices and panel positions of every dot.
 
     Returns
@@ -43,7 +40,7 @@ def dot_grid(pattern: PatternConfig, projector: PinholeCamera) -> tuple[NDArray,
 
 
 def pattern_image(
-    pattern: PatternConfig, projector: PinholeCamera, weights: NDArray | None = None
+    pattern: Any, projector: PinholeCamera, weights: NDArray | None = None
 ) -> NDArray[np.float32]:
     """Panel image (height, width, 3) in [0, 1]: the dots in ``pattern.color`` on black.
 
@@ -223,7 +220,7 @@ def code_array(
     return out
 
 
-def dot_codes(pattern: PatternConfig, projector: PinholeCamera) -> NDArray[np.int8]:
+def dot_codes(pattern: Any, projector: PinholeCamera) -> NDArray[np.int8]:
     """Symbol (K,) of each dot in :func:`dot_grid` order (an index into :data:`CODE_LEVELS`);
     all 0 for ``code = "none"``."""
     ij, _ = dot_grid(pattern, projector)
@@ -235,7 +232,7 @@ def dot_codes(pattern: PatternConfig, projector: PinholeCamera) -> NDArray[np.in
     return grid[ij[:, 1] - lo[1], ij[:, 0] - lo[0]]
 
 
-def dot_colours(pattern: PatternConfig, projector: PinholeCamera) -> NDArray:
+def dot_colours(pattern: Any, projector: PinholeCamera) -> NDArray:
     """Projector RGB (K, 3) of each dot: ``pattern.color`` for every dot with ``code = "none"``;
     with ``"colour"``, ``(0, g, 1 - g)`` times the G + B of ``pattern.color`` (g: the symbol's
     :data:`CODE_LEVELS`), so every dot carries the plain pattern's G + B, the luminance that

@@ -21,7 +21,7 @@ True
 from __future__ import annotations
 
 from functools import cached_property
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,7 +29,6 @@ from numpy.typing import NDArray
 from wai_core.geometry import PinholeCamera, pinhole_of
 
 if TYPE_CHECKING:
-    from wai_core.config import SystemConfig
     from wai_core.lens import DeviceOptics
     from wai_core.light_paths import FlatSpots
 
@@ -46,17 +45,17 @@ class Rig:
 
     Parameters
     ----------
-    cfg : SystemConfig
+    cfg : Any
         The configuration (its ``projector``, ``camera_s`` and ``camera_v`` must be set).
 
     Attributes
     ----------
-    cfg : SystemConfig
+    cfg : Any
     projector, camera_s, camera_v : PinholeCamera
         The devices' ideal pinholes (pose, focal length, image size).
     """
 
-    def __init__(self, cfg: SystemConfig) -> None:
+    def __init__(self, cfg: Any) -> None:
         self.cfg = cfg
 
     def __repr__(self) -> str:
