@@ -36,7 +36,6 @@ from restoration._compile import COMPILE_NOTICE, kernel_activity, kernels_cached
 from restoration.alterman import AltermanCalibration, reconstruct_alterman
 from restoration.calibration import Calibration, LevelTrack, RigCalibration
 from restoration.consistency import Consistency
-from restoration.errors import RestorationFailed
 from restoration.features import detect_spots, features_from_reference, prepare_reference
 from restoration.folder import FolderRestore, restore_folder, restore_frame
 from restoration.integrate import COMPARISON_INTEGRATORS, INTEGRATORS
@@ -83,6 +82,7 @@ from restoration.sequence import (
 from restoration.structured_light import StructuredLight, estimate_surface, fit_to_spots
 from restoration.tracking import SequenceState
 from restoration.view_check import ViewMatch
+from wai_core.errors import RestorationFailed
 
 __all__ = [
     "ANCHORS",

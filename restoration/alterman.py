@@ -34,7 +34,6 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from restoration.calibration import RigCalibration, read_scene_record, record_view_gain
-from restoration.errors import RestorationFailed
 from restoration.features import Matches, Spots, detect_spots
 from restoration.integrate import MIN_SAMPLES, integrate, to_heightfield
 from restoration.normals import slopes_from_normals, spots_on_diffuser
@@ -49,7 +48,7 @@ from wai_core.alterman import (
     sun_is_up,
 )
 from wai_core.config import config_from_dict
-from wai_core.errors import WaiInputError
+from wai_core.errors import RestorationFailed, WaiInputError
 from wai_core.heightfield import Heightfield
 from wai_core.timings import Timings
 
@@ -394,7 +393,7 @@ def restore_alterman(
     Returns a :class:`~restoration.result.RestoreResult`: status ``ok`` with the features,
     surface, restored view and timings, or ``no_sun`` / ``sun_out_of_view`` /
     ``too_few_spots`` / ``failed`` (the spots give no surface:
-    :class:`~restoration.errors.RestorationFailed`) and no surface.
+    :class:`~wai_core.errors.RestorationFailed`) and no surface.
     """
     options = AltermanOptions() if options is None else options
     status, message = sun_status(cal.system, cal.layout)

@@ -22,8 +22,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from restoration.errors import RestorationFailed
-from wai_core.errors import WaiInputError
+from wai_core.errors import RestorationFailed, WaiInputError
 from wai_core.geometry import PinholeCamera, intersect_plane_z
 
 Array = NDArray[np.float64]
@@ -210,7 +209,7 @@ _KERNEL_ERRORS = {
 def kernel_error(code: int) -> Exception:
     """The exception of a :data:`_KERNEL_ERRORS` code: rays that do not point up are the
     caller's geometry (:class:`~wai_core.errors.WaiInputError`); the other codes are a frame's
-    degenerate reflections (:class:`~restoration.errors.RestorationFailed`)."""
+    degenerate reflections (:class:`~wai_core.errors.RestorationFailed`)."""
     return (WaiInputError if code == 1 else RestorationFailed)(_KERNEL_ERRORS[code])
 
 

@@ -10,7 +10,6 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from restoration.errors import RestorationFailed
 from restoration.integrate import (
     check_samples,
     grid_neighbours,
@@ -26,6 +25,7 @@ from restoration.normals import (
     kernel_error,
     reflection_slopes,
 )
+from wai_core.errors import RestorationFailed
 from wai_core.timings import Timings
 
 Array = NDArray[np.float64]

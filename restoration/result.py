@@ -36,7 +36,7 @@ verdict as a sweep does:
     different content; the first of :data:`~wai_core.images.IMAGE_SUFFIXES` was used;
 ``failed``
     the data cannot support a surface (too few features, samples that fix no surface):
-    the method caught :class:`~restoration.errors.RestorationFailed`, whose text is the
+    the method caught :class:`~wai_core.errors.RestorationFailed`, whose text is the
     ``message``. Bad input (a wrong shape, NaN, an unknown option) is no status: it raises
     :class:`~wai_core.errors.WaiInputError`;
 ``no_sun``, ``sun_out_of_view``, ``too_few_spots``

@@ -20,7 +20,6 @@ from restoration._threads import run_beside
 from restoration.anchor import find_anchor, integration_residual_mm
 from restoration.calibration import Calibration, LevelTrack
 from restoration.consistency import Consistency, spot_consistency
-from restoration.errors import RestorationFailed
 from restoration.features import (
     Matches,
     ReferenceGrid,
@@ -38,6 +37,7 @@ from restoration.reverse_trace import SplinePatches
 from restoration.surface import COMPILED_INTEGRATORS, SurfaceEstimate, reconstruct
 from restoration.tracking import SequenceState
 from wai_core.config import SystemConfig
+from wai_core.errors import RestorationFailed
 from wai_core.timings import Timings
 
 __all__ = [
@@ -392,7 +392,7 @@ class StructuredLight:
         -------
         RestoreResult
             Status ``failed`` (with the reason, and no surface) when the frame gives no
-            surface (:class:`~restoration.errors.RestorationFailed`); otherwise the surface,
+            surface (:class:`~wai_core.errors.RestorationFailed`); otherwise the surface,
             the restored view and a truth-free status.
 
         Raises

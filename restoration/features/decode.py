@@ -69,7 +69,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from restoration.errors import RestorationFailed
 from restoration.features._decode_steps import (
     _OPPOSITE,
     _best_per_group,
@@ -93,6 +92,7 @@ from restoration.features.symbols import (
     spot_symbols,
 )
 from wai_core.config import SystemConfig
+from wai_core.errors import RestorationFailed
 from wai_core.timings import Timings
 
 __all__ = ["Decoded", "decode_distorted", "features_from_code"]

@@ -17,7 +17,6 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration.errors import RestorationFailed
 from restoration.features._kernels import grow, seed_scores
 from restoration.features._lattice import _LatticeTables
 from restoration.features._outline import _Outline, _outline_px, _visible_outline
@@ -45,7 +44,7 @@ from restoration.features.reference import (
     prepare_reference,
 )
 from wai_core.config import SystemConfig
-from wai_core.errors import WaiInputError
+from wai_core.errors import RestorationFailed, WaiInputError
 from wai_core.timings import Timings
 
 

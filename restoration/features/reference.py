@@ -15,7 +15,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from restoration.errors import RestorationFailed
 from restoration.features._lattice import _DIRS4, _Lattice, _LatticeTables
 from restoration.features._outline import (
     _diffuser,
@@ -33,7 +32,7 @@ from restoration.features.detect import (
 )
 from restoration.undistort import pinhole_px
 from wai_core.config import SystemConfig
-from wai_core.errors import WaiInputError
+from wai_core.errors import RestorationFailed, WaiInputError
 
 
 @dataclass(frozen=True)

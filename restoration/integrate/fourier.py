@@ -14,10 +14,10 @@ from scipy.fft import dctn, idctn, irfft2, rfft2
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import Delaunay, QhullError
 
-from restoration.errors import RestorationFailed
 from restoration.integrate._common import _MAX_GRID_NODES, Array
 from restoration.integrate.gridding import _scan_triangles
 from restoration.integrate.lattice import check_samples, largest_grid_piece
+from wai_core.errors import RestorationFailed
 
 # Slope-grid node spacing in units of the median nearest-neighbour distance of the samples (about
 # the smallest lattice spacing, across the keystone): at least two nodes per sample spacing, so

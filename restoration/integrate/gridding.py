@@ -20,7 +20,6 @@ from numpy.typing import ArrayLike
 from scipy.interpolate import CloughTocher2DInterpolator
 from scipy.spatial import Delaunay, QhullError
 
-from restoration.errors import RestorationFailed
 from restoration.integrate._common import (
     _MAX_GRID_NODES,
     MIN_SAMPLES,
@@ -36,7 +35,7 @@ from restoration.integrate.spline import (
     _solve_normal,
 )
 from restoration.integrate.triangulate import lattice_delaunay
-from wai_core.errors import WaiInputError
+from wai_core.errors import RestorationFailed, WaiInputError
 from wai_core.heightfield import Heightfield
 
 

@@ -14,11 +14,10 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse.linalg import SuperLU, splu
 
-from restoration.errors import RestorationFailed
 from restoration.integrate._common import _MAX_GRID_NODES, MIN_SAMPLES, Array, IntArray
 from restoration.integrate.plans import IntegrationPlans, plan_of
 from restoration.integrate.rules import edge_steps
-from wai_core.errors import WaiInputError
+from wai_core.errors import RestorationFailed, WaiInputError
 
 # --------------------------------------------------------------------------------------------
 # Input checks and the sample grid

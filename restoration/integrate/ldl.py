@@ -16,8 +16,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from restoration.errors import RestorationFailed
 from restoration.integrate._common import Array, IntArray
+from wai_core.errors import RestorationFailed
 
 _LEAF = 8
 """Pieces of at most this many unknowns are not dissected further."""

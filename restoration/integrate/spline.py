@@ -12,9 +12,9 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from restoration.errors import RestorationFailed
 from restoration.integrate._common import Array, IntArray
 from restoration.integrate.lattice import check_samples, largest_grid_piece, spd_solve
+from wai_core.errors import RestorationFailed
 
 # Weight of the third-difference penalty relative to the data (dimensionless, see penalty()).
 _SPLINE_SMOOTHING = 1e-2

@@ -15,7 +15,6 @@ import pytest
 from scipy.spatial import cKDTree
 
 from restoration import features
-from restoration.errors import RestorationFailed
 from restoration.features import (
     ReferenceGrid,
     SpotScales,
@@ -32,7 +31,7 @@ from restoration.features.detect import _background, _minimum_bias, _noise_sigma
 from restoration.features.match import _choose_seed
 from restoration.features.ordering import _anchor_shift, _SpotLookup
 from wai_core.config import SystemConfig, load_config
-from wai_core.errors import WaiInputError
+from wai_core.errors import RestorationFailed, WaiInputError
 
 SCENE = "scenes/paper.toml"
 SHAPE = (600, 800)

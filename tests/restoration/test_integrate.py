@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from restoration.errors import RestorationFailed
 from restoration.integrate import (
     INTEGRATORS,
     MIN_SAMPLES,
@@ -15,7 +14,7 @@ from restoration.integrate import (
 from restoration.integrate.fourier import frankot_chellappa, poisson_dct
 from restoration.integrate.gridding import gap_free_triangles
 from restoration.integrate.lattice import solve_differences
-from wai_core.errors import WaiInputError
+from wai_core.errors import RestorationFailed, WaiInputError
 
 D = 10.0  # grid spacing, mm
 A, WAVELENGTH, DIRECTION = 3.0, 120.0, 0.5  # sinusoid: mm, mm (12 samples), radians

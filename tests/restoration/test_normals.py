@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from restoration.errors import RestorationFailed
 from restoration.normals import (
     normal_matrix,
     points_on_rays,
@@ -14,7 +13,7 @@ from restoration.normals import (
     spots_on_diffuser,
 )
 from wai_core.config import load_config
-from wai_core.errors import WaiInputError
+from wai_core.errors import RestorationFailed, WaiInputError
 from wai_core.geometry import normalize, reflect
 
 

@@ -10,10 +10,9 @@ reconstruction assumes (see restoration.surface), so the tests measure everythin
 import numpy as np
 import pytest
 
-from restoration.errors import RestorationFailed
 from restoration.surface import SurfaceEstimate, reconstruct_surface
 from wai_core.config import load_config
-from wai_core.errors import WaiInputError
+from wai_core.errors import RestorationFailed, WaiInputError
 from wai_core.geometry import intersect_plane_z, normalize, reflect
 from wai_core.pattern import dot_grid
 
