@@ -37,19 +37,18 @@ from restoration.alterman import AltermanCalibration, reconstruct_alterman
 from restoration.calibration import Calibration, LevelTrack, RigCalibration
 from restoration.consistency import Consistency
 from restoration.features import detect_spots, features_from_reference, prepare_reference
-from restoration.folder import FolderRestore, restore_folder, restore_frame
+from restoration.folder import restore_folder
+from restoration.frame import FolderRestore, restore_frame
 from restoration.integrate import COMPARISON_INTEGRATORS, INTEGRATORS
 from restoration.methods import (
     ENTRY_POINT_GROUP,
     METHODS,
     Alterman,
-    Method,
     as_method,
     get_method,
     load_calibration,
     method_class,
     method_names,
-    run_method,
 )
 from restoration.metrics import image_metrics, surface_errors
 from restoration.normals import spots_on_diffuser
@@ -60,6 +59,7 @@ from restoration.options import (
     StructuredLightOptions,
     SurfaceOptions,
 )
+from restoration.protocol import Method, run_method
 from restoration.result import STATUSES, RestoredView, RestoreResult, Status
 from restoration.rig_calibration import (
     UNDETERMINED,

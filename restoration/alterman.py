@@ -36,10 +36,10 @@ from scipy.spatial import cKDTree
 from restoration.calibration import RigCalibration, read_scene_record, record_view_gain
 from restoration.features import Matches, Spots, detect_spots
 from restoration.integrate import MIN_SAMPLES, integrate, to_heightfield
+from restoration.level import Anchor
 from restoration.normals import slopes_from_normals, spots_on_diffuser
 from restoration.options import AltermanOptions
 from restoration.result import RestoreResult, Status
-from restoration.surface import Anchor
 from wai_core.alterman import (
     AltermanSystem,
     SensorLayout,

@@ -39,11 +39,9 @@ from numpy.typing import NDArray
 
 from restoration.integrate.plans import IntegrationPlans, plan_of
 from restoration.integrate.rules import edge_step
+from restoration.level import N_SETS
 from restoration.refine import edges_and_lines, trapezoid_edges
 from restoration.surface import SurfaceEstimate
-
-N_SETS = 4
-"""Interleaved edge sets whose separate minima measure the anchor's standard error."""
 
 CAUCHY_SCALE = 2.0
 """Scale of the search's Cauchy loss, in robust standard deviations (1.4826 x the median
@@ -122,40 +120,6 @@ def robust_scale_mm(r: NDArray) -> float:
     standard deviation were they Gaussian, which a few outliers do not move."""
     r = r[np.isfinite(r)]
     return 1.4826 * float(np.median(np.abs(r))) if r.size else 0.0
-
-
-def parabola_vertex(x: NDArray, y: NDArray) -> float:
-    """Abscissa of the minimum of the least-squares parabola through ``(x, y)``; NaN when the
-    parabola opens downwards or the fit is undetermined."""
-    if x.size < 3 or not np.isfinite(y).all():
-        return float("nan")
-    a, b, _ = np.polyfit(x - x.mean(), y, 2)
-    return float(x.mean() - b / (2 * a)) if a > 0 else float("nan")
-
-
-def anchor_sigma_mm(anchors_mm: NDArray, set_ms: NDArray, reach_mm: float) -> float:
-    """Standard error of the anchor from the spread of the edge sets' own minima, mm.
-
-    Parameters
-    ----------
-    anchors_mm : (A,) ndarray
-        Anchors evaluated, mm.
-    set_ms : (A, N_SETS) ndarray
-        Mean squared residual of each edge set at each anchor, mm^2.
-    reach_mm : float
-        A set's minimum further than this outside the evaluated anchors counts as not found.
-
-    Returns
-    -------
-    float
-        ``std(minima) / sqrt(N_SETS)``, mm; infinite when any set has no minimum in reach (the
-        data do not pin the anchor).
-    """
-    vertices = np.array([parabola_vertex(anchors_mm, set_ms[:, k]) for k in range(N_SETS)])
-    lo, hi = anchors_mm.min() - reach_mm, anchors_mm.max() + reach_mm
-    if not (np.isfinite(vertices).all() and np.all((vertices >= lo) & (vertices <= hi))):
-        return float("inf")
-    return float(np.std(vertices, ddof=1) / np.sqrt(N_SETS))
 
 
 @dataclass(frozen=True)

@@ -21,10 +21,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.features import ReferenceGrid, prepare_reference
+from restoration.level import Anchor
 from restoration.observations import Observations
 from restoration.options import SurfaceOptions
 from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, ViewState, restore_view
-from restoration.surface import Anchor
 from restoration.undistort import PinholeRemap, check_no_port
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration.anchor import N_SETS, anchor_sigma_mm
 from restoration.fit import (
     _MEDIAN_NORM,
     _ONE_BLAS_THREAD,
@@ -32,6 +31,7 @@ from restoration.fit import (
     _Rays,
     _result,
 )
+from restoration.level import N_SETS, anchor_sigma_mm
 from restoration.observations import Observations
 from wai_core.heightfield import Heightfield
 from wai_core.timings import Timings

@@ -18,35 +18,22 @@ import importlib.util
 import sys
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Any, ClassVar, Protocol
+from typing import Any
 
-import numpy as np
 from numpy.typing import NDArray
 
 from restoration.alterman import AltermanCalibration, restore_alterman
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
 from restoration.options import AltermanOptions, SurfaceOptions, checked_options
+from restoration.protocol import BUILT_IN, Method
 from restoration.result import RestoreResult
 from restoration.structured_light import StructuredLight
 from wai_core.errors import WaiInputError
 
 __all__ = [
-    "ENTRY_POINT_GROUP", "METHODS", "Alterman", "Method", "as_method", "get_method",
-    "load_calibration", "method_class", "method_names", "run_method",
+    "ENTRY_POINT_GROUP", "METHODS", "Alterman", "as_method", "get_method", "load_calibration",
+    "method_class", "method_names",
 ]
-
-
-class Method(Protocol):
-    """What every restoration method offers."""
-
-    name: ClassVar[str]
-    calibration_type: ClassVar[type[RigCalibration]]
-    options_type: ClassVar[type[SurfaceOptions]]
-    options: SurfaceOptions
-
-    def __call__(
-        self, images: dict[str, NDArray], cal: Any, track: LevelTrack | None = None
-    ) -> RestoreResult: ...
 
 
 class Alterman:
@@ -85,6 +72,7 @@ class Alterman:
 
 METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name: Alterman}
 """Methods by name: ``structured-light`` (the paper's) and ``alterman`` (the sun sensor)."""
+BUILT_IN.update(METHODS.values())
 
 
 ENTRY_POINT_GROUP = "wai.methods"
@@ -202,70 +190,6 @@ def as_method(method: str | Method, options: SurfaceOptions | None = None) -> Me
     """``method`` itself when it is a configured method object, else :func:`get_method`
     ``(method, options)``."""
     return get_method(method, options) if isinstance(method, str) else method
-
-
-def run_method(
-    method: Method, images: dict[str, NDArray], cal: Any, track: LevelTrack | None = None
-) -> RestoreResult:
-    """``method(images, cal, track)``, guarded when it is a method of one's own.
-
-    The built-in methods (:data:`METHODS`) run as they are. Any other method is the user's
-    code: one whose call raises (``SystemExit`` included), or returns anything but a
-    :class:`RestoreResult` whose view, if any, is an image of the frame's size with a boolean
-    mask of it, ends the frame with one line naming the method (its own
-    :class:`~wai_core.errors.WaiInputError`, bad input it noticed, passes as it is).
-
-    Raises
-    ------
-    WaiInputError
-        ``method 'NAME' raised ...`` or ``method 'NAME' returned ...``.
-
-    Examples
-    --------
-    >>> from restoration import Calibration, SurfaceOptions
-    >>> class Broken:
-    ...     name, calibration_type, options_type = "broken", Calibration, SurfaceOptions
-    ...     def __call__(self, images, cal, track=None):
-    ...         return None
-    >>> try:
-    ...     run_method(Broken(), {}, None)
-    ... except WaiInputError as exc:
-    ...     print(exc)
-    method 'broken' returned NoneType, not a RestoreResult (see restoration.Method)
-    """
-    if type(method) in METHODS.values():
-        return method(images, cal, track)
-    name = getattr(method, "name", type(method).__name__)
-    try:
-        result = method(images, cal, track)
-    except WaiInputError:
-        raise
-    except (Exception, SystemExit) as exc:
-        raise WaiInputError(f"method {name!r} raised {type(exc).__name__}: {exc}") from None
-    problem = _result_problem(result, cal)
-    if problem:
-        raise WaiInputError(f"method {name!r} returned {problem} (see restoration.Method)")
-    return result
-
-
-def _result_problem(result: Any, cal: Any) -> str | None:
-    """What is wrong with a method's result for a frame of ``cal``'s rig, or None."""
-    if not isinstance(result, RestoreResult):
-        return f"{type(result).__name__}, not a RestoreResult"
-    if not isinstance(result.timings_ms, dict):
-        return "timings_ms that is not a dict"
-    view = result.view
-    if view is None:
-        return None
-    h, w = cal.image_size("view")
-    image, valid = (np.asarray(getattr(view, a, None)) for a in ("image", "valid"))
-    if image.ndim not in (2, 3) or image.shape[:2] != (h, w) or not np.issubdtype(
-            image.dtype, np.number):
-        return f"a view image of shape {image.shape}, not the frame's ({h}, {w}[, 3])"
-    if valid.shape != (h, w) or valid.dtype != bool:
-        return (f"a view mask of shape {valid.shape} and type {valid.dtype}, not the frame's "
-                f"({h}, {w}) of bool")
-    return None
 
 
 def load_calibration(folder: str | Path) -> RigCalibration:

@@ -55,8 +55,8 @@ from numpy.typing import NDArray
 if TYPE_CHECKING:
     from restoration.consistency import Consistency
     from restoration.features import Matches
+    from restoration.level import Anchor
     from restoration.reverse_trace import Restoration
-    from restoration.surface import Anchor
     from restoration.view_check import ViewMatch
     from wai_core.heightfield import Heightfield
 

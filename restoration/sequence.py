@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
-from restoration.folder import (
+from restoration.frame import (
     RESTORE_REMEDY,
     FolderRestore,
     check_files,
@@ -41,8 +41,9 @@ from restoration.folder import (
     rig_line,
     with_rig,
 )
-from restoration.methods import Method, as_method, run_method
+from restoration.methods import as_method
 from restoration.options import SurfaceOptions
+from restoration.protocol import Method, run_method
 from restoration.result import Status
 from restoration.tracking import SequenceState
 from restoration.view_check import match_sequence
@@ -136,7 +137,7 @@ def restore_sequence(
     track: bool = False,
 ) -> SequenceRestore:
     """Restore every frame of a sequence folder (any layout of :mod:`wai_core.sequence`),
-    each as :func:`~restoration.folder.restore_frame` with the sequence's one calibration and
+    each as :func:`~restoration.frame.restore_frame` with the sequence's one calibration and
     level.
 
     Parameters
@@ -477,7 +478,7 @@ def restore_captured_frame(
     track: LevelTrack | None = None,
 ) -> FolderRestore:
     """Restore frame ``k`` of a capture sequence from its files where they are: what
-    :func:`~restoration.folder.restore_frame` does for a frame folder (load, restore, flag
+    :func:`~restoration.frame.restore_frame` does for a frame folder (load, restore, flag
     differing files of one image and a view that disagrees with ``view_flat``, assemble
     ``metrics.json``), without truth (a capture has none); nothing is written.
 

@@ -16,7 +16,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration._threads import run_beside
 from restoration.anchor import find_anchor, integration_residual_mm
 from restoration.calibration import Calibration, LevelTrack
 from restoration.consistency import Consistency, spot_consistency
@@ -38,6 +37,7 @@ from restoration.surface import COMPILED_INTEGRATORS, SurfaceEstimate, reconstru
 from restoration.tracking import SequenceState
 from wai_core.config import SystemConfig
 from wai_core.errors import RestorationFailed
+from wai_core.parallel import run_beside
 from wai_core.timings import Timings
 
 __all__ = [

@@ -30,8 +30,7 @@ anchor error costs about 5e-3 rad (rms) in the normals and 0.25 mm (rms) in the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -41,6 +40,7 @@ from restoration.integrate import (
     INTEGRATORS,
     to_heightfield,
 )
+from restoration.level import Anchor
 from restoration.normals import (
     points_on_rays,
 )
@@ -58,74 +58,6 @@ _DEFAULT = StructuredLightOptions()
 
 COMPILED_INTEGRATORS = ("fourth_order", "trapezoid")
 """Integrators whose refinement passes run in one compiled call (:func:`_compiled_refinement`)."""
-
-
-@dataclass
-class Anchor:
-    """How a surface's absolute level was set (``metrics.json``'s ``anchor``).
-
-    Attributes
-    ----------
-    method : str
-        ``gauge`` (the gauge's h0), ``integrability`` (searched from the slopes,
-        :mod:`restoration.anchor`) or ``gauge_fallback`` (searched, but the slopes did not pin
-        it: the gauge's h0); empty until the level is set.
-    anchor_mm : float or None
-        The level the samples' mean height was pinned at, mm.
-    searched_mm, sigma_mm : float or None
-        After a search: the level it found and its standard error, mm.
-    evaluations : int or None
-        After a search: the reconstructions it ran.
-    refine_passes : int or None
-        Most refinement passes each reconstruction allowed.
-    fit_rms_mm, fit_iterations, fit_level_offset_mm, fit_level_sigma_mm, fit_level_probes,
-    fit_level_probes_converged, fit_level_kept_start, fit_level_reason
-        After a fit to the spots (:func:`restoration.fit_level.fit_level`): its RMS spot miss as a
-        height (mm), Gauss-Newton iterations, the level's offset from the reconstruction and
-        its standard error (mm), the levels probed and how many converged, whether the
-        reconstruction's level was kept, and why.
-
-    Examples
-    --------
-    >>> from restoration.surface import Anchor
-    >>> a = Anchor("gauge", 150.0)
-    >>> a.update(refine_passes=8)
-    >>> a.to_dict()
-    {'method': 'gauge', 'anchor_mm': 150.0, 'refine_passes': 8}
-    """
-
-    method: str = ""
-    anchor_mm: float | None = None
-    searched_mm: float | None = None
-    sigma_mm: float | None = None
-    evaluations: int | None = None
-    refine_passes: int | None = None
-    fit_rms_mm: float | None = None
-    fit_iterations: int | None = None
-    fit_level_offset_mm: float | None = None
-    fit_level_sigma_mm: float | None = None
-    fit_level_probes: int | None = None
-    fit_level_probes_converged: int | None = None
-    fit_level_kept_start: bool | None = None
-    fit_level_reason: str | None = None
-
-    def update(self, **values: Any) -> None:
-        """Set the named fields.
-
-        Raises
-        ------
-        TypeError
-            For a name that is not a field.
-        """
-        for name, value in values.items():
-            if not hasattr(self, name) or name.startswith("_"):
-                raise TypeError(f"Anchor has no field {name!r}")
-            setattr(self, name, value)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The fields that are set, as plain values."""
-        return {f.name: getattr(self, f.name) for f in fields(self)
-                if getattr(self, f.name) is not None}
 
 
 @dataclass(frozen=True)

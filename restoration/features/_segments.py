@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration._threads import restore_threads, run_beside
 from restoration.features._spot_kernels import peak_axis_moments, peak_moments, segmented_pixels
 from restoration.features._types import BoolArray, FloatArray, IntArray
+from wai_core.parallel import restore_threads, run_beside
 
 
 def _scratch(
@@ -147,7 +147,7 @@ def _major_axis_kurtosis(px: _Pixels, peak: FloatArray, centre: FloatArray) -> F
 
 
 def _chunks(n: int) -> int:
-    """Chunks of ``n`` independent items for :func:`~restoration._threads.run_chunks`: a few
+    """Chunks of ``n`` independent items for :func:`~wai_core.parallel.run_chunks`: a few
     per thread (their costs vary), none empty."""
     return max(min(4 * restore_threads(), n), 1)
 

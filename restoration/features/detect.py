@@ -17,7 +17,6 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration._threads import run_beside, run_chunks
 from restoration.features._segments import (
     _chunks,
     _major_axis_kurtosis,
@@ -31,6 +30,7 @@ from restoration.features._segments import (
 from restoration.features._spot_kernels import centroid_chunk
 from restoration.features._types import BoolArray, FloatArray, IntArray
 from wai_core.errors import WaiInputError
+from wai_core.parallel import run_beside, run_chunks
 
 # The pixel-scale constants of detection (the defaults of detect_spots, _segment's wide test)
 # were tuned on the paper's rig with an 800 x 600 camera s, where a dot's spot has the

@@ -4,7 +4,7 @@
 Every target's iteration is independent, so the solver is a loop over targets with the whole
 Newton iteration inside (no per-iteration array passes: ~10x fewer memory sweeps than the
 vectorised form), in chunks that the restoration's threads share
-(:func:`restoration._threads.run_chunks`). The per-target helpers are inlined into the loop:
+(:func:`wai_core.parallel.run_chunks`). The per-target helpers are inlined into the loop:
 called as separate compiled functions, several times a target with many array arguments,
 they cost more than their arithmetic. No fast-math and no fused multiply-adds, so results do
 not depend on the compiler's choices; the refraction's Jacobian is carried along its residual

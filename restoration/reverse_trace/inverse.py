@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from restoration._threads import restore_threads, run_chunks
 from restoration.reverse_trace._kernels import newton_chunk
 from restoration.reverse_trace._surface import SplinePatches, _FlatWater, _surface_model
 from wai_core.errors import WaiInputError
@@ -26,6 +25,7 @@ from wai_core.geometry import PinholeCamera, intersect_plane_z
 from wai_core.heightfield import Heightfield
 from wai_core.light_paths import pack_camera
 from wai_core.optics import RayStatus, _check_system
+from wai_core.parallel import restore_threads, run_chunks
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]

@@ -18,7 +18,6 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration._threads import restore_threads, run_beside
 from restoration.reverse_trace._kernels import (
     finish_rows,
     node_warp,
@@ -38,6 +37,7 @@ from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 from wai_core.optics import RayStatus, _check_system
+from wai_core.parallel import restore_threads, run_beside
 from wai_core.timings import Timings
 
 Array = NDArray[np.float64]

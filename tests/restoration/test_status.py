@@ -20,9 +20,9 @@ from restoration import (
     StructuredLightOptions,
 )
 from restoration.features import features_from_reference, prepare_reference, spot_sigma_px
+from restoration.level import Anchor
 from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION
 from restoration.structured_light import frame_status
-from restoration.surface import Anchor
 from tests.conftest import PAPER_TOML
 from wai_core.config import load_config, read_toml
 from wai_core.errors import WaiInputError

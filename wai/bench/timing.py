@@ -84,7 +84,7 @@ def runtime() -> dict[str, Any]:
             out["drjit_threads"] = int(dr.thread_count())
     if "cv2" in sys.modules:
         out["opencv_threads"] = int(sys.modules["cv2"].getNumThreads())
-    if "numba" in sys.modules:  # the restoration's threads (restoration._threads.run_chunks)
+    if "numba" in sys.modules:  # the restoration's threads (wai_core.parallel.run_chunks)
         out["numba_threads"] = int(sys.modules["numba"].get_num_threads())
     # BLAS pools are sized by these when set.
     out["thread_env"] = {k: os.environ[k] for k in _THREAD_ENV if k in os.environ}

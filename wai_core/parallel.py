@@ -1,8 +1,8 @@
-"""The threads one frame's restoration shares its compiled kernels between.
+"""The threads one frame's work shares its compiled kernels between.
 
-Private to :mod:`restoration`: kernels split their work into chunks (:func:`run_chunks`), and
-independent stages run side by side (:func:`run_beside`). Results never depend on the thread
-count (``tests/restoration/test_kernels.py`` compares 1 and 2 threads).
+Compiled kernels split their work into chunks (:func:`run_chunks`), and independent stages run
+side by side (:func:`run_beside`); the restoration's stages use both. Results never depend on
+the thread count (``tests/restoration/test_kernels.py`` compares 1 and 2 threads).
 """
 
 from __future__ import annotations
