@@ -42,10 +42,9 @@ def bench_surfaces(config: str | Path, out: str | Path, phi: float) -> dict[str,
 
     Parameters
     ----------
-    config : str or Path
-        The scene: a packaged name or a TOML file.
-    out : str or Path
-        The output folder (made if missing).
+    config, out : str or Path
+        The scene (a packaged name or a TOML file) and the output folder (made if missing), as
+        :func:`wai.experiments.run_experiment` takes them.
     phi : float
         Each surface is scaled to at most this fraction of eq. 35's slope bound.
     """

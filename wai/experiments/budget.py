@@ -338,10 +338,9 @@ def run_budget(config: str | Path, out: str | Path, seeds: int, quick: bool = Fa
 
     Parameters
     ----------
-    config : str or Path
-        The scene: a packaged name or a TOML file.
-    out : str or Path
-        The output folder (made if missing).
+    config, out : str or Path
+        The scene (a packaged name or a TOML file) and the output folder (made if missing), as
+        :func:`wai.experiments.run_experiment` takes them.
     seeds : int
         Seeds 0..seeds-1 of every magnitude.
     quick : bool

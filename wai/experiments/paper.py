@@ -411,10 +411,9 @@ def run_paper(config: str | Path, out: str | Path, seeds: int, quick: bool = Fal
 
     Parameters
     ----------
-    config : str or Path
-        The scene: a packaged name or a TOML file.
-    out : str or Path
-        The output folder (made if missing).
+    config, out : str or Path
+        The scene (a packaged name or a TOML file) and the output folder (made if missing), as
+        :func:`wai.experiments.run_experiment` takes them.
     seeds : int
         Seeds 0..seeds-1.
     quick : bool

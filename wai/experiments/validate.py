@@ -296,10 +296,9 @@ def run_validate(config: str | Path, out: str | Path, quick: bool = False) -> di
 
     Parameters
     ----------
-    config : str or Path
-        The scene: a packaged name or a TOML file.
-    out : str or Path
-        The output folder (made if missing).
+    config, out : str or Path
+        The scene (a packaged name or a TOML file) and the output folder (made if missing), as
+        :func:`wai.experiments.run_experiment` takes them.
     quick : bool
         2 wave cases, spp 2/8/32 and 1/4, one run each, the reference at 64 / 16 spp.
 
