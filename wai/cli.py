@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from wai_core.errors import WaiInputError
+from wai_core.sequence import DEFAULT_FPS
 
 EXIT_BAD_INPUT = 2
 SCENE_HELP = "scene: a packaged name (paper, alterman) or a TOML file"
@@ -210,7 +211,8 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
         help="frames of a sequence of the same sea state, 1/FPS s apart from --time; more "
         "than 1 writes a sequence folder (one flat-water reference, a folder per frame)",
     )
-    p.add_argument("--fps", type=float, default=30.0, help="frames per second of a sequence")
+    p.add_argument("--fps", type=float, default=DEFAULT_FPS,
+                   help="frames per second of a sequence")
     p.add_argument(
         "--checkerboards", type=int, default=0, metavar="N",
         help="instead of a frame: N views of a checkerboard per camera through the scene's "
@@ -415,7 +417,7 @@ def _video_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="worker processes (and 1)")
     p.add_argument("--frames", type=int, default=60, help="frames restored per count")
     p.add_argument("--sequence", type=int, default=6, help="distinct frames rendered")
-    p.add_argument("--fps", type=float, default=30.0,
+    p.add_argument("--fps", type=float, default=DEFAULT_FPS,
                    help="frame rate of the rendered sequence, frames/s (the camera's)")
     p.add_argument("--track", action="store_true",
                    help="labels tracked from the previous frames, the warp started at the "

@@ -38,6 +38,7 @@ from wai_core.images import IMAGE_SUFFIXES, copy_preview_records, locate_image
 from wai_core.io import read_json
 
 __all__ = [
+    "DEFAULT_FPS",
     "FRAME_IMAGES",
     "REFERENCE_IMAGES",
     "SCENE_FILE",
@@ -52,6 +53,9 @@ __all__ = [
 ]
 
 SEQUENCE_FILE = "sequence.json"
+DEFAULT_FPS = 30.0
+"""Frames per second of a sequence unless one is given: what ``wai render --frames``, ``wai
+bench video`` and ``wai experiment compare`` render (a machine-vision camera's common rate)."""
 SCENE_FILE = "scene.json"
 REFERENCE_IMAGES = ("pattern_flat", "view_truth")
 """Images of flat water, the same for every frame: stored once, linked into each frame."""

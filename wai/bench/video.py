@@ -34,15 +34,13 @@ import numpy as np
 from wai.bench.timing import check_runs, machine, reference_workload, summarize
 from wai.threads import THREAD_VARIABLES, limit_native_threads, scoped_environ
 from wai_core.errors import WaiInputError
-
-FPS = 30.0
-"""Frame rate of the rendered sequence by default, frames/s."""
+from wai_core.sequence import DEFAULT_FPS
 
 # Per worker process: the calibration and the frames' images, loaded by _init_worker.
 _STATE: dict[str, Any] = {}
 
 
-def sequence_folder(config: str, out: Path, n_frames: int, fps: float = FPS) -> Path:
+def sequence_folder(config: str, out: Path, n_frames: int, fps: float = DEFAULT_FPS) -> Path:
     """The sequence of ``n_frames`` frames at ``fps`` frames/s in ``out/sequence``, rendered
     once (by :func:`mitsuba_wai.sequence.render_sequence`, what ``wai render --frames`` runs;
     again when the frame count or rate differ)."""
@@ -270,7 +268,7 @@ def _stage_medians(timings: list[dict[str, float]]) -> dict[str, float]:
 
 def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: int,
                 frames: int, sequence: int, *, track: bool = False,
-                fps: float = FPS) -> dict[str, Any]:
+                fps: float = DEFAULT_FPS) -> dict[str, Any]:
     """Latency (one process) and throughput for 1 .. ``workers`` worker processes, with
     tracking or without, and the accuracy both ways (:func:`accuracy`).
 

@@ -26,10 +26,9 @@ from wai.experiments.outputs import output_folder, publish, sweep_command, sweep
 from wai.sweep import SweepOptions, is_error
 from wai_core.config import with_keys
 from wai_core.io import write_json
+from wai_core.sequence import DEFAULT_FPS
 from wai_core.system import load_rig
 
-FPS = 30.0
-"""Frame rate of the rendered sequences."""
 VIDEO_METHODS = ("mean", "registration", "lucky")
 """The image-only baselines (:mod:`restoration.video`)."""
 FRAME_METHODS = ("structured-light", "wai.examples.plugin_method:AsSeen")
@@ -71,7 +70,7 @@ def render_case(config: str, point: dict[str, Any], root: Path, frames: int) -> 
         return folder
     cfg = load_rig(config).replace("waves", wind_speed_m_s=point["wind"], seed=point["seed"])
     cfg = with_keys(cfg, DEGRADATIONS[point["degradation"]])
-    render_sequence(cfg, folder, frames, FPS, progress=False, overwrite=True)
+    render_sequence(cfg, folder, frames, DEFAULT_FPS, progress=False, overwrite=True)
     return folder
 
 
