@@ -58,6 +58,7 @@ from numpy.typing import NDArray
 from mitsuba_wai import mesh as meshes
 from mitsuba_wai.render import (
     FrameRenderer,
+    Rendered,
     RenderSteps,
     render_image,
     render_seed,
@@ -422,7 +423,7 @@ def render_alterman_folder(
     *,
     overwrite: bool = False,
     surface_label: str | None = None,
-) -> dict[str, Any]:
+) -> Rendered:
     """Render one frame of system A (wavy and flat) and camera v's view; write the folder.
 
     The surface (against the base rig and the sensor) and the output location are checked
@@ -450,8 +451,8 @@ def render_alterman_folder(
 
     Returns
     -------
-    dict
-        The ``scene.json`` record, with ``timings_s`` per step.
+    Rendered
+        The folder and its ``scene.json`` record, with ``timings_s`` per step.
     """
     steps = ("surface and scene", "render sun", "render view", "write")
     with RenderSteps(out_dir, steps, "render A", progress, overwrite) as run:
@@ -485,4 +486,6 @@ def render_alterman_folder(
             images.update({k: views[k] for k in ("view", "view_truth")})
         record = alterman_record(system, renderer, surface, source)
         zeroed = {"sunspots": renderer.nonfinite_pixels - zeroed_before}
-        return run.write(record, images, surface, zeroed, view_gain=system.base.water.n_water**2)
+        record = run.write(record, images, surface, zeroed,
+                           view_gain=system.base.water.n_water**2)
+    return Rendered(Path(out_dir), record)

@@ -361,6 +361,42 @@ def write_surface(folder: Path, surface: Heightfield) -> None:
     meshes.heightfield_mesh(surface).export(folder / "surface.ply")
 
 
+@dataclass(frozen=True)
+class Rendered:
+    """A render written: the folder, and the record it holds (``scene.json``'s, or a
+    sequence's ``sequence.json``).
+
+    Attributes
+    ----------
+    folder : Path
+    record : dict
+        Configuration, derived layout, seeds, variant, versions and ``timings_s`` per step (a
+        sequence: its ``reference`` and each of its ``frames`` with ``render_s``).
+
+    Examples
+    --------
+    >>> Rendered(Path("f1"), {"variant": "llvm_ad_rgb", "timings_s": {"a": 1.0, "b": 2.0}}).seconds
+    3.0
+    """
+
+    folder: Path
+    record: dict[str, Any]
+
+    @property
+    def variant(self) -> str:
+        """The Mitsuba variant that rendered it."""
+        return str(self.record["variant"])
+
+    @property
+    def seconds(self) -> float:
+        """Wall time of the render, s: every step of a frame's, or the reference's and every
+        frame's rendering of a sequence."""
+        if "frames" in self.record:
+            return float(self.record["reference"]["render_s"]
+                         + sum(f["render_s"] for f in self.record["frames"]))
+        return float(sum(self.record["timings_s"].values()))
+
+
 def render_seed(cfg: SystemConfig) -> int:
     """Mitsuba's sampler seed, derived from the scene seed so reruns are identical
     (0 .. 2^32 - 1, Mitsuba's range)."""
@@ -459,7 +495,7 @@ def render_folder(
     *,
     overwrite: bool = False,
     surface_label: str | None = None,
-) -> dict[str, Any]:
+) -> Rendered:
     """Render one frame of both systems (wavy and flat) and write the render folder atomically.
 
     Everything that can be checked is checked before the renders start: the surface against
@@ -484,8 +520,8 @@ def render_folder(
 
     Returns
     -------
-    dict
-        The ``scene.json`` record, with ``timings_s`` per step.
+    Rendered
+        The folder and its ``scene.json`` record, with ``timings_s`` per step.
 
     Raises
     ------
@@ -515,5 +551,6 @@ def render_folder(
             cfg, images = render_frame_images(renderer, cfg, surface, render_seed(cfg),
                                               surface_at=surface_at, plan=plan)
         record = scene_record(cfg, renderer.variant, surface, source)
-        return run.write(record, images, surface, renderer.nonfinite_pixels,
-                         view_gain=cfg.water.n_water**2, sensor=cfg.sensor)
+        record = run.write(record, images, surface, renderer.nonfinite_pixels,
+                           view_gain=cfg.water.n_water**2, sensor=cfg.sensor)
+    return Rendered(Path(out_dir), record)

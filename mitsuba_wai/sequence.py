@@ -24,6 +24,7 @@ from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense, subfra
 from mitsuba_wai.render import (
     OUTPUT_COMMAND,
     FrameRenderer,
+    Rendered,
     render_seed,
     scene_record,
     write_images,
@@ -103,7 +104,7 @@ def render_sequence(
     progress: bool = True,
     overwrite: bool = False,
     runner: FrameRunner | None = None,
-) -> dict[str, Any]:
+) -> Rendered:
     """Render ``n_frames`` frames of ``cfg``'s sea state, ``1/fps`` s apart from
     ``cfg.waves.time_s``, into a sequence folder (atomically, as ``wai render``).
 
@@ -125,8 +126,8 @@ def render_sequence(
 
     Returns
     -------
-    dict
-        The ``sequence.json`` record, with each frame's render time.
+    Rendered
+        The sequence folder and its ``sequence.json`` record, with each frame's render time.
 
     Examples
     --------
@@ -166,7 +167,7 @@ def render_sequence(
         rows = sorted(rows, key=lambda r: r["frame"])
         record = _sequence_record(cfg, renderer.variant, fps, times, rows, reference_s)
         write_json(tmp / SEQUENCE_FILE, record)
-    return record
+    return Rendered(Path(out_dir), record)
 
 
 def _sequence_record(

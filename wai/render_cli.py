@@ -130,8 +130,7 @@ def run_render(args: argparse.Namespace) -> None:
         run_render_sequence(cfg, args)
         return
     given, variant = _prepare(args, cfg)
-    record = render_folder(cfg, args.out, **_folder_options(args, given))
-    total = sum(record["timings_s"].values())
+    total = render_folder(cfg, args.out, **_folder_options(args, given)).seconds
     print(
         f"rendered {args.out} ({variant}, U={cfg.waves.wind_speed_m_s} m/s, "
         f"t={cfg.waves.time_s} s, seed={cfg.waves.seed}) in {total:.1f} s"
@@ -150,8 +149,7 @@ def run_render_alterman(args: argparse.Namespace) -> None:
         sensor = sensor.replace("render", spp=args.spp)
     system = AltermanSystem(base, sensor)
     given, variant = _prepare(args)
-    record = render_alterman_folder(system, args.out, **_folder_options(args, given))
-    total = sum(record["timings_s"].values())
+    total = render_alterman_folder(system, args.out, **_folder_options(args, given)).seconds
     sun = sensor.sun
     state = f"sun at {sun.zenith_deg} deg" if sun.enabled else "overcast"
     print(
@@ -182,11 +180,10 @@ def run_render_sequence(cfg: SystemConfig, args: argparse.Namespace) -> None:
     _, variant = _prepare(args, cfg)
     use_dask = args.scheduler is not None or args.workers > 0
     runner = _dask_runner(args) if use_dask else None
-    record = render_sequence(
+    total = render_sequence(
         cfg, args.out, args.frames, args.fps, progress=not args.quiet,
         overwrite=getattr(args, "overwrite", False), runner=runner,
-    )
-    total = record["reference"]["render_s"] + sum(f["render_s"] for f in record["frames"])
+    ).seconds
     print(
         f"rendered {args.out}: {args.frames} frames at {args.fps:g} fps from t = "
         f"{cfg.waves.time_s} s ({variant}, U={cfg.waves.wind_speed_m_s} m/s, "

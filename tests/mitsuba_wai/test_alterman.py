@@ -132,7 +132,7 @@ def test_plate_has_one_open_hole_per_pinhole(small):
 def test_overcast_folder_is_dark_and_complete(small, tmp_path):
     overcast = AltermanSystem(small.base, small.sensor.replace("sun", enabled=False))
     out = tmp_path / "frame"
-    record = render_alterman_folder(overcast, out, heightfield=_waves(150.0), progress=False)
+    record = render_alterman_folder(overcast, out, heightfield=_waves(150.0), progress=False).record
     for name in ("sunspots", "sunspots_flat", "view", "view_truth"):
         assert (out / f"{name}.exr").is_file() and (out / f"{name}.png").is_file()
     assert read_exr(out / "sunspots.exr").max() == 0.0

@@ -98,7 +98,7 @@ def test_a_sensor_render_writes_adc_images_and_restores(paper_cfg, tmp_path):
     cfg = paper_cfg.replace("render", spp_pattern=4, spp_view=4)
     cfg = cfg.replace("sensor", enabled=True, bits=12, reference_frames=4)
     out = tmp_path / "frame"
-    record = render_folder(cfg, out, progress=False)
+    record = render_folder(cfg, out, progress=False).record
     sensor = record["config"]["sensor"]
     assert sensor["enabled"] and sensor["electrons_per_unit_s"] > 0
     assert record["degradations"]["sensor"]["full_scale_dn"] == 4095
@@ -128,7 +128,7 @@ def test_a_sequence_fixes_the_exposure_and_draws_noise_per_frame(small_cfg, tmp_
 
     cfg = small_cfg.replace("sensor", enabled=True, bits=8, reference_frames=0)
     cfg = cfg.replace("motion", exposure_s=0.002, max_subframes=2)
-    record = render_sequence(cfg, tmp_path / "seq", 2, 1000.0, progress=False)
+    record = render_sequence(cfg, tmp_path / "seq", 2, 1000.0, progress=False).record
     exposure = record["config"]["sensor"]["electrons_per_unit_s"]
     assert exposure > 0
     frames = []

@@ -54,7 +54,7 @@ def test_one_way_diffuser_lets_the_beam_through(small_cfg, flat_frame):
 
 def test_render_folder_contract(small_cfg, tmp_path):
     out = tmp_path / "frame"
-    record = render_folder(small_cfg, out, progress=False)
+    record = render_folder(small_cfg, out, progress=False).record
     for name in ("pattern", "pattern_flat", "view", "view_truth"):
         img = read_exr(out / f"{name}.exr")
         assert img.shape == (small_cfg.camera_s.height_px, small_cfg.camera_s.width_px, 3)
