@@ -25,13 +25,14 @@ from restoration.level import Anchor
 from restoration.observations import Observations
 from restoration.options import SurfaceOptions
 from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, ViewState, restore_view
-from restoration.undistort import PinholeRemap, check_no_port
+from restoration.undistort import PinholeRemap
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 from wai_core.images import find_image, read_image
 from wai_core.io import read_json
+from wai_core.port import PortCamera
 
 __all__ = ["Calibration", "LevelTrack", "RigCalibration", "read_scene_record"]
 
@@ -86,10 +87,6 @@ class RigCalibration:
                                          "view_truth": "camera_v"}
     """The device (config section) that takes each image."""
 
-    def __post_init__(self) -> None:
-        for device in set(self.DEVICES.values()):
-            check_no_port(self.cfg.rig.optics(device), device)
-
     @cached_property
     def _remaps(self) -> dict[str, PinholeRemap]:
         """The pinhole remap of each device whose optics are not its ideal pinhole's."""
@@ -118,9 +115,11 @@ class RigCalibration:
         return image if remap is None else remap.apply(image)
 
     @property
-    def camera_v(self) -> PinholeCamera:
-        """The observation camera (the rig's)."""
-        return self.cfg.rig.camera_v
+    def camera_v(self) -> PinholeCamera | PortCamera:
+        """The observation camera as the restoration models it (the rig's
+        :meth:`~wai_core.rig.Rig.camera_model`: its pinhole, or behind a port the
+        :class:`~wai_core.port.PortCamera`)."""
+        return self.cfg.rig.camera_model("camera_v")
 
     def radiance(self, view: NDArray) -> NDArray:
         """A view image of this rig on the object's radiance scale: divided by
@@ -209,11 +208,6 @@ class Calibration(RigCalibration):
     reference: ReferenceGrid | None = None
 
     IMAGES: ClassVar[tuple[str, ...]] = ("pattern", "pattern_flat", "view")
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        # Camera s's spots are mapped to its pinhole as they are detected (features).
-        check_no_port(self.cfg.rig.optics("camera_s"), "camera_s")
-        check_no_port(self.cfg.rig.optics("projector"), "projector")
 
     @property
     def projector(self) -> PinholeCamera:
@@ -247,6 +241,12 @@ class Calibration(RigCalibration):
         rig = self.cfg.rig
         return rig.dot_rays_px[rig.dot_index(ij)]
 
+    def dot_rays(self, ij: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The rays in the water of the dots with grid indices ``ij`` (K, 2): origins (3,), or
+        behind a port (K, 3), mm, and unit directions (K, 3) (:meth:`wai_core.rig.Rig.
+        dot_rays_of`)."""
+        return self.cfg.rig.dot_rays_of(ij)
+
     def observe(self, ij: NDArray, spot_px: NDArray, *, flat_referenced: bool = False
                 ) -> Observations:
         """The features with grid indices ``ij`` (K, 2) and spots ``spot_px`` (K, 2) px in
@@ -263,7 +263,7 @@ class Calibration(RigCalibration):
             spot_px = spot_px - self.reference.flat_shift_at(ij)
         return Observations.build(
             ij, self.panel_px(ij), spot_px, self.projector, self.camera_s, self.diffuser_z_mm,
-            weight_h_mm=self.cfg.water.h0_mm,
+            weight_h_mm=self.cfg.water.h0_mm, rays=self.dot_rays(ij),
         )
 
     @classmethod

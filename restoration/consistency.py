@@ -34,6 +34,7 @@ from numba import njit
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from restoration.normals import ray_origins
 from restoration.reverse_trace._kernels import spline_jet
 from restoration.reverse_trace._surface import SplinePatches, check_patches
 from wai_core.geometry import PinholeCamera
@@ -163,8 +164,8 @@ def predict_spots_px(
     ----------
     surface : Heightfield
         Absolute heights, mm.
-    origin_mm : (3,) ndarray
-        The projector centre, mm.
+    origin_mm : (3,) or (K, 3) ndarray
+        The projector centre, or each ray's origin (a projector behind a port), mm.
     dirs : (K, 3) ndarray
         Ray directions (upwards).
     start_mm : (K, 3) ndarray
@@ -191,7 +192,7 @@ def predict_spots_px(
     px = np.empty((len(dirs), 2))
     _predict_kernel(
         patches.table, patches.cell_ok, patches.x, patches.y,
-        np.ascontiguousarray(origin_mm, dtype=float), np.ascontiguousarray(dirs, dtype=float),
+        ray_origins(origin_mm, len(dirs)), np.ascontiguousarray(dirs, dtype=float),
         np.ascontiguousarray(start_mm, dtype=float), camera, float(z_h_mm), _NEWTON_STEPS, px,
     )
     return px
@@ -205,8 +206,8 @@ def _predict_kernel(
     the spline table, then system S's reflection to camera s
     (:func:`wai_core.light_paths.reflected_spot_px`). ``camera`` (15,): camera s packed
     (:func:`wai_core.light_paths.pack_camera`)."""
-    ox, oy, oz = origin[0], origin[1], origin[2]
     for k in range(dirs.shape[0]):
+        ox, oy, oz = origin[k, 0], origin[k, 1], origin[k, 2]
         norm = math.sqrt(dirs[k, 0] * dirs[k, 0] + dirs[k, 1] * dirs[k, 1]
                          + dirs[k, 2] * dirs[k, 2])
         dx, dy, dz = dirs[k, 0] / norm, dirs[k, 1] / norm, dirs[k, 2] / norm
@@ -238,8 +239,8 @@ def spot_consistency(
         The reconstruction (absolute heights, mm).
     points_mm : (K, 3) ndarray
         Its samples (where each dot's ray met it), mm.
-    origin_mm : (3,) ndarray
-        The projector centre, mm.
+    origin_mm : (3,) or (K, 3) ndarray
+        The projector centre, or each ray's origin (a projector behind a port), mm.
     dirs : (K, 3) ndarray
         The samples' projector rays.
     spot_px : (K, 2) ndarray

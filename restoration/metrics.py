@@ -20,6 +20,7 @@ from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
+from wai_core.port import PortCamera
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -155,10 +156,11 @@ def image_metrics(
 # --------------------------------------------------------------------------------------------
 
 
-def _camera_v(cfg: SystemConfig) -> PinholeCamera:
+def _camera_v(cfg: SystemConfig) -> PinholeCamera | PortCamera:
+    """Camera v as the restoration models it (:meth:`wai_core.rig.Rig.camera_model`)."""
     if cfg.camera_v is None:
         raise WaiInputError("config: missing section [camera_v]")
-    return cfg.rig.camera_v
+    return cfg.rig.camera_model("camera_v")
 
 
 def object_plane_center(cfg: SystemConfig) -> Array:

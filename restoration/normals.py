@@ -86,13 +86,29 @@ def projector_rays(panel_px: ArrayLike, projector: PinholeCamera) -> tuple[Array
     return projector.pixel_rays(px[:, 0], px[:, 1])
 
 
+def ray_origins(origin_mm: ArrayLike, n: int) -> Array:
+    """Rays' origins as a contiguous (n, 3) array, mm: one origin (3,) for all (a pinhole
+    projector's centre), or each ray's own (n, 3) (a projector behind a port: its rays share no
+    centre).
+
+    Examples
+    --------
+    >>> ray_origins([0.0, 0.0, 0.0], 2).tolist()
+    [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    """
+    o = np.asarray(origin_mm, dtype=float)
+    if o.shape not in ((3,), (n, 3)):
+        raise WaiInputError(f"origin_mm must have shape (3,) or ({n}, 3), got {o.shape}")
+    return np.ascontiguousarray(np.broadcast_to(o, (n, 3)))
+
+
 def points_on_rays(origin_mm: ArrayLike, dirs: ArrayLike, heights_mm: ArrayLike) -> Array:
     """Points of given heights on upward rays (eq. 3, with ``h0`` generalised to any height).
 
     Parameters
     ----------
-    origin_mm : (3,) array_like
-        Common ray origin, mm.
+    origin_mm : (3,) or (K, 3) array_like
+        The rays' common origin, or each ray's own (:func:`ray_origins`), mm.
     dirs : (K, 3) array_like
         Ray directions (need not be unit); their z components must be positive.
     heights_mm : float or (K,) array_like
@@ -103,14 +119,12 @@ def points_on_rays(origin_mm: ArrayLike, dirs: ArrayLike, heights_mm: ArrayLike)
     (K, 3) ndarray
         ``q_k = o + (h_k - o_z) / v_z * v``, mm.
     """
-    o = np.asarray(origin_mm, dtype=float)
     d = _as_points(dirs, 3, "dirs")
-    if o.shape != (3,):
-        raise WaiInputError(f"origin_mm must have shape (3,), got {o.shape}")
+    o = ray_origins(origin_mm, len(d))
     if np.any(d[:, 2] <= 0):
         raise WaiInputError("points_on_rays: every ray must point upwards (positive z component)")
     h = np.broadcast_to(np.asarray(heights_mm, dtype=float), d.shape[:1])
-    return o + ((h - o[2]) / d[:, 2])[:, None] * d
+    return o + ((h - o[:, 2]) / d[:, 2])[:, None] * d
 
 
 def reflected_dirs(q_mm: ArrayLike, s_mm: ArrayLike) -> Array:
@@ -218,8 +232,8 @@ def _reflection_kernel(origin, dirs, spots, heights, q, normals, slopes):  # pra
     """Fill ``q``, ``normals`` (K, 3) and ``slopes`` (K, 2) row by row; return 0 or the code
     of the first failed check (:data:`_KERNEL_ERRORS`). Expressions as in the NumPy steps, in
     the same order, so the results are the same to the last bit."""
-    ox, oy, oz = origin[0], origin[1], origin[2]
     for k in range(heights.size):
+        ox, oy, oz = origin[k, 0], origin[k, 1], origin[k, 2]
         dx, dy, dz = dirs[k, 0], dirs[k, 1], dirs[k, 2]
         if not dz > 0.0:
             return 1
@@ -255,8 +269,8 @@ def reflection_slopes(
 
     Parameters
     ----------
-    origin_mm : (3,) ndarray
-        The projector centre, mm.
+    origin_mm : (3,) or (K, 3) ndarray
+        The projector centre, or each ray's origin (:func:`ray_origins`), mm.
     dirs : (K, 3) ndarray
         Unit projector-ray directions ``v_p`` (positive z components).
     spots_mm : (K, 3) ndarray
@@ -276,7 +290,7 @@ def reflection_slopes(
     n = len(heights_mm)
     q, normals, slopes = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 2))
     code = _reflection_kernel(
-        np.ascontiguousarray(origin_mm, dtype=float), np.ascontiguousarray(dirs, dtype=float),
+        ray_origins(origin_mm, n), np.ascontiguousarray(dirs, dtype=float),
         np.ascontiguousarray(spots_mm, dtype=float), np.ascontiguousarray(heights_mm, float),
         q, normals, slopes,
     )

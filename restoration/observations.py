@@ -38,8 +38,9 @@ class Observations:
         Their detected spots in camera s ``(col, row)``, pixels.
     spots_mm : (K, 3) ndarray
         The spots back-projected onto the diffuser plane, mm.
-    origin_mm : (3,) ndarray
-        The projector's centre, mm.
+    origin_mm : (3,) or (K, 3) ndarray
+        The projector's centre, or behind a port each ray's origin (where it enters the
+        water), mm.
     dirs : (K, 3) ndarray
         Unit projector rays of the dots.
     z_h_mm : float
@@ -85,11 +86,14 @@ class Observations:
         z_h_mm: float,
         weight_h_mm: float | None = None,
         weight_xy_mm: ArrayLike | None = None,
+        rays: tuple[Array, Array] | None = None,
     ) -> Observations:
         """Rays and diffuser points of the features ``ij`` (K, 2) with panel positions
         ``panel_px`` and spots ``spot_px`` (K, 2) px: the integration weights are the rays'
         points at height ``weight_h_mm`` (mm), or ``weight_xy_mm`` (K, 2) mm as given, or
-        (neither) each reconstruction's own first pass.
+        (neither) each reconstruction's own first pass. ``rays``: the dots' rays (origins
+        (3,) or (K, 3) mm, directions (K, 3); :meth:`wai_core.rig.Rig.dot_rays_of`) when the
+        projector is more than its pinhole ``projector`` (a port); else from ``panel_px``.
 
         Raises
         ------
@@ -104,7 +108,7 @@ class Observations:
         if not np.issubdtype(ij_arr.dtype, np.integer):
             raise WaiInputError("reconstruct_surface: ij must hold integer grid indices")
         spots = spots_on_diffuser(spot_px, camera_s, z_h_mm)
-        origin, dirs = projector_rays(panel_px, projector)
+        origin, dirs = projector_rays(panel_px, projector) if rays is None else rays
         weights = None
         if weight_xy_mm is not None:
             weights = np.asarray(weight_xy_mm, dtype=float)
@@ -147,6 +151,7 @@ class Observations:
         :class:`~restoration.integrate.plans.IntegrationPlans`: another sample set)."""
         rows = np.asarray(rows)
         weights = None if self.weight_xy_mm is None else self.weight_xy_mm[rows]
+        origin = self.origin_mm if self.origin_mm.ndim == 1 else self.origin_mm[rows]
         return Observations(self.ij[rows], self.panel_px[rows], self.spot_px[rows],
-                            self.spots_mm[rows], self.origin_mm, self.dirs[rows], self.z_h_mm,
+                            self.spots_mm[rows], origin, self.dirs[rows], self.z_h_mm,
                             weights)

@@ -23,6 +23,7 @@ from restoration.normals import (
     _KERNEL_ERRORS,
     _reflection_kernel,
     kernel_error,
+    ray_origins,
     reflection_slopes,
 )
 from wai_core.errors import RestorationFailed
@@ -56,6 +57,7 @@ def _refinement(
         As :func:`_compiled_refinement`.
     """
     heights = np.full(ij_arr.shape[0], float(h0_mm))  # pass 0: the paper's q on z = h0
+    origin = ray_origins(origin, len(v_p))
     previous: tuple[Array, Array] | None = None
     change = np.nan
     for it in range(int(n_refine) + 1):
@@ -72,9 +74,9 @@ def _refinement(
         # Samples the integrator could not tie to the rest (NaN) leave for good.
         keep = np.isfinite(integrated)
         if not keep.all():
-            ij_arr, v_p, spots, q, normals, slopes, heights, integrated, weight_xy = (
-                a[keep]
-                for a in (ij_arr, v_p, spots, q, normals, slopes, heights, integrated, weight_xy)
+            ij_arr, origin, v_p, spots, q, normals, slopes, heights, integrated, weight_xy = (
+                a[keep] for a in (ij_arr, origin, v_p, spots, q, normals, slopes, heights,
+                                  integrated, weight_xy)
             )
             if previous is not None:
                 previous = (previous[0][keep], previous[1][keep])
@@ -182,16 +184,17 @@ def _compiled_refinement(
         the last pass's largest height change (mm; NaN when none ran).
     """
     keep, ea, eb, before, after, w, factors = _prepared(ij, weight_xy, fourth_order, plans)
+    origin = ray_origins(origin, len(ij))
     if keep is not None:
         _, _, slopes = reflection_slopes(origin, v_p, spots, np.full(len(ij), float(h0_mm)))
         if not np.all(np.isfinite(slopes)):
             raise RestorationFailed(_REFINE_ERRORS[5])
-        ij, v_p, spots = ij[keep], v_p[keep], spots[keep]
+        ij, origin, v_p, spots = ij[keep], origin[keep], v_p[keep], spots[keep]
     k = ij.shape[0]
     q, normals, slopes = np.empty((k, 3)), np.empty((k, 3)), np.empty((k, 2))
     integrated, out = np.empty(k), np.empty(2)
     code = _refine_kernel(
-        np.ascontiguousarray(origin, dtype=float), np.ascontiguousarray(v_p, dtype=float),
+        np.ascontiguousarray(origin), np.ascontiguousarray(v_p, dtype=float),
         np.ascontiguousarray(spots, dtype=float), float(h0_mm), n_refine, float(tol_mm),
         bool(accelerate), ea, eb, before, after, w, *factors, q, normals, slopes, integrated,
         out,

@@ -291,7 +291,7 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0) -
     from scipy.spatial import cKDTree
 
     from restoration.features import detect_spots, predict_flat_spots, spot_sigma_px
-    from restoration.undistort import pinhole_px
+    from restoration.undistort import diffuser_pinhole_px
     from wai_core.config import with_keys
 
     sigma = spot_sigma_px(cfg)
@@ -306,7 +306,7 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0) -
     def predicted(p: NDArray) -> tuple[NDArray, NDArray]:
         c = rig(p)
         _, _, pred, in_view = predict_flat_spots(c)
-        detected = pinhole_px(c.rig.optics("camera_s"), raw_px)
+        detected = diffuser_pinhole_px(c, raw_px)
         return detected, np.where(in_view[:, None], pred, np.nan)
 
     start = np.array([dev.focal_mm, *dev.principal_offset_px], float)

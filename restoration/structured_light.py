@@ -28,7 +28,6 @@ from restoration.features import (
 from restoration.features.match import MAX_LABEL_SHIFT
 from restoration.features.track import TrackedSpots, features_tracked
 from restoration.fit_level import fit_level
-from restoration.normals import projector_rays
 from restoration.observations import Observations
 from restoration.options import StructuredLightOptions, checked_options
 from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, RestoreResult, Status
@@ -280,10 +279,10 @@ def consistency_of(
 ) -> Consistency:
     """The forward check of ``surface`` against its samples' spots (restoration.consistency),
     through the surface's spline table ``patches`` when it is built already, along its
-    samples' projector ``rays`` (origin (3,) mm, directions (K, 3)) when they are known
-    (else from ``cal``)."""
+    samples' projector ``rays`` (origins (3,) or (K, 3) mm, directions (K, 3)) when they are
+    known (else from ``cal``)."""
     if rays is None:
-        rays = projector_rays(cal.panel_px(surface.ij), cal.projector)
+        rays = cal.dot_rays(surface.ij)
     origin, dirs = rays
     return spot_consistency(
         surface.heightfield, surface.points_mm, origin, dirs, spots_px, cal.camera_s,
@@ -502,7 +501,8 @@ class StructuredLight:
             # The check and the view evaluate one spline table of the surface; the check runs
             # beside the view (it reads neither the view nor its results).
             patches = SplinePatches(heightfield)
-            rays = (obs.origin_mm, obs.dirs[rows])
+            rays = (obs.origin_mm if obs.origin_mm.ndim == 1 else obs.origin_mm[rows],
+                    obs.dirs[rows])
             checked = run_beside(
                 lambda: _timed_check(surface, spots, cal, reference, patches, rays)
             )

@@ -16,35 +16,21 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from wai_core.errors import WaiInputError
 from wai_core.lens import DeviceOptics, distort
 
-__all__ = ["PinholeRemap", "check_no_port", "pinhole_panel_px", "pinhole_px"]
-
-
-def check_no_port(optics: DeviceOptics, name: str) -> None:
-    """Refuse a device with a housing port (``[name] port_thickness_mm > 0``).
-
-    Raises
-    ------
-    WaiInputError
-        Naming the config key.
-    """
-    if optics.has_port:
-        raise WaiInputError(
-            f"[{name}] port_thickness_mm: the restoration models devices without a housing "
-            "port (a flat port's rays share no centre)"
-        )
+__all__ = ["PinholeRemap", "diffuser_pinhole_px"]
 
 
 @dataclass(frozen=True, eq=False)
 class PinholeRemap:
-    """Where each pixel of a device's ideal pinhole lies in its real image.
+    """Where each pixel of a device's ideal pinhole lies in its real image (its lens's
+    principal point and distortion; a port stays: see :class:`~wai_core.port.PortCamera`).
 
     Attributes
     ----------
@@ -71,9 +57,8 @@ class PinholeRemap:
     @classmethod
     def of(cls, optics: DeviceOptics, name: str) -> PinholeRemap | None:
         """The remap of a device with ``optics`` (config section ``name``; a rig's
-        :meth:`~wai_core.rig.Rig.optics`), None for an ideal one."""
-        check_no_port(optics, name)
-        if optics.ideal:
+        :meth:`~wai_core.rig.Rig.optics`), None for a lens that is its pinhole's."""
+        if optics.lens_free:
             return None
         cam = optics.camera
         f = cam.focal_px
@@ -113,24 +98,20 @@ class PinholeRemap:
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def pinhole_px(optics: DeviceOptics, px: ArrayLike, name: str = "camera_s") -> NDArray:
-    """Pixel positions (K, 2) of the ideal pinhole whose rays are the real device's rays
-    (``optics``: a rig's :meth:`~wai_core.rig.Rig.optics`) at ``px`` (K, 2): ``px`` itself for
-    an ideal device (the same array); NaN where the lens's distortion cannot be inverted.
+def diffuser_pinhole_px(cfg: Any, px: ArrayLike) -> NDArray:
+    """Camera s's pixels ``px`` (K, 2) as the pixels (K, 2) of its ideal pinhole that see the
+    same points of the diffuser plane: the lens's principal point and distortion undone and,
+    behind a port, each real ray followed to the plane
+    (:meth:`~wai_core.lens.DeviceOptics.plane_pinhole_px`); ``px`` itself for an ideal camera
+    (the same array); NaN where the lens cannot map a pixel.
 
     Examples
     --------
     >>> import numpy as np
     >>> from wai_core import load_system, with_keys
     >>> cfg = with_keys(load_system("paper"), {"camera_s.principal_offset_px": [3.0, 0.0]})
-    >>> pinhole_px(cfg.rig.optics("camera_s"), np.array([[402.5, 299.5]]))  # the centre
+    >>> diffuser_pinhole_px(cfg, np.array([[402.5, 299.5]]))  # the centre
     array([[399.5, 299.5]])
     """
-    check_no_port(optics, name)
-    return optics.pinhole_px(px)
-
-
-def pinhole_panel_px(optics: DeviceOptics, panel_px: ArrayLike) -> NDArray:
-    """Panel positions (K, 2) px whose ideal-pinhole rays are the real rays of the projector's
-    dots (``optics``) at ``panel_px`` (K, 2) px (:func:`pinhole_px`)."""
-    return pinhole_px(optics, panel_px, "projector")
+    return cfg.rig.optics("camera_s").plane_pinhole_px(px, float(cfg.diffuser.z_mm),
+                                                        float(cfg.water.n_water))

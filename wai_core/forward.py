@@ -20,7 +20,7 @@ from scipy.ndimage import map_coordinates
 
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
-from wai_core.light_paths import spots_through
+from wai_core.light_paths import real_spot_px, spots_through
 from wai_core.optics import trace_to_object
 
 __all__ = ["predict_spots", "predict_view", "texture_coords"]
@@ -45,8 +45,8 @@ def predict_spots(
     ij, panel = cfg.rig.dot_grid
     lit = cfg.rig.dot_weights > 0
     px = spots_through(cfg.rig, surface, panel[lit])
-    cam = cfg.rig.camera_s
-    seen = np.isfinite(px[:, 0]) & cam.in_image(px[:, 0], px[:, 1])
+    real = real_spot_px(cfg.rig, px)  # the real image's pixels (a lens, a port)
+    seen = np.isfinite(real[:, 0]) & cfg.rig.camera_s.in_image(real[:, 0], real[:, 1])
     return ij[lit][seen], px[seen]
 
 

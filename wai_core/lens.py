@@ -322,11 +322,17 @@ class DeviceOptics:
         return self.port_thickness_mm > 0.0
 
     @property
-    def ideal(self) -> bool:
-        """True where the optics are the pinhole's (centred, undistorted, no port)."""
+    def lens_free(self) -> bool:
+        """True where the lens is the pinhole's (centred, undistorted), with or without a
+        port."""
         c = self.camera
         centred = self.principal_px == ((c.width_px - 1) / 2.0, (c.height_px - 1) / 2.0)
-        return centred and not self.distorted and not self.has_port
+        return centred and not self.distorted
+
+    @property
+    def ideal(self) -> bool:
+        """True where the optics are the pinhole's (centred, undistorted, no port)."""
+        return self.lens_free and not self.has_port
 
     def _port(self, n_water: float) -> tuple[float, float, float, float]:
         return self.port_gap_mm, self.port_thickness_mm, self.port_n, float(n_water)
@@ -387,6 +393,32 @@ class DeviceOptics:
         cam, f = self.camera, self.camera.focal_px
         return np.column_stack([f * d[:, 0] / d[:, 2] + (cam.width_px - 1) / 2.0,
                                 f * d[:, 1] / d[:, 2] + (cam.height_px - 1) / 2.0])
+
+    def plane_pinhole_px(self, px: ArrayLike, z_lab_mm: float, n_water: float) -> Array:
+        """Pixels (K, 2) of the ideal pinhole (:attr:`camera`) that see the points where this
+        device's rays at ``px`` (K, 2) meet the plane ``z = z_lab_mm`` (``lab``, mm): exact for
+        a port too, whose rays share no centre, since the points lie on one known plane (the
+        diffuser that camera s images); :meth:`pinhole_px` without a port (any plane gives
+        the same pixels). NaN where the distortion cannot be inverted or a ray misses the
+        plane.
+
+        Examples
+        --------
+        >>> from wai_core import load_system, with_keys
+        >>> cfg = with_keys(load_system("paper"), {"camera_s.port_thickness_mm": 4.0})
+        >>> optics = cfg.rig.optics("camera_s")
+        >>> optics.plane_pinhole_px(np.array([[399.5, 299.5]]), 60.0, 4 / 3)  # on axis
+        array([[399.5, 299.5]])
+        """
+        if not self.has_port:
+            return self.pinhole_px(px)
+        pts = np.asarray(px, dtype=float)
+        o, d = self.pixel_rays(pts[:, 0], pts[:, 1], n_water)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (z_lab_mm - o[:, 2]) / d[:, 2]
+        t = np.where(t > 0, t, np.nan)
+        cols, rows, front = self.camera.project(o + t[:, None] * d)
+        return np.column_stack([np.where(front, cols, np.nan), np.where(front, rows, np.nan)])
 
     def pixel_rays(self, cols: ArrayLike, rows: ArrayLike, n_water: float) -> tuple[Array, Array]:
         """Rays in the water through continuous pixel coordinates.

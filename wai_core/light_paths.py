@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "FlatSpots", "SpotHits", "dot_rays", "flat_pixel_of", "flat_spots", "pack_camera",
-    "reflect_to_diffuser", "reflected_spot_px", "spots_from_hits", "spots_through",
+    "real_spot_px", "reflect_to_diffuser", "reflected_spot_px", "spots_from_hits", "spots_through",
 ]
 
 Array = NDArray[np.float64]
@@ -61,18 +61,24 @@ def pack_camera(camera: PinholeCamera) -> Array:
 
 
 def dot_rays(rig: Any, panel_px: ArrayLike) -> tuple[Array, Array]:
-    """The rays of projector dots at ``panel_px`` (K, 2) panel pixels, through the projector's
-    real optics (its principal point and distortion: :meth:`~wai_core.lens.DeviceOptics.
-    pinhole_px`), as rays of its ideal pinhole.
+    """The rays in the water of projector dots at ``panel_px`` (K, 2) panel pixels, through
+    the projector's real optics: its principal point and distortion
+    (:meth:`~wai_core.lens.DeviceOptics.pinhole_px`, as rays of its ideal pinhole) and its
+    port (:meth:`~wai_core.lens.DeviceOptics.pixel_rays`: each ray leaves the port at its own
+    point).
 
     Returns
     -------
-    origin_mm : (3,) ndarray
-        The projector's centre, mm.
+    origin_mm : (3,) or (K, 3) ndarray
+        The projector's centre, or behind a port where each ray enters the water, mm.
     dirs : (K, 3) ndarray
         Unit directions, lab frame.
     """
-    px = rig.optics("projector").pinhole_px(np.asarray(panel_px, dtype=float))
+    optics = rig.optics("projector")
+    if optics.has_port:
+        px = np.asarray(panel_px, dtype=float)
+        return optics.pixel_rays(px[:, 0], px[:, 1], float(rig.cfg.water.n_water))
+    px = optics.pinhole_px(np.asarray(panel_px, dtype=float))
     return rig.projector.pixel_rays(px[:, 0], px[:, 1])
 
 
@@ -125,6 +131,32 @@ def spots_from_hits(rig: Any, hits_mm: ArrayLike, dirs: ArrayLike,
     px = np.stack([cols, rows], axis=-1)
     px[~front] = np.nan
     return SpotHits(on_diffuser, px, front)
+
+
+def real_spot_px(rig: Any, pinhole_px: ArrayLike) -> Array:
+    """Camera s's real-image pixels (K, 2) of spots at its ideal pinhole's pixels ``pinhole_px``
+    (K, 2): the diffuser point each pixel sees, projected through the camera's lens and port
+    (:meth:`~wai_core.lens.DeviceOptics.project`); ``pinhole_px`` itself for an ideal camera
+    (the same array); NaN where no ray reaches the point.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from wai_core import load_system, with_keys
+    >>> cfg = with_keys(load_system("paper"), {"camera_s.principal_offset_px": [3.0, 0.0]})
+    >>> real_spot_px(cfg.rig, np.array([[399.5, 299.5]]))
+    array([[402.5, 299.5]])
+    """
+    optics = rig.optics("camera_s")
+    px = np.asarray(pinhole_px, dtype=float)
+    if optics.ideal:
+        return px
+    o, d = rig.camera_s.pixel_rays(px[:, 0], px[:, 1])
+    points, _ = intersect_plane_z(o, d, float(rig.cfg.diffuser.z_mm))
+    cols, rows, valid = optics.project(points, float(rig.cfg.water.n_water))
+    out = np.column_stack([cols, rows])
+    out[~valid] = np.nan
+    return out
 
 
 def spots_through(rig: Any, surface: Heightfield | None, panel_px: ArrayLike) -> Array:

@@ -31,6 +31,7 @@ from wai_core.geometry import PinholeCamera, pinhole_of
 if TYPE_CHECKING:
     from wai_core.lens import DeviceOptics
     from wai_core.light_paths import FlatSpots
+    from wai_core.port import PortCamera
 
 __all__ = ["DEVICES", "Rig"]
 
@@ -98,6 +99,19 @@ class Rig:
         return self._optics[name]
 
     @cached_property
+    def _models(self) -> dict[str, PinholeCamera | PortCamera]:
+        from wai_core.port import camera_model
+
+        n_water = float(self.cfg.water.n_water)
+        return {name: camera_model(optics, n_water) for name, optics in self._optics.items()}
+
+    def camera_model(self, name: str) -> PinholeCamera | PortCamera:
+        """Device ``name`` as the restoration models it once its lens is undone (images and
+        spot centres in its ideal pinhole's pixels): that pinhole, or behind a housing port
+        the non-central :class:`~wai_core.port.PortCamera`."""
+        return self._models[name]
+
+    @cached_property
     def dot_grid(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """Every dot's grid index ``(i, j)`` (G, 2) and panel position ``(col, row)`` (G, 2)
         px, row by row (:func:`wai_core.pattern.dot_grid`)."""
@@ -130,6 +144,22 @@ class Rig:
         :meth:`~wai_core.lens.DeviceOptics.pinhole_px`; :attr:`dot_panel_px` itself for an
         ideal projector)."""
         return self.optics("projector").pinhole_px(self.dot_panel_px)
+
+    @cached_property
+    def dot_rays(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Every dot's ray in the water through the projector's real optics
+        (:func:`wai_core.light_paths.dot_rays`): origins, the projector's centre (3,) or, behind
+        a port, each ray's own (G, 3) mm, and unit directions (G, 3)."""
+        from wai_core.light_paths import dot_rays
+
+        return dot_rays(self, self.dot_panel_px)
+
+    def dot_rays_of(self, ij: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """:attr:`dot_rays` of the dots with grid indices ``ij`` (K, 2): origins (3,) or
+        (K, 3) mm, directions (K, 3)."""
+        origin, dirs = self.dot_rays
+        index = self.dot_index(ij)
+        return (origin if origin.ndim == 1 else origin[index]), dirs[index]
 
     @cached_property
     def diffuser_rect(self) -> NDArray:

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from restoration.features._types import BoolArray, FloatArray
+from restoration.undistort import diffuser_pinhole_px
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 
@@ -43,6 +44,13 @@ def _visible_outline(cfg: SystemConfig) -> FloatArray:
     cam = cfg.camera_s
     w, h = cam.width_px - 0.5, cam.height_px - 0.5
     frame = np.array([[-0.5, -0.5], [w, -0.5], [w, h], [-0.5, h]], np.float32)
+    if cfg.rig.optics("camera_s").has_port:
+        # The real image's border in the pinhole's pixels: bowed by the port, sampled.
+        t = np.linspace(0.0, 1.0, 65)[:-1, None]
+        ends = zip(frame, np.roll(frame, -1, 0), strict=True)
+        border = np.vstack([c0 + t * (c1 - c0) for c0, c1 in ends])
+        seen = diffuser_pinhole_px(cfg, border)
+        frame = cv2.convexHull(seen[np.isfinite(seen).all(axis=1)].astype(np.float32))[:, 0]
     area, poly = cv2.intersectConvexConvex(_outline_px(cfg).astype(np.float32), frame)
     if area <= 0 or poly is None:
         raise WaiInputError("camera s does not see the diffuser")

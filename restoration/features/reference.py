@@ -30,9 +30,10 @@ from restoration.features.detect import (
     _scales_for,
     detect_spots,
 )
-from restoration.undistort import pinhole_px
+from restoration.undistort import diffuser_pinhole_px
 from wai_core.config import SystemConfig
 from wai_core.errors import RestorationFailed, WaiInputError
+from wai_core.light_paths import real_spot_px
 
 
 @dataclass(frozen=True)
@@ -86,6 +87,10 @@ class ReferenceGrid:
         Each node's flat-water spot less its calibrated prediction, pixels (read-only;
         :func:`flat_shifts`): what refers a frame's spots to the flat reference
         (:meth:`flat_shift_at`). None when the grid was built without a configuration.
+    real_px : (G, 2) ndarray or None
+        ``ref_px`` in camera s's real image (its lens and port,
+        :func:`wai_core.light_paths.real_spot_px`), where the image's edge cuts spots; None:
+        ``ref_px`` itself (an ideal camera, or a grid built without a configuration).
     median_spacing_px : float
         The median of ``spacing_px`` where it is not NaN, pixels (NaN when it is all NaN):
         the spacing a frame's checks and statuses are scaled by.
@@ -108,6 +113,7 @@ class ReferenceGrid:
     pred_px: FloatArray | None = field(default=None, repr=False, compare=False)
     fit_px: FloatArray | None = field(default=None, repr=False, compare=False)
     shift_px: FloatArray | None = field(default=None, repr=False, compare=False)
+    real_px: FloatArray | None = field(default=None, repr=False, compare=False)
     median_spacing_px: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -187,7 +193,7 @@ def predict_flat_spots(
             & flat.on_diffuser(_diffuser(cfg))
             & np.isfinite(spot_px).all(axis=1)
             & flat.in_front
-            & rig.camera_s.in_image(spot_px[:, 0], spot_px[:, 1], margin_px)
+            & _in_real_image(cfg, spot_px, margin_px)
         )
     ij, panel = rig.dot_grid
     return ij.astype(np.int64), panel, spot_px, in_view
@@ -229,11 +235,20 @@ def spot_sigma_px(cfg: SystemConfig) -> float:
     return float(cfg.pattern.sigma_px * np.median(mag))
 
 
+def _in_real_image(cfg: SystemConfig, pinhole_px: FloatArray, margin_px: float) -> BoolArray:
+    """(K,) bool: the spots at camera s's pinhole pixels (K, 2) that lie inside its real image
+    less ``margin_px`` (its lens and port: :func:`wai_core.light_paths.real_spot_px`)."""
+    real = real_spot_px(cfg.rig, pinhole_px)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(real[:, 0]) & cfg.rig.camera_s.in_image(real[:, 0], real[:, 1],
+                                                                    margin_px)
+
+
 def pinhole_spots(spots: Spots, cfg: SystemConfig) -> Spots:
     """``spots`` of camera s with their centres in its ideal pinhole's pixels (the model every
-    later stage uses; :func:`restoration.undistort.pinhole_px`); the same object for an ideal
-    camera. Spots whose centre the lens cannot map are flagged ``border``."""
-    centres = pinhole_px(cfg.rig.optics("camera_s"), spots.centres_px)
+    later stage uses; :func:`restoration.undistort.diffuser_pinhole_px`); the same object for
+    an ideal camera. Spots whose centre the lens cannot map are flagged ``border``."""
+    centres = diffuser_pinhole_px(cfg, spots.centres_px)
     if centres is spots.centres_px:
         return spots
     lost = ~np.isfinite(centres).all(axis=1)
@@ -367,6 +382,14 @@ def match_reference(
     grid_lat = _Lattice(ij_grid)
     node_dot = grid_lat.lookup(ij)  # index into the grid arrays, -1 for virtual nodes
     is_dot = node_dot >= 0
+    # A port makes the projector non-central: its panel -> camera s map is then not quite
+    # projective, and the grid's own dots keep their prediction (the fit places the virtual
+    # nodes). A pinhole projector's fit is its prediction to rounding: kept as it is.
+    exact = np.zeros(len(ij), bool)
+    exact[is_dot] = np.isfinite(pred_grid[node_dot[is_dot]]).all(axis=1)
+    if np.max(np.abs(pred[exact] - pred_grid[node_dot[exact]]), initial=0.0) > 1e-3:
+        pred = pred.copy()
+        pred[exact] = pred_grid[node_dot[exact]]
     view = np.zeros(len(ij), bool)
     view[is_dot] = in_view[node_dot[is_dot]]
     lit_node = np.zeros(len(ij), bool)
@@ -423,12 +446,14 @@ away from it (docs/results.md, "Calibrating a real rig")."""
 
 def whole_in_image(ref: ReferenceGrid, image_shape: tuple[int, int]) -> BoolArray:
     """(G,) bool: the nodes whose flat-water spot lies further than four spot sigmas from the
-    image's edge, so that the image does not cut it (a cut spot's centroid is pulled
-    inwards by pixels)."""
+    image's edge (in the real image: :attr:`ReferenceGrid.real_px`), so that the image does
+    not cut it (a cut spot's centroid is pulled inwards by pixels)."""
     h, w = image_shape
     edge = 4.0 * (ref.spot_sigma_px if np.isfinite(ref.spot_sigma_px) else _TUNED_SIGMA_PX)
-    x, y = ref.ref_px[:, 0], ref.ref_px[:, 1]
-    return (x > edge - 0.5) & (y > edge - 0.5) & (x < w - 0.5 - edge) & (y < h - 0.5 - edge)
+    px = ref.ref_px if ref.real_px is None else ref.real_px
+    x, y = px[:, 0], px[:, 1]
+    with np.errstate(invalid="ignore"):
+        return (x > edge - 0.5) & (y > edge - 0.5) & (x < w - 0.5 - edge) & (y < h - 0.5 - edge)
 
 
 def whole_spots_rms(ref: ReferenceGrid, image_shape: tuple[int, int]) -> float:
@@ -515,6 +540,8 @@ def prepare_reference(
     ref = replace(
         ref, spot_sigma_px=float(sigma), outline_px=outline, visible_px=_visible_outline(cfg)
     )
+    if not cfg.rig.optics("camera_s").ideal:
+        ref = replace(ref, real_px=real_spot_px(cfg.rig, ref.ref_px))
     shape = (cfg.camera_s.height_px, cfg.camera_s.width_px)
     ref = replace(ref, shift_px=flat_shifts(ref, shape), rms_px=whole_spots_rms(ref, shape))
     if ref.counts["observed"] < min_features:

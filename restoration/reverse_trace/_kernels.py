@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 
 from wai_core.optics import RayStatus
+from wai_core.port import port_ray
 
 _OK = int(RayStatus.OK)
 _MISSED_SURFACE = int(RayStatus.MISSED_SURFACE)
@@ -100,7 +101,7 @@ def _sign(a):
 
 
 @njit(inline="always", **_JIT)
-def _residual(optics, x, y, h, hx, hy, hxx, hxy, hyy, tx, ty):
+def _residual(optics, port, camera, x, y, h, hx, hy, hxx, hxy, hyy, tx, ty):
     """How far the air ray through surface point (x, y) misses its target ``(tx, ty)``, and
     the miss's derivatives in ``x`` and ``y``.
 
@@ -116,6 +117,11 @@ def _residual(optics, x, y, h, hx, hy, hxx, hxy, hyy, tx, ty):
     with the point: ``h`` by its slopes, the slopes by the second derivatives ``hxx, hxy,
     hyy`` (a forward difference took two more evaluations of the miss).
 
+    Behind a port (``port`` (4,), :func:`wai_core.port.pack_port`, thickness > 0) the ray
+    comes from the point of the axis where the port's water ray to ``(x, y, h)`` meets it
+    (:func:`wai_core.port.port_ray`, with ``camera`` (15,) packed); the Jacobian takes that
+    point as fixed (it moves ~1e-3 as fast as the surface point: Newton stays near-quadratic).
+
     ``optics`` (5,): camera centre (mm), refractive index, object-plane height (mm). Returns
     the residual ``(r_x, r_y)`` (dimensionless, zero at the solution), the air direction's
     vertical component ``t_z`` (the ray misses the object plane unless > 0), ``k = 1 - n^2
@@ -123,6 +129,8 @@ def _residual(optics, x, y, h, hx, hy, hxx, hxy, hyy, tx, ty):
     ``d r_x / dx, d r_x / dy, d r_y / dx, d r_y / dy`` (per mm).
     """
     cx, cy, cz, n, z_object = optics[0], optics[1], optics[2], optics[3], optics[4]
+    if port[1] > 0.0:
+        cx, cy, cz = port_ray(port, camera, x, y, h)[:3]
     wx, wy, wz = x - cx, y - cy, h - cz
     inv_w = 1.0 / math.sqrt(wx * wx + wy * wy + wz * wz)
     inv_m = 1.0 / math.sqrt(1.0 + hx * hx + hy * hy)
@@ -175,15 +183,15 @@ _QX, _QY, _H, _HX, _HY, _R0, _R1, _J00, _J01, _J10, _J11 = range(11)
 
 
 @njit(inline="always", **_JIT)
-def _evaluate(flat, h0, table, cell_ok, gx, gy, optics, qx, qy, tx, ty, out):
+def _evaluate(flat, h0, table, cell_ok, gx, gy, optics, port, camera, qx, qy, tx, ty, out):
     """Fill ``out`` (11,) for surface point (qx, qy) mm and target (tx, ty) mm; return its
     status."""
     if flat:
         h, hx, hy, hxx, hxy, hyy = h0, 0.0, 0.0, 0.0, 0.0, 0.0
     else:
         h, hx, hy, hxx, hxy, hyy = spline_jet(table, cell_ok, gx, gy, qx, qy)
-    r0, r1, tz, k, j00, j01, j10, j11 = _residual(optics, qx, qy, h, hx, hy, hxx, hxy, hyy,
-                                                  tx, ty)
+    r0, r1, tz, k, j00, j01, j10, j11 = _residual(optics, port, camera, qx, qy, h, hx, hy,
+                                                  hxx, hxy, hyy, tx, ty)
     out[_QX], out[_QY], out[_H], out[_HX], out[_HY] = qx, qy, h, hx, hy
     out[_R0], out[_R1] = r0, r1
     out[_J00], out[_J01], out[_J10], out[_J11] = j00, j01, j10, j11
@@ -198,9 +206,12 @@ def _evaluate(flat, h0, table, cell_ok, gx, gy, optics, qx, qy, tx, ty, out):
 
 
 @njit(inline="always", **_JIT)
-def _project(camera, x, y, z):
+def _project(camera, port, x, y, z):
     """Pixel ``(col, row)`` of a lab point mm; ``camera`` (15,): R (row-major), t (mm), focal
-    (px), principal point (px) (:meth:`PinholeCamera.project`)."""
+    (px), principal point (px) (:meth:`PinholeCamera.project`); behind a port (``port``
+    thickness > 0), :func:`wai_core.port.port_ray`'s."""
+    if port[1] > 0.0:
+        return port_ray(port, camera, x, y, z)[3:]
     zc = camera[6] * x + camera[7] * y + camera[8] * z + camera[11]
     scale = camera[12] / (zc if abs(zc) > 1e-12 else 1e-12)
     cols = (camera[0] * x + camera[1] * y + camera[2] * z + camera[9]) * scale + camera[13]
@@ -209,17 +220,18 @@ def _project(camera, x, y, z):
 
 
 @njit(inline="always", **_JIT)
-def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, pulls, fracs, tol,
+def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, port, camera, pulls, fracs, tol,
                max_iter, tx, ty, q0x, q0y, px_out, q_out, t, state, trial):
     """Newton for target ``t``; writes ``px_out[t]`` and ``q_out[t]`` when it converges and
     returns ``(status, iterations run)``. ``state``, ``trial`` (11,): scratch (the caller's,
     reused across targets: two allocations per target cost as much as a Newton step)."""
-    status = _evaluate(flat, h0, table, cell_ok, gx, gy, optics, q0x, q0y, tx, ty, state)
+    status = _evaluate(flat, h0, table, cell_ok, gx, gy, optics, port, camera, q0x, q0y, tx,
+                       ty, state)
     if status == _TIR or status == _MISSED_OBJECT:
         # Beyond the edge of Snell's window: pull towards the nadir, the mildest pull first.
         nx, ny = optics[0], optics[1]
         for p in range(pulls.size):
-            s = _evaluate(flat, h0, table, cell_ok, gx, gy, optics,
+            s = _evaluate(flat, h0, table, cell_ok, gx, gy, optics, port, camera,
                           nx + pulls[p] * (state[_QX] - nx), ny + pulls[p] * (state[_QY] - ny),
                           tx, ty, trial)
             if s == _OK:
@@ -238,8 +250,8 @@ def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, pulls, fracs, t
         # A step below tolerance is taken on the tangent plane, without a new evaluation.
         x, y = state[_QX] + sx, state[_QY] + sy
         h = state[_H] + state[_HX] * sx + state[_HY] * sy
-        u1, v1 = _project(camera, x, y, h)
-        u0, v0 = _project(camera, state[_QX], state[_QY], state[_H])
+        u1, v1 = _project(camera, port, x, y, h)
+        u0, v0 = _project(camera, port, state[_QX], state[_QY], state[_H])
         if math.hypot(u1 - u0, v1 - v0) < tol:
             px_out[t, 0], px_out[t, 1] = u1, v1
             q_out[t, 0], q_out[t, 1], q_out[t, 2] = x, y, h
@@ -252,7 +264,7 @@ def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, pulls, fracs, t
         s = _OK
         moved = False
         for f in range(fracs.size):
-            s = _evaluate(flat, h0, table, cell_ok, gx, gy, optics,
+            s = _evaluate(flat, h0, table, cell_ok, gx, gy, optics, port, camera,
                           state[_QX] + fracs[f] * sx, state[_QY] + fracs[f] * sy, tx, ty, trial)
             if s == _OK and trial[_R0] ** 2 + trial[_R1] ** 2 < r2:
                 state[:] = trial
@@ -264,8 +276,9 @@ def _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, pulls, fracs, t
 
 
 @njit(**_JIT)
-def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, camera, pulls,
-                 fracs, tol, max_iter, targets, q0, px, status, q, iters):  # pragma: no cover
+def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, port, camera,
+                 pulls, fracs, tol, max_iter, targets, q0, px, status, q, iters
+                 ):  # pragma: no cover
     """Solve the ``chunk``-th of ``n_chunks`` equal runs of consecutive targets of the N
     targets (N, 2) mm from surface points ``q0`` (N, 2) mm. The targets are independent: any
     thread may run any chunk. Consecutive targets are neighbouring nodes, which read
@@ -281,6 +294,8 @@ def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, came
         The spline surface (:func:`spline_jet`).
     optics : (5,) ndarray
         Camera centre (mm), refractive index, object-plane height (mm).
+    port : (4,) ndarray
+        The camera's port (:func:`wai_core.port.pack_port`; thickness 0: a pinhole).
     camera : (15,) ndarray
         Projection constants (:func:`_project`).
     pulls, fracs : ndarray
@@ -301,7 +316,7 @@ def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, came
     state, trial = np.empty(11), np.empty(11)
     n = targets.shape[0]
     for t in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
-        s, it = _solve_one(flat, h0, table, cell_ok, gx, gy, optics, camera, pulls, fracs,
+        s, it = _solve_one(flat, h0, table, cell_ok, gx, gy, optics, port, camera, pulls, fracs,
                            tol, max_iter, targets[t, 0], targets[t, 1], q0[t, 0], q0[t, 1],
                            px, q, t, state, trial)
         status[t] = s

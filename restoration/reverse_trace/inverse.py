@@ -26,6 +26,7 @@ from wai_core.heightfield import Heightfield
 from wai_core.light_paths import pack_camera
 from wai_core.optics import RayStatus, _check_system
 from wai_core.parallel import restore_threads, run_chunks
+from wai_core.port import pack_port
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -88,7 +89,7 @@ def _newton(
     # thread that finishes its run early takes the next.
     run_chunks(
         newton_chunk, max(min(4 * restore_threads(), n), 1), flat, h0, *surf,
-        np.r_[optics.center, optics.n_water, optics.z_object], proj, _PULLS,
+        np.r_[optics.center, optics.n_water, optics.z_object], pack_port(camera), proj, _PULLS,
         _FRACS, float(tol_px), int(max_iter), targets, np.ascontiguousarray(q0, dtype=float),
         px, status, q, iters,
     )

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.optics import RayStatus, _check_system, trace_to_object
+from wai_core.port import pack_port
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -267,6 +268,7 @@ def _plan_key(camera: PinholeCamera, h0: float, n: float, z: float, step: int) -
         float(n),
         float(z),
         int(step),
+        pack_port(camera).tobytes(),
     )
 
 

@@ -198,15 +198,16 @@ def test_refraction_miss_carries_its_jacobian():
                 0.004 * x + 0.001 * y + 0.05, 0.001 * x - 0.003 * y, 0.004, 0.001, -0.003)
 
     optics = np.array([3.0, -2.0, -300.0, 1.333, 400.0])  # camera centre, n, object plane
+    no_port, camera = np.array([0.0, 0.0, 1.0, 1.0]), np.zeros(15)  # a pinhole: unused
     rng = np.random.default_rng(1)
     checked, eps = 0, 1e-5
     for x, y, tx, ty in rng.uniform([-60, -60, -300, -300], [60, 60, 300, 300], (100, 4)):
-        r = _residual(optics, x, y, *surface(x, y), tx, ty)
+        r = _residual(optics, no_port, camera, x, y, *surface(x, y), tx, ty)
         if r[3] < 0.1:  # near or past total internal reflection the miss is not smooth
             continue
 
         def miss(u, v, tx=tx, ty=ty):
-            return np.array(_residual(optics, u, v, *surface(u, v), tx, ty)[:2])
+            return np.array(_residual(optics, no_port, camera, u, v, *surface(u, v), tx, ty)[:2])
 
         along_x = (miss(x + eps, y) - miss(x - eps, y)) / (2 * eps)
         along_y = (miss(x, y + eps) - miss(x, y - eps)) / (2 * eps)

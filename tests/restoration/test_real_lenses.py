@@ -11,9 +11,8 @@ import pytest
 
 from mitsuba_wai.render import render_folder
 from restoration import Calibration, restore_folder
-from restoration.undistort import PinholeRemap, pinhole_px
+from restoration.undistort import PinholeRemap, diffuser_pinhole_px
 from wai_core.config import with_keys
-from wai_core.errors import WaiInputError
 
 LENS = {"distortion": [-0.2, 0.05, 0.001, -0.0005, 0.0], "principal_offset_px": [15.0, -10.0]}
 
@@ -40,7 +39,7 @@ def test_spots_and_images_map_to_the_pinhole_opencv_projects_them_from(paper_cfg
     f = dev.focal_mm * dev.width_px / dev.sensor_width_mm
     rays = np.column_stack([(ideal - [399.5, 299.5]) / f, np.ones(200)])
     real = _cv2_pixels(dev, rays)
-    np.testing.assert_allclose(pinhole_px(optics, real), ideal, atol=1e-6)
+    np.testing.assert_allclose(diffuser_pinhole_px(real_cfg, real), ideal, atol=1e-6)
     remap = PinholeRemap.of(optics, "camera_s")
     rows, cols = np.round(ideal[:, 1]).astype(int), np.round(ideal[:, 0]).astype(int)
     at = _cv2_pixels(dev, np.column_stack([(cols - 399.5) / f, (rows - 299.5) / f,
@@ -54,12 +53,7 @@ def test_an_ideal_rig_costs_nothing(paper_cfg):
     view = np.zeros((600, 800, 3), np.float32)
     assert cal.to_pinhole("view", view) is view and not cal.resamples("view")
     px = np.array([[1.5, 2.5]])
-    assert pinhole_px(paper_cfg.rig.optics("camera_s"), px) is px
-
-
-def test_a_housing_port_is_refused_by_name(paper_cfg):
-    with pytest.raises(WaiInputError, match=r"\[camera_v\] port_thickness_mm"):
-        Calibration(with_keys(paper_cfg, {"camera_v.port_thickness_mm": 5.0}))
+    assert diffuser_pinhole_px(paper_cfg, px) is px
 
 
 @pytest.fixture(scope="module")

@@ -44,7 +44,12 @@ Point keys (all optional except ``config`` and ``seed``)
 ``render_overrides`` (str)
     JSON object of ``"section.key"`` values (:func:`wai_core.config.with_keys`) that only the
     render gets: physics the restoration does not know (``wai experiment budget``); the
-    restoration, its calibration and the correspondence check use the scene without them.
+    restoration, its calibration and the correspondence check use the scene without them,
+    unless ``modelled``.
+``modelled`` (bool, default false)
+    The restoration is told the ``render_overrides`` too (its calibration is the rendered
+    rig: ports, lenses, the water's index), its images read as a capture's are (resampled
+    into the devices' ideal pinholes): the budget's "modelled" column.
 ``repeats`` (int, default 3)
     Timed restorations per variant; the median is reported.
 
@@ -277,7 +282,11 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     for key in ("render_s_pattern", "render_s_view", "subframes"):
         row[key] = images.pop(key)
     row["phi_deg"] = effective_phi_deg(surface, cfg)
+    if point.get("modelled"):
+        cfg = rendered
     cal = Calibration(cfg, radiance_gain(cfg.water.n_water))
+    images.update({name: cal.to_pinhole(name, images[name])
+                   for name in ("view", "view_flat", "view_truth") if name in images})
     base = StructuredLightOptions()
     integrators = _names(point.get("integrators"), base.integrator)
     steps = [int(s) for s in _names(point.get("warp_steps"), str(base.warp_step_px))]
