@@ -116,6 +116,10 @@ class PortCamera:
         (...,) and whether the point lies beyond the port, reachable."""
         return self._lens_free.project(points_lab_mm, self.n_water)
 
+    def pixel_grid(self, step: int = 1) -> tuple[Array, Array]:
+        """Pixel-centre coordinates every ``step`` pixels (the pinhole's)."""
+        return self.camera.pixel_grid(step)
+
     def in_image(self, cols: ArrayLike, rows: ArrayLike, margin_px: float = 0.0) -> NDArray:
         """True where pixel coordinates fall inside the image less ``margin_px``."""
         return self.camera.in_image(cols, rows, margin_px)

@@ -219,8 +219,9 @@ def decode_distorted(
     Decoded
     """
     n_nodes = len(ref.ij)
+    sigma = ref.detect_sigma_px
     sym, sym_conf, green, levels = spot_symbols(
-        image, spots.centres_px, ref.spot_sigma_px if np.isfinite(ref.spot_sigma_px) else 1.5
+        image, spots.in_image_px, 1.5 if sigma is None else sigma
     )
     codes = node_symbols(ref, cfg)
     tab = ref.tables

@@ -70,6 +70,9 @@ class Spots:
         Segment touches the image border (the centre is biased towards the inside).
     saturated : (P,) ndarray of bool
         Peak at or above the saturation level given to :func:`detect_spots`.
+    image_px : (P, 2) ndarray or None
+        The centres in the image as taken, where ``centres_px`` were mapped to a lens's ideal
+        pinhole (:func:`~restoration.features.reference.pinhole_spots`); None: the same.
     """
 
     centres_px: FloatArray
@@ -80,9 +83,15 @@ class Spots:
     merged: BoolArray
     border: BoolArray
     saturated: BoolArray
+    image_px: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.centres_px.shape[0])
+
+    @property
+    def in_image_px(self) -> FloatArray:
+        """The centres in the image as taken (:attr:`image_px`, else :attr:`centres_px`)."""
+        return self.centres_px if self.image_px is None else self.image_px
 
     @property
     def suspicious(self) -> BoolArray:

@@ -91,6 +91,10 @@ class ReferenceGrid:
         ``ref_px`` in camera s's real image (its lens and port,
         :func:`wai_core.light_paths.real_spot_px`), where the image's edge cuts spots; None:
         ``ref_px`` itself (an ideal camera, or a grid built without a configuration).
+    image_scale : float
+        Camera s's real-image pixels per pinhole pixel at the spots (:func:`image_scale`; 1
+        but behind a port): spots are detected in the image as taken, at
+        :attr:`detect_sigma_px`.
     median_spacing_px : float
         The median of ``spacing_px`` where it is not NaN, pixels (NaN when it is all NaN):
         the spacing a frame's checks and statuses are scaled by.
@@ -114,6 +118,7 @@ class ReferenceGrid:
     fit_px: FloatArray | None = field(default=None, repr=False, compare=False)
     shift_px: FloatArray | None = field(default=None, repr=False, compare=False)
     real_px: FloatArray | None = field(default=None, repr=False, compare=False)
+    image_scale: float = 1.0
     median_spacing_px: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -149,10 +154,10 @@ class ReferenceGrid:
 
     @property
     def detect_sigma_px(self) -> float | None:
-        """``spot_sigma_px`` for :func:`~restoration.features.detect.detect_spots` (None when
-        not calibrated)."""
+        """``spot_sigma_px`` in the image as taken (times :attr:`image_scale`), for
+        :func:`~restoration.features.detect.detect_spots` (None when not calibrated)."""
         s = self.spot_sigma_px
-        return float(s) if np.isfinite(s) and s > 0 else None
+        return float(s * self.image_scale) if np.isfinite(s) and s > 0 else None
 
 
 def predict_flat_spots(
@@ -235,6 +240,23 @@ def spot_sigma_px(cfg: SystemConfig) -> float:
     return float(cfg.pattern.sigma_px * np.median(mag))
 
 
+def image_scale(cfg: SystemConfig) -> float:
+    """Camera s's real-image pixels per pinhole pixel, the median over the flat-water spots in
+    view: a port magnifies the spots in the image as taken (a pinhole pixel of the diffuser
+    plane covers several real ones at the image's edge). 1 without a port (a lens's
+    distortion is left to the detector's tolerance, as it always was)."""
+    rig = cfg.rig
+    if not rig.optics("camera_s").has_port:
+        return 1.0
+    px = rig.flat_spots.px
+    px = px[np.isfinite(px).all(axis=1)]
+    real = [real_spot_px(rig, px + d) for d in ([0.0, 0.0], [0.5, 0.0], [0.0, 0.5])]
+    jx, jy = (real[1] - real[0]) / 0.5, (real[2] - real[0]) / 0.5
+    det = np.abs(jx[:, 0] * jy[:, 1] - jx[:, 1] * jy[:, 0])
+    seen = np.isfinite(det) & rig.camera_s.in_image(real[0][:, 0], real[0][:, 1])
+    return float(np.sqrt(np.median(det[seen]))) if seen.any() else 1.0
+
+
 def _in_real_image(cfg: SystemConfig, pinhole_px: FloatArray, margin_px: float) -> BoolArray:
     """(K,) bool: the spots at camera s's pinhole pixels (K, 2) that lie inside its real image
     less ``margin_px`` (its lens and port: :func:`wai_core.light_paths.real_spot_px`)."""
@@ -253,7 +275,8 @@ def pinhole_spots(spots: Spots, cfg: SystemConfig) -> Spots:
         return spots
     lost = ~np.isfinite(centres).all(axis=1)
     centres = np.where(lost[:, None], spots.centres_px, centres)
-    return replace(spots, centres_px=centres, border=spots.border | lost)
+    return replace(spots, centres_px=centres, border=spots.border | lost,
+                   image_px=spots.centres_px)
 
 
 def flag_diffuser_edge(spots: Spots, outline_px: FloatArray, n_sigma: float = 2.5) -> Spots:
@@ -449,7 +472,8 @@ def whole_in_image(ref: ReferenceGrid, image_shape: tuple[int, int]) -> BoolArra
     image's edge (in the real image: :attr:`ReferenceGrid.real_px`), so that the image does
     not cut it (a cut spot's centroid is pulled inwards by pixels)."""
     h, w = image_shape
-    edge = 4.0 * (ref.spot_sigma_px if np.isfinite(ref.spot_sigma_px) else _TUNED_SIGMA_PX)
+    sigma = ref.spot_sigma_px if np.isfinite(ref.spot_sigma_px) else _TUNED_SIGMA_PX
+    edge = 4.0 * sigma * ref.image_scale  # in the image as taken
     px = ref.ref_px if ref.real_px is None else ref.real_px
     x, y = px[:, 0], px[:, 1]
     with np.errstate(invalid="ignore"):
@@ -531,14 +555,16 @@ def prepare_reference(
         When fewer than ``min_features`` dots are seen on flat water.
     """
     sigma = spot_sigma_px(cfg)
-    sigma_ok = float(sigma) if np.isfinite(sigma) and sigma > 0 else None
+    scale = image_scale(cfg)
+    sigma_ok = float(sigma * scale) if np.isfinite(sigma) and sigma > 0 else None
     outline = _outline_px(cfg)
     flat = pinhole_spots(detect_spots(pattern_flat_img, spot_sigma_px=sigma_ok), cfg)
     flat = flag_diffuser_edge(flat, outline)
     predicted = predict_flat_spots(cfg)
     ref = match_reference(flat, predicted, lit=cfg.rig.lit if lit is None else lit)
     ref = replace(
-        ref, spot_sigma_px=float(sigma), outline_px=outline, visible_px=_visible_outline(cfg)
+        ref, spot_sigma_px=float(sigma), outline_px=outline, visible_px=_visible_outline(cfg),
+        image_scale=scale,
     )
     if not cfg.rig.optics("camera_s").ideal:
         ref = replace(ref, real_px=real_spot_px(cfg.rig, ref.ref_px))

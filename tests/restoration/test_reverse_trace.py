@@ -25,10 +25,11 @@ from restoration.reverse_trace import (
     solve_pixels,
     trace_to_object,
 )
-from wai_core.config import load_config
+from wai_core.config import load_config, with_keys
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera, Pose
 from wai_core.heightfield import Heightfield
+from wai_core.port import PortCamera
 
 SCENE = Path(__file__).resolve().parents[2] / "scenes" / "paper.toml"
 PERIOD_MM = 150.0  # texture period on the object plane: ~10 pixels of the small camera
@@ -150,9 +151,18 @@ def test_spline_patches_match_the_heightfield():
 # --- inverse map ------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("wavy", [False, True])
-def test_find_pixels_inverts_trace_to_object(cfg, optics, wavy):
-    cam = cfg.rig.camera_v
+@pytest.mark.parametrize("wavy, port_mm", [(False, 0.0), (True, 0.0), (False, 10.0),
+                                            (True, 10.0)])
+def test_find_pixels_inverts_trace_to_object(cfg, optics, wavy, port_mm):
+    """The Newton solve inverts the forward trace, also for camera v behind a 10 mm port
+    10 mm from its pinhole (a non-central camera: wai_core.port.PortCamera)."""
+    if port_mm:
+        ported = with_keys(cfg, {"camera_v.port_thickness_mm": port_mm,
+                                 "camera_v.port_gap_mm": 10.0})
+        cam = ported.rig.camera_model("camera_v")
+        assert isinstance(cam, PortCamera)
+    else:
+        cam = cfg.rig.camera_v
     surface = _wavy(optics[0]) if wavy else None
     cols, rows = cam.pixel_grid(step=10)
     tr = trace_to_object(cam, surface, *optics, cols, rows)
