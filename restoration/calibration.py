@@ -12,7 +12,7 @@ kept here: see :class:`LevelTrack`.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any, ClassVar
@@ -32,6 +32,7 @@ from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 from wai_core.images import find_image, read_image
 from wai_core.io import read_json
+from wai_core.optics import channel_indices
 from wai_core.port import PortCamera
 
 __all__ = ["Calibration", "LevelTrack", "RigCalibration", "read_scene_record"]
@@ -77,7 +78,7 @@ class RigCalibration:
     cfg: SystemConfig
     view_gain: float = 1.0
     rig: dict[str, Any] | None = field(default=None, compare=False, kw_only=True)
-    _view_plans: dict[int, ViewPlan] = field(
+    _view_plans: dict[tuple[int, float], ViewPlan] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )
 
@@ -126,15 +127,32 @@ class RigCalibration:
         :attr:`view_gain` (what scores and restored images are expressed in)."""
         return view / self.view_gain
 
-    def view_plan(self, warp_step_px: int = SurfaceOptions.warp_step_px) -> ViewPlan:
-        """The flat-water trace of camera v's nodes every ``warp_step_px`` pixels, built once
-        per step and kept (every frame's view resamples into it)."""
-        plan = self._view_plans.get(int(warp_step_px))
+    @property
+    def view_indices(self) -> tuple[float, ...]:
+        """The water's index for each colour channel of the view: ``(n_water,)`` for one
+        index, Quan & Fry's at the channels' wavelengths (:func:`wai_core.optics.
+        channel_indices`) when the scene states sea water (``[water] index_model =
+        "quan_fry"``): each channel is then restored with its own."""
+        w = self.cfg.water
+        if w.index_model == "quan_fry":
+            return channel_indices(w.salinity_psu, w.temperature_c)
+        return (float(w.n_water),)
+
+    def view_plan(self, warp_step_px: int = SurfaceOptions.warp_step_px,
+                  n_water: float | None = None) -> ViewPlan:
+        """The flat-water trace of camera v's nodes every ``warp_step_px`` pixels through water
+        of index ``n_water`` (default the scene's), built once per step and index and kept
+        (every frame's view resamples into it)."""
+        cfg = self.cfg
+        n = float(cfg.water.n_water if n_water is None else n_water)
+        plan = self._view_plans.get((int(warp_step_px), n))
         if plan is None:
-            cfg = self.cfg
-            plan = ViewPlan.build(self.camera_v, cfg.water.h0_mm, cfg.water.n_water,
-                                  cfg.object_z_mm, int(warp_step_px))
-            self._view_plans[int(warp_step_px)] = plan
+            camera = self.camera_v
+            if isinstance(camera, PortCamera) and camera.n_water != n:
+                camera = PortCamera(camera.optics, n)
+            plan = ViewPlan.build(camera, cfg.water.h0_mm, n, cfg.object_z_mm,
+                                  int(warp_step_px))
+            self._view_plans[int(warp_step_px), n] = plan
         return plan
 
     def restore_view(
@@ -150,15 +168,37 @@ class RigCalibration:
         ``patches``: the surface's spline table when the frame has built it already;
         ``state``: a sequence's :class:`~restoration.reverse_trace.ViewState` (each frame's
         solve starts from the previous frame's; the view then agrees with a cold start's to
-        the solver's tolerance)."""
-        cfg = self.cfg
+        the solver's tolerance). With an index per channel (:attr:`view_indices`) each
+        channel is restored through its own; a pixel is valid where every channel's is (the
+        counts, warp and timings are the middle channel's)."""
         distorted = np.asarray(distorted)
         if not np.issubdtype(distorted.dtype, np.floating):  # integer captures
             distorted = distorted.astype(np.float64)
+        indices = self.view_indices
+        if len(indices) == 1 or distorted.ndim != 3 or distorted.shape[2] != len(indices):
+            return self._restore_channel(distorted, surface, warp_step_px, gain, patches,
+                                         state, indices[len(indices) // 2])
+        middle = len(indices) // 2
+        views = [self._restore_channel(distorted[..., c], surface, warp_step_px, gain,
+                                       patches, state if c == middle else None, n)
+                 for c, n in enumerate(indices)]
+        valid = np.logical_and.reduce([v.valid for v in views])
+        image = np.stack([v.image for v in views], axis=-1)
+        image[~valid] = 0
+        return replace(views[middle], image=image, valid=valid)
+
+    def _restore_channel(
+        self, distorted: NDArray, surface: Heightfield, warp_step_px: int, gain: float,
+        patches: SplinePatches | None, state: ViewState | None, n_water: float,
+    ) -> Restoration:
+        cfg = self.cfg
+        camera = self.camera_v
+        if isinstance(camera, PortCamera) and camera.n_water != n_water:
+            camera = PortCamera(camera.optics, n_water)  # the port refracts this channel too
         view = restore_view(
-            distorted, self.camera_v, surface, cfg.water.h0_mm, cfg.water.n_water,
-            cfg.object_z_mm, warp_step_px=warp_step_px, gain=gain,
-            plan=self.view_plan(warp_step_px), patches=patches, state=state,
+            distorted, camera, surface, cfg.water.h0_mm, n_water, cfg.object_z_mm,
+            warp_step_px=warp_step_px, gain=gain, plan=self.view_plan(warp_step_px, n_water),
+            patches=patches, state=state,
         )
         remap = self._remaps.get("camera_v")
         if remap is not None:  # a real lens: its pinhole image holds no data past the sensor

@@ -22,7 +22,8 @@ def test_every_effect_is_a_valid_renderer_only_change():
             # which the budget keeps from the restoration) and never a restoration setting.
             assert set(on) <= known, name
             assert on or name == "index", name
-            assert changed.water.n_water != cfg.water.n_water or name != "index"
+            assert changed.water.n_water != cfg.water.n_water or name not in ("index",
+                                                                              "real_rig")
 
 
 def test_points_carry_the_overrides_and_a_baseline_per_seed():
@@ -30,8 +31,12 @@ def test_points_carry_the_overrides_and_a_baseline_per_seed():
     base = [p for p in points if p["effect"] == "none"]
     assert [p["seed"] for p in base] == [0, 1] and all("render_overrides" not in p for p in base)
     k1 = [p for p in points if p["effect"] == "k1_s"]
-    assert len(k1) == 2 * len(EFFECTS["k1_s"].quick)
+    # A lens the restoration can be told: each frame restored without and with it.
+    assert len(k1) == 2 * 2 * len(EFFECTS["k1_s"].quick)
+    assert sum(bool(p.get("modelled")) for p in k1) == len(k1) // 2
     assert json.loads(k1[0]["render_overrides"])["camera_s.distortion"][0] < 0
+    aperture = [p for p in points if p["effect"] == "aperture"]  # nothing to be told
+    assert aperture and not any(p.get("modelled") for p in aperture)
 
 
 def test_summary_finds_where_rmse_passes_each_limit_and_counts_flags():
@@ -42,10 +47,19 @@ def test_summary_finds_where_rmse_passes_each_limit_and_counts_flags():
                 "residual_median_px": 0.05}
 
     rows = [row("none", 0.0, 0.03), row("k1_s", 0.05, 0.04), row("k1_s", 0.1, 0.2),
-            row("k1_s", 0.2, 3.0, "inconsistent"), row("k1_s", 0.3, 5.0)]
+            row("k1_s", 0.2, 3.0, "inconsistent"), row("k1_s", 0.3, 5.0),
+            row("k1_s", 0.2, 0.05) | {"modelled": "True"}]
     s = budget_summary(rows)
     k1 = s["effects"]["k1_s"]
     assert k1["passes_mm"] == {"+0.05": 0.1, "1": 0.2}  # 0.03 + 0.05 mm, then 1 mm
+    # The modelled frame is its own column, not part of the unmodelled means.
+    assert [e["rmse_mm"] for e in k1["modelled"]] == [pytest.approx(0.05)]
+    assert next(e for e in k1["entries"] if e["magnitude"] == 0.2)["rmse_mm"] == 3.0
+    from wai.experiments.budget import budget_markdown
+
+    text = budget_markdown(s, "cmd")
+    assert "| 0.2 (modelled) | 1 | 100% |" in text
+    assert "| k1_s | 0.2 | 0% of 1 | 3.0000 | 100% | 0.0500 | 0.100 | yes |" in text
     assert s["baseline"]["rmse_mm"] == pytest.approx(0.03)
     # Two ruined frames, one flagged.
     assert s["detection"]["bad"] == 2 and s["detection"]["detection_rate"] == 0.5
