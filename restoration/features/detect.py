@@ -41,6 +41,11 @@ from wai_core.parallel import run_beside, run_chunks
 # grids of slowly varying maps) stay in pixels.
 _TUNED_SIGMA_PX = 1.517788
 
+# A segment this large (pixels, at the tuned spot size) holds several spots or one spread by
+# the waves: it is checked for saddles (restoration.features._segments._split_joined). A
+# single tuned spot's segment covers ~20 px; a caustic's, a few hundred.
+_SPLIT_AREA_PX = 200
+
 # Centroid window: covariance _WINDOW_VAR x the segment's second moments, which hold 0.55-0.85 of
 # the spot's variance, so k^2 ~ 1.75 (k ~ 1.3) and the step gain is 1 + 1 / k^2.
 _WINDOW_VAR = 2.5
@@ -70,9 +75,11 @@ class Spots:
         Segment touches the image border (the centre is biased towards the inside).
     saturated : (P,) ndarray of bool
         Peak at or above the saturation level given to :func:`detect_spots`.
+    joined : int
+        Segments that held several spots joined by a pedestal, split at their saddles.
     image_px : (P, 2) ndarray or None
         The centres in the image as taken, where ``centres_px`` were mapped to a lens's ideal
-        pinhole (:func:`~restoration.features.reference.pinhole_spots`); None: the same.
+        pinhole (:func:`~restoration.features.camera_s.pinhole_spots`); None: the same.
     """
 
     centres_px: FloatArray
@@ -83,6 +90,7 @@ class Spots:
     merged: BoolArray
     border: BoolArray
     saturated: BoolArray
+    joined: int = 0
     image_px: FloatArray | None = None
 
     def __len__(self) -> int:
@@ -292,6 +300,15 @@ class SpotScales:
         Blur of the wide-spot test's copy, pixels.
     box_max_px : int
         Largest centroid box half width, and the frame of zeros around the image, pixels.
+    split_area_px : int
+        A segment larger than this may hold spots joined by a pedestal, pixels: with
+        ``split_all`` it is split at its saddles
+        (:func:`~restoration.features._segments._split_joined`); without, only one larger than
+        :data:`~restoration.features._segments.JOINED_FACTOR` times it (never one spot, not
+        even a caustic's).
+    split_all : bool
+        Split every segment larger than ``split_area_px`` (:meth:`joined`: where the flat-water
+        reference's spots run together, :func:`~restoration.features.prepare_reference`).
     minimum_bias : float
         How far the background at ``smooth_px`` and ``background_px`` lies below the mean of
         pure noise, in the smoothed noise's standard deviations.
@@ -309,6 +326,8 @@ class SpotScales:
     wide_blur_px: float
     box_max_px: int
     minimum_bias: float
+    split_area_px: int = 200
+    split_all: bool = False
     workspace: _Workspace | None = field(default=None, compare=False, repr=False)
 
     @classmethod
@@ -335,8 +354,14 @@ class SpotScales:
             wide_blur_px=4.0 * k,
             box_max_px=max(3 * int(np.ceil(_BOX_MAX / 3 * k - 1e-9)), _BOX_MAX),
             minimum_bias=_minimum_bias(smooth_px, background_px),
+            split_area_px=max(int(round(_SPLIT_AREA_PX * k * k)), 20),
             workspace=_Workspace(),
         )
+
+    def joined(self) -> SpotScales:
+        """These scales splitting every segment larger than :attr:`split_area_px`, with a
+        workspace of their own."""
+        return replace(self, split_all=True, workspace=_Workspace())
 
 
 # The scales of detect_spots' defaults, for callers without a calibrated spot size (built at
@@ -472,9 +497,10 @@ def detect_spots(
         # bg, no longer needed, is the scratch space.
         # The labels sit in a frame of zeros too (the centroid boxes read them).
         framed = _scratch(store, "labels", padded.shape, np.int32)
-        n, labels, mask = _segment(
+        n, n_joined, labels, mask = _segment(
             smooth, local_radius_px, rel_level, max(2.0 * noise, tiny), bg, sc.wide_px,
             wide_blur_px=sc.wide_blur_px, store=store, labels_out=framed[pad:-pad, pad:-pad],
+            split_area_px=sc.split_area_px, split_all=sc.split_all,
         )
         px, seg = _segmented(labels, n, int(np.count_nonzero(mask)), smooth, padded, pad)
         edge = np.zeros(n, bool)  # the segment has a pixel in the image's outer rows or columns
@@ -504,4 +530,5 @@ def detect_spots(
         merged=merged,
         border=edge[idx],
         saturated=saturated,
+        joined=n_joined,
     )

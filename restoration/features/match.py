@@ -21,6 +21,7 @@ from restoration.features._kernels import grow, seed_scores
 from restoration.features._lattice import _LatticeTables
 from restoration.features._outline import _Outline, _outline_px, _visible_outline
 from restoration.features._types import BoolArray, FloatArray, IntArray
+from restoration.features.camera_s import pinhole_spots
 from restoration.features.detect import Spots, detect_spots
 from restoration.features.ordering import (
     _AMBIGUOUS,
@@ -40,7 +41,6 @@ from restoration.features.ordering import (
 from restoration.features.reference import (
     ReferenceGrid,
     flag_diffuser_edge,
-    pinhole_spots,
     prepare_reference,
 )
 from wai_core.config import SystemConfig

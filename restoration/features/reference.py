@@ -23,6 +23,7 @@ from restoration.features._outline import (
     _visible_outline,
 )
 from restoration.features._types import BoolArray, FloatArray, IntArray
+from restoration.features.camera_s import image_scale, in_real_image, pinhole_spots
 from restoration.features.detect import (
     _TUNED_SIGMA_PX,
     Spots,
@@ -30,7 +31,6 @@ from restoration.features.detect import (
     _scales_for,
     detect_spots,
 )
-from restoration.undistort import diffuser_pinhole_px
 from wai_core.config import SystemConfig
 from wai_core.errors import RestorationFailed, WaiInputError
 from wai_core.light_paths import real_spot_px
@@ -95,6 +95,10 @@ class ReferenceGrid:
         Camera s's real-image pixels per pinhole pixel at the spots (:func:`image_scale`; 1
         but behind a port): spots are detected in the image as taken, at
         :attr:`detect_sigma_px`.
+    joined : bool
+        The flat-water spots run together (a rough surface's pedestal joins them): every
+        frame's detection splits joined segments at their saddles
+        (:meth:`~restoration.features.detect.SpotScales.joined`).
     median_spacing_px : float
         The median of ``spacing_px`` where it is not NaN, pixels (NaN when it is all NaN):
         the spacing a frame's checks and statuses are scaled by.
@@ -119,12 +123,14 @@ class ReferenceGrid:
     shift_px: FloatArray | None = field(default=None, repr=False, compare=False)
     real_px: FloatArray | None = field(default=None, repr=False, compare=False)
     image_scale: float = 1.0
+    joined: bool = False
     median_spacing_px: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # Neighbour tables for the per-frame matching: they depend on the lattice only.
         object.__setattr__(self, "tables", _LatticeTables.of(self.ij, self.lit))
-        object.__setattr__(self, "spot_scales", _scales_for(self.detect_sigma_px))
+        scales = _scales_for(self.detect_sigma_px)
+        object.__setattr__(self, "spot_scales", scales.joined() if self.joined else scales)
         known = self.spacing_px[~np.isnan(self.spacing_px)]  # np.nanmedian, without its warning
         object.__setattr__(self, "median_spacing_px",
                            float(np.median(known)) if known.size else float("nan"))
@@ -198,7 +204,7 @@ def predict_flat_spots(
             & flat.on_diffuser(_diffuser(cfg))
             & np.isfinite(spot_px).all(axis=1)
             & flat.in_front
-            & _in_real_image(cfg, spot_px, margin_px)
+            & in_real_image(cfg, spot_px, margin_px)
         )
     ij, panel = rig.dot_grid
     return ij.astype(np.int64), panel, spot_px, in_view
@@ -238,45 +244,6 @@ def spot_sigma_px(cfg: SystemConfig) -> float:
     ] ** 2
     mag = np.sqrt(np.abs(np.linalg.det(jac)))
     return float(cfg.pattern.sigma_px * np.median(mag))
-
-
-def image_scale(cfg: SystemConfig) -> float:
-    """Camera s's real-image pixels per pinhole pixel, the median over the flat-water spots in
-    view: a port magnifies the spots in the image as taken (a pinhole pixel of the diffuser
-    plane covers several real ones at the image's edge). 1 without a port (a lens's
-    distortion is left to the detector's tolerance, as it always was)."""
-    rig = cfg.rig
-    if not rig.optics("camera_s").has_port:
-        return 1.0
-    px = rig.flat_spots.px
-    px = px[np.isfinite(px).all(axis=1)]
-    real = [real_spot_px(rig, px + d) for d in ([0.0, 0.0], [0.5, 0.0], [0.0, 0.5])]
-    jx, jy = (real[1] - real[0]) / 0.5, (real[2] - real[0]) / 0.5
-    det = np.abs(jx[:, 0] * jy[:, 1] - jx[:, 1] * jy[:, 0])
-    seen = np.isfinite(det) & rig.camera_s.in_image(real[0][:, 0], real[0][:, 1])
-    return float(np.sqrt(np.median(det[seen]))) if seen.any() else 1.0
-
-
-def _in_real_image(cfg: SystemConfig, pinhole_px: FloatArray, margin_px: float) -> BoolArray:
-    """(K,) bool: the spots at camera s's pinhole pixels (K, 2) that lie inside its real image
-    less ``margin_px`` (its lens and port: :func:`wai_core.light_paths.real_spot_px`)."""
-    real = real_spot_px(cfg.rig, pinhole_px)
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(real[:, 0]) & cfg.rig.camera_s.in_image(real[:, 0], real[:, 1],
-                                                                    margin_px)
-
-
-def pinhole_spots(spots: Spots, cfg: SystemConfig) -> Spots:
-    """``spots`` of camera s with their centres in its ideal pinhole's pixels (the model every
-    later stage uses; :func:`restoration.undistort.diffuser_pinhole_px`); the same object for
-    an ideal camera. Spots whose centre the lens cannot map are flagged ``border``."""
-    centres = diffuser_pinhole_px(cfg, spots.centres_px)
-    if centres is spots.centres_px:
-        return spots
-    lost = ~np.isfinite(centres).all(axis=1)
-    centres = np.where(lost[:, None], spots.centres_px, centres)
-    return replace(spots, centres_px=centres, border=spots.border | lost,
-                   image_px=spots.centres_px)
 
 
 def flag_diffuser_edge(spots: Spots, outline_px: FloatArray, n_sigma: float = 2.5) -> Spots:
@@ -536,13 +503,22 @@ def flat_shifts(ref: ReferenceGrid, image_shape: tuple[int, int]) -> FloatArray:
     return np.nan_to_num(shift, nan=0.0)
 
 
+JOINED_SHARE = 0.5
+"""Below this share of the spots predicted in view found on flat water, the reference looks for
+spots run together (:func:`prepare_reference`)."""
+
+
 def prepare_reference(
     pattern_flat_img: NDArray, cfg: SystemConfig, *, lit: BoolArray | None = None,
     min_features: int = 16,
 ) -> ReferenceGrid:
     """The flat-water reference grid: calibration, computed once per rig, not per frame.
 
-    Spots are detected at the calibrated spot size (:func:`spot_sigma_px`). The grid keeps
+    Spots are detected at the calibrated spot size (:func:`spot_sigma_px`). Where they have run
+    together (a rough surface: a segment no spot makes, or fewer than :data:`JOINED_SHARE` of
+    the spots predicted in view found), they are detected again with every large segment split
+    at its saddles, and the grid keeps that for every frame (``joined``) when it finds more.
+    The grid keeps
     what every frame's detection and matching need of the rig: the spot size
     (``spot_sigma_px``, ``spot_scales``) and the diffuser's outlines in camera s
     (``outline_px``, ``visible_px``).
@@ -558,13 +534,24 @@ def prepare_reference(
     scale = image_scale(cfg)
     sigma_ok = float(sigma * scale) if np.isfinite(sigma) and sigma > 0 else None
     outline = _outline_px(cfg)
-    flat = pinhole_spots(detect_spots(pattern_flat_img, spot_sigma_px=sigma_ok), cfg)
-    flat = flag_diffuser_edge(flat, outline)
+    scales = _scales_for(sigma_ok)
     predicted = predict_flat_spots(cfg)
-    ref = match_reference(flat, predicted, lit=cfg.rig.lit if lit is None else lit)
+    lit = cfg.rig.lit if lit is None else lit
+
+    def matched(scales: SpotScales) -> tuple[ReferenceGrid, int]:
+        flat = pinhole_spots(detect_spots(pattern_flat_img, scales=scales), cfg)
+        return match_reference(flag_diffuser_edge(flat, outline), predicted, lit=lit), flat.joined
+
+    ref, n_joined = matched(scales)
+    joined = n_joined > 0 or (
+        ref.counts["observed"] < JOINED_SHARE * ref.counts["predicted_in_view"])
+    if joined:
+        split, _ = matched(scales.joined())
+        joined = split.counts["observed"] > ref.counts["observed"]
+        ref = split if joined else ref
     ref = replace(
         ref, spot_sigma_px=float(sigma), outline_px=outline, visible_px=_visible_outline(cfg),
-        image_scale=scale,
+        image_scale=scale, joined=joined,
     )
     if not cfg.rig.optics("camera_s").ideal:
         ref = replace(ref, real_px=real_spot_px(cfg.rig, ref.ref_px))

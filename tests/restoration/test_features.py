@@ -26,7 +26,7 @@ from restoration.features import (
     predict_flat_spots,
 )
 from restoration.features._lattice import _LatticeTables
-from restoration.features._segments import _segment
+from restoration.features._segments import _segment, _split_joined
 from restoration.features.detect import _background, _minimum_bias, _noise_sigma
 from restoration.features.match import _choose_seed
 from restoration.features.ordering import _anchor_shift, _SpotLookup
@@ -181,6 +181,39 @@ def test_two_dots_run_together_are_flagged_merged():
     assert nearest(merged_at, mid).max() < 0.5
 
 
+def test_spots_on_a_shared_pedestal_are_split_at_their_saddles():
+    """A rough surface spreads part of each spot's light over a halo; on a dense lattice the
+    halos join spots into segments of many. Split at their saddles, the spots come back, each
+    centre near its dot (the halo is centred on it)."""
+    rng = np.random.default_rng(21)
+    c = jittered_grid(9.0, rng, margin=40)
+    sharp = draw_dots(c, 1000.0, 2.0 * np.eye(2))
+    halo = draw_dots(c, 1000.0, 16.0 * np.eye(2))  # half the light in a 4 px halo
+    img = (sharp + halo + rng.normal(0.0, 0.05, sharp.shape)).astype(np.float32)
+    plain = SpotScales.of(features.detect._TUNED_SIGMA_PX)
+    near_plain = np.mean(nearest(detect_spots(img, scales=plain).centres_px, c) < 0.5)
+    split = detect_spots(img, scales=plain.joined())
+    near_split = np.mean(nearest(split.centres_px, c) < 0.5)
+    assert split.joined > 5
+    assert near_plain < 0.95 < 0.97 < near_split
+    assert len(split) <= 1.01 * len(c)  # no spot cut in two
+
+
+def test_a_joined_segment_splits_into_its_two_spots():
+    """Two spots whose saddle stays above the threshold make one segment; the split gives each
+    its own label, the watershed line between them."""
+    c = np.array([[40.0, 40.0], [47.0, 40.0]])
+    img = draw_dots(c, 1000.0, 4.0 * np.eye(2), shape=(80, 90)).astype(np.float32)
+    labels = (img > 0.02 * img.max()).astype(np.int32)
+    n, split = _split_joined(img, labels, 2, area_px=20)
+    assert (n, split) == (3, 1)
+    cols = np.arange(90)[None, :]
+    for lab, col in ((1, 40.0), (2, 47.0)):
+        w = np.where(labels == lab, img, 0.0)
+        assert abs((w * cols).sum() / w.sum() - col) < 1.0  # each part around its own dot
+    assert np.array_equal(np.unique(labels), [0, 1, 2])
+
+
 def reference_detect(image: np.ndarray) -> dict[str, np.ndarray]:
     """:func:`detect_spots` (default parameters) written plainly: a loop over segments, float64,
     each spot's centroid window evaluated pixel by pixel over its box. Only the image-level
@@ -194,7 +227,7 @@ def reference_detect(image: np.ndarray) -> dict[str, np.ndarray]:
     bg += min(noise * _minimum_bias(1.0, 25), max(lifted, 0.0))
     smooth, raw = smooth - bg, (lum - bg).astype(np.float64)
     tiny = 1e-6 * max(float(smooth.max()), 1e-30)
-    n, labels, _ = _segment(smooth, 3, 0.25, max(2.0 * noise, tiny), np.empty_like(smooth))
+    n, _, labels, _ = _segment(smooth, 3, 0.25, max(2.0 * noise, tiny), np.empty_like(smooth))
     h, w = labels.shape
     seg = []
     for k in range(1, n):
