@@ -59,6 +59,7 @@ from restoration.options import (
     StructuredLightOptions,
     SurfaceOptions,
 )
+from restoration.port_calibration import PORT_UNDETERMINED, PortFit, calibrate_port
 from restoration.protocol import Method, run_method
 from restoration.result import STATUSES, RestoredView, RestoreResult, Status
 from restoration.rig_calibration import (
@@ -92,6 +93,7 @@ __all__ = [
     "INTEGRATORS",
     "METHODS",
     "OBJECT_MIN_LEVEL",
+    "PORT_UNDETERMINED",
     "STATUSES",
     "UNDETERMINED",
     "Alterman",
@@ -104,6 +106,7 @@ __all__ = [
     "LevelTrack",
     "Method",
     "Observations",
+    "PortFit",
     "RestorationFailed",
     "RestoreResult",
     "RestoredView",
@@ -120,6 +123,7 @@ __all__ = [
     "ViewMatch",
     "as_method",
     "calibrate_device",
+    "calibrate_port",
     "detect_spots",
     "estimate_surface",
     "features_from_reference",

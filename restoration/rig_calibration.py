@@ -194,10 +194,18 @@ def rig_keys(fits: dict[str, DeviceFit], devices: dict[str, DeviceConfig]) -> di
 
 
 def write_rig(path: str | Path, fits: dict[str, DeviceFit], devices: dict[str, DeviceConfig],
-              board: BoardSpec | Any, flat: FlatFit | None = None) -> None:
+              board: BoardSpec | Any, flat: FlatFit | None = None,
+              ports: dict[str, Any] | None = None) -> None:
     """Write the rig file: each device's fit, its configuration keys (camera s's refined on
-    flat water when ``flat`` is given), what is undetermined."""
+    flat water when ``flat`` is given; each port of ``ports``, name to
+    :class:`~restoration.port_calibration.PortFit`), what is undetermined."""
+    ports = ports or {}
+    undetermined = list(UNDETERMINED)
+    for port in ports.values():
+        undetermined += [u for u in port.undetermined if u not in undetermined]
     keys = rig_keys(fits, devices)
+    for name, port in ports.items():
+        keys.update(port.to_config_keys(name))
     if flat is not None:
         keys.update(flat.config_keys)
     write_json(path, {
@@ -207,8 +215,9 @@ def write_rig(path: str | Path, fits: dict[str, DeviceFit], devices: dict[str, D
             "config_keys": flat.config_keys, "rms_before_px": flat.rms_before_px,
             "rms_after_px": flat.rms_after_px, "spots": flat.n_spots},
         "devices": {name: fit.summary() for name, fit in fits.items()},
+        "ports": {name: port.summary() for name, port in ports.items()},
         "config_keys": keys,
-        "undetermined": list(UNDETERMINED),
+        "undetermined": undetermined,
         "board": {"cols": int(board.cols), "rows": int(board.rows),
                   "square_mm": float(board.square_mm)},
         "versions": {"opencv": cv2.__version__, "numpy": np.__version__,

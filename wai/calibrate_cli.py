@@ -1,5 +1,6 @@
 """``wai calibrate DIR`` and ``wai render --checkerboards N``: a rig's cameras calibrated from
-checkerboard images, and such images rendered through a scene's true lenses."""
+checkerboard images (their lenses in air, their ports in the water), and such images rendered
+through a scene's true lenses and ports."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ from wai_core.errors import WaiInputError
 
 BOARD_FILE = "board.json"
 CAMERAS = ("camera_v", "camera_s")
+WATER = "_water"
+"""A camera's folder of board views through its port in the water: ``camera_v_water/``."""
 
 
 def board_spec(cols: Any, rows: Any, square_mm: Any, source: str) -> Any:
@@ -70,7 +73,13 @@ def run_calibrate(args: argparse.Namespace) -> None:
     """Calibrate every camera folder of ``args.dir`` and write the rig file ``args.out``."""
     from tqdm import tqdm
 
-    from restoration import UNDETERMINED, calibrate_device, write_rig
+    from restoration import (
+        PORT_UNDETERMINED,
+        UNDETERMINED,
+        calibrate_device,
+        calibrate_port,
+        write_rig,
+    )
     from wai_core.images import IMAGE_SUFFIXES, read_image
     from wai_core.system import load_system
 
@@ -88,12 +97,19 @@ def run_calibrate(args: argparse.Namespace) -> None:
     for camera, paths in files.items():
         if not paths:
             raise WaiInputError(f"{folders[camera]}: no images ({', '.join(IMAGE_SUFFIXES)})")
+    wet = _port_folders(args.dir, files, cfg)
     fits = {}
     for camera, paths in tqdm(files.items(), desc="calibrate", unit="camera",
                               disable=args.quiet):
         dev = getattr(cfg, camera)
         images = [read_image(p) for p in paths]
         fits[camera] = calibrate_device(images, board, (dev.height_px, dev.width_px))
+    ports = {}
+    for camera, paths in tqdm(wet.items(), desc="ports", unit="camera", disable=args.quiet):
+        dev = getattr(cfg, camera)
+        ports[camera] = calibrate_port([read_image(p) for p in paths], board, fits[camera],
+                                       dev.port_thickness_mm, dev.port_n, cfg.water.n_water,
+                                       (dev.height_px, dev.width_px))
     devices = {c: getattr(cfg, c) for c in fits}
     flat = None
     if args.flat is not None:
@@ -104,7 +120,7 @@ def run_calibrate(args: argparse.Namespace) -> None:
             raise WaiInputError("--flat refines camera s: DIR needs a camera_s/ folder")
         flat = refine_on_flat_water(with_keys(cfg, rig_keys(fits, devices)), flat_image)
     try:
-        write_rig(args.out, fits, devices, board, flat)
+        write_rig(args.out, fits, devices, board, flat, ports)
     except OSError as exc:
         raise WaiInputError(f"--out {args.out}: {exc.strerror or exc}") from None
     for camera, fit in fits.items():
@@ -114,14 +130,44 @@ def run_calibrate(args: argparse.Namespace) -> None:
               f"{s['cx_px']:.2f}, cy {fit.cy_px:.2f} +- {s['cy_px']:.2f} px, k1 {k1:.4f} +- "
               f"{s['k1']:.4f}, k2 {k2:.4f} +- {s['k2']:.4f}; RMS {fit.rms_px:.3f} px over "
               f"{fit.n_used} views ({fit.n_rejected} without the board)")
+    for camera, port in ports.items():
+        print(f"{camera} port: gap {port.gap_mm:.3f} +- {port.sigma_gap_mm:.3f} mm behind "
+              f"{port.thickness_mm:g} mm of index {port.port_n:g} (given); RMS "
+              f"{port.rms_px:.3f} px over {port.n_used} views in water ({port.n_rejected} "
+              f"without the board, {port.n_outliers} set aside); a pinhole's "
+              f"{port.pinhole_rms_px:.3f} px")
     if flat is not None:
         f, (cx, cy) = flat.config_keys, flat.config_keys["camera_s.principal_offset_px"]
         print(f"camera_s on flat water: focal {f['camera_s.focal_mm']:.5f} mm, principal "
               f"offset {cx:.2f}, {cy:.2f} px; residual "
               f"{flat.rms_before_px:.3f} -> {flat.rms_after_px:.3f} px over {flat.n_spots} "
               "spots")
-    print("not determined: " + "; ".join(UNDETERMINED))
+    print("not determined: " + "; ".join(UNDETERMINED + (PORT_UNDETERMINED if ports else ())))
     print(f"rig file: {args.out} (wai restore DIR --rig {args.out})")
+
+
+def _port_folders(root: Path, files: dict[str, list[Path]], cfg: Any) -> dict[str, list[Path]]:
+    """Each camera's board images through its port in the water (``root/<camera>_water/``),
+    checked before any work: the camera's own folder (its lens in air) and its port's
+    thickness in the configuration are needed."""
+    from wai_core.images import IMAGE_SUFFIXES
+
+    wet = {}
+    for camera in CAMERAS:
+        folder = root / (camera + WATER)
+        if not folder.is_dir():
+            continue
+        if camera not in files:
+            raise WaiInputError(f"{folder}: a port is fitted with the lens calibrated in air: "
+                                f"{root / camera} is needed too")
+        if not getattr(cfg, camera).port_thickness_mm > 0:
+            raise WaiInputError(f"{folder}: the port's thickness and index come from --config: "
+                                f"set [{camera}].port_thickness_mm and port_n")
+        paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not paths:
+            raise WaiInputError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)})")
+        wet[camera] = paths
+    return wet
 
 
 def _read_flat(path: Path) -> Any:
@@ -165,6 +211,16 @@ def run_checkerboards(args: argparse.Namespace, cfg: Any) -> None:
                 "cy_px": (dev.height_px - 1) / 2.0 + dev.principal_offset_px[1],
                 "distortion": list(dev.distortion),
             }
+            if dev.port_thickness_mm > 0:  # the port, from the water, other poses
+                wet = tmp / "checkerboards" / (camera + WATER)
+                wet.mkdir()
+                images = render_checkerboards(cfg, camera, args.checkerboards, seed=seed + 7,
+                                              board=board, medium="water")
+                for k, img in enumerate(images):
+                    write_png(wet / f"board_{k:03d}.png", img)
+                truth[camera].update(port_gap_mm=dev.port_gap_mm,
+                                     port_thickness_mm=dev.port_thickness_mm,
+                                     port_n=dev.port_n)
         write_json(tmp / "checkerboards" / BOARD_FILE, board.to_dict())
         write_json(tmp / "scene.json", {"config": cfg.to_dict(), "seed": seed,
                                         "checkerboards": {"views": args.checkerboards,
@@ -179,9 +235,11 @@ def add_calibrate(sub: argparse._SubParsersAction, formatter: type, scene_help: 
         "calibrate", help="calibrate the cameras from checkerboard images; write a rig file",
         formatter_class=formatter,
         description="Each camera folder (DIR/camera_v/, DIR/camera_s/) holds images of a "
-        "planar checkerboard in 10-20 poses; OpenCV finds its corners and calibrates the "
-        "camera (fx = fy, cx, cy, k1, k2, p1, p2). Writes a rig file for 'wai restore --rig'. "
-        "See docs/rig.md.",
+        "planar checkerboard in 10-20 poses, in air; OpenCV finds its corners and calibrates "
+        "the camera (fx = fy, cx, cy, k1, k2, p1, p2). A camera in a housing adds a folder "
+        "of the board seen through its port from the water (DIR/camera_v_water/): the gap "
+        "behind the port is fitted, its thickness and index taken from --config. Writes a "
+        "rig file for 'wai restore --rig'. See docs/rig.md.",
     )
     p.add_argument("dir", type=Path, help="folder of camera folders (and board.json)")
     p.add_argument("--out", type=Path, default=Path("rig.json"), help="rig file to write")

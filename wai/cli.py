@@ -216,7 +216,8 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--checkerboards", type=int, default=0, metavar="N",
         help="instead of a frame: N views of a checkerboard per camera through the scene's "
-        "true lenses, for 'wai calibrate' (docs/rig.md)",
+        "true lenses, in air (and through a camera's port in the water where it has one), "
+        "for 'wai calibrate' (docs/rig.md)",
     )
     p.add_argument(
         "--workers", type=int, default=0,

@@ -1,0 +1,98 @@
+"""A housing port calibrated from boards seen through it in the water: the gap it finds against
+the one the boards were rendered with, and a frame restored with the calibrated rig against the
+true rig. The truth is the scene's configuration; the images come from the renderer's own ray
+model of the port (two refractions), not from the fit's."""
+
+import json
+
+import numpy as np
+import pytest
+
+from mitsuba_wai.checkerboards import Board, render_checkerboards
+from restoration import calibrate_device, calibrate_port
+from wai.cli import main
+from wai_core import load_system, with_keys
+from wai_core.errors import WaiInputError
+from wai_core.scenes import resolve_scene
+
+PORT_V = {"camera_v.port_thickness_mm": 5.0, "camera_v.port_gap_mm": 3.0,
+          "camera_v.distortion": [-0.1, 0.02, 0.0, 0.0, 0.0]}
+
+
+@pytest.mark.slow
+def test_the_gap_behind_a_port_is_found_and_a_pinhole_cannot_fit_the_views():
+    cfg = with_keys(load_system("paper"), PORT_V)
+    dev = cfg.camera_v
+    size = (dev.height_px, dev.width_px)
+    lens = calibrate_device(render_checkerboards(cfg, "camera_v", 10, seed=3), Board(), size)
+    water = render_checkerboards(cfg, "camera_v", 10, seed=4, medium="water")
+    fit = calibrate_port(water, Board(), lens, 5.0, dev.port_n, cfg.water.n_water, size)
+    assert fit.n_used + fit.n_outliers == 10
+    assert abs(fit.gap_mm - 3.0) < max(3 * fit.sigma_gap_mm, 0.3), fit.summary()
+    assert 0 < fit.sigma_gap_mm < 0.5
+    assert fit.rms_px < 0.2  # the board renders' noise and the lens's fit
+    assert fit.pinhole_rms_px > 10 * fit.rms_px  # the port makes the camera non-central
+
+
+def test_water_boards_need_a_port_and_a_port_needs_thickness():
+    cfg = load_system("paper")
+    with pytest.raises(WaiInputError, match="no port"):
+        render_checkerboards(cfg, "camera_v", 1, medium="water")
+    with pytest.raises(WaiInputError, match="medium"):
+        render_checkerboards(cfg, "camera_v", 1, medium="oil")
+    with pytest.raises(WaiInputError, match="thickness > 0"):
+        calibrate_port([], Board(), None, 0.0, 1.49, 1.33, (600, 800))
+
+
+def test_a_port_folder_without_its_lens_or_its_thickness_is_refused_before_work(tmp_path,
+                                                                                capfd):
+    boards = tmp_path / "boards"
+    (boards / "camera_v_water").mkdir(parents=True)
+    (boards / "camera_s").mkdir()
+    for folder in ("camera_v_water", "camera_s"):
+        (boards / folder / "board_000.png").write_bytes(b"not read before the checks")
+    (boards / "board.json").write_text(json.dumps({"cols": 9, "rows": 6, "square_mm": 20.0}))
+    code = main(["calibrate", str(boards), "--out", str(tmp_path / "rig.json"), "--quiet"])
+    err = capfd.readouterr().err.strip().splitlines()
+    assert (code, len(err)) == (2, 1) and "camera_v_water" in err[0] and "needed" in err[0]
+    (boards / "camera_v").mkdir()
+    (boards / "camera_v" / "board_000.png").write_bytes(b"x")
+    code = main(["calibrate", str(boards), "--out", str(tmp_path / "rig.json"), "--quiet"])
+    err = capfd.readouterr().err.strip().splitlines()
+    assert (code, len(err)) == (2, 1) and "port_thickness_mm" in err[0]
+    assert not (tmp_path / "rig.json").exists()
+
+
+@pytest.mark.slow
+def test_a_rig_with_ports_calibrated_from_the_command_line_restores_like_the_true_rig(
+        tmp_path, capfd):
+    scene = tmp_path / "port.toml"
+    text = resolve_scene("paper").read_text()
+    text = text.replace("[camera_v]\n", "[camera_v]\nport_thickness_mm = 5.0\n"
+                        "port_gap_mm = 3.0\ndistortion = [-0.1, 0.02, 0.0, 0.0, 0.0]\n", 1)
+    text = text.replace("[camera_s]\n", "[camera_s]\nport_thickness_mm = 5.0\n"
+                        "port_gap_mm = 4.0\n", 1)
+    scene.write_text(text)
+    boards, frame = tmp_path / "boards", tmp_path / "frame"
+    assert main(["render", str(scene), "--checkerboards", "12", "--out", str(boards),
+                 "--quiet"]) == 0
+    truth = json.loads((boards / "scene.json").read_text())["checkerboards"]["truth"]
+    assert truth["camera_s"]["port_gap_mm"] == 4.0
+    rig = tmp_path / "rig.json"
+    assert main(["calibrate", str(boards / "checkerboards"), "--config", str(scene), "--out",
+                 str(rig), "--quiet"]) == 0
+    record = json.loads(rig.read_text())
+    for camera, gap in (("camera_v", 3.0), ("camera_s", 4.0)):
+        port = record["ports"][camera]
+        assert abs(port["gap_mm"] - gap) < max(3 * port["sigma_gap_mm"], 0.3), port
+        assert record["config_keys"][f"{camera}.port_thickness_mm"] == 5.0
+    assert main(["render", str(scene), "--out", str(frame), "--seed", "5", "--quiet"]) == 0
+    rmse = {}
+    for name, extra in (("true", []), ("calibrated", ["--rig", str(rig)])):
+        capfd.readouterr()
+        assert main(["restore", str(frame), "--quiet", *extra]) == 0
+        metrics = json.loads((frame / "restore" / "metrics.json").read_text())
+        assert metrics["status"] == "ok", (name, metrics["status"])
+        rmse[name] = metrics["wai_rmse_mm"]
+    assert rmse["calibrated"] <= rmse["true"] + 0.05, rmse
+    assert np.isfinite(list(rmse.values())).all()
