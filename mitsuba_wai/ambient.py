@@ -102,14 +102,22 @@ def smooth(image: NDArray, sigma_px: float) -> NDArray[np.float32]:
 
 
 def sky_image(cfg: SystemConfig) -> NDArray[np.float32]:
-    """Camera s's image of the sky-lit diffuser (H, W, 3): :func:`sky_on_diffuser`, through
-    the water when ``[water_optics]`` is on (surface -> diffuser by the window's mean secant,
+    """Camera s's image of the sky-lit diffuser (H, W, 3): :func:`sky_on_diffuser` (times a
+    port's :meth:`~wai_core.lens.DeviceOptics.radiance_factor`), through the water when
+    ``[water_optics]`` is on (surface -> diffuser by the window's mean secant,
     diffuser -> camera s along each pixel's ray; the glow of a uniform field is uniform)."""
     from mitsuba_wai.seawater import coefficients_per_mm
 
     cam = cfg.rig.camera_s
     value = sky_on_diffuser(cfg)
     image = np.broadcast_to(value, (cam.height_px, cam.width_px, 3)).astype(np.float64)
+    optics = cfg.rig.optics("camera_s")
+    if optics.has_port:  # uniform radiance stays uniform through a lens, but not a port's
+        rows, cols = np.mgrid[0 : cam.height_px, 0 : cam.width_px]
+        _, _, pinhole = optics.rays_cam(cols.astype(float), rows.astype(float),
+                                        cfg.water.n_water)
+        factor = optics.radiance_factor(pinhole, cfg.water.n_water)
+        image = image * np.nan_to_num(factor, nan=0.0)[..., None]
     w = cfg.water_optics
     if w.enabled:
         rows, cols = np.mgrid[0 : cam.height_px, 0 : cam.width_px]

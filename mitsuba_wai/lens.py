@@ -48,7 +48,11 @@ cos(theta_w))``). The vertex's BSDF is evaluated towards the port's exit point, 
 direction, and the connection's water length is ``s``.
 
 Scenes that Mitsuba's own integrators render (``[render] sampling = "independent"``'s view and
-projector, ``[ambient]``) cannot carry these effects and are refused (:func:`scene_lenses`).
+projector) cannot carry these effects and are refused (:func:`scene_lenses`). Daylight
+(``[ambient]``) carries them: camera v's sky and sun are traced through the lens by
+:func:`mitsuba_wai.view_tracer.render_view`, the sun's caustics on the diffuser reach camera s
+as the pattern's particles do, and the sky-lit diffuser's uniform radiance is recorded times
+:meth:`wai_core.lens.DeviceOptics.radiance_factor`.
 ``[water_optics]``' view path lengths (:func:`mitsuba_wai.seawater.view_path_lengths`) keep the
 pinhole's rays: a port or distortion changes them by a fraction of a millimetre to a few.
 """
@@ -307,9 +311,8 @@ def scene_lenses(cfg: SystemConfig) -> dict[str, CameraLens | None]:
     ------
     WaiInputError
         A camera's lens or port on in a render that Mitsuba's own integrators make
-        (``[render] sampling = "independent"`` for camera v and the projector, ``[ambient]
-        enabled`` for either camera), which cannot carry them. The projector's lens is drawn
-        by :class:`mitsuba_wai.dots.DotEmitter`.
+        (``[render] sampling = "independent"`` for camera v and the projector), which cannot
+        carry them. The projector's lens is drawn by :class:`mitsuba_wai.dots.DotEmitter`.
     """
     out: dict[str, CameraLens | None] = {}
     for key, name in (("pattern", "camera_s"), ("view", "camera_v")):
@@ -318,11 +321,6 @@ def scene_lenses(cfg: SystemConfig) -> dict[str, CameraLens | None]:
         if not on:
             out[key] = None
             continue
-        if cfg.ambient.enabled:
-            raise WaiInputError(
-                f"config: [{name}].{on[0]} needs [ambient].enabled = false (the ambient light "
-                "is rendered by Mitsuba's integrators, which have no lens model)"
-            )
         if key == "view" and cfg.render.sampling != "stratified":
             raise WaiInputError(
                 f"config: [{name}].{on[0]} needs [render].sampling = 'stratified' (Mitsuba's "

@@ -49,6 +49,7 @@ from mitsuba_wai.scenes import (
     pattern_scene,
     view_scene,
     water_bsdf,
+    water_channel_indices,
 )
 from mitsuba_wai.seawater import (
     coefficients_per_mm,
@@ -153,6 +154,12 @@ class FrameRenderer:
 
     def __post_init__(self) -> None:
         self.variant = select_variant()
+        # A rough surface's BSDF has one index: sea water's three are rendered one channel at
+        # a time, each by a renderer of its own (three times the cost, only then).
+        self._channels = channel_renderers(self.cfg, self.grid, self.texture, self.systems)
+        if self._channels:
+            self._scenes = {k: None for k in self.systems}
+            return
         # Real cameras (mitsuba_wai.lens); refused here, before any render, where they cannot go.
         self._lenses = scene_lenses(self.cfg)
         self._stratified = self.cfg.render.sampling == "stratified"
@@ -187,6 +194,10 @@ class FrameRenderer:
         )
 
     def _set_surface(self, surface: Heightfield) -> None:
+        for channel in self._channels:
+            channel._set_surface(surface)
+        if self._channels:
+            return
         if surface.z.shape != self.grid.z.shape:
             raise ValueError("surface grid differs from the renderer's mesh grid")
         vertices, normals, faces = meshes.surface_buffers(surface)
@@ -210,6 +221,8 @@ class FrameRenderer:
         missing = set(which) - set(self._scenes)
         if missing:
             raise ValueError(f"renderer was not prepared for {sorted(missing)}")
+        if self._channels:
+            return self._render_channels(surface, seed, which, spp)
         self._set_surface(surface)
         out = {}
         given = spp if isinstance(spp, dict) else {"pattern": spp, "view": spp}
@@ -223,10 +236,12 @@ class FrameRenderer:
         for key in (k for k in ("pattern", "view") if k in which):
             if key == "pattern" and lit:
                 out[key], bad = self._pattern_in_daylight_water(spp[key], seed)
-            elif key == "view" and self._stratified and not self.cfg.ambient.enabled:
+            elif key == "view" and self._stratified and (
+                    not self.cfg.ambient.enabled or self._lenses[key] is not None):
                 # The three steps system V needs, traced directly (mitsuba_wai.view_tracer):
                 # Mitsuba's path integrator's image at half its cost; with the ambient sun and
-                # sky (emitter sampling) and for "independent", Mitsuba's own integrator.
+                # sky and a pinhole, and for "independent", Mitsuba's own integrator (the
+                # tracer's general steps carry a lens through daylight: the same expectation).
                 out[key], bad = render_view(self._scenes[key], spp[key], seed,
                                             self._lenses[key])
             else:
@@ -241,17 +256,28 @@ class FrameRenderer:
             self.nonfinite_pixels[key] = self.nonfinite_pixels.get(key, 0) + bad
         return out
 
+    def _render_channels(self, surface: Heightfield, seed: int, which: tuple[str, ...],
+                         spp: int | dict[str, int] | None) -> dict[str, NDArray[np.float32]]:
+        """Each image's channel ``c`` from the renderer of channel ``c``'s index."""
+        parts = [channel.render(surface, seed, which, spp) for channel in self._channels]
+        for channel in self._channels:
+            for key, bad in channel.nonfinite_pixels.items():
+                self.nonfinite_pixels[key] = max(self.nonfinite_pixels.get(key, 0), bad)
+        return {key: np.stack([parts[c][key][..., c] for c in range(3)], axis=-1)
+                for key in parts[0]}
+
     def _particles(self, key: str, spp: int, seed: int, depth: int,
                    air_segments: int) -> tuple[NDArray[np.float32], int]:
         """One particle-traced image of system S, through the water when it is modelled."""
         w = self.cfg.water_optics
+        lens = self._lenses["pattern"]  # the sun's caustics reach camera s through it too
         if not w.enabled:
             return render_particles(self._scenes[key], spp, seed, depth, self._stratified,
-                                    self._emitters.get(key), self._lenses.get(key))
+                                    self._emitters.get(key), lens)
         a, b = coefficients_per_mm(w)
         direct, scattered, bad = render_particles_water(
             self._scenes[key], spp, seed, depth, a, b, air_segments, self._stratified,
-            self._emitters.get(key), self._lenses.get(key),
+            self._emitters.get(key), lens,
         )
         return direct + glow(scattered, w.forward_fraction, glow_sigma_px(self.cfg, "S")), bad
 
@@ -270,6 +296,20 @@ class FrameRenderer:
                 image, bad = image + sun, bad + bad_sun
             image = image + sky_image(self.cfg)
         return image.astype(np.float32), bad
+
+
+def channel_renderers(cfg: SystemConfig, grid: Heightfield, texture: NDArray | None,
+                      systems: tuple[str, ...]) -> tuple[FrameRenderer, ...]:
+    """Three renderers, one per colour channel with that channel's index of sea water, where
+    a rough surface (one scalar index) meets ``index_model = "quan_fry"``; none otherwise."""
+    w = cfg.water
+    if not (w.roughness > 0 and w.index_model == "quan_fry"):
+        return ()
+    return tuple(
+        FrameRenderer(cfg.replace("water", index_model="constant", n_water=float(n)), grid,
+                      texture, systems)
+        for n in water_channel_indices(cfg)
+    )
 
 
 def scene_record(

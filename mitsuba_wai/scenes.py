@@ -93,7 +93,8 @@ def water_bsdf(cfg: SystemConfig, system: str) -> dict:
     - ``roughness > 0``: Mitsuba's ``roughdielectric`` (GGX, ``alpha = roughness``, index
       ``n_water``). It chooses reflection or refraction at random by the Fresnel weight, so
       each system keeps only its share of the paths (noisier at the same spp); it has one
-      scalar index and no polarisation, so it refuses both.
+      scalar index (:class:`~mitsuba_wai.render.FrameRenderer` renders sea water's one
+      channel at a time with it) and no polarisation, which it refuses.
     """
     from mitsuba_wai.bsdfs import register
 
@@ -105,10 +106,15 @@ def water_bsdf(cfg: SystemConfig, system: str) -> dict:
     w = cfg.water
     polarised = system == "S" and cfg.pattern.polarisation == "linear"
     if w.roughness > 0:
-        if w.index_model != "constant" or polarised:
+        if polarised:
             raise WaiInputError(
-                "config: [water].roughness > 0 needs [water].index_model = 'constant' and "
-                "[pattern].polarisation = 'none'"
+                "config: [water].roughness > 0 needs [pattern].polarisation = 'none' (the "
+                "rough surface's BSDF has no polarisation)"
+            )
+        if w.index_model != "constant":
+            raise WaiInputError(
+                "config: [water].roughness > 0 with [water].index_model = 'quan_fry' is "
+                "rendered one colour channel at a time (mitsuba_wai.FrameRenderer)"
             )
         return {"type": "roughdielectric", "distribution": "ggx", "alpha": float(w.roughness),
                 "int_ior": w.n_water, "ext_ior": 1.0}

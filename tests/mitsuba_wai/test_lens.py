@@ -202,9 +202,44 @@ def test_lens_refused_where_mitsubas_integrators_render(paper_cfg):
     assert scene_lenses(paper_cfg) == {"pattern": None, "view": None}
     with pytest.raises(WaiInputError, match=r"\[camera_v\]\.distortion.*sampling"):
         scene_lenses(cfg.replace("render", sampling="independent"))
-    with pytest.raises(WaiInputError, match=r"\[camera_s\]\.port_thickness_mm.*ambient"):
-        scene_lenses(paper_cfg.replace("camera_s", port_thickness_mm=3.0)
-                     .replace("ambient", enabled=True))
+
+
+def test_daylight_composes_with_a_shifted_principal_point(paper_cfg):
+    """A principal point moved by 16 px moves every pixel by 16 px and changes no radiance:
+    the dots, the sun's caustics and the sky on the diffuser in camera s, the object and the
+    sky beyond it in camera v, each image the pinhole's shifted (in expectation: the view
+    takes another tracer, so its noise differs)."""
+    select_variant()
+    day = shrink(paper_cfg, factor=2, spp=4).replace("ambient", enabled=True, sun_spp=16)
+    shift = 16
+    moved = (day.replace("camera_s", principal_offset_px=(float(shift), 0.0))
+             .replace("camera_v", principal_offset_px=(float(shift), 0.0)))
+    surface = wave_surface(day)
+    images = {}
+    for name, cfg in (("pinhole", day), ("moved", moved)):
+        images[name] = FrameRenderer(cfg, surface).render(surface, seed=3)
+    for key, tol in (("pattern", 1e-3), ("view", 0.01)):
+        a = ndimage.gaussian_filter(images["pinhole"][key][:, :-shift].sum(2), 2.0)
+        b = ndimage.gaussian_filter(images["moved"][key][:, shift:].sum(2), 2.0)
+        unshifted = ndimage.gaussian_filter(images["moved"][key][:, :-shift].sum(2), 2.0)
+        assert np.abs(a - b).mean() < tol * a.mean(), key
+        assert np.abs(a - unshifted).mean() > 10 * tol * a.mean(), key  # the check can tell
+
+
+def test_the_sky_lit_diffuser_behind_a_port_is_the_ports_share_of_its_radiance(paper_cfg):
+    """On camera s's axis the port passes (1 - R_air|port)(1 - R_port|water) of the water-side
+    radiance over n_water^2 (Fresnel at normal incidence, written out here)."""
+    from mitsuba_wai.ambient import sky_image
+
+    cfg = paper_cfg.replace("ambient", enabled=True, sky_radiance=2.0)
+    ported = cfg.replace("camera_s", port_thickness_mm=4.0, port_n=1.5)
+    n = cfg.water.n_water
+    r1, r2 = ((1.5 - 1) / 2.5) ** 2, ((1.5 - n) / (1.5 + n)) ** 2
+    bare, seen = sky_image(cfg), sky_image(ported)
+    h, w = seen.shape[:2]
+    centre = seen[(h - 1) // 2, (w - 1) // 2] / bare[(h - 1) // 2, (w - 1) // 2]
+    np.testing.assert_allclose(centre, (1 - r1) * (1 - r2) / n**2, rtol=2e-3)
+    assert seen[0, 0, 0] < seen[(h - 1) // 2, (w - 1) // 2, 0]  # more reflected off axis
 
 
 def _predicted_spots(cfg):

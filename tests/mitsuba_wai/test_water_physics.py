@@ -63,12 +63,40 @@ def test_effects_off_give_todays_dicts(paper_cfg):
         }
 
 
-def test_roughness_refuses_dispersion(paper_cfg):
-    cfg = paper_cfg.replace("water", roughness=0.1, index_model="quan_fry")
-    with pytest.raises(WaiInputError, match=r"\[water\]\.roughness"):
-        water_bsdf(cfg, "V")
+def test_roughness_refuses_polarisation_and_renders_dispersion_per_channel(paper_cfg):
+    cfg = paper_cfg.replace("water", roughness=0.1).replace("pattern", polarisation="linear")
+    with pytest.raises(WaiInputError, match=r"\[pattern\]\.polarisation"):
+        water_bsdf(cfg, "S")
+    with pytest.raises(WaiInputError, match="one colour channel at a time"):
+        water_bsdf(paper_cfg.replace("water", roughness=0.1, index_model="quan_fry"), "V")
     rough = water_bsdf(paper_cfg.replace("water", roughness=0.1), "S")
     assert rough["type"] == "roughdielectric" and rough["alpha"] == 0.1
+
+
+def test_a_nearly_smooth_rough_sea_disperses_the_view_as_the_smooth_one(paper_cfg):
+    """Roughness and sea water's index compose: at a vanishing alpha the view's colour
+    fringes (red minus blue, each channel refracted with its own index) are the smooth
+    dispersive surface's; with one index there are none."""
+    from scipy import ndimage
+
+    from mitsuba_wai import FrameRenderer, wave_surface
+    from tests.conftest import shrink
+
+    base = shrink(paper_cfg, factor=2, spp=16)
+    surface = wave_surface(base)
+    sea = dict(index_model="quan_fry", salinity_psu=35.0, temperature_c=5.0)
+    fringes = {}
+    for name, keys in (("one index", dict(roughness=1e-4)), ("smooth", sea),
+                       ("rough", dict(sea, roughness=1e-4))):
+        cfg = base.replace("water", **keys)
+        view = FrameRenderer(cfg, surface, systems=("view",)).render(
+            surface, seed=2, which=("view",))["view"].astype(float)
+        red, blue = view[..., 0], view[..., 2] * view[..., 0].mean() / view[..., 2].mean()
+        fringes[name] = ndimage.gaussian_filter(red - blue, 1.0)
+    assert np.abs(fringes["one index"]).max() < 1e-12
+    smooth, rough = fringes["smooth"], fringes["rough"]
+    assert np.abs(rough).mean() == pytest.approx(np.abs(smooth).mean(), rel=0.2)
+    assert np.corrcoef(smooth.ravel(), rough.ravel())[0, 1] > 0.4
 
 
 def test_dispersed_refraction_obeys_snell_per_channel():

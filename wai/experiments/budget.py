@@ -139,15 +139,19 @@ REAL_RIG: dict[str, Any] = {
     **{f"{cam}.principal_offset_px": [5.0, 5.0] for cam in ("camera_s", "camera_v")},
     "camera_s.distortion": [-0.05, 0.0, 0.0, 0.0, 0.0],
     "camera_v.distortion": [-0.1, 0.0, 0.0, 0.0, 0.0],
-    "water.n_water": 1.340,
+    "water.index_model": "quan_fry",
+    "water.salinity_psu": 35.0,
+    "water.temperature_c": 15.0,
     "water.roughness": 0.006,
+    "ambient.enabled": True,
     "render.spp_pattern": 64,
+    "render.spp_view": 12,
     "sensor.enabled": True,
 }
-"""The ``real_rig`` effect: housings, lenses, sea water's mean index, micro-roughness and sensor
-noise in one render. Left out because the renderer does not compose them with these: daylight
-(with any lens effect), sea water's dispersion and polarised light (with roughness), the
-projector's port (its pattern then needs the coded labels), and crosstalk (not rendered)."""
+"""The ``real_rig`` effect: housings, lenses, sea water's index per channel, micro-roughness,
+daylight (sky and sun at their defaults) and sensor noise in one render. Left out: polarised
+light (the rough surface's BSDF has none), the projector's port (its pattern then needs the
+coded labels), and crosstalk (not rendered)."""
 
 ADDED_LIMIT_MM = 0.05
 """Surface RMSE (mm) added to the baseline's at which the report gives each effect's
