@@ -19,13 +19,19 @@ from wai_core.heightfield import Heightfield  # noqa: E402
 from wai_core.io import to_srgb8  # noqa: E402
 
 __all__ = [
+    "ERROR_SCALE_PERCENTILE",
     "as_rgb8",
     "confidence_figure",
     "corner_scatter_figure",
+    "crop_box",
+    "draw_corners",
+    "draw_error_map",
+    "draw_profile",
     "error_map_figure",
     "mark_not_restored",
     "plt",
     "profile_figure",
+    "robust_limit",
     "save_figure",
     "side_by_side",
     "views_figure",
@@ -54,49 +60,116 @@ def side_by_side(
     save_figure(fig, path)
 
 
-def error_map_figure(est: Heightfield, error_mm: NDArray, path: str | Path) -> None:
-    """Absolute height error over the reconstructed region (the paper's Fig. 12)."""
-    fig, ax = plt.subplots(figsize=(6, 5))
-    im = ax.pcolormesh(est.x, est.y, np.abs(error_mm), cmap="magma", shading="auto")
+ERROR_SCALE_PERCENTILE = 99.0
+"""The error map's colour scale ends at this percentile of the errors (the few larger ones,
+at the surface's edge, saturate) so that one outlier cannot darken the whole map."""
+
+
+def robust_limit(values: NDArray, percentile: float = ERROR_SCALE_PERCENTILE) -> float:
+    """The colour scale's end for ``values``: their ``percentile`` over the finite ones (1 when
+    there are none or it is 0)."""
+    v = np.abs(np.asarray(values, float))
+    v = v[np.isfinite(v)]
+    top = float(np.percentile(v, percentile)) if v.size else 0.0
+    return top if top > 0 else 1.0
+
+
+def draw_error_map(est: Heightfield, error_mm: NDArray) -> plt.Figure:
+    """The error map's figure (:func:`error_map_figure`), not yet saved."""
+    err = np.abs(np.asarray(error_mm, float))
+    finite = err[np.isfinite(err)]
+    rmse = float(np.sqrt(np.mean(finite**2))) if finite.size else float("nan")
+    top = robust_limit(err)
+    fig, ax = plt.subplots(figsize=(6.4, 5))
+    im = ax.pcolormesh(est.x, est.y, err, cmap="magma", shading="auto", vmin=0.0, vmax=top)
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
-    fig.colorbar(im, ax=ax, label="|z_est − z_true| (mm)")
-    ax.set_title("Absolute error of the reconstructed surface")
-    save_figure(fig, path)
+    fig.colorbar(im, ax=ax, extend="max" if finite.size and finite.max() > top else "neither",
+                 label=f"|z_est − z_true| (mm); scale ends at the {ERROR_SCALE_PERCENTILE:g}th "
+                 "percentile")
+    peak = f"{finite.max():.3f}" if finite.size else "nan"
+    ax.set_title(f"Surface error: RMSE {rmse:.3f} mm, max {peak} mm", fontsize=10)
+    return fig
+
+
+def error_map_figure(est: Heightfield, error_mm: NDArray, path: str | Path) -> None:
+    """Absolute height error over the reconstructed region (as the paper's Fig. 12), its RMSE
+    and maximum in the title, the colour scale robust to outliers (:func:`robust_limit`)."""
+    save_figure(draw_error_map(est, error_mm), path)
+
+
+def draw_profile(x_mm: NDArray, est_mm: NDArray, true_mm: NDArray, y_mm: float) -> plt.Figure:
+    """The profile's figure (:func:`profile_figure`), not yet saved."""
+    fig, (ax, res) = plt.subplots(2, 1, figsize=(7.5, 5), sharex=True,
+                                  gridspec_kw={"height_ratios": [2.2, 1]})
+    ax.plot(x_mm, true_mm, "-", color="0.35", lw=2.2, label="ground truth")
+    ax.plot(x_mm, est_mm, "--", color="tab:blue", lw=1.4, label="reconstructed")
+    covered = np.isfinite(est_mm)
+    if covered.any() and not covered.all():
+        lo, hi = x_mm[covered].min(), x_mm[covered].max()
+        for a in (ax, res):
+            a.axvspan(x_mm.min(), lo, color="0.92", zorder=0)
+            a.axvspan(hi, x_mm.max(), color="0.92", zorder=0)
+        ax.text(0.99, 0.03, "grey: outside the estimate (beyond the spots camera s sees)",
+                transform=ax.transAxes, ha="right", va="bottom", fontsize=8, color="0.3")
+    ax.set_ylabel("z (mm)")
+    ax.set_title(f"Surface profile at y = {y_mm:.0f} mm", fontsize=10)
+    ax.legend(fontsize=8, loc="upper left")
+    diff = est_mm - true_mm
+    res.plot(x_mm, diff, "-", color="tab:red", lw=1.0)
+    res.axhline(0.0, color="0.5", lw=0.8)
+    known = diff[np.isfinite(diff)]
+    if known.size:
+        res.set_title(f"residual: RMS {np.sqrt(np.mean(known**2)):.3f} mm", fontsize=9)
+    res.set_xlabel("x (mm)")
+    res.set_ylabel("est − true (mm)")
+    fig.tight_layout()
+    return fig
 
 
 def profile_figure(
     x_mm: NDArray, est_mm: NDArray, true_mm: NDArray, y_mm: float, path: str | Path
 ) -> None:
-    """True and reconstructed heights along one line (the paper's Fig. 11f)."""
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    ax.plot(x_mm, true_mm, "r-", label="ground truth")
-    ax.plot(x_mm, est_mm, "b--", label="reconstructed")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("z (mm)")
-    ax.set_title(f"Surface profile at y = {y_mm:.0f} mm")
-    ax.legend()
-    save_figure(fig, path)
+    """True and reconstructed heights along one line (as the paper's Fig. 11f) and their
+    difference below, the part outside the estimate shaded."""
+    save_figure(draw_profile(x_mm, est_mm, true_mm, y_mm), path)
 
 
-def corner_scatter_figure(points_px: dict[str, NDArray], stds: dict[str, float], path) -> None:
-    """Checkerboard corners in the truth, distorted and restored views (the paper's Fig. 15d);
-    the legend sits below the axes, clear of the corners."""
+CORNER_STYLE = {
+    "truth": {"facecolors": "none", "edgecolors": "0.2", "marker": "o", "s": 70, "zorder": 1,
+              "linewidths": 1.0},
+    "distorted": {"c": "tab:orange", "marker": "x", "s": 22, "zorder": 2, "alpha": 0.8},
+    "restored": {"c": "tab:blue", "marker": "+", "s": 60, "zorder": 3, "linewidths": 1.4},
+}
+"""Truth as hollow rings under the restored crosses (drawn last, on top), so a restored corner
+on its true place shows as a cross in a ring."""
+
+
+def draw_corners(points_px: dict[str, NDArray], stds: dict[str, float]) -> plt.Figure:
+    """The corners' figure (:func:`corner_scatter_figure`), not yet saved."""
     fig, ax = plt.subplots(figsize=(7, 6.2))
-    style = {"truth": ("r", "o"), "distorted": ("m", "x"), "restored": ("b", "+")}
-    for name, pts in points_px.items():
-        color, marker = style[name]
+    for name in ("truth", "distorted", "restored"):
+        pts = points_px.get(name)
+        if pts is None:
+            continue
         label = name if name == "truth" else f"{name} (STD {stds[name]:.2f} px)"
-        ax.scatter(pts[:, 0], pts[:, 1], c=color, marker=marker, s=22, label=label)
+        ax.scatter(pts[:, 0], pts[:, 1], label=label, **CORNER_STYLE[name])
     ax.invert_yaxis()
     ax.set_aspect("equal")
     ax.set_xlabel("column (px)")
     ax.set_ylabel("row (px)")
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3, fontsize=8,
               frameon=False)
-    ax.set_title("Checkerboard corners")
-    save_figure(fig, path)
+    ax.set_title("Checkerboard corners: truth (rings), distorted, restored (crosses)",
+                 fontsize=10)
+    return fig
+
+
+def corner_scatter_figure(points_px: dict[str, NDArray], stds: dict[str, float], path) -> None:
+    """Checkerboard corners in the truth, distorted and restored views (as the paper's Fig.
+    15d); the truth hollow and the restored corners on top; the legend below the axes."""
+    save_figure(draw_corners(points_px, stds), path)
 
 
 NOT_RESTORED_GREY = (150, 110)
@@ -134,19 +207,37 @@ def mark_not_restored(rgb8: NDArray, valid: NDArray, period_px: int = 8) -> NDAr
     return np.where(valid[..., None], as_rgb8(rgb8), stripes[..., None])
 
 
+def crop_box(mask: NDArray, margin: float = 0.04) -> tuple[slice, slice]:
+    """Rows and columns of ``mask``'s bounding box, widened by ``margin`` of the image each
+    side (the whole image when the mask is empty): the views drawn where the object is."""
+    h, w = mask.shape
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not rows.size:
+        return slice(0, h), slice(0, w)
+    dr, dc = int(margin * h), int(margin * w)
+    return (slice(max(rows[0] - dr, 0), min(rows[-1] + 1 + dr, h)),
+            slice(max(cols[0] - dc, 0), min(cols[-1] + 1 + dc, w)))
+
+
+def _luminance(img: NDArray) -> NDArray:
+    a = np.asarray(img, float)
+    return a.mean(axis=2) if a.ndim == 3 else a
+
+
 def views_figure(
     panels: list[tuple[str, NDArray | None]], mask: NDArray, path: str | Path,
     object_fraction: float | None = None,
 ) -> None:
-    """Views side by side, the restored one shown only where it was restored (hatched grey
-    elsewhere, :func:`mark_not_restored`), and the mask of restored pixels last.
+    """Views side by side, cropped to the restored region, the restored one shown only where
+    it was restored (hatched grey elsewhere, :func:`mark_not_restored`), its difference from
+    the truth where there is one, and the mask of restored pixels last.
 
     Parameters
     ----------
     panels : list of (title, (H, W, 3) or (H, W) ndarray or None)
         Linear images on the object's radiance scale (1 = white), colour or grey; None panels
-        are skipped.
-        A title may carry the scores.
+        are skipped. A title may carry the scores; the truth's starts with ``truth`` and the
+        restored view's with ``restored``.
     mask : (H, W) ndarray of bool
         Pixels restored.
     path : str or Path
@@ -156,18 +247,33 @@ def views_figure(
         the mask's share of the whole image.
     """
     shown = [(t, im) for t, im in panels if im is not None]
-    aspect = mask.shape[0] / mask.shape[1]
-    fig, axes = plt.subplots(1, len(shown) + 1,
-                             figsize=(4.6 * (len(shown) + 1), 4.6 * aspect + 0.9))
+    by_name = {t.split(" ")[0].rstrip(":"): im for t, im in shown}
+    rows, cols = crop_box(mask)
+    diff = None
+    if "truth" in by_name and "restored" in by_name:
+        diff = np.abs(_luminance(by_name["restored"]) - _luminance(by_name["truth"]))
+        diff = np.where(mask, diff, np.nan)
+    n = len(shown) + 1 + (diff is not None)
+    crop = mask[rows, cols]
+    aspect = crop.shape[0] / crop.shape[1]
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.2 * aspect + 1.0))
     for ax, (title, img) in zip(axes, shown, strict=False):
         rgb = as_rgb8(to_srgb8(img, 1.0))
         if title.startswith("restored"):
             rgb = mark_not_restored(rgb, mask)
-        ax.imshow(rgb)
+        ax.imshow(rgb[rows, cols])
         ax.set_title(title, fontsize=9)
         ax.set_axis_off()
+    if diff is not None:
+        ax = axes[len(shown)]
+        top = robust_limit(diff)
+        im = ax.imshow(diff[rows, cols], cmap="magma", vmin=0.0, vmax=top)
+        ax.set_title("|restored − truth| (restored pixels;\nscale to the 99th percentile)",
+                     fontsize=9)
+        ax.set_axis_off()
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
     white = np.full(mask.shape + (3,), 255, np.uint8)
-    axes[-1].imshow(mark_not_restored(white, mask))
+    axes[-1].imshow(mark_not_restored(white, mask)[rows, cols])
     share = f"restored pixels: {mask.mean():.0%} of the image"
     if object_fraction is not None:
         share += f",\n{object_fraction:.0%} of the object's pixels (the scored ones)"
@@ -177,7 +283,7 @@ def views_figure(
     bottom = min(ax.get_window_extent().y0 for ax in axes) / fig.bbox.height
     fig.text(0.5, bottom - 0.02, "hatched grey: not restored (no estimated surface, or no ray "
              "to the object: metrics.json's view_status_counts); white in the last panel: "
-             "restored.\n"
+             "restored. Drawn: the restored region's box.\n"
              "The scores compare the views on the restored pixels where the flat-water view "
              "sees the object.", ha="center", va="top", fontsize=9)
     save_figure(fig, path)

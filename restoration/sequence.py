@@ -340,27 +340,42 @@ def _csv(rows: list[dict[str, Any]]) -> str:
 
 
 def _temporal_figure(rows: list[dict[str, Any]], path: Path) -> None:
-    """Surface RMSE and restored SSIM against time, and the frame-to-frame change."""
+    """Per frame against time: the scores against the truth where there is one (surface RMSE,
+    SSIM), the truth-free checks always (spots used, forward residual), and the
+    frame-to-frame change; a panel with nothing to draw is left out."""
     from restoration.figures import plt, save_figure
 
     t = [r["time_s"] for r in rows]
 
     def col(key: str) -> list[float]:
-        return [np.nan if r[key] is None else float(r[key]) for r in rows]
+        return [np.nan if r.get(key) in (None, "") else float(r[key]) for r in rows]
 
-    fig, axes = plt.subplots(1, 3, figsize=(14, 3.6))
-    axes[0].plot(t, col("wai_rmse_mm"), "o-")
-    axes[0].set(xlabel="t (s)", ylabel="surface RMSE (mm)", title="surface error")
-    axes[1].plot(t, col("distorted_ssim"), "s--", label="distorted")
-    axes[1].plot(t, col("restored_ssim"), "o-", label="restored")
-    axes[1].set(xlabel="t (s)", ylabel="SSIM", title="view quality")
-    axes[1].legend(fontsize=8)
-    axes[2].plot(t, col("change_distorted"), "s--", label="distorted")
-    axes[2].plot(t, col("change_restored"), "o-", label="restored")
-    axes[2].set(xlabel="t (s)", ylabel="mean |frame - previous|",
-                title="stability in time (a still object)")
-    axes[2].legend(fontsize=8)
-    for ax in axes:
+    def has(*keys: str) -> bool:
+        return any(np.isfinite(col(k)).any() for k in keys)
+
+    panels = []
+    if has("wai_rmse_mm"):
+        panels.append(("surface error (truth)", "surface RMSE (mm)",
+                       [("wai_rmse_mm", "o-", None)]))
+    if has("distorted_ssim", "restored_ssim"):
+        panels.append(("view quality (truth)", "SSIM", [("distorted_ssim", "s--", "distorted"),
+                                                        ("restored_ssim", "o-", "restored")]))
+    if has("features_used", "residual_median_px"):
+        panels.append(("truth-free checks", "spots used", [("features_used", "o-", None)]))
+    panels.append(("stability in time (a still object)", "mean |frame - previous|",
+                   [("change_distorted", "s--", "distorted"),
+                    ("change_restored", "o-", "restored")]))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.7 * len(panels), 3.6), squeeze=False)
+    for ax, (title, ylabel, series) in zip(axes[0], panels, strict=True):
+        for key, style, label in series:
+            ax.plot(t, col(key), style, label=label)
+        ax.set(xlabel="t (s)", ylabel=ylabel, title=title)
+        if title == "truth-free checks" and has("residual_median_px"):
+            twin = ax.twinx()
+            twin.plot(t, col("residual_median_px"), "^:", color="tab:red")
+            twin.set_ylabel("forward residual, median (px)", color="tab:red")
+        if any(label for _, _, label in series):
+            ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
     fig.tight_layout()
     save_figure(fig, path)

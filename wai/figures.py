@@ -18,10 +18,27 @@ from restoration.figures import (  # noqa: F401  (re-exported for the experiment
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import to_srgb8
+from wai_core.report import write_report
 
 
-def surface_figure(surface: Heightfield, h0_mm: float, title: str, path: str | Path) -> None:
-    """3-D view and height map of a surface (the paper's Fig. 10), heights relative to h0."""
+def footprint_outline(cfg: SystemConfig) -> NDArray:
+    """The outline (K, 2) mm, closed, of the flat water camera s's spots come from: the convex
+    hull of the dots' flat-water hits it sees (where the structured light measures)."""
+    from scipy.spatial import ConvexHull
+
+    from wai_core.layout import flat_pattern_hits
+
+    q, _, seen = flat_pattern_hits(cfg)
+    pts = q[seen][:, :2]
+    hull = pts[ConvexHull(pts).vertices]
+    return np.vstack([hull, hull[:1]])
+
+
+def surface_figure(surface: Heightfield, h0_mm: float, title: str, path: str | Path,
+                   footprint_mm: NDArray | None = None) -> None:
+    """3-D view and height map of a surface (as the paper's Fig. 10), heights relative to h0;
+    ``footprint_mm`` (K, 2), when given, outlined on the map (camera s's view of the water,
+    :func:`footprint_outline`)."""
     fig = plt.figure(figsize=(12, 4.8))
     # The 3-D axes get the wider share and padded labels: in a tight layout their z label
     # otherwise lands on the height map's y label.
@@ -41,6 +58,10 @@ def surface_figure(surface: Heightfield, h0_mm: float, title: str, path: str | P
     ax2.set_xlabel("x (mm)")
     ax2.set_ylabel("y (mm)")
     fig.colorbar(im, ax=ax2, label="η = z − h0 (mm)")
+    if footprint_mm is not None:
+        ax2.plot(footprint_mm[:, 0], footprint_mm[:, 1], "w--", lw=1.3,
+                 label="measured by the structured light (camera s's spots)")
+        ax2.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), fontsize=8, frameon=False)
     fig.suptitle(title)
     save_figure(fig, path)
 
@@ -126,8 +147,9 @@ def render_overview(render_dir: Path, cfg: SystemConfig, view_gain: float) -> No
         surface,
         cfg.water.h0_mm,
         f"Simulated sea surface (U = {waves.wind_speed_m_s} m/s, t = {waves.time_s} s, "
-        f"seed {waves.seed})",
+        f"seed {waves.seed}), as the paper's Fig. 10",
         render_dir / "fig10_surface.png",
+        footprint_outline(cfg),
     )
     img = {n: read_exr(render_dir / f"{n}.exr") for n in ("pattern_flat", "pattern")}
     side_by_side(
@@ -143,3 +165,4 @@ def render_overview(render_dir: Path, cfg: SystemConfig, view_gain: float) -> No
         render_dir / "view_flat_vs_wavy.png",
         [1 / view_gain, 1 / view_gain],
     )
+    write_report(render_dir)  # the folder's index.html, with these figures

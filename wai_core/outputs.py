@@ -44,6 +44,7 @@ from typing import Any
 
 from wai_core.errors import WaiInputError
 from wai_core.io import write_json
+from wai_core.report import write_report
 from wai_core.signals import _signals_deferred, raise_if_interrupted
 
 OUTPUT_MARKER = ".wai-output.json"
@@ -431,6 +432,7 @@ def atomic_dir(
         yield tmp
         raise_if_interrupted()
         if command is not None:
+            write_report(tmp, title=f"{final.name} ({command})")
             names = sorted(p.name for p in tmp.iterdir() if p.name != OUTPUT_MARKER)
             _write_marker(tmp, command, names)
             check_output_dir(final, command, overwrite, remedy=remedy)  # it may have changed

@@ -32,7 +32,8 @@ def test_overcast_frame_reports_no_sun_and_writes_no_surface(overcast_dir, capsy
     metrics = json.loads((overcast_dir / "restore" / "metrics.json").read_text())
     assert metrics["status"] == "no_sun" and metrics["method"] == "alterman"
     written = sorted(p.name for p in (overcast_dir / "restore").iterdir())
-    assert written == [".wai-output.json", "metrics.json"]  # the output marker, and no surface
+    # the output marker, the run's page, and no surface
+    assert written == [".wai-output.json", "index.html", "metrics.json"]
 
 
 @pytest.mark.parametrize(

@@ -83,7 +83,7 @@ def test_setup_warmup_memory_and_derived(report):
 
 def test_chart_and_nothing_else_written(report):
     out, _ = report
-    assert sorted(p.name for p in out.iterdir()) == ["bench.json", "bench.png"]
+    assert sorted(p.name for p in out.iterdir()) == ["bench.json", "bench.png", "index.html"]
     assert (out / "bench.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

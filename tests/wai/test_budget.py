@@ -22,8 +22,8 @@ def test_every_effect_is_a_valid_renderer_only_change():
             # which the budget keeps from the restoration) and never a restoration setting.
             assert set(on) <= known, name
             assert on or name == "index", name
-            assert changed.water.n_water != cfg.water.n_water or name not in ("index",
-                                                                              "real_rig")
+            assert changed.water.n_water != cfg.water.n_water or name != "index"
+            assert changed.water.index_model == "quan_fry" or name != "real_rig"
 
 
 def test_points_carry_the_overrides_and_a_baseline_per_seed():

@@ -41,10 +41,11 @@ def test_marked_output_is_replaced_atomically(tmp_path):
     out = tmp_path / "out"
     _write(out, files=("a.txt", "b.txt"))
     marker = output_marker(out)
-    assert marker["command"] == "render" and marker["files"] == ["a.txt", "b.txt"]
+    # the files written, and the run's page (wai_core.report)
+    assert marker["command"] == "render" and marker["files"] == ["a.txt", "b.txt", "index.html"]
     assert is_output_of(out, "render") and not is_output_of(out, "restore")
     _write(out, files=("c.txt",))
-    assert sorted(p.name for p in out.iterdir()) == [OUTPUT_MARKER, "c.txt"]
+    assert sorted(p.name for p in out.iterdir()) == [OUTPUT_MARKER, "c.txt", "index.html"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # nothing left beside it
 
 
@@ -57,7 +58,7 @@ def test_foreign_folder_file_and_cwd_are_refused(tmp_path, monkeypatch):
     assert (foreign / "notes.txt").read_text() == "keep me"
     with atomic_dir(foreign, command="render", overwrite=True) as tmp:
         (tmp / "x").write_text("x")
-    assert sorted(p.name for p in foreign.iterdir()) == [OUTPUT_MARKER, "x"]
+    assert sorted(p.name for p in foreign.iterdir()) == [OUTPUT_MARKER, "index.html", "x"]
     a_file = tmp_path / "file.txt"
     a_file.write_text("data")
     for overwrite in (False, True):

@@ -12,6 +12,7 @@ from wai.bench.render import RENDER_STAGES, bench_render, render_stages
 from wai.bench.restore import CHART_HIDDEN, bench_restore
 from wai.bench.timing import machine, print_stage_table, runtime
 from wai_core.io import write_json
+from wai_core.report import write_report as write_index
 
 __all__ = ["bench_all", "bench_chart", "print_report", "write_report"]
 
@@ -59,20 +60,43 @@ def bench_all(config: str | Path, runs: int, render_dir: str | Path | None = Non
     }
 
 
+CHART_MIN_MS = 0.05
+"""Stages whose median is under this (ms) are left out of the chart (a bar that reads 0.0);
+the table and ``bench.json`` keep them."""
+
+
+def chart_rows(stages: dict[str, dict[str, Any]]) -> list[tuple[str, str, bool]]:
+    """The chart's rows, top to bottom: ``(stage, label, nested)``, a stage inside another
+    (``parent.part``) drawn under its parent, indented; stages under :data:`CHART_MIN_MS`
+    left out."""
+    rows = []
+    for name, v in stages.items():
+        if v["median_ms"] < CHART_MIN_MS:
+            continue
+        nested = "." in name
+        label = "   \u2514 " + name.split(".", 1)[1] if nested else name
+        rows.append((name, label, nested))
+    return rows
+
+
 def _stage_panel(ax: Any, stages: dict[str, dict[str, Any]], title: str) -> None:
-    """Horizontal bars of the median, a thick line from Q1 to Q3 and min-max whiskers, ms."""
-    names = list(stages)[::-1]  # first stage on top
+    """Horizontal bars of the median, a thick line from Q1 to Q3 and min-max whiskers, ms;
+    a stage's parts under it, indented and paler (their time is part of the parent's)."""
+    rows = chart_rows(stages)[::-1]  # first stage on top
+    names = [r[0] for r in rows]
     keys = ("median_ms", "min_ms", "max_ms", "q1_ms", "q3_ms")
     get = {k: np.array([stages[n][k] for n in names]) for k in keys}
     med = get["median_ms"]
     y = np.arange(len(names))
     whiskers = [med - get["min_ms"], get["max_ms"] - med]
-    ax.barh(y, med, color="#9ecae1", xerr=whiskers, capsize=3, error_kw={"elinewidth": 1})
+    colours = ["#deebf7" if nested else "#9ecae1" for _, _, nested in rows]
+    ax.barh(y, med, color=colours, xerr=whiskers, capsize=3, error_kw={"elinewidth": 1})
     ax.hlines(y, get["q1_ms"], get["q3_ms"], color="#08519c", lw=4)
     for yi, m in zip(y, med, strict=True):
         ax.annotate(f"{m:.1f}", (m, yi), xytext=(4, 5), textcoords="offset points", fontsize=7)
-    ax.set_yticks(y, names, fontsize=8)
-    ax.set_xlabel("ms: bar median, thick line Q1-Q3, whiskers min-max")
+    ax.set_yticks(y, [r[1] for r in rows], fontsize=8)
+    ax.set_xlabel(f"ms: bar median, thick line Q1-Q3, whiskers min-max (indented: part of "
+                  f"the stage above; under {CHART_MIN_MS} ms: in bench.json)", fontsize=8)
     ax.set_title(title, fontsize=10)
     ax.set_xlim(0, 1.12 * float(get["max_ms"].max(initial=1.0)))  # room for the labels
 
@@ -113,6 +137,7 @@ def write_report(report: dict[str, Any], out: str | Path) -> list[Path]:
     paths = [out / "bench.json", out / "bench.png"]
     bench_chart(report, paths[1])
     write_json(paths[0], report)
+    write_index(out)  # the folder's index.html, with the bench's figure
     return paths
 
 

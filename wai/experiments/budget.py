@@ -144,12 +144,16 @@ REAL_RIG: dict[str, Any] = {
     "water.temperature_c": 15.0,
     "water.roughness": 0.006,
     "ambient.enabled": True,
+    "ambient.sky_radiance": 0.003,
+    "ambient.sun_irradiance": 0.03,
     "render.spp_pattern": 64,
     "render.spp_view": 12,
     "sensor.enabled": True,
 }
 """The ``real_rig`` effect: housings, lenses, sea water's index per channel, micro-roughness,
-daylight (sky and sun at their defaults) and sensor noise in one render. Left out: polarised
+daylight (the sky at 0.003, the sun at 10 times it: the level the pattern holds to, about a
+tenth of a spot's peak in the sun's caustics; docs/results.md, "Degradations") and sensor noise
+in one render. Left out: polarised
 light (the rough surface's BSDF has none), the projector's port (its pattern then needs the
 coded labels), and crosstalk (not rendered)."""
 

@@ -198,27 +198,38 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def _figure(summary: list[dict[str, Any]], path: Path) -> None:
+    """Speed against accuracy: one marker and colour per method, named in a legend below the
+    panels (labels beside the points overlapped where methods cluster)."""
+    import os
+
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for e in summary:
-        if e["ms_per_frame"] is None:
-            continue
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), layout="constrained")
+    markers = "osD^vP*Xh<>"
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, e in enumerate(x for x in summary if x["ms_per_frame"] is not None):
+        style = {"marker": markers[i % len(markers)], "color": colours[i % len(colours)],
+                 "linestyle": "none", "markersize": 7}
         for ax, key in zip(axes, ("corner_std_px", "ssim"), strict=True):
             if e[key] is not None:
-                ax.plot(e["ms_per_frame"], e[key], "o")
-                ax.annotate(e["name"], (e["ms_per_frame"], e[key]), fontsize=8,
-                            xytext=(4, 4), textcoords="offset points")
+                ax.plot(e["ms_per_frame"], e[key], label=e["name"], **style)
     axes[0].set_ylabel("corner STD against the truth, px (lower is better)")
     axes[1].set_ylabel("view SSIM against the flat-water view (higher is better)")
     for ax in axes:
         ax.set_xscale("log")
-        ax.set_xlabel("ms per frame (2-core VM)")
-    fig.suptitle("Speed against accuracy, every method on the same rendered sequences")
-    fig.tight_layout()
+        ax.set_xlabel(f"ms per frame ({os.cpu_count()} cores, this run)")
+        ax.grid(alpha=0.3, which="both")
+    handles, labels = axes[0].get_legend_handles_labels()
+    if not handles:
+        handles, labels = axes[1].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 5),
+                   fontsize=8, frameon=False)
+    fig.suptitle("Speed against accuracy, every method on the same rendered sequences "
+                 "(means over the sequences)")
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
