@@ -24,13 +24,8 @@ from mitsuba_wai.lens import lens_keys
 from mitsuba_wai.memory import check_render_memory, describe_devices, render_bytes
 from mitsuba_wai.mesh import flat_like
 from mitsuba_wai.reference import render_reference, windowed_centroids
-from mitsuba_wai.render import (
-    OUTPUT_COMMAND,
-    FrameRenderer,
-    Rendered,
-    render_folder,
-    render_seed,
-)
+from mitsuba_wai.render import OUTPUT_COMMAND, FrameRenderer, Rendered, render_folder
+from mitsuba_wai.scene_record import render_seed
 from mitsuba_wai.seawater import coefficients_per_mm, pattern_path_lengths_mm
 from mitsuba_wai.sequence import render_frames, render_sequence
 from mitsuba_wai.surface_sampling import file_surface, wave_surface

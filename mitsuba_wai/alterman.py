@@ -56,14 +56,8 @@ import trimesh
 from numpy.typing import NDArray
 
 from mitsuba_wai import mesh as meshes
-from mitsuba_wai.render import (
-    FrameRenderer,
-    Rendered,
-    RenderSteps,
-    render_image,
-    render_seed,
-    scene_record,
-)
+from mitsuba_wai.render import FrameRenderer, Rendered, RenderSteps, render_image
+from mitsuba_wai.scene_record import render_seed, scene_record
 from mitsuba_wai.scenes import rectangle_to_world, sensor_dict, sun_frame, water_bsdf
 from mitsuba_wai.surface_sampling import file_surface, labelled, wave_surface
 from mitsuba_wai.variant import mitsuba, select_variant
@@ -481,7 +475,8 @@ def render_alterman_folder(
                 frame = FrameRenderer(system.base, surface, systems=("view",))
                 views = {
                     "view": frame.render(surface, seed, which=("view",))["view"],
-                    "view_truth": frame.render(flat, seed, which=("view",))["view"],
+                    "view_truth": frame.render(flat, seed, which=("view",),
+                                               crosstalk=False)["view"],
                 }
             images.update({k: views[k] for k in ("view", "view_truth")})
         record = alterman_record(system, renderer, surface, source)

@@ -74,7 +74,7 @@ class RendersFrames(Protocol):
 
     def render(
         self, surface: Heightfield, seed: int, which: tuple[str, ...] = ...,
-        spp: int | dict[str, int] | None = ...,
+        spp: int | dict[str, int] | None = ..., crosstalk: bool = ...,
     ) -> dict[str, NDArray[np.float32]]: ...
 
 

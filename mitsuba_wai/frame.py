@@ -9,7 +9,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mitsuba_wai.frame_images import render_frame_images
-from mitsuba_wai.render import FrameRenderer, render_seed
+from mitsuba_wai.render import FrameRenderer
+from mitsuba_wai.scene_record import render_seed
 from mitsuba_wai.surface_sampling import file_surface, moving_surface, wave_surface
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
@@ -69,7 +70,7 @@ def render_frame(
         A renderer already loaded for this configuration and grid, reused across frames.
     seed : int, optional
         Sampler seed of the renders (0 .. 2^32 - 1); default: derived from ``cfg.waves.seed``
-        (:func:`mitsuba_wai.render.render_seed`), as ``wai render`` does.
+        (:func:`mitsuba_wai.scene_record.render_seed`), as ``wai render`` does.
 
     Returns
     -------

@@ -67,7 +67,8 @@ def render_frame_images(
     """
     wavy = render_exposure(renderer, cfg, surface, seed, spp=spp, surface_at=surface_at,
                            plan=plan)
-    flat = renderer.render(flat_like(surface, cfg.water.h0_mm), seed, spp=spp)
+    # The flat-water view is the object's own (no projector light: [crosstalk]'s truth).
+    flat = renderer.render(flat_like(surface, cfg.water.h0_mm), seed, spp=spp, crosstalk=False)
     images = {
         "pattern": wavy["pattern"],
         "pattern_flat": flat["pattern"],

@@ -25,7 +25,6 @@ blurred over the exposure and the surface files hold the surface at mid-exposure
 from __future__ import annotations
 
 import contextlib
-import platform
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,15 +35,15 @@ from numpy.typing import NDArray
 
 from mitsuba_wai import mesh as meshes
 from mitsuba_wai.ambient import SCENE_SUN_DEPTH, sky_image, smooth, sun_s_scene, view_emitters
-from mitsuba_wai.degrade import degradation_record, subframe_plan
+from mitsuba_wai.crosstalk import Crosstalk, camera_v_filter
+from mitsuba_wai.degrade import subframe_plan
 from mitsuba_wai.diffuser import screen_blur
 from mitsuba_wai.dots import DotEmitter
 from mitsuba_wai.frame_images import render_frame_images
 from mitsuba_wai.lens import scene_lenses
 from mitsuba_wai.particles import pass_split, render_particles, render_particles_water
+from mitsuba_wai.scene_record import render_seed, scene_record
 from mitsuba_wai.scenes import (
-    SCENE_V_DEPTH,
-    VIEW_SAMPLERS,
     pattern_depth,
     pattern_scene,
     view_scene,
@@ -66,7 +65,6 @@ from wai_core.config import SensorConfig, SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.images import record_previews
 from wai_core.io import write_exr, write_json, write_png
-from wai_core.layout import observed_patch, surface_extent
 from wai_core.outputs import atomic_dir, check_output_dir
 from wai_core.rig_checks import check_surface_in_rig
 from wai_core.sensor import integer_image
@@ -186,6 +184,10 @@ class FrameRenderer:
             self._scenes["view"] = mi.load_dict(scene_v)
         self._params = {k: mi.traverse(scene) for k, scene in self._scenes.items()}
         self._faces = None  # the water's faces uploaded last (flat uint32), None: unknown
+        # [crosstalk]: the projector's light on the object, the view's texture per frame.
+        self._crosstalk = (Crosstalk(self.cfg, self._scenes["view"], tex)
+                           if "view" in self._scenes and self.cfg.crosstalk.enabled else None)
+        self._lit_object = False  # the view's texture holds a frame's crosstalk now
         # Stratified: the projector's dots drawn directly (mitsuba_wai.dots), same emission as
         # the scene's projector at a fraction of its cost; independent: Mitsuba's projector.
         self._emitters = (
@@ -214,16 +216,21 @@ class FrameRenderer:
         seed: int,
         which: tuple[str, ...] = ("pattern", "view"),
         spp: int | dict[str, int] | None = None,
+        crosstalk: bool = True,
     ) -> dict[str, NDArray[np.float32]]:
         """Render the pattern (camera s) and/or the view (camera v) through ``surface``, with
         the configuration's samples per pixel or, if given, ``spp`` for every image (an int)
-        or per image (a dict keyed ``pattern`` / ``view``)."""
+        or per image (a dict keyed ``pattern`` / ``view``). With ``[crosstalk]`` on, the view
+        shows the projector's light on the object unless ``crosstalk`` is False (the truth:
+        the object's own light)."""
         missing = set(which) - set(self._scenes)
         if missing:
             raise ValueError(f"renderer was not prepared for {sorted(missing)}")
         if self._channels:
-            return self._render_channels(surface, seed, which, spp)
+            return self._render_channels(surface, seed, which, spp, crosstalk)
         self._set_surface(surface)
+        if self._crosstalk is not None and "view" in which:
+            self._light_object(seed if crosstalk else None)
         out = {}
         given = spp if isinstance(spp, dict) else {"pattern": spp, "view": spp}
         spp = {
@@ -253,13 +260,29 @@ class FrameRenderer:
                 out[key] = water_view(out[key], lengths, self.cfg)
             if key == "pattern":
                 out[key] = screen_blur(out[key], self.cfg)  # a no-op unless [diffuser].blur_mm
+            else:
+                out[key] = camera_v_filter(self.cfg, out[key])  # a no-op without a filter
             self.nonfinite_pixels[key] = self.nonfinite_pixels.get(key, 0) + bad
         return out
 
+    def _light_object(self, seed: int | None) -> None:
+        """The view's object texture: lit by the projector through the surface the scenes
+        hold now (``seed``: its particles'), or its own (None)."""
+        if seed is None and not self._lit_object:
+            return
+        mi = mitsuba()
+        tex = self._crosstalk.texture(seed) if seed is not None else self._crosstalk.albedo
+        params = self._params["view"]
+        params["object.emitter.radiance.data"] = mi.TensorXf(np.ascontiguousarray(tex[::-1]))
+        params.update()
+        self._lit_object = seed is not None
+
     def _render_channels(self, surface: Heightfield, seed: int, which: tuple[str, ...],
-                         spp: int | dict[str, int] | None) -> dict[str, NDArray[np.float32]]:
+                         spp: int | dict[str, int] | None,
+                         crosstalk: bool = True) -> dict[str, NDArray[np.float32]]:
         """Each image's channel ``c`` from the renderer of channel ``c``'s index."""
-        parts = [channel.render(surface, seed, which, spp) for channel in self._channels]
+        parts = [channel.render(surface, seed, which, spp, crosstalk)
+                 for channel in self._channels]
         for channel in self._channels:
             for key, bad in channel.nonfinite_pixels.items():
                 self.nonfinite_pixels[key] = max(self.nonfinite_pixels.get(key, 0), bad)
@@ -310,65 +333,6 @@ def channel_renderers(cfg: SystemConfig, grid: Heightfield, texture: NDArray | N
                       texture, systems)
         for n in water_channel_indices(cfg)
     )
-
-
-def scene_record(
-    cfg: SystemConfig, variant: str, surface: Heightfield, source: str, amplitude: float = 1.0
-) -> dict:
-    """What ``scene.json`` holds: enough for the restoration to run from the folder alone
-    (and, when enabled, the degradations' derived values under ``degradations``)."""
-    import drjit
-    import mitsuba as mi
-
-    devices = {}
-    for name in ("projector", "camera_s", "camera_v"):
-        cam = cfg.rig.device(name)
-        devices[name] = {
-            "center_lab_mm": cam.pose.center_lab_mm,
-            "axis_lab": cam.pose.axis_lab,
-            "R": cam.pose.R,
-            "t_mm": cam.pose.t_mm,
-            "pixel_pitch_mm": cam.pixel_pitch_mm,
-            "focal_px": cam.focal_px,
-            "fov_x_deg": cam.fov_x_deg,
-            "sensor_size_mm": cam.sensor_size_mm,
-        }
-    record = {
-        "format": "wai-render/1",
-        "config": cfg.to_dict(),
-        "derived": {
-            "devices": devices,
-            "diffuser_rect_mm": cfg.rig.diffuser_rect,
-            "surface_extent_mm": surface_extent(cfg),
-            "observed_patch_mm": observed_patch(cfg),
-            "object_center_mm": cfg.rig.object_center_mm,
-            "object_z_mm": cfg.object_z_mm,
-            "mesh_vertices": [int(surface.y.size), int(surface.x.size)],
-            "mesh_spacing_mm": float(np.diff(surface.x).mean()),
-            "vertex_normals": "exact surface normals (smooth shading)",
-            "view_radiance_gain": cfg.water.n_water**2,
-        },
-        "surface_source": source,
-        "seed": cfg.waves.seed,
-        "render_seed": render_seed(cfg),
-        "variant": variant,
-        "integrators": {
-            "pattern": {"type": "ptracer", "max_depth": pattern_depth(cfg),
-                        "emitter_samples": cfg.render.sampling},
-            "view": {"type": "path", "max_depth": SCENE_V_DEPTH,
-                     "sampler": VIEW_SAMPLERS[cfg.render.sampling]},
-        },
-        "versions": {
-            "mitsuba": mi.__version__,
-            "drjit": drjit.__version__,
-            "numpy": np.__version__,
-            "python": platform.python_version(),
-        },
-    }
-    degradations = degradation_record(cfg, amplitude)
-    if degradations:
-        record["degradations"] = degradations
-    return record
 
 
 def write_images(
@@ -435,12 +399,6 @@ class Rendered:
             return float(self.record["reference"]["render_s"]
                          + sum(f["render_s"] for f in self.record["frames"]))
         return float(sum(self.record["timings_s"].values()))
-
-
-def render_seed(cfg: SystemConfig) -> int:
-    """Mitsuba's sampler seed, derived from the scene seed so reruns are identical
-    (0 .. 2^32 - 1, Mitsuba's range)."""
-    return (int(cfg.waves.seed) * 7919 + 17) % 2**32
 
 
 class RenderSteps:

@@ -25,11 +25,10 @@ from mitsuba_wai.render import (
     OUTPUT_COMMAND,
     FrameRenderer,
     Rendered,
-    render_seed,
-    scene_record,
     write_images,
     write_surface,
 )
+from mitsuba_wai.scene_record import render_seed, scene_record
 from mitsuba_wai.surface_sampling import moving_surface, wave_surface
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.io import write_json

@@ -7,9 +7,10 @@ everything the restoration reads (:data:`RIG_SECTIONS`: ``[water]``, ``[projecto
 ``[pattern]``, ``[camera_s]``, ``[camera_v]``, ``[diffuser]``, ``[object]``), are required,
 so a rig of one's own never silently takes the paper's water level or diffuser height; the
 sections that only drive the simulation (``[waves]``, ``[render]``, and the field's
-degradations ``[sensor]``, ``[motion]``, ``[water_optics]``, ``[ambient]``, off by default and
-free then) may be left out. Within a section, a key that has a default (its dataclass's) may be
-left out; the devices' geometry has none. ``scene.json`` records every value used.
+degradations ``[sensor]``, ``[motion]``, ``[water_optics]``, ``[ambient]``, ``[crosstalk]``,
+off by default and free then) may be left out. Within a section, a key that has a default
+(its dataclass's) may be left out; the devices' geometry has none. ``scene.json`` records
+every value used.
 """
 
 from __future__ import annotations
@@ -26,10 +27,12 @@ import numpy as np
 from wai_core.errors import WaiInputError
 from wai_core.geometry import pinhole_of
 from wai_core.sections import (
+    CAMERA_V_FILTERS,
     PARTICLE_SHARES,
     SAMPLINGS,
     SKIMAGE_TEXTURES,
     AmbientConfig,
+    CrosstalkConfig,
     DeviceConfig,
     DiffuserConfig,
     MotionConfig,
@@ -63,6 +66,7 @@ class SystemConfig:
     motion: MotionConfig = field(default_factory=MotionConfig)
     water_optics: WaterOpticsConfig = field(default_factory=WaterOpticsConfig)
     ambient: AmbientConfig = field(default_factory=AmbientConfig)
+    crosstalk: CrosstalkConfig = field(default_factory=CrosstalkConfig)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (JSON/TOML-able)."""
@@ -110,6 +114,7 @@ _SECTIONS = {
     "motion": MotionConfig,
     "water_optics": WaterOpticsConfig,
     "ambient": AmbientConfig,
+    "crosstalk": CrosstalkConfig,
 }
 
 
@@ -291,6 +296,7 @@ RENDERER_EFFECTS: dict[str, tuple[str, ...]] = {
     "waves": ("dispersion",),
     "pattern": ("polarisation",),
     "diffuser": ("half_width_deg", "reflectance", "blur_mm"),
+    "crosstalk": ("enabled", "camera_v_filter"),
     **{
         name: ("principal_offset_px", "distortion", "port_thickness_mm", "aperture_mm")
         for name in DEVICE_SECTIONS
@@ -367,6 +373,10 @@ def _validate_effects(cfg: SystemConfig) -> None:
         raise WaiInputError(f"config: [diffuser].blur_mm must be >= 0, not {d.blur_mm:g}")
     for name in DEVICE_SECTIONS:
         _check_device_optics(getattr(cfg, name), name)
+    c = cfg.crosstalk
+    _check_choice(c.camera_v_filter, CAMERA_V_FILTERS, "[crosstalk].camera_v_filter")
+    if c.particles < 1024:
+        raise WaiInputError(f"config: [crosstalk].particles must be >= 1024, not {c.particles}")
 
 
 def _check_device_optics(dev: DeviceConfig, name: str) -> None:

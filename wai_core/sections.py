@@ -250,3 +250,23 @@ class AmbientConfig:
     """Gaussian sigma, camera-s px, smoothing the sun's Monte Carlo noise on the diffuser
     (0: raw particles). Noise correlated at the spots' scale (a sigma of 2 .. 6 px) misleads
     the spot detector more than the raw noise does; 12 px or more is safe."""
+
+
+CAMERA_V_FILTERS = ("none", "red")
+"""Values of ``[crosstalk].camera_v_filter``."""
+
+
+@dataclass(frozen=True)
+class CrosstalkConfig:
+    """Systems S and V in one scene (:mod:`mitsuba_wai.crosstalk`). Off by default.
+
+    The projector's light that the water transmits (nearly all of it) lights the object, and
+    camera v sees its dots on the object through the waves."""
+
+    enabled: bool = False
+    particles: int = 1 << 20
+    """Projector particles traced to the object per frame (its dots' light on the object)."""
+    camera_v_filter: str = "none"
+    """A filter in front of camera v: ``"red"`` passes the red channel only (the pattern is
+    blue-green, the scene broadband: what a rig does against the crosstalk)."""
+

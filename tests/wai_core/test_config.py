@@ -75,7 +75,8 @@ def test_values_that_cannot_be_right_or_cannot_fit_are_refused(paper_cfg, sectio
         config_from_dict(data)
 
 
-SIMULATION_SECTIONS = ("waves", "render", "sensor", "motion", "water_optics", "ambient")
+SIMULATION_SECTIONS = ("waves", "render", "sensor", "motion", "water_optics", "ambient",
+                       "crosstalk")
 
 
 def test_the_rig_is_required_and_only_the_simulation_defaults(paper_cfg):

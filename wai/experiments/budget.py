@@ -127,6 +127,19 @@ EFFECTS: dict[str, Effect] = {
         "spectrum cutoff (x omega_p), gravity-capillary waves", (3.0, 4.0, 6.0), (4.0,), 4.0,
         lambda m: {"waves.dispersion": "capillary", "waves.omega_max_rel": m},
     ),
+    "crosstalk": Effect(
+        "the projector's light on the object, in camera v's view (1: on)", (1.0,), (1.0,), 1.0,
+        lambda m: {"crosstalk.enabled": True},
+    ),
+    "crosstalk_filtered": Effect(
+        "crosstalk with a red-pass filter on camera v (1: on; the filter alone: red_filter)",
+        (1.0,), (1.0,), 1.0,
+        lambda m: {"crosstalk.enabled": True, "crosstalk.camera_v_filter": "red"},
+    ),
+    "red_filter": Effect(
+        "a red-pass filter on camera v, no crosstalk (1: on)", (1.0,), (1.0,), 1.0,
+        lambda m: {"crosstalk.camera_v_filter": "red"},
+    ),
     "real_rig": Effect(
         "a real rig at once (1: every effect below at its realistic magnitude that composes)",
         (1.0,), (1.0,), 1.0, lambda m: REAL_RIG, modelled=True,
@@ -155,7 +168,7 @@ daylight (the sky at 0.003, the sun at 10 times it: the level the pattern holds 
 tenth of a spot's peak in the sun's caustics; docs/results.md, "Degradations") and sensor noise
 in one render. Left out: polarised
 light (the rough surface's BSDF has none), the projector's port (its pattern then needs the
-coded labels), and crosstalk (not rendered)."""
+coded labels), and crosstalk (its own rows, with and without camera v's red filter)."""
 
 ADDED_LIMIT_MM = 0.05
 """Surface RMSE (mm) added to the baseline's at which the report gives each effect's

@@ -165,7 +165,7 @@ def render_frame(cfg: SystemConfig, amplitude: float = 1.0) -> tuple[dict[str, A
             renderer, cfg, surface, seed, (system,), surface_at=surface_at, plan=plan
         )[system]
         images[f"render_s_{system}"] = time.perf_counter() - t0
-    flat = renderer.render(flat_like(surface, h0), seed)
+    flat = renderer.render(flat_like(surface, h0), seed, crosstalk=False)
     images["pattern_flat"], images["view_truth"] = flat["pattern"], flat["view"]
     if cfg.sensor.enabled:
         names = ("pattern", "pattern_flat", "view", "view_truth")

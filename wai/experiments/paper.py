@@ -109,7 +109,8 @@ def _other_datasets(
     for name, renderer in renderers.items():
         c = cfg.replace("waves", seed=seed)
         wavy = renderer.render(truth, render_seed(c), which=("view",))["view"] / gain
-        flat = renderer.render(flat_like(truth, cfg.water.h0_mm), render_seed(c), which=("view",))
+        flat = renderer.render(flat_like(truth, cfg.water.h0_mm), render_seed(c), which=("view",),
+                               crosstalk=False)
         flat_view = flat["view"] / gain
         res = cal.restore_view(wavy, est)
         mask = res.valid & (flat_view.mean(axis=2) > OBJECT_MIN_LEVEL)
