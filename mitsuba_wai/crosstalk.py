@@ -64,6 +64,7 @@ class Crosstalk:
         self._scene, self._water, self._plane = view_scene, shapes["water"], shapes["object"]
         self._albedo = np.asarray(texture, np.float32)
         self._n = int(cfg.crosstalk.particles)
+        self._scale = float(cfg.crosstalk.scale)
         self._n_water = float(cfg.water.n_water)
         centre = cfg.rig.object_center_mm
         w, h = cfg.object.size_mm
@@ -113,5 +114,7 @@ class Crosstalk:
         return (out.reshape(rows_n, cols_n, 3) / texel_mm2).astype(np.float32)
 
     def texture(self, seed: int) -> NDArray[np.float32]:
-        """The object's radiance this frame (H, W, 3): its own plus ``rho E / pi``."""
-        return (self._albedo * (1.0 + self.irradiance(seed) / np.pi)).astype(np.float32)
+        """The object's radiance this frame (H, W, 3): its own plus ``rho E / pi`` (times
+        ``[crosstalk].scale``)."""
+        lit = self.irradiance(seed) * (self._scale / np.pi)
+        return (self._albedo * (1.0 + lit)).astype(np.float32)

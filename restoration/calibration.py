@@ -130,9 +130,9 @@ class RigCalibration:
     @property
     def view_indices(self) -> tuple[float, ...]:
         """The water's index for each colour channel of the view: ``(n_water,)`` for one
-        index, Quan & Fry's at the channels' wavelengths (:func:`wai_core.optics.
-        channel_indices`) when the scene states sea water (``[water] index_model =
-        "quan_fry"``): each channel is then restored with its own."""
+        index, Quan & Fry's at the channels' wavelengths
+        (:func:`wai_core.optics.channel_indices`) when the scene states sea water
+        (``[water] index_model = "quan_fry"``): each channel is then restored with its own."""
         w = self.cfg.water
         if w.index_model == "quan_fry":
             return channel_indices(w.salinity_psu, w.temperature_c)
@@ -283,8 +283,8 @@ class Calibration(RigCalibration):
 
     def dot_rays(self, ij: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The rays in the water of the dots with grid indices ``ij`` (K, 2): origins (3,), or
-        behind a port (K, 3), mm, and unit directions (K, 3) (:meth:`wai_core.rig.Rig.
-        dot_rays_of`)."""
+        behind a port (K, 3), mm, and unit directions (K, 3)
+        (:meth:`wai_core.rig.Rig.dot_rays_of`)."""
         return self.cfg.rig.dot_rays_of(ij)
 
     def observe(self, ij: NDArray, spot_px: NDArray, *, flat_referenced: bool = False

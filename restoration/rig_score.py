@@ -1,15 +1,16 @@
 """A truth-free score for a view from a calibrated rig: its corners against the rig's own.
 
 A rig whose camera v, water level and checkerboard placement are calibrated knows where the
-board's inner corners appear when the water is still (:func:`~restoration.metrics.
-predict_corners` through flat water). A restored view's corners, found near those positions,
+board's inner corners appear when the water is still
+(:func:`~restoration.metrics.predict_corners` through flat water). A restored view's corners,
+found near those positions,
 should lie on them; their spread about that map, less a common shift (the board's in-plane
 placement is what a rig knows least well), is the paper's corner STD with the calibration in
-place of the truth's corners. Unlike the free grid models of :func:`restoration.video.
-grid_score`, which fit the map to each view and so absorb any smooth warp of the whole
-image, it sees a view that is sharp but displaced, which is what video-only methods give:
-they register the frames to their own temporal mean, whose geometry a short sequence leaves
-off the flat-water view's.
+place of the truth's corners. Unlike the free grid models of
+:func:`restoration.video.grid_score`, which fit the map to each view and so absorb any
+smooth warp of the whole image, it sees a view that is sharp but displaced, which is what
+video-only methods give: they register the frames to their own temporal mean, whose geometry
+a short sequence leaves off the flat-water view's.
 """
 
 from __future__ import annotations

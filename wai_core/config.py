@@ -375,6 +375,8 @@ def _validate_effects(cfg: SystemConfig) -> None:
         _check_device_optics(getattr(cfg, name), name)
     c = cfg.crosstalk
     _check_choice(c.camera_v_filter, CAMERA_V_FILTERS, "[crosstalk].camera_v_filter")
+    if not (np.isfinite(c.scale) and c.scale >= 0):
+        raise WaiInputError(f"config: [crosstalk].scale must be >= 0, not {c.scale:g}")
     if c.particles < 1024:
         raise WaiInputError(f"config: [crosstalk].particles must be >= 1024, not {c.particles}")
 

@@ -266,6 +266,9 @@ class CrosstalkConfig:
     enabled: bool = False
     particles: int = 1 << 20
     """Projector particles traced to the object per frame (its dots' light on the object)."""
+    scale: float = 1.0
+    """The projector's light on the object times this (1: as bright as ``[pattern].power``
+    makes it against the object's own radiance; more: a dimmer scene, a brighter projector)."""
     camera_v_filter: str = "none"
     """A filter in front of camera v: ``"red"`` passes the red channel only (the pattern is
     blue-green, the scene broadband: what a rig does against the crosstalk)."""

@@ -28,7 +28,7 @@ def write_dataset(
     scheduler: str | None = None,
     progress: bool = True,
 ) -> Path:
-    """Render frames ``0 .. frames - 1`` of ``spec`` into ``out_dir/dataset.h5`` and its
+    """Render frames 0 to ``frames - 1`` of ``spec`` into ``out_dir/dataset.h5`` and its
     ``manifest.csv``, continuing an existing store of the same spec from its frame count.
 
     Parameters

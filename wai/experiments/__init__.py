@@ -302,6 +302,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         run=_run_seawater,
     ),
 }
+"""The experiments of ``wai experiment``, by name."""
 
 
 def describe(name: str, width: int = 79) -> str:

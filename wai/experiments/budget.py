@@ -128,13 +128,15 @@ EFFECTS: dict[str, Effect] = {
         lambda m: {"waves.dispersion": "capillary", "waves.omega_max_rel": m},
     ),
     "crosstalk": Effect(
-        "the projector's light on the object, in camera v's view (1: on)", (1.0,), (1.0,), 1.0,
-        lambda m: {"crosstalk.enabled": True},
+        "the projector's light on the object in camera v's view, x its brightness",
+        (1.0, 10.0, 100.0), (10.0,), 1.0,
+        lambda m: {"crosstalk.enabled": True, "crosstalk.scale": m},
     ),
     "crosstalk_filtered": Effect(
-        "crosstalk with a red-pass filter on camera v (1: on; the filter alone: red_filter)",
-        (1.0,), (1.0,), 1.0,
-        lambda m: {"crosstalk.enabled": True, "crosstalk.camera_v_filter": "red"},
+        "crosstalk x its brightness, camera v behind a red-pass filter (alone: red_filter)",
+        (1.0, 10.0, 100.0), (10.0,), 1.0,
+        lambda m: {"crosstalk.enabled": True, "crosstalk.scale": m,
+                   "crosstalk.camera_v_filter": "red"},
     ),
     "red_filter": Effect(
         "a red-pass filter on camera v, no crosstalk (1: on)", (1.0,), (1.0,), 1.0,

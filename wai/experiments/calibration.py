@@ -76,8 +76,9 @@ def calibrated_rig(real: SystemConfig, out: Path, views: int) -> tuple[dict[str,
 
 
 def refined_on_flat_water(cfg: SystemConfig, boards: dict[str, Any], frame: Path) -> Any:
-    """Camera s refined on the rig's flat-water pattern (:func:`restoration.rig_calibration.
-    refine_on_flat_water`), starting from the checkerboards' intrinsics."""
+    """Camera s refined on the rig's flat-water pattern
+    (:func:`restoration.rig_calibration.refine_on_flat_water`), starting from the
+    checkerboards' intrinsics."""
     from restoration import refine_on_flat_water
     from wai_core.images import find_image, read_image
 

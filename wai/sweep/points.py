@@ -22,11 +22,14 @@ WORKER_LOSSES = frozenset({"KilledWorker", "CommClosedError", "FutureCancelledEr
 WORKER_RETRIES = 1
 """Times the sweep runs a point again after the worker running it died."""
 WORKER_DIED = "worker died"
-"""What the status of a point whose worker died says (after ``error: ``)."""
+"""What the status of a point whose worker died says (after ``error:``)."""
 
 Point = Mapping[str, Any]
+"""A sweep's point: its parameters by name."""
 Row = dict[str, Any]
+"""A row of a sweep's table: the point's parameters and its outcome."""
 Outcome = dict[str, Any]
+"""What evaluating a point gives: values by name."""
 
 
 def point_id(point: Point, key: Sequence[str] | None = None) -> str:
