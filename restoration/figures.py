@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -21,6 +22,7 @@ from wai_core.io import to_srgb8  # noqa: E402
 __all__ = [
     "ERROR_SCALE_PERCENTILE",
     "as_rgb8",
+    "calibration_figure",
     "confidence_figure",
     "corner_scatter_figure",
     "crop_box",
@@ -302,4 +304,55 @@ def confidence_figure(
     ax.set_ylabel("y (mm)")
     fig.colorbar(im, ax=ax, label=f"spot residual (px); threshold {threshold_px:.2f} px")
     ax.set_title("Forward consistency: predicted vs detected spots")
+    save_figure(fig, path)
+
+
+def calibration_figure(images: list[NDArray], fit: Any, camera: str, path: str | Path,
+                       shown: int = 4) -> None:
+    """A camera's checkerboard calibration (as OpenCV's tutorial shows it): up to ``shown``
+    views with the corners found (+) and reprojected by the fit (o), each view's RMS, and
+    every corner's reprojection error as a field over the image (arrows x50).
+
+    Parameters
+    ----------
+    images : list of (H, W) arrays
+        The views given to :func:`~restoration.rig_calibration.calibrate_device`.
+    fit : DeviceFit
+    camera : str
+    path : str or Path
+    shown : int
+    """
+    n = min(shown, len(fit.views))
+    fig = plt.figure(figsize=(4.2 * max(n, 2), 7.4))
+    grid = fig.add_gridspec(2, max(n, 2), height_ratios=(1.0, 1.1))
+    for i in range(n):
+        ax = fig.add_subplot(grid[0, i])
+        img = np.asarray(images[fit.views[i]], float)
+        ax.imshow(img.mean(axis=2) if img.ndim == 3 else img, cmap="gray")
+        c, r = fit.corners_px[i], fit.reprojected_px[i]
+        ax.plot(c[:, 0], c[:, 1], "+", color="tab:red", ms=7, label="found")
+        ax.plot(r[:, 0], r[:, 1], "o", mfc="none", color="tab:cyan", ms=5, label="reprojected")
+        ax.set_title(f"view {fit.views[i]}: RMS {fit.view_rms_px[i]:.3f} px", fontsize=9)
+        ax.set_axis_off()
+        if i == 0:
+            ax.legend(fontsize=7, loc="lower left")
+    bars = fig.add_subplot(grid[1, 0])
+    bars.bar([str(v) for v in fit.views], fit.view_rms_px, color="tab:blue")
+    bars.axhline(fit.rms_px, color="0.3", lw=1, ls="--")
+    bars.set_xlabel("view")
+    bars.set_ylabel("reprojection RMS (px)")
+    bars.set_title(f"every view (dashed: all, {fit.rms_px:.3f} px)", fontsize=9)
+    field_ax = fig.add_subplot(grid[1, 1:])
+    c = np.concatenate(fit.corners_px)
+    e = np.concatenate(fit.reprojected_px) - c
+    field_ax.quiver(c[:, 0], c[:, 1], e[:, 0], e[:, 1], np.hypot(e[:, 0], e[:, 1]),
+                    angles="xy", scale_units="xy", scale=1 / 50.0, cmap="viridis", width=0.003)
+    h, w = np.asarray(images[0]).shape[:2]
+    field_ax.set_xlim(0, w)
+    field_ax.set_ylim(h, 0)
+    field_ax.set_aspect("equal")
+    field_ax.set_title("reprojection error over the image (arrows x50)", fontsize=9)
+    fig.suptitle(f"{camera}: fx {fit.fx_px:.2f} px, k1 {fit.distortion[0]:.4f}, RMS "
+                 f"{fit.rms_px:.3f} px over {fit.n_used} views ({fit.n_rejected} without the "
+                 "board)", fontsize=10)
     save_figure(fig, path)

@@ -82,6 +82,11 @@ class DeviceFit:
         Each used view's RMS, px.
     n_used, n_rejected : int
         Views whose board was found, and views without one (never silently dropped).
+    corners_px, reprojected_px : list of (K, 2) ndarray
+        Each used view's corners as found and as the fit reprojects them, px (for the
+        figures: :func:`restoration.figures.calibration_figure`).
+    views : list of int
+        Each used view's index among the images given.
     """
 
     fx_px: float
@@ -94,6 +99,9 @@ class DeviceFit:
     view_rms_px: list[float] = field(default_factory=list)
     n_used: int = 0
     n_rejected: int = 0
+    corners_px: list[NDArray[np.float32]] = field(default_factory=list, repr=False)
+    reprojected_px: list[NDArray[np.float64]] = field(default_factory=list, repr=False)
+    views: list[int] = field(default_factory=list, repr=False)
 
     def to_config_keys(self, device: str, dev: DeviceConfig) -> dict[str, Any]:
         """The configuration keys of ``device`` (its section ``dev`` gives the image size
@@ -153,9 +161,9 @@ def calibrate_device(images: Sequence[NDArray], board: BoardSpec | Any,
     """
     board = BoardSpec(int(board.cols), int(board.rows), float(board.square_mm))
     h, w = image_size
-    obj, img_pts = [], []
+    obj, img_pts, used = [], [], []
     rejected = 0
-    for image in images:
+    for k, image in enumerate(images):
         if np.shape(image)[:2] != (h, w):
             raise WaiInputError(f"checkerboard image is {np.shape(image)[:2]}, not {(h, w)}")
         corners = find_corners(image, board)
@@ -164,6 +172,7 @@ def calibrate_device(images: Sequence[NDArray], board: BoardSpec | Any,
             continue
         obj.append(board.corners_mm())
         img_pts.append(corners.astype(np.float32))
+        used.append(k)
     if len(obj) < min_views:
         raise WaiInputError(
             f"the board ({board.cols}x{board.rows} inner corners) was found in {len(obj)} of "
@@ -171,10 +180,12 @@ def calibrate_device(images: Sequence[NDArray], board: BoardSpec | Any,
         )
     flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_K3
     k0 = np.array([[1.0, 0.0, (w - 1) / 2.0], [0.0, 1.0, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
-    rms, k, dist, _, _, std_in, _, per_view = cv2.calibrateCameraExtended(
+    rms, k, dist, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(
         obj, img_pts, (w, h), k0, np.zeros(5), flags=flags,
     )
     std = std_in.ravel()
+    reprojected = [cv2.projectPoints(o, r, t, k, dist)[0].reshape(-1, 2)
+                   for o, r, t in zip(obj, rvecs, tvecs, strict=True)]
     dist = np.asarray(dist, float).ravel()[:5]
     return DeviceFit(
         float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), dist,
@@ -182,6 +193,7 @@ def calibrate_device(images: Sequence[NDArray], board: BoardSpec | Any,
         {name: float(std[i]) for i, name in
          ((1, "fx_px"), (2, "cx_px"), (3, "cy_px"), (4, "k1"), (5, "k2"), (6, "p1"), (7, "p2"))},
         float(rms), [float(v) for v in np.ravel(per_view)], len(obj), rejected,
+        [c.reshape(-1, 2) for c in img_pts], reprojected, used,
     )
 
 

@@ -84,6 +84,7 @@ def run_calibrate(args: argparse.Namespace) -> None:
     from wai_core.system import load_system
 
     check_rig_output(args.out)
+    figures = _figures_folder(args)
     if not args.dir.is_dir():
         raise WaiInputError(f"calibration folder not found: {args.dir}")
     flat_image = None if args.flat is None else _read_flat(args.flat)
@@ -98,12 +99,12 @@ def run_calibrate(args: argparse.Namespace) -> None:
         if not paths:
             raise WaiInputError(f"{folders[camera]}: no images ({', '.join(IMAGE_SUFFIXES)})")
     wet = _port_folders(args.dir, files, cfg)
-    fits = {}
+    fits, views = {}, {}
     for camera, paths in tqdm(files.items(), desc="calibrate", unit="camera",
                               disable=args.quiet):
         dev = getattr(cfg, camera)
-        images = [read_image(p) for p in paths]
-        fits[camera] = calibrate_device(images, board, (dev.height_px, dev.width_px))
+        views[camera] = [read_image(p) for p in paths]
+        fits[camera] = calibrate_device(views[camera], board, (dev.height_px, dev.width_px))
     ports = {}
     for camera, paths in tqdm(wet.items(), desc="ports", unit="camera", disable=args.quiet):
         dev = getattr(cfg, camera)
@@ -123,6 +124,8 @@ def run_calibrate(args: argparse.Namespace) -> None:
         write_rig(args.out, fits, devices, board, flat, ports)
     except OSError as exc:
         raise WaiInputError(f"--out {args.out}: {exc.strerror or exc}") from None
+    if figures is not None:
+        _write_figures(figures, fits, views)
     for camera, fit in fits.items():
         s = fit.sigma
         k1, k2 = fit.distortion[:2]
@@ -144,6 +147,31 @@ def run_calibrate(args: argparse.Namespace) -> None:
               "spots")
     print("not determined: " + "; ".join(UNDETERMINED + (PORT_UNDETERMINED if ports else ())))
     print(f"rig file: {args.out} (wai restore DIR --rig {args.out})")
+    if figures is not None:
+        print(f"figures: {figures} (the corners found and reprojected, each view's error; "
+              "index.html)")
+
+
+def _figures_folder(args: argparse.Namespace) -> Path | None:
+    """The figures' folder (``--figures``, by default ``<rig file>_figures`` beside it; None
+    with ``--no-figures``), checked before any work."""
+    from wai_core.outputs import check_output_dir
+
+    if args.no_figures:
+        return None
+    folder = args.figures or args.out.with_name(args.out.stem + "_figures")
+    return check_output_dir(folder, "calibrate", label=f"--figures {folder}",
+                            remedy="name another folder with --figures, or --no-figures")
+
+
+def _write_figures(folder: Path, fits: dict[str, Any], views: dict[str, list]) -> None:
+    """Each camera's calibration figure into ``folder`` (written whole, with its index.html)."""
+    from restoration.figures import calibration_figure
+    from wai_core.outputs import atomic_dir
+
+    with atomic_dir(folder, command="calibrate") as tmp:
+        for camera, fit in fits.items():
+            calibration_figure(views[camera], fit, camera, tmp / f"{camera}.png")
 
 
 def _port_folders(root: Path, files: dict[str, list[Path]], cfg: Any) -> dict[str, list[Path]]:
@@ -252,6 +280,13 @@ def add_calibrate(sub: argparse._SubParsersAction, formatter: type, scene_help: 
         "principal point on its spots, with --config's poses and diffuser (default: none, "
         "the checkerboards' values)",
     )
+    p.add_argument(
+        "--figures", type=Path, default=None,
+        help="folder for the figures: each camera's views with the corners found and "
+        "reprojected, each view's error and the error over the image (default: the rig "
+        "file's name with _figures, beside it)",
+    )
+    p.add_argument("--no-figures", action="store_true", help="write the rig file only")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_calibrate)
 

@@ -160,3 +160,36 @@ def test_an_unreadable_flat_image_is_one_line_without_the_decoders_noise(boards,
     assert (code, len(err)) == (2, 1), err
     assert err[0].startswith(f"wai: error: --flat {flat} is not a readable PNG image")
     assert not (tmp_path / "rig.json").exists()
+
+
+def test_calibrate_draws_each_cameras_corners_and_errors_beside_the_rig_file(boards, tmp_path,
+                                                                            capfd):
+    from html.parser import HTMLParser
+
+    rig = tmp_path / "rig.json"
+    code, err, out = _calibrate(capfd, boards, "--out", rig)
+    assert (code, err) == (0, [])
+    figures = tmp_path / "rig_figures"
+    assert sorted(p.name for p in figures.iterdir()) == [
+        ".wai-output.json", "camera_s.png", "camera_v.png", "index.html"]
+    assert f"figures: {figures}" in out
+
+    class Images(HTMLParser):
+        found: list = []
+
+        def handle_starttag(self, tag, attrs):
+            if tag == "img":
+                self.found.append(dict(attrs)["src"])
+
+    page = Images()
+    page.feed((figures / "index.html").read_text())
+    assert sorted(page.found) == ["camera_s.png", "camera_v.png"]
+    again = tmp_path / "again.json"
+    code, err, _ = _calibrate(capfd, boards, "--out", again, "--no-figures")
+    assert (code, err) == (0, []) and not (tmp_path / "again_figures").exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    code, err, _ = _calibrate(capfd, boards, "--out", tmp_path / "third.json", "--figures", mine)
+    assert code == 2 and len(err) == 1 and "--figures" in err[0]
+    assert not (tmp_path / "third.json").exists()  # refused before any work
