@@ -432,7 +432,7 @@ def atomic_dir(
         yield tmp
         raise_if_interrupted()
         if command is not None:
-            write_report(tmp, title=f"{final.name} ({command})")
+            write_report(tmp, title=f"{final.name}: wai {command}")
             names = sorted(p.name for p in tmp.iterdir() if p.name != OUTPUT_MARKER)
             _write_marker(tmp, command, names)
             check_output_dir(final, command, overwrite, remedy=remedy)  # it may have changed

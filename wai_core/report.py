@@ -1,10 +1,10 @@
 """A run's report: ``index.html`` in every output folder, gathering what the run made.
 
 One self-contained page (no server, no script, no file from elsewhere): the command that made
-the folder, the run's summary (the scalar values of its record, ``metrics.json``,
-``*_summary.json``, ``bench.json`` or ``scene.json``), its Markdown report as written, every
-figure (``*.png`` of the folder and of the folders it holds, by relative links, each with its
-name as caption), and a list of its other files. Opening the file in a browser is all it
+the folder, every figure (``*.png`` of the folder and of the folders it holds, by relative
+links, each with its name as caption), its Markdown report as written, the run's summary (the
+scalar values of its record, ``metrics.json``, ``*_summary.json``, ``bench.json`` or
+``scene.json``), and a list of its other files. Opening the file in a browser is all it
 takes.
 
 Examples
@@ -119,21 +119,22 @@ def write_report(folder: str | Path, command: str | None = None,
              f"<title>{esc(title or folder.name)}</title><style>{_STYLE}</style></head><body>",
              f"<h1>{esc(title or folder.name)}</h1>",
              f"<p>Made by <code>{esc(command)}</code></p>"]
-    source, rows = _summary(folder)
-    if rows:
-        parts.append(f"<h2>Summary <small>({esc(source or '')})</small></h2><table>")
-        parts += [f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in rows]
-        parts.append("</table>")
-    for md in sorted(folder.glob("*.md")):
-        parts.append(f"<h2>{esc(md.name)}</h2><pre>{esc(md.read_text(errors='replace'))}</pre>")
     figures = _figures(folder)
     if figures:
         parts.append("<h2>Figures</h2>")
         for fig in figures:
             rel = fig.relative_to(folder).as_posix()
             parts.append(f"<figure><a href=\"{esc(rel)}\"><img src=\"{esc(rel)}\" "
-                         f"alt=\"{esc(rel)}\" loading=\"lazy\"></a>"
+                         f"alt=\"{esc(rel)}\"></a>"
                          f"<figcaption>{esc(rel)}</figcaption></figure>")
+    for md in sorted(folder.glob("*.md")):
+        parts.append(f"<h2>{esc(md.name)}</h2><pre>{esc(md.read_text(errors='replace'))}</pre>")
+    source, rows = _summary(folder)
+    if rows:
+        parts.append(f"<details open><summary><b>Summary</b> ({esc(source or '')}: its "
+                     f"values)</summary><table>")
+        parts += [f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in rows]
+        parts.append("</table></details>")
     page = folder / REPORT_FILE
     others = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
                     if p.is_file() and p.suffix != ".png" and p != page

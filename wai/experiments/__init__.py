@@ -362,3 +362,7 @@ def run_experiment(name: str, config: str | Path = "paper", out: str | Path | No
         raise WaiInputError(f"experiment {name}: takes no --method")
     else:
         exp.run(*args)
+    if out.is_dir():  # the folder's page, with every figure and table the run left there
+        from wai_core.report import write_report
+
+        write_report(out, title=f"{out.name}: wai experiment {name}")
