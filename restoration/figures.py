@@ -37,6 +37,7 @@ __all__ = [
     "save_figure",
     "side_by_side",
     "views_figure",
+    "zoom_box",
 ]
 
 
@@ -49,16 +50,50 @@ def save_figure(fig: plt.Figure, path: str | Path) -> None:
     os.replace(tmp, path)
 
 
+def zoom_box(image: NDArray, fraction: float = 0.2) -> tuple[slice, slice]:
+    """Rows and columns (a box ``fraction`` of the image's size) centred on the image's
+    light: where a detail is worth a closer look."""
+    lum = np.asarray(image, float)
+    lum = lum.sum(axis=2) if lum.ndim == 3 else lum
+    h, w = lum.shape
+    total = lum.sum()
+    if total > 0:
+        cy = float((lum.sum(axis=1) * np.arange(h)).sum() / total)
+        cx = float((lum.sum(axis=0) * np.arange(w)).sum() / total)
+    else:
+        cy, cx = h / 2.0, w / 2.0
+    bh, bw = max(int(h * fraction), 8), max(int(w * fraction), 8)
+    r0 = int(np.clip(cy - bh / 2, 0, h - bh))
+    c0 = int(np.clip(cx - bw / 2, 0, w - bw))
+    return slice(r0, r0 + bh), slice(c0, c0 + bw)
+
+
 def side_by_side(
-    images: list[NDArray], titles: list[str], path: str | Path, exposures: list[float | None]
+    images: list[NDArray], titles: list[str], path: str | Path, exposures: list[float | None],
+    zoom: float | None = 0.2,
 ) -> None:
-    """Linear images next to each other with titles, tone-mapped for display."""
-    fig, axes = plt.subplots(1, len(images), figsize=(5 * len(images), 4))
-    panels = zip(np.atleast_1d(axes), images, titles, exposures, strict=True)
-    for ax, img, title, exposure in panels:
-        ax.imshow(to_srgb8(img, exposure))
+    """Linear images next to each other with titles, tone-mapped for display; with ``zoom``, a
+    second row shows the same box of each (``zoom`` of the image's size, centred on the first
+    image's light, :func:`zoom_box`), outlined in the first row."""
+    from matplotlib.patches import Rectangle
+
+    rows = 2 if zoom else 1
+    fig, axes = plt.subplots(rows, len(images), figsize=(5 * len(images), 4 * rows),
+                             squeeze=False)
+    box = zoom_box(images[0], zoom) if zoom else None
+    panels = zip(axes[0], images, titles, exposures, strict=True)
+    for k, (ax, img, title, exposure) in enumerate(panels):
+        shown = to_srgb8(img, exposure)
+        ax.imshow(shown)
         ax.set_title(title)
         ax.set_axis_off()
+        if box is not None:
+            r, c = box
+            ax.add_patch(Rectangle((c.start, r.start), c.stop - c.start, r.stop - r.start,
+                                   fill=False, edgecolor="tab:orange", lw=1.5))
+            axes[1, k].imshow(shown[r, c], interpolation="nearest")
+            axes[1, k].set_title(f"the outlined box, {1 / zoom:.0f}x", fontsize=9)
+            axes[1, k].set_axis_off()
     save_figure(fig, path)
 
 

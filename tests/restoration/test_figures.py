@@ -64,3 +64,11 @@ def test_the_bench_chart_nests_parts_under_their_stage_and_drops_zero_bars():
     assert [r[0] for r in rows] == ["surface", "surface.integrate", "view"]
     assert rows[1][2] and rows[1][1].strip().endswith("integrate")
     assert all(stages[r[0]]["median_ms"] >= CHART_MIN_MS for r in rows)
+
+
+def test_the_zoom_box_sits_on_the_images_light():
+    img = np.zeros((100, 200), np.float32)
+    img[60:70, 150:160] = 1.0
+    rows, cols = figures.zoom_box(img, 0.2)
+    assert (rows.stop - rows.start, cols.stop - cols.start) == (20, 40)
+    assert rows.start <= 60 and rows.stop >= 70 and cols.start <= 150 and cols.stop >= 160

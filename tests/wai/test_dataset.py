@@ -343,3 +343,16 @@ def test_a_real_full_disk_ends_in_one_line_not_a_crash(tmp_path: Path) -> None:
             assert int(f.attrs["frames"]) == 0
     finally:
         subprocess.run(["umount", str(disk)], check=True)
+
+
+def test_a_store_has_its_preview_and_its_page(store: Path) -> None:
+    import re
+
+    from wai_core.outputs import output_marker
+
+    names = {p.name for p in store.iterdir()}
+    assert {"preview.png", "index.html", DATASET_FILE} <= names
+    assert (store / "preview.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    page = (store / "index.html").read_text()
+    assert re.findall(r'<img[^>]+src="([^"]+)"', page) == ["preview.png"]
+    assert set(output_marker(store)["files"]) >= {"preview.png", "index.html"}

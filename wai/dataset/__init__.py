@@ -31,7 +31,7 @@ from wai.dataset.records import ARRAYS, FrameRecord, read_frame, read_manifest, 
 from wai.dataset.spec import DatasetSpec, FrameParams, Ranges, frame_config, sample_params
 from wai.dataset.store import DATASET_FILE, MANIFEST_FILE
 from wai.dataset.truth import true_view_warp
-from wai.dataset.write import write_dataset
+from wai.dataset.write import write_dataset, write_preview
 
 __all__ = [
     "ARRAYS",
@@ -49,4 +49,5 @@ __all__ = [
     "sample_params",
     "true_view_warp",
     "write_dataset",
+    "write_preview",
 ]

@@ -27,9 +27,9 @@ from typing import Any
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 
-__all__ = ["COMMAND", "DATASET_FILE", "FORMAT", "MANIFEST_FILE", "check_dataset_folder",
-           "check_dataset_memory", "close_store", "create_store", "mark_dataset_folder",
-           "reserve_space", "write_manifest"]
+__all__ = ["COMMAND", "DATASET_FILE", "FOLDER_FILES", "FORMAT", "MANIFEST_FILE", "PREVIEW_FILE",
+           "check_dataset_folder", "check_dataset_memory", "close_store", "create_store",
+           "mark_dataset_folder", "reserve_space", "write_manifest"]
 
 COMMAND = "dataset"
 """The command a dataset folder's marker names."""
@@ -37,6 +37,10 @@ DATASET_FILE = "dataset.h5"
 """The store, in the dataset folder."""
 MANIFEST_FILE = "manifest.csv"
 """The frames' parameters as a table, beside the store."""
+PREVIEW_FILE = "preview.png"
+"""A look at the store's first frames (:func:`wai.dataset.write.write_preview`)."""
+FOLDER_FILES = (DATASET_FILE, MANIFEST_FILE, PREVIEW_FILE, "index.html")
+"""Everything ``wai dataset`` writes in its folder."""
 FORMAT = "wai-dataset/1"
 """The ``format`` attribute of a store ``wai dataset`` wrote (what a rerun looks for)."""
 WARP_BYTES_PER_PX = 50
@@ -49,8 +53,8 @@ the runs' log)."""
 
 
 def _unmarked_store(out: Path) -> bool:
-    """A dataset folder written before folders were marked: a store of ``wai dataset`` and its
-    manifest, nothing else."""
+    """A dataset folder without its marker (written before folders were marked): a store of
+    ``wai dataset`` and the files it writes beside it, nothing else."""
     import h5py
 
     from wai_core.outputs import output_marker
@@ -58,7 +62,7 @@ def _unmarked_store(out: Path) -> bool:
     if not out.is_dir() or out.is_symlink() or output_marker(out) is not None:
         return False
     names = {p.name for p in out.iterdir()}
-    if DATASET_FILE not in names or not names <= {DATASET_FILE, MANIFEST_FILE}:
+    if DATASET_FILE not in names or not names <= set(FOLDER_FILES):
         return False
     try:
         with h5py.File(out / DATASET_FILE, "r") as f:
@@ -106,7 +110,7 @@ def mark_dataset_folder(out: Path) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
         if output_marker(out) is None:
-            mark_output(out, COMMAND, [DATASET_FILE, MANIFEST_FILE])
+            mark_output(out, COMMAND, list(FOLDER_FILES))
     except OSError as exc:
         raise WaiInputError(f"--out {out}: {exc.strerror or exc}") from None
 

@@ -101,6 +101,55 @@ def write_dataset(
         rewrite_manifest(f, out / MANIFEST_FILE)
     finally:
         store.close_store(f)
+    write_preview(out)
+    # The folder's page; the marker names every file (a store written before the preview had
+    # only the two).
+    from wai_core.outputs import mark_output
+    from wai_core.report import write_report
+
+    write_report(out, title=f"{out.name}: wai dataset")
+    mark_output(out, store.COMMAND, list(store.FOLDER_FILES))
+    return path
+
+
+def write_preview(out_dir: str | Path, frames: int = 4) -> Path:
+    """``preview.png`` of a dataset folder: its first ``frames`` frames, each as camera v's
+    view through the waves and its truth, camera s's pattern, the height map and the warp's
+    length (what a training loader reads: :func:`~wai.dataset.read_frame`).
+
+    Examples
+    --------
+    >>> write_preview("datasets/d1")                  # doctest: +SKIP
+    PosixPath('datasets/d1/preview.png')
+    """
+    import numpy as np
+
+    from restoration.figures import plt, save_figure
+    from wai.dataset.records import read_frame, read_manifest
+    from wai_core.io import to_srgb8
+
+    out = Path(out_dir)
+    n = min(frames, len(read_manifest(out)))
+    fig, axes = plt.subplots(max(n, 1), 5, figsize=(17, 2.9 * max(n, 1)), squeeze=False)
+    for k in range(n):
+        rec = read_frame(out, k)
+        p = rec.params
+        panels = [
+            ("view", to_srgb8(np.asarray(rec.view, np.float32), 1.0), None),
+            ("view_truth", to_srgb8(np.asarray(rec.view_truth, np.float32), 1.0), None),
+            ("pattern", to_srgb8(np.asarray(rec.pattern, np.float32), 10.0), None),
+            ("height_mm", rec.height_mm, "viridis"),
+            ("|warp_px|", np.hypot(rec.warp_px[..., 0], rec.warp_px[..., 1]), "magma"),
+        ]
+        for ax, (name, img, cmap) in zip(axes[k], panels, strict=True):
+            im = ax.imshow(img, cmap=cmap)
+            if cmap is not None:
+                fig.colorbar(im, ax=ax, fraction=0.04)
+            ax.set_title(f"frame {k}: {name}" if name != "view" else
+                         f"frame {k}: view (U {p.wind_speed_m_s:.2f} m/s)", fontsize=8)
+            ax.set_axis_off()
+    path = out / store.PREVIEW_FILE
+    save_figure(fig, path)
     return path
 
 
