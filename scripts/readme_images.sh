@@ -12,4 +12,6 @@ done
 for f in distorted_vs_restored.png error_map.png profile.png; do
   cp "renders/readme/restore/$f" docs/images/
 done
+.venv/bin/wai dataset --frames 4 --size 160x120 --spp 1 --seed 7 --out renders/readme_dataset --quiet
+cp renders/readme_dataset/preview.png docs/images/dataset_preview.png
 echo "readme images: docs/images/"

@@ -114,8 +114,8 @@ def write_dataset(
 
 def write_preview(out_dir: str | Path, frames: int = 4) -> Path:
     """``preview.png`` of a dataset folder: its first ``frames`` frames, each as camera v's
-    view through the waves and its truth, camera s's pattern, the height map and the warp's
-    length (what a training loader reads: :func:`~wai.dataset.read_frame`).
+    view through the waves and its truth, camera s's pattern, the height map and how far the
+    warp moves each pixel (what a training loader reads: :func:`~wai.dataset.read_frame`).
 
     Examples
     --------
@@ -130,7 +130,7 @@ def write_preview(out_dir: str | Path, frames: int = 4) -> Path:
 
     out = Path(out_dir)
     n = min(frames, len(read_manifest(out)))
-    fig, axes = plt.subplots(max(n, 1), 5, figsize=(17, 2.9 * max(n, 1)), squeeze=False)
+    fig, axes = plt.subplots(max(n, 1), 5, figsize=(13, 2.3 * max(n, 1)), squeeze=False)
     for k in range(n):
         rec = read_frame(out, k)
         p = rec.params
@@ -139,7 +139,7 @@ def write_preview(out_dir: str | Path, frames: int = 4) -> Path:
             ("view_truth", to_srgb8(np.asarray(rec.view_truth, np.float32), 1.0), None),
             ("pattern", to_srgb8(np.asarray(rec.pattern, np.float32), 10.0), None),
             ("height_mm", rec.height_mm, "viridis"),
-            ("|warp_px|", np.hypot(rec.warp_px[..., 0], rec.warp_px[..., 1]), "magma"),
+            ("warp: pixels moved", _moved_px(rec.warp_px), "magma"),
         ]
         for ax, (name, img, cmap) in zip(axes[k], panels, strict=True):
             im = ax.imshow(img, cmap=cmap)
@@ -164,3 +164,10 @@ def _record_run(f: Any, first: int, frames: int, seconds: float, renderers: str)
         "reference": ref["workload"], "reference_ms": ref["median_ms"]}])
 
 
+def _moved_px(warp_px: Any) -> Any:
+    """How far the warp (H, W, 2: each pixel's flat-water coordinates) moves each pixel, px."""
+    import numpy as np
+
+    h, w = warp_px.shape[:2]
+    rows, cols = np.mgrid[0:h, 0:w]
+    return np.hypot(warp_px[..., 0] - cols, warp_px[..., 1] - rows)
