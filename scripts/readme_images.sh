@@ -6,7 +6,7 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 .venv/bin/wai demo --out renders/readme --quiet
 mkdir -p docs/images
-for f in pattern_flat_vs_wavy.png view_flat_vs_wavy.png fig10_surface.png; do
+for f in rig.png pattern_flat_vs_wavy.png view_flat_vs_wavy.png fig10_surface.png; do
   cp "renders/readme/$f" docs/images/
 done
 for f in distorted_vs_restored.png error_map.png profile.png; do

@@ -137,7 +137,8 @@ def sweep_figure(
 
 
 def render_overview(render_dir: Path, cfg: SystemConfig, view_gain: float) -> None:
-    """Fig. 10 (the simulated surface) and flat-vs-wavy pattern and view, into ``render_dir``."""
+    """Fig. 10 (the simulated surface), flat-vs-wavy pattern and view, and the rig's diagram,
+    into ``render_dir``."""
     from wai_core.heightfield import load_heightfield
     from wai_core.io import read_exr
 
@@ -165,4 +166,69 @@ def render_overview(render_dir: Path, cfg: SystemConfig, view_gain: float) -> No
         render_dir / "view_flat_vs_wavy.png",
         [1 / view_gain, 1 / view_gain],
     )
+    rig_figure(cfg, render_dir / "rig.png")
     write_report(render_dir)  # the folder's index.html, with these figures
+
+
+def rig_figure(cfg: SystemConfig, path: str | Path, rays: int = 5) -> None:
+    """The rig's two systems in its x-z plane (y = 0), drawn from the configuration: the
+    projector's dots reflected by flat water onto the diffuser that camera s images (system
+    S), and camera v's rays refracted up to the object (system V), with each device's
+    centre, axis and field of view. Lengths in mm, z up."""
+    from wai_core.geometry import intersect_plane_z, refract
+    from wai_core.layout import flat_pattern_hits
+
+    rig = cfg.rig
+    h0, zd = cfg.water.h0_mm, cfg.diffuser.z_mm
+    fig, ax = plt.subplots(figsize=(10, 5.6))
+    q, s_hit, seen = flat_pattern_hits(cfg)
+    mid = seen & (np.abs(q[:, 1]) < 0.5 * np.abs(q[seen, 1]).max() / 4 + 1e-9)
+    chosen = np.flatnonzero(mid)
+    chosen = chosen[np.linspace(0, len(chosen) - 1, min(rays, len(chosen))).astype(int)]
+    p_c = rig.projector.pose.center_lab_mm
+    s_c = rig.camera_s.pose.center_lab_mm
+    for k in chosen:
+        ax.plot([p_c[0], q[k, 0], s_hit[k, 0]], [p_c[2], q[k, 2], s_hit[k, 2]], "-",
+                color="tab:cyan", lw=0.9)
+        ax.plot([s_hit[k, 0], s_c[0]], [s_hit[k, 2], s_c[2]], ":", color="tab:cyan", lw=0.9)
+    cam_v = rig.camera_v
+    cols = np.linspace(0, cam_v.width_px - 1, rays)
+    o, d = cam_v.pixel_rays(cols, np.full(rays, (cam_v.height_px - 1) / 2.0))
+    o = np.broadcast_to(o, d.shape)
+    w, _ = intersect_plane_z(o, d, h0)
+    up, tir = refract(d, np.array([0.0, 0.0, 1.0]), cfg.water.n_water)
+    ok = ~tir
+    z_obj = rig.object_center_mm[2]
+    top, _ = intersect_plane_z(w, up, z_obj)
+    for i in np.flatnonzero(ok):
+        ax.plot([o[i, 0], w[i, 0], top[i, 0]], [o[i, 2], w[i, 2], top[i, 2]], "-",
+                color="tab:orange", lw=0.9)
+    span = np.array([min(p_c[0], s_c[0], o[:, 0].min(), rig.diffuser_rect[0][0]) - 60,
+                     max(s_c[0], o[:, 0].max(), rig.diffuser_rect[0][1]) + 60])
+    ax.axhline(h0, color="tab:blue", lw=1.5)
+    ax.text(span[0] + 5, h0 + 6, f"mean water level h0 = {h0:g} mm", color="tab:blue",
+            fontsize=8)
+    rect = rig.diffuser_rect
+    ax.plot(rect[0], [zd, zd], color="0.3", lw=4, solid_capstyle="butt")
+    ax.text(rect[0][1] + 6, zd - 4, f"diffuser\nz = {zd:g} mm", fontsize=8, color="0.3",
+            va="center")
+    top_z = h0 + 140
+    ax.text(span[0] + 5, top_z - 18, f"to the object (the checkerboard), "
+            f"{z_obj - h0:g} mm above the water", fontsize=8, color="tab:orange")
+    for name, color in (("projector", "tab:cyan"), ("camera_s", "tab:cyan"),
+                        ("camera_v", "tab:orange")):
+        dev = rig.device(name)
+        c, axis = dev.pose.center_lab_mm, dev.pose.axis_lab
+        ax.plot(c[0], c[2], "s", color=color, ms=9, mec="k", zorder=3)
+        ax.annotate("", xy=(c[0] + 40 * axis[0], c[2] + 40 * axis[2]), xytext=(c[0], c[2]),
+                    arrowprops={"arrowstyle": "->", "color": "k"})
+        ax.text(c[0], c[2] - 24, name.replace("_", " "), fontsize=9, ha="center")
+    ax.set_xlim(*span)
+    ax.set_ylim(min(p_c[2], s_c[2], o[:, 2].min()) - 40, top_z)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("z (mm)")
+    ax.set_title("The rig in its x-z plane: system S (cyan: projector -> water -> diffuser, "
+                 "seen by camera s) and\nsystem V (orange: camera v's rays refracted up to the "
+                 "object), from the configuration", fontsize=9)
+    save_figure(fig, path)

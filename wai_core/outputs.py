@@ -57,7 +57,7 @@ _LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?:tmp|old)-(?P<pid>\d+)(?:-[A-Za-z0-9
 # renders): the folder stays the tool's own. Code that adds others calls register_output_files.
 _ADDED_LATER: dict[str, frozenset[str]] = {
     "render": frozenset({"fig10_surface.png", "pattern_flat_vs_wavy.png", "view_flat_vs_wavy.png",
-                         "bench.json", "bench.png"}),
+                         "rig.png", "bench.json", "bench.png"}),
 }
 
 

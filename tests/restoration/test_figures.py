@@ -72,3 +72,23 @@ def test_the_zoom_box_sits_on_the_images_light():
     rows, cols = figures.zoom_box(img, 0.2)
     assert (rows.stop - rows.start, cols.stop - cols.start) == (20, 40)
     assert rows.start <= 60 and rows.stop >= 70 and cols.start <= 150 and cols.stop >= 160
+
+
+def test_the_rig_diagram_puts_each_device_where_the_configuration_does(tmp_path):
+    from unittest import mock
+
+    from wai import figures as wai_figures
+    from wai_core import load_system
+
+    cfg = load_system("paper")
+    drawn = {}
+    with mock.patch.object(wai_figures, "save_figure", lambda fig, path: drawn.update(fig=fig)):
+        wai_figures.rig_figure(cfg, tmp_path / "rig.png")
+    ax = drawn["fig"].axes[0]
+    squares = [line.get_xydata()[0] for line in ax.lines if line.get_marker() == "s"]
+    for name, point in zip(("projector", "camera_s", "camera_v"), squares, strict=True):
+        c = cfg.rig.device(name).pose.center_lab_mm
+        np.testing.assert_allclose(point, [c[0], c[2]], atol=1e-9)
+    assert abs(np.mean([t.get_position()[1] for t in ax.texts if "water level" in t.get_text()])
+               - cfg.water.h0_mm) < 10
+    plt.close(drawn["fig"])
