@@ -78,12 +78,20 @@ def run_restore_video(args: argparse.Namespace) -> None:
     target = Path(args.out) if args.out is not None else out_folder(path, args.method)
     check_output_dir(target, "restore", remedy="choose another --out")
     frames, shape, loader_bytes = _views(path)
+    first: list[Any] = []  # the first frame as captured, for the before/after figure
+
+    def keeping_first(it: Any) -> Any:
+        for k, frame in enumerate(it):
+            if k == 0:
+                first.append(np.array(frame, copy=True))
+            yield frame
+
     if args.method == "mean":
-        res = video.streamed_mean(frames)
+        res = video.streamed_mean(keeping_first(frames))
     else:
         _check_memory(path, args.method, shape, loader_bytes)
         run = {"registration": video.register_frames, "lucky": video.lucky_fusion}
-        res = run[args.method](np.stack(list(frames)))
+        res = run[args.method](np.stack(list(keeping_first(frames))))
     metrics: dict[str, Any] = {
         "method": res.method, "source": str(path), "frames": int(res.frames_used),
         "ms_per_frame": float(res.ms_per_frame), "valid_fraction": float(res.valid.mean()),
@@ -100,6 +108,12 @@ def run_restore_video(args: argparse.Namespace) -> None:
         write_png(tmp / "restored.png", image, exposure=1.0)
         write_png(tmp / "restored_mask.png", (res.valid * np.uint8(255)).astype(np.uint8))
         write_json(tmp / "metrics.json", metrics)
+        if first:
+            from restoration.figures import side_by_side
+
+            side_by_side([first[0], image], ["the first frame, as captured",
+                                             f"restored: {res.method}, {res.frames_used} frames"],
+                         tmp / "before_after.png", [None, None])
     print(f"{res.method}: {res.frames_used} frames fused in {res.ms_per_frame:.1f} ms per frame; "
           f"{metrics['valid_fraction']:.0%} of the pixels valid; wrote {target}")
     if "checkerboard" in metrics:

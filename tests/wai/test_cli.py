@@ -141,6 +141,9 @@ def test_a_video_too_long_for_the_memory_is_refused_before_reading(tmp_path, cap
 
     np.testing.assert_allclose(read_exr(tmp_path / "m" / "restored.exr"),
                                read_frames(clip).mean(axis=0), atol=1e-6)
+    # The before/after figure and the folder's page, which shows it.
+    assert (tmp_path / "m" / "before_after.png").read_bytes()[:4] == b"\x89PNG"
+    assert 'src="before_after.png"' in (tmp_path / "m" / "index.html").read_text()
 
 
 def test_an_unknown_method_lists_every_method_a_user_can_name(capsys, tmp_path):
