@@ -44,7 +44,7 @@ from typing import Any
 
 from wai_core.errors import WaiInputError
 from wai_core.io import write_json
-from wai_core.report import write_report
+from wai_core.report import REPORT_FILE, write_report
 from wai_core.signals import _signals_deferred, raise_if_interrupted
 
 OUTPUT_MARKER = ".wai-output.json"
@@ -100,7 +100,8 @@ def _is_nested_output(path: Path) -> bool:
 
 def _marked_names(marker: dict[str, Any]) -> frozenset[str]:
     added = _ADDED_LATER.get(str(marker.get("command")), frozenset())
-    return frozenset(marker.get("files") or ()) | added | {OUTPUT_MARKER}
+    # The folder's page is the tool's own in every output, written or rewritten since.
+    return frozenset(marker.get("files") or ()) | added | {OUTPUT_MARKER, REPORT_FILE}
 
 
 def register_output_files(folder: str | Path, names: list[str]) -> None:

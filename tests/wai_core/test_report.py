@@ -70,3 +70,18 @@ def test_every_tool_output_folder_gets_its_page_and_lists_it(tmp_path):
     assert _parse(out / REPORT_FILE).images == ["figure.png"]
     assert REPORT_FILE in output_marker(out)["files"]
     assert (out / OUTPUT_MARKER).is_file()
+
+
+def test_a_page_added_to_an_older_output_keeps_it_the_tools_own(tmp_path):
+    import json
+
+    from wai_core.outputs import check_output_dir
+
+    out = tmp_path / "out"
+    with atomic_dir(out, command="render") as tmp:
+        (tmp / "a.txt").write_text("a")
+    marker = json.loads((out / OUTPUT_MARKER).read_text())
+    marker["files"] = ["a.txt"]  # as written before folders had a page
+    (out / OUTPUT_MARKER).write_text(json.dumps(marker))
+    write_report(out)  # a later command rewrites the page
+    assert check_output_dir(out, "render") == out  # still replaceable by the next render
