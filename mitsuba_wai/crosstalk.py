@@ -56,6 +56,14 @@ class Crosstalk:
     texture : (H, W, 3) ndarray
         The object's texture (its first row at the object's +y edge, columns along lab +x):
         its albedo.
+
+    Examples
+    --------
+    >>> from mitsuba_wai import FrameRenderer, wave_surface
+    >>> from wai_core import load_system
+    >>> cfg = load_system("paper").replace("crosstalk", enabled=True)
+    >>> renderer = FrameRenderer(cfg, wave_surface(cfg), systems=("view",))
+    >>> view = renderer.render(wave_surface(cfg), 1, which=("view",))["view"]  # doctest: +SKIP
     """
 
     def __init__(self, cfg: SystemConfig, view_scene: Any, texture: NDArray) -> None:

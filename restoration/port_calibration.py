@@ -167,6 +167,21 @@ def calibrate_port(images: Sequence[NDArray], board: BoardSpec | Any, lens: Devi
     WaiInputError
         Fewer than ``min_views`` images show the board, an image has another size, or the
         port's thickness or indices are not physical.
+
+    Examples
+    --------
+    >>> from mitsuba_wai.checkerboards import Board, render_checkerboards
+    >>> from restoration import calibrate_device
+    >>> from wai_core import load_system, with_keys
+    >>> cfg = with_keys(load_system("paper"), {"camera_v.port_thickness_mm": 5.0,
+    ...                                        "camera_v.port_gap_mm": 3.0})
+    >>> size = (600, 800)
+    >>> boards = render_checkerboards(cfg, "camera_v", 10)                 # doctest: +SKIP
+    >>> lens = calibrate_device(boards, Board(), size)                     # doctest: +SKIP
+    >>> wet = render_checkerboards(cfg, "camera_v", 10, seed=4, medium="water")  # doctest: +SKIP
+    >>> fit = calibrate_port(wet, Board(), lens, 5.0, 1.49, 4 / 3, size)  # doctest: +SKIP
+    >>> round(fit.gap_mm, 1)                                               # doctest: +SKIP
+    2.9
     """
     if not (thickness_mm > 0 and port_n >= 1 and n_water >= 1):
         raise WaiInputError(f"port: needs thickness > 0 mm and indices >= 1, not thickness "
