@@ -189,3 +189,32 @@ def test_methods_of_ones_own_that_fail_get_an_error_row_and_the_others_run(tmp_p
     text = report(summarize(rows), "cmd")
     assert f"- {plugin}:Raises failed on 1 of 1 cases: error: WaiInputError: method" in text
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_the_methods_chart_shows_each_methods_spread_over_the_cases(tmp_path, monkeypatch):
+    """Two methods over three cases: each point carries its cases' standard deviation as an
+    error bar, and the axis names this machine's cores, not a fixed machine."""
+    import os
+
+    from matplotlib.container import ErrorbarContainer
+
+    from wai.experiments import compare
+
+    rows = []
+    for method, ssims in (("a", (0.90, 0.92, 0.94)), ("b", (0.70, 0.80, 0.90))):
+        for k, ssim in enumerate(ssims):
+            row = {key: None for key in compare.SCORES}
+            row.update(method=method, method_name=method, status="ok", ssim=ssim,
+                       corner_std_px=0.1 * (k + 1), ms_per_frame=10.0 + k, frames_ok=1,
+                       frames=1)
+            rows.append(row)
+    summary = compare.summarize(rows)
+    assert abs(summary[1]["ssim_sd"] - 0.1) < 1e-12
+    drawn = {}
+    monkeypatch.setattr("matplotlib.figure.Figure.savefig",
+                        lambda fig, path, **kw: drawn.update(fig=fig))
+    compare._figure(summary, tmp_path / "compare.png")
+    ssim_axis = drawn["fig"].axes[1]
+    bars = [c for c in ssim_axis.containers if isinstance(c, ErrorbarContainer)]
+    assert len(bars) == 2
+    assert f"{os.cpu_count()} cores" in ssim_axis.get_xlabel()

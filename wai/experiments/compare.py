@@ -170,6 +170,13 @@ def _mean(values: list[Any]) -> float | None:
     return float(v.mean()) if v.size else None
 
 
+def _sd(values: list[Any]) -> float | None:
+    """The sample standard deviation over the cases (None under two)."""
+    v = np.array([x for x in values if x is not None], float)
+    v = v[np.isfinite(v)]
+    return float(v.std(ddof=1)) if v.size > 1 else None
+
+
 def evaluate(point: dict[str, Any]) -> dict[str, Any]:
     """One sweep point: the method on its case's sequence (rendered beforehand)."""
     folder = Path(point["folder"])
@@ -191,6 +198,8 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                  "cases": len(part), "failed_cases": len(failed),
                  "error": failed[0] if failed else None}
         entry.update({k: _mean([r.get(k) for r in part]) for k in SCORES})
+        entry.update({f"{k}_sd": _sd([r.get(k) for r in part])
+                      for k in ("corner_std_px", "ssim")})
         for k in COUNTS:
             entry[k] = int(sum(int(float(r[k])) for r in part if r.get(k) not in (None, "")))
         out.append(entry)
@@ -199,7 +208,8 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def _figure(summary: list[dict[str, Any]], path: Path) -> None:
     """Speed against accuracy: one marker and colour per method, named in a legend below the
-    panels (labels beside the points overlapped where methods cluster)."""
+    panels (labels beside the points overlapped where methods cluster), the spread over the
+    sequences as error bars."""
     import os
 
     import matplotlib
@@ -215,7 +225,9 @@ def _figure(summary: list[dict[str, Any]], path: Path) -> None:
                  "linestyle": "none", "markersize": 7}
         for ax, key in zip(axes, ("corner_std_px", "ssim"), strict=True):
             if e[key] is not None:
-                ax.plot(e["ms_per_frame"], e[key], label=e["name"], **style)
+                spread = e.get(f"{key}_sd")
+                ax.errorbar(e["ms_per_frame"], e[key], yerr=spread, label=e["name"],
+                            capsize=3, **style)
     axes[0].set_ylabel("corner STD against the truth, px (lower is better)")
     axes[1].set_ylabel("view SSIM against the flat-water view (higher is better)")
     for ax in axes:
@@ -229,7 +241,7 @@ def _figure(summary: list[dict[str, Any]], path: Path) -> None:
         fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 5),
                    fontsize=8, frameon=False)
     fig.suptitle("Speed against accuracy, every method on the same rendered sequences "
-                 "(means over the sequences)")
+                 "(means over the sequences; bars: their standard deviation)")
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
