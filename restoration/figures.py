@@ -29,6 +29,7 @@ __all__ = [
     "draw_corners",
     "draw_error_map",
     "draw_profile",
+    "flat_reference_figure",
     "error_map_figure",
     "mark_not_restored",
     "plt",
@@ -390,4 +391,38 @@ def calibration_figure(images: list[NDArray], fit: Any, camera: str, path: str |
     fig.suptitle(f"{camera}: fx {fit.fx_px:.2f} px, k1 {fit.distortion[0]:.4f}, RMS "
                  f"{fit.rms_px:.3f} px over {fit.n_used} views ({fit.n_rejected} without the "
                  "board)", fontsize=10)
+    save_figure(fig, path)
+
+
+def flat_reference_figure(reference: Any, size_px: tuple[int, int], path: str | Path,
+                          scale: float = 50.0) -> None:
+    """The flat-water reference against the calibration: each detected spot's residual from
+    where the rig predicts it (arrows ``scale`` times their length, coloured by length) over
+    camera s's image of ``size_px`` (H, W), with the RMS the status checks.
+
+    Parameters
+    ----------
+    reference : ReferenceGrid
+        Its ``ref_px``, ``pred_px`` and ``observed`` (:mod:`restoration.features`).
+    size_px : (int, int)
+    path : str or Path
+    scale : float
+    """
+    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    h, w = size_px
+    if reference.pred_px is not None:
+        seen = reference.observed & np.isfinite(reference.pred_px).all(axis=1)
+        at = reference.pred_px[seen]
+        d = reference.ref_px[seen] - at
+        length = np.hypot(d[:, 0], d[:, 1])
+        q = ax.quiver(at[:, 0], at[:, 1], d[:, 0], d[:, 1], length, angles="xy",
+                      scale_units="xy", scale=1.0 / scale, cmap="viridis", width=0.002)
+        fig.colorbar(q, ax=ax, label="detected - predicted (px)")
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("column (px)")
+    ax.set_ylabel("row (px)")
+    ax.set_title(f"Flat-water reference against the calibration: RMS {reference.rms_px:.3f} px "
+                 f"(arrows x{scale:g})", fontsize=10)
     save_figure(fig, path)

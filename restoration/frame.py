@@ -307,6 +307,11 @@ def _write_figures(
         check = result.consistency
         figures.confidence_figure(est, check.residual_map_px, check.threshold_px,
                                   tmp / "confidence.png")
+    reference = getattr(cal, "reference", None)
+    if reference is not None and getattr(reference, "pred_px", None) is not None:
+        cam_s = cal.cfg.camera_s
+        figures.flat_reference_figure(reference, (cam_s.height_px, cam_s.width_px),
+                                      tmp / "flat_reference.png")
     if scores is not None and scores.error_map_mm is not None:
         figures.error_map_figure(est, scores.error_map_mm, tmp / "error_map.png")
         y0 = float(np.nanmedian(result.surface.points_mm[:, 1]))

@@ -92,3 +92,21 @@ def test_the_rig_diagram_puts_each_device_where_the_configuration_does(tmp_path)
     assert abs(np.mean([t.get_position()[1] for t in ax.texts if "water level" in t.get_text()])
                - cfg.water.h0_mm) < 10
     plt.close(drawn["fig"])
+
+
+def test_the_flat_reference_figure_draws_each_spots_residual_from_the_calibration():
+    from types import SimpleNamespace
+    from unittest import mock
+
+    pred = np.array([[100.0, 100.0], [200.0, 150.0], [300.0, 200.0]])
+    ref = SimpleNamespace(pred_px=pred, ref_px=pred + [[0.1, 0.0], [0.0, -0.2], [0.0, 0.0]],
+                          observed=np.array([True, True, False]), rms_px=0.158)
+    drawn = {}
+    with mock.patch.object(figures, "save_figure", lambda fig, path: drawn.update(fig=fig)):
+        figures.flat_reference_figure(ref, (600, 800), "unused.png")
+    ax = drawn["fig"].axes[0]
+    arrows = ax.collections[0]
+    np.testing.assert_allclose(arrows.U, [0.1, 0.0])  # the observed spots only
+    np.testing.assert_allclose(arrows.V, [0.0, -0.2])
+    assert "RMS 0.158 px" in ax.get_title()
+    plt.close(drawn["fig"])
