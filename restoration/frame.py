@@ -356,7 +356,7 @@ def _num(value: Any, spec: str, unit: str = "") -> str:
     return f"{value:{spec}}{unit}"
 
 
-STATUS_DOCS = 'docs/outputs.md, "Frame status"'
+STATUS_DOCS = '`wai guide outputs`, "Frame status"'
 """Where a frame's statuses are explained."""
 
 
@@ -420,7 +420,7 @@ def flat_reference_line(ref: dict[str, Any]) -> str:
     """The flat-water reference's residual (the calibration's check, docs/rig.md), in words."""
     return (f"flat-water reference {ref['rms_px']:.2f} px RMS from the calibration "
             f"({ref['rms_of_spacing']:.1%} of the dot spacing: the flat-water spots against "
-            "where the rig predicts them; docs/rig.md)")
+            "where the rig predicts them; `wai guide rig`)")
 
 
 def rig_line(rig: dict[str, Any]) -> str:

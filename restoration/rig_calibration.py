@@ -36,7 +36,7 @@ RIG_FORMAT = "wai-rig/1"
 (which ``wai restore --rig`` reads alike, and ``wai calibrate --out`` never replaces)."""
 
 UNDETERMINED = (
-    "poses (rotation, translation_mm): measure them in the lab frame (docs/rig.md)",
+    "poses (rotation, translation_mm): measure them in the lab frame (`wai guide rig`)",
     "the projector's intrinsics",
     "the diffuser's height and extent, the water level and index",
 )

@@ -267,7 +267,7 @@ def add_calibrate(sub: argparse._SubParsersAction, formatter: type, scene_help: 
         "the camera (fx = fy, cx, cy, k1, k2, p1, p2). A camera in a housing adds a folder "
         "of the board seen through its port from the water (DIR/camera_v_water/): the gap "
         "behind the port is fitted, its thickness and index taken from --config. Writes a "
-        "rig file for 'wai restore --rig'. See docs/rig.md.",
+        "rig file for 'wai restore --rig'. See 'wai guide rig'.",
     )
     p.add_argument("dir", type=Path, help="folder of camera folders (and board.json)")
     p.add_argument("--out", type=Path, default=Path("rig.json"), help="rig file to write")

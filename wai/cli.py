@@ -153,7 +153,7 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
             q.add_argument("--method", action="append", metavar="SPEC",
                            help="a method of one's own to compare too: module:Class, "
                            "path/to/file.py:Class or an installed entry point (repeatable; "
-                           "docs/methods.md) (default: the built-in ones only)")
+                           "'wai guide methods') (default: the built-in ones only)")
         q.set_defaults(func=_cmd_experiment)
 
 
@@ -217,7 +217,7 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
         "--checkerboards", type=int, default=0, metavar="N",
         help="instead of a frame: N views of a checkerboard per camera through the scene's "
         "true lenses, in air (and through a camera's port in the water where it has one), "
-        "for 'wai calibrate' (docs/rig.md)",
+        "for 'wai calibrate' ('wai guide rig')",
     )
     p.add_argument(
         "--workers", type=int, default=0,
@@ -261,7 +261,7 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "and mean (from a video file, a folder of frames or a sequence; no scene.json), a "
         "method of one's own as module:Class, "
         "or the name an installed package registers (entry points 'wai.methods'; "
-        "docs/methods.md) (default: structured-light)",
+        "'wai guide methods') (default: structured-light)",
     )
     p.add_argument(
         "--anchor",
@@ -280,13 +280,13 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         help="structured light: fit the surface and its level to the spots through the exact "
         "model (restoration.fit_level.fit_level): ~0.3-1 s more per frame, no more accurate "
         "than the "
-        "default on the mean of the paper's rig (docs/results.md)",
+        "default on the mean of the paper's rig ('wai guide results')",
     )
     p.add_argument(
         "--as-detected", action="store_true",
         help="structured light: take the spots as detected, not referred to the flat reference; "
         "the level then comes from the data alone, not from the reference's water.h0_mm "
-        "(default: referred, which cancels the rig's common errors; docs/rig.md)",
+        "(default: referred, which cancels the rig's common errors; 'wai guide rig')",
     )
     p.add_argument("--out", type=Path, default=None,
                    help="video methods: output folder (default: DIR/restore_METHOD, or "
@@ -342,7 +342,7 @@ def _bench_capture(args: argparse.Namespace) -> _BenchRun:
 def _capture_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--video", type=Path, required=True,
                    help="a video file or a folder of frames of a planar checkerboard seen "
-                   "through water, such as Tian & Narasimhan's CMU capture (docs/results.md, "
+                   "through water, such as Tian & Narasimhan's CMU capture ('wai guide results', "
                    "\"A real capture\")")
     p.add_argument("--board", default="8x6",
                    help="the board's inner corners, COLSxROWS (default: 8x6, the CMU board)")
@@ -498,6 +498,9 @@ def build_parser() -> argparse.ArgumentParser:
     from wai.dataset_cli import add_dataset
 
     add_dataset(sub, _Help, SCENE_HELP)
+    from wai.guide_cli import add_guide
+
+    add_guide(sub, _Help)
     return parser
 
 

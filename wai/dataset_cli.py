@@ -1,5 +1,5 @@
 """``wai dataset --frames N --out DIR``: a dataset of rendered frames with their truth for
-learned methods (:mod:`wai.dataset`, docs/dataset.md)."""
+learned methods (:mod:`wai.dataset`, 'wai guide dataset')."""
 
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def add_dataset(sub: argparse._SubParsersAction, formatter: type, scene_help: st
         "default_rng([SEED, i]) and stores the distorted and true views, the patterns, the "
         "true heightfield and normals and the exact warp between the views in DIR/dataset.h5 "
         "(with DIR/manifest.csv). A rerun with the same seed, config and options continues "
-        "from the frames stored. See docs/dataset.md.",
+        "from the frames stored. See 'wai guide dataset'.",
     )
     p.add_argument("--frames", type=int, required=True, help="frames the dataset holds")
     p.add_argument("--out", type=Path, required=True, help="dataset folder")

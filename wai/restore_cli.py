@@ -80,7 +80,7 @@ def method_options(args: argparse.Namespace) -> SurfaceOptions:
             raise WaiInputError(
                 f"--method: unknown method {args.method!r}: per frame "
                 f"{', '.join(method_names())}; from video {', '.join(VIDEO_METHODS)}; or one's "
-                "own as module:Class or path/to/file.py:Class (docs/methods.md)"
+                "own as module:Class or path/to/file.py:Class ('wai guide methods')"
             ) from None
         raise WaiInputError(f"--method: {exc}") from None
 

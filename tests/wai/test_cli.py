@@ -154,3 +154,18 @@ def test_an_unknown_method_lists_every_method_a_user_can_name(capsys, tmp_path):
     assert code == 2 and len(err) == 1 and "'nope'" in err[0]
     for name in (*method_names(), *VIDEO_METHODS, "module:Class"):
         assert name in err[0], name
+
+
+def test_the_guide_lists_its_pages_and_prints_one(capsys):
+    from wai.guide_cli import guide_folder
+
+    assert main(["guide"]) == 0
+    listing = capsys.readouterr().out
+    assert "rig  " in listing and "A rig of one's own" in listing
+    assert main(["guide", "rig"]) == 0
+    assert capsys.readouterr().out == (guide_folder() / "rig.md").read_text()
+    assert main(["guide", "outputs", "--path"]) == 0
+    assert capsys.readouterr().out.strip() == str(guide_folder() / "outputs.md")
+    assert main(["guide", "nope"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no page 'nope'" in err[0] and "rig" in err[0]

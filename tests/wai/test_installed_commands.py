@@ -34,8 +34,13 @@ def test_the_installed_copy_is_what_runs(installed):
     where = subprocess.run([sys.executable, "-c", probe], cwd=installed.elsewhere, env=env,
                            capture_output=True, text=True, check=True).stdout.split()
     assert all(Path(p).is_relative_to(installed.site) for p in where), where
-    # The packaged scenes come with it.
+    # The packaged scenes come with it, and the guide (copied in by setup.py's build step).
     assert (installed.site / "wai_core" / "scenes" / "paper.toml").is_file()
+    listing = ok(installed.run("guide"))
+    assert "rig  " in listing and str(installed.site / "wai" / "guide") in listing
+    page = ok(installed.run("guide", "rig"))
+    assert page == (ROOT / "docs" / "rig.md").read_text()
+    assert (installed.site / "wai" / "guide" / "images" / "rig.png").is_file()
 
 
 def test_demo_render_restore_and_a_sequence(installed):
