@@ -1,11 +1,12 @@
 """Load every kind of run's index.html in a real browser (headless Chromium) and check it.
 
 Makes a render and its restoration (``wai demo``), checkerboards and their calibration
-(``wai render --checkerboards``, ``wai calibrate``) and an experiment (``wai experiment
-seawater --quick``) in a temporary folder, then opens each folder's ``index.html`` with
-Chromium: every image the page names must load (a probe added to a copy of the page reports,
-once loaded, each image whose pixels did not arrive and every error the page raised), the
-browser must show them all, and its screenshot must not be blank. Exits 1 naming what failed.
+(``wai render --checkerboards``, ``wai calibrate``), an experiment (``wai experiment
+seawater --quick``), a sequence and its restoration, and a dataset in a temporary folder,
+then opens each folder's ``index.html`` with Chromium: every image the page names must load
+(a probe added to a copy of the page reports, once loaded, each image whose pixels did not
+arrive and every error the page raised), the browser must show them all, and its screenshot
+must not be blank. Exits 1 naming what failed.
 
     python scripts/check_reports.py [--keep DIR]
 """
@@ -39,8 +40,13 @@ def make_runs(root: Path) -> list[Path]:
     _wai("render", "paper", "--checkerboards", "6", "--out", str(root / "boards"))
     _wai("calibrate", str(root / "boards" / "checkerboards"), "--out", str(root / "rig.json"))
     _wai("experiment", "seawater", "--quick", "--out", str(root / "experiment"), quiet=False)
+    _wai("render", "paper", "--frames", "2", "--spp", "1", "--out", str(root / "sequence"))
+    _wai("restore", str(root / "sequence"))
+    _wai("dataset", "--frames", "2", "--size", "160x120", "--spp", "1", "--out",
+         str(root / "dataset"))
     return [root / "demo", root / "demo" / "restore", root / "boards", root / "rig_figures",
-            root / "experiment"]
+            root / "experiment", root / "sequence", root / "sequence" / "restore",
+            root / "dataset"]
 
 
 PROBE = """<script>
