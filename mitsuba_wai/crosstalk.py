@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from mitsuba_wai.dots import DotEmitter
 from mitsuba_wai.variant import mitsuba
 from wai_core.config import SystemConfig
+from wai_core.forward import texture_coords
 
 __all__ = ["CAMERA_V_FILTER", "Crosstalk", "camera_v_filter"]
 
@@ -54,8 +55,8 @@ class Crosstalk:
     view_scene : mitsuba.Scene
         System V's scene (its ``water`` mesh, updated per frame, and its ``object`` plane).
     texture : (H, W, 3) ndarray
-        The object's texture (its first row at the object's +y edge, columns along lab +x):
-        its albedo.
+        The object's texture (:func:`wai_core.forward.texture_coords`: columns along lab +x,
+        rows along lab +y): its albedo.
 
     Examples
     --------
@@ -71,13 +72,11 @@ class Crosstalk:
         shapes = {shape.id(): shape for shape in view_scene.shapes()}
         self._scene, self._water, self._plane = view_scene, shapes["water"], shapes["object"]
         self._albedo = np.asarray(texture, np.float32)
+        self._cfg = cfg
         self._n = int(cfg.crosstalk.particles)
         self._scale = float(cfg.crosstalk.scale)
         self._n_water = float(cfg.water.n_water)
-        centre = cfg.rig.object_center_mm
-        w, h = cfg.object.size_mm
-        self._lo = np.array([centre[0] - w / 2.0, centre[1] - h / 2.0])
-        self._size = np.array([w, h], float)
+        self._size = np.array(cfg.object.size_mm, float)
 
     @property
     def albedo(self) -> NDArray[np.float32]:
@@ -109,11 +108,12 @@ class Crosstalk:
         xy = np.stack([np.asarray(p.x), np.asarray(p.y)], axis=1)[keep]
         rgb = np.stack([np.asarray(power[c]) for c in range(3)], axis=1)[keep]
         rows_n, cols_n = self._albedo.shape[:2]
-        col = np.floor((xy[:, 0] - self._lo[0]) / self._size[0] * cols_n).astype(np.int64)
-        # The texture's first row is the object's +y edge (as the scene lays the bitmap out:
-        # tests/mitsuba_wai/test_crosstalk.py draws a marker where a dot lands).
-        row = np.floor((self._lo[1] + self._size[1] - xy[:, 1]) / self._size[1]
-                       * rows_n).astype(np.int64)
+        # The texture's layout as the view's scene shows it (wai_core.forward.texture_coords:
+        # column along lab +x, row along lab +y; tests/mitsuba_wai/test_crosstalk.py renders it).
+        uv = texture_coords(np.concatenate([xy, np.zeros((len(xy), 1))], axis=1), self._cfg,
+                            self._albedo.shape)
+        col = np.floor(uv[:, 0] + 0.5).astype(np.int64)
+        row = np.floor(uv[:, 1] + 0.5).astype(np.int64)
         inside = (col >= 0) & (col < cols_n) & (row >= 0) & (row < rows_n)
         index = row[inside] * cols_n + col[inside]
         texel_mm2 = float(np.prod(self._size)) / (rows_n * cols_n)
