@@ -7,7 +7,7 @@ board in the water. The port's glass (thickness, index) comes from its maker and
 index from the scene; what the housing hides is where the lens sits behind the port, the
 *gap*. :func:`calibrate_port` fits it, with every board's pose, by least squares on the
 corners' pixels through the exact two-refraction model
-(:func:`wai_core.lens.port_invert`): the non-central camera's rays, not a pinhole's.
+(:func:`wai_core.lens.port_pinhole_xy`): the non-central camera's rays, not a pinhole's.
 
 A pinhole fitted to the same views (the focal length free, the port ignored) is reported beside
 it: its residual is what the port's non-centrality costs a model that ignores it.
@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from restoration.rig_calibration import BoardSpec, DeviceFit, find_corners
 from wai_core.errors import WaiInputError
-from wai_core.lens import port_invert, undistort
+from wai_core.lens import port_pinhole_xy, undistort
 
 __all__ = ["PORT_UNDETERMINED", "PortFit", "calibrate_port"]
 
@@ -102,19 +102,6 @@ def _normalised(corners_px: NDArray, lens: DeviceFit) -> NDArray:
     xd, yd = (px[:, 0] - lens.cx_px) / lens.fx_px, (px[:, 1] - lens.cy_px) / lens.fy_px
     x, y = undistort(xd, yd, tuple(float(v) for v in lens.distortion))
     return np.stack([x, y], axis=1)
-
-
-def _port_slopes(points_cam: NDArray, gap: float, thickness: float, n_port: float,
-                 n_water: float) -> NDArray:
-    """Normalised coordinates (..., 2) of the pinhole rays that reach ``points_cam`` (..., 3)
-    mm through the port (NaN where a point lies inside the housing)."""
-    x, y, z = points_cam[..., 0], points_cam[..., 1], points_cam[..., 2]
-    rho = np.hypot(x, y)
-    beyond = z - gap - thickness
-    tau, _ = port_invert(rho, np.where(beyond > 0, beyond, np.nan), gap, thickness, n_port,
-                         n_water, np.sqrt)
-    scale = np.where(rho > 0, tau / np.where(rho > 0, rho, 1.0), 0.0)
-    return np.stack([x * scale, y * scale], axis=-1)
 
 
 def _poses_to_cam(params: NDArray, board_mm: NDArray) -> NDArray:
@@ -238,7 +225,9 @@ def _fit(obs: NDArray, board: BoardSpec, lens: DeviceFit, thickness_mm: float, p
 
     def port_residual(p: NDArray) -> NDArray:
         pts = _poses_to_cam(p[1:].reshape(views, 6), obj)
-        r = (_port_slopes(pts, p[0], thickness_mm, port_n, n_water) - obs) * f_px
+        x, y, ok = port_pinhole_xy(pts, p[0], thickness_mm, port_n, n_water)
+        xy = np.where(ok[..., None], np.stack([x, y], axis=-1), np.nan)
+        r = (xy - obs) * f_px
         return np.nan_to_num(r, nan=1e3).ravel()
 
     def pinhole_residual(p: NDArray) -> NDArray:

@@ -80,7 +80,7 @@ def run_calibrate(args: argparse.Namespace) -> None:
         calibrate_port,
         write_rig,
     )
-    from wai_core.images import IMAGE_SUFFIXES, read_image
+    from wai_core.images import read_image
     from wai_core.system import load_system
 
     check_rig_output(args.out)
@@ -93,11 +93,7 @@ def run_calibrate(args: argparse.Namespace) -> None:
     folders = {c: args.dir / c for c in CAMERAS if (args.dir / c).is_dir()}
     if not folders:
         raise WaiInputError(f"{args.dir}: holds no camera_v/ or camera_s/ folder of board images")
-    files = {c: sorted(p for p in f.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-             for c, f in folders.items()}
-    for camera, paths in files.items():
-        if not paths:
-            raise WaiInputError(f"{folders[camera]}: no images ({', '.join(IMAGE_SUFFIXES)})")
+    files = {c: _images_in(f) for c, f in folders.items()}
     wet = _port_folders(args.dir, files, cfg)
     fits, views = {}, {}
     for camera, paths in tqdm(files.items(), desc="calibrate", unit="camera",
@@ -178,8 +174,6 @@ def _port_folders(root: Path, files: dict[str, list[Path]], cfg: Any) -> dict[st
     """Each camera's board images through its port in the water (``root/<camera>_water/``),
     checked before any work: the camera's own folder (its lens in air) and its port's
     thickness in the configuration are needed."""
-    from wai_core.images import IMAGE_SUFFIXES
-
     wet = {}
     for camera in CAMERAS:
         folder = root / (camera + WATER)
@@ -191,11 +185,18 @@ def _port_folders(root: Path, files: dict[str, list[Path]], cfg: Any) -> dict[st
         if not getattr(cfg, camera).port_thickness_mm > 0:
             raise WaiInputError(f"{folder}: the port's thickness and index come from --config: "
                                 f"set [{camera}].port_thickness_mm and port_n")
-        paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        if not paths:
-            raise WaiInputError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)})")
-        wet[camera] = paths
+        wet[camera] = _images_in(folder)
     return wet
+
+
+def _images_in(folder: Path) -> list[Path]:
+    """The images of a board folder, sorted; a folder without one is refused."""
+    from wai_core.images import IMAGE_SUFFIXES
+
+    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not paths:
+        raise WaiInputError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)})")
+    return paths
 
 
 def _read_flat(path: Path) -> Any:

@@ -182,8 +182,8 @@ def rig_figure(cfg: SystemConfig, path: str | Path, rays: int = 5) -> None:
     h0, zd = cfg.water.h0_mm, cfg.diffuser.z_mm
     fig, ax = plt.subplots(figsize=(10, 5.6))
     q, s_hit, seen = flat_pattern_hits(cfg)
-    mid = seen & (np.abs(q[:, 1]) < 0.5 * np.abs(q[seen, 1]).max() / 4 + 1e-9)
-    chosen = np.flatnonzero(mid)
+    # Dots near the plane y = 0 (within an eighth of the seen pattern's half width).
+    chosen = np.flatnonzero(seen & (np.abs(q[:, 1]) <= np.abs(q[seen, 1]).max() / 8))
     chosen = chosen[np.linspace(0, len(chosen) - 1, min(rays, len(chosen))).astype(int)]
     p_c = rig.projector.pose.center_lab_mm
     s_c = rig.camera_s.pose.center_lab_mm

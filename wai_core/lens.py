@@ -54,6 +54,7 @@ __all__ = [
     "distort",
     "distortion_jacobian",
     "port_invert",
+    "port_pinhole_xy",
     "port_refract",
     "port_transmittance",
     "undistort",
@@ -225,6 +226,29 @@ def port_invert(
         dg = gap_mm + thickness_mm * a_p * q_p**3 + beyond_mm * a_w * q_w**3
         tau = tau - g / dg
     return tau, g
+
+
+def port_pinhole_xy(points_cam_mm: Any, gap_mm: float, thickness_mm: float, n_port: float,
+                    n_water: float) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """Where the pinhole rays that reach ``points_cam_mm`` (..., 3), in the water beyond a
+    flat port, cross the plane ``z = 1`` (``cam`` frame): ``x, y`` (...,) and whether each
+    point lies beyond the port and its ray exists (:func:`port_invert` converged).
+
+    Examples
+    --------
+    >>> x, y, ok = port_pinhole_xy(np.array([[0.0, 0.0, 100.0]]), 5.0, 5.0, 1.49, 4 / 3)
+    >>> x.tolist(), y.tolist(), ok.tolist()
+    ([0.0], [0.0], [True])
+    """
+    p = np.asarray(points_cam_mm, dtype=float)
+    rho = np.hypot(p[..., 0], p[..., 1])
+    beyond = p[..., 2] - gap_mm - thickness_mm
+    valid = beyond > 0
+    tau, res = port_invert(rho, np.where(valid, beyond, 1.0), gap_mm, thickness_mm, n_port,
+                           n_water, np.sqrt)
+    valid &= np.abs(res) < 1e-9 * np.maximum(1.0, rho)
+    scale = np.where(rho > 0, tau / np.where(rho > 0, rho, 1.0), 0.0)
+    return p[..., 0] * scale, p[..., 1] * scale, valid
 
 
 def port_transmittance(sin_air: Any, n_port: float, n_water: float,
@@ -468,14 +492,7 @@ class DeviceOptics:
             x, y = p[..., 0] / safe, p[..., 1] / safe
             valid = z > 0
         else:
-            gap, t, n_p, n_w = self._port(n_water)
-            rho = np.hypot(p[..., 0], p[..., 1])
-            beyond = z - gap - t
-            valid = beyond > 0
-            tau, res = port_invert(rho, np.where(valid, beyond, 1.0), gap, t, n_p, n_w, np.sqrt)
-            valid &= np.abs(res) < 1e-9 * np.maximum(1.0, rho)
-            scale = np.where(rho > 0, tau / np.where(rho > 0, rho, 1.0), 0.0)
-            x, y = p[..., 0] * scale, p[..., 1] * scale
+            x, y, valid = port_pinhole_xy(p, *self._port(n_water))
         if self.distorted:
             a, b, d = distortion_jacobian(x, y, self.distortion)
             valid = valid & (a * d - b * b > 0)

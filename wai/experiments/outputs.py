@@ -10,7 +10,6 @@ from typing import Any
 
 from wai.sweep import Point, Row, SweepOptions, run_sweep
 from wai_core.io import atomic_write_bytes
-from wai_core.report import write_report
 
 __all__ = ["argv_command", "output_folder", "publish", "sweep_command", "sweep_rows"]
 
@@ -71,8 +70,7 @@ def argv_command(name: str) -> str:
 
 
 def publish(path: Path, text: str) -> None:
-    """Write the report ``text`` to ``path`` (atomically), the folder's ``index.html``
-    (:func:`wai_core.report.write_report`), and print it."""
+    """Write the report ``text`` to ``path`` (atomically) and print it (the folder's page is
+    :func:`wai.experiments.run_experiment`'s, once the experiment is done)."""
     atomic_write_bytes(path, text.encode())
-    write_report(path.parent)
     print(text)
