@@ -69,6 +69,7 @@ from wai_core.lens import (
     DeviceOptics,
     distort,
     distortion_jacobian,
+    distortion_one_to_one,
     port_invert,
     port_refract,
     port_transmittance,
@@ -155,8 +156,7 @@ class CameraLens:
 
         x, y = undistort(x_d, y_d, self._k, _STEPS)
         rx, ry = distort(x, y, self._k)
-        a, b, d = distortion_jacobian(x, y, self._k)
-        ok = (dr.abs(rx - x_d) + dr.abs(ry - y_d) < 1e-4) & (a * d - b * b > 0.0)
+        ok = (dr.abs(rx - x_d) + dr.abs(ry - y_d) < 1e-4) & distortion_one_to_one(x, y, self._k)
         return x, y, ok
 
     def port_ray(self, start: Any, slope: tuple[Any, Any]) -> tuple[Any, Any, Any]:
@@ -295,7 +295,7 @@ class CameraLens:
         if self.optics.distorted:
             a, b, d = distortion_jacobian(x, y, self._k)
             det = a * d - b * b
-            valid &= det > 0.0
+            valid &= distortion_one_to_one(x, y, self._k)
             x, y = distort(x, y, self._k)
         uv = mi.Point2f(self._f * x + self._c[0] + 0.5, self._f * y + self._c[1] + 0.5)
         weight = self._norm * det * spread / (cos_a * cos_a * cos_a)

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from wai_core.lens import DeviceOptics, distort
+from wai_core.lens import DeviceOptics, distort, distortion_one_to_one
 
 __all__ = ["PinholeRemap", "diffuser_pinhole_px"]
 
@@ -65,10 +65,15 @@ class PinholeRemap:
         rows, cols = np.mgrid[0:cam.height_px, 0:cam.width_px].astype(np.float64)
         x = (cols - (cam.width_px - 1) / 2.0) / f
         y = (rows - (cam.height_px - 1) / 2.0) / f
+        beyond = np.zeros(x.shape, dtype=bool)
         if optics.distorted:
+            beyond = ~distortion_one_to_one(x, y, optics.distortion)
             x, y = distort(x, y, optics.distortion)
         cx, cy = optics.principal_px
-        return cls((f * x + cx).astype(np.float32), (f * y + cy).astype(np.float32))
+        # Rays past the lens's fold are not the lens's: those ideal pixels see nothing.
+        cols = np.where(beyond, -1.0, f * x + cx)
+        rows = np.where(beyond, -1.0, f * y + cy)
+        return cls(cols.astype(np.float32), rows.astype(np.float32))
 
     @cached_property
     def seen(self) -> NDArray[np.bool_]:

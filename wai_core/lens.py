@@ -40,6 +40,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -53,6 +54,8 @@ __all__ = [
     "DeviceOptics",
     "distort",
     "distortion_jacobian",
+    "distortion_fold_r2",
+    "distortion_one_to_one",
     "port_invert",
     "port_pinhole_xy",
     "port_refract",
@@ -100,6 +103,66 @@ def distortion_jacobian(x: Any, y: Any, k: tuple[float, ...]) -> tuple[Any, Any,
     b = q * x * y + 2.0 * p1 * x + 2.0 * p2 * y
     d = radial + q * y * y + 6.0 * p1 * y + 2.0 * p2 * x
     return a, b, d
+
+
+@lru_cache(maxsize=64)
+def distortion_fold_r2(k: tuple[float, ...]) -> float:
+    """The squared undistorted radius ``r^2`` at which the radial distortion folds, inf where it
+    never does.
+
+    The radial map ``r_d = r (1 + k_1 r^2 + k_2 r^4 + k_3 r^6)`` grows with ``r`` up to the
+    first positive root of ``d r_d / d r = 1 + 3 k_1 r^2 + 5 k_2 r^4 + 7 k_3 r^6``; past it the
+    model bends back (barrel distortion, ``k_1 < 0``: at ``r^2 = 1 / (3 |k_1|)``) and, past
+    ``1 + k_1 r^2 + ... = 0``, crosses to the image's other side with a positive Jacobian again.
+    A real lens is the model up to the fold only: rays beyond it are not the lens's.
+
+    Parameters
+    ----------
+    k : (5,) tuple of float
+        ``(k1, k2, p1, p2, k3)``.
+
+    Returns
+    -------
+    float
+        ``r^2`` of the fold (``x^2 + y^2`` in normalised coordinates), or ``inf``.
+
+    Examples
+    --------
+    >>> round(distortion_fold_r2((-0.05, 0.0, 0.0, 0.0, 0.0)), 4)  # 1 / (3 x 0.05)
+    6.6667
+    >>> distortion_fold_r2((0.1, 0.0, 0.0, 0.0, 0.0))
+    inf
+    """
+    k1, k2, _, _, k3 = (float(v) for v in k)
+    roots = np.roots(np.trim_zeros([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0], "f"))
+    real = roots[(np.abs(roots.imag) < 1e-12) & (roots.real > 0)].real
+    return float(real.min()) if real.size else float("inf")
+
+
+def distortion_one_to_one(x: Any, y: Any, k: tuple[float, ...]) -> Any:
+    """Where the distortion maps undistorted normalised points one to one onto the image:
+    inside the fold (:func:`distortion_fold_r2`) and with a positive Jacobian
+    (:func:`distortion_jacobian`; the tangential terms can fold it first).
+
+    Parameters
+    ----------
+    x, y : array (NumPy or Dr.Jit), (...,)
+        Undistorted normalised coordinates.
+    k : (5,) tuple of float
+        ``(k1, k2, p1, p2, k3)``.
+
+    Returns
+    -------
+    array of bool, (...,)
+
+    Examples
+    --------
+    >>> k = (-0.05, 0.0, 0.0, 0.0, 0.0)
+    >>> distortion_one_to_one(np.array([2.0, 3.0, 5.0]), np.zeros(3), k)  # fold at r = 2.58
+    array([ True, False, False])
+    """
+    a, b, d = distortion_jacobian(x, y, k)
+    return (x * x + y * y < distortion_fold_r2(tuple(k))) & (a * d - b * b > 0.0)
 
 
 def undistort(
@@ -383,8 +446,8 @@ class DeviceOptics:
             xd, yd = u / f, v / f
             x, y = undistort(xd, yd, self.distortion)
             rx, ry = distort(x, y, self.distortion)
-            a, b, d = distortion_jacobian(x, y, self.distortion)
-            ok = (np.hypot(rx - xd, ry - yd) < 1e-9) & (a * d - b * b > 0)
+            ok = ((np.hypot(rx - xd, ry - yd) < 1e-9)
+                  & distortion_one_to_one(x, y, self.distortion))
             u, v = f * x, f * y
         # (u, v, f) as PinholeCamera.dirs_cam builds it: the same bits with the keys off.
         d = np.stack([u, v, np.full(u.shape, f)], axis=-1)
@@ -482,7 +545,8 @@ class DeviceOptics:
             Pixel coordinates.
         valid : (...,) ndarray of bool
             True where the point lies in front of the device (beyond the port) and its ray
-            exists (the port reaches it, the distortion is one-to-one there, ``det J > 0``).
+            exists (the port reaches it, the distortion is one to one there:
+            :func:`distortion_one_to_one`).
         """
         p = self.camera.pose.points_to_cam(points_lab_mm)
         z = p[..., 2]
@@ -494,8 +558,7 @@ class DeviceOptics:
         else:
             x, y, valid = port_pinhole_xy(p, *self._port(n_water))
         if self.distorted:
-            a, b, d = distortion_jacobian(x, y, self.distortion)
-            valid = valid & (a * d - b * b > 0)
+            valid = valid & distortion_one_to_one(x, y, self.distortion)
             x, y = distort(x, y, self.distortion)
             return f * x + self.principal_px[0], f * y + self.principal_px[1], valid
         if not self.has_port:

@@ -23,6 +23,7 @@ from tests.conftest import shrink
 from wai_core.errors import WaiInputError
 from wai_core.geometry import pinhole_of
 from wai_core.lens import DeviceOptics
+from wai_core.light_paths import real_spot_px
 
 K_V = (-0.15, 0.02, 0.001, -0.001, 0.0)
 K_S = (-0.06, 0.01, 0.0005, 0.0005, 0.0)
@@ -277,3 +278,25 @@ def test_projector_dots_leave_along_the_models_rays(paper_cfg):
     moved = np.linalg.norm(_predicted_spots(lensed)[:, None] - _predicted_spots(cfg)[None],
                            axis=2).min(axis=1)
     assert np.median(moved) > 2.0
+
+
+def test_barrel_lens_behind_a_port_sees_nothing_past_its_fold(paper_cfg):
+    # A port bends wide water rays to near-grazing air rays; a barrel model (k1 = -0.05) bends
+    # back past r^2 = 1 / (3 |k1|) and, past r^2 = 1 / |k1|, lands such rays on the image's far
+    # side with a positive Jacobian. A real lens has no such rays: every light in the image is
+    # a dot the one-to-one model puts there, a blur many pixels wide, never a lone pixel.
+    cfg = _flat(paper_cfg).replace("render", particle_shares="delivered").replace(
+        "camera_s", port_thickness_mm=5.0, distortion=(-0.05, 0.0, 0.0, 0.0, 0.0))
+    surface = wave_surface(cfg)
+    r = FrameRenderer(cfg, surface, systems=("pattern",))
+    lum = r.render(surface, seed=5, which=("pattern",), spp=4)["pattern"][..., 1:].sum(axis=2)
+    around = (ndimage.uniform_filter(lum, 3, mode="constant") * 9.0 - lum) / 8.0
+    bright = np.percentile(lum, 99.5)
+    lit = lum > 0.3 * bright  # past the spots' noisy tails
+    lone = lit & (around < 0.25 * lum)
+    assert lit.sum() > 10_000  # the dots fill the image
+    assert lone.sum() == 0
+    rig = cfg.rig  # and the dots are where the model puts them
+    predicted = real_spot_px(rig, rig.flat_spots.px)
+    cols, rows = np.rint(predicted[rig.camera_s.in_image(*predicted.T, 2)]).astype(int).T
+    assert len(cols) > 500 and (lum[rows, cols] > 0.02 * bright).mean() > 0.99
