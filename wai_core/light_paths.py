@@ -245,7 +245,7 @@ def reflected_spot_px(x, y, z, dx, dy, dz, hx, hy, z_h, camera):  # pragma: no c
 
 
 def flat_pixel_of(
-    rig: Any, points_mm: ArrayLike, iterations: int = 48
+    rig: Any, points_mm: ArrayLike, iterations: int = 5
 ) -> tuple[Array, Array]:
     """The camera-v pixel that sees object-plane points through flat water at ``h0``.
 
@@ -253,8 +253,11 @@ def flat_pixel_of(
     the camera centre ``C`` to a point ``P`` refracts once, at a point of the plane ``z = h0``
     on the segment below ``C``-``P`` at radial distance ``r`` from ``C``, where Snell's law
     ``n r / sqrt(r^2 + a^2) = (d - r) / sqrt((d - r)^2 + b^2)`` holds (``a``: the camera's
-    depth, ``b``: the object's height above the water, ``d``: the horizontal distance). Its
-    left minus right side grows with ``r`` from <= 0 at 0 to >= 0 at ``d``: bisected.
+    depth, ``b``: the object's height above the water, ``d``: the horizontal distance). In the
+    tangent of the air-side angle ``v = (d - r) / b``, ``g(v) = a v / sqrt(n^2 + (n^2 - 1)
+    v^2) + b v - d`` is increasing and concave, so Newton's method from a lower bound of its
+    root climbs to it without overshooting, and past the first steps ``g`` is nearly linear
+    (the water's term saturates): a few steps reach float64 rounding.
 
     Parameters
     ----------
@@ -262,7 +265,7 @@ def flat_pixel_of(
     points_mm : (..., 3) array_like
         Points above the water (NaN passes through), mm.
     iterations : int
-        Bisection steps (each halves the bracket ``[0, d]``).
+        Newton steps.
 
     Returns
     -------
@@ -290,14 +293,15 @@ def flat_pixel_of(
     d = np.hypot(delta[..., 0], delta[..., 1])
     a = h0 - c[2]
     b = p[..., 2] - h0
-    lo, hi = np.zeros_like(d), d.copy()
-    with np.errstate(invalid="ignore"):
+    k = n * n - 1.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # Lower bounds of the root: the tangent at 0, and the water term at its supremum.
+        v = np.maximum(d / (a / n + b), (d - a / np.sqrt(k)) / b)
         for _ in range(iterations):
-            r = 0.5 * (lo + hi)
-            f = n * r / np.hypot(r, a) - (d - r) / np.hypot(d - r, b)
-            lo = np.where(f < 0, r, lo)
-            hi = np.where(f < 0, hi, r)
-        r = 0.5 * (lo + hi)
+            q = np.sqrt(n * n + k * v * v)
+            g = a * v / q + b * v - d
+            v = v - g / (a * n * n / q**3 + b)
+        r = d - b * v
         unit = delta / np.where(d > 0, d, 1.0)[..., None]
     q = np.concatenate([c[:2] + r[..., None] * unit, np.full(d.shape + (1,), h0)], axis=-1)
     cols, rows, _ = cam.project(q)
