@@ -170,12 +170,35 @@ class Heightfield:
             Ray origins, mm, below the surface.
         dirs : (..., 3) array_like
             Unit directions.
+        n_iter : int
+            Newton steps.
+        tol_mm : float
+            The hit's largest height residual is ``1000 tol_mm`` (``1e-9`` mm at least).
 
         Returns
         -------
         points_mm : (..., 3) ndarray
             Hit points; NaN where invalid.
         valid : (...,) ndarray of bool
+        """
+        points, valid, _ = self.intersect_normals(origins, dirs, n_iter, tol_mm)
+        return points, valid
+
+    def intersect_normals(
+        self, origins: ArrayLike, dirs: ArrayLike, n_iter: int = 8, tol_mm: float = 1e-6
+    ) -> tuple[Array, NDArray[np.bool_], Array]:
+        """:meth:`intersect`, and the unit normals (..., 3) at the hits (:meth:`normal`'s, NaN
+        where invalid) from the spline evaluation that checks them: a ray's refraction or
+        reflection needs both.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> x = y = np.linspace(-50.0, 50.0, 11)
+        >>> hf = Heightfield(x, y, 10.0 + 0.1 * x[None, :] + 0.0 * y[:, None])
+        >>> p, ok, n = hf.intersect_normals(np.zeros(3), np.array([[0.0, 0.0, 1.0]]))
+        >>> np.round(p[0], 9).tolist(), bool(np.allclose(n[0] * np.sqrt(1.01), [-0.1, 0, 1]))
+        ([0.0, 0.0, 10.0], True)
         """
         d = np.asarray(dirs, dtype=float)
         o = np.broadcast_to(np.asarray(origins, dtype=float), d.shape)
@@ -191,10 +214,14 @@ class Heightfield:
                 step = f / df
             t = t - step
         p = o + t[..., None] * d
-        residual = np.abs(p[..., 2] - self.height(p[..., 0], p[..., 1]))
+        h, gx, gy = self.height_gradient(p[..., 0], p[..., 1])
+        residual = np.abs(p[..., 2] - h)
         valid = np.isfinite(residual) & (residual < max(tol_mm, 1e-9) * 1e3) & (t > 0)
         p[~valid] = np.nan
-        return p, valid
+        n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        n[~valid] = np.nan
+        return p, valid, n
 
     def to_trimesh(self) -> trimesh.Trimesh:
         """Triangle mesh through the samples, normals up (counter-clockwise seen from above),

@@ -169,8 +169,7 @@ def spots_through(rig: Any, surface: Heightfield | None, panel_px: ArrayLike) ->
         n = np.broadcast_to(UP, q.shape)
         ok = np.isfinite(q[:, 0])
     else:
-        q, ok = surface.intersect(o, d)
-        n = surface.normal(q[:, 0], q[:, 1])
+        q, ok, n = surface.intersect_normals(o, d)
     px = spots_from_hits(rig, q, d, n).px
     px[~ok] = np.nan
     return px

@@ -116,8 +116,7 @@ def trace_to_object(
         hit, _ = intersect_plane_z(origin, dirs, h0_mm)
         normals = np.broadcast_to(np.array([0.0, 0.0, 1.0]), hit.shape)
     else:
-        hit, _ = surface.intersect(origin, dirs)
-        normals = surface.normal(hit[..., 0], hit[..., 1])
+        hit, _, normals = surface.intersect_normals(origin, dirs)
     missed = ~np.all(np.isfinite(hit), axis=-1)
     # Water to air: eta = n_water / 1 (eq. 20).
     air, tir = refract(dirs, normals, n_water)

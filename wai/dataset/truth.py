@@ -62,8 +62,7 @@ def _object_points(cfg: SystemConfig, surface: Heightfield) -> NDArray:
 
     cam = cfg.rig.camera_v
     origin, dirs = cam.pixel_rays(*cam.pixel_grid())
-    hit, hit_ok = surface.intersect(origin, dirs, n_iter=NEWTON_STEPS)
-    normals = surface.normal(hit[..., 0], hit[..., 1])
+    hit, hit_ok, normals = surface.intersect_normals(origin, dirs, n_iter=NEWTON_STEPS)
     air, tir = refract(dirs, normals, cfg.water.n_water)  # water to air (eq. 20)
     points, _ = intersect_plane_z(hit, air, cfg.object_z_mm)
     points[~hit_ok | tir | ~np.all(np.isfinite(points), axis=-1)] = np.nan
