@@ -26,7 +26,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
-from restoration.rig_calibration import BoardSpec, DeviceFit, find_corners
+from restoration.rig_calibration import BoardSpec, DeviceFit, board_views
 from wai_core.errors import WaiInputError
 from wai_core.lens import port_pinhole_xy, undistort
 
@@ -174,20 +174,9 @@ def calibrate_port(images: Sequence[NDArray], board: BoardSpec | Any, lens: Devi
         raise WaiInputError(f"port: needs thickness > 0 mm and indices >= 1, not thickness "
                             f"{thickness_mm} mm, port index {port_n}, water {n_water}")
     board = BoardSpec(int(board.cols), int(board.rows), float(board.square_mm))
-    h, w = image_size
-    seen, rejected = [], 0
-    for image in images:
-        if np.shape(image)[:2] != (h, w):
-            raise WaiInputError(f"port board image is {np.shape(image)[:2]}, not {(h, w)}")
-        corners = find_corners(image, board)
-        if corners is None:
-            rejected += 1
-        else:
-            seen.append(_normalised(corners, lens))
-    if len(seen) < min_views:
-        raise WaiInputError(
-            f"the board ({board.cols}x{board.rows} inner corners) was found in {len(seen)} of "
-            f"{len(images)} images through the port: at least {min_views} are needed")
+    found, _, rejected = board_views(images, board, image_size, min_views,
+                                     "images through the port")
+    seen = [_normalised(corners, lens) for corners in found]
     first = _fit(np.stack(seen), board, lens, thickness_mm, port_n, n_water, gap_start_mm)
     # A view the port model cannot fit (a corner found off its square) would pull the gap:
     # it is set aside, counted, and the rest fitted again.

@@ -26,9 +26,9 @@ from wai_core.errors import WaiInputError
 from wai_core.io import write_json
 
 __all__ = [
-    "RIG_FORMAT", "UNDETERMINED", "BoardSpec", "DeviceFit", "FlatFit", "calibrate_device",
-    "find_corners", "is_written_rig", "read_rig", "refine_on_flat_water", "rig_keys",
-    "write_rig",
+    "RIG_FORMAT", "UNDETERMINED", "BoardSpec", "DeviceFit", "FlatFit", "board_views",
+    "calibrate_device", "find_corners", "is_written_rig", "read_rig", "refine_on_flat_water",
+    "rig_keys", "write_rig",
 ]
 
 RIG_FORMAT = "wai-rig/1"
@@ -141,6 +141,34 @@ def find_corners(image: NDArray, board: BoardSpec) -> NDArray[np.float32] | None
     return corners.reshape(-1, 2) if found else None
 
 
+def board_views(images: Sequence[NDArray], board: BoardSpec, image_size: tuple[int, int],
+                min_views: int, what: str = "images") -> tuple[list[NDArray], list[int], int]:
+    """The board's corners in each image that shows it: ``(corners (cols * rows, 2) px per
+    such image, their indices among ``images``, how many images do not show it)``.
+
+    Raises
+    ------
+    WaiInputError
+        When an image is not ``image_size`` (H, W), or fewer than ``min_views`` show the board
+        (``what``: how the message names the images).
+    """
+    h, w = image_size
+    corners_px, used = [], []
+    for k, image in enumerate(images):
+        if np.shape(image)[:2] != (h, w):
+            raise WaiInputError(f"checkerboard image is {np.shape(image)[:2]}, not {(h, w)}")
+        corners = find_corners(image, board)
+        if corners is not None:
+            corners_px.append(corners.astype(np.float32))
+            used.append(k)
+    if len(used) < min_views:
+        raise WaiInputError(
+            f"the board ({board.cols}x{board.rows} inner corners) was found in {len(used)} of "
+            f"{len(images)} {what}: at least {min_views} are needed"
+        )
+    return corners_px, used, len(images) - len(used)
+
+
 def calibrate_device(images: Sequence[NDArray], board: BoardSpec | Any,
                      image_size: tuple[int, int], min_views: int = 5) -> DeviceFit:
     """Calibrate one camera from ``images`` of ``board``, each ``image_size`` (H, W).
@@ -161,23 +189,8 @@ def calibrate_device(images: Sequence[NDArray], board: BoardSpec | Any,
     """
     board = BoardSpec(int(board.cols), int(board.rows), float(board.square_mm))
     h, w = image_size
-    obj, img_pts, used = [], [], []
-    rejected = 0
-    for k, image in enumerate(images):
-        if np.shape(image)[:2] != (h, w):
-            raise WaiInputError(f"checkerboard image is {np.shape(image)[:2]}, not {(h, w)}")
-        corners = find_corners(image, board)
-        if corners is None:
-            rejected += 1
-            continue
-        obj.append(board.corners_mm())
-        img_pts.append(corners.astype(np.float32))
-        used.append(k)
-    if len(obj) < min_views:
-        raise WaiInputError(
-            f"the board ({board.cols}x{board.rows} inner corners) was found in {len(obj)} of "
-            f"{len(images)} images: at least {min_views} are needed"
-        )
+    img_pts, used, rejected = board_views(images, board, image_size, min_views)
+    obj = [board.corners_mm()] * len(img_pts)
     flags = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_FIX_K3
     k0 = np.array([[1.0, 0.0, (w - 1) / 2.0], [0.0, 1.0, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
     rms, k, dist, rvecs, tvecs, std_in, _, per_view = cv2.calibrateCameraExtended(
