@@ -121,8 +121,7 @@ class Heightfield:
     def normal(self, x: ArrayLike, y: ArrayLike) -> Array:
         """Unit normals pointing up (into the air), shape (..., 3)."""
         _, gx, gy = self.height_gradient(x, y)
-        n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
-        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+        return _unit_normals(gx, gy)
 
     def grid_normals(self) -> Array:
         """:meth:`normal` at every grid sample, shape (len(y), len(x), 3): the spline
@@ -143,8 +142,7 @@ class Heightfield:
         off = ~self.contains(xx, yy)
         gx[off] = np.nan
         gy[off] = np.nan
-        n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
-        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+        return _unit_normals(gx, gy)
 
     def _eval(self, x: ArrayLike, y: ArrayLike, dx: int, dy: int) -> Array:
         x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
@@ -218,8 +216,7 @@ class Heightfield:
         residual = np.abs(p[..., 2] - h)
         valid = np.isfinite(residual) & (residual < max(tol_mm, 1e-9) * 1e3) & (t > 0)
         p[~valid] = np.nan
-        n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
-        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        n = _unit_normals(gx, gy)
         n[~valid] = np.nan
         return p, valid, n
 
@@ -460,3 +457,10 @@ def load_heightfield(path: str | Path) -> Heightfield:
     except WaiInputError as exc:
         why = str(exc).removeprefix("heightfield: ")
         raise WaiInputError(f"heightfield {path}: {why}") from None
+
+
+def _unit_normals(gx: Array, gy: Array) -> Array:
+    """Unit normals (..., 3), pointing up, of a surface with slopes ``dz/dx = gx``,
+    ``dz/dy = gy`` (...,)."""
+    n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)

@@ -518,8 +518,7 @@ def prepare_reference(
     together (a rough surface: a segment no spot makes, or fewer than :data:`JOINED_SHARE` of
     the spots predicted in view found), they are detected again with every large segment split
     at its saddles, and the grid keeps that for every frame (``joined``) when it finds more.
-    The grid keeps
-    what every frame's detection and matching need of the rig: the spot size
+    The grid keeps what every frame's detection and matching need of the rig: the spot size
     (``spot_sigma_px``, ``spot_scales``) and the diffuser's outlines in camera s
     (``outline_px``, ``visible_px``).
 
