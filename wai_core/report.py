@@ -93,10 +93,15 @@ def _summary(folder: Path) -> tuple[str | None, list[tuple[str, str]]]:
     return None, []
 
 
+def _shown(path: Path, folder: Path) -> bool:
+    """Whether ``path`` in ``folder`` belongs on the page: no part of it hidden (a run's
+    temporary files, the output marker)."""
+    return not any(part.startswith(".") for part in path.relative_to(folder).parts)
+
+
 def _figures(folder: Path) -> list[Path]:
     found = sorted(folder.glob("*.png")) + sorted(folder.glob("*/*.png"))
-    return [p for p in found if not any(part.startswith(".") for part in p.relative_to(
-        folder).parts)][:_MAX_FIGURES]
+    return [p for p in found if _shown(p, folder)][:_MAX_FIGURES]
 
 
 def write_report(folder: str | Path, command: str | None = None,
@@ -137,8 +142,7 @@ def write_report(folder: str | Path, command: str | None = None,
         parts.append("</table></details>")
     page = folder / REPORT_FILE
     others = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
-                    if p.is_file() and p.suffix != ".png" and p != page
-                    and not any(s.startswith(".") for s in p.relative_to(folder).parts))
+                    if p.is_file() and p.suffix != ".png" and p != page and _shown(p, folder))
     nested = [o for o in others if o.endswith("/" + REPORT_FILE)]
     if nested:
         parts.append("<h2>Reports inside</h2><ul>")
