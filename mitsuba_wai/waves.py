@@ -352,11 +352,15 @@ class SeaSurface:
         if not a.size:
             return eta
         step = max(1, _BLOCK_BYTES // (16 * a.size))
+        # Re(P Q^T) = [Re P, -Im P] @ [Re Q, Im Q]^T: one real product of twice the depth, half
+        # the arithmetic of the complex one.
         for j0 in range(0, y.size, step):
             ey_amp = _plane_wave_factors(y[j0 : j0 + step], ky) * amp
+            left = np.concatenate([ey_amp.real, -ey_amp.imag], axis=1)
             for i0 in range(0, x.size, step):
                 ex = _plane_wave_factors(x[i0 : i0 + step], kx)
-                eta[j0 : j0 + step, i0 : i0 + step] = (ey_amp @ ex.T).real
+                right = np.concatenate([ex.real, ex.imag], axis=1)
+                eta[j0 : j0 + step, i0 : i0 + step] = left @ right.T
         return eta
 
 

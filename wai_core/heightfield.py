@@ -108,11 +108,9 @@ class Heightfield:
         ok = self.contains(x, y)
         out = [np.full(x.shape, np.nan) for _ in range(3)]
         if ok.any():
-            ty, tx, c = self._spline.tck  # first axis y (rows of z)
-            coef = np.ascontiguousarray(c).reshape(ty.size - 4, tx.size - 4)
             n = int(ok.sum())
             h, gx, gy = np.empty(n), np.empty(n), np.empty(n)
-            height_gradient(ty, tx, coef, np.ascontiguousarray(y[ok]),
+            height_gradient(*self._compiled_spline(), np.ascontiguousarray(y[ok]),
                             np.ascontiguousarray(x[ok]), h, gx, gy)
             for o, v in zip(out, (h, gx, gy), strict=True):
                 o[ok] = v
@@ -158,9 +156,12 @@ class Heightfield:
     ) -> tuple[Array, NDArray[np.bool_]]:
         """First hit of rays with the surface: Newton steps on ``f(t) = o_z + t d_z - z(o + t d)``.
 
-        Starts from the hit with the horizontal plane at the mean height. Converges in a few
+        Starts from the hit with the horizontal plane at the mean height (rays from one origin,
+        a camera's pixels in order, from the previous ray's hit, and from the plane again if
+        that fails) and stops once the height residual is below 1e-9 mm. Converges in a few
         steps for the gentle slopes of sea waves; rays that do not converge, leave the grid or
-        run along the surface are flagged invalid.
+        run along the surface are flagged invalid. On a surface with holes every ray starts
+        from the plane and takes ``n_iter`` steps.
 
         Parameters
         ----------
@@ -169,7 +170,7 @@ class Heightfield:
         dirs : (..., 3) array_like
             Unit directions.
         n_iter : int
-            Newton steps.
+            Newton steps at most.
         tol_mm : float
             The hit's largest height residual is ``1000 tol_mm`` (``1e-9`` mm at least).
 
@@ -201,6 +202,21 @@ class Heightfield:
         d = np.asarray(dirs, dtype=float)
         o = np.broadcast_to(np.asarray(origins, dtype=float), d.shape)
         z_ref = float(np.nanmean(self.z))
+        tol = max(tol_mm, 1e-9) * 1e3
+        if not self.has_holes:
+            from wai_core._bispline import intersect_rays
+
+            flat_d = np.ascontiguousarray(d.reshape(-1, 3))
+            o_in = np.asarray(origins, dtype=float)
+            flat_o = (o_in.reshape(1, 3) if o_in.size == 3
+                      else np.ascontiguousarray(o.reshape(-1, 3)))
+            p = np.empty_like(flat_d)
+            n = np.empty_like(flat_d)
+            valid = np.empty(flat_d.shape[0], dtype=bool)
+            intersect_rays(*self._compiled_spline(), flat_o, flat_d, z_ref, int(n_iter), tol,
+                           p, n, valid)
+            return p.reshape(d.shape), valid.reshape(d.shape[:-1]), n.reshape(d.shape)
+        # With holes, each step's points are checked against them (:meth:`contains`).
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (z_ref - o[..., 2]) / d[..., 2]
         for _ in range(n_iter):
@@ -214,11 +230,26 @@ class Heightfield:
         p = o + t[..., None] * d
         h, gx, gy = self.height_gradient(p[..., 0], p[..., 1])
         residual = np.abs(p[..., 2] - h)
-        valid = np.isfinite(residual) & (residual < max(tol_mm, 1e-9) * 1e3) & (t > 0)
+        valid = np.isfinite(residual) & (residual < tol) & (t > 0)
         p[~valid] = np.nan
         n = _unit_normals(gx, gy)
         n[~valid] = np.nan
         return p, valid, n
+
+    def _compiled_spline(self) -> tuple[NDArray, ...]:
+        """The spline's knots along y and x, their :func:`~wai_core._bispline.uniform_spans`
+        and :func:`~wai_core._bispline.span_table`, and its coefficients (len(ty) - 4,
+        len(tx) - 4), as the compiled kernels take them; worked out once per surface."""
+        cached = self.__dict__.get("_compiled")
+        if cached is None:
+            from wai_core._bispline import span_table, uniform_spans
+
+            ty, tx, c = self._spline.tck  # first axis y (rows of z)
+            coef = np.ascontiguousarray(c).reshape(ty.size - 4, tx.size - 4)
+            cached = (ty, tx, uniform_spans(ty), uniform_spans(tx), span_table(ty),
+                      span_table(tx), coef)
+            object.__setattr__(self, "_compiled", cached)
+        return cached
 
     def to_trimesh(self) -> trimesh.Trimesh:
         """Triangle mesh through the samples, normals up (counter-clockwise seen from above),
@@ -462,5 +493,5 @@ def load_heightfield(path: str | Path) -> Heightfield:
 def _unit_normals(gx: Array, gy: Array) -> Array:
     """Unit normals (..., 3), pointing up, of a surface with slopes ``dz/dx = gx``,
     ``dz/dy = gy`` (...,)."""
-    n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
-    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+    inv = 1.0 / np.sqrt(1.0 + gx * gx + gy * gy)
+    return np.stack([-gx * inv, -gy * inv, inv], axis=-1)

@@ -136,3 +136,39 @@ def test_even_grids_interpolate_like_fitpack(shape):
     px, py = x[0] + 0.37 * (x[-1] - x[0]), y[0] + 0.61 * (y[-1] - y[0])
     expected = 1e-3 * px**3 - 2e-4 * px * py**2 + 0.1 * py
     np.testing.assert_allclose(hf.height(px, py), expected, rtol=1e-12, atol=1e-9)
+
+
+def test_even_grid_closed_form_is_exact_on_a_cubic():
+    # On evenly spaced axes the basis takes the uniform B-spline's closed form everywhere
+    # but the end spans: still exact on a bicubic, at knots, span edges and in between.
+    x, y = np.linspace(-30.0, 50.0, 41), np.linspace(0.0, 24.0, 13)
+    xx, yy = np.meshgrid(x, y)
+    hf = Heightfield(x, y, 1e-3 * xx**3 - 2e-3 * xx * yy**2 + 0.2 * yy + 0.01 * xx * yy)
+    px = np.r_[np.random.default_rng(1).uniform(x[0], x[-1], 3000), x, x[5] + 1e-12]
+    py = np.r_[np.random.default_rng(2).uniform(y[0], y[-1], 3000), np.full(x.size + 1, 6.0)]
+    h, gx, gy = hf.height_gradient(px, py)
+    np.testing.assert_allclose(h, 1e-3 * px**3 - 2e-3 * px * py**2 + 0.2 * py + 0.01 * px * py,
+                               atol=1e-9)
+    np.testing.assert_allclose(gx, 3e-3 * px**2 - 2e-3 * py**2 + 0.01 * py, atol=1e-9)
+    np.testing.assert_allclose(gy, -4e-3 * px * py + 0.2 + 0.01 * px, atol=1e-9)
+
+
+def test_a_fan_of_rays_from_one_centre_hits_where_each_ray_alone_does():
+    # A camera's pixels share an origin and start from their neighbour's hit: the hits must be
+    # those of rays started one by one from the mean plane, on the surface and on the ray.
+    x = y = np.linspace(-300.0, 300.0, 241)
+    xx, yy = np.meshgrid(x, y)
+    hf = Heightfield(x, y, 500.0 + 4.0 * np.sin(2 * np.pi * xx / 90.0) * np.cos(yy / 40.0))
+    u, v = np.meshgrid(np.linspace(-0.4, 0.4, 60), np.linspace(-0.3, 0.3, 45))
+    d = np.stack([u, v, np.ones_like(u)], axis=-1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    origin = np.array([5.0, -3.0, 0.0])
+    p1, ok1, n1 = hf.intersect_normals(origin, d)
+    p2, ok2, n2 = hf.intersect_normals(np.broadcast_to(origin, d.shape).copy(), d)
+    assert ok1.all() and ok2.all()
+    np.testing.assert_allclose(p1, p2, atol=1e-8)
+    np.testing.assert_allclose(n1, n2, atol=1e-10)
+    np.testing.assert_allclose(p1[..., 2], hf.height(p1[..., 0], p1[..., 1]), atol=1e-9)
+    t = p1[..., 2] / d[..., 2]
+    np.testing.assert_allclose(p1, origin + t[..., None] * d, atol=1e-9)
+    np.testing.assert_allclose(n1, hf.normal(p1[..., 0], p1[..., 1]), atol=1e-12)
