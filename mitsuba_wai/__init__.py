@@ -28,7 +28,7 @@ from mitsuba_wai.render import OUTPUT_COMMAND, FrameRenderer, Rendered, render_f
 from mitsuba_wai.scene_record import render_seed
 from mitsuba_wai.seawater import coefficients_per_mm, pattern_path_lengths_mm
 from mitsuba_wai.sequence import render_frames, render_sequence
-from mitsuba_wai.surface_sampling import file_surface, wave_surface
+from mitsuba_wai.surface_sampling import file_surface, wave_grid_axes, wave_surface
 from mitsuba_wai.textures import object_texture
 from mitsuba_wai.variant import select_variant
 from mitsuba_wai.waves import mesh_spacing_mm, sea_surface
@@ -66,6 +66,7 @@ __all__ = [
     "select_variant",
     "sense",
     "subframe_plan",
+    "wave_grid_axes",
     "wave_surface",
     "windowed_centroids",
 ]

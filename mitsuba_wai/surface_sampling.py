@@ -19,7 +19,8 @@ from wai_core.errors import WaiInputError
 from wai_core.heightfield import Heightfield
 from wai_core.layout import observed_patch, surface_extent
 
-__all__ = ["MAX_MESH_VERTICES", "file_surface", "labelled", "moving_surface", "wave_surface"]
+__all__ = ["MAX_MESH_VERTICES", "file_surface", "labelled", "moving_surface", "wave_grid_axes",
+           "wave_surface"]
 
 # Largest mesh the renderer builds: ~1 M vertices keeps a frame's memory and time bounded.
 MAX_MESH_VERTICES = 1_000_000
@@ -36,7 +37,16 @@ def _axis(lo: float, hi: float, spacing: float) -> NDArray:
 def wave_surface(cfg: SystemConfig, extent: NDArray | None = None) -> Heightfield:
     """The true surface of ``cfg.waves`` at ``time_s`` on the mesh grid: the modelled extent
     (``[[x0, x1], [y0, y1]]`` mm; default :func:`~wai_core.layout.surface_extent`) sampled at
-    the shortest wavelength / ``mesh_points_per_wavelength``."""
+    the shortest wavelength / ``mesh_points_per_wavelength`` (:func:`wave_grid_axes`)."""
+    x, y = wave_grid_axes(cfg, extent)
+    return sea_surface(cfg.waves).grid(x, y, cfg.waves.time_s, mean_level_mm=cfg.water.h0_mm)
+
+
+def wave_grid_axes(cfg: SystemConfig, extent: NDArray | None = None) -> tuple[NDArray, NDArray]:
+    """The axes ``x`` (n,), ``y`` (m,), mm, of :func:`wave_surface`'s grid, without its heights.
+
+    Raises :class:`~wai_core.errors.WaiInputError` where the grid would exceed
+    ``MAX_MESH_VERTICES``."""
     ext = surface_extent(cfg) if extent is None else np.asarray(extent, dtype=float)
     sea = sea_surface(cfg.waves)
     spacing = mesh_spacing_mm(
@@ -51,8 +61,7 @@ def wave_surface(cfg: SystemConfig, extent: NDArray | None = None) -> Heightfiel
             f"{MAX_MESH_VERTICES}): raise the wind, lower [waves].omega_max_rel or "
             "mesh_points_per_wavelength"
         )
-    x, y = _axis(*ext[0], spacing), _axis(*ext[1], spacing)
-    return sea.grid(x, y, cfg.waves.time_s, mean_level_mm=cfg.water.h0_mm)
+    return _axis(*ext[0], spacing), _axis(*ext[1], spacing)
 
 
 def file_surface(

@@ -23,10 +23,9 @@ __all__ = ["FrameMaker", "grid_axes"]
 def grid_axes(spec: DatasetSpec, base: SystemConfig) -> tuple[NDArray, NDArray]:
     """The dataset's storage grid: the wave model's mesh grid at the lowest wind of the range,
     whose waves are the shortest (as fine as any frame's mesh)."""
-    from mitsuba_wai import wave_surface
+    from mitsuba_wai import wave_grid_axes
 
-    grid = wave_surface(base.replace("waves", wind_speed_m_s=spec.ranges.wind_speed_m_s[0]))
-    return grid.x, grid.y
+    return wave_grid_axes(base.replace("waves", wind_speed_m_s=spec.ranges.wind_speed_m_s[0]))
 
 
 def _coarser(axis: NDArray, level: int) -> NDArray:
