@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The GPU's figures in one run: the CUDA variant's render tests, `wai bench render` on
-# cuda_ad_rgb, `wai dataset` throughput at 800x600 and 1600x1200, and `wai experiment validate`
+# The GPU's figures in one run: the CUDA variant's tests (`pytest -m gpu`, and the render tests
+# on it), `wai bench render` on cuda_ad_rgb, `wai dataset` throughput at 800x600 and 1600x1200, and `wai experiment validate`
 # at full spp; one table printed, the figures in OUT/device_bench.json (OUT: $1, else $OUT,
 # else ./device_bench). Without a CUDA device it prints one "no GPU" line and exits 0.
 #
@@ -42,7 +42,7 @@ step() {  # step NAME LIMIT_S COMMAND...: run, keep its output and wall time
 : > "$out/steps.txt"
 export -f wai
 export py
-step tests 120 "$py" -m pytest -q -x tests/mitsuba_wai/test_render.py tests/mitsuba_wai/test_lens.py
+step tests 150 "$py" -m pytest -q -x -m "gpu or not slow" tests/test_gpu.py tests/mitsuba_wai/test_render.py tests/mitsuba_wai/test_lens.py
 step render 60 bash -c 'wai bench render --variant cuda_ad_rgb --runs 10 --json'
 rm -rf "$out/ds800" "$out/ds1600"
 step dataset_800x600 90 bash -c "wai dataset --frames 200 --size 800x600 --out '$out/ds800' --quiet"

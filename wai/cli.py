@@ -323,7 +323,8 @@ def _bench_render(args: argparse.Namespace) -> _BenchRun:
 def _bench_restore(args: argparse.Namespace) -> _BenchRun:
     from wai.bench.restore import bench_restore, print_restore
 
-    return bench_restore(args.config, args.runs, args.dir, args.variant), print_restore, []
+    return (bench_restore(args.config, args.runs, args.dir, args.variant, args.workers),
+            print_restore, [])
 
 
 def _bench_sizes(args: argparse.Namespace) -> _BenchRun:
@@ -413,9 +414,18 @@ def _surfaces_options(p: argparse.ArgumentParser) -> None:
                    help="scale each surface to at most this fraction of eq. 35's slope bound")
 
 
+def _restore_options(p: argparse.ArgumentParser) -> None:
+    _timed_options(p, restores=True)
+    p.add_argument("--workers", type=int, default=None,
+                   help="worker processes restoring the frame side by side for the throughput "
+                   "(1: latency only; a frame is serial) (default: one per core, as memory "
+                   "allows)")
+
+
 def _video_options(p: argparse.ArgumentParser) -> None:
     _timed_options(p, renders=False)
-    p.add_argument("--workers", type=int, default=2, help="worker processes (and 1)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="worker processes (and 1) (default: one per core, as memory allows)")
     p.add_argument("--frames", type=int, default=60, help="frames restored per count")
     p.add_argument("--sequence", type=int, default=6, help="distinct frames rendered")
     p.add_argument("--fps", type=float, default=DEFAULT_FPS,
@@ -441,8 +451,9 @@ _BENCHES = {
                   lambda p: _timed_options(p, restores=True), _bench_all),
     "render": _Bench("wall time per frame of each scene, printed", _timed_options,
                      _bench_render),
-    "restore": _Bench("per-stage and end-to-end time of the restoration of one frame, printed",
-                      lambda p: _timed_options(p, restores=True), _bench_restore),
+    "restore": _Bench("per-stage and end-to-end time of the restoration of one frame, and "
+                      "frames/s with frames in parallel, printed", _restore_options,
+                      _bench_restore),
     "sizes": _Bench("the restoration's cost against camera size: ms per frame and per "
                     "megapixel, printed", _sizes_options, _bench_sizes),
     "capture": _Bench("the image-only baselines on a real capture of a checkerboard: the "

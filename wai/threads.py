@@ -11,12 +11,36 @@ import os
 import sys
 from collections.abc import Iterator, Mapping
 
-__all__ = ["THREAD_VARIABLES", "limit_native_threads", "scoped_environ", "single_threaded"]
+__all__ = ["THREAD_VARIABLES", "WORKER_MEMORY_GIB", "default_workers", "limit_native_threads",
+           "scoped_environ", "single_threaded"]
+
+WORKER_MEMORY_GIB = 1.5
+"""Memory a worker process restoring or rendering paper-sized frames may take, GiB (a render
+worker's peak is about 1 GiB at 800 x 600): what :func:`default_workers` leaves each one."""
 
 # Native thread pools that read their size from the environment when they are loaded.
 THREAD_VARIABLES = (
     "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS",
 )
+
+
+def default_workers() -> int:
+    """Worker processes for frames in parallel: one per core this process may run on, no more
+    than the available memory holds at :data:`WORKER_MEMORY_GIB` each, at least one.
+
+    One frame's restoration is serial (a chain of millisecond stages, each too small to split
+    across cores with gain), so a machine's cores are used by frames side by side.
+
+    Examples
+    --------
+    >>> default_workers() >= 1
+    True
+    """
+    import psutil
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    by_memory = int(psutil.virtual_memory().available / (WORKER_MEMORY_GIB * 2**30))
+    return max(1, min(cores or 1, by_memory))
 
 
 @functools.cache

@@ -116,6 +116,11 @@ def test_the_sky_lights_the_view_beyond_the_object(small_cfg, surface, clear):
     view = FrameRenderer(cfg, surface, systems=("view",)).render(surface, 7, ("view",))["view"]
     # Two tracers (Mitsuba's path integrator with the sky, the direct one without): equal
     # where the sky adds nothing, up to the object plane's float32 intersection point, which
-    # moves a texture edge's value by a few 1e-4 of it.
-    assert (view >= clear["view"] * (1.0 - 1e-3) - 1e-6).all()
+    # moves a texture edge by a fraction of a pixel (a few 1e-4 of its value on LLVM; on
+    # CUDA, whose rounding differs, across a pixel's edge): the sky's view is at least the
+    # clear view's darkest neighbour.
+    from scipy.ndimage import minimum_filter
+
+    darkest = minimum_filter(clear["view"], size=(3, 3, 1))
+    assert (view >= darkest * (1.0 - 1e-3) - 1e-6).all()
     assert view.sum() > clear["view"].sum()

@@ -95,6 +95,23 @@ def test_restore_json_keeps_its_keys(frame_dir, capsys):
     assert all(isinstance(v, float) for v in res["stages_ms"].values())
 
 
+def test_restore_measures_frames_in_parallel(frame_dir, capsys):
+    # Two workers restore the frame side by side: every frame comes back, each restored
+    # in about the serial time (one thread each), none faster than the serial minimum allows.
+    assert main(["bench", "restore", "--dir", str(frame_dir), "--runs", "1", "--workers", "2",
+                 "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    par = res["parallel"]
+    assert (par["workers"], par["frames"]) == (2, 20)
+    assert par["fps"] == pytest.approx(par["frames"] / par["wall_s"])
+    assert par["wall_s"] * 1e3 >= 10 * 0.5 * par["worker_ms_median"]
+    assert main(["bench", "restore", "--dir", str(frame_dir), "--runs", "1", "--workers", "1",
+                 "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["parallel"] is None
+    assert main(["bench", "restore", "--dir", str(frame_dir), "--workers", "0"]) == 2
+    assert "--workers must be at least 1" in capsys.readouterr().err
+
+
 # The invocations README.md and docs/results.md give, one per option set.
 DOCUMENTED = [
     "bench", "bench --runs 5 --out renders/bench", "bench render --runs 3 --json",
@@ -120,7 +137,7 @@ def test_bench_alone_is_all_and_takes_its_options():
 
 @pytest.mark.parametrize("argv", [
     ["accuracy", "--runs", "3"], ["surfaces", "--seeds", "2"], ["render", "--out", "x"],
-    ["inputs", "--phi", "0.5"], ["video", "--variant", "auto"], ["restore", "--workers", "2"],
+    ["inputs", "--phi", "0.5"], ["video", "--variant", "auto"], ["restore", "--frames", "2"],
 ])
 def test_an_option_of_another_bench_is_bad_input(argv, capsys):
     assert main(["bench", *argv]) == 2

@@ -28,6 +28,7 @@ from wai.bench.timing import (
     summarize,
     time_runs,
 )
+from wai_core.errors import WaiInputError
 
 # Report name of each key of the pipeline's timing dicts, by source ("" is RestoreResult's own);
 # None for aggregates the report rebuilds from their parts.
@@ -205,7 +206,7 @@ def _render_dir(render_dir: str | Path | None, config: str | Path, variant: str)
 
 
 def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None = None,
-                  variant: str = "auto") -> dict[str, Any]:
+                  variant: str = "auto", workers: int | None = None) -> dict[str, Any]:
     """Time :class:`restoration.StructuredLight` on a render folder (rendered if not given).
 
     Loading the images is not timed (a camera delivers them in memory); everything from the
@@ -223,6 +224,12 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
         The render folder to restore; None: ``renders/bench``.
     variant : str
         Mitsuba variant of that render, when it is made.
+    workers : int or None
+        Worker processes that then restore the frame side by side, ``max(runs, 10)`` each, for
+        the machine's throughput (:func:`wai.bench.video.throughput`); 1: none; None:
+        :func:`wai.threads.default_workers`. One frame's restoration is serial: its stages
+        are milliseconds each and depend on each other, so a machine's cores are used by
+        frames in parallel.
 
     Returns
     -------
@@ -233,11 +240,18 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
         with its ``share`` of the end-to-end median,
         ``derived`` and ``notes`` on them; ``warmup_ms``, ``peak_rss_mib`` and
         ``tracemalloc_peak_mib``; ``reference``: the reference workload timed in the same run
-        and ``end_to_end_per_reference``, the end-to-end median in units of it.
+        and ``end_to_end_per_reference``, the end-to-end median in units of it; ``parallel``:
+        :func:`~wai.bench.video.throughput`'s figures, None with one worker.
     """
     from restoration import Calibration, StructuredLight
 
     check_runs(runs)
+    if workers is None:
+        from wai.threads import default_workers
+
+        workers = default_workers()
+    if workers < 1:
+        raise WaiInputError(f"--workers must be at least 1, got {workers}")
     render_dir = _render_dir(render_dir, config, variant)
     cal = Calibration.from_folder(render_dir)
     images = cal.load_images(render_dir)
@@ -285,7 +299,18 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
         },
         "peak_rss_mib": peak_rss_mib(),  # before the traced run: tracemalloc costs memory too
         "tracemalloc_peak_mib": peak_traced_mib(lambda: restore(images, cal)),
+        "parallel": _parallel(render_dir, workers, runs, images["view"].shape),
     }
+
+
+def _parallel(folder: Path, workers: int, runs: int, shape: tuple[int, ...]
+              ) -> dict[str, Any] | None:
+    """The frame restored ``max(runs, 10)`` times in each of ``workers`` processes side by side."""
+    if workers < 2:
+        return None
+    from wai.bench.video import throughput
+
+    return throughput(folder, workers, workers * max(runs, 10), shape)
 
 
 def _raw_timings(res: Any) -> dict[str, float]:
@@ -318,3 +343,12 @@ def print_restore(res: dict[str, Any]) -> None:
         f"peak RSS {res['peak_rss_mib']:.0f} MiB; Python/NumPy allocations in one restoration "
         f"peak at {res['tracemalloc_peak_mib']:.1f} MiB (tracemalloc)"
     )
+    par = res.get("parallel")
+    if par:
+        print(
+            f"frames in parallel: {par['workers']} worker processes, one thread each, "
+            f"{par['fps']:.1f} frames/s ({par['frames']} frames in {par['wall_s']:.2f} s; "
+            f"{par['worker_ms_median']:.1f} ms per frame inside a worker)"
+        )
+    else:
+        print("frames in parallel: not measured (one worker)")

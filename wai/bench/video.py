@@ -71,11 +71,17 @@ def played(index: int, n: int) -> int:
 
 
 def _init_worker(folder: str, track: bool) -> None:
-    """Load the calibration and every frame's images; prepare the reference; warm up."""
-    from restoration import StructuredLight, load_sequence
+    """Load the calibration and every frame's images (of a sequence, or the one frame of a
+    render folder); prepare the reference; warm up."""
+    from restoration import Calibration, StructuredLight, load_sequence
+    from wai_core.sequence import is_sequence
 
     limit_native_threads(1)  # numba's pool too: the workers are the parallelism here
-    cal, frames = load_sequence(folder)
+    if is_sequence(folder):
+        cal, frames = load_sequence(folder)
+    else:
+        cal = Calibration.from_folder(folder)
+        frames = [cal.load_images(folder)]
     restore = StructuredLight()
     restore(frames[0], cal)  # prepares the reference and warms every code path
     _STATE.update(cal=cal, frames=frames, restore=restore, track=track, state=None, last=None)
@@ -131,7 +137,8 @@ def _stream(k: int, folder: str, track: bool, steps: list[int], shm_name: str,
 def throughput(folder: Path, workers: int, n_frames: int, shape: tuple[int, ...],
                track: bool = False) -> dict[str, Any]:
     """Frames per second over ``n_frames`` restorations spread over ``workers`` processes, each
-    a contiguous run of the played order, the restored 8-bit frames ``shape`` (H, W, 3)
+    a contiguous run of the played order (of a sequence folder; of a render folder, its one
+    frame again and again), the restored 8-bit frames ``shape`` (H, W, 3)
     streamed to this process as they are done (through shared memory: a slot each, freed
     once this process has copied the frame out, as a display would).
 
@@ -266,7 +273,7 @@ def _stage_medians(timings: list[dict[str, float]]) -> dict[str, float]:
     return {key: float(np.median(v)) for key, v in table.items()}
 
 
-def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: int,
+def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: int | None,
                 frames: int, sequence: int, *, track: bool = False,
                 fps: float = DEFAULT_FPS) -> dict[str, Any]:
     """Latency (one process) and throughput for 1 .. ``workers`` worker processes, with
@@ -280,8 +287,9 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
         The folder of the rendered sequence; None: ``renders/bench_video``.
     runs : int
         Measured passes over the sequence for the latency.
-    workers : int
-        The most worker processes (throughput is measured for 1 and ``workers``).
+    workers : int or None
+        The most worker processes (throughput is measured for 1 and ``workers``); None:
+        :func:`wai.threads.default_workers`.
     frames : int
         Frames restored per worker count.
     sequence : int
@@ -292,6 +300,10 @@ def bench_video(config: str | Path, out: str | Path | None, runs: int, workers: 
         Frame rate of the rendered sequence, frames/s (the camera's).
     """
     check_runs(runs)
+    if workers is None:
+        from wai.threads import default_workers
+
+        workers = default_workers()
     if not (np.isfinite(fps) and fps > 0):
         raise WaiInputError(f"--fps must be a positive frame rate, got {fps}")
     for name, value in (("workers", workers), ("frames", frames), ("sequence", sequence)):

@@ -46,9 +46,10 @@ def add_sweep_arguments(parser: argparse.ArgumentParser) -> argparse._ArgumentGr
     group.add_argument(
         "--workers",
         type=_count(0),
-        default=SweepOptions.workers,
+        default=None,
         metavar="N",
-        help="local worker processes; 0 runs in this process without Dask (default 2)",
+        help="local worker processes; 0 runs in this process without Dask (default: one per "
+        "core, as memory allows)",
     )
     group.add_argument(
         "--threads-per-worker",
@@ -71,7 +72,7 @@ class SweepOptions:
     ``retry_errors``, ``progress``; see there)."""
 
     scheduler: str | None = None
-    workers: int = 2
+    workers: int | None = None
     threads_per_worker: int = 1
     retry_errors: bool = False
     progress: bool = True

@@ -129,7 +129,7 @@ def run_sweep(
     table: str | Path,
     *,
     scheduler: str | None = None,
-    workers: int = 2,
+    workers: int | None = None,
     threads_per_worker: int = 1,
     progress: bool = True,
     key: Sequence[str] | None = None,
@@ -155,7 +155,9 @@ def run_sweep(
         for the call.
     workers
         Worker processes of the local cluster; 0 runs the points one by one in this process,
-        without Dask (for tests and debugging). Ignored with ``scheduler``.
+        without Dask (for tests and debugging); None: :func:`wai.threads.default_workers`
+        over ``threads_per_worker`` (one per core, as memory allows; a point is serial, so
+        the cores are used by points side by side). Ignored with ``scheduler``.
     threads_per_worker
         Dask threads of each local worker; the native thread pools (OpenBLAS, OpenMP, Dr.Jit,
         OpenCV) of each worker are sized to it too. On an existing cluster, each worker's own
@@ -175,6 +177,10 @@ def run_sweep(
     """
     points = list(points)
     table = Path(table)
+    if workers is None:
+        from wai.threads import default_workers
+
+        workers = max(1, default_workers() // threads_per_worker)
     _check_mode(scheduler, workers, threads_per_worker)
     if table.suffix != ".csv":
         raise ValueError(f"the table must be a .csv file, not {table}")
