@@ -28,6 +28,31 @@ def checkerboard(squares: tuple[int, int], px_per_square: int = 64) -> NDArray[n
     return np.repeat(board[..., None], 3, axis=2)
 
 
+def speckle(size_mm: tuple[float, float], feature_mm: float, seed: int = 0
+            ) -> NDArray[np.float32]:
+    """A random grey pattern (h, w, 3) in [0, 1] over an object of ``size_mm`` (width,
+    height): white noise smoothed by a Gaussian of standard deviation ``feature_mm / 2``,
+    sampled at a quarter of ``feature_mm`` and stretched to fill the checkerboard's levels
+    (1st and 99th percentiles); what a lab tank's synthetic Schlieren looks through.
+
+    Examples
+    --------
+    >>> img = speckle((400.0, 200.0), 8.0)
+    >>> img.shape, bool(img.min() >= 0.0 and img.max() <= 1.0)
+    ((100, 200, 3), True)
+    """
+    from scipy.ndimage import gaussian_filter
+
+    texel_mm = feature_mm / 4.0
+    w, h = (max(int(round(s / texel_mm)), 8) for s in size_mm)
+    noise = np.random.default_rng(int(seed)).standard_normal((h, w))
+    field = gaussian_filter(noise, sigma=2.0, mode="wrap")  # feature_mm / 2 in texels
+    lo_q, hi_q = np.percentile(field, [1.0, 99.0])
+    lo, hi = CHECKER_LEVELS
+    img = np.clip(lo + (hi - lo) * (field - lo_q) / (hi_q - lo_q), lo, hi).astype(np.float32)
+    return np.repeat(img[..., None], 3, axis=2)
+
+
 def _skimage_image(name: str) -> NDArray:
     from skimage import data
 
@@ -63,12 +88,14 @@ def to_rgb_float(img: NDArray) -> NDArray[np.float32]:
 
 def object_texture(obj: ObjectConfig, base_dir: Path | None = None) -> NDArray[np.float32]:
     """The object plane's image (h, w, 3) in [0, 1] for ``ObjectConfig.texture``:
-    ``checkerboard``, ``skimage:<name>`` (one of :data:`wai_core.sections.SKIMAGE_TEXTURES`,
-    e.g. ``skimage:astronaut``) or an image file path
-    (relative paths resolve against ``base_dir``)."""
+    ``checkerboard``, ``speckle`` (:func:`speckle`), ``skimage:<name>`` (one of
+    :data:`wai_core.sections.SKIMAGE_TEXTURES`, e.g. ``skimage:astronaut``) or an image file
+    path (relative paths resolve against ``base_dir``)."""
     spec = obj.texture
     if spec == "checkerboard":
         return checkerboard(obj.squares)
+    if spec == "speckle":
+        return speckle(obj.size_mm, obj.speckle_mm, obj.speckle_seed)
     if spec.startswith("skimage:"):
         return to_rgb_float(_skimage_image(spec.split(":", 1)[1]))
     path = Path(spec)

@@ -21,9 +21,9 @@ One path for a frame: the :class:`Calibration` (the rig and everything derived f
 normals (:mod:`~restoration.normals`), integration (:mod:`~restoration.integrate`), level
 (:mod:`~restoration.anchor`), surface (:mod:`~restoration.surface`), consistency
 (:mod:`~restoration.consistency`), view (:mod:`~restoration.reverse_trace`) -> the
-:class:`RestoreResult`. The methods are :mod:`~restoration.structured_light` and
-:mod:`~restoration.alterman`; scores are in :mod:`~restoration.scoring` and
-:mod:`~restoration.metrics`.
+:class:`RestoreResult`. The methods are :mod:`~restoration.structured_light`,
+:mod:`~restoration.alterman` and :mod:`~restoration.schlieren`; scores are in
+:mod:`~restoration.scoring` and :mod:`~restoration.metrics`.
 
 Every result carries a :class:`Status` (a string enum: ``Status.OK == "ok"``). A frame the data
 cannot support comes back with status ``failed`` and the reason (the methods catch
@@ -44,6 +44,7 @@ from restoration.methods import (
     ENTRY_POINT_GROUP,
     METHODS,
     Alterman,
+    Schlieren,
     as_method,
     get_method,
     load_calibration,
@@ -56,11 +57,13 @@ from restoration.observations import Observations
 from restoration.options import (
     ANCHORS,
     AltermanOptions,
+    SchlierenOptions,
     StructuredLightOptions,
     SurfaceOptions,
 )
 from restoration.port_calibration import PORT_UNDETERMINED, PortFit, calibrate_port
 from restoration.protocol import Method, run_method
+from restoration.ray_surface import RaySurface
 from restoration.result import STATUSES, RestoredView, RestoreResult, Status
 from restoration.rig_calibration import (
     UNDETERMINED,
@@ -73,6 +76,7 @@ from restoration.rig_calibration import (
     write_rig,
 )
 from restoration.rig_score import RigGridScore, rig_grid_score
+from restoration.schlieren import SchlierenCalibration, restore_schlieren
 from restoration.scoring import OBJECT_MIN_LEVEL, Scores, Truth, score
 from restoration.sequence import (
     SequenceRestore,
@@ -107,11 +111,15 @@ __all__ = [
     "Method",
     "Observations",
     "PortFit",
+    "RaySurface",
     "RestorationFailed",
     "RestoreResult",
     "RestoredView",
     "RigCalibration",
     "RigGridScore",
+    "Schlieren",
+    "SchlierenCalibration",
+    "SchlierenOptions",
     "Scores",
     "SequenceRestore",
     "SequenceState",
@@ -143,6 +151,7 @@ __all__ = [
     "refine_on_flat_water",
     "restore_folder",
     "restore_frame",
+    "restore_schlieren",
     "restore_sequence",
     "rig_grid_score",
     "rig_keys",

@@ -25,7 +25,7 @@ so with a status instead of a surface: it never makes one up.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -35,10 +35,10 @@ from scipy.spatial import cKDTree
 
 from restoration.calibration import RigCalibration, read_scene_record, record_view_gain
 from restoration.features import Matches, Spots, detect_spots
-from restoration.integrate import MIN_SAMPLES, integrate, to_heightfield
-from restoration.level import Anchor
+from restoration.integrate import MIN_SAMPLES
 from restoration.normals import slopes_from_normals, spots_on_diffuser
 from restoration.options import AltermanOptions
+from restoration.ray_surface import RaySurface, integrate_along_rays
 from restoration.result import RestoreResult, Status
 from wai_core.alterman import (
     AltermanSystem,
@@ -49,7 +49,6 @@ from wai_core.alterman import (
 )
 from wai_core.config import config_from_dict
 from wai_core.errors import RestorationFailed, WaiInputError
-from wai_core.heightfield import Heightfield
 from wai_core.timings import Timings
 
 Array = NDArray[np.float64]
@@ -80,45 +79,6 @@ class SpotReference:
     ij: NDArray[np.int64]
     ref_px: Array
     counts: dict[str, int]
-
-
-@dataclass(frozen=True)
-class AltermanSurface:
-    """A surface reconstructed from sun spots, with the samples it was built from (the same
-    public attributes as the structured light's :class:`restoration.surface.SurfaceEstimate`,
-    so scoring and reporting treat both alike).
-
-    Attributes
-    ----------
-    heightfield : Heightfield
-        Absolute heights on a regular grid, mm; NaN outside the samples.
-    ij : (K, 2) ndarray of int
-        Pinhole grid indices of the samples kept.
-    points_mm : (K, 3) ndarray
-        Samples: where each pinhole's sunlight crossed the surface (last pass) and its height.
-    normals : (K, 3) ndarray
-        Unit normals at the samples, pointing up.
-    slopes : (K, 2) ndarray
-        ``(dz/dx, dz/dy)`` at the samples.
-    iterations : int
-        Refinement passes after the samples-at-h0 pass.
-    height_change_mm : float
-        Largest height change of the last refinement pass, mm (NaN when none ran).
-    timings_ms : dict of str to float
-        ``normals``, ``integrate`` (all passes), ``grid`` and ``total``, ms.
-    anchor : Anchor
-        How the absolute level was set: always the gauge's h0 (the sensor has no other anchor).
-    """
-
-    heightfield: Heightfield
-    ij: NDArray[np.int64]
-    points_mm: Array
-    normals: Array
-    slopes: Array
-    iterations: int
-    height_change_mm: float
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    anchor: Anchor = field(default_factory=lambda: Anchor("gauge"))
 
 
 @dataclass
@@ -290,22 +250,17 @@ def snell_normals(sun_dir: ArrayLike, t: ArrayLike, n_water: float) -> Array:
     return w * np.where(w[..., 2:3] < 0, -1.0, 1.0)
 
 
-def points_on_lines(pinholes_mm: Array, t: Array, heights_mm: ArrayLike) -> Array:
-    """Points at the given heights (K,) on the lines through the pinholes along ``t`` (K, 3):
-    where each pinhole's sunlight crossed a surface of that height, mm."""
-    h = np.broadcast_to(np.asarray(heights_mm, dtype=float), pinholes_mm.shape[:1])
-    return pinholes_mm + ((h - pinholes_mm[:, 2]) / t[:, 2])[:, None] * t
-
-
 def reconstruct_alterman(
     ij: NDArray,
     pinholes_mm: Array,
     spots_mm: Array,
     layout: SensorLayout,
     options: AltermanOptions,
-) -> AltermanSurface:
-    """Surface from matched spots: Snell normals, samples at h0 then refined, integrated on the
-    pinhole grid (``options.integrator``) with mean height h0, gridded (``options.gridder``).
+) -> RaySurface:
+    """Surface from matched spots: Snell normals, samples at h0 then refined along the lines
+    of the refracted sunlight, integrated on the pinhole grid (``options.integrator``) with
+    mean height h0, gridded (``options.gridder``)
+    (:func:`~restoration.ray_surface.integrate_along_rays`).
 
     Parameters
     ----------
@@ -319,43 +274,15 @@ def reconstruct_alterman(
         ``integrator``, ``n_refine`` (0: samples stay on z = h0, the published method),
         ``refine_tol_mm``, ``gridder``, ``grid_spacing_mm``.
     """
-    timings = Timings()
-    with timings("normals"):
-        t = refracted_dirs(pinholes_mm, spots_mm)
-        normals = snell_normals(layout.sun_dir, t, layout.n_water)
-        slopes = slopes_from_normals(normals)
-    with timings("integrate"):
-        heights = np.full(len(ij), layout.h0_mm)
-        change, it = np.nan, 0
-        for it in range(int(options.n_refine) + 1):
-            q = points_on_lines(pinholes_mm, t, heights)
-            rel = integrate(ij, q[:, :2], slopes, options.integrator)
-            new = rel - np.nanmean(rel) + layout.h0_mm
-            # Samples the integrator cannot tie to the rest leave for good.
-            keep = np.isfinite(new)
-            ij, pinholes_mm, t, normals, slopes, q = (
-                a[keep] for a in (ij, pinholes_mm, t, normals, slopes, q)
-            )
-            new, heights = new[keep], heights[keep]
-            change = float(np.max(np.abs(new - heights))) if it > 0 else np.nan
-            heights = new
-            if it > 0 and change < options.refine_tol_mm:
-                break
-    with timings("grid"):
-        surface = to_heightfield(
-            q[:, :2], heights, slopes, options.grid_spacing_mm, method=options.gridder
-        )
-    timings.add("total", timings.total())
-    return AltermanSurface(
-        heightfield=surface,
-        ij=ij,
-        points_mm=np.column_stack([q[:, :2], heights]),
-        normals=normals,
-        slopes=slopes,
-        iterations=it,
-        height_change_mm=change,
-        timings_ms=timings.to_dict(),
-    )
+    t = refracted_dirs(pinholes_mm, spots_mm)
+    normals = snell_normals(layout.sun_dir, t, layout.n_water)
+    slopes = slopes_from_normals(normals)
+
+    def slopes_at(points: Array, index: NDArray) -> tuple[Array, Array]:
+        return normals[index], slopes[index]  # the sun's normals hold at any height
+
+    return integrate_along_rays(ij, pinholes_mm, t, slopes_at, layout.h0_mm, options,
+                                options.refine_tol_mm)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -212,10 +212,15 @@ class RigCalibration:
             return dev.height_px, dev.width_px
         raise KeyError(name)
 
+    def image_files(self, folder: str | Path) -> dict[str, Path]:
+        """The file of each of a frame's images (:attr:`IMAGES`) in ``folder`` (EXR, PNG or
+        TIFF by stem)."""
+        return {name: find_image(folder, name) for name in self.IMAGES}
+
     def load_images(self, folder: str | Path) -> dict[str, NDArray[np.float32]]:
-        """A frame's images from ``folder`` (EXR, PNG or TIFF by stem), sizes checked, in the
+        """A frame's images from ``folder`` (:meth:`image_files`), sizes checked, in the
         devices' ideal pinholes' geometry (:meth:`to_pinhole`)."""
-        return self.load_files({name: find_image(folder, name) for name in self.IMAGES})
+        return self.load_files(self.image_files(folder))
 
     def load_files(self, files: Mapping[str, Path]) -> dict[str, NDArray[np.float32]]:
         """:meth:`load_images` from the named files (image name: path)."""

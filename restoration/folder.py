@@ -28,9 +28,24 @@ from restoration.protocol import Method
 from wai_core.outputs import atomic_dir, check_output_dir
 
 __all__ = [
-    "FolderRestore", "check_files", "check_inputs", "check_rig_geometry", "restore_folder",
+    "FolderRestore", "check_files", "check_inputs", "check_rig_geometry", "default_out",
+    "restore_folder",
     "restore_frame", "with_rig",
 ]
+
+
+def default_out(record: Mapping[str, Any], method: str) -> str:
+    """The name of a render folder's restore output for ``method``: ``restore`` for the method
+    its images were made for (a sun-sensor render's ``alterman``, else ``structured-light``),
+    ``restore_METHOD`` for any other (Schlieren on the same render, a method of one's own).
+
+    Examples
+    --------
+    >>> default_out({"config": {}}, "structured-light"), default_out({"config": {}}, "schlieren")
+    ('restore', 'restore_schlieren')
+    """
+    own = "alterman" if "alterman" in record else "structured-light"
+    return "restore" if method == own else f"restore_{method}"
 
 
 def restore_folder(
@@ -58,7 +73,9 @@ def restore_folder(
     options : SurfaceOptions, optional
         With a method name: its options (default: the method's own).
     out : str or Path, optional
-        Output folder (default ``folder/restore``).
+        Output folder (default :func:`default_out`: ``folder/restore`` for the folder's own
+        method, ``folder/restore_METHOD`` for another, so that no method's results replace
+        another's).
     scored : bool
         Score against the folder's truth when it has some (default True).
     write : bool
@@ -94,7 +111,8 @@ def restore_folder(
         bar.update(1)
 
     record = read_scene_record(folder)
-    target = (Path(out) if out is not None else folder / "restore") if write else None
+    target = (Path(out) if out is not None else folder / default_out(record, meth.name)
+              ) if write else None
     if target is not None:  # refused before any work
         check_output_dir(target, "restore", remedy=RESTORE_REMEDY)
     cal = with_rig(meth.calibration_type.from_record(record), rig)

@@ -23,7 +23,7 @@ from restoration.scoring import Scores, Truth, score, surface_profile
 from restoration.view_check import match_flat_view
 from wai_core.config import with_keys
 from wai_core.errors import WaiInputError
-from wai_core.images import find_image, image_conflict, locate_image, read_image
+from wai_core.images import image_conflict, locate_image, read_image
 from wai_core.io import write_exr, write_json, write_png
 
 RESTORE_REMEDY = "move what is not the tool's elsewhere: a restore replaces only its own outputs"
@@ -196,8 +196,7 @@ def check_inputs(
     """Flag ``result`` by what the folder shows beyond the frame's own images: two differing
     files of one image (``ambiguous_input``), and a restored view that disagrees with the
     rig's flat-water view (``view_mismatch``, see :mod:`restoration.view_check`)."""
-    files = {name: find_image(folder, name) for name in cal.IMAGES}
-    check_files(files, cal, images, result, view_flat)
+    check_files(cal.image_files(folder), cal, images, result, view_flat)
 
 
 def check_files(

@@ -24,15 +24,21 @@ from numpy.typing import NDArray
 
 from restoration.alterman import AltermanCalibration, restore_alterman
 from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
-from restoration.options import AltermanOptions, SurfaceOptions, checked_options
+from restoration.options import (
+    AltermanOptions,
+    SchlierenOptions,
+    SurfaceOptions,
+    checked_options,
+)
 from restoration.protocol import BUILT_IN, Method
 from restoration.result import RestoreResult
+from restoration.schlieren import SchlierenCalibration, restore_schlieren
 from restoration.structured_light import StructuredLight
 from wai_core.errors import WaiInputError
 
 __all__ = [
-    "ENTRY_POINT_GROUP", "METHODS", "Alterman", "as_method", "get_method", "load_calibration",
-    "method_class", "method_names",
+    "ENTRY_POINT_GROUP", "METHODS", "Alterman", "Schlieren", "as_method", "get_method",
+    "load_calibration", "method_class", "method_names",
 ]
 
 
@@ -70,8 +76,43 @@ class Alterman:
         return restore_alterman(images, cal, self.options)
 
 
-METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name: Alterman}
-"""Methods by name: ``structured-light`` (the paper's) and ``alterman`` (the sun sensor)."""
+class Schlieren:
+    """Free-surface synthetic Schlieren from camera v's view and its flat-water view
+    (:mod:`restoration.schlieren`), configured once. Its slopes do not pin the level: it is
+    always the gauge's.
+
+    Examples
+    --------
+    >>> from restoration import Schlieren, SchlierenOptions
+    >>> Schlieren(SchlierenOptions(sample_step_px=4)).options.sample_step_px
+    4
+    """
+
+    name = "schlieren"
+    calibration_type = SchlierenCalibration
+    options_type = SchlierenOptions
+
+    def __init__(self, options: SchlierenOptions | None = None) -> None:
+        self.options = checked_options(self.name, SchlierenOptions, options)
+
+    def __repr__(self) -> str:
+        return f"Schlieren({self.options!r})"
+
+    def __call__(
+        self,
+        images: dict[str, NDArray],
+        cal: SchlierenCalibration,
+        track: LevelTrack | None = None,
+    ) -> RestoreResult:
+        """Restore one frame (``view``, ``view_flat``); ``track`` is accepted for the
+        protocol's sake (the level is always the gauge's)."""
+        return restore_schlieren(images, cal, self.options)
+
+
+METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name: Alterman,
+                            Schlieren.name: Schlieren}
+"""Methods by name: ``structured-light`` (the paper's), ``alterman`` (the sun sensor) and
+``schlieren`` (synthetic Schlieren on camera v's view)."""
 BUILT_IN.update(METHODS.values())
 
 

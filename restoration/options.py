@@ -2,7 +2,8 @@
 
 :class:`SurfaceOptions` holds what both surface-sensing methods choose (integrator, passes,
 gridding, the view's warp); :class:`StructuredLightOptions` adds the level and refinement of
-the paper's method, :class:`AltermanOptions` the sun sensor's refinement tolerance. An option
+the paper's method, :class:`AltermanOptions` the sun sensor's refinement tolerance,
+:class:`SchlierenOptions` synthetic Schlieren's sampling and optical flow. An option
 one method does not have cannot be given to it: the options refuse it when they are built.
 """
 
@@ -15,8 +16,8 @@ from restoration.integrate import GRIDDERS, INTEGRATORS
 from wai_core.errors import WaiInputError
 
 __all__ = [
-    "ANCHORS", "AltermanOptions", "StructuredLightOptions", "SurfaceOptions",
-    "checked_options",
+    "ANCHORS", "FLOW_QUALITIES", "AltermanOptions", "SchlierenOptions", "StructuredLightOptions",
+    "SurfaceOptions", "checked_options",
 ]
 
 OptionsT = TypeVar("OptionsT", bound="SurfaceOptions")
@@ -204,6 +205,65 @@ class AltermanOptions(SurfaceOptions):
         super().__post_init__()
         if not self.refine_tol_mm > 0:
             raise WaiInputError(f"refine_tol_mm must be > 0, not {self.refine_tol_mm}")
+
+
+FLOW_QUALITIES = ("fine", "medium")
+"""Values of :attr:`SchlierenOptions.flow`."""
+
+
+@dataclass(frozen=True)
+class SchlierenOptions(SurfaceOptions):
+    """Synthetic Schlieren's choices (:mod:`restoration.schlieren`). Like the sun sensor's,
+    its slopes do not pin the level: the level is always the gauge's.
+
+    Attributes
+    ----------
+    integrator, n_refine, gridder, grid_spacing_mm, warp_step_px
+        As :class:`SurfaceOptions`; the refinement moves each sample along its pixel's line
+        of sight to the reconstructed height, where its slope is measured again.
+    refine_tol_mm : float
+        Refinement stops once a pass changes no height by more than this, mm.
+    sample_step_px : int
+        Pixels between the slope samples (a square lattice over camera v), px.
+    flow : str
+        The displacement's optical flow: ``fine`` (DIS at full resolution, small patches,
+        more refinement: ~0.05 px on a speckle object) or ``medium`` (OpenCV's preset, ~4x
+        faster, about twice the error).
+    flow_check_px : float
+        A sample is kept where the flow from the view to the flat-water view and back
+        returns within this, px.
+    max_residual_px : float
+        The frame is ``inconsistent`` when the median of its samples' residual (where the
+        surface sends each line of sight on the object against where the flow put it, in
+        flat-water pixels) exceeds this, px.
+
+    Examples
+    --------
+    >>> from restoration import SchlierenOptions
+    >>> SchlierenOptions().sample_step_px, SchlierenOptions(flow="medium").flow
+    (8, 'medium')
+    """
+
+    n_refine: int = 12
+    refine_tol_mm: float = 1e-3
+    sample_step_px: int = 8
+    flow: str = "fine"
+    flow_check_px: float = 0.5
+    max_residual_px: float = 0.25
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.refine_tol_mm > 0:
+            raise WaiInputError(f"refine_tol_mm must be > 0, not {self.refine_tol_mm}")
+        if int(self.sample_step_px) != self.sample_step_px or self.sample_step_px < 1:
+            raise WaiInputError(f"sample_step_px must be an integer >= 1, not "
+                                f"{self.sample_step_px}")
+        if self.flow not in FLOW_QUALITIES:
+            raise WaiInputError(f"unknown flow {self.flow!r} (known: "
+                                f"{', '.join(FLOW_QUALITIES)})")
+        for name in ("flow_check_px", "max_residual_px"):
+            if not getattr(self, name) > 0:
+                raise WaiInputError(f"{name} must be > 0, not {getattr(self, name)}")
 
 
 def checked_options(method: str, cls: type[OptionsT], options: SurfaceOptions | None) -> OptionsT:

@@ -138,7 +138,7 @@ class RestoredView:
 class SurfaceSamples(Protocol):
     """What a method's surface offers the result, the scores and the reports (the structured
     light's :class:`~restoration.surface.SurfaceEstimate` and the sun sensor's
-    :class:`~restoration.alterman.AltermanSurface` alike)."""
+    :class:`~restoration.ray_surface.RaySurface` of Alterman and Schlieren alike)."""
 
     heightfield: Heightfield
     ij: NDArray[np.int64]

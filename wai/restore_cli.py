@@ -1,5 +1,6 @@
 """``wai restore DIR``: restore a folder (a render, or one's own captures), score it where truth
-exists, write ``DIR/restore/`` and print the summary."""
+exists, write ``DIR/restore/`` (``DIR/restore_METHOD/`` for a method other than the folder's own:
+:func:`restoration.folder.default_out`) and print the summary."""
 
 from __future__ import annotations
 

@@ -241,6 +241,8 @@ def validate(cfg: SystemConfig) -> None:
     if cfg.object.height_above_water_mm <= 0:
         raise WaiInputError("config: [object].height_above_water_mm must be positive")
     texture = cfg.object.texture
+    if texture == "speckle" and not cfg.object.speckle_mm > 0:
+        raise WaiInputError("config: [object].speckle_mm must be > 0")
     if texture.startswith("skimage:") and texture.partition(":")[2] not in SKIMAGE_TEXTURES:
         raise WaiInputError(f"config: [object].texture {texture!r} is not a scikit-image sample "
                             f"image (skimage: one of {', '.join(SKIMAGE_TEXTURES)})")

@@ -127,7 +127,13 @@ class ObjectConfig:
     height_above_water_mm: float = 1000.0
     size_mm: tuple[float, float] = (3200.0, 2400.0)
     texture: str = "checkerboard"
+    """``checkerboard``, ``speckle`` (a lab tank's random pattern for synthetic Schlieren),
+    ``skimage:NAME`` or an image file."""
     squares: tuple[int, int] = (16, 12)
+    speckle_mm: float = 8.0
+    """``speckle``: the pattern's feature size, mm (the width of its smoothing)."""
+    speckle_seed: int = 0
+    """``speckle``: the seed of its random field."""
 
 
 SKIMAGE_TEXTURES = (

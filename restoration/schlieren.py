@@ -1,0 +1,336 @@
+"""Free-surface synthetic Schlieren on camera v: the surface from how the waves displace the
+object in view (Moisy, Rabaud & Salsac, Exp. Fluids 2009), with no projector.
+
+Camera v looks up through the water at a known object; a flat-water view of it is taken once
+(``view_flat``; a render's flat-water view is its ``view_truth``). Per frame:
+
+1. the dense optical flow from the view to the flat-water view (OpenCV's DIS; checked by the
+   flow back): the flat-water pixel ``q`` showing what pixel ``p`` shows. Through flat water,
+   ``q``'s line of sight reaches the object point ``X`` exactly (Snell at ``h0``), so ``p``'s
+   line of sight, refracted by the wave, reaches ``X`` too;
+2. on a lattice of pixels every ``sample_step_px``: where ``p``'s line of sight crosses the
+   surface at height ``h`` (the point ``S``), the refracted direction is ``(X - S) / |X - S|``
+   and Snell's law gives the normal, ``N ~ n d - a`` (``d`` the sight line in the water, ``a``
+   the ray in the air): each pixel's slope, from the exact rig geometry (tilted camera, the
+   object's distance, Snell at every pixel), not the linearised method's one paraxial
+   constant;
+3. the slopes are integrated with the restoration's integrators at the gauge's level and the
+   samples moved along their sight lines to the integrated heights until they settle
+   (:func:`~restoration.ray_surface.integrate_along_rays`); the slopes do not pin the level,
+   so it is the gauge's ``h0`` (the field's methods give heights up to a constant: scores
+   that compare shapes are the de-meaned ones);
+4. the truth-free check: each sample's line of sight traced through the surface to the
+   object, against the flow's ``X`` (in flat-water pixels); a median residual above
+   ``max_residual_px`` makes the frame ``inconsistent`` (a flow that follows no surface: an
+   object without texture at the waves' scale, a checkerboard's plain squares);
+5. the view is restored by the same reverse ray tracing as the other methods'.
+
+The object must carry texture at the scale of the waves: ``[object] texture = "speckle"`` is
+a lab tank's random pattern; the paper's 200 mm checkerboard squares leave the flow
+undetermined inside them (docs/results.md, "Methods compared").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from restoration.calibration import RigCalibration, read_scene_record, record_view_gain
+from restoration.consistency import Consistency
+from restoration.integrate import MIN_SAMPLES
+from restoration.options import SchlierenOptions
+from restoration.ray_surface import RaySurface, integrate_along_rays
+from restoration.result import SPARSE_FRACTION, RestoreResult, Status
+from wai_core.config import config_from_dict
+from wai_core.errors import RestorationFailed, WaiInputError
+from wai_core.images import find_image, locate_image
+from wai_core.optics import trace_to_object
+from wai_core.timings import Timings
+
+__all__ = [
+    "SchlierenCalibration", "flat_view_flow", "restore_schlieren", "slopes_on_sight_lines",
+]
+
+Array = NDArray[np.float64]
+
+METHOD = "schlieren"
+
+
+@dataclass
+class SchlierenCalibration(RigCalibration):
+    """What synthetic Schlieren knows: the rig (camera v, the water's level and index, the
+    object's height) and, derived once, the lattice of sample pixels with their lines of sight.
+
+    Examples
+    --------
+    >>> from wai_core import load_system
+    >>> cal = SchlierenCalibration(load_system("paper"))
+    >>> cal.image_size("view_flat")
+    (600, 800)
+    """
+
+    _lattices: dict[int, SightLines] = field(default_factory=dict, init=False, repr=False,
+                                             compare=False)
+
+    IMAGES: ClassVar[tuple[str, ...]] = ("view", "view_flat")
+
+    @classmethod
+    def from_record(cls, record: dict[str, Any]) -> SchlierenCalibration:
+        """From a ``scene.json`` record (see :func:`read_scene_record`)."""
+        return cls(config_from_dict(record["config"]), record_view_gain(record))
+
+    @classmethod
+    def from_folder(cls, folder: str | Path) -> SchlierenCalibration:
+        """From ``folder/scene.json``."""
+        return cls.from_record(read_scene_record(folder))
+
+    def image_size(self, name: str) -> tuple[int, int]:
+        if name == "view_flat":
+            return super().image_size("view")
+        return super().image_size(name)
+
+    def image_files(self, folder: str | Path) -> dict[str, Path]:
+        """The view and the rig's flat-water view in ``folder``: ``view_flat.*``, or where a
+        render has none its ``view_truth.*`` (the flat-water view it renders for every frame,
+        the reference a rig takes once)."""
+        flat = locate_image(folder, "view_flat") or locate_image(folder, "view_truth")
+        return {"view": find_image(folder, "view"),
+                "view_flat": flat if flat is not None else find_image(folder, "view_flat")}
+
+    def lattice(self, step_px: int) -> SightLines:
+        """The sample pixels every ``step_px`` and their lines of sight (kept per step)."""
+        cached = self._lattices.get(int(step_px))
+        if cached is None:
+            cached = SightLines.build(self, int(step_px))
+            self._lattices[int(step_px)] = cached
+        return cached
+
+
+@dataclass(frozen=True)
+class SightLines:
+    """Camera v's sample pixels on a square lattice and their lines of sight in the water.
+
+    Attributes
+    ----------
+    ij : (K, 2) ndarray of int
+        Lattice indices (row, column).
+    px : (K, 2) ndarray
+        The pixels, ``(col, row)``.
+    origins_mm, dirs : (K, 3) ndarray
+        The lines of sight in the water (behind a port: from the port's outer face), mm.
+    """
+
+    ij: NDArray[np.int64]
+    px: Array
+    origins_mm: Array
+    dirs: Array
+
+    @classmethod
+    def build(cls, cal: RigCalibration, step_px: int) -> SightLines:
+        """The lattice of ``cal``'s camera v every ``step_px`` pixels (centred in the image)."""
+        h, w = cal.image_size("view")
+        rows, cols = np.mgrid[step_px // 2:h:step_px, step_px // 2:w:step_px]
+        px = np.column_stack([cols.ravel(), rows.ravel()]).astype(float)
+        origins, dirs = cal.camera_v.pixel_rays(px[:, 0], px[:, 1])
+        dirs = np.asarray(dirs, dtype=float).reshape(-1, 3)
+        origins = np.broadcast_to(np.asarray(origins, dtype=float), dirs.shape).copy()
+        ij = np.column_stack([rows.ravel() // step_px, cols.ravel() // step_px])
+        return cls(ij.astype(np.int64), px, origins, dirs)
+
+
+def _grey_u8(image: NDArray, scale: float) -> NDArray[np.uint8]:
+    img = np.asarray(image, dtype=np.float32) / np.float32(scale)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img[..., :3], cv2.COLOR_RGB2GRAY)
+    return np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
+
+
+def _dis(quality: str) -> cv2.DISOpticalFlow:
+    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    if quality == "fine":  # full resolution, small overlapping patches, more refinement
+        flow.setFinestScale(0)
+        flow.setPatchSize(8)
+        flow.setPatchStride(3)
+        flow.setVariationalRefinementIterations(10)
+    return flow
+
+
+def flat_view_flow(view: NDArray, view_flat: NDArray, quality: str = "fine"
+                   ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Where each pixel's content lies in the flat-water view, and how well the flow says so.
+
+    Parameters
+    ----------
+    view, view_flat : (H, W[, 3]) ndarray
+        The view through the waves and the flat-water view (one radiance scale: both are
+        divided by the flat view's 99.5th percentile).
+    quality : str
+        :data:`~restoration.options.FLOW_QUALITIES`.
+
+    Returns
+    -------
+    flow_px : (H, W, 2) ndarray of float32
+        ``(dcol, drow)``: ``view(p) ~ view_flat(p + flow_px(p))``.
+    round_trip_px : (H, W) ndarray of float32
+        How far the flow back from the flat-water view misses ``p``, px (NaN where it leaves
+        the image).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> from scipy.ndimage import gaussian_filter, shift
+    >>> flat = gaussian_filter(rng.random((120, 160)), 2.0)
+    >>> moved = shift(flat, (0.0, -1.5), order=3, mode="nearest")  # content 1.5 px left
+    >>> flow, trip = flat_view_flow(moved, flat)
+    >>> round(float(np.median(flow[20:100, 20:140, 0])), 1)
+    1.5
+    """
+    scale = float(np.percentile(view_flat, 99.5)) or 1.0
+    a, b = _grey_u8(view, scale), _grey_u8(view_flat, scale)
+    dis = _dis(quality)
+    forward = dis.calc(a, b, None)
+    backward = dis.calc(b, a, None)
+    h, w = a.shape
+    cols, rows = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    back = cv2.remap(backward, cols + forward[..., 0], rows + forward[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=(np.nan, np.nan))
+    return forward, np.linalg.norm(forward + back, axis=-1)
+
+
+def slopes_on_sight_lines(points_mm: Array, dirs: Array, object_mm: Array, n_water: float
+                          ) -> tuple[Array, Array]:
+    """The unit normals (K, 3, up) and slopes ``(dz/dx, dz/dy)`` (K, 2) that refract each
+    line of sight ``dirs`` (K, 3, unit, in the water) at ``points_mm`` (K, 3) towards its
+    object point ``object_mm`` (K, 3): Snell's law ``n d x N = a x N`` makes ``N`` parallel
+    to ``n d - a``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> d = np.array([[0.0, 0.0, 1.0]])
+    >>> n, s = slopes_on_sight_lines(np.zeros((1, 3)), d, np.array([[0.0, 0.0, 9.0]]), 1.33)
+    >>> n.tolist(), s.tolist()
+    ([[0.0, 0.0, 1.0]], [[-0.0, -0.0]])
+    """
+    air = object_mm - points_mm
+    air /= np.linalg.norm(air, axis=1, keepdims=True)
+    normals = n_water * dirs - air
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals *= np.sign(normals[:, 2:3])
+    return normals, -normals[:, :2] / normals[:, 2:3]
+
+
+def _samples(images: dict[str, NDArray], cal: SchlierenCalibration,
+             options: SchlierenOptions) -> tuple[SightLines, NDArray, Array, Array,
+                                                  dict[str, int]]:
+    """The lattice, which of its samples the flow serves, their object points, the object
+    plane's size of one flat-water pixel at each (mm) and the counts."""
+    cfg = cal.cfg
+    flow, trip = flat_view_flow(cal.radiance(images["view"]), cal.radiance(images["view_flat"]),
+                                options.flow)
+    lines = cal.lattice(options.sample_step_px)
+    cols, rows = lines.px[:, 0].astype(int), lines.px[:, 1].astype(int)
+    q = lines.px + flow[rows, cols]
+    camera, h0, n, z_obj = cal.camera_v, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm
+    own = trace_to_object(camera, None, h0, n, z_obj, lines.px[:, 0], lines.px[:, 1])
+    seen = trace_to_object(camera, None, h0, n, z_obj, q[:, 0], q[:, 1])
+    step = trace_to_object(camera, None, h0, n, z_obj, q[:, 0] + 1.0, q[:, 1])
+    reach = own.ok  # through flat water this pixel sees the object: a sample to serve
+    flowed = reach & (np.nan_to_num(trip[rows, cols], nan=np.inf) < options.flow_check_px)
+    kept = flowed & seen.ok & step.ok
+    mm_per_px = np.linalg.norm(step.object_mm - seen.object_mm, axis=1)
+    counts = {"samples": int(reach.sum()), "rejected_flow": int((reach & ~flowed).sum()),
+              "rejected_object": int((flowed & ~kept).sum()), "matched": int(kept.sum())}
+    return lines, kept, seen.object_mm, mm_per_px, counts
+
+
+def _consistency(surface: RaySurface, lines: SightLines, index: NDArray, object_mm: Array,
+                 mm_per_px: Array, cal: SchlierenCalibration, threshold_px: float
+                 ) -> Consistency:
+    """Each kept sample's line of sight through the surface to the object, against its flow
+    object point, in flat-water pixels."""
+    cfg = cal.cfg
+    hf = surface.heightfield
+    traced = trace_to_object(cal.camera_v, hf, cfg.water.h0_mm, cfg.water.n_water,
+                             cfg.object_z_mm, lines.px[index, 0], lines.px[index, 1])
+    residual = np.linalg.norm(traced.object_mm - object_mm[index], axis=1) / mm_per_px[index]
+    finite = residual[np.isfinite(residual)]
+    median, p95 = ((float(np.median(finite)), float(np.percentile(finite, 95)))
+                   if finite.size else (np.nan, np.nan))
+    return Consistency(residual, median, p95, float(threshold_px), int(finite.size), hf,
+                       surface.points_mm[:, :2])
+
+
+def _sparse_message(used: int, counts: dict[str, int]) -> str:
+    return (f"the flow serves {used} of {counts['samples']} samples in view in one surface "
+            "(the object's texture does not follow the waves elsewhere)")
+
+
+def restore_schlieren(
+    images: dict[str, NDArray],
+    cal: SchlierenCalibration,
+    options: SchlierenOptions | None = None,
+) -> RestoreResult:
+    """Run the method on loaded images (``view``, ``view_flat``).
+
+    Returns a :class:`~restoration.result.RestoreResult`: ``ok`` with the surface (its
+    level the gauge's), the restored view, the forward check and the timings; ``sparse``
+    when the flow serves fewer than :data:`~restoration.result.SPARSE_FRACTION` of the
+    samples in view; ``inconsistent`` when the surface does not send the lines of sight where
+    the flow does (module notes); ``failed`` when the samples fix no surface.
+
+    Examples
+    --------
+    >>> from restoration import SchlierenCalibration, restore_schlieren   # doctest: +SKIP
+    >>> cal = SchlierenCalibration.from_folder("renders/schlieren")       # doctest: +SKIP
+    >>> restore_schlieren(cal.load_images("renders/schlieren"), cal).status  # doctest: +SKIP
+    <Status.OK: 'ok'>
+    """
+    options = SchlierenOptions() if options is None else options
+    for name in cal.IMAGES:
+        if name not in images:
+            raise WaiInputError(f"schlieren: the frame needs a {name!r} image")
+    timings = Timings()
+    with timings("features"):
+        lines, kept, object_mm, mm_per_px, counts = _samples(images, cal, options)
+    index = np.flatnonzero(kept)
+    if index.size < max(MIN_SAMPLES, SPARSE_FRACTION * counts["samples"]):
+        return RestoreResult(METHOD, Status.SPARSE, _sparse_message(index.size, counts),
+                             counts=counts)
+    n_water = cal.cfg.water.n_water
+
+    def slopes_at(points: Array, which: NDArray) -> tuple[Array, Array]:
+        sel = index[which]
+        return slopes_on_sight_lines(points, lines.dirs[sel], object_mm[sel], n_water)
+
+    try:
+        with timings("surface"):
+            surface = integrate_along_rays(
+                lines.ij[index], lines.origins_mm[index], lines.dirs[index], slopes_at,
+                cal.cfg.water.h0_mm, options, options.refine_tol_mm)
+    except RestorationFailed as exc:
+        return RestoreResult(METHOD, Status.FAILED, str(exc), counts=counts)
+    with timings("consistency"):
+        check = _consistency(surface, lines, index[surface.kept], object_mm, mm_per_px, cal,
+                             options.max_residual_px)
+    with timings("reverse_trace"):
+        view = cal.restore_view(images["view"], surface.heightfield, options.warp_step_px,
+                                gain=cal.view_gain)
+    timings.add("end_to_end", timings.total())
+    counts["used"] = len(surface.ij)
+    status, message = Status.OK, ""
+    if counts["used"] < SPARSE_FRACTION * counts["samples"]:
+        status, message = Status.SPARSE, _sparse_message(counts["used"], counts)
+    elif not check.consistent:
+        status = Status.INCONSISTENT
+        message = (f"the surface sends the lines of sight {check.median_px:.2f} px (median) "
+                   f"from where the flow puts them (threshold {check.threshold_px:g} px)")
+    return RestoreResult(METHOD, status, message, None, surface, view, timings.to_dict(), counts,
+                         consistency=check)
+
