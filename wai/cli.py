@@ -257,7 +257,9 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "--method",
         default="structured-light",
         help="restoration method: structured-light, alterman (the sun-and-pinhole baseline, on "
-        "a folder rendered from the alterman scene), the video methods registration, lucky "
+        "a folder rendered from the alterman scene), schlieren (synthetic Schlieren from the "
+        "view and its flat-water view; an object with texture, [object] texture = "
+        "\"speckle\"), the video methods registration, lucky "
         "and mean (from a video file, a folder of frames or a sequence; no scene.json), a "
         "method of one's own as module:Class, "
         "or the name an installed package registers (entry points 'wai.methods'; "
@@ -266,9 +268,10 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--anchor",
         default=None,
-        choices=["integrability", "gauge"],
-        help="absolute height: from the slopes' integrability (structured light's default), or "
-        "the gauge's h0 (the paper; alterman's only anchor); default: the method's",
+        choices=["integrability", "gauge", "forward_check"],
+        help="absolute height: from the slopes' integrability (structured light's default), "
+        "the gauge's h0 (the paper; alterman's only anchor; schlieren's default), or for "
+        "schlieren the level whose surface best reproduces the flow; default: the method's",
     )
     p.add_argument(
         "--rig", type=Path, default=None,
