@@ -218,3 +218,19 @@ def test_the_methods_chart_shows_each_methods_spread_over_the_cases(tmp_path, mo
     bars = [c for c in ssim_axis.containers if isinstance(c, ErrorbarContainer)]
     assert len(bars) == 2
     assert f"{os.cpu_count()} cores" in ssim_axis.get_xlabel()
+
+
+def test_compare_conditions_are_valid_scenes_and_give_schlieren_its_texture():
+    # Every condition of the case set is a scene the renderer accepts; the ones where the
+    # geometric method is weak are seen through the speckle object, so Schlieren (which
+    # needs texture) is compared there too; --quick keeps the paper's scene and the speckle.
+    from wai.experiments.compare import DEGRADATIONS, FRAME_METHODS, QUICK_DEGRADATIONS
+    from wai_core.config import with_keys
+    from wai_core.system import load_rig
+
+    assert "schlieren" in FRAME_METHODS and set(QUICK_DEGRADATIONS) == {"none", "speckle"}
+    base = load_rig("paper")
+    for name, keys in DEGRADATIONS.items():
+        cfg = with_keys(base, keys)
+        assert (cfg.object.texture == "speckle") == (name not in ("none", "sensor")), name
+    assert with_keys(base, DEGRADATIONS["rough_0.02"]).water.roughness == 0.02

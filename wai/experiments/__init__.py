@@ -265,24 +265,28 @@ EXPERIMENTS: dict[str, Experiment] = {
         quick_seeds=1,
     ),
     "compare": Experiment(
-        summary="every method on the same rendered sequences: structured light, one's own, "
-                "the image-only baselines",
+        summary="every method on the same rendered sequences: structured light, synthetic "
+                "Schlieren, one's own, the image-only baselines",
         description=(
-            "Each case (sea state, seed, degradation) is one rendered sequence at 30 frames/s; "
-            "every method restores it: the per-frame ones (structured light, the unrestored "
-            "view as a method of one's own, and any --method SPEC) frame by frame, the video "
-            "ones (temporal mean, registration by optical flow, lucky-region fusion) from the "
-            "whole sequence. Scores against the truth: view SSIM and PSNR, corner STD, "
-            "surface RMSE where a method has a surface; ms per frame and the frames each "
-            "needs, charted speed against accuracy.\n\n"
+            "Each case (sea state, seed, condition) is one rendered sequence at 30 frames/s; "
+            "every method restores it: the per-frame ones (structured light, synthetic "
+            "Schlieren, the unrestored view as a method of one's own, and any --method SPEC) "
+            "frame by frame, the video ones (temporal mean, registration by optical flow, "
+            "lucky-region fusion) from the whole sequence. The conditions: the paper's scene, "
+            "its object a speckle (Schlieren's texture), the sensor's noise, and where the "
+            "geometric method is weak (micro-roughness 0.01 and 0.02, gravity-capillary waves "
+            "to 5 omega_p, a defocused projector; through the speckle object). Scores against "
+            "the truth: view SSIM and PSNR, corner STD, surface RMSE (and de-meaned) where a "
+            "method has a surface; ms per frame and the frames each needs, charted speed "
+            "against accuracy.\n\n"
             "Writes compare.csv (one row per case and method; a rerun skips the rows it "
             "holds), compare.parquet, compare.json (the run record), compare_summary.json, "
             "compare.png, compare.md and the rendered sequences (cases/) into --out, and "
             "prints the report."
         ),
-        quick="one sea state, one seed, no degradation, 8 frames",
-        duration="about 1 min with --quick --seeds 1; roughly 10 min without (2 sea states, "
-                 "2 seeds, 2 degradations, 30 frames)",
+        quick="one sea state, one seed, the paper's scene and its speckle object, 8 frames",
+        duration="about 3 min with --quick --seeds 1; roughly an hour without (2 sea states, "
+                 "2 seeds, 7 conditions, 30 frames)",
         run=_run_compare,
         seeds=2,
         quick_seeds=1,

@@ -31,13 +31,31 @@ from wai_core.system import load_rig
 
 VIDEO_METHODS = ("mean", "registration", "lucky")
 """The image-only baselines (:mod:`restoration.video`)."""
-FRAME_METHODS = ("structured-light", "wai.examples.plugin_method:AsSeen")
-"""The per-frame methods compared by default: the paper's, and the unrestored view as a
-method of one's own (its floor)."""
-DEGRADATIONS: dict[str, dict[str, Any]] = {"none": {}, "sensor": {"sensor.enabled": True}}
-"""The degradations of a case, as configuration keys."""
-SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "grid_px", "grid_fraction",
-          "rig_px", "rig_fraction", "ms_per_frame", "frames_needed", "frames_ok", "frames")
+FRAME_METHODS = ("structured-light", "schlieren", "wai.examples.plugin_method:AsSeen")
+"""The per-frame methods compared by default: the paper's, synthetic Schlieren on camera v's
+view, and the unrestored view as a method of one's own (its floor)."""
+_SPECKLE = {"object.texture": "speckle"}
+DEGRADATIONS: dict[str, dict[str, Any]] = {
+    "none": {},
+    "speckle": _SPECKLE,
+    "sensor": {"sensor.enabled": True},
+    # Where the geometric method is weak (the error budget's rows), seen through the speckle
+    # object so that Schlieren, which does not look at the pattern, has its texture.
+    "rough_0.01": {"water.roughness": 0.01, "render.spp_pattern": 64, **_SPECKLE},
+    "rough_0.02": {"water.roughness": 0.02, "render.spp_pattern": 64, **_SPECKLE},
+    "capillary_5": {"waves.dispersion": "capillary", "waves.omega_max_rel": 5.0, **_SPECKLE},
+    "defocus_2mm": {"projector.aperture_mm": 2.0, "projector.focus_mm": 400.0, **_SPECKLE},
+}
+"""The cases' conditions, as configuration keys: the paper's scene (``none``), its object a
+lab tank's speckle (``speckle``: what Schlieren needs; no corners to score), the sensor's
+noise, and where the geometric method is weak: micro-roughness (GGX alpha, 64 pattern
+samples as the budget takes), gravity-capillary waves to 5 omega_p, a defocused projector
+(2 mm aperture focused at 400 mm)."""
+QUICK_DEGRADATIONS = ("none", "speckle")
+"""The conditions of ``--quick``."""
+SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "rmse_demeaned_mm", "grid_px",
+          "grid_fraction", "rig_px", "rig_fraction", "ms_per_frame", "frames_needed",
+          "frames_ok", "frames")
 MIN_CORNERS = 10
 """Fewest corners, found in the truth, the distorted and the restored view alike, for a corner
 STD (two corners have a spread, but not one that says much: a blurred view shows few)."""
@@ -55,7 +73,7 @@ def case_name(point: dict[str, Any]) -> str:
 def compare_points(methods: list[str], seeds: int, quick: bool) -> list[dict[str, Any]]:
     """Every (case, method): sea states, seeds and degradations crossed with the methods."""
     winds = (1.0,) if quick else (1.0, 1.5)
-    degradations = ("none",) if quick else tuple(DEGRADATIONS)
+    degradations = QUICK_DEGRADATIONS if quick else tuple(DEGRADATIONS)
     return [{"wind": w, "seed": s, "degradation": d, "method": m}
             for w in winds for s in range(seeds) for d in degradations for m in methods]
 
@@ -81,6 +99,7 @@ def _view_scores(result: Any, distorted: np.ndarray, cal: Any, truth: Any) -> di
     out = {"ssim": s.restored["ssim"], "psnr_db": s.restored["psnr_db"],
            "corner_std_px": _corner_std(s.corner_std_restored_px, s.corners_common)}
     out["rmse_mm"] = s.rmse_mm if s.surface is not None else None
+    out["rmse_demeaned_mm"] = None if s.surface is None else s.surface.get("rmse_demeaned_mm")
     return out
 
 
@@ -111,12 +130,12 @@ def _corner_std(std_px: float | None, corners: int) -> float | None:
 
 def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
     """A per-frame method over the sequence: means over its frames with a view."""
-    from restoration import LevelTrack, get_method, load_sequence, restore_frame
+    from restoration import LevelTrack, get_method, restore_frame, sequence_frames
     from wai_core.sequence import read_sequence
 
     seq = read_sequence(folder)
     method = get_method(spec)
-    cal, _ = load_sequence(folder)
+    cal, _ = sequence_frames(folder, method)  # the method's calibration; frames read below
     track = LevelTrack()
     rows = []
     n = len(seq.frame_dirs)
@@ -134,11 +153,12 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
                        psnr_db=done.scores.restored["psnr_db"],
                        corner_std_px=_corner_std(m.get("corner_std_restored_px"),
                                                  m.get("corners_common", 0)),
-                       rmse_mm=m.get("wai_rmse_mm"))
+                       rmse_mm=m.get("wai_rmse_mm"),
+                       rmse_demeaned_mm=m.get("wai_rmse_demeaned_mm"))
         rows.append(row)
     mean = {key: _mean([r.get(key) for r in rows])
-            for key in ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "grid_px",
-                        "grid_fraction", "rig_px", "rig_fraction")}
+            for key in ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "rmse_demeaned_mm",
+                        "grid_px", "grid_fraction", "rig_px", "rig_fraction")}
     return {**mean, "ms_per_frame": float(np.median([r["ms"] for r in rows if r["ms"]])),
             "frames_needed": 1, "frames_ok": sum(r["ok"] for r in rows), "frames": len(rows),
             "method_name": method.name}
@@ -199,7 +219,7 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                  "error": failed[0] if failed else None}
         entry.update({k: _mean([r.get(k) for r in part]) for k in SCORES})
         entry.update({f"{k}_sd": _sd([r.get(k) for r in part])
-                      for k in ("corner_std_px", "ssim")})
+                      for k in ("corner_std_px", "ssim", "rmse_demeaned_mm")})
         for k in COUNTS:
             entry[k] = int(sum(int(float(r[k])) for r in part if r.get(k) not in (None, "")))
         out.append(entry)
@@ -216,22 +236,26 @@ def _figure(summary: list[dict[str, Any]], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6), layout="constrained")
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), layout="constrained")
     markers = "osD^vP*Xh<>"
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, e in enumerate(x for x in summary if x["ms_per_frame"] is not None):
         style = {"marker": markers[i % len(markers)], "color": colours[i % len(colours)],
                  "linestyle": "none", "markersize": 7}
-        for ax, key in zip(axes, ("corner_std_px", "ssim"), strict=True):
+        for ax, key in zip(axes, ("corner_std_px", "ssim", "rmse_demeaned_mm"), strict=True):
             if e[key] is not None:
                 spread = e.get(f"{key}_sd")
                 ax.errorbar(e["ms_per_frame"], e[key], yerr=spread, label=e["name"],
                             capsize=3, **style)
     axes[0].set_ylabel("corner STD against the truth, px (lower is better)")
     axes[1].set_ylabel("view SSIM against the flat-water view (higher is better)")
+    axes[2].set_ylabel("surface RMSE, de-meaned, mm (lower is better)")
+    axes[2].set_yscale("log")
     for ax in axes:
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel(f"ms per frame ({os.cpu_count()} cores, this run)")
         ax.grid(alpha=0.3, which="both")
     handles, labels = axes[0].get_legend_handles_labels()
@@ -279,14 +303,15 @@ def report(summary: list[dict[str, Any]], command: str,
 
     lines = [f"# Methods compared (`{command}`)", "",
              "| method | frames needed | ok / frames | view SSIM | PSNR dB | corner STD px | "
-             "surface RMSE mm | grid px (no truth) | corners found | rig px (no truth) | "
-             "ms per frame |",
-             "|" + " --- |" * 11]
+             "surface RMSE mm | de-meaned mm | grid px (no truth) | corners found | "
+             "rig px (no truth) | ms per frame |",
+             "|" + " --- |" * 12]
     for e in summary:
         lines.append(
             f"| {e['name']} | {f(e['frames_needed'], '.0f')} | {f(e['frames_ok'], '.0f')} / "
             f"{f(e['frames'], '.0f')} | {f(e['ssim'], '.4f')} | {f(e['psnr_db'], '.2f')} | "
             f"{f(e['corner_std_px'], '.3f')} | {f(e['rmse_mm'], '.4f')} | "
+            f"{f(e.get('rmse_demeaned_mm'), '.4f')} | "
             f"{f(e.get('grid_px'), '.3f')} | {f(e.get('grid_fraction'), '.0%')} | "
             f"{f(e.get('rig_px'), '.3f')} | {f(e['ms_per_frame'], '.1f')} |")
     failed = [e for e in summary if e.get("failed_cases")]
