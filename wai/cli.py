@@ -16,7 +16,7 @@ from wai_core.errors import WaiInputError
 from wai_core.sequence import DEFAULT_FPS
 
 EXIT_BAD_INPUT = 2
-SCENE_HELP = "scene: a packaged name (paper, alterman) or a TOML file"
+SCENE_HELP = "scene: a packaged name (paper, alterman, schlieren) or a TOML file"
 
 
 class _Parser(argparse.ArgumentParser):

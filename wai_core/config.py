@@ -223,8 +223,30 @@ def read_toml(path: str | Path) -> dict[str, Any]:
 
 
 def load_config(path: str | Path) -> SystemConfig:
-    """Read a scene TOML file (e.g. ``scenes/paper.toml``)."""
-    return config_from_dict(read_toml(path))
+    """Read a scene TOML file (e.g. ``scenes/paper.toml``).
+
+    A file with a top-level ``extends = "other.toml"`` (relative to its own folder) is that
+    scene with the file's keys in place of its own: a variant states only what differs
+    (``scenes/schlieren.toml``)."""
+    return config_from_dict(_scene_tables(Path(path), depth=0))
+
+
+def _scene_tables(path: Path, depth: int) -> dict[str, Any]:
+    """The tables of scene file ``path``, those of the scene it extends under them."""
+    data = read_toml(path)
+    parent = data.pop("extends", None)
+    if parent is None:
+        return data
+    if not isinstance(parent, str):
+        raise WaiInputError(f"{path}: extends must name a scene TOML file, not {parent!r}")
+    if depth >= 8:
+        raise WaiInputError(f"{path}: extends goes more than 8 files deep (a loop?)")
+    tables = config_from_dict(_scene_tables(path.parent / parent, depth + 1)).to_dict()
+    for section, table in data.items():
+        if not isinstance(table, dict):
+            raise WaiInputError(f"config: [{section}] must be a table")
+        tables.setdefault(section, {}).update(table)
+    return tables
 
 
 def validate(cfg: SystemConfig) -> None:

@@ -81,6 +81,22 @@ def test_the_sun_sensor_renders_and_restores(installed):
     assert "status" in out
 
 
+def test_synthetic_schlieren_beside_the_structured_light(installed):
+    # The packaged speckle scene (a variant of the paper's by `extends`), both methods on one
+    # render, each in its own folder.
+    ok(installed.run("render", "schlieren", "--out", "k1", "--quiet"))
+    out = ok(installed.run("restore", "k1", "--method", "schlieren", "--quiet"))
+    assert out.splitlines()[0] == ("status ok: every truth-free check passed (`wai guide "
+                                   "outputs`, \"Frame status\")")
+    ok(installed.run("restore", "k1", "--method", "schlieren", "--anchor", "forward_check",
+                     "--quiet"))
+    ok(installed.run("restore", "k1", "--quiet"))
+    k1 = installed.elsewhere / "k1"
+    methods = {n: json.loads((k1 / n / "metrics.json").read_text())["method"]
+               for n in ("restore", "restore_schlieren")}
+    assert methods == {"restore": "structured-light", "restore_schlieren": "schlieren"}
+
+
 def test_a_dataset(installed):
     ok(installed.run("dataset", "--frames", "2", "--out", "ds", "--quiet"))
     assert any((installed.elsewhere / "ds").glob("*.h5"))
@@ -88,7 +104,7 @@ def test_a_dataset(installed):
 
 BENCHES = [
     ["render", "--runs", "1"],
-    ["restore", "--runs", "1"],
+    ["restore", "--runs", "1", "--workers", "2"],
     ["sizes", "--runs", "1", "--out", "sizes"],
     ["accuracy", "--seeds", "1", "--out", "acc"],
     ["surfaces", "--out", "surfaces"],

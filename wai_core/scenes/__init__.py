@@ -1,14 +1,15 @@
 """Scene configurations shipped with the package, addressed by name.
 
 ``paper`` is the configuration of Jian et al. 2022 (Table 1 and section 5.1); ``alterman`` is
-Alterman et al.'s sun-and-pinhole sensor over the same water. In a checkout, ``scenes/`` at the
+Alterman et al.'s sun-and-pinhole sensor over the same water; ``schlieren`` is the paper's rig
+looking at a speckle object (synthetic Schlieren's texture). In a checkout, ``scenes/`` at the
 top of the repository points here.
 
 Examples
 --------
 >>> from wai_core.scenes import scene_names, scene_path
 >>> scene_names()
-['alterman', 'paper']
+['alterman', 'paper', 'schlieren']
 >>> scene_path("paper").name
 'paper.toml'
 """
