@@ -107,3 +107,25 @@ def test_every_accepted_skimage_texture_is_an_image_that_ships_with_scikit_image
         obj = dataclasses.replace(paper_cfg.object, texture=f"skimage:{name}")
         img = object_texture(obj)
         assert img.ndim == 3 and img.shape[2] == 3 and 0 <= img.min() <= img.max() <= 1, name
+
+
+def test_a_scene_extends_another_with_only_what_differs(tmp_path):
+    from wai_core.config import load_config
+    from wai_core.errors import WaiInputError
+    from wai_core.scenes import scene_path
+
+    paper = load_config(scene_path("paper"))
+    (tmp_path / "base.toml").write_text(scene_path("paper").read_text())
+    (tmp_path / "tank.toml").write_text('extends = "base.toml"\n[object]\ntexture = "speckle"\n'
+                                        '[waves]\nseed = 7\n')
+    tank = load_config(tmp_path / "tank.toml")
+    assert tank.object.texture == "speckle" and tank.waves.seed == 7
+    assert tank.replace("object", texture="checkerboard").replace("waves", seed=0) == paper
+    (tmp_path / "bad.toml").write_text('extends = "base.toml"\n[objekt]\ntexture = "speckle"\n')
+    with pytest.raises(WaiInputError, match=r"unknown section \[objekt\]"):
+        load_config(tmp_path / "bad.toml")
+    (tmp_path / "loop.toml").write_text('extends = "loop.toml"\n')
+    with pytest.raises(WaiInputError, match="more than 8 files deep"):
+        load_config(tmp_path / "loop.toml")
+    assert load_config(scene_path("schlieren")).replace("object", texture="checkerboard") \
+        == paper
