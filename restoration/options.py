@@ -16,7 +16,7 @@ from restoration.integrate import GRIDDERS, INTEGRATORS
 from wai_core.errors import WaiInputError
 
 __all__ = [
-    "ANCHORS", "FLOW_QUALITIES", "SCHLIEREN_ANCHORS", "AltermanOptions", "SchlierenOptions",
+    "ANCHORS", "FLOW_QUALITIES", "AltermanOptions", "SchlierenOptions",
     "StructuredLightOptions", "SurfaceOptions", "checked_options",
 ]
 
@@ -209,15 +209,13 @@ class AltermanOptions(SurfaceOptions):
 
 FLOW_QUALITIES = ("fine", "medium")
 """Values of :attr:`SchlierenOptions.flow`."""
-SCHLIEREN_ANCHORS = ("forward_check", "gauge")
-"""Values of :attr:`SchlierenOptions.anchor`."""
 
 
 @dataclass(frozen=True)
 class SchlierenOptions(SurfaceOptions):
     """Synthetic Schlieren's choices (:mod:`restoration.schlieren`). Its slopes do not pin
     the level (a wrong level bends them into another, nearly integrable field): the level is
-    the gauge's, or on request the one whose surface best reproduces the flow.
+    always the gauge's, so there is no anchor to choose.
 
     Attributes
     ----------
@@ -239,13 +237,6 @@ class SchlierenOptions(SurfaceOptions):
         The frame is ``inconsistent`` when the median of its samples' residual (where the
         surface sends each line of sight on the object against where the flow put it, in
         flat-water pixels) exceeds this, px.
-    anchor : str
-        The level: ``gauge`` (the gauge's h0) or ``forward_check`` (the level whose surface
-        best reproduces the flow, :func:`restoration.schlieren.search_level`: over 19 seeds
-        at U = 1 m/s more frames within 0.1 mm de-meaned, 14 against 11, but one frame's
-        level 33 mm off, where the gauge's error is the patch's own mean; docs/results.md).
-    level_step_mm, level_range_mm : float
-        The search's probe spacing and its reach either side of the gauge's h0, mm.
 
     Examples
     --------
@@ -260,9 +251,6 @@ class SchlierenOptions(SurfaceOptions):
     flow: str = "fine"
     flow_check_px: float = 0.5
     max_residual_px: float = 0.25
-    anchor: str = "gauge"
-    level_step_mm: float = 8.0
-    level_range_mm: float = 48.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -274,12 +262,9 @@ class SchlierenOptions(SurfaceOptions):
         if self.flow not in FLOW_QUALITIES:
             raise WaiInputError(f"unknown flow {self.flow!r} (known: "
                                 f"{', '.join(FLOW_QUALITIES)})")
-        for name in ("flow_check_px", "max_residual_px", "level_step_mm", "level_range_mm"):
+        for name in ("flow_check_px", "max_residual_px"):
             if not getattr(self, name) > 0:
                 raise WaiInputError(f"{name} must be > 0, not {getattr(self, name)}")
-        if self.anchor not in SCHLIEREN_ANCHORS:
-            raise WaiInputError(f"unknown anchor {self.anchor!r} (known: "
-                                f"{', '.join(SCHLIEREN_ANCHORS)})")
 
 
 def checked_options(method: str, cls: type[OptionsT], options: SurfaceOptions | None) -> OptionsT:

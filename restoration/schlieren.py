@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from restoration.calibration import RigCalibration, read_scene_record, record_view_gain
 from restoration.consistency import Consistency
 from restoration.integrate import MIN_SAMPLES
-from restoration.level import Anchor, parabola_vertex
+from restoration.level import Anchor
 from restoration.options import SchlierenOptions
 from restoration.ray_surface import RaySurface, integrate_along_rays
 from restoration.result import SPARSE_FRACTION, RestoreResult, Status
@@ -289,71 +289,6 @@ def _residuals_px(surface: RaySurface, lines: SightLines, index: NDArray, object
     return (traced.object_mm - object_mm[index])[:, :2] / mm_per_px[index, None]
 
 
-LEVEL_BLOCK = 8
-"""Lattice samples along each side of a block of the level search's statistic."""
-
-
-def level_statistic(residual_px: Array, ij: NDArray) -> float:
-    """How far a surface misses the flow where the misses agree: the residual vectors (K, 2)
-    averaged over blocks of :data:`LEVEL_BLOCK` x :data:`LEVEL_BLOCK` lattice samples (``ij``
-    (K, 2)), the median of the blocks' squared means, px². The flow's own noise averages out
-    in a block; a wrong level leaves a smooth miss that does not (over 10 seeds of the
-    paper's rig its minimum lies within a few mm of the true mean level, where the samples'
-    miss without averaging does not)."""
-    ok = np.isfinite(residual_px).all(axis=1)
-    if not ok.any():
-        return float("inf")
-    block = ij[ok] // LEVEL_BLOCK
-    _, which = np.unique(block[:, 0] * (int(block[:, 1].max()) + 1) + block[:, 1],
-                         return_inverse=True)
-    n = np.bincount(which)
-    mean = np.column_stack([np.bincount(which, residual_px[ok, c]) for c in (0, 1)]) / n[:, None]
-    full = n >= LEVEL_BLOCK**2 // 4
-    return float(np.median(np.sum(mean[full] ** 2, axis=1))) if full.any() else float("inf")
-
-
-def search_level(lines: SightLines, index: NDArray, object_mm: Array, mm_per_px: Array,
-                 cal: RigCalibration, options: SchlierenOptions) -> tuple[RaySurface, Anchor]:
-    """The surface from the samples ``index`` (K,) of ``lines``, whose object points and
-    flat-water pixel sizes are ``object_mm[index]`` and ``mm_per_px[index]``, at the level
-    whose surface best sends the lines of sight where the flow does
-    (:func:`level_statistic`): probes every ``level_step_mm`` from the gauge's h0 out to
-    ``level_range_mm`` either way, walking on while the statistic falls, then the vertex of the
-    parabola through the best probe and its neighbours. Where no probe inside the range
-    brackets a minimum the gauge's level stays (anchor ``gauge_fallback``)."""
-    h0 = float(cal.cfg.water.h0_mm)
-    step, reach = float(options.level_step_mm), float(options.level_range_mm)
-    probes: dict[float, tuple[float, RaySurface]] = {}
-
-    def probe(level: float) -> float:
-        if level not in probes:
-            surface = reconstruct_schlieren(lines, index, object_mm[index], cal, options, level)
-            res = _residuals_px(surface, lines, index[surface.kept], object_mm, mm_per_px, cal)
-            probes[level] = (level_statistic(res, surface.ij), surface)
-        return probes[level][0]
-
-    best = h0
-    for direction in (1.0, -1.0):  # walk each way while the statistic falls
-        level = best
-        while abs(level + direction * step - h0) <= reach + 1e-9:
-            if probe(level + direction * step) >= probe(level):
-                break
-            level += direction * step
-        best = min((best, level), key=probe)
-    below, above = probe(best - step), probe(best + step)
-    anchor = Anchor("forward_check", evaluations=0)
-    if not (np.isfinite(below) and np.isfinite(above)) or abs(best - h0) >= reach - 1e-9:
-        anchor.update(method="gauge_fallback", anchor_mm=h0, evaluations=len(probes))
-        return probes[h0][1], anchor
-    x = np.array([best - step, best, best + step])
-    vertex = parabola_vertex(x, np.array([below, probe(best), above]))
-    if np.isfinite(vertex) and abs(vertex - best) < step:
-        probe(float(vertex))
-        best = min((best, float(vertex)), key=probe)
-    anchor.update(anchor_mm=best, searched_mm=best, evaluations=len(probes))
-    return probes[best][1], anchor
-
-
 def _consistency(surface: RaySurface, lines: SightLines, index: NDArray, object_mm: Array,
                  mm_per_px: Array, cal: SchlierenCalibration, threshold_px: float
                  ) -> Consistency:
@@ -407,13 +342,8 @@ def restore_schlieren(
                              counts=counts)
     try:
         with timings("surface"):
-            if options.anchor == "forward_check":
-                surface, anchor = search_level(lines, index, object_mm, mm_per_px, cal,
-                                               options)
-            else:
-                surface = reconstruct_schlieren(lines, index, object_mm[index], cal, options)
-                anchor = Anchor("gauge", float(cal.cfg.water.h0_mm))
-            surface = replace(surface, anchor=anchor)
+            surface = reconstruct_schlieren(lines, index, object_mm[index], cal, options)
+            surface = replace(surface, anchor=Anchor("gauge", float(cal.cfg.water.h0_mm)))
     except RestorationFailed as exc:
         return RestoreResult(METHOD, Status.FAILED, str(exc), counts=counts)
     with timings("consistency"):
@@ -431,10 +361,6 @@ def restore_schlieren(
         status = Status.INCONSISTENT
         message = (f"the surface sends the lines of sight {check.median_px:.2f} px (median) "
                    f"from where the flow puts them (threshold {check.threshold_px:g} px)")
-    elif surface.anchor.method == "gauge_fallback":
-        status = Status.GAUGE_LEVEL
-        message = (f"no level within {options.level_range_mm:g} mm of the gauge's sends the "
-                   "lines of sight best where the flow does: the gauge's h0 was used")
     return RestoreResult(METHOD, status, message, None, surface, view, timings.to_dict(), counts,
                          consistency=check)
 

@@ -268,10 +268,10 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--anchor",
         default=None,
-        choices=["integrability", "gauge", "forward_check"],
-        help="absolute height: from the slopes' integrability (structured light's default), "
-        "the gauge's h0 (the paper; alterman's only anchor; schlieren's default), or for "
-        "schlieren the level whose surface best reproduces the flow; default: the method's",
+        choices=["integrability", "gauge"],
+        help="absolute height: from the slopes' integrability (structured light's default), or "
+        "the gauge's h0 (the paper; alterman's and schlieren's only anchor); default: the "
+        "method's",
     )
     p.add_argument(
         "--rig", type=Path, default=None,

@@ -127,26 +127,3 @@ def test_a_frame_without_its_flat_view_is_bad_input(frames, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "view_flat" in err[0]
 
-
-def test_the_forward_check_finds_the_level_from_exact_displacements(cal):
-    # Waves whose mean over the view lies 10 mm above the gauge's h0: at the gauge's level
-    # the shape is bent; the level whose surface best reproduces the object points (exact,
-    # traced through the truth) is the true one, and with it the shape is right.
-    from restoration.schlieren import search_level
-
-    truth = _waves(cal)
-    truth = Heightfield(truth.x, truth.y, truth.z + 10.0)
-    options = SchlierenOptions(anchor="forward_check")
-    lines = SightLines.build(cal, options.sample_step_px)
-    cfg = cal.cfg
-    traced = trace_to_object(cal.camera_v, truth, cfg.water.h0_mm, cfg.water.n_water,
-                             cfg.object_z_mm, lines.px[:, 0], lines.px[:, 1])
-    index = np.flatnonzero(traced.ok)
-    gauge = reconstruct_schlieren(lines, index, traced.object_mm[index], cal, options)
-    found, anchor = search_level(lines, index, traced.object_mm, np.ones(len(lines.px)), cal,
-                                 options)
-    assert anchor.method == "forward_check"
-    offset = surface_errors(found.heightfield, truth)["mean_offset_mm"]
-    assert abs(offset) < 2.0
-    assert (surface_errors(found.heightfield, truth)["rmse_demeaned_mm"]
-            < 0.5 * surface_errors(gauge.heightfield, truth)["rmse_demeaned_mm"])

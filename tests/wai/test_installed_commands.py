@@ -88,8 +88,6 @@ def test_synthetic_schlieren_beside_the_structured_light(installed):
     out = ok(installed.run("restore", "k1", "--method", "schlieren", "--quiet"))
     assert out.splitlines()[0] == ("status ok: every truth-free check passed (`wai guide "
                                    "outputs`, \"Frame status\")")
-    ok(installed.run("restore", "k1", "--method", "schlieren", "--anchor", "forward_check",
-                     "--quiet"))
     ok(installed.run("restore", "k1", "--quiet"))
     k1 = installed.elsewhere / "k1"
     methods = {n: json.loads((k1 / n / "metrics.json").read_text())["method"]

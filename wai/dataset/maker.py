@@ -90,16 +90,18 @@ class FrameMaker:
             self._renderers[level] = FrameRenderer(self.base, surface)
         return self._renderers[level]
 
-    def render(self, index: int) -> tuple[SystemConfig, Heightfield, dict[str, NDArray], float]:
-        """Frame ``index``'s configuration, true surface (on the storage grid), images and the
-        views' gain: the renders of :func:`mitsuba_wai.render_frame` on the frame's mesh."""
+    def render(self, index: int, truth: Heightfield | None = None
+               ) -> tuple[SystemConfig, Heightfield, dict[str, NDArray], float]:
+        """Frame ``index``'s configuration, true surface (on the storage grid; ``truth`` when
+        given), images and the views' gain: the renders of :func:`mitsuba_wai.render_frame`
+        on the frame's mesh."""
         from mitsuba_wai import render_frame_images, render_seed
         from wai_core.optics import radiance_gain
 
         p = sample_params(self.spec.seed, index, self.spec.ranges, self.spec.degrade)
         cfg = frame_config(self.base, p)
         level = self.level(cfg)
-        mesh = self.surface(cfg, level=level)
+        mesh = truth if truth is not None and level == 0 else self.surface(cfg, level=level)
 
         def surface_at(t: float) -> Heightfield:
             return self.surface(cfg, t, level)
@@ -111,16 +113,28 @@ class FrameMaker:
         # With the sensor on, the views are its reading, already scaled by the exposure.
         gain = 1.0 if cfg.sensor.enabled else radiance_gain(cfg.water.n_water)
         # Level 0's mesh is the storage grid: the same heights, not synthesised twice.
-        return cfg, mesh if level == 0 else self.surface(cfg), images, gain
+        storage = mesh if level == 0 else (truth or self.surface(cfg))
+        return cfg, storage, images, gain
 
     def make(self, index: int) -> FrameRecord:
         """Frame ``index``, rendered and reduced to what the store holds, with BLAS on one
-        thread: idle ones would spin beside Dr.Jit's, and the sums are the same in any process."""
+        thread: idle ones would spin beside Dr.Jit's, and the sums are the same in any process.
+
+        The truth (the exact warp and the normals, from the storage grid's surface) is worked
+        out on a second thread while the frame renders: the warp's compiled trace releases the
+        GIL, so host and renderer overlap (on a GPU, the host's share of a frame hides behind
+        the device's)."""
+        from concurrent.futures import ThreadPoolExecutor
+
         from threadpoolctl import threadpool_limits
 
         p = sample_params(self.spec.seed, index, self.spec.ranges, self.spec.degrade)
-        with threadpool_limits(1, user_api="blas"):
-            cfg, surf, images, gain = self.render(index)
+        geometry = frame_config(self.base, p)  # the warp needs the rig and the sea, no more
+        with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(1) as pool:
+            surf = self.surface(geometry)
+            truth = pool.submit(_truth, geometry, surf)
+            _, _, images, gain = self.render(index, surf)
+            normals, warp = truth.result()
             return FrameRecord(
                 params=p,
                 view=(images["view"] / gain).astype(np.float16),
@@ -128,7 +142,13 @@ class FrameMaker:
                 pattern=images["pattern"].mean(axis=-1).astype(np.float16),
                 pattern_flat=images["pattern_flat"].mean(axis=-1).astype(np.float16),
                 height_mm=surf.z.astype(np.float32),
-                normals=surf.grid_normals().astype(np.float32),
-                warp_px=true_view_warp(cfg, surf),
+                normals=normals,
+                warp_px=warp,
             )
+
+
+def _truth(cfg: SystemConfig, surface: Heightfield) -> tuple[NDArray, NDArray]:
+    """The storage grid's unit normals (float32) and camera v's exact warp through
+    ``surface``."""
+    return surface.grid_normals().astype(np.float32), true_view_warp(cfg, surface)
 
