@@ -214,6 +214,38 @@ def test_dask_workers_render_the_same_frames(store: Path, tmp_path: Path) -> Non
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
+def test_frames_go_to_the_workers_that_hold_a_gpu(store: Path, tmp_path: Path) -> None:
+    # A worker started with --resources GPU=1 (here a CPU standing in for it): the frames
+    # ask for one GPU each, render there, and come out as without.
+    import logging
+
+    from distributed import LocalCluster
+    from distributed.diagnostics.plugin import SchedulerPlugin
+
+    from wai.dataset import DatasetSpec, write_dataset
+
+    class Asked(SchedulerPlugin):  # what each task asked of its worker when it ran
+        def __init__(self, scheduler):
+            self.scheduler, self.asked = scheduler, []
+
+        def transition(self, key, start, finish, *args, **kwargs):
+            if finish == "processing":
+                self.asked.append(self.scheduler.tasks[key].resource_restrictions)
+
+    spec = DatasetSpec(seed=4, spp=2, size_px=(120, 90))
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                      resources={"GPU": 1}, dashboard_address=None,
+                      silence_logs=logging.ERROR) as cluster:
+        plugin = Asked(cluster.scheduler)
+        cluster.scheduler.add_plugin(plugin)
+        write_dataset(tmp_path / "g", 1, spec, scheduler=cluster.scheduler_address,
+                      progress=False)
+    assert plugin.asked == [{"GPU": 1}]
+    a, b = read_frame(tmp_path / "g", 0), read_frame(store, 0)
+    for name in ARRAYS:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
 def _listing(root: Path) -> dict[str, bytes | None]:
     return {str(p.relative_to(root)): p.read_bytes() if p.is_file() else None
             for p in sorted(root.rglob("*"))}

@@ -20,7 +20,7 @@ from wai.dataset.spec import DatasetSpec
 from wai.threads import limit_native_threads
 from wai_core.errors import WaiInputError
 
-__all__ = ["make_frames"]
+__all__ = ["frame_resources", "make_frames"]
 
 
 # A worker process's FrameMaker of each spec (its scenes stay loaded between frames).
@@ -41,20 +41,43 @@ def _make_cached(spec: DatasetSpec, index: int, host_threads: dict[str, int] | N
     return maker.make(index)
 
 
+def frame_resources(workers: Sequence[dict[str, Any]]) -> dict[str, int] | None:
+    """What each frame asks of a Dask worker: one ``GPU`` where any worker offers that
+    resource (one worker process per GPU, started with ``--resources GPU=1``: the frames then
+    go to those workers only, one at a time each), else nothing.
+
+    Examples
+    --------
+    >>> frame_resources([{"resources": {"GPU": 1}}, {"resources": {}}])
+    {'GPU': 1}
+    >>> frame_resources([{"resources": {}}]) is None
+    True
+    """
+    return {"GPU": 1} if any(w.get("resources", {}).get("GPU") for w in workers) else None
+
+
 def _frames_on_dask(client: Any, spec: DatasetSpec, indices: Sequence[int]
                     ) -> Iterator[FrameRecord]:
-    """The frames ``indices`` in order, rendered by the workers of ``client``'s cluster; a
-    window of twice the workers' threads is in flight (the rest waits, not the memory)."""
+    """The frames ``indices`` in order, rendered by the workers of ``client``'s cluster
+    (those with a GPU where there are any: :func:`frame_resources`); a window of twice the
+    workers' threads is in flight (the rest waits, not the memory)."""
     with client:
-        info = [(w["host"], w["nthreads"]) for w in client.scheduler_info()["workers"].values()]
+        workers = list(client.scheduler_info()["workers"].values())
+        resources = frame_resources(workers)
+        if resources is not None:
+            workers = [w for w in workers if w.get("resources", {}).get("GPU")]
+        info = [(w["host"], w["nthreads"]) for w in workers]
         hosts = {h: sum(n for k, n in info if k == h) for h, _ in info}
         window, todo = max(2, 2 * sum(hosts.values())), iter(indices)
-        pending = deque(client.submit(_make_cached, spec, i, hosts, pure=False)
-                        for i in itertools.islice(todo, window))
+
+        def submit(i: int) -> Any:
+            return client.submit(_make_cached, spec, i, hosts, pure=False, resources=resources)
+
+        pending = deque(submit(i) for i in itertools.islice(todo, window))
         while pending:
             rec = pending.popleft().result()
             for i in itertools.islice(todo, 1):
-                pending.append(client.submit(_make_cached, spec, i, hosts, pure=False))
+                pending.append(submit(i))
             yield rec
 
 
