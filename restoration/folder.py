@@ -19,6 +19,7 @@ from restoration.frame import (
     check_files,
     check_inputs,
     check_rig_geometry,
+    default_out,
     restore_frame,
     with_rig,
 )
@@ -32,20 +33,6 @@ __all__ = [
     "restore_folder",
     "restore_frame", "with_rig",
 ]
-
-
-def default_out(record: Mapping[str, Any], method: str) -> str:
-    """The name of a render folder's restore output for ``method``: ``restore`` for the method
-    its images were made for (a sun-sensor render's ``alterman``, else ``structured-light``),
-    ``restore_METHOD`` for any other (Schlieren on the same render, a method of one's own).
-
-    Examples
-    --------
-    >>> default_out({"config": {}}, "structured-light"), default_out({"config": {}}, "schlieren")
-    ('restore', 'restore_schlieren')
-    """
-    own = "alterman" if "alterman" in record else "structured-light"
-    return "restore" if method == own else f"restore_{method}"
 
 
 def restore_folder(

@@ -110,6 +110,20 @@ def with_rig(cal: CalibrationT, rig: Mapping[str, Any] | str | Path | None) -> C
                    rig={"file": source, "config_keys": keys})
 
 
+def default_out(record: Mapping[str, Any], method: str) -> str:
+    """The name of a render folder's restore output for ``method``: ``restore`` for the method
+    its images were made for (a sun-sensor render's ``alterman``, else ``structured-light``),
+    ``restore_METHOD`` for any other (Schlieren on the same render, a method of one's own).
+
+    Examples
+    --------
+    >>> default_out({"config": {}}, "structured-light"), default_out({"config": {}}, "schlieren")
+    ('restore', 'restore_schlieren')
+    """
+    own = "alterman" if "alterman" in record else "structured-light"
+    return "restore" if method == own else f"restore_{method}"
+
+
 def restore_frame(
     folder: str | Path,
     cal: RigCalibration,

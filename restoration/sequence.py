@@ -34,6 +34,7 @@ from restoration.frame import (
     FolderRestore,
     check_files,
     check_rig_geometry,
+    default_out,
     flat_reference_line,
     folder_metrics,
     load_view_flat,
@@ -150,7 +151,8 @@ def restore_sequence(
         Write ``folder/restore/`` (``frames.csv``, ``summary.json``, ``temporal.png``, the
         movies) and each frame's own restore files (surface, restored view, ``metrics.json``;
         no per-frame figures): a render's in each frame folder's ``restore/``, captures' in
-        ``folder/restore/<frame>/``.
+        ``folder/restore/<frame>/``; ``restore_METHOD`` in place of ``restore`` for a method
+        other than the sequence's own (:func:`~restoration.frame.default_out`).
     movie : bool
         Write ``restored.mp4`` and ``side_by_side.mp4`` (animated GIFs where no MP4 encoder
         is present).
@@ -176,9 +178,10 @@ def restore_sequence(
     meth = as_method(method, options)
     cal = with_rig(_calibration(seq, meth), rig)
     check_rig_geometry(cal, seq.scene_dir / "scene.json")
-    out = seq.folder / "restore"
+    name = default_out(seq.record or {}, meth.name)  # another method's results stay
+    out = seq.folder / name
     if write:  # every output checked before the first frame is restored
-        frame_outs = () if seq.captured else (d / "restore" for d in seq.frame_dirs)
+        frame_outs = () if seq.captured else (d / name for d in seq.frame_dirs)
         for target in (out, *frame_outs):
             check_output_dir(target, "restore", remedy=RESTORE_REMEDY)
     track = SequenceState(track=track)
@@ -205,7 +208,7 @@ def restore_sequence(
                     tmp.mkdir()
                 else:
                     tmp = stack.enter_context(atomic_dir(
-                        frame_dir / "restore", command="restore", remedy=RESTORE_REMEDY))
+                        frame_dir / name, command="restore", remedy=RESTORE_REMEDY))
                 done.write_files(tmp, figures=False)
                 staged.append((tmp, done.metrics))
             view = done.distorted
@@ -283,7 +286,8 @@ def _row(
         row.update(
             anchor_mm=result.surface.anchor.anchor_mm,
             features_used=len(result.surface.ij),
-            tracked=int(result.features.counts.get("tracked", 0)),
+            tracked=int(result.features.counts.get("tracked", 0)
+                        if result.features is not None else 0),
         )
         if result.consistency is not None:
             row["residual_median_px"] = result.consistency.median_px

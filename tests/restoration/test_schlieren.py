@@ -127,3 +127,24 @@ def test_a_frame_without_its_flat_view_is_bad_input(frames, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "view_flat" in err[0]
 
+
+
+def test_a_sequence_restored_by_both_methods_keeps_both(tmp_path):
+    # The structured light's restore/ and Schlieren's restore_schlieren/, in the sequence's
+    # folder and in every frame's: one method's run never replaces the other's.
+    from mitsuba_wai import render_sequence
+    from restoration import restore_sequence
+    from wai_core.system import load_rig
+
+    folder = tmp_path / "seq"
+    render_sequence(load_rig("schlieren").replace("waves", seed=6), folder, 2, 30.0,
+                    progress=False)
+    restore_sequence(folder, movie=False)
+    done = restore_sequence(folder, "schlieren", movie=False)
+    assert [r["status"] for r in done.rows] == ["ok", "ok"]
+    for where in (folder, folder / "frame000", folder / "frame001"):
+        kinds = {p.name for p in where.iterdir() if p.name.startswith("restore")}
+        assert kinds == {"restore", "restore_schlieren"}, where
+    ours = json.loads((folder / "frame001" / "restore_schlieren" / "metrics.json").read_text())
+    theirs = json.loads((folder / "frame001" / "restore" / "metrics.json").read_text())
+    assert (ours["method"], theirs["method"]) == ("schlieren", "structured-light")
