@@ -190,8 +190,9 @@ def score(
         if truth.recorded is not None:
             seen &= truth.recorded
         mask = result.view.valid & seen
-        out.distorted = image_metrics(distorted_view, truth.view, mask)
-        out.restored = image_metrics(result.view.image, truth.view, mask)
+        if mask.any():  # a view restored nowhere on the object has no image scores
+            out.distorted = image_metrics(distorted_view, truth.view, mask)
+            out.restored = image_metrics(result.view.image, truth.view, mask)
         out.view_pixels_with_object = int(seen.sum())
         out.view_restored_fraction = float(mask.sum() / max(seen.sum(), 1))
     if truth.view is not None and truth.surface is not None:

@@ -296,3 +296,20 @@ def test_corner_window_and_angular_pixels_follow_the_focal_length():
     assert angular_px(None, cam) is None
     small = cfg.replace("camera_v", width_px=200, height_px=150).rig.camera_v
     assert corner_window_px(small) == 2  # at least 2 px
+
+
+def test_a_view_restored_nowhere_on_the_object_has_no_image_scores(paper_cfg):
+    # A frame whose restored view holds no valid pixel (every ray failed) is scored on its
+    # surface alone, not refused: its image scores are absent and its restored share 0.
+    import numpy as np
+
+    from restoration import RestoredView, RestoreResult, Truth, score
+    from restoration.calibration import Calibration
+
+    cal = Calibration(paper_cfg)
+    h, w = cal.image_size("view")
+    truth_view = np.full((h, w, 3), 0.5, np.float32)
+    result = RestoreResult("x", view=RestoredView(np.zeros((h, w, 3)), np.zeros((h, w), bool)))
+    s = score(result, truth_view, cal, Truth(None, truth_view))
+    assert s.restored is None and s.distorted is None and s.view_restored_fraction == 0.0
+    assert "restored" not in s.to_dict()

@@ -32,7 +32,7 @@ def _restore(frame: Any, cal: Any, fit: bool) -> dict[str, Any]:
         "rmse_mm": s.rmse_mm,
         "rmse_demeaned_mm": s.surface["rmse_demeaned_mm"],
         "residual_median_px": result.consistency.median_px,
-        "restored_ssim": s.restored["ssim"],
+        "restored_ssim": (s.restored or {}).get("ssim"),  # None: restored nowhere
         "surface_ms": result.timings_ms["surface"],
     }
 

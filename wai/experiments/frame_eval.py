@@ -250,8 +250,9 @@ def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[s
         "wai_rmse_mm": s.surface["rmse_mm"],
         "wai_rmse_demeaned_mm": s.surface["rmse_demeaned_mm"],
         "wai_max_abs_mm": s.surface["max_abs_mm"],
-        "distorted_ssim": s.distorted["ssim"],
-        "restored_ssim": s.restored["ssim"],
+        # None where the view was restored nowhere on the object
+        "distorted_ssim": (s.distorted or {}).get("ssim"),
+        "restored_ssim": (s.restored or {}).get("ssim"),
         "corner_std_distorted_px": s.corner_std_distorted_px,
         "corner_std_restored_px": s.corner_std_restored_px,
         "anchor_method": result.surface.anchor.method,
