@@ -252,9 +252,14 @@ def _figure(summary: list[dict[str, Any]], path: Path) -> None:
     axes[0].set_ylabel("corner STD against the truth, px (lower is better)")
     axes[1].set_ylabel("view SSIM against the flat-water view (higher is better)")
     axes[2].set_ylabel("surface RMSE, de-meaned, mm (lower is better)")
-    axes[2].set_yscale("log")
+    axes[2].set_ylim(bottom=0.0)
+    ms = [e["ms_per_frame"] for e in summary if e["ms_per_frame"]]
+    decades = (10.0 ** np.floor(np.log10(min(ms))), 10.0 ** np.ceil(np.log10(max(ms)))) \
+        if ms else None
     for ax in axes:
         ax.set_xscale("log")
+        if decades is not None:  # whole decades: each panel shows its powers of ten
+            ax.set_xlim(*decades)
         ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel(f"ms per frame ({os.cpu_count()} cores, this run)")
         ax.grid(alpha=0.3, which="both")
