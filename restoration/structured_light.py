@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from restoration.anchor import find_anchor, integration_residual_mm
 from restoration.calibration import Calibration, LevelTrack
-from restoration.consistency import Consistency, spot_consistency
+from restoration.consistency import TAIL_FACTOR, Consistency, spot_consistency
 from restoration.features import (
     Matches,
     ReferenceGrid,
@@ -327,6 +327,12 @@ def frame_status(
         return Status.INCONSISTENT, (
             f"the surface misses the detected spots by {check.median_px:.2f} px (median; "
             f"threshold {check.threshold_px:.2f} px)"
+        )
+    if not check.tail_consistent:
+        return Status.INCONSISTENT, (
+            f"the surface misses a twentieth of the detected spots by {check.p95_px:.2f} px or "
+            f"more (95th percentile; more than {TAIL_FACTOR:g}x the threshold "
+            f"{check.threshold_px:.2f} px): it is wrong in a part"
         )
     if check.gross.any():
         return Status.INCONSISTENT, (

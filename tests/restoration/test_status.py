@@ -35,12 +35,14 @@ class _Features(SimpleNamespace):
         return self.n
 
 
-def _status(n_matched, ambiguous, observed=1000, in_view=1000, median_px=0.2, rms_px=0.3):
+def _status(n_matched, ambiguous, observed=1000, in_view=1000, median_px=0.2, rms_px=0.3,
+            p95_px=0.5):
     features = _Features(n=n_matched, counts={"labels_ambiguous": int(ambiguous)})
     reference = SimpleNamespace(counts={"predicted_in_view": in_view, "observed": observed},
                                 rms_px=rms_px, median_spacing_px=13.0)
     surface = SimpleNamespace(anchor=Anchor("integrability"))
     check = SimpleNamespace(consistent=median_px <= 1.0, median_px=median_px, threshold_px=1.0,
+                            p95_px=p95_px, tail_consistent=p95_px <= 2.0,
                             gross=np.zeros(3, bool))
     return frame_status(features, reference, surface, check, True, StructuredLightOptions())
 
@@ -62,6 +64,24 @@ def test_a_small_patch_with_pinned_labels_is_judged_by_its_consistency(n_matched
     # Decoded (or uniquely anchored) labels: the patch is judged like any other.
     assert _status(n_matched, ambiguous=False)[0] == "ok"
     assert _status(n_matched, ambiguous=False, median_px=3.0)[0] == "inconsistent"
+
+
+def test_a_frame_wrong_in_a_part_is_inconsistent_though_its_median_fits():
+    # A patch of shifted labels that the rest of the frame outvotes: the median residual
+    # within the threshold, the 95th percentile past twice it.
+    assert _status(800, ambiguous=True, median_px=0.3, p95_px=1.9)[0] == "ok"
+    status, message = _status(800, ambiguous=True, median_px=0.3, p95_px=2.6)
+    assert status == "inconsistent" and "95th percentile" in message
+
+
+def test_the_tail_rule_reads_the_consistency_s_own_figures():
+    from restoration.consistency import TAIL_FACTOR, Consistency
+
+    def check(p95):
+        return Consistency(np.zeros(3), 0.1, p95, 0.3, 3, None, np.zeros((3, 2)))
+
+    assert check(0.99 * TAIL_FACTOR * 0.3).tail_consistent
+    assert not check(1.01 * TAIL_FACTOR * 0.3).tail_consistent
 
 
 def test_a_reference_that_shows_few_dots_is_sparse_whatever_the_labels():
