@@ -88,6 +88,17 @@ class RigCalibration:
                                          "view_truth": "camera_v"}
     """The device (config section) that takes each image."""
 
+    @classmethod
+    def from_record(cls, record: dict[str, Any]) -> RigCalibration:
+        """From a ``scene.json`` record (see :func:`read_scene_record`): its configuration and
+        the view's gain."""
+        return cls(config_from_dict(record["config"]), record_view_gain(record))
+
+    @classmethod
+    def from_folder(cls, folder: str | Path) -> RigCalibration:
+        """From ``folder/scene.json``."""
+        return cls.from_record(read_scene_record(folder))
+
     @cached_property
     def _remaps(self) -> dict[str, PinholeRemap]:
         """The pinhole remap of each device whose optics are not its ideal pinhole's."""
@@ -310,16 +321,6 @@ class Calibration(RigCalibration):
             ij, self.panel_px(ij), spot_px, self.projector, self.camera_s, self.diffuser_z_mm,
             weight_h_mm=self.cfg.water.h0_mm, rays=self.dot_rays(ij),
         )
-
-    @classmethod
-    def from_record(cls, record: dict[str, Any]) -> Calibration:
-        """From a ``scene.json`` record (see :func:`read_scene_record`)."""
-        return cls(config_from_dict(record["config"]), record_view_gain(record))
-
-    @classmethod
-    def from_folder(cls, folder: str | Path) -> Calibration:
-        """From ``folder/scene.json``."""
-        return cls.from_record(read_scene_record(folder))
 
     def image_size(self, name: str) -> tuple[int, int]:
         if name in ("pattern", "pattern_flat"):

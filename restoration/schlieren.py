@@ -34,20 +34,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration.calibration import RigCalibration, read_scene_record, record_view_gain
+from restoration.calibration import RigCalibration
 from restoration.consistency import Consistency
 from restoration.integrate import MIN_SAMPLES
 from restoration.level import Anchor
 from restoration.options import SchlierenOptions
 from restoration.ray_surface import RaySurface, integrate_along_rays
 from restoration.result import SPARSE_FRACTION, RestoreResult, Status
-from wai_core.config import config_from_dict
 from wai_core.errors import RestorationFailed, WaiInputError
 from wai_core.images import find_image, locate_image
 from wai_core.optics import trace_to_object
@@ -80,16 +79,6 @@ class SchlierenCalibration(RigCalibration):
                                              compare=False)
 
     IMAGES: ClassVar[tuple[str, ...]] = ("view", "view_flat")
-
-    @classmethod
-    def from_record(cls, record: dict[str, Any]) -> SchlierenCalibration:
-        """From a ``scene.json`` record (see :func:`read_scene_record`)."""
-        return cls(config_from_dict(record["config"]), record_view_gain(record))
-
-    @classmethod
-    def from_folder(cls, folder: str | Path) -> SchlierenCalibration:
-        """From ``folder/scene.json``."""
-        return cls.from_record(read_scene_record(folder))
 
     def image_size(self, name: str) -> tuple[int, int]:
         if name == "view_flat":
@@ -125,12 +114,15 @@ class SightLines:
         The pixels, ``(col, row)``.
     origins_mm, dirs : (K, 3) ndarray
         The lines of sight in the water (behind a port: from the port's outer face), mm.
+    reach : (K,) ndarray of bool
+        Whether the pixel sees the object through flat water: the samples a frame serves.
     """
 
     ij: NDArray[np.int64]
     px: Array
     origins_mm: Array
     dirs: Array
+    reach: NDArray[np.bool_]
 
     @classmethod
     def build(cls, cal: RigCalibration, step_px: int) -> SightLines:
@@ -142,7 +134,10 @@ class SightLines:
         dirs = np.asarray(dirs, dtype=float).reshape(-1, 3)
         origins = np.broadcast_to(np.asarray(origins, dtype=float), dirs.shape).copy()
         ij = np.column_stack([rows.ravel() // step_px, cols.ravel() // step_px])
-        return cls(ij.astype(np.int64), px, origins, dirs)
+        cfg = cal.cfg
+        reach = trace_to_object(cal.camera_v, None, cfg.water.h0_mm, cfg.water.n_water,
+                                cfg.object_z_mm, px[:, 0], px[:, 1]).ok
+        return cls(ij.astype(np.int64), px, origins, dirs, reach)
 
 
 def _grey_u8(image: NDArray, scale: float) -> NDArray[np.uint8]:
@@ -240,10 +235,9 @@ def _samples(images: dict[str, NDArray], cal: SchlierenCalibration,
     cols, rows = lines.px[:, 0].astype(int), lines.px[:, 1].astype(int)
     q = lines.px + flow[rows, cols]
     camera, h0, n, z_obj = cal.camera_v, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm
-    own = trace_to_object(camera, None, h0, n, z_obj, lines.px[:, 0], lines.px[:, 1])
     seen = trace_to_object(camera, None, h0, n, z_obj, q[:, 0], q[:, 1])
     step = trace_to_object(camera, None, h0, n, z_obj, q[:, 0] + 1.0, q[:, 1])
-    reach = own.ok  # through flat water this pixel sees the object: a sample to serve
+    reach = lines.reach
     flowed = reach & (np.nan_to_num(trip[rows, cols], nan=np.inf) < options.flow_check_px)
     kept = flowed & seen.ok & step.ok
     mm_per_px = np.linalg.norm(step.object_mm - seen.object_mm, axis=1)
@@ -253,12 +247,11 @@ def _samples(images: dict[str, NDArray], cal: SchlierenCalibration,
 
 
 def reconstruct_schlieren(lines: SightLines, index: NDArray, object_mm: Array,
-                          cal: RigCalibration, options: SchlierenOptions,
-                          level_mm: float | None = None) -> RaySurface:
+                          cal: RigCalibration, options: SchlierenOptions) -> RaySurface:
     """The surface from the object points ``object_mm`` (K, 3) that the lines of sight
     ``lines``' samples ``index`` (K,) reach through it: each sample's slope by Snell's law
     (:func:`slopes_on_sight_lines`) where its line crosses the surface, integrated with the
-    samples' mean height at ``level_mm`` (default the gauge's h0) and refined along the lines
+    samples' mean height at the gauge's h0 and refined along the lines
     (:func:`~restoration.ray_surface.integrate_along_rays`).
 
     Raises
@@ -272,21 +265,8 @@ def reconstruct_schlieren(lines: SightLines, index: NDArray, object_mm: Array,
     def slopes_at(points: Array, which: NDArray) -> tuple[Array, Array]:
         return slopes_on_sight_lines(points, dirs[which], object_mm[which], n_water)
 
-    level = cal.cfg.water.h0_mm if level_mm is None else float(level_mm)
     return integrate_along_rays(lines.ij[index], lines.origins_mm[index], dirs, slopes_at,
-                                level, options, options.refine_tol_mm)
-
-
-def _residuals_px(surface: RaySurface, lines: SightLines, index: NDArray, object_mm: Array,
-                  mm_per_px: Array, cal: RigCalibration) -> Array:
-    """(K, 2): where each sample ``index`` (K,) of the surface's lines of sight meets the
-    object through it, less where the flow put it, in flat-water pixels (NaN where it
-    misses the surface)."""
-    cfg = cal.cfg
-    traced = trace_to_object(cal.camera_v, surface.heightfield, cfg.water.h0_mm,
-                             cfg.water.n_water, cfg.object_z_mm, lines.px[index, 0],
-                             lines.px[index, 1])
-    return (traced.object_mm - object_mm[index])[:, :2] / mm_per_px[index, None]
+                                cal.cfg.water.h0_mm, options, options.refine_tol_mm)
 
 
 def _consistency(surface: RaySurface, lines: SightLines, index: NDArray, object_mm: Array,
@@ -294,9 +274,10 @@ def _consistency(surface: RaySurface, lines: SightLines, index: NDArray, object_
                  ) -> Consistency:
     """Each kept sample's line of sight through the surface to the object, against its flow
     object point, in flat-water pixels."""
-    hf = surface.heightfield
-    residual = np.linalg.norm(_residuals_px(surface, lines, index, object_mm, mm_per_px, cal),
-                              axis=1)
+    cfg, hf = cal.cfg, surface.heightfield
+    traced = trace_to_object(cal.camera_v, hf, cfg.water.h0_mm, cfg.water.n_water,
+                             cfg.object_z_mm, lines.px[index, 0], lines.px[index, 1])
+    residual = np.linalg.norm(traced.object_mm - object_mm[index], axis=1) / mm_per_px[index]
     finite = residual[np.isfinite(residual)]
     median, p95 = ((float(np.median(finite)), float(np.percentile(finite, 95)))
                    if finite.size else (np.nan, np.nan))

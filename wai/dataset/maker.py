@@ -113,7 +113,7 @@ class FrameMaker:
         # With the sensor on, the views are its reading, already scaled by the exposure.
         gain = 1.0 if cfg.sensor.enabled else radiance_gain(cfg.water.n_water)
         # Level 0's mesh is the storage grid: the same heights, not synthesised twice.
-        storage = mesh if level == 0 else (truth or self.surface(cfg))
+        storage = mesh if level == 0 else truth if truth is not None else self.surface(cfg)
         return cfg, storage, images, gain
 
     def make(self, index: int) -> FrameRecord:
