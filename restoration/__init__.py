@@ -22,7 +22,8 @@ normals (:mod:`~restoration.normals`), integration (:mod:`~restoration.integrate
 (:mod:`~restoration.anchor`), surface (:mod:`~restoration.surface`), consistency
 (:mod:`~restoration.consistency`), view (:mod:`~restoration.reverse_trace`) -> the
 :class:`RestoreResult`. The methods are :mod:`~restoration.structured_light`,
-:mod:`~restoration.alterman` and :mod:`~restoration.schlieren`; scores are in
+:mod:`~restoration.alterman`, :mod:`~restoration.schlieren` and
+:mod:`~restoration.inverse_rendering`; scores are in
 :mod:`~restoration.scoring` and :mod:`~restoration.metrics`.
 
 Every result carries a :class:`Status` (a string enum: ``Status.OK == "ok"``). A frame the data
@@ -44,6 +45,7 @@ from restoration.methods import (
     ENTRY_POINT_GROUP,
     METHODS,
     Alterman,
+    InverseRendering,
     Schlieren,
     as_method,
     get_method,
@@ -57,6 +59,7 @@ from restoration.observations import Observations
 from restoration.options import (
     ANCHORS,
     AltermanOptions,
+    InverseRenderingOptions,
     SchlierenOptions,
     StructuredLightOptions,
     SurfaceOptions,
@@ -107,6 +110,8 @@ __all__ = [
     "Calibration",
     "Consistency",
     "FolderRestore",
+    "InverseRendering",
+    "InverseRenderingOptions",
     "LevelTrack",
     "Method",
     "Observations",

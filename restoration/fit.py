@@ -41,7 +41,8 @@ from wai_core.heightfield import Heightfield
 from wai_core.light_paths import reflect_to_diffuser
 from wai_core.timings import Timings
 
-__all__ = ["BSplineSurface", "FitResult", "fit_surface"]
+__all__ = ["BSplineSurface", "FitResult", "Linearised", "fit_surface", "hits", "knot_step",
+           "linearise", "spline_through"]
 
 Array = NDArray[np.float64]
 
@@ -199,13 +200,77 @@ def _forward(o: Array, d: Array, t: Array, gx: Array, gy: Array, z_h: float) -> 
     return reflect_to_diffuser(o + t[:, None] * d, d, n, z_h)[:, :2]
 
 
-def _hits(spline: BSplineSurface, o: Array, d: Array, t: Array, n_iter: int = 6) -> Array:
+def hits(spline: BSplineSurface, o: Array, d: Array, t: Array, n_iter: int = 6) -> Array:
     """Ray parameters ``t`` (K,) where rays ``o + t d`` meet the spline (Newton from ``t``)."""
     for _ in range(n_iter):
         p = o + t[:, None] * d
         z, zx, zy = spline.evaluate(p[:, 0], p[:, 1])[:3]
         t = t - (p[:, 2] - z) / (d[:, 2] - zx * d[:, 0] - zy * d[:, 1])
     return t
+
+
+@dataclass(frozen=True)
+class Linearised:
+    """Rays reflected off a spline onto the diffuser, and how their hits move with the
+    spline's coefficients (:func:`linearise`).
+
+    Attributes
+    ----------
+    index : (K, 16) ndarray of int
+        The flat coefficient indices each ray's hit depends on.
+    spots_mm : (K, 2) ndarray
+        The reflected rays' hits on the diffuser plane, mm.
+    jacobian : (K, 2, 16) ndarray
+        Their derivatives in those coefficients, mm per mm.
+    ok : (K,) ndarray of bool
+        The ray meets the spline where it is defined and reaches the diffuser.
+    """
+
+    index: NDArray[np.int64]
+    spots_mm: Array
+    jacobian: Array
+    ok: NDArray[np.bool_]
+
+
+def linearise(spline: BSplineSurface, o: Array, d: Array, t: Array, z_h: float,
+              slope_offset: Array | None = None) -> Linearised:
+    """System S's path through ``spline`` at the hits ``o + t d`` of rays ``o`` (K, 3) or
+    (3,), ``d`` (K, 3) unit (``t`` (K,) from :func:`hits`), and its derivatives in the
+    coefficients: a coefficient change ``dz, dz_x, dz_y`` at a hit moves the hit by
+    ``dt = dz / (d_z - grad z . d_xy)`` along its ray, and the slopes there follow the move
+    (the Hessian). ``slope_offset`` (K, 2): a microfacet's slope added to the spline's at each
+    hit (a rough surface's facet), which the coefficients do not move.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> flat = BSplineSurface(-50.0, -50.0, 10.0, np.full((14, 14), 100.0))
+    >>> o, d = np.zeros(3), np.array([[0.1, 0.0, 1.0]]) / np.hypot(0.1, 1.0)
+    >>> lin = linearise(flat, o, d, hits(flat, o, d, np.array([90.0])), 60.0)
+    >>> lin.spots_mm.round(3).tolist()  # up 100 mm, 10 mm along x, down 40 mm: 4 mm more
+    [[14.0, 0.0]]
+    >>> float(lin.jacobian[0, 0].sum().round(6))  # the water 1 mm higher: the spot 0.2 mm on
+    0.2
+    """
+    p = o + t[:, None] * d
+    index, w, inside = spline.rows(p[:, 0], p[:, 1])
+    c = spline.coeffs.ravel()[index]
+    _, gx, gy, gxx, gxy, gyy = (np.sum(wi * c, axis=1) for wi in w)
+    if slope_offset is not None:
+        gx, gy = gx + slope_offset[:, 0], gy + slope_offset[:, 1]
+    x_pred = _forward(o, d, t, gx, gy, z_h)
+    ok = inside & np.isfinite(x_pred).all(axis=1)
+    # The forward model's partials in (t, g_x, g_y), by finite differences per ray.
+    f_t = (_forward(o, d, t + _FD_T_MM, gx, gy, z_h) - x_pred) / _FD_T_MM
+    f_x = (_forward(o, d, t, gx + _FD_SLOPE, gy, z_h) - x_pred) / _FD_SLOPE
+    f_y = (_forward(o, d, t, gx, gy + _FD_SLOPE, z_h) - x_pred) / _FD_SLOPE
+    denom = d[:, 2] - gx * d[:, 0] - gy * d[:, 1]
+    w_t = w[0] / denom[:, None]
+    w_gx = w[1] + (gxx * d[:, 0] + gxy * d[:, 1])[:, None] * w_t
+    w_gy = w[2] + (gxy * d[:, 0] + gyy * d[:, 1])[:, None] * w_t
+    jac = (f_t[:, :, None] * w_t[:, None, :] + f_x[:, :, None] * w_gx[:, None, :]
+           + f_y[:, :, None] * w_gy[:, None, :])
+    return Linearised(index, x_pred, jac, ok)
 
 
 # The fit's banded solves are small (~1e4 unknowns, bandwidth ~100): OpenBLAS's threads gain
@@ -239,7 +304,7 @@ def _second_differences(ny: int, nx: int) -> sp.csr_matrix:
     ]).tocsr()
 
 
-def _initial_spline(
+def spline_through(
     xy: Array, z: Array, slopes: Array, step_mm: float, lam: float
 ) -> BSplineSurface:
     """Least-squares spline through heights and slopes at the samples (the warm start)."""
@@ -299,7 +364,7 @@ class _Prediction:
 
 def _predict(spline: BSplineSurface, rays: _Rays, t: Array) -> _Prediction:
     """The rays (Newton from ``t``) against ``spline``: hits, slopes, spot residuals."""
-    t = _hits(spline, rays.o, rays.d, t)
+    t = hits(spline, rays.o, rays.d, t)
     p = rays.o + t[:, None] * rays.d
     z, gx, gy = spline.evaluate(p[:, 0], p[:, 1])[:3]
     res = _forward(rays.o, rays.d, t, gx, gy, rays.z_h) - rays.target
@@ -350,29 +415,12 @@ def _gauss_newton(
     rms, done, converged = [pred.rms_mm], 0, False
     while done < int(iterations) and not converged:
         done += 1
-        t = pred.t
-        p = o + t[:, None] * d
-        index, w, inside = spline.rows(p[:, 0], p[:, 1])
-        c = spline.coeffs.ravel()[index]
-        z, gx, gy, gxx, gxy, gyy = (np.sum(wi * c, axis=1) for wi in w)
-        x_pred = _forward(o, d, t, gx, gy, rays.z_h)
-        res = x_pred - rays.target
-        ok = inside & np.isfinite(res).all(axis=1)
-        # The forward model's partials in (t, g_x, g_y), by finite differences per dot.
-        f_t = (_forward(o, d, t + _FD_T_MM, gx, gy, rays.z_h) - x_pred) / _FD_T_MM
-        f_x = (_forward(o, d, t, gx + _FD_SLOPE, gy, rays.z_h) - x_pred) / _FD_SLOPE
-        f_y = (_forward(o, d, t, gx, gy + _FD_SLOPE, rays.z_h) - x_pred) / _FD_SLOPE
-        # A coefficient change dz, dz_x, dz_y at the hit moves the hit by dt along the ray,
-        # and the slopes there follow the move (Hessian).
-        denom = d[:, 2] - gx * d[:, 0] - gy * d[:, 1]
-        w_t = w[0] / denom[:, None]
-        w_gx = w[1] + (gxx * d[:, 0] + gxy * d[:, 1])[:, None] * w_t
-        w_gy = w[2] + (gxy * d[:, 0] + gyy * d[:, 1])[:, None] * w_t
+        lin = linearise(spline, o, d, pred.t, rays.z_h)
+        index, ok = lin.index, lin.ok
+        res = lin.spots_mm - rays.target
         blocks = []
         for comp in (0, 1):
-            vals = (f_t[:, comp, None] * w_t + f_x[:, comp, None] * w_gx
-                    + f_y[:, comp, None] * w_gy)
-            vals[~ok] = 0.0
+            vals = np.where(ok[:, None], lin.jacobian[:, comp], 0.0)
             blocks.append(sp.csr_matrix((vals.ravel(), (rows, index.ravel())),
                                         shape=(k, ny * nx)))
         jac = sp.vstack(blocks).tocsr()
@@ -438,7 +486,7 @@ def _result(fit: _Fit, like: Heightfield, timings: Timings) -> FitResult:
     )
 
 
-def _knot_step(xy: Array) -> float:
+def knot_step(xy: Array) -> float:
     """The samples' median nearest-neighbour spacing, mm: the default knot spacing."""
     from scipy.spatial import cKDTree
 
@@ -486,8 +534,8 @@ def fit_surface(
     timings = Timings()
     with timings("warm_start"):
         xy = points_mm[:, :2]
-        step_mm = _knot_step(xy) if step_mm is None else float(step_mm)
-        start = _initial_spline(xy, points_mm[:, 2], slopes, step_mm, smoothness)
+        step_mm = knot_step(xy) if step_mm is None else float(step_mm)
+        start = spline_through(xy, points_mm[:, 2], slopes, step_mm, smoothness)
         rays = _Rays.of(obs)
     with timings("gauss_newton"):
         fit = _gauss_newton(start, rays, rays.t_at(points_mm[:, 2]), iterations=iterations,

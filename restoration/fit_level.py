@@ -26,10 +26,10 @@ from restoration.fit import (
     _cost,
     _Fit,
     _gauss_newton,
-    _initial_spline,
-    _knot_step,
     _Rays,
     _result,
+    knot_step,
+    spline_through,
 )
 from restoration.level import N_SETS, anchor_sigma_mm
 from restoration.observations import Observations
@@ -132,7 +132,7 @@ def fit_level(
     with timings("gauss_newton"):  # the whole search over levels
         xy = points_mm[:, :2]
         # One knot layout for every probe, or their residuals would not compare.
-        start = _initial_spline(xy, points_mm[:, 2], slopes, _knot_step(xy), SMOOTHNESS)
+        start = spline_through(xy, points_mm[:, 2], slopes, knot_step(xy), SMOOTHNESS)
         rays = _Rays.of(obs)
         a = _level_weights(start, xy)
         level0 = float(a @ start.coeffs.ravel())

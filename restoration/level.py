@@ -35,6 +35,10 @@ class Anchor:
         height (mm), Gauss-Newton iterations, the level's offset from the reconstruction and
         its standard error (mm), the levels probed and how many converged, whether the
         reconstruction's level was kept, and why.
+    image_fit_explained, image_fit_loss, image_fit_evaluations
+        After a fit to the pattern image (:mod:`restoration.inverse_rendering`): the median
+        dot's share of its light the fit explains, the loss after each pass and the loss
+        evaluations.
 
     Examples
     --------
@@ -59,6 +63,9 @@ class Anchor:
     fit_level_probes_converged: int | None = None
     fit_level_kept_start: bool | None = None
     fit_level_reason: str | None = None
+    image_fit_explained: float | None = None
+    image_fit_loss: list[float] | None = None
+    image_fit_evaluations: int | None = None
 
     def update(self, **values: Any) -> None:
         """Set the named fields.

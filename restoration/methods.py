@@ -23,9 +23,11 @@ from typing import Any
 from numpy.typing import NDArray
 
 from restoration.alterman import AltermanCalibration, restore_alterman
-from restoration.calibration import LevelTrack, RigCalibration, read_scene_record
+from restoration.calibration import Calibration, LevelTrack, RigCalibration, read_scene_record
+from restoration.inverse_rendering import restore_inverse_rendering
 from restoration.options import (
     AltermanOptions,
+    InverseRenderingOptions,
     SchlierenOptions,
     SurfaceOptions,
     checked_options,
@@ -37,8 +39,8 @@ from restoration.structured_light import StructuredLight
 from wai_core.errors import WaiInputError
 
 __all__ = [
-    "ENTRY_POINT_GROUP", "METHODS", "Alterman", "Schlieren", "as_method", "get_method",
-    "load_calibration", "method_class", "method_names",
+    "ENTRY_POINT_GROUP", "METHODS", "Alterman", "InverseRendering", "Schlieren", "as_method",
+    "get_method", "load_calibration", "method_class", "method_names",
 ]
 
 
@@ -109,10 +111,43 @@ class Schlieren:
         return restore_schlieren(images, cal, self.options)
 
 
+class InverseRendering:
+    """The structured light's surface refitted to the whole pattern image through a
+    differentiable model of it (:mod:`restoration.inverse_rendering`), configured once.
+
+    Examples
+    --------
+    >>> from restoration import InverseRendering, InverseRenderingOptions
+    >>> InverseRendering(InverseRenderingOptions(iterations=10)).options.iterations
+    10
+    """
+
+    name = "inverse-rendering"
+    calibration_type = Calibration
+    options_type = InverseRenderingOptions
+
+    def __init__(self, options: InverseRenderingOptions | None = None) -> None:
+        self.options = checked_options(self.name, InverseRenderingOptions, options)
+
+    def __repr__(self) -> str:
+        return f"InverseRendering({self.options!r})"
+
+    def __call__(
+        self,
+        images: dict[str, NDArray],
+        cal: Calibration,
+        track: LevelTrack | None = None,
+    ) -> RestoreResult:
+        """Restore one frame (``pattern``, ``pattern_flat``, ``view``); ``track``: as the
+        structured light's, for its start."""
+        return restore_inverse_rendering(images, cal, self.options, track)
+
+
 METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name: Alterman,
-                            Schlieren.name: Schlieren}
-"""Methods by name: ``structured-light`` (the paper's), ``alterman`` (the sun sensor) and
-``schlieren`` (synthetic Schlieren on camera v's view)."""
+                            Schlieren.name: Schlieren, InverseRendering.name: InverseRendering}
+"""Methods by name: ``structured-light`` (the paper's), ``alterman`` (the sun sensor),
+``schlieren`` (synthetic Schlieren on camera v's view) and ``inverse-rendering`` (the
+structured light's surface refitted to the pattern image)."""
 BUILT_IN.update(METHODS.values())
 
 

@@ -16,7 +16,7 @@ from restoration.integrate import GRIDDERS, INTEGRATORS
 from wai_core.errors import WaiInputError
 
 __all__ = [
-    "ANCHORS", "FLOW_QUALITIES", "AltermanOptions", "SchlierenOptions",
+    "ANCHORS", "FLOW_QUALITIES", "AltermanOptions", "InverseRenderingOptions", "SchlierenOptions",
     "StructuredLightOptions", "SurfaceOptions", "checked_options",
 ]
 
@@ -265,6 +265,58 @@ class SchlierenOptions(SurfaceOptions):
         for name in ("flow_check_px", "max_residual_px"):
             if not getattr(self, name) > 0:
                 raise WaiInputError(f"{name} must be > 0, not {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class InverseRenderingOptions(StructuredLightOptions):
+    """Inverse rendering's choices (:mod:`restoration.inverse_rendering`): the structured
+    light's (its start) and the fit's.
+
+    Attributes
+    ----------
+    blur_px : float
+        The Gaussian blur of the model and the pattern image in the loss, px.
+    passes : int
+        Outer passes (each refits the dots' brightness first).
+    iterations : int
+        L-BFGS iterations per pass.
+    quadrature_order : int
+        Gauss-Hermite points per axis of each dot's Gaussian.
+    facets : int
+        Microfacet slopes per point on rough water.
+    roughness : float or None
+        The water's micro-roughness (GGX alpha); None: the scene's ``[water] roughness``.
+    min_explained : float
+        The frame is ``inconsistent`` when the median dot's share of its light the fit
+        explains is below this.
+
+    Examples
+    --------
+    >>> from restoration import InverseRenderingOptions
+    >>> InverseRenderingOptions().blur_px, InverseRenderingOptions(roughness=0.01).roughness
+    (1.5, 0.01)
+    """
+
+    blur_px: float = 1.5
+    passes: int = 2
+    iterations: int = 30
+    quadrature_order: int = 4
+    facets: int = 8
+    roughness: float | None = None
+    min_explained: float = 0.5
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for name in ("passes", "iterations", "quadrature_order", "facets"):
+            value = getattr(self, name)
+            if int(value) != value or value < 1:
+                raise WaiInputError(f"{name} must be an integer >= 1, not {value}")
+        if not self.blur_px > 0:
+            raise WaiInputError(f"blur_px must be > 0, not {self.blur_px}")
+        if self.roughness is not None and not 0 <= self.roughness < 1:
+            raise WaiInputError(f"roughness must be in [0, 1), not {self.roughness}")
+        if not 0 <= self.min_explained < 1:
+            raise WaiInputError(f"min_explained must be in [0, 1), not {self.min_explained}")
 
 
 def checked_options(method: str, cls: type[OptionsT], options: SurfaceOptions | None) -> OptionsT:

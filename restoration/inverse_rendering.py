@@ -1,0 +1,342 @@
+"""Inverse rendering: the structured light's surface refitted to camera s's whole pattern image.
+
+The structured light reduces each spot to a centre and each centre to a normal; where the spots
+blur (rough water, a blurred diffuser or projector) their centres are biased while their light
+is still where the surface sent it. This method fits the surface to the image itself: the
+pattern model (:mod:`restoration.pattern_model`: every dot's particles through a B-spline
+surface into camera s, with the microfacets of the water's roughness) is compared with the
+captured pattern and the spline's coefficients are moved down the loss's exact gradient:
+
+    minimise  1/2 |W (M(c) - I)|^2 / |W (I - mean I)|^2  +  lambda/2 |L c|^2
+
+``I`` the pattern image, ``M(c)`` the model blurred by ``blur_px`` (its dots' brightness and
+the background by linear least squares before each pass), ``W`` the pixels near the model's
+particles (the light of dots the fit does not model stays out), ``L`` second differences of the
+coefficients (the smoothness where no particle lands). L-BFGS within each pass.
+
+It starts from the structured light's surface and fits the dots the structured light matched
+(from flat water, the periodic pattern's local minima hold the fit once spots move by more than
+half their spacing: measured, docs/results.md). The level stays near the start's: raising
+the surface and bending it back moves every spot by microns, so the image hardly determines it.
+
+The truth-free status: the share of each dot's light the fit explains (the residual's energy
+against the image's contrast in a window about the dot's spot); the frame is ``inconsistent``
+when the median dot's share is below ``min_explained``; a start that is not ``ok`` passes its
+status on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import gaussian_filter
+from scipy.optimize import minimize
+from scipy.spatial import cKDTree
+
+from restoration.calibration import Calibration, LevelTrack
+from restoration.fit import SMOOTHNESS as FIT_SMOOTHNESS
+from restoration.fit import BSplineSurface, knot_step, spline_through
+from restoration.options import InverseRenderingOptions, StructuredLightOptions
+from restoration.pattern_model import DotParticles, PatternModel, Raster, Traced
+from restoration.result import RestoreResult, Status
+from restoration.structured_light import StructuredLight
+from wai_core.timings import Timings
+
+__all__ = ["METHOD", "PatternFit", "fit_pattern", "restore_inverse_rendering"]
+
+Array = NDArray[np.float64]
+
+SMOOTHNESS = 1e-6
+"""Weight of the coefficients' second differences in the loss (whose image term is normalised
+by the image's contrast energy)."""
+
+
+@dataclass
+class PatternFit:
+    """The surface fitted to the pattern image, and how the fit went.
+
+    Attributes
+    ----------
+    spline : BSplineSurface
+        The fitted surface (absolute heights, mm).
+    amplitudes : (K,) ndarray
+        Each dot's fitted brightness.
+    background : float
+        The fitted background.
+    explained : (K,) ndarray
+        Each dot's share of its light the fit explains (NaN: its spot left the image).
+    loss : list of float
+        The loss after each pass.
+    iterations : int
+        Loss evaluations.
+    traced : Traced
+        The particles through the final surface.
+    timings_ms : dict of str to float
+    """
+
+    spline: BSplineSurface
+    amplitudes: Array
+    background: float
+    explained: Array
+    loss: list[float]
+    iterations: int
+    traced: Traced
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class _Objective:
+    """The loss and its gradient in the coefficients (the brightness held)."""
+
+    def __init__(self, model: PatternModel, raster: Raster, observed: Array, shape: tuple,
+                 t: Array, smoothness: float) -> None:
+        self.model, self.raster, self.observed = model, raster, observed
+        self.shape = shape
+        self.mask = np.ones_like(observed)
+        self.norm = 1.0
+        self.t = t
+        self.amplitudes = np.ones(model.particles.n_dots)
+        self.background = 0.0
+        self.smoothness = smoothness
+        self.calls = 0
+
+    def spline(self, like: BSplineSurface, c: Array) -> BSplineSurface:
+        return BSplineSurface(like.x0_mm, like.y0_mm, like.step_mm, c.reshape(self.shape))
+
+    def _second(self, c: Array) -> tuple[float, Array]:
+        z = c.reshape(self.shape)
+        dxx = z[:, 2:] - 2 * z[:, 1:-1] + z[:, :-2]
+        dyy = z[2:] - 2 * z[1:-1] + z[:-2]
+        g = np.zeros_like(z)
+        g[:, 2:] += dxx
+        g[:, 1:-1] -= 2 * dxx
+        g[:, :-2] += dxx
+        g[2:] += dyy
+        g[1:-1] -= 2 * dyy
+        g[:-2] += dyy
+        s = self.smoothness
+        return 0.5 * s * float(np.sum(dxx**2) + np.sum(dyy**2)), s * g.ravel()
+
+    def set_mask(self, traced: Traced, reach_px: float) -> None:
+        """Score only the pixels within ``reach_px`` (full-resolution px) of a particle: the
+        light of dots the fit does not model stays out of its loss."""
+        h, w = self.raster.shape
+        yy, xx = np.mgrid[0:h, 0:w]
+        centres = np.column_stack([xx.ravel(), yy.ravel()]).astype(float)
+        dist = cKDTree(traced.px[traced.ok]).query(centres, distance_upper_bound=reach_px)[0]
+        self.mask = (dist < reach_px).reshape(h, w).astype(float)
+        obs = self.observed[self.mask > 0]
+        self.norm = float(np.sum((obs - obs.mean()) ** 2)) if obs.size else 1.0
+        self.norm = self.norm or 1.0
+
+    def weights(self, traced: Traced) -> Array:
+        p = self.model.particles
+        return np.where(traced.ok, self.amplitudes[p.dot] * p.weight, 0.0)
+
+    def image(self, traced: Traced) -> Array:
+        r = self.raster
+        return r.blur(r.splat(traced.px, self.weights(traced), traced.ok)) + self.background
+
+    def __call__(self, c: Array, like: BSplineSurface) -> tuple[float, Array]:
+        self.calls += 1
+        traced = self.model.trace(self.spline(like, c), self.t)
+        self.t = np.where(np.isfinite(traced.t), traced.t, self.t)
+        res = (self.image(traced) - self.observed) * self.mask
+        loss = 0.5 * float(np.sum(res**2)) / self.norm
+        _, grad_px = self.raster.sample(self.raster.blur(res) / self.norm, traced.px)
+        grad_px *= self.weights(traced)[:, None]
+        contrib = np.einsum("pa,pak->pk", grad_px, traced.jacobian)
+        grad = np.bincount(traced.index.ravel(), contrib.ravel(), minlength=c.size)
+        reg, reg_grad = self._second(c)
+        return loss + reg, grad + reg_grad
+
+    def fit_amplitudes(self, traced: Traced, iterations: int = 25) -> None:
+        """Dots' brightness and the background by least squares (conjugate gradients on the
+        normal equations, from the current values), clipped at zero."""
+        p, r = self.model.particles, self.raster
+        ok = traced.ok
+        k = p.n_dots
+
+        def forward(x: Array) -> Array:
+            w = np.where(ok, x[p.dot] * p.weight, 0.0)
+            return r.blur(r.splat(traced.px, w, ok)) + x[k]
+
+        def adjoint(img: Array) -> Array:
+            img = img * self.mask
+            v, _ = r.sample(r.blur(img), traced.px)
+            out = np.bincount(p.dot, np.where(ok, v * p.weight, 0.0), minlength=k)
+            return np.r_[out, img.sum()]
+
+        x = np.r_[self.amplitudes, self.background]
+        resid = adjoint(self.observed - forward(x))
+        # Jacobi preconditioner: a dot's own overlap, its spots spread over one blur.
+        diag = np.r_[np.full(k, 1.0 / (4 * np.pi * r.sigma_px**2)), self.observed.size]
+        z = resid / diag
+        d = z.copy()
+        rz = float(resid @ z)
+        for _ in range(iterations):
+            ad = adjoint(forward(d))
+            alpha = rz / float(d @ ad)
+            x += alpha * d
+            resid -= alpha * ad
+            z = resid / diag
+            rz_new = float(resid @ z)
+            if rz_new < 1e-12 * max(rz, 1e-300):
+                break
+            d = z + (rz_new / rz) * d
+            rz = rz_new
+        self.amplitudes = np.maximum(x[:k], 0.0)
+        self.background = float(x[k])
+
+
+def _explained(obj: _Objective, traced: Traced, window_px: float) -> Array:
+    """Each dot's share of its light the fit explains: 1 - (residual energy) / (the image's
+    contrast energy), both in a Gaussian window of ``window_px`` about the dot's particles."""
+    p, r = obj.model.particles, obj.raster
+    res = (obj.image(traced) - obj.observed) * obj.mask
+    contrast = (obj.observed - obj.background) * obj.mask
+    e_res = gaussian_filter(res**2, window_px)
+    e_img = gaussian_filter(contrast**2, window_px)
+    v_res, _ = r.sample(e_res, traced.px)
+    v_img, _ = r.sample(e_img, traced.px)
+    ok = traced.ok
+    n = np.bincount(p.dot, ok.astype(float), minlength=p.n_dots)
+    s_res = np.bincount(p.dot, np.where(ok, v_res, 0.0), minlength=p.n_dots)
+    s_img = np.bincount(p.dot, np.where(ok, v_img, 0.0), minlength=p.n_dots)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = 1.0 - s_res / s_img
+    return np.where(n > 0.5 * np.bincount(p.dot, minlength=p.n_dots), share, np.nan)
+
+
+def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
+                blur_px: float = 1.5, passes: int = 2, iterations: int = 30,
+                smoothness: float = SMOOTHNESS, window_px: float = 6.0,
+                reach_px: float = 8.0) -> PatternFit:
+    """Fit the spline ``start`` to the pattern ``image`` (H, W) through ``model``.
+
+    Parameters
+    ----------
+    image : (H, W) ndarray
+        Camera s's pattern image (its channels summed), linear values.
+    start : BSplineSurface
+        The start (absolute heights, mm); its knots are kept.
+    model : PatternModel
+        The dots to fit and their particles.
+    blur_px : float
+        The Gaussian blur of model and image, px.
+    passes, iterations : int
+        Outer passes (each refits the brightness first) and L-BFGS iterations per pass.
+    smoothness : float
+        Weight of the coefficients' second differences.
+    window_px : float
+        Width of each dot's window in :attr:`PatternFit.explained`, px.
+    reach_px : float
+        Pixels within this of a particle are scored, px.
+
+    Returns
+    -------
+    PatternFit
+    """
+    timings = Timings()
+    raster = Raster(model.shape, blur_px)
+    t = model.flat_t(float(np.mean(start.coeffs)))
+    spline = start
+    obj = _Objective(model, raster, np.asarray(image, float), start.coeffs.shape, t,
+                     smoothness)
+    losses: list[float] = []
+    with timings("fit"):
+        for _ in range(int(passes)):
+            traced = model.trace(spline, obj.t)
+            obj.set_mask(traced, reach_px)
+            obj.fit_amplitudes(traced)
+            res = minimize(obj, spline.coeffs.ravel(), args=(spline,), jac=True,
+                           method="L-BFGS-B", options={"maxiter": int(iterations)})
+            spline = obj.spline(spline, res.x)
+            losses.append(float(res.fun))
+    with timings("explained"):
+        traced = model.trace(spline, obj.t)
+        explained = _explained(obj, traced, window_px)
+    timings.add("total", timings.total())
+    return PatternFit(spline, obj.amplitudes, obj.background, explained, losses, obj.calls,
+                      traced, timings.to_dict())
+
+
+METHOD = "inverse-rendering"
+
+
+def restore_inverse_rendering(
+    images: dict[str, NDArray],
+    cal: Calibration,
+    options: InverseRenderingOptions | None = None,
+    track: LevelTrack | None = None,
+) -> RestoreResult:
+    """Run the method on loaded images (``pattern``, ``pattern_flat``, ``view``).
+
+    Returns a :class:`~restoration.result.RestoreResult`: the structured light's when it
+    gives no surface (its status and reason); otherwise the refitted surface (on the structured
+    light's grid and support), the view restored through it, and the status (module notes).
+    ``counts`` gains ``dots_fitted`` and ``loss_evaluations``, ``timings_ms`` ``image_fit``,
+    the surface's anchor ``image_fit_explained`` (the median dot's share), ``image_fit_loss``
+    (after each pass) and ``image_fit_evaluations``.
+
+    Examples
+    --------
+    >>> from restoration import Calibration                              # doctest: +SKIP
+    >>> cal = Calibration.from_folder("renders/demo")                    # doctest: +SKIP
+    >>> restore_inverse_rendering(cal.load_images("renders/demo"), cal).status  # doctest: +SKIP
+    <Status.OK: 'ok'>
+    """
+    options = InverseRenderingOptions() if options is None else options
+    start = StructuredLight(_start_options(options))(images, cal, track)
+    if start.surface is None:
+        return replace(start, method=METHOD)
+    surface = start.surface
+    timings = Timings()
+    with timings("image_fit"):
+        rig = cal.cfg.rig
+        roughness = (float(cal.cfg.water.roughness) if options.roughness is None
+                     else float(options.roughness))
+        dots = rig.dot_index(surface.ij)
+        particles = DotParticles.of(rig, rig.dot_panel_px[dots], options.quadrature_order,
+                                    roughness, options.facets)
+        pattern = np.asarray(images["pattern"], float)
+        pattern = pattern[..., :3].sum(axis=2) if pattern.ndim == 3 else pattern
+        model = PatternModel(rig, particles, pattern.shape)
+        xy = surface.points_mm[:, :2]
+        spline = spline_through(xy, surface.points_mm[:, 2], surface.slopes, knot_step(xy),
+                                FIT_SMOOTHNESS)
+        fit = fit_pattern(pattern, spline, model, blur_px=options.blur_px,
+                          passes=options.passes, iterations=options.iterations)
+        z, zx, zy = fit.spline.evaluate(xy[:, 0], xy[:, 1])[:3]
+        keep = np.isfinite(z)
+        points = np.column_stack([xy, np.where(keep, z, surface.points_mm[:, 2])])
+        slopes = np.where(keep[:, None], np.column_stack([zx, zy]), surface.slopes)
+        heightfield = fit.spline.to_heightfield(surface.heightfield)
+        refit = surface.refitted(heightfield, points, slopes,
+                                 image_fit=fit.timings_ms["total"])
+    with timings("reverse_trace"):
+        view = cal.restore_view(images["view"], heightfield, options.warp_step_px,
+                                gain=cal.view_gain)
+    explained = float(np.nanmedian(fit.explained)) if np.isfinite(fit.explained).any() else 0.0
+    refit.anchor.update(image_fit_explained=explained, image_fit_loss=fit.loss,
+                        image_fit_evaluations=fit.iterations)
+    status, message = start.status, start.message
+    if status == Status.OK and explained < options.min_explained:
+        status = Status.INCONSISTENT
+        message = (f"the fit explains {explained:.0%} of the median dot's light (threshold "
+                   f"{options.min_explained:.0%})")
+    counts = {**start.counts, "dots_fitted": int(particles.n_dots),
+              "loss_evaluations": int(fit.iterations)}
+    times = dict(start.timings_ms)
+    times["image_fit"] = timings.to_dict()["image_fit"]
+    times["reverse_trace"] = timings.to_dict()["reverse_trace"]
+    times["end_to_end"] = times.get("end_to_end", 0.0) + times["image_fit"]
+    return replace(start, method=METHOD, status=status, message=message, surface=refit,
+                   view=view, timings_ms=times, counts=counts, consistency=None)
+
+
+def _start_options(options: InverseRenderingOptions) -> StructuredLightOptions:
+    """The structured light's own options among ``options``."""
+    names = {f.name for f in fields(StructuredLightOptions)}
+    return StructuredLightOptions(**{k: v for k, v in asdict(options).items() if k in names})
