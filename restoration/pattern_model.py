@@ -114,9 +114,6 @@ class DotParticles:
         dot = np.repeat(np.arange(k), per_dot)
         return cls(origin, dirs, dot, np.tile(weights, k), slopes, k)
 
-    def __len__(self) -> int:
-        return int(self.dirs.shape[0])
-
 
 @dataclass(frozen=True)
 class Traced:
@@ -134,8 +131,6 @@ class Traced:
         ``d px / d coefficient``, px per mm.
     ok : (P,) ndarray of bool
         The particle meets the surface, the diffuser and camera s's image.
-    points_mm : (P, 3) ndarray
-        The hits on the surface, mm.
     """
 
     t: Array
@@ -143,7 +138,6 @@ class Traced:
     index: NDArray[np.int64]
     jacobian: Array
     ok: NDArray[np.bool_]
-    points_mm: Array
 
 
 class PatternModel:
@@ -195,9 +189,8 @@ class PatternModel:
         h, w = self.shape
         ok = (lin.ok & np.isfinite(q).all(axis=1) & np.isfinite(jac).all(axis=(1, 2))
               & (q[:, 0] > -0.5) & (q[:, 0] < w - 0.5) & (q[:, 1] > -0.5) & (q[:, 1] < h - 0.5))
-        points = p.origin_mm + t[:, None] * p.dirs
         return Traced(t, np.where(ok[:, None], q, 0.0), lin.index,
-                      np.where(ok[:, None, None], jac, 0.0), ok, points)
+                      np.where(ok[:, None, None], jac, 0.0), ok)
 
 
 class Raster:
