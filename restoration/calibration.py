@@ -28,7 +28,7 @@ from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, View
 from restoration.undistort import PinholeRemap
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError
-from wai_core.geometry import PinholeCamera
+from wai_core.geometry import PinholeCamera, intersect_plane_z
 from wai_core.heightfield import Heightfield
 from wai_core.images import find_image, read_image
 from wai_core.io import read_json
@@ -279,6 +279,24 @@ class Calibration(RigCalibration):
     def diffuser_z_mm(self) -> float:
         """Height of the diffuser plane, mm."""
         return float(self.cfg.diffuser.z_mm)
+
+    @cached_property
+    def diffuser_mm_per_px(self) -> float:
+        """The diffuser plane's extent of one camera-s pixel at the image centre, mm: the
+        scale of what camera s resolves (its distance to the plane over its focal length).
+
+        Examples
+        --------
+        >>> from restoration import Calibration
+        >>> from wai_core import load_system
+        >>> round(Calibration(load_system("paper")).diffuser_mm_per_px, 3)  # 250 mm / 320 px
+        0.781
+        """
+        cam = self.camera_s
+        o, d = cam.pixel_rays(np.array([(cam.width_px - 1) / 2.0]),
+                              np.array([(cam.height_px - 1) / 2.0]))
+        hit, _ = intersect_plane_z(o, d, self.diffuser_z_mm)
+        return float(np.linalg.norm(hit[0] - np.broadcast_to(o, hit.shape)[0]) / cam.focal_px)
 
     def panel_px(self, ij: NDArray) -> NDArray[np.float64]:
         """Projector panel ``(col, row)`` (K, 2) px of the dots with grid indices ``ij`` (K, 2),

@@ -123,7 +123,14 @@ class StructuredLightOptions(SurfaceOptions):
     anchor : str
         One of :data:`ANCHORS`.
     anchor_max_sigma_mm : float
-        Largest standard error of the integrability level that is trusted, mm.
+        Largest standard error of the integrability level that is used, mm (beyond it, the
+        gauge's h0).
+    level_max_sigma_px : float
+        Largest standard error of the integrability level of an ``ok`` frame, in camera-s
+        pixels on the diffuser (the level's error in mm over
+        :attr:`~restoration.calibration.Calibration.diffuser_mm_per_px`: 0.025 px is
+        0.02 mm on the paper's rig); a frame whose level is less certain is
+        ``uncertain_level`` (the level is still the data's).
     anchor_step_mm : float
         How far below its start the level search's first probe lies, mm
         (:func:`restoration.anchor.find_anchor`).
@@ -159,6 +166,7 @@ class StructuredLightOptions(SurfaceOptions):
     refine_tol_mm: float = 0.01
     anchor: str = "integrability"
     anchor_max_sigma_mm: float = 1.0
+    level_max_sigma_px: float = 0.025
     anchor_step_mm: float = 3.0
     converge_mm: float = 1.0
     max_refine: int = 40
@@ -172,6 +180,10 @@ class StructuredLightOptions(SurfaceOptions):
         if int(self.max_refine) < int(self.n_refine):
             raise WaiInputError(
                 f"max_refine must be >= n_refine, not {self.max_refine} < {self.n_refine}"
+            )
+        if not self.level_max_sigma_px > 0:
+            raise WaiInputError(
+                f"level_max_sigma_px must be > 0, not {self.level_max_sigma_px}"
             )
         if not self.refine_tol_mm > 0:
             raise WaiInputError(f"refine_tol_mm must be > 0, not {self.refine_tol_mm}")

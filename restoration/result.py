@@ -24,6 +24,12 @@ verdict as a sweep does:
 ``gauge_level``
     the slopes did not pin the level, so the gauge's h0 was used (calm water: the shape is
     fine, the level is the gauge's);
+``uncertain_level``
+    the slopes pin the level, but loosely: its standard error (the spread of the level found
+    from interleaved sets of the samples) exceeds the method's bound
+    (``StructuredLightOptions.level_max_sigma_px``, in camera s's pixels on the diffuser); the
+    shape is the data's, the level may be off by several times that error (rough water biases
+    it: docs/results.md);
 ``dark_view``
     the view image holds no signal (lens cap, wrong file): nothing to restore;
 ``view_mismatch``
@@ -90,6 +96,7 @@ class Status(enum.StrEnum):
     NO_SUN = "no_sun"
     SUN_OUT_OF_VIEW = "sun_out_of_view"
     TOO_FEW_SPOTS = "too_few_spots"
+    UNCERTAIN_LEVEL = "uncertain_level"
 
 
 STATUSES = tuple(s.value for s in Status)

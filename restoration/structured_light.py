@@ -292,9 +292,11 @@ def consistency_of(
 
 def frame_status(
     features: Matches, reference: ReferenceGrid, surface: SurfaceEstimate, check: Consistency,
-    view_ok: bool, options: StructuredLightOptions,
+    view_ok: bool, options: StructuredLightOptions, diffuser_mm_per_px: float,
 ) -> tuple[Status, str]:
-    """The truth-free verdict on a restored frame (see :mod:`restoration.result`)."""
+    """The truth-free verdict on a restored frame (see :mod:`restoration.result`);
+    ``diffuser_mm_per_px``: the scale of camera s on the diffuser, mm
+    (:attr:`Calibration.diffuser_mm_per_px`), that of the level's bound."""
     in_view = max(int(reference.counts.get("predicted_in_view", 0)), 1)
     seen = int(reference.counts.get("observed", 0))
     spacing = reference.median_spacing_px
@@ -343,6 +345,15 @@ def frame_status(
         return Status.DARK_VIEW, "the view image holds no signal (all pixels alike)"
     if options.anchor == "integrability" and surface.anchor.method == "gauge_fallback":
         return Status.GAUGE_LEVEL, "the slopes do not pin the level: the gauge's h0 was used"
+    sigma = surface.anchor.sigma_mm
+    bound_mm = options.level_max_sigma_px * diffuser_mm_per_px
+    if (options.anchor == "integrability" and surface.anchor.method == "integrability"
+            and sigma is not None and sigma > bound_mm):
+        return Status.UNCERTAIN_LEVEL, (
+            f"the level's standard error is {sigma:.3f} mm (more than {bound_mm:.3f} mm, "
+            f"{options.level_max_sigma_px:g} px of camera s): the shape is the data's, the "
+            "level may be off by several times that"
+        )
     return Status.OK, ""
 
 
@@ -474,7 +485,7 @@ class StructuredLight:
         timings.add("end_to_end", timings.total("features", "surface", "reverse_trace"))
         status, message = frame_status(
             features, reference, surface, check,
-            has_signal(), options,
+            has_signal(), options, cal.diffuser_mm_per_px,
         )
         if state is not None:
             state.take(features, ok=status == Status.OK, residual_px=check.median_px,

@@ -75,10 +75,13 @@ def test_the_fit_to_the_spots_restores_and_reports_its_level_search(bump_dir, tm
 
     options = StructuredLightOptions(fit_spots=True)
     done = restore_folder(bump_dir, options=options, out=tmp_path / "r")
-    assert done.metrics["status"] == "ok"
     # The default's bound (known, docs/results.md: on a bump's magnified flanks the detected
-    # centres are biased and the fit's level follows them, 0.31 mm here against 0.18).
+    # centres are biased and the fit's level follows them, 0.31 mm here against 0.18); the
+    # level's spread says so (a frame whose level is that far off is not ok).
     assert done.metrics["wai_rmse_mm"] < 0.5
+    assert done.metrics["status"] in ("ok", "uncertain_level")
+    if done.metrics["wai_rmse_mm"] - done.metrics["wai_rmse_demeaned_mm"] > 0.1:
+        assert done.metrics["status"] == "uncertain_level"
     assert done.metrics["wai_rmse_demeaned_mm"] < 0.15
     anchor = json.loads((tmp_path / "r" / "metrics.json").read_text())["anchor"]
     assert anchor["fit_level_probes"] >= 3
@@ -258,7 +261,9 @@ def _as_capture(render_dir, out, swap=False, black_view=False):
 
 def test_a_capture_without_truth_restores_and_skips_the_scores(bump_dir, quick_cfg, tmp_path):
     done = restore_folder(_as_capture(bump_dir, tmp_path / "capture"))
-    assert done.result.status == "ok" and done.truth is None and done.scores is None
+    # The bump's level is biased (see above): ok, or its level's spread flags it.
+    assert done.result.status in ("ok", "uncertain_level")
+    assert done.truth is None and done.scores is None
     assert done.metrics["scored"] is False and "wai_rmse_mm" not in done.metrics
     written = {p.name for p in done.out.iterdir()}
     assert {"heightfield_est.npz", "restored.exr", "metrics.json"} <= written

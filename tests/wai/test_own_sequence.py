@@ -181,7 +181,9 @@ def test_grey_captures_restore_with_their_figures_and_movies(rendered, tmp_path,
     capsys.readouterr()
     for folder in (single, own):
         assert main(["restore", str(folder), "--quiet"]) == 0
-        assert capsys.readouterr().err == ""
+        # 8-bit grey spots loosen the level: a frame may say so, and nothing else.
+        err = capsys.readouterr().err.splitlines()
+        assert all("uncertain_level" in line for line in err), err
     assert cv2.imread(str(single / "restore" / "distorted_vs_restored.png")) is not None
     from wai_core.io import read_exr
 

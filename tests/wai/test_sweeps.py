@@ -96,8 +96,12 @@ def test_a_noisy_blurred_frame_is_still_restored():
     row = evaluate_frame({"config": PAPER, "seed": 0, "spp_pattern": 4, "repeats": 1,
                           "signal_e": 3000.0, "exposure_s": 0.001})
     assert row["subframes"] > 1
-    assert row["frame_status"] == "ok", row["frame_status"]
-    assert row["wai_rmse_mm"] < 0.5
+    # The shape is restored; the level, biased by the noisy background (about 0.2 mm), is
+    # flagged by its spread rather than reported ok.
+    assert row["frame_status"] in ("ok", "uncertain_level"), row["frame_status"]
+    assert row["wai_rmse_mm"] < 0.5 and row["wai_rmse_demeaned_mm"] < 0.1
+    if row["wai_rmse_mm"] > 0.15:
+        assert row["frame_status"] == "uncertain_level"
 
 
 def test_the_failure_point_is_where_most_frames_stop_being_ok():
@@ -142,8 +146,12 @@ def test_a_frame_in_faint_daylight_and_murky_water_is_still_restored():
                           "ambient_level": 0.002, "turbidity": 300.0, "forward_fraction": 0.5,
                           "signal_e": 10000.0,
                           "render_overrides": json.dumps({"ambient.sun_spp": 8})})
-    assert row["frame_status"] == "ok", row["frame_status"]
-    assert row["wai_rmse_mm"] < 0.5
+    # The shape is restored; the level, biased by the noisy background (about 0.2 mm), is
+    # flagged by its spread rather than reported ok.
+    assert row["frame_status"] in ("ok", "uncertain_level"), row["frame_status"]
+    assert row["wai_rmse_mm"] < 0.5 and row["wai_rmse_demeaned_mm"] < 0.1
+    if row["wai_rmse_mm"] > 0.15:
+        assert row["frame_status"] == "uncertain_level"
 
 
 def test_blue_green_spots_outlast_red_ones_in_sea_water():

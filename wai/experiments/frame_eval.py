@@ -58,8 +58,9 @@ Row
 The point's fields, then ``frame_status`` (``ok``; ``failed: <why>`` when the restoration
 refused the frame; ``wrong_labels`` when more than 5 % of the kept correspondences are wrong;
 otherwise the restoration's own truth-free status: ``sparse``, ``inconsistent``,
-``gauge_level``, ``dark_view``, see :mod:`restoration.result`; ``method_status`` is that
-status alone, without the truth's ``wrong_labels``), the forward-consistency
+``gauge_level``, ``uncertain_level``, ``dark_view``, see :mod:`restoration.result`;
+``method_status`` is that status alone, without the truth's ``wrong_labels``), the
+forward-consistency
 residual (``residual_median_px``, ``residual_p95_px``, ``residual_threshold_px``), the
 correspondence counts against the geometric model (``n_in_view``, ``n_matched``,
 ``n_correct``, ``fraction_correct`` of the dots in view, ``label_precision`` of the kept

@@ -353,7 +353,9 @@ def report_markdown(
              "not pinned by the pattern); "
              "`inconsistent` (the surface does not reproduce the spots); "
              "`gauge_level` (integrability did not pin the level: the gauge's h0 was "
-             "used, and scores are not averaged in); `failed` (the restoration refused the "
+             "used, and scores are not averaged in); `uncertain_level` (the level's standard "
+             "error over its bound: the shape is the data's, the level may be off); `failed` "
+             "(the restoration refused the "
              "frame, e.g. too few features); "
              "`no_sun` (Alterman's sensor without a sun); `error` (an exception, in the table).",
              ""]
