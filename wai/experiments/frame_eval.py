@@ -59,9 +59,9 @@ The point's fields, then ``frame_status`` (``ok``; ``failed: <why>`` when the re
 refused the frame; ``wrong_labels`` when more than 5 % of the kept correspondences are wrong;
 otherwise the restoration's own truth-free status: ``sparse``, ``inconsistent``,
 ``gauge_level``, ``uncertain_level``, ``dark_view``, see :mod:`restoration.result`;
-``method_status`` is that status alone, without the truth's ``wrong_labels``), the
-forward-consistency
-residual (``residual_median_px``, ``residual_p95_px``, ``residual_threshold_px``), the
+``method_status`` is that status alone, without the truth's ``wrong_labels``), the level and
+its standard error (``anchor_mm``, ``anchor_sigma_mm``), the forward-consistency residual
+(``residual_median_px``, ``residual_p95_px``, ``residual_threshold_px``), the
 correspondence counts against the geometric model (``n_in_view``, ``n_matched``,
 ``n_correct``, ``fraction_correct`` of the dots in view, ``label_precision`` of the kept
 ones), eq. 35's effective slope amplitude ``phi_deg``, the
@@ -258,6 +258,7 @@ def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[s
         "corner_std_restored_px": s.corner_std_restored_px,
         "anchor_method": result.surface.anchor.method,
         "anchor_mm": result.surface.anchor.anchor_mm,
+        "anchor_sigma_mm": result.surface.anchor.sigma_mm,
         "refine_passes": result.surface.anchor.refine_passes,
         "residual_median_px": result.consistency.median_px,
         "residual_p95_px": result.consistency.p95_px,
