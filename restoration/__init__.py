@@ -23,7 +23,8 @@ normals (:mod:`~restoration.normals`), integration (:mod:`~restoration.integrate
 (:mod:`~restoration.consistency`), view (:mod:`~restoration.reverse_trace`) -> the
 :class:`RestoreResult`. The methods are :mod:`~restoration.structured_light`,
 :mod:`~restoration.alterman`, :mod:`~restoration.schlieren` and
-:mod:`~restoration.inverse_rendering`; scores are in
+:mod:`~restoration.inverse_rendering` (the structured light's spots optionally corrected
+for their light centre's bias, :mod:`~restoration.spot_bias`); scores are in
 :mod:`~restoration.scoring` and :mod:`~restoration.metrics`.
 
 Every result carries a :class:`Status` (a string enum: ``Status.OK == "ok"``). A frame the data
@@ -87,6 +88,7 @@ from restoration.sequence import (
     restore_sequence,
     sequence_frames,
 )
+from restoration.spot_bias import SpotBiasModel, spot_bias_px
 from restoration.structured_light import StructuredLight, estimate_surface, fit_to_spots
 from restoration.tracking import SequenceState
 from restoration.view_check import ViewMatch
@@ -128,6 +130,7 @@ __all__ = [
     "Scores",
     "SequenceRestore",
     "SequenceState",
+    "SpotBiasModel",
     "Status",
     "StructuredLight",
     "StructuredLightOptions",
@@ -163,6 +166,7 @@ __all__ = [
     "run_method",
     "score",
     "sequence_frames",
+    "spot_bias_px",
     "spots_on_diffuser",
     "surface_errors",
     "video",

@@ -25,6 +25,7 @@ from restoration.level import Anchor
 from restoration.observations import Observations
 from restoration.options import SurfaceOptions
 from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, ViewState, restore_view
+from restoration.spot_bias import SpotBiasModel, spot_bias_px
 from restoration.undistort import PinholeRemap
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError
@@ -262,8 +263,19 @@ class Calibration(RigCalibration):
     """
 
     reference: ReferenceGrid | None = None
+    _flat_bias_px: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     IMAGES: ClassVar[tuple[str, ...]] = ("pattern", "pattern_flat", "view")
+
+    def flat_spot_bias_px(self, model: SpotBiasModel) -> NDArray[np.float64]:
+        """Every dot's spot bias on flat water at the gauge's level (N, 2), camera s pixels,
+        in the order of :attr:`wai_core.rig.Rig.dot_panel_px`
+        (:func:`restoration.spot_bias.spot_bias_px`); computed once per model."""
+        if model not in self._flat_bias_px:
+            rig = self.cfg.rig
+            self._flat_bias_px[model] = spot_bias_px(rig, rig.dot_panel_px, None,
+                                                     float(self.cfg.water.h0_mm), model)
+        return self._flat_bias_px[model]
 
     @property
     def projector(self) -> PinholeCamera:

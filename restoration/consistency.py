@@ -43,8 +43,8 @@ from wai_core.geometry import PinholeCamera
 from wai_core.heightfield import Heightfield
 from wai_core.light_paths import pack_camera, reflected_spot_px
 
-__all__ = ["GROSS_FRACTION", "INCONSISTENT_FRACTION", "TAIL_FACTOR", "Consistency",
-           "spot_consistency"]
+__all__ = ["GROSS_FRACTION", "INCONSISTENT_FRACTION", "TAIL_FACTOR", "UNCHECKED_REACH",
+           "Consistency", "spot_consistency", "unchecked_beside"]
 
 Array = NDArray[np.float64]
 
@@ -304,3 +304,23 @@ def spot_consistency(
     return Consistency(
         residual, median, p95, threshold, int(finite.sum()), surface, points_mm[:, :2]
     )
+
+
+UNCHECKED_REACH = 2
+"""Lattice steps from a sample the surface did not reproduce within which the samples the
+check could not reach (at the surface's edge) are left out with it."""
+
+
+def unchecked_beside(ij: NDArray, check: Consistency) -> NDArray[np.bool_]:
+    """(K,) bool: the samples (grid indices ``ij`` (K, 2)) whose residual the check could not
+    compute, within :data:`UNCHECKED_REACH` dots of one it found wrong
+    (:attr:`~restoration.consistency.Consistency.gross`): a wrong label seldom comes alone,
+    and these could not say whether they share it."""
+    gross = check.gross
+    unchecked = np.isnan(check.residual_px)
+    if not (gross.any() and unchecked.any()):
+        return np.zeros(len(ij), bool)
+    steps = np.abs(ij[unchecked][:, None, :] - ij[gross][None, :, :]).max(axis=2)
+    out = np.zeros(len(ij), bool)
+    out[np.flatnonzero(unchecked)[steps.min(axis=1) <= UNCHECKED_REACH]] = True
+    return out

@@ -153,6 +153,12 @@ class StructuredLightOptions(SurfaceOptions):
         datum: an error in it moves the level by about as much (docs/results.md, "Calibrating
         a real rig"). Off, the spots are taken as detected and the level comes from the data
         alone.
+    spot_bias : bool
+        Correct each spot for where its light's centre lies off its dot's centre ray on the
+        estimated surface (Fresnel's reflectance across the dot, the water's microfacets, the
+        surface's curvature; :mod:`restoration.spot_bias`) and estimate the surface again: on
+        smooth water about half the de-meaned error for about 0.15 s a frame, so off by
+        default (docs/results.md, "Spot bias").
 
     Examples
     --------
@@ -172,6 +178,7 @@ class StructuredLightOptions(SurfaceOptions):
     max_refine: int = 40
     fit_spots: bool = False
     flat_referenced: bool = True
+    spot_bias: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -34,7 +34,7 @@ from scipy.ndimage import gaussian_filter
 from restoration.fit import BSplineSurface, hits, linearise
 from wai_core.light_paths import dot_rays, real_spot_px
 
-__all__ = ["DotParticles", "PatternModel", "Raster", "Traced"]
+__all__ = ["DotParticles", "PatternModel", "Raster", "Traced", "ggx_facet_slopes"]
 
 Array = NDArray[np.float64]
 
@@ -42,6 +42,26 @@ _FD_MM = 1e-3  # finite-difference step of camera s's projection on the diffuser
 GGX_CAP = 0.9
 """Microfacet slopes are drawn from GGX's distribution up to this quantile of their radius
 (the tail beyond it spreads its light over many spots: the background takes it)."""
+
+
+def ggx_facet_slopes(roughness: float, facets: int) -> Array:
+    """A fixed set of ``facets`` microfacet slopes (F, 2) of GGX's distribution of width
+    ``roughness`` (alpha): rings at its radius quantiles up to :data:`GGX_CAP`, evenly spaced
+    angles turned ring to ring, their mean zero.
+
+    Examples
+    --------
+    >>> s = ggx_facet_slopes(0.01, 32)
+    >>> s.shape, bool(abs(s.mean(axis=0)).max() < 1e-15)
+    ((32, 2), True)
+    """
+    facet = np.arange(int(facets))
+    rings = max(1, int(round(np.sqrt(facets / 2))))
+    q = ((facet % rings) + 0.5) / rings * GGX_CAP
+    radius = roughness * np.sqrt(q / (1.0 - q))  # GGX: P(|slope| < r) = r^2/(a^2+r^2)
+    phi = 2 * np.pi * (facet / facets + (facet % rings) / (2.0 * facets))
+    slopes = np.column_stack([radius * np.cos(phi), radius * np.sin(phi)])
+    return slopes - slopes.mean(axis=0)
 
 
 @dataclass(frozen=True)
@@ -97,13 +117,7 @@ class DotParticles:
         weights = np.outer(w, w).ravel()
         slopes = None
         if roughness > 0:
-            facet = np.arange(int(facets))
-            rings = max(1, int(round(np.sqrt(facets / 2))))
-            q = ((facet % rings) + 0.5) / rings * GGX_CAP
-            radius = roughness * np.sqrt(q / (1.0 - q))  # GGX: P(|slope| < r) = r^2/(a^2+r^2)
-            phi = 2 * np.pi * (facet / facets + (facet % rings) / (2.0 * facets))
-            facet_slopes = np.column_stack([radius * np.cos(phi), radius * np.sin(phi)])
-            facet_slopes -= facet_slopes.mean(axis=0)
+            facet_slopes = ggx_facet_slopes(roughness, facets)
             m = len(offsets)
             offsets = np.repeat(offsets, facets, axis=0)
             weights = np.repeat(weights, facets) / facets

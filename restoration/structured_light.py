@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from restoration.anchor import find_anchor, integration_residual_mm
 from restoration.calibration import Calibration, LevelTrack
-from restoration.consistency import TAIL_FACTOR, Consistency, spot_consistency
+from restoration.consistency import TAIL_FACTOR, Consistency, spot_consistency, unchecked_beside
 from restoration.features import (
     Matches,
     ReferenceGrid,
@@ -32,6 +32,7 @@ from restoration.observations import Observations
 from restoration.options import StructuredLightOptions, checked_options
 from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, RestoreResult, Status
 from restoration.reverse_trace import SplinePatches
+from restoration.spot_bias import SpotBiasModel, spot_correction_px
 from restoration.surface import COMPILED_INTEGRATORS, SurfaceEstimate, reconstruct
 from restoration.tracking import SequenceState
 from wai_core.config import SystemConfig
@@ -456,6 +457,10 @@ class StructuredLight:
                     )
                     obs = obs if shifted_obs is None else shifted_obs
                 surface.heightfield  # noqa: B018  (a patch too small to grid fails here)
+            if options.spot_bias:
+                with timings("surface"):
+                    obs = self._observe_debiased(features, surface, cal, timings)
+                    surface = estimate_surface(obs, cal, options, start)
             surface, view, check = self._view_and_check(images, cal, obs, surface, reference,
                                                         state, timings)
             rejected_xy = np.zeros((0, 2))
@@ -469,8 +474,7 @@ class StructuredLight:
                 features = without_samples(features, surface.ij[drop])
                 rejected_xy = np.vstack([rejected_xy, check.xy_mm[drop]])
                 with timings("surface"):
-                    obs = cal.observe(features.ij, features.spot_px,
-                                      flat_referenced=options.flat_referenced)
+                    obs = self._observe_debiased(features, surface, cal, timings)
                     surface = estimate_surface(obs, cal, options,
                                                None if track is None else track.start_mm)
                 surface, view, check = self._view_and_check(images, cal, obs, surface,
@@ -496,6 +500,18 @@ class StructuredLight:
             reference_spacing_px=reference.median_spacing_px,
         )
 
+
+    def _observe_debiased(self, features: Matches, surface: SurfaceEstimate,
+                          cal: Calibration, timings: Timings) -> Observations:
+        """The features' observations; with ``spot_bias``, each spot less its bias on
+        ``surface`` beyond flat water's (:func:`restoration.spot_bias.spot_correction_px`,
+        timed as ``spot_bias``, a part of the surface's time)."""
+        spots = features.spot_px
+        if self.options.spot_bias:
+            with timings("spot_bias"):
+                spots = spots - spot_correction_px(cal, features.ij, surface,
+                                                   SpotBiasModel.of_water(cal.cfg.water))
+        return cal.observe(features.ij, spots, flat_referenced=self.options.flat_referenced)
 
     def _view_and_check(
         self, images: dict[str, NDArray], cal: Calibration, obs: Observations,
@@ -529,26 +545,6 @@ class StructuredLight:
             check, check_ms = checked()
         timings.add("consistency", check_ms)
         return surface, view, check
-
-
-UNCHECKED_REACH = 2
-"""Lattice steps from a sample the surface did not reproduce within which the samples the
-check could not reach (at the surface's edge) are left out with it."""
-
-
-def unchecked_beside(ij: NDArray, check: Consistency) -> NDArray[np.bool_]:
-    """(K,) bool: the samples (grid indices ``ij`` (K, 2)) whose residual the check could not
-    compute, within :data:`UNCHECKED_REACH` dots of one it found wrong
-    (:attr:`~restoration.consistency.Consistency.gross`): a wrong label seldom comes alone,
-    and these could not say whether they share it."""
-    gross = check.gross
-    unchecked = np.isnan(check.residual_px)
-    if not (gross.any() and unchecked.any()):
-        return np.zeros(len(ij), bool)
-    steps = np.abs(ij[unchecked][:, None, :] - ij[gross][None, :, :]).max(axis=2)
-    out = np.zeros(len(ij), bool)
-    out[np.flatnonzero(unchecked)[steps.min(axis=1) <= UNCHECKED_REACH]] = True
-    return out
 
 
 def without_samples(features: Matches, ij: NDArray) -> Matches:

@@ -58,9 +58,9 @@ def method_options(args: argparse.Namespace) -> SurfaceOptions:
     anchor = args.anchor
     if args.method == "alterman":
         # The sun sensor's normals do not depend on the height: its level is the gauge's.
-        if anchor == "integrability" or args.fit or args.as_detected:
+        if anchor == "integrability" or args.fit or args.as_detected or args.spot_bias:
             flag = ("--fit" if args.fit else "--as-detected" if args.as_detected
-                    else "--anchor integrability")
+                    else "--spot-bias" if args.spot_bias else "--anchor integrability")
             raise WaiInputError(
                 f"{flag}: alterman's normals do not depend on the height, so its level is "
                 "always the gauge's (--anchor gauge)"
@@ -68,7 +68,8 @@ def method_options(args: argparse.Namespace) -> SurfaceOptions:
         anchor = None
     choices = {"integrator": args.integrator, "n_refine": args.refine, "anchor": anchor,
                "fit_spots": True if args.fit else None,
-               "flat_referenced": False if args.as_detected else None}
+               "flat_referenced": False if args.as_detected else None,
+               "spot_bias": True if args.spot_bias else None}
     try:
         return get_method(args.method, **choices).options
     except WaiInputError as exc:

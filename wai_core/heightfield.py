@@ -260,7 +260,7 @@ class Heightfield:
         vertices = np.stack([xx.ravel(), yy.ravel(), self.z.ravel()], axis=1)
         faces = grid_faces(self.y.size, self.x.size)
         faces = faces[self._valid.ravel()[faces].all(axis=1)]
-        normals = np.nan_to_num(self.normal(xx.ravel(), yy.ravel()), nan=0.0)
+        normals = np.nan_to_num(self.grid_normals().reshape(-1, 3), nan=0.0)
         normals[~self._valid.ravel()] = (0.0, 0.0, 1.0)
         return trimesh.Trimesh(
             vertices=np.nan_to_num(vertices, nan=float(np.nanmean(self.z))),

@@ -69,6 +69,10 @@ def test_unset_restore_flags_leave_each_methods_defaults():
     assert as_detected == StructuredLightOptions(flat_referenced=False)
     with pytest.raises(WaiInputError, match="--as-detected"):
         method_options(parse(["restore", "d", "--method", "alterman", "--as-detected"]))
+    assert method_options(parse(["restore", "d", "--spot-bias"])) == StructuredLightOptions(
+        spot_bias=True)
+    with pytest.raises(WaiInputError, match="--spot-bias"):
+        method_options(parse(["restore", "d", "--method", "alterman", "--spot-bias"]))
 
 
 def test_negative_refine_names_the_option(capsys, tmp_path):

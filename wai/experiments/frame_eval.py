@@ -327,11 +327,13 @@ REFINEMENTS: dict[str, dict[str, Any]] = {
     "default": {},
     "converged": {"converge_mm": 0.0},
     "fit": {"fit_spots": True},
+    "spot_bias": {"spot_bias": True},
 }
 """Surface refinements a point may compare (``refinements``): the default (up to 8 passes
 until converged to ``refine_tol_mm``, more only when they leave heights moving by
-``converge_mm``), the fixed point always converged to 40 passes, and the Gauss-Newton fit to
-the spots (:mod:`restoration.fit`)."""
+``converge_mm``), the fixed point always converged to 40 passes, the Gauss-Newton fit to
+the spots (:mod:`restoration.fit`), and the spots corrected for their light centre's bias
+(:mod:`restoration.spot_bias`)."""
 
 
 def _suffix(name: str, step: int, names: list[str], steps: list[int]) -> str:

@@ -1,0 +1,196 @@
+"""Where a spot's light centre lies off its dot's centre ray, and the correction for it.
+
+Structured light takes each detected spot's centre as the point where its dot's centre ray
+lands. The detector measures the centre of the spot's light, and the water does not reflect
+a dot's light evenly:
+
+- Fresnel's reflectance from below rises steeply towards the critical angle (2 % at normal
+  incidence, 100 % at 48.6 degrees for n = 4/3), so the side of a dot that meets the surface
+  more obliquely is brighter;
+- on rough water (GGX microfacets of width alpha, the scene's ``[water] roughness``) each
+  point of the dot is reflected about a spread of facet normals, and that same slope of the
+  reflectance weights the facets tilted towards grazing incidence: the whole spot moves,
+  by about a pixel of camera s at alpha = 0.01 on the paper's rig, and by how much depends on
+  the surface's slope under the dot;
+- a curved surface maps the dot's Gaussian onto the diffuser unevenly.
+
+The flat-water reference (``flat_referenced``, the default) removes the part that flat water
+has too; this module models the rest. Each dot is a set of Gauss-Hermite points of its
+Gaussian (:class:`~restoration.pattern_model.DotParticles`), reflected at the surface about
+its normal, or about each of a fixed set of GGX facet slopes, weighted by the light each
+carries (Fresnel's reflectance at its facet, the facet's share of the projected area) onto the
+diffuser. The spot's bias is that weighted centroid less the centre ray's spot, in camera s's
+pixels, and the correction subtracts from each detected spot its bias on the surface less its
+bias on flat water at the gauge's level: :func:`spot_bias_px`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from restoration.fit import SMOOTHNESS, BSplineSurface, hits, knot_step, spline_through
+from restoration.pattern_model import ggx_facet_slopes
+from wai_core.geometry import fresnel_reflectance
+from wai_core.light_paths import dot_rays, real_spot_px, reflect_to_diffuser
+
+__all__ = ["SpotBiasModel", "spot_bias_px", "spot_correction_px"]
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SpotBiasModel:
+    """What the spots' bias depends on besides the surface.
+
+    Attributes
+    ----------
+    roughness : float
+        The water's micro-roughness, GGX alpha (0: smooth).
+    n_water : float
+        The water's index (the reflectance's).
+    order : int
+        Gauss-Hermite points per axis of each dot.
+    facets : int
+        GGX facet slopes per point (rough water only).
+    window : float
+        The detector's centroid window, as a multiple of the spot's covariance (0: the plain
+        centroid of the spot's light).
+    """
+
+    roughness: float = 0.0
+    n_water: float = 4.0 / 3.0
+    order: int = 4
+    facets: int = 32
+    window: float = 1.75
+
+    @classmethod
+    def of_water(cls, water: Any) -> SpotBiasModel:
+        """The model of a scene's ``[water]`` (its roughness and index).
+
+        Examples
+        --------
+        >>> from wai_core import load_system
+        >>> SpotBiasModel.of_water(load_system("paper").water).roughness
+        0.0
+        """
+        return cls(roughness=float(water.roughness), n_water=float(water.n_water))
+
+
+def _pixels(rig: Any, points_mm: Array) -> Array:
+    """Camera s's real pixels (K, 2) of diffuser points (K, 3), mm."""
+    cols, rows, front = rig.camera_s.project(points_mm)
+    px = np.column_stack([cols, rows])
+    px[~front] = np.nan
+    return real_spot_px(rig, px)
+
+
+def spot_bias_px(rig: Any, panel_px: Array, surface: BSplineSurface | None, level_mm: float,
+                 model: SpotBiasModel) -> Array:
+    """The light centroid of the dots at ``panel_px`` (K, 2) less their centre rays' spots,
+    camera s pixels (K, 2), on ``surface`` (None: flat water at ``level_mm``); NaN where a
+    dot's light leaves the surface or the diffuser.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from wai_core import load_system
+    >>> rig = load_system("paper").rig
+    >>> smooth = spot_bias_px(rig, rig.dot_panel_px[:3], None, rig.cfg.water.h0_mm,
+    ...                       SpotBiasModel())
+    >>> rough = spot_bias_px(rig, rig.dot_panel_px[:3], None, rig.cfg.water.h0_mm,
+    ...                      SpotBiasModel(roughness=0.01))
+    >>> bool(np.abs(smooth).max() < np.abs(rough).max())
+    True
+    """
+    panel_px = np.asarray(panel_px, float)
+    k = len(panel_px)
+    nodes, w = np.polynomial.hermite_e.hermegauss(int(model.order))
+    w = w / w.sum()
+    sigma = float(rig.cfg.pattern.sigma_px)
+    ox, oy = np.meshgrid(sigma * nodes, sigma * nodes)
+    offsets = np.column_stack([[0.0, 0.0], np.column_stack([ox.ravel(), oy.ravel()]).T]).T
+    weights = np.concatenate([[0.0], np.outer(w, w).ravel()])
+    m = len(offsets)  # the centre ray first, then the quadrature points
+    points = (panel_px[:, None, :] + offsets[None]).reshape(-1, 2)
+    origin, dirs = dot_rays(rig, points)
+    t = (level_mm - origin[..., 2]) / dirs[:, 2]
+    if surface is None:
+        surface = BSplineSurface.covering((origin + t[:, None] * dirs)[:, :2], 10.0, level_mm)
+    t = hits(surface, origin, dirs, t, n_iter=4)
+    hit = origin + t[:, None] * dirs
+    _, gx, gy = surface.evaluate(hit[:, 0], hit[:, 1])[:3]
+    macro = np.column_stack([-gx, -gy, np.ones_like(gx)])
+    macro /= np.linalg.norm(macro, axis=1, keepdims=True)
+    z_h = float(rig.cfg.diffuser.z_mm)
+    centre = reflect_to_diffuser(hit.reshape(k, m, 3)[:, 0], dirs.reshape(k, m, 3)[:, 0],
+                                 macro.reshape(k, m, 3)[:, 0], z_h)
+    slopes = (ggx_facet_slopes(model.roughness, model.facets) if model.roughness > 0
+              else np.zeros((1, 2)))
+    f = len(slopes)
+    sx = (gx[:, None] + slopes[None, :, 0]).ravel()
+    sy = (gy[:, None] + slopes[None, :, 1]).ravel()
+    normal = np.column_stack([-sx, -sy, np.ones_like(sx)])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    d = np.repeat(dirs, f, axis=0)
+    cos_facet = np.abs(np.sum(d * normal, axis=1))
+    cos_macro = np.repeat(np.abs(np.sum(dirs * macro, axis=1)), f)
+    weight = (np.tile(np.repeat(weights, f), k) / f
+              * fresnel_reflectance(cos_facet, float(model.n_water)) * cos_facet / cos_macro)
+    on = reflect_to_diffuser(np.repeat(hit, f, axis=0), d, normal, z_h)
+    weight = weight.reshape(k, m * f)
+    on = on.reshape(k, m * f, 3)
+    good = np.isfinite(on).all(axis=2).all(axis=1) & np.isfinite(weight).all(axis=1)
+    weight = np.where(good[:, None], weight, 0.0)
+    on = np.where(good[:, None, None], on, 0.0)
+    total = weight.sum(axis=1)
+    px = _pixels(rig, on.reshape(-1, 3)).reshape(k, m * f, 2)
+    good &= np.isfinite(px).all(axis=2).all(axis=1) & (total > 0)
+    px = np.where(good[:, None, None], px, 0.0)
+    weight = np.where(good[:, None], weight, 0.0)
+    centroid = _windowed_centroid(px, weight, model.window)
+    bias = centroid - _pixels(rig, centre)
+    bias[~good] = np.nan
+    return bias
+
+
+def _windowed_centroid(px: Array, weight: Array, window: float, n_iter: int = 3) -> Array:
+    """Each spot's centre (K, 2) from its particles ``px`` (K, P, 2) of ``weight`` (K, P), as
+    the detector finds it: a Gaussian-windowed centroid (window covariance ``window`` times the
+    spot's, plus a pixel's box, iterated with the detector's gain); the plain centroid for
+    ``window`` 0."""
+    total = np.where(weight.sum(axis=1) > 0, weight.sum(axis=1), 1.0)
+    x = np.einsum("kp,kpc->kc", weight, px) / total[:, None]
+    if window <= 0:
+        return x
+    d = px - x[:, None, :]
+    cov = np.einsum("kp,kpa,kpb->kab", weight, d, d) / total[:, None, None]
+    cov = cov + np.eye(2) / 12.0  # the pixel's box
+    inv = np.linalg.inv(window * cov + np.eye(2) / 12.0)
+    gain = 1.0 + 1.0 / window
+    for _ in range(n_iter):
+        d = px - x[:, None, :]
+        w = weight * np.exp(-0.5 * np.einsum("kpa,kab,kpb->kp", d, inv, d))
+        s = np.where(w.sum(axis=1) > 0, w.sum(axis=1), 1.0)
+        x = x + gain * np.einsum("kp,kpc->kc", w, d) / s[:, None]
+    return x
+
+
+def spot_correction_px(cal: Any, ij: NDArray, surface: Any, model: SpotBiasModel) -> Array:
+    """What to subtract from the detected spots of the dots ``ij`` (K, 2) before they are
+    observed (K, 2), camera s pixels: each dot's bias on ``surface`` (a
+    :class:`~restoration.surface.SurfaceEstimate`, as a spline through its heights and slopes)
+    less its bias on flat water (which the flat reference holds too); zero where either is
+    unknown."""
+    rig = cal.cfg.rig
+    dots = rig.dot_index(ij)
+    xy = surface.points_mm[:, :2]
+    spline = spline_through(xy, surface.points_mm[:, 2], surface.slopes, knot_step(xy),
+                            SMOOTHNESS)
+    level = float(surface.anchor.anchor_mm)
+    on_surface = spot_bias_px(rig, rig.dot_panel_px[dots], spline, level, model)
+    correction = on_surface - cal.flat_spot_bias_px(model)[dots]
+    return np.where(np.isfinite(correction), correction, 0.0)
