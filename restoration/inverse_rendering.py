@@ -97,6 +97,7 @@ class _Objective:
         self.norm = 1.0
         self.t = t
         self.amplitudes = np.ones(model.particles.n_dots)
+        self.light = model.particles.weight  # each particle's share of its dot's light
         self.background = 0.0
         self.smoothness = smoothness
         self.calls = 0
@@ -132,7 +133,7 @@ class _Objective:
 
     def weights(self, traced: Traced) -> Array:
         p = self.model.particles
-        return np.where(traced.ok, self.amplitudes[p.dot] * p.weight, 0.0)
+        return np.where(traced.ok, self.amplitudes[p.dot] * self.light, 0.0)
 
     def image(self, traced: Traced) -> Array:
         r = self.raster
@@ -159,13 +160,13 @@ class _Objective:
         k = p.n_dots
 
         def forward(x: Array) -> Array:
-            w = np.where(ok, x[p.dot] * p.weight, 0.0)
+            w = np.where(ok, x[p.dot] * self.light, 0.0)
             return r.blur(r.splat(traced.px, w, ok)) + x[k]
 
         def adjoint(img: Array) -> Array:
             img = img * self.mask
             v, _ = r.sample(r.blur(img), traced.px)
-            out = np.bincount(p.dot, np.where(ok, v * p.weight, 0.0), minlength=k)
+            out = np.bincount(p.dot, np.where(ok, v * self.light, 0.0), minlength=k)
             return np.r_[out, img.sum()]
 
         x = np.r_[self.amplitudes, self.background]
@@ -212,7 +213,7 @@ def _explained(obj: _Objective, traced: Traced, window_px: float) -> Array:
 def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
                 blur_px: float = 1.5, passes: int = 2, iterations: int = 30,
                 smoothness: float = SMOOTHNESS, window_px: float = 6.0,
-                reach_px: float = 8.0) -> PatternFit:
+                reach_px: float = 8.0, n_water: float | None = None) -> PatternFit:
     """Fit the spline ``start`` to the pattern ``image`` (H, W) through ``model``.
 
     Parameters
@@ -233,6 +234,11 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
         Width of each dot's window in :attr:`PatternFit.explained`, px.
     reach_px : float
         Pixels within this of a particle are scored, px.
+    n_water : float, optional
+        The water's index: each particle's light weighted by Fresnel's reflectance at its
+        facet, taken on the surface at the start of each pass
+        (:meth:`~restoration.pattern_model.PatternModel.reflectance`); None: the dot's
+        Gaussian alone.
 
     Returns
     -------
@@ -248,6 +254,8 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
     with timings("fit"):
         for _ in range(int(passes)):
             traced = model.trace(spline, obj.t)
+            if n_water is not None:
+                obj.light = model.reflectance(spline, traced, n_water)
             obj.set_mask(traced, reach_px)
             obj.fit_amplitudes(traced)
             res = minimize(obj, spline.coeffs.ravel(), args=(spline,), jac=True,
@@ -307,7 +315,8 @@ def restore_inverse_rendering(
         spline = spline_through(xy, surface.points_mm[:, 2], surface.slopes, knot_step(xy),
                                 FIT_SMOOTHNESS)
         fit = fit_pattern(pattern, spline, model, blur_px=options.blur_px,
-                          passes=options.passes, iterations=options.iterations)
+                          passes=options.passes, iterations=options.iterations,
+                          n_water=float(cal.cfg.water.n_water) if options.fresnel else None)
         z, zx, zy = fit.spline.evaluate(xy[:, 0], xy[:, 1])[:3]
         keep = np.isfinite(z)
         points = np.column_stack([xy, np.where(keep, z, surface.points_mm[:, 2])])

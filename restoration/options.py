@@ -308,6 +308,9 @@ class InverseRenderingOptions(StructuredLightOptions):
     min_explained : float
         The frame is ``inconsistent`` when the median dot's share of its light the fit
         explains is below this.
+    fresnel : bool
+        Weight each particle by Fresnel's reflectance at its facet (the scene's index), taken
+        on the surface at the start of each pass.
 
     Examples
     --------
@@ -323,6 +326,7 @@ class InverseRenderingOptions(StructuredLightOptions):
     facets: int = 8
     roughness: float | None = None
     min_explained: float = 0.5
+    fresnel: bool = True
 
     def __post_init__(self) -> None:
         super().__post_init__()

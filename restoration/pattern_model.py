@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter
 
 from restoration.fit import BSplineSurface, hits, linearise
+from wai_core.geometry import fresnel_reflectance
 from wai_core.light_paths import dot_rays, real_spot_px
 
 __all__ = ["DotParticles", "PatternModel", "Raster", "Traced", "ggx_facet_slopes"]
@@ -172,6 +173,24 @@ class PatternModel:
         self.particles = particles
         self.shape = (int(shape[0]), int(shape[1]))
         self.z_h_mm = float(rig.cfg.diffuser.z_mm)
+
+    def reflectance(self, spline: BSplineSurface, traced: Traced, n_water: float) -> Array:
+        """Each particle's share of its dot's light once reflected (P,): its weight times
+        Fresnel's reflectance at its facet and the facet's share of the projected area,
+        normalised so that a dot's shares sum to 1 (its brightness is fitted apart)."""
+        p = self.particles
+        hit = p.origin_mm + traced.t[:, None] * p.dirs
+        _, gx, gy = spline.evaluate(hit[:, 0], hit[:, 1])[:3]
+        macro = np.column_stack([-gx, -gy, np.ones_like(gx)])
+        facet = macro.copy()
+        if p.slope_offset is not None:
+            facet[:, :2] -= p.slope_offset
+        cos_macro = np.abs(np.sum(p.dirs * macro, axis=1)) / np.linalg.norm(macro, axis=1)
+        cos_facet = np.abs(np.sum(p.dirs * facet, axis=1)) / np.linalg.norm(facet, axis=1)
+        light = p.weight * fresnel_reflectance(cos_facet, n_water) * cos_facet / cos_macro
+        light = np.where(traced.ok & np.isfinite(light), light, 0.0)
+        total = np.bincount(p.dot, light, minlength=p.n_dots)
+        return light / np.where(total > 0, total, 1.0)[p.dot]
 
     def flat_t(self, level_mm: float) -> Array:
         """Ray parameters (P,) where the particles' rays reach the height ``level_mm``."""

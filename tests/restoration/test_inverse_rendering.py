@@ -72,6 +72,39 @@ def test_micro_facets_spread_the_slopes_by_the_roughness(rig):
         assert 0.7 * alpha < np.median(np.linalg.norm(s, axis=1)) < 1.4 * alpha
 
 
+def test_each_particle_carries_fresnels_share_of_its_dots_light(rig):
+    # Flat water: a dot met beyond the critical angle (48.6 degrees) is totally reflected, its
+    # particles keep their quadrature weights; below it the reflectance climbs with the angle,
+    # so a dot's more oblique particles carry more than their weight.
+    panel = rig.dot_panel_px[rig.lit]
+    parts = DotParticles.of(rig, panel, order=4)
+    model = PatternModel(rig, parts, (rig.camera_s.height_px, rig.camera_s.width_px))
+    h0 = rig.cfg.water.h0_mm
+    xy = (parts.origin_mm + model.flat_t(h0)[:, None] * parts.dirs)[:, :2]
+    flat = BSplineSurface.covering(xy, 10.0, h0)
+    traced = model.trace(flat, model.flat_t(h0))
+    light = model.reflectance(flat, traced, 4.0 / 3.0)
+    incidence = np.degrees(np.arccos(np.abs(parts.dirs[:, 2])))
+    lowest = np.full(parts.n_dots, 90.0)
+    np.minimum.at(lowest, parts.dot, incidence)
+    full = np.bincount(parts.dot, traced.ok) == 16
+    tir = (lowest > 49.0)[parts.dot] & full[parts.dot]
+    np.testing.assert_allclose(light[tir], parts.weight[tir], rtol=1e-9)
+    below = (incidence < 45.0) & full[parts.dot]
+    ratio = light[below] / parts.weight[below]
+    # Within each dot the ratio rises with the incidence, by over 1 % across many dots.
+    dots = 0
+    for k in np.unique(parts.dot[below]):
+        own = parts.dot[below] == k
+        if own.sum() < 16:
+            continue
+        order = np.argsort(incidence[below][own])
+        r = ratio[own][order]
+        assert np.all(np.diff(r) > -1e-12 * r.max())
+        dots += r[-1] > 1.01 * r[0]
+    assert dots > 20
+
+
 def test_the_loss_gradient_is_its_finite_difference(rig):
     # The adjoint (blur, splat, pixel Jacobians, coefficients) against central differences of
     # the loss along random directions.
