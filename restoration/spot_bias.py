@@ -120,7 +120,7 @@ def spot_bias_px(rig: Any, panel_px: Array, surface: BSplineSurface | None, leve
     t = (level_mm - origin[..., 2]) / dirs[:, 2]
     if surface is None:
         surface = BSplineSurface.covering((origin + t[:, None] * dirs)[:, :2], 10.0, level_mm)
-    t = hits(surface, origin, dirs, t, n_iter=4)
+    t = hits(surface, origin, dirs, t, n_iter=3)
     hit = origin + t[:, None] * dirs
     _, gx, gy = surface.evaluate(hit[:, 0], hit[:, 1])[:3]
     macro = np.column_stack([-gx, -gy, np.ones_like(gx)])
