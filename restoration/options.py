@@ -157,8 +157,8 @@ class StructuredLightOptions(SurfaceOptions):
         Correct each spot for where its light's centre lies off its dot's centre ray on the
         estimated surface (Fresnel's reflectance across the dot, the water's microfacets, the
         surface's curvature; :mod:`restoration.spot_bias`) and estimate the surface again: on
-        smooth water about half the de-meaned error for about 0.15 s a frame, so off by
-        default (docs/results.md, "Spot bias").
+        smooth water about a third less error for about 0.1 s a frame, so off by default
+        (docs/results.md, "Where a spot's light centre lies").
 
     Examples
     --------

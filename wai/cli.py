@@ -290,8 +290,9 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "--spot-bias", action="store_true",
         help="structured light: correct each spot for where its light's centre lies off its "
         "dot's centre ray on the surface (Fresnel's reflectance across the dot, the water's "
-        "roughness) and estimate the surface again: about half the de-meaned error on smooth "
-        "water for ~0.15 s more per frame ('wai guide results', \"Spot bias\")",
+        "roughness) and estimate the surface again: about a third less error on smooth water "
+        "for ~0.1 s more per frame ('wai guide results', \"Where a spot's light centre "
+        "lies\")",
     )
     p.add_argument(
         "--as-detected", action="store_true",
