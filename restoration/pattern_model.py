@@ -35,7 +35,8 @@ from restoration.fit import BSplineSurface, hits, linearise
 from wai_core.geometry import fresnel_reflectance
 from wai_core.light_paths import dot_rays, real_spot_px
 
-__all__ = ["DotParticles", "PatternModel", "Raster", "Traced", "ggx_facet_slopes"]
+__all__ = ["DotParticles", "PatternModel", "Raster", "Traced", "dot_quadrature", "facet_light",
+           "ggx_facet_slopes"]
 
 Array = NDArray[np.float64]
 
@@ -63,6 +64,52 @@ def ggx_facet_slopes(roughness: float, facets: int) -> Array:
     phi = 2 * np.pi * (facet / facets + (facet % rings) / (2.0 * facets))
     slopes = np.column_stack([radius * np.cos(phi), radius * np.sin(phi)])
     return slopes - slopes.mean(axis=0)
+
+
+def dot_quadrature(rig: Any, order: int) -> tuple[Array, Array]:
+    """Gauss-Hermite points of a dot's Gaussian (``[pattern] sigma_px``), ``order`` per axis:
+    their offsets from the dot's centre (M, 2), panel pixels, and weights (M,) summing to 1
+    (their centroid and spread exactly the dot's).
+
+    Examples
+    --------
+    >>> from wai_core import load_system
+    >>> offsets, weights = dot_quadrature(load_system("paper").rig, 3)
+    >>> offsets.shape, round(float(weights.sum()), 12)
+    ((9, 2), 1.0)
+    """
+    nodes, w = np.polynomial.hermite_e.hermegauss(int(order))
+    w = w / w.sum()
+    sigma = float(rig.cfg.pattern.sigma_px)
+    ox, oy = np.meshgrid(sigma * nodes, sigma * nodes)
+    return np.column_stack([ox.ravel(), oy.ravel()]), np.outer(w, w).ravel()
+
+
+def facet_light(dirs: Array, gx: Array, gy: Array, slope_offset: Array | None,
+                n_water: float) -> tuple[Array, Array]:
+    """Where rays of unit directions ``dirs`` (P, 3) meet a surface of slopes ``gx``, ``gy``
+    (P,), each about a microfacet of slope ``slope_offset`` (P, 2) more (None: the surface's
+    own normal): the facets' unit normals (P, 3), and the share of each ray's light the facet
+    reflects (P,): Fresnel's reflectance at it times its share of the projected area (the
+    incidence cosine on the facet over that on the surface).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> up = np.array([[0.0, 0.0, 1.0]])
+    >>> normal, light = facet_light(up, np.zeros(1), np.zeros(1), None, 4.0 / 3.0)
+    >>> normal.tolist(), round(float(light[0]), 4)  # ((n - 1) / (n + 1))^2 at normal incidence
+    ([[-0.0, -0.0, 1.0]], 0.0204)
+    """
+    macro = np.column_stack([-gx, -gy, np.ones_like(gx)])
+    facet = macro.copy()
+    if slope_offset is not None:
+        facet[:, :2] -= slope_offset
+    macro /= np.linalg.norm(macro, axis=1, keepdims=True)
+    facet /= np.linalg.norm(facet, axis=1, keepdims=True)
+    cos_macro = np.abs(np.sum(dirs * macro, axis=1))
+    cos_facet = np.abs(np.sum(dirs * facet, axis=1))
+    return facet, fresnel_reflectance(cos_facet, n_water) * cos_facet / cos_macro
 
 
 @dataclass(frozen=True)
@@ -110,12 +157,7 @@ class DotParticles:
         ((80, 3), 1.0)
         """
         k = len(panel_px)
-        nodes, w = np.polynomial.hermite_e.hermegauss(int(order))
-        w = w / w.sum()
-        sigma = float(rig.cfg.pattern.sigma_px)
-        ox, oy = np.meshgrid(sigma * nodes, sigma * nodes)
-        offsets = np.column_stack([ox.ravel(), oy.ravel()])
-        weights = np.outer(w, w).ravel()
+        offsets, weights = dot_quadrature(rig, order)
         slopes = None
         if roughness > 0:
             facet_slopes = ggx_facet_slopes(roughness, facets)
@@ -181,13 +223,7 @@ class PatternModel:
         p = self.particles
         hit = p.origin_mm + traced.t[:, None] * p.dirs
         _, gx, gy = spline.evaluate(hit[:, 0], hit[:, 1])[:3]
-        macro = np.column_stack([-gx, -gy, np.ones_like(gx)])
-        facet = macro.copy()
-        if p.slope_offset is not None:
-            facet[:, :2] -= p.slope_offset
-        cos_macro = np.abs(np.sum(p.dirs * macro, axis=1)) / np.linalg.norm(macro, axis=1)
-        cos_facet = np.abs(np.sum(p.dirs * facet, axis=1)) / np.linalg.norm(facet, axis=1)
-        light = p.weight * fresnel_reflectance(cos_facet, n_water) * cos_facet / cos_macro
+        light = p.weight * facet_light(p.dirs, gx, gy, p.slope_offset, n_water)[1]
         light = np.where(traced.ok & np.isfinite(light), light, 0.0)
         total = np.bincount(p.dot, light, minlength=p.n_dots)
         return light / np.where(total > 0, total, 1.0)[p.dot]

@@ -33,9 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.fit import SMOOTHNESS, BSplineSurface, hits, knot_step, spline_through
-from restoration.pattern_model import ggx_facet_slopes
-from wai_core.geometry import fresnel_reflectance
-from wai_core.light_paths import dot_rays, real_spot_px, reflect_to_diffuser
+from restoration.pattern_model import dot_quadrature, facet_light, ggx_facet_slopes
+from wai_core.light_paths import dot_rays, real_spot_px, spots_from_hits
 
 __all__ = ["SpotBiasModel", "spot_bias_px", "spot_correction_px"]
 
@@ -80,14 +79,6 @@ class SpotBiasModel:
         return cls(roughness=float(water.roughness), n_water=float(water.n_water))
 
 
-def _pixels(rig: Any, points_mm: Array) -> Array:
-    """Camera s's real pixels (K, 2) of diffuser points (K, 3), mm."""
-    cols, rows, front = rig.camera_s.project(points_mm)
-    px = np.column_stack([cols, rows])
-    px[~front] = np.nan
-    return real_spot_px(rig, px)
-
-
 def spot_bias_px(rig: Any, panel_px: Array, surface: BSplineSurface | None, level_mm: float,
                  model: SpotBiasModel) -> Array:
     """The light centroid of the dots at ``panel_px`` (K, 2) less their centre rays' spots,
@@ -108,51 +99,34 @@ def spot_bias_px(rig: Any, panel_px: Array, surface: BSplineSurface | None, leve
     """
     panel_px = np.asarray(panel_px, float)
     k = len(panel_px)
-    nodes, w = np.polynomial.hermite_e.hermegauss(int(model.order))
-    w = w / w.sum()
-    sigma = float(rig.cfg.pattern.sigma_px)
-    ox, oy = np.meshgrid(sigma * nodes, sigma * nodes)
-    offsets = np.column_stack([[0.0, 0.0], np.column_stack([ox.ravel(), oy.ravel()]).T]).T
-    weights = np.concatenate([[0.0], np.outer(w, w).ravel()])
-    m = len(offsets)  # the centre ray first, then the quadrature points
-    points = (panel_px[:, None, :] + offsets[None]).reshape(-1, 2)
-    origin, dirs = dot_rays(rig, points)
+    offsets, weights = dot_quadrature(rig, model.order)
+    offsets, weights = np.vstack([[0.0, 0.0], offsets]), np.r_[0.0, weights]
+    m = len(offsets)  # the centre ray first (no weight), then the quadrature points
+    origin, dirs = dot_rays(rig, (panel_px[:, None, :] + offsets[None]).reshape(-1, 2))
     t = (level_mm - origin[..., 2]) / dirs[:, 2]
     if surface is None:
         surface = BSplineSurface.covering((origin + t[:, None] * dirs)[:, :2], 10.0, level_mm)
     t = hits(surface, origin, dirs, t, n_iter=3)
     hit = origin + t[:, None] * dirs
     _, gx, gy = surface.evaluate(hit[:, 0], hit[:, 1])[:3]
-    macro = np.column_stack([-gx, -gy, np.ones_like(gx)])
-    macro /= np.linalg.norm(macro, axis=1, keepdims=True)
-    z_h = float(rig.cfg.diffuser.z_mm)
-    centre = reflect_to_diffuser(hit.reshape(k, m, 3)[:, 0], dirs.reshape(k, m, 3)[:, 0],
-                                 macro.reshape(k, m, 3)[:, 0], z_h)
+    n_water = float(model.n_water)
+    centre = slice(0, None, m)
+    normal, _ = facet_light(dirs[centre], gx[centre], gy[centre], None, n_water)
+    centre_px = real_spot_px(rig, spots_from_hits(rig, hit[centre], dirs[centre], normal).px)
     slopes = (ggx_facet_slopes(model.roughness, model.facets) if model.roughness > 0
               else np.zeros((1, 2)))
     f = len(slopes)
-    sx = (gx[:, None] + slopes[None, :, 0]).ravel()
-    sy = (gy[:, None] + slopes[None, :, 1]).ravel()
-    normal = np.column_stack([-sx, -sy, np.ones_like(sx)])
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     d = np.repeat(dirs, f, axis=0)
-    cos_facet = np.abs(np.sum(d * normal, axis=1))
-    cos_macro = np.repeat(np.abs(np.sum(dirs * macro, axis=1)), f)
-    weight = (np.tile(np.repeat(weights, f), k) / f
-              * fresnel_reflectance(cos_facet, float(model.n_water)) * cos_facet / cos_macro)
-    on = reflect_to_diffuser(np.repeat(hit, f, axis=0), d, normal, z_h)
-    weight = weight.reshape(k, m * f)
-    on = on.reshape(k, m * f, 3)
-    good = np.isfinite(on).all(axis=2).all(axis=1) & np.isfinite(weight).all(axis=1)
-    weight = np.where(good[:, None], weight, 0.0)
-    on = np.where(good[:, None, None], on, 0.0)
-    total = weight.sum(axis=1)
-    px = _pixels(rig, on.reshape(-1, 3)).reshape(k, m * f, 2)
-    good &= np.isfinite(px).all(axis=2).all(axis=1) & (total > 0)
+    normal, light = facet_light(d, np.repeat(gx, f), np.repeat(gy, f),
+                                np.tile(slopes, (k * m, 1)), n_water)
+    weight = (np.tile(np.repeat(weights, f), k) / f * light).reshape(k, m * f)
+    px = real_spot_px(rig, spots_from_hits(rig, np.repeat(hit, f, axis=0), d, normal).px)
+    px = px.reshape(k, m * f, 2)
+    good = (np.isfinite(px).all(axis=2).all(axis=1) & np.isfinite(weight).all(axis=1)
+            & (np.nansum(weight, axis=1) > 0))
     px = np.where(good[:, None, None], px, 0.0)
     weight = np.where(good[:, None], weight, 0.0)
-    centroid = _windowed_centroid(px, weight, model.window)
-    bias = centroid - _pixels(rig, centre)
+    bias = _windowed_centroid(px, weight, model.window) - centre_px
     bias[~good] = np.nan
     return bias
 

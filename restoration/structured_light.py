@@ -500,7 +500,6 @@ class StructuredLight:
             reference_spacing_px=reference.median_spacing_px,
         )
 
-
     def _observe_debiased(self, features: Matches, surface: SurfaceEstimate,
                           cal: Calibration, timings: Timings) -> Observations:
         """The features' observations; with ``spot_bias``, each spot less its bias on

@@ -42,16 +42,22 @@ def test_splat_and_sample_are_adjoint():
         np.testing.assert_allclose(grad[inside, axis], fd[inside], atol=1e-4)
 
 
-def test_a_dots_light_centres_where_its_ray_lands(rig):
-    # Flat water: each dot's particles (Gauss-Hermite points of its Gaussian) land around the
-    # spot of its centre ray, as the light path puts it (wai_core.light_paths).
-    panel = rig.dot_panel_px[rig.lit]
+def _on_flat_water(rig, panel):
+    """The particles of the dots at ``panel`` (order 4), their model, flat water at h0 as a
+    spline and the particles traced through it."""
     parts = DotParticles.of(rig, panel, order=4)
     model = PatternModel(rig, parts, (rig.camera_s.height_px, rig.camera_s.width_px))
     h0 = rig.cfg.water.h0_mm
     xy = (parts.origin_mm + model.flat_t(h0)[:, None] * parts.dirs)[:, :2]
     flat = BSplineSurface.covering(xy, 10.0, h0)
-    traced = model.trace(flat, model.flat_t(h0))
+    return parts, model, flat, model.trace(flat, model.flat_t(h0))
+
+
+def test_a_dots_light_centres_where_its_ray_lands(rig):
+    # Flat water: each dot's particles (Gauss-Hermite points of its Gaussian) land around the
+    # spot of its centre ray, as the light path puts it (wai_core.light_paths).
+    panel = rig.dot_panel_px[rig.lit]
+    parts, model, flat, traced = _on_flat_water(rig, panel)
     w = np.where(traced.ok, parts.weight, 0.0)
     total = np.bincount(parts.dot, w)
     full = total > 0.999
@@ -77,12 +83,7 @@ def test_each_particle_carries_fresnels_share_of_its_dots_light(rig):
     # particles keep their quadrature weights; below it the reflectance climbs with the angle,
     # so a dot's more oblique particles carry more than their weight.
     panel = rig.dot_panel_px[rig.lit]
-    parts = DotParticles.of(rig, panel, order=4)
-    model = PatternModel(rig, parts, (rig.camera_s.height_px, rig.camera_s.width_px))
-    h0 = rig.cfg.water.h0_mm
-    xy = (parts.origin_mm + model.flat_t(h0)[:, None] * parts.dirs)[:, :2]
-    flat = BSplineSurface.covering(xy, 10.0, h0)
-    traced = model.trace(flat, model.flat_t(h0))
+    parts, model, flat, traced = _on_flat_water(rig, panel)
     light = model.reflectance(flat, traced, 4.0 / 3.0)
     incidence = np.degrees(np.arccos(np.abs(parts.dirs[:, 2])))
     lowest = np.full(parts.n_dots, 90.0)
