@@ -117,7 +117,7 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     run_experiment(
         args.name, args.config, args.out, seeds=args.seeds if exp.seeds is not None else None,
         quick=args.quick, sweep=SweepOptions.from_args(args) if exp.sweep else None,
-        methods=getattr(args, "method", None),
+        methods=getattr(args, "method", None), frames=getattr(args, "frames", None),
     )
     return 0
 
@@ -154,6 +154,11 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
                            help="a method of one's own to compare too: module:Class, "
                            "path/to/file.py:Class or an installed entry point (repeatable; "
                            "'wai guide methods') (default: the built-in ones only)")
+        if exp.frames is not None:
+            q.add_argument("--frames", type=int, default=None, metavar="N",
+                           help=f"frames of each case's sequence (default: {exp.frames}; with "
+                           f"--quick: {exp.quick_frames}); fewer make room for a slow method "
+                           "over every case (--method inverse-rendering)")
         q.set_defaults(func=_cmd_experiment)
 
 

@@ -118,6 +118,41 @@ def test_compare_takes_methods_of_ones_own_and_refuses_bad_ones_before_rendering
     assert not (tmp_path / "c" / "cases").exists()
 
 
+def test_compare_takes_its_frames_per_case_and_other_experiments_refuse_them(tmp_path,
+                                                                             monkeypatch):
+    """--frames reaches the comparison (its registry's defaults otherwise: 30, 8 with
+    --quick); fewer than two stop it with one line before any render; an experiment that
+    renders no sequences refuses it. Cases and rows of another frame count are other cases:
+    other folders and other point ids, so a rerun never reuses or replaces them."""
+    import dataclasses
+
+    from wai import experiments
+    from wai.experiments import compare
+    from wai.sweep.points import point_ids
+    from wai_core.errors import WaiInputError
+
+    exp = experiments.EXPERIMENTS["compare"]
+    assert (exp.frames, exp.quick_frames) == (compare.FRAMES, compare.QUICK_FRAMES)
+    got = []
+    monkeypatch.setitem(experiments.EXPERIMENTS, "compare", dataclasses.replace(
+        exp, run=lambda *args, **kw: got.append(kw["frames"])))
+    experiments.run_experiment("compare", out=tmp_path / "a")
+    experiments.run_experiment("compare", out=tmp_path / "b", quick=True)
+    experiments.run_experiment("compare", out=tmp_path / "c", frames=5)
+    assert got == [30, 8, 5]
+    with pytest.raises(WaiInputError, match="takes no --frames"):
+        experiments.run_experiment("paper", frames=3)
+    monkeypatch.undo()
+    assert main(["experiment", "compare", "--quick", "--frames", "1", "--out",
+                 str(tmp_path / "d"), "--workers", "0", "--no-progress"]) == 2
+    assert not (tmp_path / "d").exists()
+    eight, thirty = (compare.compare_points(["structured-light"], 1, True, n) for n in (8, 30))
+    assert compare.case_name(eight[0]) != compare.case_name(thirty[0])
+    assert compare.case_name(eight[0]).endswith("_8f")
+    key = ("wind", "seed", "degradation", "method", "frames")
+    assert not set(point_ids(eight, key)) & set(point_ids(thirty, key))
+
+
 def test_compare_reports_the_truth_free_grid_score_and_its_rank_agreement():
     """The table has the grid score's columns; Kendall's tau is +1 when the grid residual
     orders the methods as corner STD does, -1 when it reverses them, and no verdict with

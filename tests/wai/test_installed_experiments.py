@@ -18,6 +18,8 @@ def _args(name: str) -> list[str]:
         args += ["--seeds", "1"]
     if exp.sweep:
         args += ["--workers", "2", "--no-progress"]
+    if exp.frames is not None:
+        args += ["--frames", "3"]
     return args
 
 
@@ -41,3 +43,8 @@ def test_every_experiment_runs_quick_from_a_plain_install(installed, name):
     assert report.is_file() and report.stat().st_size > 0
     if name == "compare":  # the method of one's own it compares by default, by module name
         assert "as-seen" in (installed.elsewhere / name / "compare.csv").read_text()
+        # --frames: each case a sequence of that many frames, and the report says so
+        cases = sorted((installed.elsewhere / name / "cases").iterdir())
+        assert cases and all(c.name.endswith("_3f") for c in cases)
+        assert all(len(list(c.glob("frame*"))) == 3 for c in cases)
+        assert "--frames 3" in report.read_text()

@@ -71,10 +71,11 @@ def _run_calibration(config: str | Path, out: Path, seeds: int | None, quick: bo
 
 
 def _run_compare(config: str | Path, out: Path, seeds: int | None, quick: bool,
-                 sweep: SweepOptions, methods: list[str] | None = None) -> None:
+                 sweep: SweepOptions, methods: list[str] | None = None,
+                 frames: int | None = None) -> None:
     from wai.experiments.compare import run_compare
 
-    run_compare(config, out, seeds, quick, sweep, methods)
+    run_compare(config, out, seeds, quick, sweep, methods, frames)
 
 
 def _run_seawater(config: str | Path, out: Path, seeds: int | None, quick: bool,
@@ -113,6 +114,11 @@ class Experiment:
         A sweep on the Dask runner (:mod:`wai.sweep`): the runner's options apply.
     methods : bool
         Takes ``--method SPEC`` (repeatable): methods of one's own added to those compared.
+    frames : int or None
+        The frames of each rendered sequence (the default of ``--frames``); None: the
+        experiment renders no sequences and has no ``--frames``.
+    quick_frames : int or None
+        The default of ``--frames`` with ``--quick``.
     """
 
     summary: str
@@ -124,6 +130,8 @@ class Experiment:
     quick_seeds: int | None = None
     sweep: bool = False
     methods: bool = False
+    frames: int | None = None
+    quick_frames: int | None = None
 
 
 # Durations: --quick measured on an idle 2-core machine (CPU rendering, llvm_ad_rgb; the
@@ -292,6 +300,8 @@ EXPERIMENTS: dict[str, Experiment] = {
         quick_seeds=1,
         sweep=True,
         methods=True,
+        frames=30,
+        quick_frames=8,
     ),
     "seawater": Experiment(
         summary="spot SNR of a blue-green and a red pattern after the same sea water",
@@ -321,8 +331,8 @@ def describe(name: str, width: int = 79) -> str:
 
 def run_experiment(name: str, config: str | Path = "paper", out: str | Path | None = None,
                    seeds: int | None = None, quick: bool = False,
-                   sweep: SweepOptions | None = None, methods: list[str] | None = None
-                   ) -> None:
+                   sweep: SweepOptions | None = None, methods: list[str] | None = None,
+                   frames: int | None = None) -> None:
     """Run experiment ``name`` into ``out`` and print its tables.
 
     Parameters
@@ -343,6 +353,10 @@ def run_experiment(name: str, config: str | Path = "paper", out: str | Path | No
     methods : list of str or None
         Methods of one's own (``module:Class``, a file, an entry point) for the experiments
         that compare methods (:attr:`Experiment.methods`).
+    frames : int or None
+        Frames of each rendered sequence, for the experiments that render sequences
+        (:attr:`Experiment.frames`); None: its :attr:`Experiment.frames`, or
+        :attr:`Experiment.quick_frames` with ``quick``.
 
     Raises
     ------
@@ -360,12 +374,17 @@ def run_experiment(name: str, config: str | Path = "paper", out: str | Path | No
         seeds = exp.quick_seeds if quick else exp.seeds
     args = (config, out, seeds, quick,
             SweepOptions() if sweep is None else sweep)
-    if exp.methods:
-        exp.run(*args, methods=list(methods or []))
-    elif methods:
+    if methods and not exp.methods:
         raise WaiInputError(f"experiment {name}: takes no --method")
-    else:
-        exp.run(*args)
+    if frames is not None and exp.frames is None:
+        raise WaiInputError(f"experiment {name}: takes no --frames")
+    extra: dict[str, object] = {}
+    if exp.methods:
+        extra["methods"] = list(methods or [])
+    if exp.frames is not None:
+        extra["frames"] = frames if frames is not None else (
+            exp.quick_frames if quick else exp.frames)
+    exp.run(*args, **extra)
     if out.is_dir():  # the folder's page, with every figure and table the run left there
         from wai_core.report import write_report
 

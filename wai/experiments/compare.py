@@ -25,6 +25,7 @@ import numpy as np
 from wai.experiments.outputs import output_folder, publish, sweep_command, sweep_rows
 from wai.sweep import SweepOptions, is_error
 from wai_core.config import with_keys
+from wai_core.errors import WaiInputError
 from wai_core.io import write_json
 from wai_core.sequence import DEFAULT_FPS
 from wai_core.system import load_rig
@@ -66,24 +67,37 @@ GRID_FRAMES = 8
 partial board costs more than a structured-light restoration)."""
 
 
+FRAMES, QUICK_FRAMES = 30, 8
+"""Frames of each case's sequence (one second at 30 frames/s), and with ``--quick``."""
+MIN_FRAMES = 2
+"""Fewest frames of a case: the video methods register frames against one another."""
+
+
 def case_name(point: dict[str, Any]) -> str:
-    return f"U{point['wind']:g}_seed{point['seed']:03d}_{point['degradation']}"
+    """The case's folder name: sea state, seed, condition and its number of frames (sequences
+    of other lengths in one ``--out`` are other cases, each kept)."""
+    return (f"U{point['wind']:g}_seed{point['seed']:03d}_{point['degradation']}"
+            f"_{point['frames']}f")
 
 
-def compare_points(methods: list[str], seeds: int, quick: bool) -> list[dict[str, Any]]:
-    """Every (case, method): sea states, seeds and degradations crossed with the methods."""
+def compare_points(methods: list[str], seeds: int, quick: bool, frames: int
+                   ) -> list[dict[str, Any]]:
+    """Every (case, method): sea states, seeds and degradations crossed with the methods, each
+    case a sequence of ``frames``."""
     winds = (1.0,) if quick else (1.0, 1.5)
     degradations = QUICK_DEGRADATIONS if quick else tuple(DEGRADATIONS)
-    return [{"wind": w, "seed": s, "degradation": d, "method": m}
+    return [{"wind": w, "seed": s, "degradation": d, "method": m, "frames": frames}
             for w in winds for s in range(seeds) for d in degradations for m in methods]
 
 
-def render_case(config: str, point: dict[str, Any], root: Path, frames: int) -> Path:
-    """The case's sequence, rendered into ``root/cases/NAME`` unless it is there."""
+def render_case(config: str, point: dict[str, Any], root: Path) -> Path:
+    """The case's sequence of ``point['frames']``, rendered into ``root/cases/NAME`` unless it
+    is there."""
     from mitsuba_wai import render_sequence
     from wai_core.sequence import is_sequence, read_sequence
 
     folder = root / "cases" / case_name(point)
+    frames = int(point["frames"])
     if is_sequence(folder) and len(read_sequence(folder).frames) == frames:
         return folder
     cfg = load_rig(config).replace("waves", wind_speed_m_s=point["wind"], seed=point["seed"])
@@ -350,31 +364,48 @@ def report(summary: list[dict[str, Any]], command: str,
 
 
 def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
-                sweep: SweepOptions | None = None, methods: list[str] | None = None
-                ) -> list[dict[str, Any]]:
-    """The experiment into ``out``: renders, the sweep's table, the summary, chart, report."""
+                sweep: SweepOptions | None = None, methods: list[str] | None = None,
+                frames: int | None = None) -> list[dict[str, Any]]:
+    """The experiment into ``out``: renders, the sweep's table, the summary, chart, report.
+
+    ``frames``: of each case's sequence (None: :data:`FRAMES`, with ``quick``
+    :data:`QUICK_FRAMES`). Rows and cases are kept per frame count: a rerun with another
+    count renders and restores its own.
+
+    Raises
+    ------
+    WaiInputError
+        A method that does not resolve, or fewer than :data:`MIN_FRAMES` frames, before any
+        render.
+    """
     from tqdm import tqdm
 
     from restoration import method_class
 
+    default = QUICK_FRAMES if quick else FRAMES
+    frames = default if frames is None else int(frames)
+    if frames < MIN_FRAMES:
+        raise WaiInputError(f"--frames must be at least {MIN_FRAMES} (the video methods "
+                            f"register frames against one another), not {frames}")
     specs = [*FRAME_METHODS, *(methods or []), *VIDEO_METHODS]
     for spec in specs:  # a bad name fails here, before any render
         if spec not in VIDEO_METHODS:
             method_class(spec)
     out = output_folder(out)
-    frames = 8 if quick else 30
-    points = compare_points(list(dict.fromkeys(specs)), seeds, quick)
+    points = compare_points(list(dict.fromkeys(specs)), seeds, quick, frames)
     cases = {case_name(p): p for p in points}
     sweep = SweepOptions() if sweep is None else sweep
     for name, p in tqdm(cases.items(), desc="render", unit="case", disable=not sweep.progress):
-        folder = render_case(str(config), p, out, frames)
+        folder = render_case(str(config), p, out)
         for q in points:
             if case_name(q) == name:
                 q["folder"] = str(folder)
     rows = sweep_rows(points, evaluate, out / "compare.csv", sweep,
-                      key=("wind", "seed", "degradation", "method"))
+                      key=("wind", "seed", "degradation", "method", "frames"))
     summary = summarize(rows)
     command = sweep_command("compare", seeds, quick)
+    if frames != default:
+        command += f" --frames {frames}"
     case_taus = case_agreement(rows)
     text = report(summary, command, case_taus)
     tau, _ = rank_agreement(summary)
