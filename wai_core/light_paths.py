@@ -209,11 +209,13 @@ class FlatSpots:
                     & (y >= rect_mm[1, 0] - margin_mm) & (y <= rect_mm[1, 1] + margin_mm))
 
 
-def flat_spots(rig: Any) -> FlatSpots:
+def flat_spots(rig: Any, panel_px: Array | None = None) -> FlatSpots:
     """Every dot's path through flat water at the rig's ``h0``: projector (real optics) ->
     water -> mirror reflection about the vertical -> diffuser -> camera s. Panel -> camera s
-    is then a plane projective map (a homography)."""
-    o, d = dot_rays(rig, rig.dot_panel_px)
+    is then a plane projective map (a homography) for a pinhole projector; behind a port, not
+    quite. ``panel_px`` (K, 2): those panel positions' paths instead of the dots' (e.g. grid
+    nodes past the panel's edge, :func:`wai_core.pattern.grid_panel_px`)."""
+    o, d = dot_rays(rig, rig.dot_panel_px if panel_px is None else panel_px)
     q, _ = intersect_plane_z(o, d, rig.cfg.water.h0_mm)
     hits = spots_from_hits(rig, q, d, UP)
     return FlatSpots(d, q, hits.diffuser_mm, hits.px, d[:, 2] > 0, hits.in_front)

@@ -35,8 +35,26 @@ def dot_grid(pattern: Any, projector: PinholeCamera) -> tuple[NDArray, NDArray]:
     nj = int(np.floor((r0 - margin) / pattern.spacing_px))
     jj, ii = np.mgrid[-nj : nj + 1, -ni : ni + 1]
     ij = np.stack([ii.ravel(), jj.ravel()], axis=1)
-    panel = np.stack([c0 + ij[:, 0] * pattern.spacing_px, r0 + ij[:, 1] * pattern.spacing_px], 1)
-    return ij, panel
+    return ij, grid_panel_px(pattern, projector, ij)
+
+
+def grid_panel_px(pattern: Any, projector: PinholeCamera, ij: NDArray) -> NDArray[np.float64]:
+    """Panel position ``(col, row)`` (K, 2), px, of grid nodes ``ij`` (K, 2): the dots' own
+    (:func:`dot_grid`) and, for nodes beyond the grid, where a dot would sit on the panel's
+    plane (past its edge).
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace
+    >>> grid_panel_px(SimpleNamespace(spacing_px=10.0), SimpleNamespace(width_px=101,
+    ...               height_px=51), np.array([[0, 0], [-6, 1]]))
+    array([[50., 25.],
+           [-10., 35.]])
+    """
+    c0 = (projector.width_px - 1) / 2.0
+    r0 = (projector.height_px - 1) / 2.0
+    ij = np.asarray(ij, dtype=np.float64).reshape(-1, 2)
+    return np.stack([c0 + ij[:, 0] * pattern.spacing_px, r0 + ij[:, 1] * pattern.spacing_px], 1)
 
 
 def pattern_image(

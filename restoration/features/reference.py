@@ -8,6 +8,8 @@ once per rig rather than per frame (:func:`prepare_reference`).
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -210,6 +212,25 @@ def predict_flat_spots(
     return ij.astype(np.int64), panel, spot_px, in_view
 
 
+def node_flat_px(cfg: SystemConfig, ij: IntArray) -> FloatArray:
+    """Where grid nodes ``ij`` (K, 2) would land in camera s on flat water, pixels: the dots'
+    own path (:func:`predict_flat_spots`) for nodes the panel has no dot at too, from their
+    place on the panel's plane (:func:`wai_core.pattern.grid_panel_px`). NaN where the ray
+    goes down, misses the diffuser's plane or lands behind the camera.
+
+    Behind a projector port the map from panel to camera s is not projective, and the
+    reference's lattice is extended past the grid (:func:`match_reference`) with these.
+    """
+    from wai_core.light_paths import flat_spots
+    from wai_core.pattern import grid_panel_px
+
+    rig = cfg.rig
+    flat = flat_spots(rig, grid_panel_px(cfg.pattern, rig.projector, ij))
+    px = flat.px.copy()
+    px[~(flat.upward & flat.in_front)] = np.nan
+    return px
+
+
 def spot_sigma_px(cfg: SystemConfig) -> float:
     """Expected standard deviation of a dot's spot in camera s, pixels, from calibration alone.
 
@@ -330,6 +351,7 @@ def match_reference(
     tol: float = 0.35,
     lit: BoolArray | None = None,
     margin: int = 6,
+    node_px: Callable[[IntArray], FloatArray] | None = None,
 ) -> ReferenceGrid:
     """Label the flat-water spots with grid indices by proximity to the prediction.
 
@@ -352,6 +374,12 @@ def match_reference(
         (default: all).
     margin : int
         Virtual nodes added beyond the grid on each side.
+    node_px : callable, optional
+        Flat-water pixel (K, 2) of lattice nodes ``ij`` (K, 2), NaN where none
+        (:func:`node_flat_px`): where the panel -> camera s map is not projective (a projector
+        behind a port), the virtual nodes are placed by it rather than by the homography, which
+        would put the first ones past the grid's edge a few pixels out of line (2.7 px at a
+        5 mm port on the paper's rig) and send the wavy frame's labelling astray there.
 
     Returns
     -------
@@ -380,6 +408,10 @@ def match_reference(
     if np.max(np.abs(pred[exact] - pred_grid[node_dot[exact]]), initial=0.0) > 1e-3:
         pred = pred.copy()
         pred[exact] = pred_grid[node_dot[exact]]
+        if node_px is not None and not is_dot.all():
+            placed = node_px(ij[~is_dot])
+            found = np.isfinite(placed).all(axis=1)
+            pred[np.flatnonzero(~is_dot)[found]] = placed[found]
     view = np.zeros(len(ij), bool)
     view[is_dot] = in_view[node_dot[is_dot]]
     lit_node = np.zeros(len(ij), bool)
@@ -539,7 +571,8 @@ def prepare_reference(
 
     def matched(scales: SpotScales) -> tuple[ReferenceGrid, int]:
         flat = pinhole_spots(detect_spots(pattern_flat_img, scales=scales), cfg)
-        return match_reference(flag_diffuser_edge(flat, outline), predicted, lit=lit), flat.joined
+        return (match_reference(flag_diffuser_edge(flat, outline), predicted, lit=lit,
+                                node_px=functools.partial(node_flat_px, cfg)), flat.joined)
 
     ref, n_joined = matched(scales)
     joined = n_joined > 0 or (

@@ -480,6 +480,45 @@ def test_shifted_pattern_is_anchored_by_unlit_marker_dots():
     assert len(m) > 0.9 * seen.sum()
 
 
+def test_behind_a_projector_port_the_lattice_runs_on_past_the_grid_without_a_kink(cfg):
+    """A flat port bends each dot's ray smoothly, so a lattice line's spacing changes smoothly
+    past the grid's last dot too. A homography fitted to the grid cannot follow the port's
+    bending at the edge: its first virtual node sits out of line (the kink that sent the
+    labelling of wavy frames one column astray). Placed through the rig's own path
+    (``node_flat_px``), the virtual nodes continue each line: the second difference across
+    the edge is as small as inside the grid."""
+    import functools
+
+    from restoration.features.reference import node_flat_px
+    from wai_core.config import with_keys
+
+    ported = with_keys(cfg, {"projector.port_thickness_mm": 5.0, "projector.port_gap_mm": 5.0})
+    predicted = predict_flat_spots(ported)
+    ij, _, px, in_view = predicted
+    assert np.allclose(node_flat_px(ported, ij)[in_view], px[in_view], atol=1e-9)
+    flat = draw_dots(px[in_view], 3000.0, 1.5**2 * np.eye(2))
+    spots = detect_spots(flat)
+    edge = int(ij[:, 0].min())
+
+    def kink(ref):  # |second difference| across the grid's left edge, per row in view, px
+        at = {tuple(k): p for k, p in zip(ref.ij.tolist(), ref.ref_px, strict=True)}
+        rows = np.unique(ij[in_view & (ij[:, 0] == edge), 1])
+        return np.array([np.linalg.norm(at[edge - 1, j] - 2 * at[edge, j] + at[edge + 1, j])
+                         for j in rows])
+
+    def inside(ref):  # the same one column in, within the grid
+        at = {tuple(k): p for k, p in zip(ref.ij.tolist(), ref.ref_px, strict=True)}
+        rows = np.unique(ij[in_view & (ij[:, 0] == edge), 1])
+        return np.array([np.linalg.norm(at[edge, j] - 2 * at[edge + 1, j] + at[edge + 2, j])
+                         for j in rows])
+
+    fitted = match_reference(spots, predicted)
+    placed = match_reference(spots, predicted, node_px=functools.partial(node_flat_px, ported))
+    assert len(kink(placed)) > 10
+    assert np.median(kink(fitted)) > 1.0  # the homography's kink
+    assert np.max(kink(placed)) < np.max(inside(placed)) + 0.1
+
+
 def test_anchor_shift_counts_equal_a_lookup_per_shift():
     # The correlation that scores all lattice shifts at once against the plain count.
     rng = np.random.default_rng(8)
