@@ -47,9 +47,8 @@ def grid_panel_px(pattern: Any, projector: PinholeCamera, ij: NDArray) -> NDArra
     --------
     >>> from types import SimpleNamespace
     >>> grid_panel_px(SimpleNamespace(spacing_px=10.0), SimpleNamespace(width_px=101,
-    ...               height_px=51), np.array([[0, 0], [-6, 1]]))
-    array([[50., 25.],
-           [-10., 35.]])
+    ...               height_px=51), np.array([[0, 0], [-6, 1]])).tolist()
+    [[50.0, 25.0], [-10.0, 35.0]]
     """
     c0 = (projector.width_px - 1) / 2.0
     r0 = (projector.height_px - 1) / 2.0
