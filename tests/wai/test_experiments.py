@@ -149,8 +149,11 @@ def test_compare_takes_its_frames_per_case_and_other_experiments_refuse_them(tmp
     eight, thirty = (compare.compare_points(["structured-light"], 1, True, n) for n in (8, 30))
     assert compare.case_name(eight[0]) != compare.case_name(thirty[0])
     assert compare.case_name(eight[0]).endswith("_8f")
-    key = ("wind", "seed", "degradation", "method", "frames")
+    key = ("wind", "seed", "degradation", "method", "case_frames")
     assert not set(point_ids(eight, key)) & set(point_ids(thirty, key))
+    # a point's fields and a row's scores share no name (the sweep refuses a result that
+    # would overwrite its point's field)
+    assert not set(eight[0]) & set(compare.SCORES)
 
 
 def test_compare_reports_the_truth_free_grid_score_and_its_rank_agreement():

@@ -77,7 +77,7 @@ def case_name(point: dict[str, Any]) -> str:
     """The case's folder name: sea state, seed, condition and its number of frames (sequences
     of other lengths in one ``--out`` are other cases, each kept)."""
     return (f"U{point['wind']:g}_seed{point['seed']:03d}_{point['degradation']}"
-            f"_{point['frames']}f")
+            f"_{point['case_frames']}f")
 
 
 def compare_points(methods: list[str], seeds: int, quick: bool, frames: int
@@ -86,18 +86,18 @@ def compare_points(methods: list[str], seeds: int, quick: bool, frames: int
     case a sequence of ``frames``."""
     winds = (1.0,) if quick else (1.0, 1.5)
     degradations = QUICK_DEGRADATIONS if quick else tuple(DEGRADATIONS)
-    return [{"wind": w, "seed": s, "degradation": d, "method": m, "frames": frames}
+    return [{"wind": w, "seed": s, "degradation": d, "method": m, "case_frames": frames}
             for w in winds for s in range(seeds) for d in degradations for m in methods]
 
 
 def render_case(config: str, point: dict[str, Any], root: Path) -> Path:
-    """The case's sequence of ``point['frames']``, rendered into ``root/cases/NAME`` unless it
+    """The case's sequence of ``point['case_frames']``, rendered into ``root/cases/NAME`` unless it
     is there."""
     from mitsuba_wai import render_sequence
     from wai_core.sequence import is_sequence, read_sequence
 
     folder = root / "cases" / case_name(point)
-    frames = int(point["frames"])
+    frames = int(point["case_frames"])
     if is_sequence(folder) and len(read_sequence(folder).frames) == frames:
         return folder
     cfg = load_rig(config).replace("waves", wind_speed_m_s=point["wind"], seed=point["seed"])
@@ -401,7 +401,7 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
             if case_name(q) == name:
                 q["folder"] = str(folder)
     rows = sweep_rows(points, evaluate, out / "compare.csv", sweep,
-                      key=("wind", "seed", "degradation", "method", "frames"))
+                      key=("wind", "seed", "degradation", "method", "case_frames"))
     summary = summarize(rows)
     command = sweep_command("compare", seeds, quick)
     if frames != default:
