@@ -268,7 +268,8 @@ def _figure(summary: list[dict[str, Any]], path: Path) -> None:
     axes[2].set_ylabel("surface RMSE, de-meaned, mm (lower is better)")
     axes[2].set_ylim(bottom=0.0)
     ms = [e["ms_per_frame"] for e in summary if e["ms_per_frame"]]
-    decades = (10.0 ** np.floor(np.log10(min(ms))), 10.0 ** np.ceil(np.log10(max(ms)))) \
+    # Whole decades, with at least a factor of 2 to spare: no marker sits on an edge.
+    decades = (10.0 ** np.floor(np.log10(min(ms) / 2)), 10.0 ** np.ceil(np.log10(2 * max(ms)))) \
         if ms else None
     for ax in axes:
         ax.set_xscale("log")
