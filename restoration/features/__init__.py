@@ -9,8 +9,9 @@ correspondence. The stage's modules:
   (:func:`detect_spots`), at pixel scales set by the calibrated spot size
   (:class:`SpotScales`, built once per rig).
 - :mod:`~restoration.features.reference`: predict the flat-water spots from calibration
-  (:func:`predict_flat_spots`) and label the flat-water spots with grid indices
-  (:func:`match_reference`, :func:`prepare_reference`); the calibrated spot size that
+  (:func:`predict_flat_spots`, of any grid node: :func:`node_flat_px`) and label the
+  flat-water spots with grid indices (:func:`match_reference`, :func:`prepare_reference`);
+  the calibrated spot size that
   sets every pixel-scale constant (:func:`spot_sigma_px`). The prepared
   :class:`ReferenceGrid` holds all the per-frame steps need of the rig.
 - :mod:`~restoration.features.match`: label the wavy-water spots by region growing, the
@@ -37,6 +38,7 @@ from restoration.features.reference import (
     flag_diffuser_edge,
     flat_shifts,
     match_reference,
+    node_flat_px,
     predict_flat_spots,
     prepare_reference,
     spot_sigma_px,
@@ -59,6 +61,7 @@ __all__ = [
     "flat_shifts",
     "match_distorted",
     "match_reference",
+    "node_flat_px",
     "node_symbols",
     "order_violations",
     "predict_flat_spots",

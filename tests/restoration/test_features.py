@@ -489,7 +489,7 @@ def test_behind_a_projector_port_the_lattice_runs_on_past_the_grid_without_a_kin
     the edge is as small as inside the grid."""
     import functools
 
-    from restoration.features.reference import node_flat_px
+    from restoration.features import node_flat_px
     from wai_core.config import with_keys
 
     ported = with_keys(cfg, {"projector.port_thickness_mm": 5.0, "projector.port_gap_mm": 5.0})
@@ -500,17 +500,17 @@ def test_behind_a_projector_port_the_lattice_runs_on_past_the_grid_without_a_kin
     spots = detect_spots(flat)
     edge = int(ij[:, 0].min())
 
-    def kink(ref):  # |second difference| across the grid's left edge, per row in view, px
+    def bend(ref, i):  # |second difference| about column i, per row in view at the edge, px
         at = {tuple(k): p for k, p in zip(ref.ij.tolist(), ref.ref_px, strict=True)}
         rows = np.unique(ij[in_view & (ij[:, 0] == edge), 1])
-        return np.array([np.linalg.norm(at[edge - 1, j] - 2 * at[edge, j] + at[edge + 1, j])
+        return np.array([np.linalg.norm(at[i - 1, j] - 2 * at[i, j] + at[i + 1, j])
                          for j in rows])
 
+    def kink(ref):  # across the grid's left edge
+        return bend(ref, edge)
+
     def inside(ref):  # the same one column in, within the grid
-        at = {tuple(k): p for k, p in zip(ref.ij.tolist(), ref.ref_px, strict=True)}
-        rows = np.unique(ij[in_view & (ij[:, 0] == edge), 1])
-        return np.array([np.linalg.norm(at[edge, j] - 2 * at[edge + 1, j] + at[edge + 2, j])
-                         for j in rows])
+        return bend(ref, edge + 1)
 
     fitted = match_reference(spots, predicted)
     placed = match_reference(spots, predicted, node_px=functools.partial(node_flat_px, ported))
