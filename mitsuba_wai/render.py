@@ -141,12 +141,21 @@ class FrameRenderer:
     compiled kernels are reused from frame to frame (what makes sweeps and benchmarks fast).
     The grid (vertex count) is fixed by the first surface. ``systems`` names the renders to
     prepare (``"pattern"``: system S, ``"view"``: system V); only those can be rendered.
+
+    Flat water (a surface of one height) is rendered by a second renderer, ``flat``, whose mesh
+    is a plane of a few vertices over the same span (``flat_only``): the plane is the same
+    geometry at any resolution, and a frame's flat and wavy renders then leave each scene's
+    acceleration structure to be rebuilt once a frame, not twice (on the paper's finest mesh,
+    640 000 triangles, a rebuild per scene takes longer than the render). Renderers of the
+    same configuration and span (a dataset's mesh levels) may share one ``flat``.
     """
 
     cfg: SystemConfig
     grid: Heightfield
     texture: NDArray | None = None
     systems: tuple[str, ...] = ("pattern", "view")
+    flat: FrameRenderer | None = None
+    flat_only: bool = False
     variant: str = field(init=False)
     nonfinite_pixels: dict[str, int] = field(init=False, default_factory=dict)
 
@@ -154,7 +163,8 @@ class FrameRenderer:
         self.variant = select_variant()
         # A rough surface's BSDF has one index: sea water's three are rendered one channel at
         # a time, each by a renderer of its own (three times the cost, only then).
-        self._channels = channel_renderers(self.cfg, self.grid, self.texture, self.systems)
+        self._channels = channel_renderers(self.cfg, self.grid, self.texture, self.systems,
+                                           self.flat_only)
         if self._channels:
             self._scenes = {k: None for k in self.systems}
             return
@@ -226,6 +236,9 @@ class FrameRenderer:
         missing = set(which) - set(self._scenes)
         if missing:
             raise ValueError(f"renderer was not prepared for {sorted(missing)}")
+        level_mm = None if self.flat_only else flat_level_mm(surface)
+        if level_mm is not None:
+            return self._render_flat(level_mm, seed, which, spp, crosstalk)
         if self._channels:
             return self._render_channels(surface, seed, which, spp, crosstalk)
         self._set_surface(surface)
@@ -263,6 +276,21 @@ class FrameRenderer:
             else:
                 out[key] = camera_v_filter(self.cfg, out[key])  # a no-op without a filter
             self.nonfinite_pixels[key] = self.nonfinite_pixels.get(key, 0) + bad
+        return out
+
+    def _render_flat(self, level_mm: float, seed: int, which: tuple[str, ...],
+                     spp: int | dict[str, int] | None,
+                     crosstalk: bool) -> dict[str, NDArray[np.float32]]:
+        """The renders of flat water at ``level_mm``, by :attr:`flat` (made on first use)."""
+        if self.flat is None:
+            self.flat = FrameRenderer(self.cfg, plane_grid(self.grid), self.texture,
+                                      self.systems, flat_only=True)
+        before = dict(self.flat.nonfinite_pixels)
+        out = self.flat.render(meshes.flat_like(self.flat.grid, level_mm), seed, which, spp,
+                               crosstalk)
+        for key, bad in self.flat.nonfinite_pixels.items():
+            self.nonfinite_pixels[key] = (self.nonfinite_pixels.get(key, 0) + bad
+                                          - before.get(key, 0))
         return out
 
     def _light_object(self, seed: int | None) -> None:
@@ -321,8 +349,36 @@ class FrameRenderer:
         return image.astype(np.float32), bad
 
 
+PLANE_GRID_POINTS = 4
+"""Vertices along each axis of the mesh that renders flat water (:class:`FrameRenderer`)."""
+
+
+def flat_level_mm(surface: Heightfield) -> float | None:
+    """The height of ``surface`` if it is flat water (every height the same), else None.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> x = np.linspace(0.0, 10.0, 4)
+    >>> flat_level_mm(Heightfield(x, x, np.full((4, 4), 2.5)))
+    2.5
+    >>> flat_level_mm(Heightfield(x, x, np.add.outer(x, x))) is None
+    True
+    """
+    z0 = surface.z.flat[0]
+    return float(z0) if np.isfinite(z0) and bool(np.all(surface.z == z0)) else None
+
+
+def plane_grid(grid: Heightfield) -> Heightfield:
+    """A grid of :data:`PLANE_GRID_POINTS` squared vertices over ``grid``'s span (heights 0)."""
+    x = np.linspace(grid.x[0], grid.x[-1], PLANE_GRID_POINTS)
+    y = np.linspace(grid.y[0], grid.y[-1], PLANE_GRID_POINTS)
+    return Heightfield(x, y, np.zeros((y.size, x.size)))
+
+
 def channel_renderers(cfg: SystemConfig, grid: Heightfield, texture: NDArray | None,
-                      systems: tuple[str, ...]) -> tuple[FrameRenderer, ...]:
+                      systems: tuple[str, ...],
+                      flat_only: bool = False) -> tuple[FrameRenderer, ...]:
     """Three renderers, one per colour channel with that channel's index of sea water, where
     a rough surface (one scalar index) meets ``index_model = "quan_fry"``; none otherwise."""
     w = cfg.water
@@ -330,7 +386,7 @@ def channel_renderers(cfg: SystemConfig, grid: Heightfield, texture: NDArray | N
         return ()
     return tuple(
         FrameRenderer(cfg.replace("water", index_model="constant", n_water=float(n)), grid,
-                      texture, systems)
+                      texture, systems, flat_only=flat_only)
         for n in water_channel_indices(cfg)
     )
 

@@ -159,3 +159,25 @@ def test_stratified_view_is_less_noisy_than_independent(small_cfg):
         view = renderer.render(surface, 5, ("view",), spp=4)["view"]
         error[sampling] = np.sqrt(np.mean((view - reference) ** 2))
     assert error["stratified"] < 0.7 * error["independent"]
+
+
+def test_flat_water_renders_on_a_plane_as_on_the_wave_mesh(small_cfg):
+    # Flat water is one plane whatever mesh carries it: the renderer's plane of 4 x 4 vertices
+    # gives the images the wave grid's own flat mesh gives, to the rounding of the hit points
+    # (a sample near a checker edge or a pixel border may fall the other side).
+    grid = wave_surface(small_cfg)
+    flat = flat_like(grid, small_cfg.water.h0_mm)
+    renderer = FrameRenderer(small_cfg, grid)
+    on_plane = renderer.render(flat, seed=3)
+    on_mesh = FrameRenderer(small_cfg, grid, flat_only=True).render(flat, seed=3)
+    assert renderer.flat is not None and renderer.flat.grid.z.size == 16
+    for key in ("pattern", "view"):
+        a, b = on_plane[key], on_mesh[key]
+        assert abs(a.mean() / b.mean() - 1) < 1e-3
+        moved = np.abs(a - b).max(axis=-1) > 1e-3 * b.max()
+        assert moved.mean() < 0.01, key
+    # The wave mesh was left as it was: a wavy render after the flat one is the same image.
+    wavy = renderer.render(grid, seed=4)
+    again = FrameRenderer(small_cfg, grid).render(grid, seed=4)
+    for key in ("pattern", "view"):
+        np.testing.assert_array_equal(wavy[key], again[key])

@@ -222,9 +222,15 @@ def test_methods_of_ones_own_that_fail_get_an_error_row_and_the_others_run(tmp_p
                      key=("method",))
     status = {r["method"]: r["status"] for r in rows}
     assert status[specs[0]] == "ok"
+    # The frame's time beside the reference workload timed in the same process.
+    ok = next(r for r in rows if r["status"] == "ok")
+    assert float(ok["reference_ms"]) > 0
+    assert float(ok["frame_per_reference"]) == pytest.approx(
+        float(ok["ms_per_frame"]) / float(ok["reference_ms"]))
     for cls, says in BROKEN.items():
         assert status[f"{plugin}:{cls}"].startswith(f"error: WaiInputError: {says}"), status
     text = report(summarize(rows), "cmd")
+    assert "| ms per frame | x reference |" in text and "reference workload" in text
     assert f"- {plugin}:Raises failed on 1 of 1 cases: error: WaiInputError: method" in text
     assert "Traceback" not in capsys.readouterr().err
 

@@ -87,7 +87,9 @@ class FrameMaker:
         from mitsuba_wai import FrameRenderer
 
         if level not in self._renderers:
-            self._renderers[level] = FrameRenderer(self.base, surface)
+            # Flat water is the same plane at every mesh level: one renderer of it serves all.
+            flat = next((r.flat for r in self._renderers.values() if r.flat is not None), None)
+            self._renderers[level] = FrameRenderer(self.base, surface, flat=flat)
         return self._renderers[level]
 
     def render(self, index: int, truth: Heightfield | None = None

@@ -55,8 +55,8 @@ samples as the budget takes), gravity-capillary waves to 5 omega_p, a defocused 
 QUICK_DEGRADATIONS = ("none", "speckle")
 """The conditions of ``--quick``."""
 SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "rmse_demeaned_mm", "grid_px",
-          "grid_fraction", "rig_px", "rig_fraction", "ms_per_frame", "frames_needed",
-          "frames_ok", "frames")
+          "grid_fraction", "rig_px", "rig_fraction", "ms_per_frame", "reference_ms",
+          "frame_per_reference", "frames_needed", "frames_ok", "frames")
 MIN_CORNERS = 10
 """Fewest corners, found in the truth, the distorted and the restored view alike, for a corner
 STD (two corners have a spread, but not one that says much: a blurred view shows few)."""
@@ -212,11 +212,21 @@ def _sd(values: list[Any]) -> float | None:
 
 
 def evaluate(point: dict[str, Any]) -> dict[str, Any]:
-    """One sweep point: the method on its case's sequence (rendered beforehand)."""
+    """One sweep point: the method on its case's sequence (rendered beforehand), and the
+    reference workload timed after it in the same process (``reference_ms``): a point's
+    ``ms_per_frame`` over it (``frame_per_reference``, the frame's cost in reference
+    workloads) compares across machines, loads and a cluster's workers."""
+    from wai.bench.timing import reference_workload
+
     folder = Path(point["folder"])
     if point["method"] in VIDEO_METHODS:
-        return _video_method(folder, point["method"])
-    return _frame_method(folder, point["method"])
+        scores = _video_method(folder, point["method"])
+    else:
+        scores = _frame_method(folder, point["method"])
+    reference = reference_workload()["median_ms"]
+    ms = scores.get("ms_per_frame")
+    return {**scores, "reference_ms": reference,
+            "frame_per_reference": None if ms is None else ms / reference}
 
 
 def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -324,8 +334,8 @@ def report(summary: list[dict[str, Any]], command: str,
     lines = [f"# Methods compared (`{command}`)", "",
              "| method | frames needed | ok / frames | view SSIM | PSNR dB | corner STD px | "
              "surface RMSE mm | de-meaned mm | grid px (no truth) | corners found | "
-             "rig px (no truth) | ms per frame |",
-             "|" + " --- |" * 12]
+             "rig px (no truth) | ms per frame | x reference |",
+             "|" + " --- |" * 13]
     for e in summary:
         lines.append(
             f"| {e['name']} | {f(e['frames_needed'], '.0f')} | {f(e['frames_ok'], '.0f')} / "
@@ -333,7 +343,8 @@ def report(summary: list[dict[str, Any]], command: str,
             f"{f(e['corner_std_px'], '.3f')} | {f(e['rmse_mm'], '.4f')} | "
             f"{f(e.get('rmse_demeaned_mm'), '.4f')} | "
             f"{f(e.get('grid_px'), '.3f')} | {f(e.get('grid_fraction'), '.0%')} | "
-            f"{f(e.get('rig_px'), '.3f')} | {f(e['ms_per_frame'], '.1f')} |")
+            f"{f(e.get('rig_px'), '.3f')} | {f(e['ms_per_frame'], '.1f')} | "
+            f"{f(e.get('frame_per_reference'), '.2f')} |")
     failed = [e for e in summary if e.get("failed_cases")]
     if failed:
         lines.append("")
@@ -347,6 +358,14 @@ def report(summary: list[dict[str, Any]], command: str,
               "the share of the board's inner corners it scored. Rig px: spread of the "
               "corners about the calibrated rig's flat-water corners, less a common shift "
               "(no truth read; restoration.rig_grid_score)."]
+    refs = [e["reference_ms"] for e in summary if e.get("reference_ms") is not None]
+    if refs:
+        lines.append(
+            "Ms per frame: the median over a case's frames (a video method: its fused image's "
+            "time over the frames), the mean over the cases. x reference: each case's ms per "
+            "frame over the reference workload (a 1000 x 1000 float64 matmul, median of 5) "
+            "timed after it in the same process, "
+            f"{min(refs):.1f}-{max(refs):.1f} ms in this run's cases (methods' means).")
     if tau is None:
         lines.append(f"Too few methods with both scores ({count}) to compare their rankings.")
     else:
