@@ -100,6 +100,40 @@ def nearest_two(xy, lo, shape, start, order, cell, bound, x, y):  # pragma: no c
 
 
 @njit(**_JIT)
+def first_along(xy, lo, shape, start, order, cell, ox, oy, vx, vy, lam_lo, lam_hi,
+                perp_max):  # pragma: no cover
+    """The first of the points ``xy`` (bucketed by :func:`spot_cells`) along the ray
+    ``o + lam v`` with ``lam_lo <= lam <= lam_hi``, at most ``perp_max`` px off it: its index
+    (-1: none), its ``lam``, and the next point's ``lam`` (inf: none)."""
+    nx, ny = shape[0], shape[1]
+    vv = vx * vx + vy * vy
+    best, lam1, lam2 = -1, np.inf, np.inf
+    if not vv > 0.0:
+        return best, lam1, lam2
+    norm = math.sqrt(vv)
+    xa, xb = ox + lam_lo * vx, ox + lam_hi * vx
+    ya, yb = oy + lam_lo * vy, oy + lam_hi * vy
+    gx0 = max(int(math.floor((min(xa, xb) - perp_max - lo[0]) / cell)), 0)
+    gx1 = min(int(math.floor((max(xa, xb) + perp_max - lo[0]) / cell)), nx - 1)
+    gy0 = max(int(math.floor((min(ya, yb) - perp_max - lo[1]) / cell)), 0)
+    gy1 = min(int(math.floor((max(ya, yb) + perp_max - lo[1]) / cell)), ny - 1)
+    for gy in range(gy0, gy1 + 1):
+        for gx in range(gx0, gx1 + 1):
+            c = gy * nx + gx
+            for k in range(start[c], start[c + 1]):
+                i = order[k]
+                dx, dy = xy[i, 0] - ox, xy[i, 1] - oy
+                lam = (dx * vx + dy * vy) / vv
+                if lam < lam_lo or lam > lam_hi or abs(dx * vy - dy * vx) / norm > perp_max:
+                    continue
+                if lam < lam1 or (lam == lam1 and i < best):
+                    best, lam1, lam2 = i, lam, lam1
+                elif lam < lam2:
+                    lam2 = lam
+    return best, lam1, lam2
+
+
+@njit(**_JIT)
 def nearest_each(xy, lo, shape, start, order, cell, bound, pts):  # pragma: no cover
     """:func:`nearest_two` for each point of ``pts`` (Q, 2) px, with its own ``bound`` (Q,)
     px. Returns the nearest distances ``d1`` (Q,), the second-nearest ``d2`` (Q,) and the
@@ -173,7 +207,8 @@ _NONE, _MERGED, _BORDER, _AMBIGUOUS = 0, 1, 2, 3
 
 @njit(**_JIT)
 def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal, offset,
-         ratio, max_step_ratio, bound, cells, seed_node, seed_spot):  # pragma: no cover
+         ratio, max_step_ratio, bound, cells, seed_node, seed_spot,
+         ray_steps=False):  # pragma: no cover
     """Region growing over the lattice from ``(seed_node, seed_spot)``; see
     :func:`restoration.features.match._grow` for the rules.
 
@@ -201,6 +236,13 @@ def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal
         The spots bucketed by :func:`spot_cells`: ``(lo, shape, start, order, cell)``.
     seed_node, seed_spot : int
         The first match.
+    ray_steps : bool
+        A node on no grid line through two matched nodes is predicted at the first spot along
+        the grid step from a matched 4-neighbour's spot (0.4 to 2.5 reference steps out,
+        within its acceptance radius of the line, the next spot at least 1.5 times as far),
+        in the lowest tier: a lattice stretched or squeezed far from flat water's spacing
+        then grows across its lines, where one step at the reference spacing falls between
+        spots.
 
     Returns
     -------
@@ -293,6 +335,23 @@ def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal
                     (t[2, d] + t[6, d]) + (t[3, d] + t[7, d])
                 )
                 pred[node, d] = total / s_div + base[node, d]
+            rayed = False
+            if ray_steps and support > 0:
+                lines = 0
+                for k in range(8):
+                    lines += matched[back[node, k]] and matched[back[node, 8 + k]]
+                for k in range(4 if lines == 0 else 0):
+                    b1 = back[node, k]
+                    if not matched[b1]:
+                        continue
+                    hit, lam1, lam2 = first_along(
+                        spot_xy, lo, shape, start, order, cell, pos[b1, 0], pos[b1, 1],
+                        base[node, 0] - base[b1, 0], base[node, 1] - base[b1, 1], 0.4, 2.5,
+                        radius[node])
+                    if hit >= 0 and lam2 >= 1.5 * lam1:
+                        pred[node, 0], pred[node, 1] = spot_xy[hit, 0], spot_xy[hit, 1]
+                        rayed = True
+                    break
             x, y = pred[node, 0], pred[node, 1]
             inside = np.inf
             for m in range(offset.size):
@@ -314,7 +373,8 @@ def grow(base, spot_xy, usable, merged, radius, margin, back, fwd, nbrs4, normal
                 if now > max_step_ratio * before or max_step_ratio * now < before:
                     jump = True
             ok = nc and usable[s] and not far and not jump
-            tier = 1 + (support >= 2) + ((support >= 3) and (d1 < 0.5 * ratio * d2))
+            tier = 1 if rayed else (
+                1 + (support >= 2) + ((support >= 3) and (d1 < 0.5 * ratio * d2)))
             last_spot[node], last_near[node], last_nc[node] = s, near, nc
             last_tier[node] = tier if ok else 0
         # Acceptance: a spot is taken once, and not by two nodes in one wave; only the best

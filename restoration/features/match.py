@@ -103,6 +103,11 @@ class Matches:
 MAX_LABEL_SHIFT = 6
 """Largest whole-lattice shift of the labels the anchoring tries, dots (each way)."""
 
+STRETCHED_MAX_LABEL_SHIFT = 2 * MAX_LABEL_SHIFT
+"""Largest whole-lattice shift tried when anchoring labels grown by the lines' own steps (a
+lattice stretched or squeezed far from flat water's spacing: its seed's nearest spot may be a
+dot many spacings away), dots (each way)."""
+
 # A growth that matches fewer than this fraction of the flat-water dots is tried once more from
 # another seed (see match_distorted).
 REGROW_BELOW = 0.5
@@ -175,6 +180,7 @@ def _grow(
     accept: float,
     ratio: float,
     max_step_ratio: float = 1.7,
+    ray_steps: bool = False,
 ) -> _Growth:
     """Region growing over the lattice from ``seed = (node, spot)``, best-supported nodes first.
 
@@ -206,7 +212,7 @@ def _grow(
         np.vstack([base_px, np.zeros((1, 2))]), lookup.xy,
         ~spots.suspicious, spots.merged, radius, -2.0 * spacing, tab.back, tab.fwd, tab.nbrs4,
         np.ascontiguousarray(visible.normal), offset, float(ratio), float(max_step_ratio),
-        bound, lookup.cells, int(seed[0]), int(seed[1]),
+        bound, lookup.cells, int(seed[0]), int(seed[1]), ray_steps,
     )
     return _Growth(match, reason, claim, pred, tried)
 
@@ -301,13 +307,14 @@ def match_distorted(
         hull = visible_px
     visible = _Outline.of(hull)
 
-    def grow_from(exclude: BoolArray | None) -> _Growth | None:
+    def grow_from(exclude: BoolArray | None, ray_steps: bool = False) -> _Growth | None:
         seed = _choose_seed(tab, base, ref, spots, lookup, accept, ratio, exclude)
         if seed < 0:
             return None
         seed_spot = int(lookup.nearest(base[seed])[1][0])
         g = _grow(
-            tab, base, ref.spacing_px, spots, lookup, (seed, seed_spot), visible, accept, ratio
+            tab, base, ref.spacing_px, spots, lookup, (seed, seed_spot), visible, accept, ratio,
+            ray_steps=ray_steps,
         )
         _drop_double_claims(g)
         return g
@@ -325,11 +332,20 @@ def match_distorted(
         other = grow_from(near_first[:-1])
         if other is not None and np.sum(other.match >= 0) > np.sum(g.match >= 0):
             g, counts["regrown"] = other, 1
+    if np.sum(g.match >= 0) < REGROW_BELOW * n_obs:
+        # Still small: the lattice may be stretched or squeezed past a step at flat water's
+        # spacing (a strong lens of the waves, denser dots behind a port); grow across its
+        # lines by the first spot along each step.
+        other = grow_from(None, ray_steps=True)
+        if other is not None and np.sum(other.match >= 0) > np.sum(g.match >= 0):
+            g, counts["regrown"] = other, 2
 
     shift, tied = np.zeros(2, np.int64), np.zeros((1, 2), np.int64)
     if anchor:
         absent = _absent_nodes(tab, g, lookup, ref.spacing_px, visible)
-        shift, tied = _anchor_shift(tab, g.match >= 0, absent, max_shift)
+        reach = max(max_shift, STRETCHED_MAX_LABEL_SHIFT) if counts["regrown"] == 2 \
+            else max_shift
+        shift, tied = _anchor_shift(tab, g.match >= 0, absent, reach)
     n_tied = len(tied)
     match, reason, n_off = _relabel(tab.lat, g.match, g.reason, shift)
     counts.update(

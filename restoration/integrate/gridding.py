@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from numba import njit
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CloughTocher2DInterpolator
 from scipy.spatial import Delaunay, QhullError
 
@@ -477,7 +477,7 @@ def to_heightfield(
         simplices, nearest = found
         _blend_kernel(xy, h, np.ascontiguousarray(g), simplices, np.ones(len(simplices), bool),
                       ratio, nearest, gx, gy, z)
-        return Heightfield(gx, gy, z.reshape(gy.size, gx.size))
+        return _gridded(gx, gy, z)
     try:
         tri = Delaunay(xy)
     except QhullError:
@@ -502,4 +502,13 @@ def to_heightfield(
             z[node] = CloughTocher2DInterpolator(tri, h)(nodes)
         else:
             z[node] = _hermite_spline_grid(xy, h, g, gx, gy).ravel()[node]
+    return _gridded(gx, gy, z)
+
+
+def _gridded(gx: NDArray, gy: NDArray, z: NDArray) -> Heightfield:
+    """The grid's heightfield; :class:`RestorationFailed` where no node got a height (every
+    triangle of the samples spans a gap or bridges the lattice: nothing to grid)."""
+    if not np.isfinite(z).any():
+        raise RestorationFailed("to_heightfield: every triangle of the samples spans a gap "
+                                "(no grid node inside one)")
     return Heightfield(gx, gy, z.reshape(gy.size, gx.size))

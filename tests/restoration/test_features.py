@@ -424,6 +424,34 @@ def test_merged_blob_is_dropped_and_counted(flat_scene, reference):
     assert labels_correct(m, ij, pos).all()
 
 
+def test_a_lattice_stretched_far_past_flat_waters_spacing_is_grown_across_its_lines():
+    # Waves that magnify the pattern 1.8x along x (or a port's denser dots) put each column's
+    # neighbour 0.8 spacings from where one flat-water step predicts it: growing stalls on one
+    # column. The first spot along each step from a matched neighbour carries it across, and
+    # the unlit marker dots still pin the labels.
+    rng = np.random.default_rng(11)
+    sp = 16.0
+    jj, ii = np.mgrid[-10:11, -22:23]
+    ij = np.stack([ii.ravel(), jj.ravel()], 1)
+    px = np.stack([399.5 + ij[:, 0] * sp, 299.5 + ij[:, 1] * sp], 1)
+    in_view = ((px > 10) & (px < np.array(SHAPE[::-1]) - 10)).all(axis=1)
+    holes = np.array([[0, 0], [1, 0], [0, 1], [4, -3], [5, -3], [4, -2], [-6, 4], [-6, 5]])
+    lit = ~(ij[:, None, :] == holes[None]).all(axis=2).any(axis=1)
+    cov = (sp / 9.3) ** 2 * np.eye(2)
+    ref = match_reference(detect_spots(draw_dots(px[lit], 3000.0, cov)), (ij, px, px, in_view),
+                          lit=lit)
+    pos = px.copy()
+    pos[:, 0] = 399.5 + 1.8 * sp * (ij[:, 0] + 0.3) + 2.0 * np.sin(ij[:, 1] / 4.0)
+    pos[:, 1] += 0.2 * sp * np.cos(ij[:, 0] / 5.0)
+    spots = detect_spots(rng.poisson(draw_dots(pos[lit], 3000.0, cov)).astype(np.float32))
+    seen = lit & ((pos > 15) & (pos < np.array(SHAPE[::-1]) - 15)).all(axis=1)
+    m = match_distorted(ref, spots)
+    assert m.counts["regrown"] == 2  # the lines' steps, after two growings that stalled
+    assert m.counts["anchor_candidates"] == 1 and m.counts["labels_ambiguous"] == 0
+    assert labels_correct(m, ij, pos).all()
+    assert len(m) > 0.9 * seen.sum()
+
+
 def test_order_violations_flag_a_swapped_pair():
     jj, ii = np.mgrid[0:5, 0:6]
     ij = np.stack([ii.ravel(), jj.ravel()], 1)

@@ -334,6 +334,10 @@ def test_grid_integrators_bad_input_and_unused_weights(name):
     with pytest.raises(RestorationFailed, match="too few connected"):
         integrate(ij[::7][:5] * 3, xy[::7][:5], g[:5], name)
     row = ij[:, 1] == 0  # one row of samples: connected, but no area to grid
+    # Samples whose every triangle bridges dots missing between them: no node to grid (a
+    # status of the frame, not an error of the input).
+    with pytest.raises(RestorationFailed, match="spans a gap"):
+        to_heightfield(xy, z, g, 5.0, lattice_ij=ij * 8)
     with pytest.raises(RestorationFailed, match="collinear"):
         integrate(ij[row], xy[row], g[row], name)
     other = xy + np.random.default_rng(2).uniform(-2.0, 2.0, xy.shape)
@@ -485,6 +489,10 @@ def test_gridding_bad_input():
         to_heightfield(xy, z, g, 1e-3)
     with pytest.raises(RestorationFailed, match="span too little"):
         to_heightfield(xy, z, g, 1000.0)
+    # Samples whose every triangle bridges dots missing between them: no node to grid (a
+    # status of the frame, not an error of the input).
+    with pytest.raises(RestorationFailed, match="spans a gap"):
+        to_heightfield(xy, z, g, 5.0, lattice_ij=ij * 8)
     with pytest.raises(RestorationFailed, match="collinear"):
         to_heightfield(np.column_stack([np.arange(9.0) * 10, np.arange(9.0) * 10]), z[:9],
                        g[:9], 5.0)
