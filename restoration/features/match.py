@@ -245,13 +245,19 @@ def match_distorted(
     """Label the wavy-water spots with grid indices (robust ordering-based correspondence).
 
     1. Region growing over the lattice (:func:`_grow`) from the node whose nearest spot is most
-       confidently its own (close to the flat-water position, or to ``prior_px``).
+       confidently its own (close to the flat-water position, or to ``prior_px``). A growth
+       that matches under :data:`REGROW_BELOW` of the dots is tried again from a seed away
+       from it, then across the lattice's lines by the first spot along each step (a lattice
+       stretched or squeezed far from flat water's spacing, where one step at that spacing
+       falls between spots: ``counts['regrown']`` 1 or 2); the largest piece is kept.
     2. Spots claimed by two nodes are dropped, then pairs that break eq. 33
        (:func:`order_violations`).
     3. Anchoring: growing fixes labels only up to a whole-lattice shift when spots move by more
        than half a spacing. The shift is chosen so that matched nodes are lit dots and in-view
        nodes seen empty are not (:func:`_anchor_shift`), and applied to all labels.
-       ``counts['anchor_candidates']`` says whether it was unique.
+       ``counts['anchor_candidates']`` says whether it was unique. Shifts of up to
+       ``max_shift`` dots are tried, :data:`STRETCHED_MAX_LABEL_SHIFT` after a growth along
+       the lines' steps.
 
     Parameters
     ----------
