@@ -63,6 +63,36 @@ def flat_like(surface: Heightfield, z_mm: float) -> Heightfield:
     return Heightfield(surface.x, surface.y, np.full_like(surface.z, z_mm))
 
 
+PLANE_GRID_POINTS = 4
+"""Vertices along each axis of the mesh that renders flat water
+(:class:`~mitsuba_wai.render.FrameRenderer`)."""
+
+
+def flat_level_mm(surface: Heightfield) -> float | None:
+    """The height of ``surface`` if it is flat water (every height the same in the float32 a
+    mesh holds), else None.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> x = np.linspace(0.0, 10.0, 4)
+    >>> flat_level_mm(Heightfield(x, x, np.full((4, 4), 2.5)))
+    2.5
+    >>> flat_level_mm(Heightfield(x, x, np.add.outer(x, x))) is None
+    True
+    """
+    z = surface.z.astype(np.float32)  # the heights a mesh holds
+    z0 = z.flat[0]
+    return float(surface.z.flat[0]) if np.isfinite(z0) and bool(np.all(z == z0)) else None
+
+
+def plane_grid(grid: Heightfield) -> Heightfield:
+    """A grid of :data:`PLANE_GRID_POINTS` squared vertices over ``grid``'s span (heights 0)."""
+    x = np.linspace(grid.x[0], grid.x[-1], PLANE_GRID_POINTS)
+    y = np.linspace(grid.y[0], grid.y[-1], PLANE_GRID_POINTS)
+    return Heightfield(x, y, np.zeros((y.size, x.size)))
+
+
 def to_mitsuba(
     mesh: trimesh.Trimesh, name: str, bsdf: dict, emitter: dict | None = None
 ) -> object:

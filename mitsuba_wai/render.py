@@ -236,7 +236,7 @@ class FrameRenderer:
         missing = set(which) - set(self._scenes)
         if missing:
             raise ValueError(f"renderer was not prepared for {sorted(missing)}")
-        level_mm = None if self.flat_only else flat_level_mm(surface)
+        level_mm = None if self.flat_only else meshes.flat_level_mm(surface)
         if level_mm is not None:
             return self._render_flat(level_mm, seed, which, spp, crosstalk)
         if self._channels:
@@ -283,7 +283,7 @@ class FrameRenderer:
                      crosstalk: bool) -> dict[str, NDArray[np.float32]]:
         """The renders of flat water at ``level_mm``, by :attr:`flat` (made on first use)."""
         if self.flat is None:
-            self.flat = FrameRenderer(self.cfg, plane_grid(self.grid), self.texture,
+            self.flat = FrameRenderer(self.cfg, meshes.plane_grid(self.grid), self.texture,
                                       self.systems, flat_only=True)
         before = dict(self.flat.nonfinite_pixels)
         out = self.flat.render(meshes.flat_like(self.flat.grid, level_mm), seed, which, spp,
@@ -347,33 +347,6 @@ class FrameRenderer:
                 image, bad = image + sun, bad + bad_sun
             image = image + sky_image(self.cfg)
         return image.astype(np.float32), bad
-
-
-PLANE_GRID_POINTS = 4
-"""Vertices along each axis of the mesh that renders flat water (:class:`FrameRenderer`)."""
-
-
-def flat_level_mm(surface: Heightfield) -> float | None:
-    """The height of ``surface`` if it is flat water (every height the same), else None.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> x = np.linspace(0.0, 10.0, 4)
-    >>> flat_level_mm(Heightfield(x, x, np.full((4, 4), 2.5)))
-    2.5
-    >>> flat_level_mm(Heightfield(x, x, np.add.outer(x, x))) is None
-    True
-    """
-    z0 = surface.z.flat[0]
-    return float(z0) if np.isfinite(z0) and bool(np.all(surface.z == z0)) else None
-
-
-def plane_grid(grid: Heightfield) -> Heightfield:
-    """A grid of :data:`PLANE_GRID_POINTS` squared vertices over ``grid``'s span (heights 0)."""
-    x = np.linspace(grid.x[0], grid.x[-1], PLANE_GRID_POINTS)
-    y = np.linspace(grid.y[0], grid.y[-1], PLANE_GRID_POINTS)
-    return Heightfield(x, y, np.zeros((y.size, x.size)))
 
 
 def channel_renderers(cfg: SystemConfig, grid: Heightfield, texture: NDArray | None,

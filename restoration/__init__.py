@@ -77,6 +77,7 @@ from restoration.rig_calibration import (
     read_rig,
     refine_on_flat_water,
     rig_keys,
+    rig_undetermined,
     write_rig,
 )
 from restoration.rig_score import RigGridScore, rig_grid_score
@@ -163,6 +164,7 @@ __all__ = [
     "restore_sequence",
     "rig_grid_score",
     "rig_keys",
+    "rig_undetermined",
     "run_method",
     "score",
     "sequence_frames",

@@ -28,7 +28,7 @@ from wai_core.io import write_json
 __all__ = [
     "RIG_FORMAT", "UNDETERMINED", "BoardSpec", "DeviceFit", "FlatFit", "board_views",
     "calibrate_device", "find_corners", "is_written_rig", "read_rig", "refine_on_flat_water",
-    "rig_keys", "write_rig",
+    "rig_keys", "rig_undetermined", "write_rig",
 ]
 
 RIG_FORMAT = "wai-rig/1"
@@ -225,9 +225,7 @@ def write_rig(path: str | Path, fits: dict[str, DeviceFit], devices: dict[str, D
     flat water when ``flat`` is given; each port of ``ports``, name to
     :class:`~restoration.port_calibration.PortFit`), what is undetermined."""
     ports = ports or {}
-    undetermined = list(UNDETERMINED)
-    for port in ports.values():
-        undetermined += [u for u in port.undetermined if u not in undetermined]
+    undetermined = rig_undetermined(ports, flat)
     keys = rig_keys(fits, devices)
     for name, port in ports.items():
         keys.update(port.to_config_keys(name))
@@ -237,8 +235,9 @@ def write_rig(path: str | Path, fits: dict[str, DeviceFit], devices: dict[str, D
         "format": RIG_FORMAT,
         "written_by": "wai calibrate",
         "flat_water": None if flat is None else {
-            "config_keys": flat.config_keys, "rms_before_px": flat.rms_before_px,
-            "rms_after_px": flat.rms_after_px, "spots": flat.n_spots},
+            "config_keys": flat.config_keys, "sigma": flat.sigma,
+            "rms_before_px": flat.rms_before_px, "rms_after_px": flat.rms_after_px,
+            "spots": flat.n_spots},
         "devices": {name: fit.summary() for name, fit in fits.items()},
         "ports": {name: port.summary() for name, port in ports.items()},
         "config_keys": keys,
@@ -248,6 +247,30 @@ def write_rig(path: str | Path, fits: dict[str, DeviceFit], devices: dict[str, D
         "versions": {"opencv": cv2.__version__, "numpy": np.__version__,
                      "python": platform.python_version()},
     })
+
+
+def rig_undetermined(ports: dict[str, Any] | None = None,
+                     flat: FlatFit | None = None) -> list[str]:
+    """What a calibration leaves undetermined: :data:`UNDETERMINED`, each fitted port's
+    (:attr:`~restoration.port_calibration.PortFit.undetermined`), and for a projector port
+    fitted on flat water the same but its gap.
+
+    Examples
+    --------
+    >>> rig_undetermined() == list(UNDETERMINED)
+    True
+    """
+    from restoration.port_calibration import PORT_UNDETERMINED, PROJECTOR_PORT_UNDETERMINED
+
+    out = list(UNDETERMINED)
+    told = [port.undetermined for port in (ports or {}).values()]
+    if flat is not None and flat.fits_projector_port:
+        told.append(PORT_UNDETERMINED)
+    for items in told:
+        out += [u for u in items if u not in out]
+    if flat is not None and flat.fits_projector_port:
+        out = [u for u in out if u != PROJECTOR_PORT_UNDETERMINED]
+    return out
 
 
 def is_written_rig(path: str | Path) -> bool:
@@ -286,35 +309,73 @@ def read_rig(path: str | Path) -> dict[str, Any]:
     return keys
 
 
+PROJECTOR_GAP = "projector.port_gap_mm"
+"""The configuration key of the projector port's gap (fitted on flat water)."""
+
+
 @dataclass
 class FlatFit:
-    """Camera s's intrinsics refined on the flat-water reference (:func:`refine_on_flat_water`).
+    """Camera s's intrinsics (and the projector's port) refined on the flat-water reference
+    (:func:`refine_on_flat_water`).
 
     Attributes
     ----------
     config_keys : dict
-        ``camera_s.focal_mm`` and ``camera_s.principal_offset_px``, refined.
+        ``camera_s.focal_mm`` and ``camera_s.principal_offset_px``, refined; with a projector
+        port, ``projector.port_gap_mm`` too.
     rms_before_px, rms_after_px : float
         The flat-water residual (detected against predicted spots, RMS px) before and after.
     n_spots : int
         Spots the fit used.
+    sigma : dict of str to float
+        Standard deviation of each fitted number (``camera_s.focal_mm``, mm;
+        ``camera_s.principal_offset_px``, its larger axis, px; ``projector.port_gap_mm``,
+        mm), from the fit's Jacobian and residual.
     """
 
     config_keys: dict[str, Any]
     rms_before_px: float
     rms_after_px: float
     n_spots: int
+    sigma: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def fits_projector_port(self) -> bool:
+        """Whether the projector port's gap was fitted."""
+        return PROJECTOR_GAP in self.config_keys
 
 
-def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0) -> FlatFit:
+def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0,
+                         projector_port: bool | None = None,
+                         held: Sequence[dict[str, Any]] = ()) -> FlatFit:
     """Refine camera s's focal length and principal point so that the flat-water pattern's
     spots land where the rig predicts them (its poses, diffuser and water level taken as
     known; the lens's distortion as calibrated: freeing k1, k2 too trades them against the
-    focal length).
+    focal length). Behind a projector port (``[projector].port_thickness_mm > 0``) the gap
+    between the projector's lens and its port is fitted too, the port's thickness and index
+    taken as given: the projector shows no checkerboard, but its dots through the port bend
+    as no pinhole's rays do, and the flat reference's ~1000 spots see it.
 
     The structured light's level rests on camera s's intrinsics far more finely than a
     checkerboard pins them (docs/results.md, "Calibrating a real rig"); the ~1000 spots of the
     flat reference pin them again, in the rig's own geometry.
+
+    Parameters
+    ----------
+    cfg : SystemConfig
+        The rig: its poses, diffuser, water level, camera s's lens as calibrated.
+    pattern_flat : (H, W) or (H, W, 3) ndarray
+        The flat-water pattern.
+    max_px : float
+        Farthest a spot may lie from its prediction to be paired with it, px.
+    projector_port : bool, optional
+        Fit the projector port's gap (default: when ``cfg``'s projector has a port).
+    held : sequence of dict
+        Configuration keys the fit holds, each moved by its standard deviation (e.g. camera
+        s's distortion with k1 one sigma up, as its checkerboards left it): the fit is
+        repeated with each, and the change of every fitted number joins its ``sigma`` in
+        quadrature. The spots alone leave the port's gap correlated with camera s's lens, so
+        without these the gap's sigma is the spots' noise only.
 
     Raises
     ------
@@ -333,18 +394,29 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0) -
     raw_px = raw.centres_px[~raw.border]
     dev = cfg.camera_s
 
-    def rig(p: NDArray) -> Any:
-        return with_keys(cfg, {"camera_s.focal_mm": float(p[0]),
-                               "camera_s.principal_offset_px": [float(p[1]), float(p[2])]})
+    port = cfg.projector.port_thickness_mm > 0 if projector_port is None else projector_port
+    if port and not cfg.projector.port_thickness_mm > 0:
+        raise WaiInputError("refine_on_flat_water: the projector has no port to fit "
+                            "([projector].port_thickness_mm is 0)")
 
-    def predicted(p: NDArray) -> tuple[NDArray, NDArray]:
-        c = rig(p)
+    def rig(p: NDArray, base: Any = cfg) -> Any:
+        keys = {"camera_s.focal_mm": float(p[0]),
+                "camera_s.principal_offset_px": [float(p[1]), float(p[2])]}
+        if port:  # a gap must stay positive: fitted as its logarithm
+            keys[PROJECTOR_GAP] = float(np.exp(p[3]))
+        return with_keys(base, keys)
+
+    def predicted(p: NDArray, base: Any = cfg) -> tuple[NDArray, NDArray]:
+        c = rig(p, base)
         _, _, pred, in_view = predict_flat_spots(c)
         detected = diffuser_pinhole_px(c, raw_px)
         return detected, np.where(in_view[:, None], pred, np.nan)
 
     start = np.array([dev.focal_mm, *dev.principal_offset_px], float)
     scale = np.array([dev.focal_mm * 1e-3, 1.0, 1.0])
+    if port:
+        start = np.append(start, np.log(cfg.projector.port_gap_mm))
+        scale = np.append(scale, 0.1)
 
     def pairs_at(p: NDArray) -> tuple[NDArray, NDArray]:
         seen, pred = predicted(p)
@@ -358,9 +430,9 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0) -
                                 "the diffuser")
         return np.flatnonzero(keep), index[keep]
 
-    def residual_of(pairs: tuple[NDArray, NDArray]) -> Any:
+    def residual_of(pairs: tuple[NDArray, NDArray], base: Any = cfg) -> Any:
         def residual(p: NDArray) -> NDArray:
-            s, q = predicted(p)
+            s, q = predicted(p, base)
             return np.nan_to_num((s[pairs[0]] - q[pairs[1]]).ravel(), nan=max_px)
         return residual
 
@@ -379,7 +451,22 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0) -
     keep = pairs[0]
     before = float(np.sqrt(np.mean(residual_of(pairs_at(start))(start) ** 2) * 2))
     after = float(np.sqrt(np.mean(fit.fun**2) * 2))
-    best = rig(fit.x).camera_s
-    return FlatFit({"camera_s.focal_mm": best.focal_mm,
-                    "camera_s.principal_offset_px": list(best.principal_offset_px)},
-                   before, after, int(keep.size))
+    best = rig(fit.x)
+    keys = {"camera_s.focal_mm": best.camera_s.focal_mm,
+            "camera_s.principal_offset_px": list(best.camera_s.principal_offset_px)}
+    # Standard deviations: the residual's variance times the diagonal of (J^T J)^-1, the gap's
+    # by its logarithm's (d gap = gap d log gap).
+    dof = max(fit.fun.size - fit.x.size, 1)
+    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * float(fit.fun @ fit.fun) / dof
+    var = np.clip(np.diag(cov), 0.0, None)
+    for shifted in held:  # the held values' own uncertainty, one refit each
+        moved = least_squares(residual_of(pairs, with_keys(cfg, shifted)), fit.x,
+                              x_scale=scale, method="lm").x
+        var = var + (moved - fit.x) ** 2
+    sd = np.sqrt(var)
+    sigma = {"camera_s.focal_mm": float(sd[0]),
+             "camera_s.principal_offset_px": float(max(sd[1], sd[2]))}
+    if port:
+        keys[PROJECTOR_GAP] = best.projector.port_gap_mm
+        sigma[PROJECTOR_GAP] = float(best.projector.port_gap_mm * sd[3])
+    return FlatFit(keys, before, after, int(keep.size), sigma)

@@ -74,10 +74,9 @@ def run_calibrate(args: argparse.Namespace) -> None:
     from tqdm import tqdm
 
     from restoration import (
-        PORT_UNDETERMINED,
-        UNDETERMINED,
         calibrate_device,
         calibrate_port,
+        rig_undetermined,
         write_rig,
     )
     from wai_core.images import read_image
@@ -115,7 +114,11 @@ def run_calibrate(args: argparse.Namespace) -> None:
 
         if "camera_s" not in fits:
             raise WaiInputError("--flat refines camera s: DIR needs a camera_s/ folder")
-        flat = refine_on_flat_water(with_keys(cfg, rig_keys(fits, devices)), flat_image)
+        told = rig_keys(fits, devices)
+        for name, port in ports.items():  # the cameras' ports as fitted
+            told.update(port.to_config_keys(name))
+        flat = refine_on_flat_water(with_keys(cfg, told), flat_image,
+                                    held=_camera_s_sigmas(fits["camera_s"], ports))
     try:
         write_rig(args.out, fits, devices, board, flat, ports)
     except OSError as exc:
@@ -137,15 +140,36 @@ def run_calibrate(args: argparse.Namespace) -> None:
               f"{port.pinhole_rms_px:.3f} px")
     if flat is not None:
         f, (cx, cy) = flat.config_keys, flat.config_keys["camera_s.principal_offset_px"]
-        print(f"camera_s on flat water: focal {f['camera_s.focal_mm']:.5f} mm, principal "
+        print(f"camera_s on flat water: focal {f['camera_s.focal_mm']:.5f} +- "
+              f"{flat.sigma['camera_s.focal_mm']:.5f} mm, principal "
               f"offset {cx:.2f}, {cy:.2f} px; residual "
               f"{flat.rms_before_px:.3f} -> {flat.rms_after_px:.3f} px over {flat.n_spots} "
               "spots")
-    print("not determined: " + "; ".join(UNDETERMINED + (PORT_UNDETERMINED if ports else ())))
+        if flat.fits_projector_port:
+            gap = flat.config_keys["projector.port_gap_mm"]
+            print(f"projector port on flat water: gap {gap:.3f} +- "
+                  f"{flat.sigma['projector.port_gap_mm']:.3f} mm behind "
+                  f"{cfg.projector.port_thickness_mm:g} mm of index {cfg.projector.port_n:g} "
+                  "(given)")
+    print("not determined: " + "; ".join(rig_undetermined(ports, flat)))
     print(f"rig file: {args.out} (wai restore DIR --rig {args.out})")
     if figures is not None:
         print(f"figures: {figures} (the corners found and reprojected, each view's error; "
               "index.html)")
+
+
+def _camera_s_sigmas(fit: Any, ports: dict[str, Any]) -> list[dict[str, Any]]:
+    """Camera s's lens (k1, k2) and port gap as its checkerboards left them, each one standard
+    deviation up: what the flat-water fit holds (see ``refine_on_flat_water``'s ``held``)."""
+    held = []
+    for k, name in enumerate(("k1", "k2")):
+        moved = [float(v) for v in fit.distortion]
+        moved[k] += float(fit.sigma[name])
+        held.append({"camera_s.distortion": moved})
+    if "camera_s" in ports:
+        port = ports["camera_s"]
+        held.append({"camera_s.port_gap_mm": port.gap_mm + port.sigma_gap_mm})
+    return held
 
 
 def _figures_folder(args: argparse.Namespace) -> Path | None:
@@ -267,7 +291,9 @@ def add_calibrate(sub: argparse._SubParsersAction, formatter: type, scene_help: 
         "planar checkerboard in 10-20 poses, in air; OpenCV finds its corners and calibrates "
         "the camera (fx = fy, cx, cy, k1, k2, p1, p2). A camera in a housing adds a folder "
         "of the board seen through its port from the water (DIR/camera_v_water/): the gap "
-        "behind the port is fitted, its thickness and index taken from --config. Writes a "
+        "behind the port is fitted, its thickness and index taken from --config; with "
+        "--flat and a projector port in --config, the projector's gap is fitted on the "
+        "flat-water spots. Writes a "
         "rig file for 'wai restore --rig'. See 'wai guide rig'.",
     )
     p.add_argument("dir", type=Path, help="folder of camera folders (and board.json)")
@@ -278,8 +304,9 @@ def add_calibrate(sub: argparse._SubParsersAction, formatter: type, scene_help: 
     p.add_argument(
         "--flat", type=Path, default=None,
         help="the rig's flat-water pattern (pattern_flat): refine camera s's focal length and "
-        "principal point on its spots, with --config's poses and diffuser (default: none, "
-        "the checkerboards' values)",
+        "principal point on its spots, and the gap behind the projector's port when --config "
+        "has one, with --config's poses and diffuser (default: none, the checkerboards' "
+        "values)",
     )
     p.add_argument(
         "--figures", type=Path, default=None,

@@ -66,27 +66,42 @@ def test_a_port_folder_without_its_lens_or_its_thickness_is_refused_before_work(
 @pytest.mark.slow
 def test_a_rig_with_ports_calibrated_from_the_command_line_restores_like_the_true_rig(
         tmp_path, capfd):
-    scene = tmp_path / "port.toml"
+    # Ports on all three devices: the cameras' gaps from boards in the water, the projector's
+    # (which shows no board) from the flat-water spots (--flat), its scene file's guess of
+    # 1 mm against the true 2.5 mm.
+    scene, guess = tmp_path / "port.toml", tmp_path / "guess.toml"
     text = resolve_scene("paper").read_text()
     text = text.replace("[camera_v]\n", "[camera_v]\nport_thickness_mm = 5.0\n"
                         "port_gap_mm = 3.0\ndistortion = [-0.1, 0.02, 0.0, 0.0, 0.0]\n", 1)
     text = text.replace("[camera_s]\n", "[camera_s]\nport_thickness_mm = 5.0\n"
                         "port_gap_mm = 4.0\n", 1)
-    scene.write_text(text)
+    scene.write_text(text.replace("[projector]\n", "[projector]\nport_thickness_mm = 5.0\n"
+                                  "port_gap_mm = 2.5\n", 1))
+    guess.write_text(text.replace("[projector]\n", "[projector]\nport_thickness_mm = 5.0\n"
+                                  "port_gap_mm = 1.0\n", 1))
     boards, frame = tmp_path / "boards", tmp_path / "frame"
     assert main(["render", str(scene), "--checkerboards", "12", "--out", str(boards),
                  "--quiet"]) == 0
     truth = json.loads((boards / "scene.json").read_text())["checkerboards"]["truth"]
     assert truth["camera_s"]["port_gap_mm"] == 4.0
+    assert main(["render", str(scene), "--out", str(frame), "--seed", "5", "--quiet"]) == 0
     rig = tmp_path / "rig.json"
-    assert main(["calibrate", str(boards / "checkerboards"), "--config", str(scene), "--out",
-                 str(rig), "--quiet"]) == 0
+    capfd.readouterr()
+    assert main(["calibrate", str(boards / "checkerboards"), "--config", str(guess), "--out",
+                 str(rig), "--flat", str(frame / "pattern_flat.exr"), "--quiet"]) == 0
+    printed = capfd.readouterr().out
+    assert "projector port on flat water: gap" in printed
+    assert "the projector's port" not in printed.split("not determined:")[1]
     record = json.loads(rig.read_text())
     for camera, gap in (("camera_v", 3.0), ("camera_s", 4.0)):
         port = record["ports"][camera]
         assert abs(port["gap_mm"] - gap) < max(3 * port["sigma_gap_mm"], 0.3), port
         assert record["config_keys"][f"{camera}.port_thickness_mm"] == 5.0
-    assert main(["render", str(scene), "--out", str(frame), "--seed", "5", "--quiet"]) == 0
+    # The spots leave the gap correlated with camera s's lens as its boards left it: its
+    # sigma carries that, and the true gap lies within three of them.
+    gap = record["config_keys"]["projector.port_gap_mm"]
+    sigma = record["flat_water"]["sigma"]["projector.port_gap_mm"]
+    assert abs(gap - 2.5) < 3 * sigma and sigma < 1.0, (gap, sigma)
     rmse = {}
     for name, extra in (("true", []), ("calibrated", ["--rig", str(rig)])):
         capfd.readouterr()

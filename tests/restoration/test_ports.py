@@ -59,6 +59,33 @@ def test_a_rig_not_told_its_ports_is_flagged(frames):
     assert m["status"] != "ok"
 
 
+def test_the_flat_reference_calibrates_the_projectors_port(frames):
+    # The projector shows no checkerboard; its dots on flat water do: the gap behind its port,
+    # started 3.5 mm off with camera s 0.2 % off in focal length, comes back from the flat
+    # reference's spots, and the frame restores with the calibrated rig as with the true one.
+    from restoration import Calibration, refine_on_flat_water
+    from wai_core.images import find_image, read_image
+
+    folder = frames["ports", SEEDS[0]]
+    true = Calibration.from_folder(folder).cfg
+    off = {"projector.port_gap_mm": 1.5, "camera_s.focal_mm": true.camera_s.focal_mm * 1.002}
+    fit = refine_on_flat_water(with_keys(true, off), read_image(find_image(folder,
+                                                                          "pattern_flat")))
+    assert fit.fits_projector_port
+    gap = fit.config_keys["projector.port_gap_mm"]
+    assert abs(gap - 5.0) < 0.5 and 0 < fit.sigma["projector.port_gap_mm"] < 0.5, fit.sigma
+    assert fit.config_keys["camera_s.focal_mm"] == pytest.approx(true.camera_s.focal_mm,
+                                                                 rel=5e-4)
+    told = restore_folder(folder, write=False).metrics
+    calibrated = restore_folder(folder, write=False, rig=fit.config_keys).metrics
+    assert calibrated["status"] == "ok", calibrated["message"]
+    assert calibrated["wai_rmse_mm"] <= told["wai_rmse_mm"] + 0.05
+    # Left at the wrong gap the same frame is not restored as well (or not at all).
+    wrong = restore_folder(folder, write=False, rig={**fit.config_keys,
+                                                     "projector.port_gap_mm": 1.5}).metrics
+    assert wrong["status"] != "ok" or wrong["wai_rmse_mm"] > calibrated["wai_rmse_mm"]
+
+
 PROJECTOR_PORT = {"projector.port_thickness_mm": 5.0}
 
 
