@@ -65,11 +65,12 @@ from restoration.options import (
     StructuredLightOptions,
     SurfaceOptions,
 )
-from restoration.port_calibration import PORT_UNDETERMINED, PortFit, calibrate_port
+from restoration.port_calibration import PortFit, calibrate_port
 from restoration.protocol import Method, run_method
 from restoration.ray_surface import RaySurface
 from restoration.result import STATUSES, RestoredView, RestoreResult, Status
 from restoration.rig_calibration import (
+    PORT_UNDETERMINED,
     UNDETERMINED,
     BoardSpec,
     calibrate_device,

@@ -26,21 +26,12 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
-from restoration.rig_calibration import BoardSpec, DeviceFit, board_views
+from restoration.rig_calibration import PORT_UNDETERMINED, BoardSpec, DeviceFit, board_views
 from wai_core.errors import WaiInputError
 from wai_core.lens import port_pinhole_xy, undistort
 
-__all__ = ["PORT_UNDETERMINED", "PROJECTOR_PORT_UNDETERMINED", "PortFit", "calibrate_port"]
+__all__ = ["PortFit", "calibrate_port"]
 
-PROJECTOR_PORT_UNDETERMINED = ("the projector's port (its images are not a camera's; "
-                               "calibrate --flat fits its gap on the flat-water spots)")
-"""What board views cannot give of the projector (``wai calibrate --flat`` can)."""
-PORT_UNDETERMINED = (
-    "the port's thickness and index (its maker's: taken from --config)",
-    "the port's tilt (taken as normal to the optical axis)",
-    PROJECTOR_PORT_UNDETERMINED,
-)
-"""What a port's board views are not asked to give."""
 
 
 @dataclass

@@ -26,9 +26,9 @@ from wai_core.errors import WaiInputError
 from wai_core.io import write_json
 
 __all__ = [
-    "RIG_FORMAT", "UNDETERMINED", "BoardSpec", "DeviceFit", "FlatFit", "board_views",
-    "calibrate_device", "find_corners", "is_written_rig", "read_rig", "refine_on_flat_water",
-    "rig_keys", "rig_undetermined", "write_rig",
+    "PORT_UNDETERMINED", "PROJECTOR_PORT_UNDETERMINED", "RIG_FORMAT", "UNDETERMINED", "BoardSpec",
+    "DeviceFit", "FlatFit", "board_views", "calibrate_device", "find_corners", "is_written_rig",
+    "read_rig", "refine_on_flat_water", "rig_keys", "rig_undetermined", "write_rig",
 ]
 
 RIG_FORMAT = "wai-rig/1"
@@ -41,6 +41,16 @@ UNDETERMINED = (
     "the diffuser's height and extent, the water level and index",
 )
 """What checkerboards seen by the cameras cannot give."""
+
+PROJECTOR_PORT_UNDETERMINED = ("the projector's port (its images are not a camera's; "
+                               "calibrate --flat fits its gap on the flat-water spots)")
+"""What board views cannot give of the projector (``wai calibrate --flat`` can)."""
+PORT_UNDETERMINED = (
+    "the port's thickness and index (its maker's: taken from --config)",
+    "the port's tilt (taken as normal to the optical axis)",
+    PROJECTOR_PORT_UNDETERMINED,
+)
+"""What a port's board views are not asked to give."""
 
 
 @dataclass(frozen=True)
@@ -260,8 +270,6 @@ def rig_undetermined(ports: dict[str, Any] | None = None,
     >>> rig_undetermined() == list(UNDETERMINED)
     True
     """
-    from restoration.port_calibration import PORT_UNDETERMINED, PROJECTOR_PORT_UNDETERMINED
-
     out = list(UNDETERMINED)
     told = [port.undetermined for port in (ports or {}).values()]
     if flat is not None and flat.fits_projector_port:
