@@ -424,6 +424,21 @@ def test_merged_blob_is_dropped_and_counted(flat_scene, reference):
     assert labels_correct(m, ij, pos).all()
 
 
+def marked_lattice(sp: float, nj: int, ni: int, holes: list[list[int]]):
+    """A square lattice of spacing ``sp`` px, nodes i in -ni..ni and j in -nj..nj, centred in
+    the image, its dots lit but at ``holes`` (marker dots left dark), and its flat-water
+    reference: ``(ij, px, lit, cov, ref)``."""
+    jj, ii = np.mgrid[-nj:nj + 1, -ni:ni + 1]
+    ij = np.stack([ii.ravel(), jj.ravel()], 1)
+    px = np.stack([399.5 + ij[:, 0] * sp, 299.5 + ij[:, 1] * sp], 1)
+    in_view = ((px > 10) & (px < np.array(SHAPE[::-1]) - 10)).all(axis=1)
+    lit = ~(ij[:, None, :] == np.array(holes)[None]).all(axis=2).any(axis=1)
+    cov = (sp / 9.3) ** 2 * np.eye(2)
+    ref = match_reference(detect_spots(draw_dots(px[lit], 3000.0, cov)), (ij, px, px, in_view),
+                          lit=lit)
+    return ij, px, lit, cov, ref
+
+
 def test_a_lattice_stretched_far_past_flat_waters_spacing_is_grown_across_its_lines():
     # Waves that magnify the pattern 1.8x along x (or a port's denser dots) put each column's
     # neighbour 0.8 spacings from where one flat-water step predicts it: growing stalls on one
@@ -431,15 +446,8 @@ def test_a_lattice_stretched_far_past_flat_waters_spacing_is_grown_across_its_li
     # the unlit marker dots still pin the labels.
     rng = np.random.default_rng(11)
     sp = 16.0
-    jj, ii = np.mgrid[-10:11, -22:23]
-    ij = np.stack([ii.ravel(), jj.ravel()], 1)
-    px = np.stack([399.5 + ij[:, 0] * sp, 299.5 + ij[:, 1] * sp], 1)
-    in_view = ((px > 10) & (px < np.array(SHAPE[::-1]) - 10)).all(axis=1)
-    holes = np.array([[0, 0], [1, 0], [0, 1], [4, -3], [5, -3], [4, -2], [-6, 4], [-6, 5]])
-    lit = ~(ij[:, None, :] == holes[None]).all(axis=2).any(axis=1)
-    cov = (sp / 9.3) ** 2 * np.eye(2)
-    ref = match_reference(detect_spots(draw_dots(px[lit], 3000.0, cov)), (ij, px, px, in_view),
-                          lit=lit)
+    holes = [[0, 0], [1, 0], [0, 1], [4, -3], [5, -3], [4, -2], [-6, 4], [-6, 5]]
+    ij, px, lit, cov, ref = marked_lattice(sp, 10, 22, holes)
     pos = px.copy()
     pos[:, 0] = 399.5 + 1.8 * sp * (ij[:, 0] + 0.3) + 2.0 * np.sin(ij[:, 1] / 4.0)
     pos[:, 1] += 0.2 * sp * np.cos(ij[:, 0] / 5.0)
@@ -487,15 +495,8 @@ def test_shifted_pattern_is_anchored_by_unlit_marker_dots():
     # asymmetric pattern pin the lattice shift.
     rng = np.random.default_rng(6)
     sp = 22.0
-    jj, ii = np.mgrid[-12:13, -17:18]
-    ij = np.stack([ii.ravel(), jj.ravel()], 1)
-    px = np.stack([399.5 + ij[:, 0] * sp, 299.5 + ij[:, 1] * sp], 1)
-    in_view = ((px > 10) & (px < np.array(SHAPE[::-1]) - 10)).all(axis=1)
-    holes = np.array([[0, 0], [1, 0], [0, 1], [5, -4], [6, -4], [5, -3]])
-    lit = ~(ij[:, None, :] == holes[None]).all(axis=2).any(axis=1)
-    cov = (sp / 9.3) ** 2 * np.eye(2)
-    flat = draw_dots(px[lit], 3000.0, cov)
-    ref = match_reference(detect_spots(flat), (ij, px, px, in_view), lit=lit)
+    ij, px, lit, cov, ref = marked_lattice(sp, 12, 17, [[0, 0], [1, 0], [0, 1], [5, -4],
+                                                        [6, -4], [5, -3]])
     assert isinstance(ref, ReferenceGrid)
     u = 0.25 * sp * np.stack([np.sin(ij[:, 1] / 5.0), np.cos(ij[:, 0] / 6.0)], 1)
     pos = px + np.array([2, 1]) * sp + u
