@@ -26,7 +26,13 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
-from restoration.rig_calibration import PORT_UNDETERMINED, BoardSpec, DeviceFit, board_views
+from restoration.rig_calibration import (
+    PORT_UNDETERMINED,
+    BoardSpec,
+    DeviceFit,
+    board_views,
+    fit_covariance,
+)
 from wai_core.errors import WaiInputError
 from wai_core.lens import port_pinhole_xy, undistort
 
@@ -225,9 +231,7 @@ def _fit(obs: NDArray, board: BoardSpec, lens: DeviceFit, thickness_mm: float, p
                             jac_sparsity=_sparsity(views, corners, 1), x_scale="jac",
                             method="trf")
     res = fit.fun.reshape(views, corners, 2)
-    dof = max(res.size - fit.x.size, 1)
-    jac = fit.jac.toarray() if hasattr(fit.jac, "toarray") else np.asarray(fit.jac)
-    cov = np.linalg.pinv(jac.T @ jac) * float(np.sum(fit.fun**2)) / dof
+    cov = fit_covariance(fit)
     return PortFit(
         gap_mm=float(fit.x[0]), sigma_gap_mm=float(np.sqrt(max(cov[0, 0], 0.0))),
         thickness_mm=float(thickness_mm), port_n=float(port_n), n_water=float(n_water),

@@ -353,6 +353,15 @@ class FlatFit:
         return PROJECTOR_GAP in self.config_keys
 
 
+def fit_covariance(fit: Any) -> NDArray:
+    """The covariance (n, n) of a ``scipy.optimize.least_squares`` result's n parameters: the
+    residual's variance (its sum of squares over the degrees of freedom) times
+    ``(J^T J)^-1``, a dense or sparse Jacobian alike."""
+    jac = fit.jac.toarray() if hasattr(fit.jac, "toarray") else np.asarray(fit.jac)
+    dof = max(fit.fun.size - fit.x.size, 1)
+    return np.linalg.pinv(jac.T @ jac) * float(np.sum(fit.fun**2)) / dof
+
+
 def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0,
                          projector_port: bool | None = None,
                          held: Sequence[dict[str, Any]] = ()) -> FlatFit:
@@ -462,11 +471,8 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0,
     best = rig(fit.x)
     keys = {"camera_s.focal_mm": best.camera_s.focal_mm,
             "camera_s.principal_offset_px": list(best.camera_s.principal_offset_px)}
-    # Standard deviations: the residual's variance times the diagonal of (J^T J)^-1, the gap's
-    # by its logarithm's (d gap = gap d log gap).
-    dof = max(fit.fun.size - fit.x.size, 1)
-    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * float(fit.fun @ fit.fun) / dof
-    var = np.clip(np.diag(cov), 0.0, None)
+    # Standard deviations: the fit's own, the gap's by its logarithm's (d gap = gap d log gap).
+    var = np.clip(np.diag(fit_covariance(fit)), 0.0, None)
     for shifted in held:  # the held values' own uncertainty, one refit each
         moved = least_squares(residual_of(pairs, with_keys(cfg, shifted)), fit.x,
                               x_scale=scale, method="lm").x
