@@ -44,8 +44,10 @@ axis, ``s`` the water segment's length),
         (g / \\cos\\theta_a + t / (n_p \\cos\\theta_p) + s / n_w)}
 
 (radial times azimuthal spread of the ray bundle at ``y``; ``theta_w' = cos(theta_a) / (n_w
-cos(theta_w))``). The vertex's BSDF is evaluated towards the port's exit point, the water-side
-direction, and the connection's water length is ``s``.
+cos(theta_w))``). A tilted port (``port_tilt_deg``) is traced in its own frame, where it is
+square to its axis: the angles of this spread and of ``T`` are then taken to the port's normal,
+the ``cos^3`` to the camera's axis. The vertex's BSDF is evaluated towards the port's exit
+point, the water-side direction, and the connection's water length is ``s``.
 
 Scenes that Mitsuba's own integrators render (``[render] sampling = "independent"``'s view and
 projector) cannot carry these effects and are refused (:func:`scene_lenses`). Daylight
@@ -95,6 +97,8 @@ def lens_keys(dev: DeviceConfig) -> list[str]:
         on.append("distortion")
     if dev.port_thickness_mm > 0:
         on.append("port_thickness_mm")
+    if dev.port_thickness_mm > 0 and any(v != 0.0 for v in dev.port_tilt_deg):
+        on.append("port_tilt_deg")
     return on
 
 
@@ -120,6 +124,8 @@ class CameraLens:
         self._k = optics.distortion
         self._port = (optics.port_gap_mm, optics.port_thickness_mm, optics.port_n,
                       self.n_water)
+        # A tilted port's frame (rows: its axes in cam; wai_core.lens.port_axes), else None.
+        self._frame = (optics.port_frame.tolist() if optics.port_tilted else None)
         self._center = mi.Point3f(*cam.pose.center_lab_mm.tolist())
         self._axes = [mi.Vector3f(*row.tolist()) for row in cam.pose.R]  # cam axes in lab
         # Mitsuba's importance normalisation: 1 / (film area on the plane z_cam = 1).
@@ -127,6 +133,20 @@ class CameraLens:
 
     def _to_lab(self, v: tuple[Any, Any, Any]) -> Any:
         return self._axes[0] * v[0] + self._axes[1] * v[1] + self._axes[2] * v[2]
+
+    def _to_port(self, v: tuple[Any, Any, Any]) -> tuple[Any, Any, Any]:
+        """``cam`` components to the port's frame (unchanged for a port square to the axis)."""
+        m = self._frame
+        if m is None:
+            return v
+        return tuple(m[i][0] * v[0] + m[i][1] * v[1] + m[i][2] * v[2] for i in range(3))
+
+    def _from_port(self, v: tuple[Any, Any, Any]) -> tuple[Any, Any, Any]:
+        """The port frame's components back to ``cam``."""
+        m = self._frame
+        if m is None:
+            return v
+        return tuple(m[0][i] * v[0] + m[1][i] * v[1] + m[2][i] * v[2] for i in range(3))
 
     def _radiance_factor(self, sin_air: Any) -> Any:
         """``T / n_water^2`` behind a port (module notes), 1 without one."""
@@ -191,8 +211,12 @@ class CameraLens:
         sx, sy = (mi.Float(0.0), mi.Float(0.0)) if start is None else (start.x, start.y)
         if self.optics.has_port:
             _, _, n_p, n_w = self._port
-            transmittance = port_transmittance(dr.sqrt(x * x + y * y) * inv, n_p, n_w, dr.sqrt)
-            p, d, _ = port_refract((sx, sy, mi.Float(0.0)), d, *self._port, dr.sqrt)
+            d = self._to_port(d)
+            transmittance = port_transmittance(dr.sqrt(d[0] * d[0] + d[1] * d[1]), n_p, n_w,
+                                               dr.sqrt)
+            p, d, _ = port_refract(self._to_port((sx, sy, mi.Float(0.0))), d, *self._port,
+                                   dr.sqrt)
+            p, d = self._from_port(p), self._from_port(d)
             origin = self._center + self._to_lab(p)
         elif start is None:
             origin = mi.Point3f(self._center)
@@ -265,9 +289,11 @@ class CameraLens:
             valid = active & (qz >= _NEAR_MM)
             x, y = qx / qz, qy / qz
             cos_a = qz / dist
+            cos_film = cos_a
             spread = 1.0 / (dist * dist)
             p = mi.Point3f(self._center)
         else:
+            qx, qy, qz = self._to_port((qx, qy, qz))  # the port's frame
             rho = dr.sqrt(qx * qx + qy * qy)
             beyond = qz - g - t
             valid = active & (beyond > 0.0)
@@ -278,6 +304,7 @@ class CameraLens:
             unit_y = dr.select(rho > 0.0, qy / rho, 0.0)
             x, y = tau * unit_x, tau * unit_y
             cos_a = dr.rsqrt(1.0 + tau * tau)
+            cos_film = cos_a  # the pinhole ray's angle to the camera's axis
             sin2 = tau * tau * cos_a * cos_a
             cos_p = dr.sqrt(1.0 - sin2 / n_p**2)
             cos_w = dr.sqrt(1.0 - sin2 / n_w**2)
@@ -289,8 +316,14 @@ class CameraLens:
             radial = drho * cos_w + dist * dtheta_w
             azimuthal = g / cos_a + t / (n_p * cos_p) + dist / n_w
             spread = self._radiance_factor(tau * cos_a) / (radial * azimuthal)
-            p = self._center + self._to_lab((rho_exit * unit_x, rho_exit * unit_y,
-                                             mi.Float(g + t)))
+            p = self._center + self._to_lab(self._from_port(
+                (rho_exit * unit_x, rho_exit * unit_y, mi.Float(g + t))))
+            if self._frame is not None:  # the pinhole ray (x, y, 1) turned back to cam
+                ax, ay, az = self._from_port((x, y, mi.Float(1.0)))
+                valid &= az > 0.0
+                az = dr.select(az > 0.0, az, 1.0)
+                x, y = ax / az, ay / az
+                cos_film = dr.rsqrt(1.0 + x * x + y * y)
         det = 1.0
         if self.optics.distorted:
             a, b, d = distortion_jacobian(x, y, self._k)
@@ -298,7 +331,7 @@ class CameraLens:
             valid &= distortion_one_to_one(x, y, self._k)
             x, y = distort(x, y, self._k)
         uv = mi.Point2f(self._f * x + self._c[0] + 0.5, self._f * y + self._c[1] + 0.5)
-        weight = self._norm * det * spread / (cos_a * cos_a * cos_a)
+        weight = self._norm * det * spread / (cos_film * cos_film * cos_film)
         ds = SimpleNamespace(p=p, uv=uv, dist=dist, pdf=dr.select(valid, 1.0, 0.0))
         return ds, dr.select(valid, weight, 0.0)
 

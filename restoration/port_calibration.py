@@ -5,9 +5,10 @@ A camera in a housing is calibrated in two steps, as the field does (Treibitz, S
 (:func:`~restoration.rig_calibration.calibrate_device`), then the port from a dozen views of a
 board in the water. The port's glass (thickness, index) comes from its maker and the water's
 index from the scene; what the housing hides is where the lens sits behind the port, the
-*gap*. :func:`calibrate_port` fits it, with every board's pose, by least squares on the
-corners' pixels through the exact two-refraction model
-(:func:`wai_core.lens.port_pinhole_xy`): the non-central camera's rays, not a pinhole's.
+*gap*, and how far the window's normal is off the lens's axis, its *tilt*. :func:`calibrate_port`
+fits both, with every board's pose, by least squares on the corners' pixels through the exact
+two-refraction model (:func:`wai_core.lens.port_pinhole_xy`): the non-central camera's rays,
+not a pinhole's.
 
 A pinhole fitted to the same views (the focal length free, the port ignored) is reported beside
 it: its residual is what the port's non-centrality costs a model that ignores it.
@@ -27,12 +28,14 @@ from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
 from restoration.rig_calibration import (
+    PORT_TILT_UNDETERMINED,
     PORT_UNDETERMINED,
     BoardSpec,
     DeviceFit,
     board_views,
     fit_covariance,
 )
+from wai_core.config import MAX_PORT_TILT_DEG
 from wai_core.errors import WaiInputError
 from wai_core.lens import port_pinhole_xy, undistort
 
@@ -47,8 +50,12 @@ class PortFit:
     Attributes
     ----------
     gap_mm, sigma_gap_mm : float
-        Air between the lens's pinhole and the port's inner face, and its standard deviation
-        (from the fit's Jacobian and residual), mm.
+        Air between the lens's pinhole and the port's inner face (along its normal), and its
+        standard deviation (from the fit's Jacobian and residual), mm.
+    tilt_deg, sigma_tilt_deg : (2,) tuple of float
+        The port's normal off the optical axis (``port_tilt_deg``: towards ``+x``, ``+y``)
+        and its standard deviations, deg; zeros where the fit held it square
+        (``fit_tilt=False``, ``tilt_fitted`` False).
     thickness_mm, port_n, n_water : float
         The port's thickness and index and the water's, as given (held fixed).
     rms_px : float
@@ -72,23 +79,31 @@ class PortFit:
     rms_px: float
     pinhole_rms_px: float
     view_rms_px: list[float] = field(default_factory=list)
+    tilt_deg: tuple[float, float] = (0.0, 0.0)
+    sigma_tilt_deg: tuple[float, float] = (0.0, 0.0)
+    tilt_fitted: bool = False
     n_used: int = 0
     n_rejected: int = 0
     n_outliers: int = 0
 
     @property
     def undetermined(self) -> tuple[str, ...]:
-        """What the fit does not give (:data:`PORT_UNDETERMINED`)."""
-        return PORT_UNDETERMINED
+        """What the fit does not give (:data:`PORT_UNDETERMINED`, and the tilt where it was
+        held square)."""
+        if self.tilt_fitted:
+            return PORT_UNDETERMINED
+        return (*PORT_UNDETERMINED, PORT_TILT_UNDETERMINED)
 
     def to_config_keys(self, device: str) -> dict[str, Any]:
         """The ``[device]`` port keys this fit sets."""
         return {f"{device}.port_gap_mm": self.gap_mm,
                 f"{device}.port_thickness_mm": self.thickness_mm,
-                f"{device}.port_n": self.port_n}
+                f"{device}.port_n": self.port_n,
+                f"{device}.port_tilt_deg": list(self.tilt_deg)}
 
     def summary(self) -> dict[str, Any]:
         return {"gap_mm": self.gap_mm, "sigma_gap_mm": self.sigma_gap_mm,
+                "tilt_deg": list(self.tilt_deg), "sigma_tilt_deg": list(self.sigma_tilt_deg),
                 "thickness_mm": self.thickness_mm, "port_n": self.port_n,
                 "n_water": self.n_water, "rms_px": self.rms_px,
                 "pinhole_rms_px": self.pinhole_rms_px, "view_rms_px": self.view_rms_px,
@@ -124,9 +139,10 @@ def _sparsity(views: int, corners: int, shared: int) -> lil_matrix:
 def calibrate_port(images: Sequence[NDArray], board: BoardSpec | Any, lens: DeviceFit,
                    thickness_mm: float, port_n: float, n_water: float,
                    image_size: tuple[int, int], gap_start_mm: float = 5.0,
-                   min_views: int = 5) -> PortFit:
-    """Fit the gap behind a flat port from ``images`` (H, W each, ``image_size``) of
-    ``board`` taken through the port in water, the lens calibrated in air (``lens``).
+                   min_views: int = 5, fit_tilt: bool = True) -> PortFit:
+    """Fit the gap behind a flat port, and its tilt, from ``images`` (H, W each,
+    ``image_size``) of ``board`` taken through the port in water, the lens calibrated in air
+    (``lens``).
 
     Parameters
     ----------
@@ -144,6 +160,8 @@ def calibrate_port(images: Sequence[NDArray], board: BoardSpec | Any, lens: Devi
     gap_start_mm : float
         Where the fit starts, mm.
     min_views : int
+    fit_tilt : bool
+        Fit the port's tilt too (from square); False holds it square to the axis.
 
     Returns
     -------
@@ -177,7 +195,8 @@ def calibrate_port(images: Sequence[NDArray], board: BoardSpec | Any, lens: Devi
     found, _, rejected = board_views(images, board, image_size, min_views,
                                      "images through the port")
     seen = [_normalised(corners, lens) for corners in found]
-    first = _fit(np.stack(seen), board, lens, thickness_mm, port_n, n_water, gap_start_mm)
+    first = _fit(np.stack(seen), board, lens, thickness_mm, port_n, n_water, gap_start_mm,
+                 fit_tilt)
     # A view the port model cannot fit (a corner found off its square) would pull the gap:
     # it is set aside, counted, and the rest fitted again.
     rms = np.asarray(first.view_rms_px)
@@ -185,7 +204,7 @@ def calibrate_port(images: Sequence[NDArray], board: BoardSpec | Any, lens: Devi
     fit = first
     if bad.any() and (~bad).sum() >= min_views:
         fit = _fit(np.stack(seen)[~bad], board, lens, thickness_mm, port_n, n_water,
-                   first.gap_mm)
+                   first.gap_mm, fit_tilt)
         fit.n_outliers = int(bad.sum())
     fit.n_rejected = rejected
     return fit
@@ -198,8 +217,9 @@ set aside as an outlier."""
 
 
 def _fit(obs: NDArray, board: BoardSpec, lens: DeviceFit, thickness_mm: float, port_n: float,
-         n_water: float, gap_start_mm: float) -> PortFit:
-    """The gap and the poses fitted to the views' normalised corners ``obs`` (V, K, 2)."""
+         n_water: float, gap_start_mm: float, fit_tilt: bool = True) -> PortFit:
+    """The gap (and the tilt) and the poses fitted to the views' normalised corners ``obs``
+    (V, K, 2)."""
     obj = board.corners_mm().astype(np.float64)
     views, corners = obs.shape[:2]
     f_px = lens.fy_px
@@ -212,9 +232,12 @@ def _fit(obs: NDArray, board: BoardSpec, lens: DeviceFit, thickness_mm: float, p
         poses.append(np.concatenate([rvec.ravel(), tvec.ravel()]))
     pose0 = np.asarray(poses)
 
+    shared = 3 if fit_tilt else 1  # gap, then the tilt's two angles (deg)
+
     def port_residual(p: NDArray) -> NDArray:
-        pts = _poses_to_cam(p[1:].reshape(views, 6), obj)
-        x, y, ok = port_pinhole_xy(pts, p[0], thickness_mm, port_n, n_water)
+        pts = _poses_to_cam(p[shared:].reshape(views, 6), obj)
+        tilt = (p[1], p[2]) if fit_tilt else (0.0, 0.0)
+        x, y, ok = port_pinhole_xy(pts, p[0], thickness_mm, port_n, n_water, tilt)
         xy = np.where(ok[..., None], np.stack([x, y], axis=-1), np.nan)
         r = (xy - obs) * f_px
         return np.nan_to_num(r, nan=1e3).ravel()
@@ -223,17 +246,24 @@ def _fit(obs: NDArray, board: BoardSpec, lens: DeviceFit, thickness_mm: float, p
         pts = _poses_to_cam(p[1:].reshape(views, 6), obj)
         return ((pts[..., :2] / pts[..., 2:] * p[0] - obs) * f_px).ravel()
 
-    x0 = np.concatenate([[gap_start_mm], pose0.ravel()])
-    fit = least_squares(port_residual, x0, jac_sparsity=_sparsity(views, corners, 1),
-                        bounds=(np.r_[0.0, np.full(6 * views, -np.inf)], np.inf),
+    start = [gap_start_mm, 0.0, 0.0][:shared]
+    x0 = np.concatenate([start, pose0.ravel()])
+    limit = np.full(shared - 1, MAX_PORT_TILT_DEG)
+    fit = least_squares(port_residual, x0, jac_sparsity=_sparsity(views, corners, shared),
+                        bounds=(np.r_[0.0, -limit, np.full(6 * views, -np.inf)],
+                                np.r_[np.inf, limit, np.full(6 * views, np.inf)]),
                         x_scale="jac", method="trf")
     pinhole = least_squares(pinhole_residual, np.concatenate([[n_water], pose0.ravel()]),
                             jac_sparsity=_sparsity(views, corners, 1), x_scale="jac",
                             method="trf")
     res = fit.fun.reshape(views, corners, 2)
     cov = fit_covariance(fit)
+    sd = np.sqrt(np.clip(np.diag(cov)[:shared], 0.0, None))
+    tilt = (float(fit.x[1]), float(fit.x[2])) if fit_tilt else (0.0, 0.0)
+    sigma_tilt = (float(sd[1]), float(sd[2])) if fit_tilt else (0.0, 0.0)
     return PortFit(
-        gap_mm=float(fit.x[0]), sigma_gap_mm=float(np.sqrt(max(cov[0, 0], 0.0))),
+        gap_mm=float(fit.x[0]), sigma_gap_mm=float(sd[0]),
+        tilt_deg=tilt, sigma_tilt_deg=sigma_tilt, tilt_fitted=bool(fit_tilt),
         thickness_mm=float(thickness_mm), port_n=float(port_n), n_water=float(n_water),
         rms_px=float(np.sqrt(np.mean(np.sum(res**2, axis=-1)))),
         pinhole_rms_px=float(np.sqrt(np.mean(pinhole.fun**2) * 2)),

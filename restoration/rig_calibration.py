@@ -26,7 +26,8 @@ from wai_core.errors import WaiInputError
 from wai_core.io import write_json
 
 __all__ = [
-    "PORT_UNDETERMINED", "PROJECTOR_PORT_UNDETERMINED", "RIG_FORMAT", "UNDETERMINED", "BoardSpec",
+    "PORT_TILT_UNDETERMINED", "PORT_UNDETERMINED", "PROJECTOR_PORT_UNDETERMINED",
+    "PROJECTOR_TILT_UNDETERMINED", "RIG_FORMAT", "UNDETERMINED", "BoardSpec",
     "DeviceFit", "FlatFit", "board_views", "calibrate_device", "find_corners", "is_written_rig",
     "read_rig", "refine_on_flat_water", "rig_keys", "rig_undetermined", "write_rig",
 ]
@@ -47,10 +48,15 @@ PROJECTOR_PORT_UNDETERMINED = ("the projector's port (its images are not a camer
 """What board views cannot give of the projector (``wai calibrate --flat`` can)."""
 PORT_UNDETERMINED = (
     "the port's thickness and index (its maker's: taken from --config)",
-    "the port's tilt (taken as normal to the optical axis)",
     PROJECTOR_PORT_UNDETERMINED,
 )
 """What a port's board views are not asked to give."""
+PORT_TILT_UNDETERMINED = ("a camera port's tilt, where its fit held the port square to the "
+                          "optical axis")
+"""Left undetermined by a port fit that did not fit the tilt (``fit_tilt=False``)."""
+PROJECTOR_TILT_UNDETERMINED = ("the projector port's tilt (the flat-water fit takes it from "
+                               "--config)")
+"""Left undetermined by ``calibrate --flat``, which fits the projector port's gap alone."""
 
 
 @dataclass(frozen=True)
@@ -273,7 +279,7 @@ def rig_undetermined(ports: dict[str, Any] | None = None,
     out = list(UNDETERMINED)
     told = [port.undetermined for port in (ports or {}).values()]
     if flat is not None and flat.fits_projector_port:
-        told.append(PORT_UNDETERMINED)
+        told.append((*PORT_UNDETERMINED, PROJECTOR_TILT_UNDETERMINED))
     for items in told:
         out += [u for u in items if u not in out]
     if flat is not None and flat.fits_projector_port:

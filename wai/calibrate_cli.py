@@ -133,8 +133,10 @@ def run_calibrate(args: argparse.Namespace) -> None:
               f"{s['k1']:.4f}, k2 {k2:.4f} +- {s['k2']:.4f}; RMS {fit.rms_px:.3f} px over "
               f"{fit.n_used} views ({fit.n_rejected} without the board)")
     for camera, port in ports.items():
+        (tx, ty), (sx, sy) = port.tilt_deg, port.sigma_tilt_deg
         print(f"{camera} port: gap {port.gap_mm:.3f} +- {port.sigma_gap_mm:.3f} mm behind "
-              f"{port.thickness_mm:g} mm of index {port.port_n:g} (given); RMS "
+              f"{port.thickness_mm:g} mm of index {port.port_n:g} (given), tilted "
+              f"{tx:.2f} +- {sx:.2f}, {ty:.2f} +- {sy:.2f} deg; RMS "
               f"{port.rms_px:.3f} px over {port.n_used} views in water ({port.n_rejected} "
               f"without the board, {port.n_outliers} set aside); a pinhole's "
               f"{port.pinhole_rms_px:.3f} px")
@@ -272,6 +274,7 @@ def run_checkerboards(args: argparse.Namespace, cfg: Any) -> None:
                 for k, img in enumerate(images):
                     write_png(wet / f"board_{k:03d}.png", img)
                 truth[camera].update(port_gap_mm=dev.port_gap_mm,
+                                     port_tilt_deg=list(dev.port_tilt_deg),
                                      port_thickness_mm=dev.port_thickness_mm,
                                      port_n=dev.port_n)
         write_json(tmp / "checkerboards" / BOARD_FILE, board.to_dict())

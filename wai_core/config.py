@@ -192,6 +192,9 @@ MAX_REFERENCE_FRAMES = 1024
 """Most noisy frames averaged into a simulated flat-water reference (each is simulated)."""
 ROTATION_TOLERANCE = 1e-3
 """Largest |R^T R - I| entry accepted for a device's rotation (Table 1's rounding is 5e-5)."""
+MAX_PORT_TILT_DEG = 30.0
+"""Largest tilt of a housing port's normal off its device's axis, deg (``port_tilt_deg``): a
+window that far off square is a mounting error, not a housing."""
 
 
 def config_from_dict(data: dict[str, Any]) -> SystemConfig:
@@ -412,6 +415,16 @@ def _check_device_optics(dev: DeviceConfig, name: str) -> None:
     if dev.port_thickness_mm < 0 or dev.port_gap_mm <= 0 or dev.port_n <= 1:
         raise WaiInputError(
             f"config: [{name}] needs port_thickness_mm >= 0, port_gap_mm > 0 and port_n > 1"
+        )
+    tilt = tuple(float(v) for v in dev.port_tilt_deg)
+    if len(tilt) != 2 or not all(np.isfinite(v) and abs(v) <= MAX_PORT_TILT_DEG for v in tilt):
+        raise WaiInputError(
+            f"config: [{name}].port_tilt_deg must be two angles within +-{MAX_PORT_TILT_DEG:g} "
+            f"deg, not {list(dev.port_tilt_deg)}"
+        )
+    if any(tilt) and not dev.port_thickness_mm > 0:
+        raise WaiInputError(
+            f"config: [{name}].port_tilt_deg tilts a port: it needs port_thickness_mm > 0"
         )
     if dev.aperture_mm < 0:
         raise WaiInputError(f"config: [{name}].aperture_mm must be >= 0, not {dev.aperture_mm:g}")

@@ -21,6 +21,13 @@ The geometric model (:class:`wai_core.geometry.PinholeCamera`) is an ideal pinho
     A flat window perpendicular to the optical axis: air from the pinhole to ``z_cam = gap``,
     the port's material to ``z_cam = gap + thickness``, then the water. Thickness 0: no housing,
     the pinhole sits in the water (the geometric model's device).
+``port_tilt_deg``
+    ``(a_x, a_y)``: the port's normal tilted off the optical axis, towards ``+x_cam`` by
+    ``a_x`` and towards ``+y_cam`` by ``a_y`` (the normal is ``(tan a_x, tan a_y, 1)``
+    normalised; a housing whose window is not square to the lens). The gap is then measured
+    along that normal. The port's maps are those of an untilted port in the port's own frame
+    (:func:`port_axes`: its z axis the normal), where the rays are again symmetric about an
+    axis through the pinhole.
 
 A pixel's ray: the pixel minus the principal point over the focal length is the distorted
 normalised point; undistorting it (Newton's method on the map above) gives the pinhole ray's
@@ -56,6 +63,7 @@ __all__ = [
     "distortion_jacobian",
     "distortion_fold_r2",
     "distortion_one_to_one",
+    "port_axes",
     "port_invert",
     "port_pinhole_xy",
     "port_refract",
@@ -196,6 +204,36 @@ def undistort(
     return x, y
 
 
+def port_axes(tilt_deg: tuple[float, float]) -> Array:
+    """The port's frame for a tilt ``(a_x, a_y)``, deg: a (3, 3) rotation whose rows are the
+    port frame's axes in ``cam`` (``v_port = M v_cam``), its third row the port's normal
+    ``(tan a_x, tan a_y, 1)`` normalised; the smallest rotation that takes the optical axis
+    there (about ``axis x normal``). The identity, exactly, for no tilt.
+
+    Examples
+    --------
+    >>> m = port_axes((10.0, 0.0))
+    >>> np.round(m[2], 6).tolist()  # the normal, 10 degrees towards +x
+    [0.173648, 0.0, 0.984808]
+    >>> bool(np.allclose(m @ m.T, np.eye(3)))
+    True
+    """
+    ax, ay = (float(v) for v in tilt_deg)
+    if ax == 0.0 and ay == 0.0:
+        return np.eye(3)
+    n = np.array([np.tan(np.radians(ax)), np.tan(np.radians(ay)), 1.0])
+    n /= np.linalg.norm(n)
+    # Rodrigues: the rotation about k = z x n (unit) by the angle between z and n takes z to n;
+    # its transpose takes n to z, so its rows are the port's axes in cam.
+    k = np.array([-n[1], n[0], 0.0])
+    sin = np.linalg.norm(k)
+    k /= sin
+    cos = n[2]
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    to_n = np.eye(3) + sin * kx + (1.0 - cos) * (kx @ kx)
+    return to_n.T
+
+
 def port_refract(
     origin: tuple[Any, Any, Any], direction: tuple[Any, Any, Any], gap_mm: float,
     thickness_mm: float, n_port: float, n_water: float, sqrt: Callable[[Any], Any],
@@ -292,10 +330,13 @@ def port_invert(
 
 
 def port_pinhole_xy(points_cam_mm: Any, gap_mm: float, thickness_mm: float, n_port: float,
-                    n_water: float) -> tuple[Array, Array, NDArray[np.bool_]]:
+                    n_water: float, tilt_deg: tuple[float, float] = (0.0, 0.0),
+                    ) -> tuple[Array, Array, NDArray[np.bool_]]:
     """Where the pinhole rays that reach ``points_cam_mm`` (..., 3), in the water beyond a
     flat port, cross the plane ``z = 1`` (``cam`` frame): ``x, y`` (...,) and whether each
-    point lies beyond the port and its ray exists (:func:`port_invert` converged).
+    point lies beyond the port and its ray exists (:func:`port_invert` converged). A port
+    tilted by ``tilt_deg`` (module notes) is solved in its own frame (:func:`port_axes`) and
+    the pinhole ray turned back to ``cam``.
 
     Examples
     --------
@@ -304,6 +345,10 @@ def port_pinhole_xy(points_cam_mm: Any, gap_mm: float, thickness_mm: float, n_po
     ([0.0], [0.0], [True])
     """
     p = np.asarray(points_cam_mm, dtype=float)
+    tilted = any(float(v) != 0.0 for v in tilt_deg)
+    m = port_axes(tilt_deg) if tilted else None
+    if tilted:
+        p = p @ m.T
     rho = np.hypot(p[..., 0], p[..., 1])
     beyond = p[..., 2] - gap_mm - thickness_mm
     valid = beyond > 0
@@ -311,7 +356,13 @@ def port_pinhole_xy(points_cam_mm: Any, gap_mm: float, thickness_mm: float, n_po
                            n_water, np.sqrt)
     valid &= np.abs(res) < 1e-9 * np.maximum(1.0, rho)
     scale = np.where(rho > 0, tau / np.where(rho > 0, rho, 1.0), 0.0)
-    return p[..., 0] * scale, p[..., 1] * scale, valid
+    x, y = p[..., 0] * scale, p[..., 1] * scale
+    if not tilted:
+        return x, y, valid
+    a = np.stack([x, y, np.ones(x.shape)], axis=-1) @ m
+    az = a[..., 2]
+    safe = np.where(az > 0, az, 1.0)
+    return a[..., 0] / safe, a[..., 1] / safe, valid & (az > 0)
 
 
 def port_transmittance(sin_air: Any, n_port: float, n_water: float,
@@ -365,7 +416,9 @@ class DeviceOptics:
     port_thickness_mm : float
         0: no port (the pinhole in the water).
     port_gap_mm, port_n : float
-        Air between the pinhole and the port, mm; the port's index.
+        Air between the pinhole and the port (along its normal), mm; the port's index.
+    port_tilt_deg : (2,) tuple of float
+        The port's normal off the optical axis, deg (module notes; (0, 0): square to it).
 
     Examples
     --------
@@ -383,6 +436,7 @@ class DeviceOptics:
     port_thickness_mm: float = 0.0
     port_gap_mm: float = 5.0
     port_n: float = 1.49
+    port_tilt_deg: tuple[float, float] = (0.0, 0.0)
 
     @classmethod
     def from_config(cls, dev: Any) -> DeviceOptics:
@@ -396,7 +450,8 @@ class DeviceOptics:
         cx = (cam.width_px - 1) / 2.0 + float(dev.principal_offset_px[0])
         cy = (cam.height_px - 1) / 2.0 + float(dev.principal_offset_px[1])
         return cls(cam, (cx, cy), tuple(float(v) for v in dev.distortion),
-                   float(dev.port_thickness_mm), float(dev.port_gap_mm), float(dev.port_n))
+                   float(dev.port_thickness_mm), float(dev.port_gap_mm), float(dev.port_n),
+                   tuple(float(v) for v in dev.port_tilt_deg))
 
     @property
     def distorted(self) -> bool:
@@ -407,6 +462,16 @@ class DeviceOptics:
     def has_port(self) -> bool:
         """True with a housing port (``port_thickness_mm > 0``)."""
         return self.port_thickness_mm > 0.0
+
+    @property
+    def port_tilted(self) -> bool:
+        """True with a port whose normal is off the optical axis."""
+        return self.has_port and any(v != 0.0 for v in self.port_tilt_deg)
+
+    @property
+    def port_frame(self) -> Array:
+        """The port's axes in ``cam`` (:func:`port_axes`), (3, 3)."""
+        return port_axes(self.port_tilt_deg)
 
     @property
     def lens_free(self) -> bool:
@@ -456,9 +521,14 @@ class DeviceOptics:
         if not self.has_port:
             return np.zeros(d.shape), d, d
         zero = np.zeros(u.shape)
-        p, w, _ = port_refract((zero, zero, zero), (d[..., 0], d[..., 1], d[..., 2]),
+        m = self.port_frame
+        dp = d @ m.T if self.port_tilted else d  # in the port's frame
+        p, w, _ = port_refract((zero, zero, zero), (dp[..., 0], dp[..., 1], dp[..., 2]),
                                *self._port(n_water), np.sqrt)
-        return np.stack(p, axis=-1), np.stack(w, axis=-1), d
+        p, w = np.stack(p, axis=-1), np.stack(w, axis=-1)
+        if self.port_tilted:
+            p, w = p @ m, w @ m
+        return p, w, d
 
     def pinhole_px(self, px: ArrayLike) -> Array:
         """Pixels (K, 2) of the ideal pinhole (:attr:`camera`) whose rays are this device's
@@ -556,7 +626,7 @@ class DeviceOptics:
             x, y = p[..., 0] / safe, p[..., 1] / safe
             valid = z > 0
         else:
-            x, y, valid = port_pinhole_xy(p, *self._port(n_water))
+            x, y, valid = port_pinhole_xy(p, *self._port(n_water), self.port_tilt_deg)
         if self.distorted:
             valid = valid & distortion_one_to_one(x, y, self.distortion)
             x, y = distort(x, y, self.distortion)
@@ -583,5 +653,6 @@ class DeviceOptics:
         d = np.asarray(dirs_pinhole_cam, dtype=float)
         if not self.has_port:
             return np.ones(d.shape[:-1])
-        sin_air = np.sqrt(np.clip(1.0 - d[..., 2] ** 2, 0.0, None))
+        cos_air = d[..., 2] if not self.port_tilted else d @ self.port_frame[2]
+        sin_air = np.sqrt(np.clip(1.0 - cos_air**2, 0.0, None))
         return port_transmittance(sin_air, self.port_n, n_water, np.sqrt) / n_water**2

@@ -79,6 +79,9 @@ class DeviceConfig:
     """Air between the pinhole and the port's inner face, mm."""
     port_n: float = 1.49
     """The port's refractive index (1.49: acrylic; 1.52: glass)."""
+    port_tilt_deg: tuple[float, float] = (0.0, 0.0)
+    """The port's normal off the optical axis, towards ``+x_cam`` and ``+y_cam``, deg
+    (:mod:`wai_core.lens`); ``port_gap_mm`` is then measured along the normal."""
     aperture_mm: float = 0.0
     """Projector only: lens aperture diameter, mm (0: a pinhole, every dot in focus)."""
     focus_mm: float = 0.0

@@ -117,7 +117,7 @@ def _residual(optics, port, camera, x, y, h, hx, hy, hxx, hxy, hyy, tx, ty):
     with the point: ``h`` by its slopes, the slopes by the second derivatives ``hxx, hxy,
     hyy`` (a forward difference took two more evaluations of the miss).
 
-    Behind a port (``port`` (4,), :func:`wai_core.port.pack_port`, thickness > 0) the ray
+    Behind a port (``port`` (13,), :func:`wai_core.port.pack_port`, thickness > 0) the ray
     comes from the point of the axis where the port's water ray to ``(x, y, h)`` meets it
     (:func:`wai_core.port.port_ray`, with ``camera`` (15,) packed); the Jacobian takes that
     point as fixed (it moves ~1e-3 as fast as the surface point: Newton stays near-quadratic).
@@ -294,7 +294,7 @@ def newton_chunk(chunk, n_chunks, flat, h0, table, cell_ok, gx, gy, optics, port
         The spline surface (:func:`spline_jet`).
     optics : (5,) ndarray
         Camera centre (mm), refractive index, object-plane height (mm).
-    port : (4,) ndarray
+    port : (13,) ndarray
         The camera's port (:func:`wai_core.port.pack_port`; thickness 0: a pinhole).
     camera : (15,) ndarray
         Projection constants (:func:`_project`).

@@ -20,8 +20,9 @@ PORT_V = {"camera_v.port_thickness_mm": 5.0, "camera_v.port_gap_mm": 3.0,
 
 
 @pytest.mark.slow
-def test_the_gap_behind_a_port_is_found_and_a_pinhole_cannot_fit_the_views():
-    cfg = with_keys(load_system("paper"), PORT_V)
+@pytest.mark.parametrize("tilt_deg", [(0.0, 0.0), (3.0, -2.0)])
+def test_the_gap_behind_a_port_is_found_and_a_pinhole_cannot_fit_the_views(tilt_deg):
+    cfg = with_keys(load_system("paper"), {**PORT_V, "camera_v.port_tilt_deg": list(tilt_deg)})
     dev = cfg.camera_v
     size = (dev.height_px, dev.width_px)
     lens = calibrate_device(render_checkerboards(cfg, "camera_v", 10, seed=3), Board(), size)
@@ -30,8 +31,16 @@ def test_the_gap_behind_a_port_is_found_and_a_pinhole_cannot_fit_the_views():
     assert fit.n_used + fit.n_outliers == 10
     assert abs(fit.gap_mm - 3.0) < max(3 * fit.sigma_gap_mm, 0.3), fit.summary()
     assert 0 < fit.sigma_gap_mm < 0.5
+    assert fit.tilt_fitted and "tilt" not in " ".join(fit.undetermined)
+    for got, true, sigma in zip(fit.tilt_deg, tilt_deg, fit.sigma_tilt_deg, strict=True):
+        assert abs(got - true) < max(3 * sigma, 0.1) and 0 < sigma < 0.1, fit.summary()
     assert fit.rms_px < 0.2  # the board renders' noise and the lens's fit
     assert fit.pinhole_rms_px > 10 * fit.rms_px  # the port makes the camera non-central
+    if any(tilt_deg):  # a port held square cannot fit a tilted one's views
+        square = calibrate_port(water, Board(), lens, 5.0, dev.port_n, cfg.water.n_water, size,
+                                fit_tilt=False)
+        assert square.rms_px > 3 * fit.rms_px and not square.tilt_fitted
+        assert any("tilt" in u for u in square.undetermined)
 
 
 def test_water_boards_need_a_port_and_a_port_needs_thickness():
@@ -75,8 +84,11 @@ def test_a_rig_with_ports_calibrated_from_the_command_line_restores_like_the_tru
                         "port_gap_mm = 3.0\ndistortion = [-0.1, 0.02, 0.0, 0.0, 0.0]\n", 1)
     text = text.replace("[camera_s]\n", "[camera_s]\nport_thickness_mm = 5.0\n"
                         "port_gap_mm = 4.0\n", 1)
-    scene.write_text(text.replace("[projector]\n", "[projector]\nport_thickness_mm = 5.0\n"
-                                  "port_gap_mm = 2.5\n", 1))
+    # Camera v's window 2.5 degrees off square, which the guess does not know.
+    tilted = text.replace("port_gap_mm = 3.0\n",
+                          "port_gap_mm = 3.0\nport_tilt_deg = [2.0, -1.5]\n", 1)
+    scene.write_text(tilted.replace("[projector]\n", "[projector]\nport_thickness_mm = 5.0\n"
+                                    "port_gap_mm = 2.5\n", 1))
     guess.write_text(text.replace("[projector]\n", "[projector]\nport_thickness_mm = 5.0\n"
                                   "port_gap_mm = 1.0\n", 1))
     boards, frame = tmp_path / "boards", tmp_path / "frame"
@@ -93,10 +105,16 @@ def test_a_rig_with_ports_calibrated_from_the_command_line_restores_like_the_tru
     assert "projector port on flat water: gap" in printed
     assert "the projector's port" not in printed.split("not determined:")[1]
     record = json.loads(rig.read_text())
-    for camera, gap in (("camera_v", 3.0), ("camera_s", 4.0)):
+    for camera, gap, tilt in (("camera_v", 3.0, (2.0, -1.5)), ("camera_s", 4.0, (0.0, 0.0))):
         port = record["ports"][camera]
         assert abs(port["gap_mm"] - gap) < max(3 * port["sigma_gap_mm"], 0.3), port
         assert record["config_keys"][f"{camera}.port_thickness_mm"] == 5.0
+        assert truth[camera]["port_tilt_deg"] == list(tilt)
+        for got, true, sigma in zip(port["tilt_deg"], tilt, port["sigma_tilt_deg"],
+                                     strict=True):
+            assert abs(got - true) < max(3 * sigma, 0.1), port
+        assert record["config_keys"][f"{camera}.port_tilt_deg"] == port["tilt_deg"]
+    assert "camera_v port: gap" in printed and "tilted 2." in printed
     # The spots leave the gap correlated with camera s's lens as its boards left it: its
     # sigma carries that, and the true gap lies within three of them.
     gap = record["config_keys"]["projector.port_gap_mm"]

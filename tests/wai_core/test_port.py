@@ -104,3 +104,69 @@ def test_a_rig_without_ports_keeps_its_pinholes(paper_cfg):
     o, _ = rig.dot_rays
     assert o.shape == (3,)
     assert pack_port(rig.camera_v)[1] == 0.0
+
+
+def _vector_snell(d, normal, n1, n2):
+    """Refract unit rays ``d`` (K, 3) at a plane of unit ``normal`` (facing along them) from
+    index ``n1`` into ``n2``: the vector form of Snell's law (tangential part scaled by
+    n1 / n2, the normal part what keeps the ray unit)."""
+    cos_i = d @ normal
+    tangential = d - cos_i[:, None] * normal
+    t = tangential * (n1 / n2)
+    cos_t = np.sqrt(1.0 - np.sum(t * t, axis=1))
+    return t + cos_t[:, None] * normal
+
+
+@pytest.mark.parametrize("tilt", [(6.0, 0.0), (-4.0, 9.0)])
+def test_a_tilted_port_refracts_at_its_own_faces(paper_cfg, tilt):
+    # The port's faces are the planes n . x = gap and gap + t, n = (tan a_x, tan a_y, 1)
+    # normalised (the docs' definition), refracting by Snell's law in vector form: written
+    # here from the pixel's air ray, not from the port's frame the code works in.
+    thick, gap, n_port = 6.0, 3.0, 1.52
+    cfg = with_keys(_port_cfg(paper_cfg, "camera_v", thick, gap, n_port),
+                    {"camera_v.port_tilt_deg": list(tilt)})
+    cam = PortCamera(cfg.rig.optics("camera_v"), N_WATER)
+    pose, f = cam.pose, cam.focal_px
+    n = np.array([np.tan(np.radians(tilt[0])), np.tan(np.radians(tilt[1])), 1.0])
+    n /= np.linalg.norm(n)
+    rng = np.random.default_rng(5)
+    pix = rng.uniform([0, 0], [799, 599], (30, 2))
+    air = np.column_stack([pix[:, 0] - 399.5, pix[:, 1] - 299.5, np.full(30, f)])
+    air /= np.linalg.norm(air, axis=1, keepdims=True)
+    inner = air * (gap / (air @ n))[:, None]
+    glass = _vector_snell(air, n, 1.0, n_port)
+    outer = inner + glass * (thick / (glass @ n))[:, None]
+    water = _vector_snell(glass, n, n_port, N_WATER)
+    o, d = cam.pixel_rays(pix[:, 0], pix[:, 1])
+    np.testing.assert_allclose(pose.points_to_cam(o), outer, atol=1e-9)
+    np.testing.assert_allclose(d @ pose.R.T, water, atol=1e-12)
+    # The tilt matters: the untilted port's rays leave several pixels' worth elsewhere.
+    square = PortCamera(_port_cfg(paper_cfg, "camera_v", thick, gap, n_port)
+                        .rig.optics("camera_v"), N_WATER)
+    assert np.degrees(np.arccos(np.clip(np.sum(square.pixel_rays(*pix.T)[1] * d, axis=1),
+                                        -1, 1))).max() > 1.0
+    # Projection inverts it, and port_ray's axis point lies on each water ray (the port's
+    # normal through the pinhole: the camera stays axial about it).
+    p = o + 250.0 * d
+    cols, rows, ok = cam.project(p)
+    assert ok.all()
+    np.testing.assert_allclose(np.column_stack([cols, rows]), pix, atol=1e-7)
+    packed, port = pack_camera(cam.camera), pack_port(cam)
+    axis_lab = pose.R.T @ n
+    for k in range(len(p)):
+        ax, ay, az, c, r = port_ray(port, packed, *p[k])
+        a = np.array([ax, ay, az]) - pose.center_lab_mm
+        assert np.linalg.norm(np.cross(a, axis_lab)) < 1e-9  # on the port's axis
+        w = p[k] - np.array([ax, ay, az])
+        np.testing.assert_allclose(w / np.linalg.norm(w), d[k], atol=1e-10)
+        np.testing.assert_allclose([c, r], pix[k], atol=1e-7)
+
+
+def test_a_tilt_needs_a_port_and_a_plausible_angle(paper_cfg):
+    from wai_core.errors import WaiInputError
+
+    with pytest.raises(WaiInputError, match=r"\[camera_s\].port_tilt_deg tilts a port"):
+        with_keys(paper_cfg, {"camera_s.port_tilt_deg": [2.0, 0.0]})
+    with pytest.raises(WaiInputError, match=r"\[projector\].port_tilt_deg must be two angles"):
+        with_keys(_port_cfg(paper_cfg, "projector", 5.0, 5.0),
+                  {"projector.port_tilt_deg": [45.0, 0.0]})
