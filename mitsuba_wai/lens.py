@@ -66,17 +66,9 @@ from typing import Any
 
 from mitsuba_wai.variant import mitsuba
 from wai_core.config import DeviceConfig, SystemConfig
+from wai_core.distortion import distort, distortion_jacobian, distortion_one_to_one, undistort
 from wai_core.errors import WaiInputError
-from wai_core.lens import (
-    DeviceOptics,
-    distort,
-    distortion_jacobian,
-    distortion_one_to_one,
-    port_invert,
-    port_refract,
-    port_transmittance,
-    undistort,
-)
+from wai_core.lens import DeviceOptics, port_invert, port_refract, port_transmittance
 
 __all__ = ["CameraLens", "lens_keys", "scene_lenses"]
 
@@ -158,7 +150,8 @@ class CameraLens:
         return port_transmittance(sin_air, n_p, n_w, dr.sqrt) / n_w**2
 
     def undistort(self, x_d: Any, y_d: Any) -> tuple[Any, Any, Any]:
-        """Undistorted normalised coordinates of distorted ones (:func:`wai_core.lens.undistort`).
+        """Undistorted normalised coordinates of distorted ones
+        (:func:`wai_core.distortion.undistort`).
 
         Parameters
         ----------

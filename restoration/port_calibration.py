@@ -36,8 +36,9 @@ from restoration.rig_calibration import (
     fit_covariance,
 )
 from wai_core.config import MAX_PORT_TILT_DEG
+from wai_core.distortion import undistort
 from wai_core.errors import WaiInputError
-from wai_core.lens import port_pinhole_xy, undistort
+from wai_core.lens import port_pinhole_xy
 
 __all__ = ["PortFit", "calibrate_port"]
 

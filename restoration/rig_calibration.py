@@ -279,7 +279,8 @@ def rig_undetermined(ports: dict[str, Any] | None = None,
     out = list(UNDETERMINED)
     told = [port.undetermined for port in (ports or {}).values()]
     if flat is not None and flat.fits_projector_port:
-        told.append((*PORT_UNDETERMINED, PROJECTOR_TILT_UNDETERMINED))
+        tilt = () if flat.fits_projector_tilt else (PROJECTOR_TILT_UNDETERMINED,)
+        told.append((*PORT_UNDETERMINED, *tilt))
     for items in told:
         out += [u for u in items if u not in out]
     if flat is not None and flat.fits_projector_port:
@@ -325,6 +326,8 @@ def read_rig(path: str | Path) -> dict[str, Any]:
 
 PROJECTOR_GAP = "projector.port_gap_mm"
 """The configuration key of the projector port's gap (fitted on flat water)."""
+PROJECTOR_TILT = "projector.port_tilt_deg"
+"""The configuration key of the projector port's tilt (fitted on flat water when asked)."""
 
 
 @dataclass
@@ -336,7 +339,8 @@ class FlatFit:
     ----------
     config_keys : dict
         ``camera_s.focal_mm`` and ``camera_s.principal_offset_px``, refined; with a projector
-        port, ``projector.port_gap_mm`` too.
+        port, ``projector.port_gap_mm`` too, and ``projector.port_tilt_deg`` where its tilt
+        was fitted.
     rms_before_px, rms_after_px : float
         The flat-water residual (detected against predicted spots, RMS px) before and after.
     n_spots : int
@@ -344,7 +348,8 @@ class FlatFit:
     sigma : dict of str to float
         Standard deviation of each fitted number (``camera_s.focal_mm``, mm;
         ``camera_s.principal_offset_px``, its larger axis, px; ``projector.port_gap_mm``,
-        mm), from the fit's Jacobian and residual.
+        mm; ``projector.port_tilt_deg``, its larger axis, deg), from the fit's Jacobian and
+        residual.
     """
 
     config_keys: dict[str, Any]
@@ -358,6 +363,11 @@ class FlatFit:
         """Whether the projector port's gap was fitted."""
         return PROJECTOR_GAP in self.config_keys
 
+    @property
+    def fits_projector_tilt(self) -> bool:
+        """Whether the projector port's tilt was fitted."""
+        return PROJECTOR_TILT in self.config_keys
+
 
 def fit_covariance(fit: Any) -> NDArray:
     """The covariance (n, n) of a ``scipy.optimize.least_squares`` result's n parameters: the
@@ -370,7 +380,8 @@ def fit_covariance(fit: Any) -> NDArray:
 
 def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0,
                          projector_port: bool | None = None,
-                         held: Sequence[dict[str, Any]] = ()) -> FlatFit:
+                         held: Sequence[dict[str, Any]] = (),
+                         projector_tilt: bool = False) -> FlatFit:
     """Refine camera s's focal length and principal point so that the flat-water pattern's
     spots land where the rig predicts them (its poses, diffuser and water level taken as
     known; the lens's distortion as calibrated: freeing k1, k2 too trades them against the
@@ -399,6 +410,8 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0,
         repeated with each, and the change of every fitted number joins its ``sigma`` in
         quadrature. The spots alone leave the port's gap correlated with camera s's lens, so
         without these the gap's sigma is the spots' noise only.
+    projector_tilt : bool
+        Fit the projector port's tilt too (with its gap), from the configuration's tilt.
 
     Raises
     ------
@@ -421,12 +434,18 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0,
     if port and not cfg.projector.port_thickness_mm > 0:
         raise WaiInputError("refine_on_flat_water: the projector has no port to fit "
                             "([projector].port_thickness_mm is 0)")
+    tilt = bool(projector_tilt)
+    if tilt and not port:
+        raise WaiInputError("refine_on_flat_water: the projector port's tilt is fitted with "
+                            "its gap (projector_port)")
 
     def rig(p: NDArray, base: Any = cfg) -> Any:
         keys = {"camera_s.focal_mm": float(p[0]),
                 "camera_s.principal_offset_px": [float(p[1]), float(p[2])]}
-        if port:  # a gap must stay positive: fitted as its logarithm
-            keys[PROJECTOR_GAP] = float(np.exp(p[3]))
+        if port:  # a gap must stay positive: fitted as its logarithm (kept to 1 um .. 1 m)
+            keys[PROJECTOR_GAP] = float(np.exp(np.clip(p[3], -7.0, 7.0)))
+        if tilt:
+            keys[PROJECTOR_TILT] = [float(p[4]), float(p[5])]
         return with_keys(base, keys)
 
     def predicted(p: NDArray, base: Any = cfg) -> tuple[NDArray, NDArray]:
@@ -440,6 +459,9 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0,
     if port:
         start = np.append(start, np.log(cfg.projector.port_gap_mm))
         scale = np.append(scale, 0.1)
+    if tilt:
+        start = np.append(start, [float(v) for v in cfg.projector.port_tilt_deg])
+        scale = np.append(scale, [0.1, 0.1])
 
     def pairs_at(p: NDArray) -> tuple[NDArray, NDArray]:
         seen, pred = predicted(p)
@@ -460,9 +482,26 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0,
         return residual
 
     # Spots are paired with the nearest prediction, which moves as the fit does: pair again
-    # until the pairs hold.
+    # until the pairs hold. A tilt moves every spot (a degree: ~4 px), the gap bends the outer
+    # ones: the tilt is found first with the gap held, so that a gap fitted against pairs
+    # the tilt has not yet put right cannot run off.
     pairs = pairs_at(start)
     x = start
+    if tilt:
+        free = np.array([0, 1, 2, 4, 5])
+
+        def partial(q: NDArray) -> NDArray:
+            full = x.copy()
+            full[free] = q
+            return residual_of(pairs)(full)
+
+        for _ in range(4):
+            x = x.copy()
+            x[free] = least_squares(partial, x[free], x_scale=scale[free], method="lm").x
+            again = pairs_at(x)
+            if len(again[0]) == len(pairs[0]) and all(map(np.array_equal, again, pairs)):
+                break
+            pairs = again
     for _ in range(4):
         x = least_squares(residual_of(pairs), x, x_scale=scale, method="lm").x
         again = pairs_at(x)
@@ -489,4 +528,7 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0,
     if port:
         keys[PROJECTOR_GAP] = best.projector.port_gap_mm
         sigma[PROJECTOR_GAP] = float(best.projector.port_gap_mm * sd[3])
+    if tilt:
+        keys[PROJECTOR_TILT] = [float(v) for v in best.projector.port_tilt_deg]
+        sigma[PROJECTOR_TILT] = float(max(sd[4], sd[5]))
     return FlatFit(keys, before, after, int(keep.size), sigma)

@@ -22,7 +22,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from wai_core.lens import DeviceOptics, distort, distortion_one_to_one
+from wai_core.distortion import distort, distortion_one_to_one
+from wai_core.lens import DeviceOptics
 
 __all__ = ["PinholeRemap", "diffuser_pinhole_px"]
 
@@ -36,7 +37,7 @@ class PinholeRemap:
     ----------
     map_cols, map_rows : (H, W) ndarray of float32
         Real-image coordinates (px) of every ideal pixel: the real optics' projection of the
-        ideal pixel's ray (:func:`wai_core.lens.distort` with the principal point).
+        ideal pixel's ray (:func:`wai_core.distortion.distort` with the principal point).
 
     Examples
     --------

@@ -87,8 +87,13 @@ def run_calibrate(args: argparse.Namespace) -> None:
     if not args.dir.is_dir():
         raise WaiInputError(f"calibration folder not found: {args.dir}")
     flat_image = None if args.flat is None else _read_flat(args.flat)
+    if args.flat_tilt and args.flat is None:
+        raise WaiInputError("--flat-tilt fits the projector port's tilt on --flat: give --flat")
     board = _board(args)
     cfg = load_system(args.config)
+    if args.flat_tilt and not cfg.projector.port_thickness_mm > 0:
+        raise WaiInputError("--flat-tilt: --config's projector has no port "
+                            "([projector].port_thickness_mm is 0)")
     folders = {c: args.dir / c for c in CAMERAS if (args.dir / c).is_dir()}
     if not folders:
         raise WaiInputError(f"{args.dir}: holds no camera_v/ or camera_s/ folder of board images")
@@ -118,7 +123,8 @@ def run_calibrate(args: argparse.Namespace) -> None:
         for name, port in ports.items():  # the cameras' ports as fitted
             told.update(port.to_config_keys(name))
         flat = refine_on_flat_water(with_keys(cfg, told), flat_image,
-                                    held=_camera_s_sigmas(fits["camera_s"], ports))
+                                    held=_camera_s_sigmas(fits["camera_s"], ports),
+                                    projector_tilt=args.flat_tilt)
     try:
         write_rig(args.out, fits, devices, board, flat, ports)
     except OSError as exc:
@@ -153,6 +159,10 @@ def run_calibrate(args: argparse.Namespace) -> None:
                   f"{flat.sigma['projector.port_gap_mm']:.3f} mm behind "
                   f"{cfg.projector.port_thickness_mm:g} mm of index {cfg.projector.port_n:g} "
                   "(given)")
+        if flat.fits_projector_tilt:
+            tx, ty = flat.config_keys["projector.port_tilt_deg"]
+            print(f"projector port tilt on flat water: {tx:.3f}, {ty:.3f} +- "
+                  f"{flat.sigma['projector.port_tilt_deg']:.3f} deg")
     print("not determined: " + "; ".join(rig_undetermined(ports, flat)))
     print(f"rig file: {args.out} (wai restore DIR --rig {args.out})")
     if figures is not None:
@@ -310,6 +320,13 @@ def add_calibrate(sub: argparse._SubParsersAction, formatter: type, scene_help: 
         "principal point on its spots, and the gap behind the projector's port when --config "
         "has one, with --config's poses and diffuser (default: none, the checkerboards' "
         "values)",
+    )
+    p.add_argument(
+        "--flat-tilt", action="store_true",
+        help="with --flat and a projector port: fit the port's tilt too, from --config's "
+        "(its drawing's) within about a degree; off, the tilt is --config's (a square window: "
+        "the gap and the tilt trade against each other, so fit it only for a window off "
+        "square)",
     )
     p.add_argument(
         "--figures", type=Path, default=None,

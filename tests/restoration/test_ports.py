@@ -111,3 +111,28 @@ def test_the_uncoded_pattern_behind_a_projector_port_keeps_its_labels(paper_cfg,
     m = restore_folder(tmp_path / "frame", write=False).metrics
     assert m["status"] == "ok", m["message"]
     assert m["wai_rmse_mm"] < 0.06, m["wai_rmse_mm"]
+
+
+def test_the_flat_reference_calibrates_a_tilted_projector_port(frames):
+    # Started from a drawing's tilt half a degree off and a gap 3.5 mm off, the flat
+    # reference's spots give the projector port's tilt and gap back, and the frame restores
+    # with the calibrated rig as with the true one.
+    from restoration import Calibration, refine_on_flat_water, rig_undetermined
+    from wai_core.images import find_image, read_image
+
+    folder = frames["tilted", SEEDS[0]]
+    true = Calibration.from_folder(folder).cfg
+    off = {"projector.port_gap_mm": 1.5, "projector.port_tilt_deg": [2.5, -1.5],
+           "camera_s.focal_mm": true.camera_s.focal_mm * 1.002}
+    fit = refine_on_flat_water(with_keys(true, off),
+                               read_image(find_image(folder, "pattern_flat")),
+                               projector_tilt=True)
+    assert fit.fits_projector_tilt
+    assert not any("tilt" in u for u in rig_undetermined(None, fit))
+    tilt = fit.config_keys["projector.port_tilt_deg"]
+    assert np.abs(np.subtract(tilt, TILTED["projector.port_tilt_deg"])).max() < 0.1, tilt
+    assert abs(fit.config_keys["projector.port_gap_mm"] - 5.0) < 0.5
+    told = restore_folder(folder, write=False).metrics
+    calibrated = restore_folder(folder, write=False, rig=fit.config_keys).metrics
+    assert calibrated["status"] == "ok", calibrated["message"]
+    assert calibrated["wai_rmse_mm"] <= told["wai_rmse_mm"] + 0.05

@@ -193,3 +193,13 @@ def test_calibrate_draws_each_cameras_corners_and_errors_beside_the_rig_file(boa
     code, err, _ = _calibrate(capfd, boards, "--out", tmp_path / "third.json", "--figures", mine)
     assert code == 2 and len(err) == 1 and "--figures" in err[0]
     assert not (tmp_path / "third.json").exists()  # refused before any work
+
+
+def test_flat_tilt_needs_the_flat_image_and_a_projector_port(boards, tmp_path, capfd):
+    flat = next((boards / "camera_s").iterdir())
+    for args, says in (([], "--flat-tilt fits the projector port's tilt on --flat"),
+                       (["--flat", flat], "--flat-tilt: --config's projector has no port")):
+        code, err, _ = _calibrate(capfd, boards, "--flat-tilt", *args,
+                                  "--out", tmp_path / "rig.json")
+        assert (code, len(err)) == (2, 1) and says in err[0], err
+    assert not (tmp_path / "rig.json").exists()
