@@ -94,6 +94,7 @@ from restoration.spot_bias import SpotBiasModel, spot_bias_px
 from restoration.structured_light import StructuredLight, estimate_surface, fit_to_spots
 from restoration.tracking import SequenceState
 from restoration.view_check import ViewMatch
+from restoration.view_level import StructuredLightView, ViewLevelCalibration
 from wai_core.errors import RestorationFailed
 
 __all__ = [
@@ -136,8 +137,10 @@ __all__ = [
     "Status",
     "StructuredLight",
     "StructuredLightOptions",
+    "StructuredLightView",
     "SurfaceOptions",
     "Truth",
+    "ViewLevelCalibration",
     "ViewMatch",
     "as_method",
     "calibrate_device",

@@ -36,6 +36,7 @@ from restoration.protocol import BUILT_IN, Method
 from restoration.result import RestoreResult
 from restoration.schlieren import SchlierenCalibration, restore_schlieren
 from restoration.structured_light import StructuredLight
+from restoration.view_level import StructuredLightView
 from wai_core.errors import WaiInputError
 
 __all__ = [
@@ -144,10 +145,12 @@ class InverseRendering:
 
 
 METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name: Alterman,
-                            Schlieren.name: Schlieren, InverseRendering.name: InverseRendering}
+                            Schlieren.name: Schlieren, InverseRendering.name: InverseRendering,
+                            StructuredLightView.name: StructuredLightView}
 """Methods by name: ``structured-light`` (the paper's), ``alterman`` (the sun sensor),
-``schlieren`` (synthetic Schlieren on camera v's view) and ``inverse-rendering`` (the
-structured light's surface refitted to the pattern image)."""
+``schlieren`` (synthetic Schlieren on camera v's view), ``inverse-rendering`` (the
+structured light's surface refitted to the pattern image) and ``structured-light-view`` (the
+structured light, its level pinned by camera v's view: :mod:`restoration.view_level`)."""
 BUILT_IN.update(METHODS.values())
 
 

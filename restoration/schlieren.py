@@ -34,7 +34,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -53,8 +53,8 @@ from wai_core.optics import trace_to_object
 from wai_core.timings import Timings
 
 __all__ = [
-    "SchlierenCalibration", "SightLines", "flat_view_flow", "reconstruct_schlieren",
-    "restore_schlieren", "slopes_on_sight_lines",
+    "SchlierenCalibration", "SightLines", "cached_lattice", "flat_view_flow", "flow_samples",
+    "reconstruct_schlieren", "restore_schlieren", "slopes_on_sight_lines",
 ]
 
 Array = NDArray[np.float64]
@@ -95,11 +95,18 @@ class SchlierenCalibration(RigCalibration):
 
     def lattice(self, step_px: int) -> SightLines:
         """The sample pixels every ``step_px`` and their lines of sight (kept per step)."""
-        cached = self._lattices.get(int(step_px))
-        if cached is None:
-            cached = SightLines.build(self, int(step_px))
-            self._lattices[int(step_px)] = cached
-        return cached
+        return cached_lattice(self, self._lattices, step_px)
+
+
+def cached_lattice(cal: RigCalibration, cache: dict[int, SightLines], step_px: int
+                   ) -> SightLines:
+    """``cal``'s camera-v lattice every ``step_px`` (:meth:`SightLines.build`), from ``cache``
+    (a calibration's own, filled here)."""
+    cached = cache.get(int(step_px))
+    if cached is None:
+        cached = SightLines.build(cal, int(step_px))
+        cache[int(step_px)] = cached
+    return cached
 
 
 @dataclass(frozen=True)
@@ -223,11 +230,14 @@ def slopes_on_sight_lines(points_mm: Array, dirs: Array, object_mm: Array, n_wat
     return normals, -normals[:, :2] / normals[:, 2:3]
 
 
-def _samples(images: dict[str, NDArray], cal: SchlierenCalibration,
-             options: SchlierenOptions) -> tuple[SightLines, NDArray, Array, Array,
-                                                  dict[str, int]]:
+def flow_samples(images: dict[str, NDArray], cal: Any,
+                 options: SchlierenOptions) -> tuple[SightLines, NDArray, Array, Array,
+                                                     dict[str, int]]:
     """The lattice, which of its samples the flow serves, their object points, the object
-    plane's size of one flat-water pixel at each (mm) and the counts."""
+    plane's size of one flat-water pixel at each (mm) and the counts. ``cal``: a calibration
+    with camera v's lattice (:class:`SchlierenCalibration`,
+    :class:`~restoration.view_level.ViewLevelCalibration`); ``images``: ``view`` and
+    ``view_flat``."""
     cfg = cal.cfg
     flow, trip = flat_view_flow(cal.radiance(images["view"]), cal.radiance(images["view_flat"]),
                                 options.flow)
@@ -316,7 +326,7 @@ def restore_schlieren(
             raise WaiInputError(f"schlieren: the frame needs a {name!r} image")
     timings = Timings()
     with timings("features"):
-        lines, kept, object_mm, mm_per_px, counts = _samples(images, cal, options)
+        lines, kept, object_mm, mm_per_px, counts = flow_samples(images, cal, options)
     index = np.flatnonzero(kept)
     if index.size < max(MIN_SAMPLES, SPARSE_FRACTION * counts["samples"]):
         return RestoreResult(METHOD, Status.SPARSE, _sparse_message(index.size, counts),

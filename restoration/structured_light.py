@@ -163,6 +163,10 @@ def _estimate_surface(
     return est
 
 
+SEARCHED_LEVELS = ("integrability", "view")
+"""Anchor methods whose level was searched, with a standard error that makes a frame
+``uncertain_level`` past the bound (:func:`frame_status`)."""
+
 # Most label shifts tried when the pattern leaves the labels ambiguous (each costs a surface).
 MAX_REJECTION_ROUNDS = 2
 """Times a frame's surface is estimated again without the samples it did not reproduce at all
@@ -348,7 +352,7 @@ def frame_status(
         return Status.GAUGE_LEVEL, "the slopes do not pin the level: the gauge's h0 was used"
     sigma = surface.anchor.sigma_mm
     bound_mm = options.level_max_sigma_px * diffuser_mm_per_px
-    if (options.anchor == "integrability" and surface.anchor.method == "integrability"
+    if (options.anchor == "integrability" and surface.anchor.method in SEARCHED_LEVELS
             and sigma is not None and sigma > bound_mm):
         return Status.UNCERTAIN_LEVEL, (
             f"the level's standard error is {sigma:.3f} mm (more than {bound_mm:.3f} mm, "
@@ -461,6 +465,8 @@ class StructuredLight:
                 with timings("surface"):
                     obs = self._observe_debiased(features, surface, cal, timings)
                     surface = estimate_surface(obs, cal, options, start)
+            memo: dict[str, Any] = {}
+            surface = self._level(obs, cal, surface, images, memo, timings)
             surface, view, check = self._view_and_check(images, cal, obs, surface, reference,
                                                         state, timings)
             rejected_xy = np.zeros((0, 2))
@@ -477,6 +483,7 @@ class StructuredLight:
                     obs = self._observe_debiased(features, surface, cal, timings)
                     surface = estimate_surface(obs, cal, options,
                                                None if track is None else track.start_mm)
+                surface = self._level(obs, cal, surface, images, memo, timings)
                 surface, view, check = self._view_and_check(images, cal, obs, surface,
                                                             reference, state, timings,
                                                             rejected_xy)
@@ -511,6 +518,14 @@ class StructuredLight:
                 spots = spots - spot_correction_px(cal, features.ij, surface,
                                                    SpotBiasModel.of_water(cal.cfg.water))
         return cal.observe(features.ij, spots, flat_referenced=self.options.flat_referenced)
+
+    def _level(self, obs: Observations, cal: Calibration, surface: SurfaceEstimate,
+               images: dict[str, NDArray], memo: dict[str, Any],
+               timings: Timings) -> SurfaceEstimate:
+        """The surface at its final level: as estimated here; a method that pins the level
+        otherwise (:class:`restoration.view_level.StructuredLightView`) overrides it, ``memo``
+        holding what it computes once a frame."""
+        return surface
 
     def _view_and_check(
         self, images: dict[str, NDArray], cal: Calibration, obs: Observations,

@@ -1,0 +1,291 @@
+"""The structured light's level pinned by camera v's view (``--method structured-light-view``).
+
+One spot per projector ray fixes the surface only together with its level: raise the surface
+and bend it back, and every spot stays within microns (:mod:`restoration.anchor`). The
+integrability of the slopes pins the level where the spots are sharp (0.005 mm standard error
+on smooth water), but a spot error of 0.06 px already leaves it 0.09 mm uncertain, and
+micro-roughness (GGX alpha 0.01) blurs the spots to that (docs/results.md, "Rough water").
+
+Camera v sees the same surface from below. Where the object carries texture at the waves'
+scale (a lab tank's speckle, ``[object] texture = "speckle"``), the dense flow from its view
+to its flat-water view gives, for each of its sample pixels, the object point its line of
+sight reaches through the waves (:func:`restoration.schlieren.flow_samples`). A surface at the
+wrong level has the wrong slopes (the depth-normal ambiguity tilts them), and those slopes
+send camera v's lines of sight elsewhere on the object: the view's residual, each sample's
+line traced through the structured light's surface to the object against where the flow put
+it (flat-water pixels), is least at the right level. :func:`find_view_level` probes it around
+the integrability level, takes the vertex of a parabola through the probes, and its standard
+error from the spread of four interleaved sample sets' own vertices.
+
+The method is the structured light with that level (every other stage as it is), and a frame
+whose level's standard error exceeds the structured light's bound is ``uncertain_level`` as
+before. It needs the rig's flat-water view of the object (``view_flat``; a render's
+``view_truth`` is that view) and an object with texture: the paper's 200 mm checkerboard
+gives the flow too little to follow (docs/results.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from restoration.calibration import Calibration
+from restoration.observations import Observations
+from restoration.options import SchlierenOptions, StructuredLightOptions, checked_options
+from restoration.result import SPARSE_FRACTION
+from restoration.schlieren import SightLines, cached_lattice, flow_samples
+from restoration.structured_light import StructuredLight
+from restoration.surface import SurfaceEstimate, reconstruct
+from wai_core.errors import RestorationFailed
+from wai_core.images import find_image, locate_image
+from wai_core.optics import trace_to_object
+from wai_core.timings import Timings
+
+__all__ = [
+    "ViewLevel", "ViewLevelCalibration", "ViewSamples", "StructuredLightView", "find_view_level",
+    "view_samples",
+]
+
+Array = NDArray[np.float64]
+
+CLIP_PX = 2.0
+"""A sample's view residual counts up to this (flat-water px): a line of sight that meets the
+object far from its flow point (a flow error, a patch edge) weighs no more than one this far."""
+PROBE_MM = 0.3
+"""First probes' distance either side of the integrability level, mm."""
+MAX_PROBES = 9
+"""Most levels probed (each one surface and one trace of the samples)."""
+VERTEX_TOL_MM = 0.02
+"""The search stops once the parabola's vertex lies this close to a level already probed."""
+SAMPLE_STEP_PX = 8
+"""Camera v's sample lattice, px (as synthetic Schlieren's)."""
+N_SETS = 4
+"""Interleaved sample sets (by the lattice's parity) whose own vertices give the standard
+error."""
+
+
+@dataclass
+class ViewLevelCalibration(Calibration):
+    """The structured light's calibration with camera v's flat-water view of the object
+    (``view_flat``, or a render's ``view_truth``) among the frame's images, and camera v's
+    sample lattice.
+
+    Examples
+    --------
+    >>> from wai_core import load_system
+    >>> ViewLevelCalibration(load_system("paper")).IMAGES[-1]
+    'view_flat'
+    """
+
+    _lattices: dict[int, SightLines] = field(default_factory=dict, init=False, repr=False,
+                                             compare=False)
+
+    IMAGES: ClassVar[tuple[str, ...]] = ("pattern", "pattern_flat", "view", "view_flat")
+
+    def image_size(self, name: str) -> tuple[int, int]:
+        return super().image_size("view" if name == "view_flat" else name)
+
+    def image_files(self, folder: str | Path) -> dict[str, Path]:
+        """The structured light's images and the flat-water view (``view_flat.*``, where a
+        render has none its ``view_truth.*``, the flat-water view a rig takes once)."""
+        files = {name: find_image(folder, name) for name in ("pattern", "pattern_flat", "view")}
+        flat = locate_image(folder, "view_flat") or locate_image(folder, "view_truth")
+        files["view_flat"] = flat if flat is not None else find_image(folder, "view_flat")
+        return files
+
+    def lattice(self, step_px: int) -> SightLines:
+        """Camera v's sample pixels every ``step_px`` and their lines of sight."""
+        return cached_lattice(self, self._lattices, step_px)
+
+
+@dataclass(frozen=True)
+class ViewSamples:
+    """The frame's view samples: camera v's sample pixels whose object point the flow gives.
+
+    Attributes
+    ----------
+    px : (K, 2) ndarray
+        The sample pixels ``(col, row)`` (camera v's ideal pinhole).
+    object_mm : (K, 3) ndarray
+        The object point each one's line of sight reaches through the waves, mm.
+    mm_per_px : (K,) ndarray
+        The object's extent of one flat-water pixel there, mm.
+    sets : (K,) ndarray of int
+        Each sample's interleaved set (0 .. N_SETS - 1).
+    counts : dict
+        :func:`~restoration.schlieren.flow_samples`'s counts.
+    """
+
+    px: Array
+    object_mm: Array
+    mm_per_px: Array
+    sets: NDArray[np.int64]
+    counts: dict[str, int]
+
+    @property
+    def served(self) -> bool:
+        """Whether the flow serves enough of the samples in view to weigh the level."""
+        return len(self.px) >= max(N_SETS * 8, SPARSE_FRACTION * self.counts["samples"])
+
+
+def view_samples(images: dict[str, NDArray], cal: ViewLevelCalibration) -> ViewSamples:
+    """The view samples of one frame (``images``: ``view`` and ``view_flat``)."""
+    lines, kept, object_mm, mm_per_px, counts = flow_samples(
+        images, cal, SchlierenOptions(sample_step_px=SAMPLE_STEP_PX))
+    index = np.flatnonzero(kept)
+    ij = lines.ij[index]
+    return ViewSamples(lines.px[index], object_mm[index], mm_per_px[index],
+                       (ij[:, 0] % 2) * 2 + ij[:, 1] % 2, counts)
+
+
+def view_residual_px(surface: SurfaceEstimate, samples: ViewSamples,
+                     cal: Calibration) -> Array:
+    """Each sample's line of sight traced through ``surface`` to the object, against its flow
+    point, in flat-water pixels (K,); NaN where the line misses the surface's patch."""
+    cfg = cal.cfg
+    traced = trace_to_object(cal.camera_v, surface.heightfield, cfg.water.h0_mm,
+                             cfg.water.n_water, cfg.object_z_mm, samples.px[:, 0],
+                             samples.px[:, 1])
+    return np.linalg.norm(traced.object_mm - samples.object_mm, axis=1) / samples.mm_per_px
+
+
+@dataclass
+class ViewLevel:
+    """:func:`find_view_level`'s result.
+
+    Attributes
+    ----------
+    anchor_mm, sigma_mm : float
+        The level (the reconstruction's anchor) and its standard error, mm.
+    probes_mm, cost_px2 : (P,) ndarray
+        The levels probed, sorted, and the mean clipped squared view residual at each, px^2.
+    estimate : SurfaceEstimate
+        The surface at ``anchor_mm``.
+    samples : int
+        Samples that weighed (inside the surface's patch at every probe).
+    """
+
+    anchor_mm: float
+    sigma_mm: float
+    probes_mm: Array
+    cost_px2: Array
+    estimate: SurfaceEstimate
+    samples: int
+
+
+def _vertex(x: Array, y: Array) -> float | None:
+    """The vertex of the least-squares parabola through ``(x, y)`` (3 or more), or None
+    where it opens downwards."""
+    a, b, _ = np.polyfit(x - x.mean(), y, 2)
+    return None if not a > 0 else float(x.mean() - b / (2 * a))
+
+
+def find_view_level(rebuild: Callable[[float], SurfaceEstimate], start_mm: float,
+                    samples: ViewSamples, cal: Calibration) -> ViewLevel | None:
+    """The level at which the structured light's surface sends camera v's lines of sight
+    where the flow does (module notes), searched from ``start_mm``; None where the probes
+    find no minimum or the samples leave the surface's patch.
+
+    ``rebuild(level_mm)`` is the structured light's surface anchored at that level.
+    """
+    residuals: dict[float, Array] = {}
+    estimates: dict[float, SurfaceEstimate] = {}
+
+    def probe(level: float) -> None:
+        est = rebuild(level)
+        residuals[level], estimates[level] = view_residual_px(est, samples, cal), est
+
+    for level in (start_mm - PROBE_MM, start_mm, start_mm + PROBE_MM):
+        probe(level)
+    while True:
+        levels = np.array(sorted(residuals))
+        stack = np.array([residuals[a] for a in levels])
+        inside = np.isfinite(stack).all(axis=0)
+        if inside.sum() < N_SETS * 8:
+            return None
+        cost = np.mean(np.minimum(stack[:, inside], CLIP_PX) ** 2, axis=1)
+        best = int(np.argmin(cost))
+        near = slice(max(best - 1, 0), min(best + 2, len(levels)))
+        vertex = _vertex(levels[near], cost[near]) if cost[near].size == 3 else None
+        if vertex is None:  # the minimum at the probes' edge: step out
+            vertex = levels[best] + (PROBE_MM if best == len(levels) - 1 else -PROBE_MM)
+        if np.abs(levels - vertex).min() < VERTEX_TOL_MM or len(levels) >= MAX_PROBES:
+            break
+        probe(float(np.clip(vertex, levels[0] - PROBE_MM, levels[-1] + PROBE_MM)))
+    if best in (0, len(levels) - 1):
+        return None
+    level = _vertex(levels[near], cost[near])
+    if level is None:
+        return None
+    # Each interleaved set's own vertex over the same three probes: their spread.
+    clipped = np.minimum(stack[near][:, inside], CLIP_PX) ** 2
+    sets = samples.sets[inside]
+    own = [_vertex(levels[near], clipped[:, sets == k].mean(axis=1)) for k in range(N_SETS)
+           if np.any(sets == k)]
+    if any(v is None for v in own) or len(own) < 2:
+        return None
+    sigma = float(np.std(own, ddof=1) / np.sqrt(len(own)))
+    estimate = rebuild(level)
+    return ViewLevel(level, sigma, levels, cost, estimate, int(inside.sum()))
+
+
+class StructuredLightView(StructuredLight):
+    """The structured light with its level pinned by camera v's view (module notes),
+    configured once.
+
+    Examples
+    --------
+    >>> from restoration import StructuredLightView
+    >>> StructuredLightView().name
+    'structured-light-view'
+    """
+
+    name = "structured-light-view"
+    calibration_type = ViewLevelCalibration
+    options_type = StructuredLightOptions
+
+    def __init__(self, options: StructuredLightOptions | None = None) -> None:
+        super().__init__(checked_options(self.name, StructuredLightOptions, options))
+
+    def __repr__(self) -> str:
+        return f"StructuredLightView({self.options!r})"
+
+    def _level(self, obs: Observations, cal: Calibration, surface: SurfaceEstimate,
+               images: dict[str, NDArray], memo: dict[str, Any],
+               timings: Timings) -> SurfaceEstimate:
+        """``surface`` rebuilt at the level the view pins, from its integrability level;
+        as it is where the view cannot weigh the level (the anchor's ``method`` says which)."""
+        options = self.options
+        if options.anchor != "integrability" or surface.anchor.anchor_mm is None:
+            return surface
+        with timings("view_level"):
+            if "samples" not in memo:
+                memo["samples"] = view_samples(images, cal)
+            samples: ViewSamples = memo["samples"]
+            if not samples.served:
+                return surface
+
+            def rebuild(level: float) -> SurfaceEstimate:
+                if not level > cal.diffuser_z_mm:
+                    raise RestorationFailed(
+                        "reconstruct_surface: the water level h0 must lie above the diffuser")
+                return reconstruct(obs, level, integrator=options.integrator,
+                                   n_refine=int(surface.anchor.refine_passes
+                                                or options.n_refine),
+                                   tol_mm=options.refine_tol_mm,
+                                   grid_spacing_mm=options.grid_spacing_mm,
+                                   gridder=options.gridder)
+
+            found = find_view_level(rebuild, float(surface.anchor.anchor_mm), samples, cal)
+        if found is None:
+            return surface
+        est = found.estimate
+        est.anchor.update(method="view", anchor_mm=found.anchor_mm, sigma_mm=found.sigma_mm,
+                          searched_mm=found.anchor_mm, evaluations=len(found.probes_mm) + 1,
+                          refine_passes=surface.anchor.refine_passes)
+        return est
