@@ -34,9 +34,13 @@ from wai_core.heightfield import Heightfield
 from wai_core.images import find_image, read_image
 from wai_core.io import read_json
 from wai_core.optics import channel_indices
-from wai_core.port import PortCamera
+from wai_core.port import PortCamera, camera_model
 
 __all__ = ["Calibration", "LevelTrack", "RigCalibration", "read_scene_record"]
+
+GREY_WEIGHTS = (0.299, 0.587, 0.114)
+"""The weights of red, green and blue in OpenCV's ``RGB2GRAY`` (ITU-R BT.601), the grey image
+an optical flow of the view reads."""
 
 
 def read_scene_record(folder: str | Path) -> dict[str, Any]:
@@ -134,6 +138,15 @@ class RigCalibration:
         :class:`~wai_core.port.PortCamera`)."""
         return self.cfg.rig.camera_model("camera_v")
 
+    @property
+    def camera_v_grey(self) -> PinholeCamera | PortCamera:
+        """Camera v as a grey image of its view sees through the water: :attr:`camera_v`,
+        behind a port with the water of :attr:`view_index` beyond it."""
+        optics = self.cfg.rig.optics("camera_v")
+        if not optics.has_port or self.view_index == float(self.cfg.water.n_water):
+            return self.camera_v
+        return camera_model(optics, self.view_index)
+
     def radiance(self, view: NDArray) -> NDArray:
         """A view image of this rig on the object's radiance scale: divided by
         :attr:`view_gain` (what scores and restored images are expressed in)."""
@@ -149,6 +162,14 @@ class RigCalibration:
         if w.index_model == "quan_fry":
             return channel_indices(w.salinity_psu, w.temperature_c)
         return (float(w.n_water),)
+
+    @property
+    def view_index(self) -> float:
+        """One index for the view seen as one grey image (an optical flow's, OpenCV's
+        ``RGB2GRAY``): :attr:`view_indices` weighted as that grey weighs the channels (sea
+        water's disperses by 0.006 across them)."""
+        n = np.asarray(self.view_indices, dtype=float)
+        return float(n[0]) if n.size == 1 else float(np.dot(GREY_WEIGHTS, n))
 
     def view_plan(self, warp_step_px: int = SurfaceOptions.warp_step_px,
                   n_water: float | None = None) -> ViewPlan:

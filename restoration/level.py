@@ -39,6 +39,10 @@ class Anchor:
         After a fit to the pattern image (:mod:`restoration.inverse_rendering`): the median
         dot's share of its light the fit explains, the loss after each pass and the loss
         evaluations.
+    view_residual_px, view_residual_p90_px
+        Where camera v's view weighed the level (:mod:`restoration.view_level`): the median
+        and the 90th percentile of the misses of its lines of sight through the surface
+        against the flow's object points, flat-water px.
 
     Examples
     --------
@@ -66,6 +70,8 @@ class Anchor:
     image_fit_explained: float | None = None
     image_fit_loss: list[float] | None = None
     image_fit_evaluations: int | None = None
+    view_residual_px: float | None = None
+    view_residual_p90_px: float | None = None
 
     def update(self, **values: Any) -> None:
         """Set the named fields.

@@ -137,12 +137,12 @@ class SightLines:
         h, w = cal.image_size("view")
         rows, cols = np.mgrid[step_px // 2:h:step_px, step_px // 2:w:step_px]
         px = np.column_stack([cols.ravel(), rows.ravel()]).astype(float)
-        origins, dirs = cal.camera_v.pixel_rays(px[:, 0], px[:, 1])
+        origins, dirs = cal.camera_v_grey.pixel_rays(px[:, 0], px[:, 1])
         dirs = np.asarray(dirs, dtype=float).reshape(-1, 3)
         origins = np.broadcast_to(np.asarray(origins, dtype=float), dirs.shape).copy()
         ij = np.column_stack([rows.ravel() // step_px, cols.ravel() // step_px])
         cfg = cal.cfg
-        reach = trace_to_object(cal.camera_v, None, cfg.water.h0_mm, cfg.water.n_water,
+        reach = trace_to_object(cal.camera_v_grey, None, cfg.water.h0_mm, cal.view_index,
                                 cfg.object_z_mm, px[:, 0], px[:, 1]).ok
         return cls(ij.astype(np.int64), px, origins, dirs, reach)
 
@@ -244,7 +244,7 @@ def flow_samples(images: dict[str, NDArray], cal: Any,
     lines = cal.lattice(options.sample_step_px)
     cols, rows = lines.px[:, 0].astype(int), lines.px[:, 1].astype(int)
     q = lines.px + flow[rows, cols]
-    camera, h0, n, z_obj = cal.camera_v, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm
+    camera, h0, n, z_obj = cal.camera_v_grey, cfg.water.h0_mm, cal.view_index, cfg.object_z_mm
     seen = trace_to_object(camera, None, h0, n, z_obj, q[:, 0], q[:, 1])
     step = trace_to_object(camera, None, h0, n, z_obj, q[:, 0] + 1.0, q[:, 1])
     reach = lines.reach
@@ -269,7 +269,7 @@ def reconstruct_schlieren(lines: SightLines, index: NDArray, object_mm: Array,
     RestorationFailed
         When the samples fix no surface.
     """
-    n_water = float(cal.cfg.water.n_water)
+    n_water = cal.view_index
     dirs = lines.dirs[index]
 
     def slopes_at(points: Array, which: NDArray) -> tuple[Array, Array]:
@@ -285,7 +285,7 @@ def _consistency(surface: RaySurface, lines: SightLines, index: NDArray, object_
     """Each kept sample's line of sight through the surface to the object, against its flow
     object point, in flat-water pixels."""
     cfg, hf = cal.cfg, surface.heightfield
-    traced = trace_to_object(cal.camera_v, hf, cfg.water.h0_mm, cfg.water.n_water,
+    traced = trace_to_object(cal.camera_v_grey, hf, cfg.water.h0_mm, cal.view_index,
                              cfg.object_z_mm, lines.px[index, 0], lines.px[index, 1])
     residual = np.linalg.norm(traced.object_mm - object_mm[index], axis=1) / mm_per_px[index]
     finite = residual[np.isfinite(residual)]

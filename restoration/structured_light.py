@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from restoration.anchor import find_anchor, integration_residual_mm
 from restoration.calibration import Calibration, LevelTrack
-from restoration.consistency import TAIL_FACTOR, Consistency, spot_consistency, unchecked_beside
+from restoration.consistency import Consistency, spot_consistency, unchecked_beside
 from restoration.features import (
     Matches,
     ReferenceGrid,
@@ -28,9 +28,10 @@ from restoration.features import (
 from restoration.features.match import MAX_LABEL_SHIFT
 from restoration.features.track import TrackedSpots, features_tracked
 from restoration.fit_level import fit_level
+from restoration.frame_status import frame_status
 from restoration.observations import Observations
 from restoration.options import StructuredLightOptions, checked_options
-from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, RestoreResult, Status
+from restoration.result import RestoreResult, Status
 from restoration.reverse_trace import SplinePatches
 from restoration.spot_bias import SpotBiasModel, spot_correction_px
 from restoration.surface import COMPILED_INTEGRATORS, SurfaceEstimate, reconstruct
@@ -163,10 +164,6 @@ def _estimate_surface(
     return est
 
 
-SEARCHED_LEVELS = ("integrability", "view")
-"""Anchor methods whose level was searched, with a standard error that makes a frame
-``uncertain_level`` past the bound (:func:`frame_status`)."""
-
 # Most label shifts tried when the pattern leaves the labels ambiguous (each costs a surface).
 MAX_REJECTION_ROUNDS = 2
 """Times a frame's surface is estimated again without the samples it did not reproduce at all
@@ -293,73 +290,6 @@ def consistency_of(
         surface.heightfield, surface.points_mm, origin, dirs, spots_px, cal.camera_s,
         cal.diffuser_z_mm, reference.median_spacing_px, patches=patches,
     )
-
-
-def frame_status(
-    features: Matches, reference: ReferenceGrid, surface: SurfaceEstimate, check: Consistency,
-    view_ok: bool, options: StructuredLightOptions, diffuser_mm_per_px: float,
-) -> tuple[Status, str]:
-    """The truth-free verdict on a restored frame (see :mod:`restoration.result`);
-    ``diffuser_mm_per_px``: the scale of camera s on the diffuser, mm
-    (:attr:`Calibration.diffuser_mm_per_px`), that of the level's bound."""
-    in_view = max(int(reference.counts.get("predicted_in_view", 0)), 1)
-    seen = int(reference.counts.get("observed", 0))
-    spacing = reference.median_spacing_px
-    if reference.rms_px > REFERENCE_RMS_FRACTION * spacing:
-        return Status.BAD_REFERENCE, (
-            f"pattern_flat is not flat water for this rig: its {seen} spots lie "
-            f"{reference.rms_px:.2f} px (RMS, {reference.rms_px / spacing:.0%} of their "
-            "spacing) from the calibrated flat-water positions: pattern and pattern_flat "
-            "swapped, or the rig moved since calibration?"
-        )
-    if seen < SPARSE_FRACTION * in_view:
-        return Status.SPARSE, (
-            f"the flat-water reference shows only {seen} of the {in_view} dots in view"
-        )
-    # A small patch whose labels only the ordering gave may be shifted by whole dots, and its
-    # slopes then integrate nearly as well (docs/results.md, "Knowing when a frame is wrong"):
-    # only labels that the pattern pins (decoded, or a unique lattice anchor) make a small patch
-    # trustworthy.
-    if len(features) < SPARSE_FRACTION * in_view and features.counts.get("labels_ambiguous", 1):
-        return Status.SPARSE, (
-            f"only {len(features)} of the {in_view} dots in view were matched, and nothing in "
-            "the pattern pins their labels (they may be shifted by whole dots)"
-        )
-    if features.counts.get("label_shift_at_edge"):
-        return Status.SPARSE, (
-            "nothing in the pattern pins the labels, and the slopes integrate best at the "
-            f"edge of the shifts tried ({MAX_LABEL_SHIFT} dots): they may be shifted further"
-        )
-    if not check.consistent:
-        return Status.INCONSISTENT, (
-            f"the surface misses the detected spots by {check.median_px:.2f} px (median; "
-            f"threshold {check.threshold_px:.2f} px)"
-        )
-    if not check.tail_consistent:
-        return Status.INCONSISTENT, (
-            f"the surface misses a twentieth of the detected spots by {check.p95_px:.2f} px or "
-            f"more (95th percentile; more than {TAIL_FACTOR:g}x the threshold "
-            f"{check.threshold_px:.2f} px): it is wrong in a part"
-        )
-    if check.gross.any():
-        return Status.INCONSISTENT, (
-            f"the surface misses {check.where_gross()} by more than {check.gross_px:.1f} px "
-            "(a fifth of the dot spacing): it is wrong there"
-        )
-    if not view_ok:
-        return Status.DARK_VIEW, "the view image holds no signal (all pixels alike)"
-    if options.anchor == "integrability" and surface.anchor.method == "gauge_fallback":
-        return Status.GAUGE_LEVEL, "the slopes do not pin the level: the gauge's h0 was used"
-    sigma = surface.anchor.sigma_mm
-    bound_mm = options.level_max_sigma_px * diffuser_mm_per_px
-    if (options.anchor == "integrability" and surface.anchor.method in SEARCHED_LEVELS
-            and sigma is not None and sigma > bound_mm):
-        return Status.UNCERTAIN_LEVEL, (
-            f"the level's standard error is {sigma:.3f} mm (more than {bound_mm:.3f} mm, "
-            f"{options.level_max_sigma_px:g} px of camera s): the shape is the data's, the "
-            "level may be off by several times that"
-        )
-    return Status.OK, ""
 
 
 class StructuredLight:

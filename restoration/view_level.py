@@ -19,9 +19,12 @@ error from the spread of four interleaved sample sets' own vertices.
 
 The method is the structured light with that level (every other stage as it is), and a frame
 whose level's standard error exceeds the structured light's bound is ``uncertain_level`` as
-before. It needs the rig's flat-water view of the object (``view_flat``; a render's
-``view_truth`` is that view) and an object with texture: the paper's 200 mm checkerboard
-gives the flow too little to follow (docs/results.md).
+before. The view checks the surface too: where its lines of sight miss the flow's object points
+by more than :data:`~restoration.frame_status.VIEW_MAX_RESIDUAL_PX` (median), the surface is
+wrong (labels shifted by whole dots leave 4 px) and the frame ``inconsistent``. It needs the
+rig's flat-water view of the object (``view_flat``; a render's ``view_truth`` is that view) and
+an object with texture: the paper's 200 mm checkerboard gives the flow too little to follow
+(docs/results.md).
 """
 
 from __future__ import annotations
@@ -148,8 +151,8 @@ def view_residual_px(surface: SurfaceEstimate, samples: ViewSamples,
     """Each sample's line of sight traced through ``surface`` to the object, against its flow
     point, in flat-water pixels (K,); NaN where the line misses the surface's patch."""
     cfg = cal.cfg
-    traced = trace_to_object(cal.camera_v, surface.heightfield, cfg.water.h0_mm,
-                             cfg.water.n_water, cfg.object_z_mm, samples.px[:, 0],
+    traced = trace_to_object(cal.camera_v_grey, surface.heightfield, cfg.water.h0_mm,
+                             cal.view_index, cfg.object_z_mm, samples.px[:, 0],
                              samples.px[:, 1])
     return np.linalg.norm(traced.object_mm - samples.object_mm, axis=1) / samples.mm_per_px
 
@@ -282,10 +285,17 @@ class StructuredLightView(StructuredLight):
                                    gridder=options.gridder)
 
             found = find_view_level(rebuild, float(surface.anchor.anchor_mm), samples, cal)
-        if found is None:
-            return surface
-        est = found.estimate
-        est.anchor.update(method="view", anchor_mm=found.anchor_mm, sigma_mm=found.sigma_mm,
-                          searched_mm=found.anchor_mm, evaluations=len(found.probes_mm) + 1,
-                          refine_passes=surface.anchor.refine_passes)
+            if found is not None:
+                est = found.estimate
+                est.anchor.update(method="view", anchor_mm=found.anchor_mm,
+                                  sigma_mm=found.sigma_mm, searched_mm=found.anchor_mm,
+                                  evaluations=len(found.probes_mm) + 1,
+                                  refine_passes=surface.anchor.refine_passes)
+            else:  # no level of its own: the view still checks the surface
+                est = surface
+            miss = view_residual_px(est, samples, cal)
+            miss = miss[np.isfinite(miss)]
+            if miss.size:
+                est.anchor.update(view_residual_px=float(np.median(miss)),
+                                  view_residual_p90_px=float(np.percentile(miss, 90)))
         return est

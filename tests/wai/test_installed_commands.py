@@ -89,10 +89,16 @@ def test_synthetic_schlieren_beside_the_structured_light(installed):
     assert out.splitlines()[0] == ("status ok: every truth-free check passed (`wai guide "
                                    "outputs`, \"Frame status\")")
     ok(installed.run("restore", "k1", "--quiet"))
+    # The structured light with its level from the view: the speckle serves it too.
+    ok(installed.run("restore", "k1", "--method", "structured-light-view", "--quiet"))
     k1 = installed.elsewhere / "k1"
-    methods = {n: json.loads((k1 / n / "metrics.json").read_text())["method"]
-               for n in ("restore", "restore_schlieren")}
-    assert methods == {"restore": "structured-light", "restore_schlieren": "schlieren"}
+    metrics = {n: json.loads((k1 / n / "metrics.json").read_text())
+               for n in ("restore", "restore_schlieren", "restore_structured-light-view")}
+    assert {n: m["method"] for n, m in metrics.items()} == {
+        "restore": "structured-light", "restore_schlieren": "schlieren",
+        "restore_structured-light-view": "structured-light-view"}
+    view = metrics["restore_structured-light-view"]
+    assert view["status"] == "ok" and view["anchor"]["method"] == "view"
 
 
 def test_a_dataset(installed):
