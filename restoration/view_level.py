@@ -197,11 +197,9 @@ def find_view_level(rebuild: Callable[[float], SurfaceEstimate], start_mm: float
     ``rebuild(level_mm)`` is the structured light's surface anchored at that level.
     """
     residuals: dict[float, Array] = {}
-    estimates: dict[float, SurfaceEstimate] = {}
 
     def probe(level: float) -> None:
-        est = rebuild(level)
-        residuals[level], estimates[level] = view_residual_px(est, samples, cal), est
+        residuals[level] = view_residual_px(rebuild(level), samples, cal)
 
     for level in (start_mm - PROBE_MM, start_mm, start_mm + PROBE_MM):
         probe(level)
