@@ -273,12 +273,14 @@ EXPERIMENTS: dict[str, Experiment] = {
         quick_seeds=1,
     ),
     "compare": Experiment(
-        summary="every method on the same rendered sequences: structured light, synthetic "
-                "Schlieren, one's own, the image-only baselines",
+        summary="every method on the same rendered sequences: structured light (alone and "
+                "with the view's level), synthetic Schlieren, one's own, the image-only "
+                "baselines",
         description=(
             "Each case (sea state, seed, condition) is one rendered sequence at 30 frames/s; "
-            "every method restores it: the per-frame ones (structured light, synthetic "
-            "Schlieren, the unrestored view as a method of one's own, and any --method SPEC) "
+            "every method restores it: the per-frame ones (structured light, structured light "
+            "with its level from camera v's view, synthetic Schlieren, the unrestored view as a "
+            "method of one's own, and any --method SPEC) "
             "frame by frame, the video ones (temporal mean, registration by optical flow, "
             "lucky-region fusion) from the whole sequence. The conditions: the paper's scene, "
             "its object a speckle (Schlieren's texture), the sensor's noise, and where the "
