@@ -264,7 +264,7 @@ class StructuredLightView(StructuredLight):
         options = self.options
         if options.anchor != "integrability" or surface.anchor.anchor_mm is None:
             return surface
-        with timings("view_level"):
+        with timings("surface"):  # part of the surface's estimate, timed with it
             if "samples" not in memo:
                 memo["samples"] = view_samples(images, cal)
             samples: ViewSamples = memo["samples"]
