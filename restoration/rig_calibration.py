@@ -481,33 +481,34 @@ def refine_on_flat_water(cfg: Any, pattern_flat: NDArray, max_px: float = 3.0,
             return np.nan_to_num((s[pairs[0]] - q[pairs[1]]).ravel(), nan=max_px)
         return residual
 
-    # Spots are paired with the nearest prediction, which moves as the fit does: pair again
-    # until the pairs hold. A tilt moves every spot (a degree: ~4 px), the gap bends the outer
-    # ones: the tilt is found first with the gap held, so that a gap fitted against pairs
-    # the tilt has not yet put right cannot run off.
-    pairs = pairs_at(start)
-    x = start
-    if tilt:
-        free = np.array([0, 1, 2, 4, 5])
-
-        def partial(q: NDArray) -> NDArray:
-            full = x.copy()
-            full[free] = q
-            return residual_of(pairs)(full)
-
+    def settle(x: NDArray, pairs: tuple[NDArray, NDArray],
+               free: NDArray) -> tuple[NDArray, tuple[NDArray, NDArray]]:
+        """The parameters ``free`` fitted (the others held), the spots paired again with the
+        nearest prediction, which moves as the fit does, until the pairs hold."""
         for _ in range(4):
-            x = x.copy()
-            x[free] = least_squares(partial, x[free], x_scale=scale[free], method="lm").x
+            held = x.copy()
+
+            def residual(q: NDArray, held: NDArray = held,
+                         pairs: tuple[NDArray, NDArray] = pairs) -> NDArray:
+                full = held.copy()
+                full[free] = q
+                return residual_of(pairs)(full)
+
+            x = held.copy()
+            x[free] = least_squares(residual, held[free], x_scale=scale[free], method="lm").x
             again = pairs_at(x)
             if len(again[0]) == len(pairs[0]) and all(map(np.array_equal, again, pairs)):
                 break
             pairs = again
-    for _ in range(4):
-        x = least_squares(residual_of(pairs), x, x_scale=scale, method="lm").x
-        again = pairs_at(x)
-        if len(again[0]) == len(pairs[0]) and all(map(np.array_equal, again, pairs)):
-            break
-        pairs = again
+        return x, pairs
+
+    # A tilt moves every spot (a degree: ~4 px), the gap bends the outer ones: the tilt is
+    # found first with the gap held, so that a gap fitted against pairs the tilt has not yet
+    # put right cannot run off.
+    pairs, x = pairs_at(start), start
+    if tilt:
+        x, pairs = settle(x, pairs, np.array([0, 1, 2, 4, 5]))
+    x, pairs = settle(x, pairs, np.arange(start.size))
     residual = residual_of(pairs)
     fit = least_squares(residual, x, x_scale=scale, method="lm")
     keep = pairs[0]
