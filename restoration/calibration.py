@@ -239,8 +239,9 @@ class RigCalibration:
         return view
 
     def image_size(self, name: str) -> tuple[int, int]:
-        """``(height, width)`` in pixels that image ``name`` must have."""
-        if name == "view":
+        """``(height, width)`` in pixels that image ``name`` must have (camera v's flat-water
+        view, ``view_flat``, as its view)."""
+        if name in ("view", "view_flat"):
             dev = self.cfg.camera_v
             return dev.height_px, dev.width_px
         raise KeyError(name)

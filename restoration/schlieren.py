@@ -53,7 +53,8 @@ from wai_core.optics import trace_to_object
 from wai_core.timings import Timings
 
 __all__ = [
-    "SchlierenCalibration", "SightLines", "cached_lattice", "flat_view_flow", "flow_samples",
+    "SchlierenCalibration", "SightLines", "cached_lattice", "flat_view_file", "flat_view_flow",
+    "flow_samples",
     "reconstruct_schlieren", "restore_schlieren", "slopes_on_sight_lines",
 ]
 
@@ -80,22 +81,27 @@ class SchlierenCalibration(RigCalibration):
 
     IMAGES: ClassVar[tuple[str, ...]] = ("view", "view_flat")
 
-    def image_size(self, name: str) -> tuple[int, int]:
-        if name == "view_flat":
-            return super().image_size("view")
-        return super().image_size(name)
-
     def image_files(self, folder: str | Path) -> dict[str, Path]:
-        """The view and the rig's flat-water view in ``folder``: ``view_flat.*``, or where a
-        render has none its ``view_truth.*`` (the flat-water view it renders for every frame,
-        the reference a rig takes once)."""
-        flat = locate_image(folder, "view_flat") or locate_image(folder, "view_truth")
-        return {"view": find_image(folder, "view"),
-                "view_flat": flat if flat is not None else find_image(folder, "view_flat")}
+        """The view and the rig's flat-water view in ``folder`` (:func:`flat_view_file`)."""
+        return {"view": find_image(folder, "view"), "view_flat": flat_view_file(folder)}
 
     def lattice(self, step_px: int) -> SightLines:
         """The sample pixels every ``step_px`` and their lines of sight (kept per step)."""
         return cached_lattice(self, self._lattices, step_px)
+
+
+def flat_view_file(folder: str | Path) -> Path:
+    """The rig's flat-water view of the object in ``folder``: ``view_flat.*``, or where a
+    render has none its ``view_truth.*`` (the flat-water view it renders for every frame, the
+    reference a rig takes once).
+
+    Raises
+    ------
+    WaiInputError
+        When ``folder`` holds neither (naming ``view_flat``).
+    """
+    flat = locate_image(folder, "view_flat") or locate_image(folder, "view_truth")
+    return flat if flat is not None else find_image(folder, "view_flat")
 
 
 def cached_lattice(cal: RigCalibration, cache: dict[int, SightLines], step_px: int

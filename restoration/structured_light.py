@@ -103,6 +103,24 @@ def estimate_surface(
     return est
 
 
+def reconstruct_at(
+    obs: Observations, anchor_mm: float, options: StructuredLightOptions, n_refine: int,
+    integrator: str | None = None,
+) -> SurfaceEstimate:
+    """The surface of ``obs`` anchored at ``anchor_mm`` with ``options``' integration,
+    gridding and refinement tolerance, ``n_refine`` passes at most (``integrator``: the
+    options' unless given)."""
+    return reconstruct(
+        obs,
+        anchor_mm,
+        integrator=options.integrator if integrator is None else integrator,
+        n_refine=n_refine,
+        tol_mm=options.refine_tol_mm,
+        grid_spacing_mm=options.grid_spacing_mm,
+        gridder=options.gridder,
+    )
+
+
 def _estimate_surface(
     obs: Observations,
     cal: Calibration,
@@ -113,15 +131,7 @@ def _estimate_surface(
     """:func:`estimate_surface` with ``n_refine`` passes per reconstruction."""
 
     def rebuild(anchor_mm: float, integrator: str = options.integrator) -> SurfaceEstimate:
-        return reconstruct(
-            obs,
-            anchor_mm,
-            integrator=integrator,
-            n_refine=n_refine,
-            tol_mm=options.refine_tol_mm,
-            grid_spacing_mm=options.grid_spacing_mm,
-            gridder=options.gridder,
-        )
+        return reconstruct_at(obs, anchor_mm, options, n_refine, integrator)
 
     # The level is a property of the data, not of the integrator: search it with a lattice
     # rule, whose fit error is the integrability residual itself (integrators that resample

@@ -40,11 +40,11 @@ from numpy.typing import NDArray
 from restoration.calibration import Calibration
 from restoration.observations import Observations
 from restoration.options import SchlierenOptions, StructuredLightOptions, checked_options
-from restoration.schlieren import SightLines, cached_lattice, flow_samples
-from restoration.structured_light import StructuredLight
-from restoration.surface import SurfaceEstimate, reconstruct
+from restoration.schlieren import SightLines, cached_lattice, flat_view_file, flow_samples
+from restoration.structured_light import StructuredLight, reconstruct_at
+from restoration.surface import SurfaceEstimate
 from wai_core.errors import RestorationFailed
-from wai_core.images import find_image, locate_image
+from wai_core.images import find_image
 from wai_core.optics import trace_to_object
 from wai_core.timings import Timings
 
@@ -64,8 +64,6 @@ MAX_PROBES = 9
 """Most levels probed (each one surface and one trace of the samples)."""
 VERTEX_TOL_MM = 0.02
 """The search stops once the parabola's vertex lies this close to a level already probed."""
-SAMPLE_STEP_PX = 8
-"""Camera v's sample lattice, px (as synthetic Schlieren's)."""
 N_SETS = 4
 """Interleaved sample sets (by the lattice's parity) whose own vertices give the standard
 error."""
@@ -95,16 +93,11 @@ class ViewLevelCalibration(Calibration):
 
     IMAGES: ClassVar[tuple[str, ...]] = ("pattern", "pattern_flat", "view", "view_flat")
 
-    def image_size(self, name: str) -> tuple[int, int]:
-        return super().image_size("view" if name == "view_flat" else name)
-
     def image_files(self, folder: str | Path) -> dict[str, Path]:
-        """The structured light's images and the flat-water view (``view_flat.*``, where a
-        render has none its ``view_truth.*``, the flat-water view a rig takes once)."""
-        files = {name: find_image(folder, name) for name in ("pattern", "pattern_flat", "view")}
-        flat = locate_image(folder, "view_flat") or locate_image(folder, "view_truth")
-        files["view_flat"] = flat if flat is not None else find_image(folder, "view_flat")
-        return files
+        """The structured light's images and the flat-water view
+        (:func:`~restoration.schlieren.flat_view_file`)."""
+        return {**{name: find_image(folder, name) for name in Calibration.IMAGES},
+                "view_flat": flat_view_file(folder)}
 
     def lattice(self, step_px: int) -> SightLines:
         """Camera v's sample pixels every ``step_px`` and their lines of sight."""
@@ -143,9 +136,9 @@ class ViewSamples:
 
 
 def view_samples(images: dict[str, NDArray], cal: ViewLevelCalibration) -> ViewSamples:
-    """The view samples of one frame (``images``: ``view`` and ``view_flat``)."""
-    lines, kept, object_mm, mm_per_px, counts = flow_samples(
-        images, cal, SchlierenOptions(sample_step_px=SAMPLE_STEP_PX))
+    """The view samples of one frame (``images``: ``view`` and ``view_flat``), on synthetic
+    Schlieren's lattice and flow (:class:`~restoration.options.SchlierenOptions`' defaults)."""
+    lines, kept, object_mm, mm_per_px, counts = flow_samples(images, cal, SchlierenOptions())
     index = np.flatnonzero(kept)
     ij = lines.ij[index]
     return ViewSamples(lines.px[index], object_mm[index], mm_per_px[index],
@@ -277,16 +270,13 @@ class StructuredLightView(StructuredLight):
             if not samples.served:
                 return surface
 
+            passes = int(surface.anchor.refine_passes or options.n_refine)
+
             def rebuild(level: float) -> SurfaceEstimate:
                 if not level > cal.diffuser_z_mm:
                     raise RestorationFailed(
                         "reconstruct_surface: the water level h0 must lie above the diffuser")
-                return reconstruct(obs, level, integrator=options.integrator,
-                                   n_refine=int(surface.anchor.refine_passes
-                                                or options.n_refine),
-                                   tol_mm=options.refine_tol_mm,
-                                   grid_spacing_mm=options.grid_spacing_mm,
-                                   gridder=options.gridder)
+                return reconstruct_at(obs, level, options, passes)
 
             found = find_view_level(rebuild, float(surface.anchor.anchor_mm), samples, cal)
             if found is not None:
