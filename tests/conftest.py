@@ -44,6 +44,21 @@ def shrink(cfg: SystemConfig, factor: int = 4, spp: int = 4) -> SystemConfig:
     return cfg.replace("render", spp_pattern=spp, spp_view=spp)
 
 
+def render_paper_frame(folder: Path, *, seed: int, texture: str = "checkerboard",
+                       wind: float = 1.0, **sections: dict) -> Path:
+    """Render the paper's rig at wind ``wind`` m/s, sea ``seed``, its object's ``texture``,
+    and sections changed as given (e.g. ``water={"roughness": 0.01}``), into ``folder``."""
+    from mitsuba_wai import render_folder
+    from wai_core.system import load_rig
+
+    cfg = load_rig("paper").replace("object", texture=texture).replace(
+        "waves", wind_speed_m_s=wind, seed=seed)
+    for name, keys in sections.items():
+        cfg = cfg.replace(name, **keys)
+    render_folder(cfg, folder, progress=False)
+    return folder
+
+
 @pytest.fixture(scope="package")
 def small_cfg(paper_cfg) -> SystemConfig:
     return shrink(paper_cfg)

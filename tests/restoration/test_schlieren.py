@@ -11,6 +11,7 @@ import pytest
 
 from restoration import Schlieren, SchlierenCalibration, SchlierenOptions, surface_errors
 from restoration.schlieren import SightLines, reconstruct_schlieren, slopes_on_sight_lines
+from tests.conftest import render_paper_frame
 from wai.cli import main
 from wai_core.geometry import refract
 from wai_core.heightfield import Heightfield
@@ -79,14 +80,7 @@ def test_exact_displacements_give_the_surface_to_its_shape(cal):
 
 
 def _render(root, name, texture, seed, wind=1.0):
-    from mitsuba_wai import render_folder
-    from wai_core.system import load_rig
-
-    cfg = load_rig("paper").replace("object", texture=texture).replace(
-        "waves", wind_speed_m_s=wind, seed=seed)
-    folder = root / name
-    render_folder(cfg, folder, progress=False)
-    return folder
+    return render_paper_frame(root / name, seed=seed, texture=texture, wind=wind)
 
 
 @pytest.fixture(scope="module")

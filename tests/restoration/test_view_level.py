@@ -10,22 +10,16 @@ import shutil
 import pytest
 
 from restoration import StructuredLightView, ViewLevelCalibration
+from tests.conftest import render_paper_frame
 from wai.cli import main
 
 ROUGH_SEED = 3  # U = 1 m/s; the spots' labels hold on this sea at alpha 0.01 (many fail)
 
 
 def _render(root, name, seed, texture, roughness):
-    from mitsuba_wai import render_folder
-    from wai_core.system import load_rig
-
-    cfg = load_rig("paper").replace("object", texture=texture).replace(
-        "waves", wind_speed_m_s=1.0, seed=seed)
-    if roughness:
-        cfg = cfg.replace("water", roughness=roughness).replace("render", spp_pattern=64)
-    folder = root / name
-    render_folder(cfg, folder, progress=False)
-    return folder
+    rough = {"water": {"roughness": roughness}, "render": {"spp_pattern": 64}}
+    return render_paper_frame(root / name, seed=seed, texture=texture,
+                              **(rough if roughness else {}))
 
 
 @pytest.fixture(scope="module")
