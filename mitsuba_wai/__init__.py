@@ -19,7 +19,7 @@ from mitsuba_wai.alterman import SunRenderer, alterman_surface, render_alterman_
 from mitsuba_wai.checkerboards import Board, render_checkerboards
 from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense, subframe_plan
 from mitsuba_wai.frame import Frame, render_frame
-from mitsuba_wai.frame_images import render_frame_images
+from mitsuba_wai.frame_images import render_flat_water, render_frame_images
 from mitsuba_wai.lens import lens_keys
 from mitsuba_wai.memory import check_render_memory, describe_devices, render_bytes
 from mitsuba_wai.mesh import flat_like
@@ -56,6 +56,7 @@ __all__ = [
     "Rendered",
     "render_folder",
     "render_frame",
+    "render_flat_water",
     "render_frame_images",
     "render_frames",
     "render_reference",

@@ -23,7 +23,38 @@ from mitsuba_wai.mesh import flat_like
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
 
-__all__ = ["render_frame_images"]
+__all__ = ["render_flat_water", "render_frame_images"]
+
+
+def render_flat_water(
+    renderer: RendersFrames, cfg: SystemConfig, surface: Heightfield, seed: int,
+    spp: int | None = None,
+) -> dict[str, NDArray[np.float32]]:
+    """The flat-water renders at ``h0``: ``pattern`` (camera s) and ``view`` (camera v, the
+    object's own light: no projector light, :mod:`~mitsuba_wai.crosstalk`'s truth), linear
+    radiance before any sensor.
+
+    They depend on the rig and the seed only, so frames of one rig may share them (a
+    sequence's reference, a dataset's): :func:`render_frame_images`'s ``flat``.
+
+    Parameters
+    ----------
+    renderer : RendersFrames
+        Loaded for ``cfg``'s geometry, both systems prepared.
+    cfg : SystemConfig
+    surface : Heightfield
+        A surface on the renderer's grid (its heights are not used), mm.
+    seed : int
+        Sampler seed (0 .. 2^32 - 1).
+    spp : int, optional
+        Samples per pixel (default: the configuration's).
+
+    Returns
+    -------
+    dict of str to (H, W, 3) ndarray of float32
+        ``pattern`` and ``view``.
+    """
+    return renderer.render(flat_like(surface, cfg.water.h0_mm), seed, spp=spp, crosstalk=False)
 
 
 def render_frame_images(
@@ -35,6 +66,7 @@ def render_frame_images(
     spp: int | None = None,
     surface_at: Callable[[float], Heightfield] | None = None,
     plan: SubframePlan | None = None,
+    flat: dict[str, NDArray[np.float32]] | None = None,
 ) -> tuple[SystemConfig, dict[str, NDArray[np.float32]]]:
     """The four images of a frame: the wavy ones over the exposure
     (:func:`~mitsuba_wai.degrade.render_exposure`), the flat ones (at ``h0``) sharp, then the
@@ -56,6 +88,9 @@ def render_frame_images(
         The surface at a time, s (the wave model's, for motion blur); None: a static surface.
     plan : SubframePlan, optional
         The exposure's sub-frames (default: :func:`~mitsuba_wai.degrade.subframe_plan`).
+    flat : dict, optional
+        Flat-water renders shared with other frames of the rig (:func:`render_flat_water`'s,
+        any seed); default: rendered here with ``seed``. The sensor reads them afresh each frame.
 
     Returns
     -------
@@ -67,8 +102,8 @@ def render_frame_images(
     """
     wavy = render_exposure(renderer, cfg, surface, seed, spp=spp, surface_at=surface_at,
                            plan=plan)
-    # The flat-water view is the object's own (no projector light: [crosstalk]'s truth).
-    flat = renderer.render(flat_like(surface, cfg.water.h0_mm), seed, spp=spp, crosstalk=False)
+    if flat is None:
+        flat = render_flat_water(renderer, cfg, surface, seed, spp)
     images = {
         "pattern": wavy["pattern"],
         "pattern_flat": flat["pattern"],

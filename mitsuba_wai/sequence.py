@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from mitsuba_wai import mesh as meshes
 from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense, subframe_plan
+from mitsuba_wai.frame_images import render_flat_water
 from mitsuba_wai.render import (
     OUTPUT_COMMAND,
     FrameRenderer,
@@ -147,7 +147,7 @@ def render_sequence(
     t0 = time.perf_counter()
     renderer = renderer_for(cfg)
     grid = wave_surface(first)
-    flat = renderer.render(meshes.flat_like(grid, cfg.water.h0_mm), render_seed(cfg))
+    flat = render_flat_water(renderer, cfg, grid, render_seed(cfg))
     reference = {"pattern_flat": flat["pattern"], "view_truth": flat["view"]}
     if cfg.sensor.enabled:
         # The exposures are fixed on the reference and travel in cfg to every frame.

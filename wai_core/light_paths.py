@@ -39,6 +39,7 @@ if TYPE_CHECKING:
 __all__ = [
     "FlatSpots", "SpotHits", "dot_rays", "flat_pixel_of", "flat_spots", "pack_camera",
     "real_spot_px", "reflect_to_diffuser", "reflected_spot_px", "spots_from_hits", "spots_through",
+    "view_warp_px",
 ]
 
 Array = NDArray[np.float64]
@@ -287,23 +288,120 @@ def flat_pixel_of(
            [ 20., 300.]])
     """
     cam = rig.camera_v
-    c = cam.pose.center_lab_mm
-    h0, n = rig.cfg.water.h0_mm, rig.cfg.water.n_water
     p = np.asarray(points_mm, dtype=float)
-    delta = p[..., :2] - c[:2]
-    d = np.hypot(delta[..., 0], delta[..., 1])
+    flat = np.ascontiguousarray(p.reshape(-1, 3))
+    out = np.empty((flat.shape[0], 2))
+    _flat_pixels(flat, cam.pose.center_lab_mm, rig.cfg.water.h0_mm, rig.cfg.water.n_water,
+                 pack_camera(cam), int(iterations), out)
+    return out[:, 0].reshape(p.shape[:-1]), out[:, 1].reshape(p.shape[:-1])
+
+
+def view_warp_px(rig: Any, hits_mm: ArrayLike, normals: ArrayLike, dirs: ArrayLike,
+                 valid: ArrayLike, iterations: int = 5) -> NDArray[np.float32]:
+    """Camera v's rays, met by the water at ``hits_mm`` with unit ``normals``, refracted into
+    the air (eq. 20), carried to the object plane and taken back to the pixel that sees that
+    object point through flat water (:func:`flat_pixel_of`): the exact warp between the
+    wavy and the flat-water views, one compiled pass per ray.
+
+    Parameters
+    ----------
+    rig : Any
+    hits_mm, normals, dirs : (..., 3) array_like
+        The rays' hits on the surface (mm), the surface's unit normals there and the rays'
+        unit directions (in the water, towards the surface).
+    valid : (...,) array_like of bool
+        The rays that hit the surface.
+    iterations : int
+        Newton steps of the flat-water inverse.
+
+    Returns
+    -------
+    (..., 2) ndarray of float32
+        The flat-water view's (col, row) of each ray; NaN where it is invalid, totally
+        reflected or misses the object plane.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from wai_core import load_system
+    >>> rig = load_system("paper").rig
+    >>> o, d = rig.camera_v.pixel_rays(np.array([100.0, 400.0]), np.array([50.0, 300.0]))
+    >>> t = (rig.cfg.water.h0_mm - o[2]) / d[:, 2]
+    >>> hits = o + t[:, None] * d
+    >>> up = np.tile([0.0, 0.0, 1.0], (2, 1))
+    >>> view_warp_px(rig, hits, up, d, np.ones(2, bool)).round(3).tolist()
+    [[100.0, 50.0], [400.0, 300.0]]
+    """
+    d = np.asarray(dirs, dtype=float)
+    shape = d.shape[:-1]
+    out = np.empty((int(np.prod(shape, dtype=np.int64)), 2), dtype=np.float32)
+    cfg = rig.cfg
+    _view_warp(np.ascontiguousarray(np.broadcast_to(hits_mm, d.shape).reshape(-1, 3), float),
+               np.ascontiguousarray(np.reshape(normals, (-1, 3)), float),
+               np.ascontiguousarray(d.reshape(-1, 3)),
+               np.ascontiguousarray(np.reshape(valid, -1), bool), cfg.water.n_water,
+               cfg.object_z_mm, rig.camera_v.pose.center_lab_mm, cfg.water.h0_mm,
+               pack_camera(rig.camera_v), int(iterations), out)
+    return out.reshape(*shape, 2)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _flat_pixel(px, py, pz, c, h0, n, camera, iterations):  # pragma: no cover
+    """:func:`flat_pixel_of` for one point ``(px, py, pz)``: (col, row)."""
+    dx, dy = px - c[0], py - c[1]
+    d = math.hypot(dx, dy)
     a = h0 - c[2]
-    b = p[..., 2] - h0
+    b = pz - h0
     k = n * n - 1.0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        # Lower bounds of the root: the tangent at 0, and the water term at its supremum.
-        v = np.maximum(d / (a / n + b), (d - a / np.sqrt(k)) / b)
-        for _ in range(iterations):
-            q = np.sqrt(n * n + k * v * v)
-            g = a * v / q + b * v - d
-            v = v - g / (a * n * n / q**3 + b)
-        r = d - b * v
-        unit = delta / np.where(d > 0, d, 1.0)[..., None]
-    q = np.concatenate([c[:2] + r[..., None] * unit, np.full(d.shape + (1,), h0)], axis=-1)
-    cols, rows, _ = cam.project(q)
-    return cols, rows
+    # Lower bounds of the root: the tangent at 0, and the water term at its supremum.
+    v1 = d / (a / n + b)
+    v2 = (d - a / math.sqrt(k)) / b
+    v = np.nan if (v1 != v1 or v2 != v2) else max(v1, v2)
+    for _ in range(iterations):
+        q = math.sqrt(n * n + k * v * v)
+        g = a * v / q + b * v - d
+        v = v - g / (a * n * n / q**3 + b)
+    r = d - b * v
+    scale = r / d if d > 0 else r
+    qx, qy, qz = c[0] + scale * dx, c[1] + scale * dy, h0
+    cx = qx * camera[0] + qy * camera[1] + qz * camera[2] + camera[9]
+    cy = qx * camera[3] + qy * camera[4] + qz * camera[5] + camera[10]
+    cz = qx * camera[6] + qy * camera[7] + qz * camera[8] + camera[11]
+    safe = cz if abs(cz) > 1e-12 else 1e-12
+    return camera[12] * cx / safe + camera[13], camera[12] * cy / safe + camera[14]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _flat_pixels(points, c, h0, n, camera, iterations, out):  # pragma: no cover
+    for i in range(points.shape[0]):
+        out[i, 0], out[i, 1] = _flat_pixel(points[i, 0], points[i, 1], points[i, 2], c, h0, n,
+                                           camera, iterations)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _view_warp(hits, normals, dirs, valid, n, object_z, c, h0, camera, iterations,
+               out):  # pragma: no cover
+    for i in range(dirs.shape[0]):
+        out[i, 0] = out[i, 1] = np.nan
+        if not valid[i]:
+            continue
+        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        cos_i = dx * nx + dy * ny + dz * nz
+        if cos_i > 0:  # the normal against the ray (geometry.refract)
+            nx, ny, nz, cos_i = -nx, -ny, -nz, -cos_i
+        cos_i = abs(cos_i)
+        k = 1.0 - n * n * (1.0 - cos_i * cos_i)
+        if not k >= 0.0:  # totally reflected
+            continue
+        m = n * cos_i - math.sqrt(k)
+        tx, ty, tz = n * dx + m * nx, n * dy + m * ny, n * dz + m * nz
+        t = (object_z - hits[i, 2]) / tz
+        if not (np.isfinite(t) and t > 0):
+            continue
+        px, py = hits[i, 0] + t * tx, hits[i, 1] + t * ty
+        pz = hits[i, 2] + t * tz
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            continue
+        col, row = _flat_pixel(px, py, pz, c, h0, n, camera, iterations)
+        out[i, 0], out[i, 1] = col, row

@@ -66,6 +66,38 @@ def test_store_holds_the_datasets_and_the_manifest(store: Path) -> None:
     assert 0.5 <= rec.params.wind_speed_m_s <= 2.0
 
 
+def test_the_store_holds_the_frames_as_made(store: Path) -> None:
+    # The chunks compressed in the maker's process and written as they are: each array read
+    # back is the frame as FrameMaker made it, bit for bit.
+    from wai.dataset import DatasetSpec, FrameMaker
+
+    w, h = (int(v) for v in SIZE.split("x"))
+    made = FrameMaker(DatasetSpec(seed=4, spp=2, size_px=(w, h))).make(1)
+    stored = read_frame(store, 1)
+    for name in ARRAYS:
+        np.testing.assert_array_equal(getattr(stored, name), getattr(made, name), err_msg=name)
+    with h5py.File(store / DATASET_FILE, "r") as f:
+        assert f["normals"].shuffle and f["normals"].compression == "lzf"
+
+
+def test_the_frames_share_one_flat_water_render(store: Path, tmp_path: Path) -> None:
+    # Flat water is the rig's, not the frame's: one render serves every frame, while the
+    # waves' renders are each frame's own. With the sensor on, each frame reads it afresh:
+    # the same light, its own noise.
+    a, b = read_frame(store, 0), read_frame(store, 1)
+    np.testing.assert_array_equal(a.view_truth, b.view_truth)
+    np.testing.assert_array_equal(a.pattern_flat, b.pattern_flat)
+    assert not np.array_equal(a.view, b.view) and not np.array_equal(a.pattern, b.pattern)
+    out = tmp_path / "noisy"
+    assert main(["dataset", "--frames", "2", "--out", str(out), "--degrade", *ARGS]) == 0
+    a, b = read_frame(out, 0), read_frame(out, 1)
+    ta, tb = a.view_truth.astype(float), b.view_truth.astype(float)
+    assert not np.array_equal(ta, tb)
+    # Exposed for each frame's own signal level: the same image up to scale and noise.
+    k = ta.mean() / tb.mean()
+    assert np.corrcoef(ta.ravel(), tb.ravel())[0, 1] > 0.9 and 0.1 < k < 10
+
+
 def test_resume_adds_frames_and_keeps_the_first(
     store: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -155,19 +187,25 @@ def test_flat_pixel_of_inverts_the_flat_forward_map() -> None:
     np.testing.assert_allclose(r, rows[ok], atol=1e-6)
 
 
-def test_object_points_are_trace_to_objects() -> None:
+def test_the_warp_is_trace_to_object_then_flat_pixel_of() -> None:
+    # The compiled pass (refraction, the object plane, the flat-water inverse in one loop)
+    # against the vectorised steps it fuses, on a calm and a windy sea.
     from mitsuba_wai import wave_surface
-    from wai.dataset.truth import _object_points
+    from wai.dataset import true_view_warp
 
     base = load_system("paper").replace("camera_v", width_px=120, height_px=90)
     for wind in (0.6, 2.0):
         cfg = base.replace("waves", wind_speed_m_s=wind, time_s=3.0, seed=11)
         surf = wave_surface(cfg)
         cam = cfg.rig.camera_v
-        want = trace_to_object(cam, surf, cfg.water.h0_mm, cfg.water.n_water, cfg.object_z_mm,
-                               *cam.pixel_grid()).object_mm
-        assert np.isfinite(want).mean() > 0.5
-        np.testing.assert_allclose(_object_points(cfg, surf), want, atol=1e-9)
+        points = trace_to_object(cam, surf, cfg.water.h0_mm, cfg.water.n_water,
+                                 cfg.object_z_mm, *cam.pixel_grid()).object_mm
+        want = np.stack(flat_pixel_of(cfg.rig, points), axis=-1)
+        ok = np.isfinite(want[..., 0])
+        assert ok.mean() > 0.5
+        got = true_view_warp(cfg, surf)
+        np.testing.assert_array_equal(np.isfinite(got[..., 0]), ok)
+        np.testing.assert_allclose(got[ok], want[ok], rtol=0, atol=1e-3)
 
 
 def test_bad_out_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -346,6 +384,22 @@ def test_a_store_written_before_folders_were_marked_continues(store: Path, tmp_p
     frames = int(h5py.File(old / DATASET_FILE, "r").attrs["frames"])
     assert main(["dataset", "--frames", str(frames + 1), "--out", str(old), *ARGS]) == 0
     assert len(read_manifest(old)) == frames + 1 and output_marker(old)["command"] == "dataset"
+
+
+def test_a_store_of_the_older_format_is_not_continued(
+        store: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import shutil
+
+    old = tmp_path / "v1"
+    shutil.copytree(store, old)
+    with h5py.File(old / DATASET_FILE, "a") as f:
+        f.attrs["format"] = "wai-dataset/1"
+    before = (old / DATASET_FILE).read_bytes()
+    capsys.readouterr()
+    assert main(["dataset", "--frames", "3", "--out", str(old), *ARGS]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--out" in err[0] and "wai-dataset/1" in err[0]
+    assert (old / DATASET_FILE).read_bytes() == before
 
 
 def test_a_real_full_disk_ends_in_one_line_not_a_crash(tmp_path: Path) -> None:

@@ -7,7 +7,9 @@ the whole dataset (the finest the wind range needs), and stored with:
 
 ``view``, ``view_truth``
     Camera v through the wavy and the flat water, (H, W, 3), radiance divided by the views'
-    gain ``n^2`` (the object's radiance), float16.
+    gain ``n^2`` (the object's radiance), float16. Flat water is rendered once per store
+    (:func:`flat_seed`): ``view_truth`` and ``pattern_flat`` are the same in every frame, but
+    for the sensor's noise when degraded.
 ``pattern``, ``pattern_flat``
     Camera s through the wavy and the flat water, grey (mean over channels), (Hs, Ws), float16.
 ``height_mm``, ``normals``
@@ -27,8 +29,23 @@ leaves a readable file and a rerun continues from there (:func:`write_dataset`).
 """
 
 from wai.dataset.maker import FrameMaker
-from wai.dataset.records import ARRAYS, FrameRecord, read_frame, read_manifest, read_runs
-from wai.dataset.spec import DatasetSpec, FrameParams, Ranges, frame_config, sample_params
+from wai.dataset.records import (
+    ARRAYS,
+    FramePacker,
+    FrameRecord,
+    PackedFrame,
+    read_frame,
+    read_manifest,
+    read_runs,
+)
+from wai.dataset.spec import (
+    DatasetSpec,
+    FrameParams,
+    Ranges,
+    flat_seed,
+    frame_config,
+    sample_params,
+)
 from wai.dataset.store import DATASET_FILE, MANIFEST_FILE
 from wai.dataset.truth import true_view_warp
 from wai.dataset.write import write_dataset, write_preview
@@ -39,9 +56,12 @@ __all__ = [
     "MANIFEST_FILE",
     "DatasetSpec",
     "FrameMaker",
+    "FramePacker",
     "FrameParams",
     "FrameRecord",
+    "PackedFrame",
     "Ranges",
+    "flat_seed",
     "frame_config",
     "read_frame",
     "read_manifest",

@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from wai.dataset.records import FrameRecord
-from wai.dataset.spec import DatasetSpec, frame_config, sample_params
+from wai.dataset.spec import DatasetSpec, flat_seed, frame_config, sample_params
 from wai.dataset.truth import true_view_warp
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
@@ -42,6 +42,10 @@ class FrameMaker:
     spacing): a few mesh levels cover the wind range, each with its renderer loaded on first
     use, so calm and windy frames both render on meshes their own size.
 
+    Flat water is the same for every frame of the rig: its two renders are made once, with the
+    dataset's :func:`~wai.dataset.spec.flat_seed`, and every frame's ``pattern_flat`` and
+    ``view_truth`` are them (read by the frame's own sensor when degraded).
+
     Parameters
     ----------
     spec : DatasetSpec
@@ -58,6 +62,7 @@ class FrameMaker:
         self.base = spec.base_config()
         self.x_mm, self.y_mm = grid_axes(spec, self.base)
         self._renderers: dict[int, Any] = {}
+        self._flat: dict[str, NDArray] | None = None
 
     def surface(
         self, cfg: SystemConfig, time_s: float | None = None, level: int = 0
@@ -97,7 +102,7 @@ class FrameMaker:
         """Frame ``index``'s configuration, true surface (on the storage grid; ``truth`` when
         given), images and the views' gain: the renders of :func:`mitsuba_wai.render_frame`
         on the frame's mesh."""
-        from mitsuba_wai import render_frame_images, render_seed
+        from mitsuba_wai import render_flat_water, render_frame_images, render_seed
         from wai_core.optics import radiance_gain
 
         p = sample_params(self.spec.seed, index, self.spec.ranges, self.spec.degrade)
@@ -108,9 +113,13 @@ class FrameMaker:
         def surface_at(t: float) -> Heightfield:
             return self.surface(cfg, t, level)
 
+        renderer = self._renderer(level, mesh)
+        if self._flat is None:  # any level's renderer: they share one of flat water
+            self._flat = render_flat_water(renderer, self.base, mesh, flat_seed(self.spec.seed),
+                                           self.spec.spp)
         cfg, images = render_frame_images(
-            self._renderer(level, mesh), cfg, mesh, render_seed(cfg), spp=self.spec.spp,
-            surface_at=surface_at if cfg.motion.exposure_s > 0 else None,
+            renderer, cfg, mesh, render_seed(cfg), spp=self.spec.spp,
+            surface_at=surface_at if cfg.motion.exposure_s > 0 else None, flat=self._flat,
         )
         # With the sensor on, the views are its reading, already scaled by the exposure.
         gain = 1.0 if cfg.sensor.enabled else radiance_gain(cfg.water.n_water)

@@ -4,6 +4,10 @@ manifest, and read back.
 The store is one HDF5 file, ``DIR/dataset.h5``, one chunk per frame and image; the attribute
 ``frames`` (the frames complete) is written after each frame's arrays, so an interrupted run
 leaves a readable file that a rerun continues (:func:`open_store`, :func:`trim`).
+
+A frame's arrays are compressed where the frame is made (:class:`FramePacker`, in the worker
+that rendered it) and written into the store as they are (HDF5's direct chunk writes): the
+writing process only moves bytes, so it does not bound how many workers a store can take.
 """
 
 from __future__ import annotations
@@ -22,12 +26,12 @@ from numpy.typing import NDArray
 
 from wai.dataset import store
 from wai.dataset.spec import DatasetSpec, FrameParams
-from wai.dataset.store import DATASET_FILE, FORMAT
+from wai.dataset.store import DATASET_FILE, FORMAT, FORMAT_FAMILY
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 
-__all__ = ["ARRAYS", "FrameRecord", "append", "open_store", "read_frame", "read_manifest",
-           "read_runs", "rewrite_manifest", "trim"]
+__all__ = ["ARRAYS", "FILTERS", "FramePacker", "FrameRecord", "PackedFrame", "append",
+           "open_store", "read_frame", "read_manifest", "read_runs", "rewrite_manifest", "trim"]
 
 
 # Attributes that must match for a rerun to append to an existing store.
@@ -60,6 +64,90 @@ class FrameRecord:
 
 ARRAYS = ("view", "view_truth", "pattern", "pattern_flat", "height_mm", "normals", "warp_px")
 """The per-frame datasets of the store, in :class:`FrameRecord`'s order."""
+
+_IMAGE = {"compression": "lzf"}
+_FLOAT32 = {"compression": "lzf", "shuffle": True}
+FILTERS: dict[str, dict[str, Any]] = {
+    "view": _IMAGE, "view_truth": _IMAGE, "pattern": _IMAGE, "pattern_flat": _IMAGE,
+    "height_mm": _FLOAT32, "normals": _FLOAT32, "warp_px": _FLOAT32,
+}
+"""Each array's HDF5 filters: LZF, the float32 arrays byte-shuffled first (their exponents and
+high bytes together: 1.6-2.2 times smaller than LZF alone makes them, which gained 1.0-1.4)."""
+
+_SHARED = ("pattern_flat", "view_truth")
+# The arrays frames may share (the flat-water renders, without the sensor's noise): their
+# chunk is compressed once while they stay the same.
+
+
+@dataclass(frozen=True)
+class PackedFrame:
+    """A frame's arrays as the store's compressed chunks (:class:`FramePacker`).
+
+    Attributes
+    ----------
+    params : FrameParams
+    chunks : dict
+        Per array of :data:`ARRAYS`: its shape, dtype (``numpy`` string), HDF5 filter mask and
+        compressed bytes (:data:`FILTERS`).
+    """
+
+    params: FrameParams
+    chunks: dict[str, tuple[tuple[int, ...], str, int, bytes]]
+
+    @property
+    def nbytes(self) -> int:
+        """The compressed bytes of the frame's arrays."""
+        return sum(len(chunk[3]) for chunk in self.chunks.values())
+
+
+class FramePacker:
+    """Compresses frames into the store's chunks (:data:`FILTERS`), by HDF5 itself in a file
+    held in memory, so the bytes are the ones the store's own filters would write.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from wai.dataset.spec import FrameParams
+    >>> z16, z32 = np.zeros((6, 8, 3), np.float16), np.zeros((5, 4), np.float32)
+    >>> rec = FrameRecord(FrameParams(0, 1.0, 0.0, 0.0, 1), z16, z16, z16[..., 0], z16[..., 0],
+    ...                   z32, np.zeros((5, 4, 3), np.float32), np.zeros((6, 8, 2), np.float32))
+    >>> packed = FramePacker().pack(rec)
+    >>> packed.chunks["height_mm"][:2], packed.nbytes < 8 * 6 * 8 * 3
+    (((5, 4), '<f4'), True)
+    """
+
+    def __init__(self) -> None:
+        self._file: Any = None
+        self._last: dict[str, tuple[NDArray, tuple[tuple[int, ...], str, int, bytes]]] = {}
+
+    def pack(self, rec: FrameRecord) -> PackedFrame:
+        """``rec``'s arrays compressed."""
+        chunks = {}
+        for name in ARRAYS:
+            a = np.ascontiguousarray(getattr(rec, name))
+            last = self._last.get(name)
+            if (last is not None and last[0].shape == a.shape and last[0].dtype == a.dtype
+                    and np.array_equal(last[0], a)):
+                chunks[name] = last[1]
+                continue
+            chunks[name] = self._compress(name, a)
+            if name in _SHARED:
+                self._last[name] = (a.copy(), chunks[name])
+        return PackedFrame(rec.params, chunks)
+
+    def _compress(self, name: str, a: NDArray) -> tuple[tuple[int, ...], str, int, bytes]:
+        import h5py
+
+        if self._file is None:
+            self._file = h5py.File(io.BytesIO(), "w")
+        key = f"{name}/{a.dtype.str}/{'x'.join(map(str, a.shape))}"
+        if key not in self._file:
+            self._file.create_dataset(key, shape=(1, *a.shape), dtype=a.dtype,
+                                      chunks=(1, *a.shape), **FILTERS[name])
+        ds = self._file[key]
+        ds[0] = a
+        mask, data = ds.id.read_direct_chunk((0,) * ds.ndim)
+        return a.shape, a.dtype.str, int(mask), bytes(data)
 
 def _versions() -> dict[str, str]:
     """The software the store was written with (``git`` commit of a checkout)."""
@@ -100,6 +188,10 @@ def open_store(path: Path, spec: DatasetSpec, cfg: SystemConfig) -> Any:
     except OSError:
         raise WaiInputError(f"--out {path.parent}: {path.name} exists and is not an HDF5 "
                             "file of wai dataset") from None
+    if str(attrs["format"]).startswith(FORMAT_FAMILY) and attrs["format"] != FORMAT:
+        raise WaiInputError(f"--out {path.parent}: holds a dataset of format {attrs['format']}; "
+                            f"this version writes {FORMAT} and continues only those: choose "
+                            "another --out")
     if attrs["format"] != FORMAT:
         raise WaiInputError(f"--out {path.parent}: {path.name} exists and is not a store of "
                             "wai dataset")
@@ -114,20 +206,23 @@ def _plain(value: Any) -> Any:
     return value.item() if isinstance(value, np.generic) else value
 
 
-def append(f: Any, rec: FrameRecord, x_mm: NDArray, y_mm: NDArray) -> None:
+def append(f: Any, rec: PackedFrame, x_mm: NDArray, y_mm: NDArray) -> None:
     """Write ``rec`` as frame ``attrs['frames']``, then count it."""
     k = int(f.attrs["frames"])
     if "x_mm" not in f:
         f.create_dataset("x_mm", data=x_mm)
         f.create_dataset("y_mm", data=y_mm)
     for name in ARRAYS:
-        a = getattr(rec, name)
+        shape, dtype, mask, data = rec.chunks[name]
         if name not in f:
-            f.create_dataset(name, shape=(0, *a.shape), maxshape=(None, *a.shape),
-                             dtype=a.dtype, chunks=(1, *a.shape), compression="lzf")
+            f.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape),
+                             dtype=np.dtype(dtype), chunks=(1, *shape), **FILTERS[name])
         ds = f[name]
+        if ds.shape[1:] != tuple(shape) or ds.dtype != np.dtype(dtype):
+            raise ValueError(f"{name}: a frame of {shape} {dtype} in a store of "
+                             f"{ds.shape[1:]} {ds.dtype}")
         ds.resize(k + 1, axis=0)
-        ds[k] = a
+        ds.id.write_direct_chunk((k,) + (0,) * len(shape), data, mask)
     if "params" not in f:
         f.create_dataset("params", shape=(0,), maxshape=(None,), dtype=_PARAM_DTYPE,
                          chunks=(256,))

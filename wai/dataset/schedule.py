@@ -15,7 +15,7 @@ from collections.abc import Iterator, Sequence
 from typing import Any
 
 from wai.dataset.maker import FrameMaker
-from wai.dataset.records import FrameRecord
+from wai.dataset.records import FramePacker, PackedFrame
 from wai.dataset.spec import DatasetSpec
 from wai.threads import limit_native_threads
 from wai_core.errors import WaiInputError
@@ -23,22 +23,26 @@ from wai_core.errors import WaiInputError
 __all__ = ["frame_resources", "make_frames"]
 
 
-# A worker process's FrameMaker of each spec (its scenes stay loaded between frames).
-_MAKERS: dict[DatasetSpec, FrameMaker] = {}
+# A worker process's FrameMaker and FramePacker of each spec (its scenes stay loaded between
+# frames, the flat-water chunks compressed once).
+_MAKERS: dict[DatasetSpec, tuple[FrameMaker, FramePacker]] = {}
 
 
 def _make_cached(spec: DatasetSpec, index: int, host_threads: dict[str, int] | None = None
-                 ) -> FrameRecord:
-    """Frame ``index`` of ``spec``, by this process's FrameMaker of it; on a Dask worker, with
-    the native pools sized to the cores over the cluster's threads on its host."""
+                 ) -> PackedFrame:
+    """Frame ``index`` of ``spec``, made and compressed by this process's FrameMaker of it;
+    on a Dask worker, with the native pools sized to the cores over the cluster's threads on
+    its host."""
     if host_threads is not None:
         from distributed import get_worker
         from distributed.comm import get_address_host
 
         host = get_address_host(get_worker().address)
         limit_native_threads(max(1, (os.cpu_count() or 1) // host_threads.get(host, 1)))
-    maker = _MAKERS[spec] if spec in _MAKERS else _MAKERS.setdefault(spec, FrameMaker(spec))
-    return maker.make(index)
+    if spec not in _MAKERS:
+        _MAKERS[spec] = FrameMaker(spec), FramePacker()
+    maker, packer = _MAKERS[spec]
+    return packer.pack(maker.make(index))
 
 
 def frame_resources(workers: Sequence[dict[str, Any]]) -> dict[str, int] | None:
@@ -57,7 +61,7 @@ def frame_resources(workers: Sequence[dict[str, Any]]) -> dict[str, int] | None:
 
 
 def _frames_on_dask(client: Any, spec: DatasetSpec, indices: Sequence[int]
-                    ) -> Iterator[FrameRecord]:
+                    ) -> Iterator[PackedFrame]:
     """The frames ``indices`` in order, rendered by the workers of ``client``'s cluster
     (those with a GPU where there are any: :func:`frame_resources`); a window of twice the
     workers' threads is in flight (the rest waits, not the memory)."""
@@ -91,7 +95,7 @@ def _dask_client(scheduler: str) -> Any:
         raise WaiInputError(f"--scheduler {scheduler}: no Dask scheduler there ({exc})") from None
 
 
-def _frames_in_pool(spec: DatasetSpec, indices: Sequence[int], n: int) -> Iterator[FrameRecord]:
+def _frames_in_pool(spec: DatasetSpec, indices: Sequence[int], n: int) -> Iterator[PackedFrame]:
     threads = max(1, (os.cpu_count() or 1) // n)
     with multiprocessing.get_context("spawn").Pool(n, limit_native_threads, (threads,)) as pool:
         yield from pool.imap(functools.partial(_make_cached, spec), indices)
@@ -99,14 +103,16 @@ def _frames_in_pool(spec: DatasetSpec, indices: Sequence[int], n: int) -> Iterat
 
 def make_frames(spec: DatasetSpec, indices: Sequence[int], workers: int,
                 scheduler: str | None, maker: FrameMaker | None
-                ) -> tuple[Iterator[FrameRecord], str]:
-    """The frames ``indices`` in order, rendered here (``workers`` <= 1, by ``maker``), in
-    ``workers`` spawned processes or on the Dask cluster at ``scheduler``; who, in words."""
+                ) -> tuple[Iterator[PackedFrame], str]:
+    """The frames ``indices`` in order, compressed for the store, rendered here (``workers``
+    <= 1, by ``maker``), in ``workers`` spawned processes or on the Dask cluster at
+    ``scheduler``; who, in words."""
     if scheduler is not None:
         threads = (client := _dask_client(scheduler)).nthreads()
         return (_frames_on_dask(client, spec, indices),
                 f"Dask {scheduler}: {len(threads)} workers, {sum(threads.values())} threads")
     if workers <= 1:
-        return map((maker or FrameMaker(spec)).make, indices), "this process"
+        maker, packer = maker or FrameMaker(spec), FramePacker()
+        return (packer.pack(maker.make(i)) for i in indices), "this process"
     return _frames_in_pool(spec, indices, workers), f"{workers} worker processes"
 

@@ -17,7 +17,7 @@ from wai.dataset.store import FORMAT
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 
-__all__ = ["DatasetSpec", "FrameParams", "Ranges", "frame_config", "sample_params"]
+__all__ = ["DatasetSpec", "FrameParams", "Ranges", "flat_seed", "frame_config", "sample_params"]
 
 
 @dataclass(frozen=True)
@@ -105,6 +105,22 @@ def sample_params(
     noise = float(rng.uniform(*r.read_noise_e))
     return FrameParams(int(index), wind, direction, t, wave_seed,
                        level if degrade else 0.0, noise if degrade else 0.0)
+
+
+def flat_seed(seed: int) -> int:
+    """The sampler seed of the flat-water renders every frame of a dataset of ``seed`` shares
+    (0 .. 2^32 - 1): drawn from its own stream, apart from the frames' ``[seed, i]``.
+
+    Examples
+    --------
+    >>> flat_seed(0) == flat_seed(0) != flat_seed(1)
+    True
+    >>> 0 <= flat_seed(7) < 2**32
+    True
+    """
+    if seed < 0:
+        raise WaiInputError(f"--seed must be >= 0, not {seed}")
+    return int(np.random.SeedSequence(int(seed), spawn_key=(0,)).generate_state(1)[0])
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,8 @@ from typing import Any
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 
-__all__ = ["COMMAND", "DATASET_FILE", "FOLDER_FILES", "FORMAT", "MANIFEST_FILE", "PREVIEW_FILE",
+__all__ = ["COMMAND", "DATASET_FILE", "FOLDER_FILES", "FORMAT", "FORMAT_FAMILY", "MANIFEST_FILE",
+           "PREVIEW_FILE",
            "check_dataset_folder", "check_dataset_memory", "close_store", "create_store",
            "mark_dataset_folder", "reserve_space", "write_manifest"]
 
@@ -41,8 +42,12 @@ PREVIEW_FILE = "preview.png"
 """A look at the store's first frames (:func:`wai.dataset.write.write_preview`)."""
 FOLDER_FILES = (DATASET_FILE, MANIFEST_FILE, PREVIEW_FILE, "index.html")
 """Everything ``wai dataset`` writes in its folder."""
-FORMAT = "wai-dataset/1"
-"""The ``format`` attribute of a store ``wai dataset`` wrote (what a rerun looks for)."""
+FORMAT = "wai-dataset/2"
+"""The ``format`` attribute of a store ``wai dataset`` writes (what a rerun looks for). Stores
+of ``wai-dataset/1`` rendered flat water for every frame and compressed the float32 arrays
+without the shuffle: they are read alike, but not continued."""
+FORMAT_FAMILY = "wai-dataset/"
+"""The prefix of every store format ``wai dataset`` has written."""
 WARP_BYTES_PER_PX = 50
 """Peak bytes per camera-v pixel beyond the render's while a frame's warp is traced and its
 record assembled (a dataset frame at 3200 x 2400 px peaks at 271 bytes per pixel, the render
@@ -66,7 +71,7 @@ def _unmarked_store(out: Path) -> bool:
         return False
     try:
         with h5py.File(out / DATASET_FILE, "r") as f:
-            return f.attrs.get("format") == FORMAT
+            return str(f.attrs.get("format", "")).startswith(FORMAT_FAMILY)
     except OSError:
         return False
 

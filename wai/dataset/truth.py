@@ -7,12 +7,13 @@ from numpy.typing import NDArray
 
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
-from wai_core.light_paths import flat_pixel_of
+from wai_core.light_paths import view_warp_px
 
 __all__ = ["NEWTON_STEPS", "true_view_warp"]
 
 
-def true_view_warp(cfg: SystemConfig, surface: Heightfield) -> NDArray[np.float32]:
+def true_view_warp(cfg: SystemConfig, surface: Heightfield,
+                   rays: tuple[NDArray, NDArray] | None = None) -> NDArray[np.float32]:
     """Where each pixel of camera v's view through ``surface`` appears in the flat-water view.
 
     Each pixel's ray is traced through the true surface to the object plane (as
@@ -24,6 +25,9 @@ def true_view_warp(cfg: SystemConfig, surface: Heightfield) -> NDArray[np.float3
     cfg : SystemConfig
     surface : Heightfield
         The true surface, absolute heights, mm.
+    rays : (origin (3,), directions (H, W, 3)), optional
+        Camera v's pixel rays (``camera_v.pixel_rays(*camera_v.pixel_grid())``), when the
+        caller keeps them for many surfaces.
 
     Returns
     -------
@@ -45,25 +49,12 @@ def true_view_warp(cfg: SystemConfig, surface: Heightfield) -> NDArray[np.float3
     >>> bool(np.allclose(warp[ok], np.stack([cols, rows], axis=-1)[ok], atol=1e-3))
     True
     """
-    fc, fr = flat_pixel_of(cfg.rig, _object_points(cfg, surface))
-    return np.stack([fc, fr], axis=-1).astype(np.float32)
+    cam = cfg.rig.camera_v
+    origin, dirs = cam.pixel_rays(*cam.pixel_grid()) if rays is None else rays
+    hit, hit_ok, normals = surface.intersect_normals(origin, dirs, n_iter=NEWTON_STEPS)
+    return view_warp_px(cfg.rig, hit, normals, dirs, hit_ok)
 
 
 # Newton steps of the rays' surface hits: from the mean level, four reach the steps' rounding
 # on sea waves (the default eight cost twice the time for nothing).
 NEWTON_STEPS = 4
-
-
-def _object_points(cfg: SystemConfig, surface: Heightfield) -> NDArray:
-    """Camera v's pixels traced through ``surface`` to the object plane, (H, W, 3) mm, NaN where
-    totally reflected or missed: :func:`wai_core.optics.trace_to_object` with
-    :data:`NEWTON_STEPS` steps to the surface."""
-    from wai_core.geometry import intersect_plane_z, refract
-
-    cam = cfg.rig.camera_v
-    origin, dirs = cam.pixel_rays(*cam.pixel_grid())
-    hit, hit_ok, normals = surface.intersect_normals(origin, dirs, n_iter=NEWTON_STEPS)
-    air, tir = refract(dirs, normals, cfg.water.n_water)  # water to air (eq. 20)
-    points, _ = intersect_plane_z(hit, air, cfg.object_z_mm)
-    points[~hit_ok | tir | ~np.all(np.isfinite(points), axis=-1)] = np.nan
-    return points

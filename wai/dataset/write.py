@@ -10,13 +10,16 @@ from typing import Any
 
 from wai.dataset import store
 from wai.dataset.maker import FrameMaker, grid_axes
-from wai.dataset.records import ARRAYS, append, open_store, rewrite_manifest, trim
+from wai.dataset.records import append, open_store, rewrite_manifest, trim
 from wai.dataset.schedule import make_frames
 from wai.dataset.spec import DatasetSpec
 from wai.dataset.store import DATASET_FILE, MANIFEST_FILE
 from wai_core.errors import WaiInputError
 
-__all__ = ["write_dataset"]
+__all__ = ["MANIFEST_EVERY_S", "write_dataset"]
+
+MANIFEST_EVERY_S = 5.0
+"""Seconds between the manifest's rewrites while frames are written (and once at the end)."""
 
 
 def write_dataset(
@@ -90,12 +93,19 @@ def write_dataset(
             if todo:
                 x_mm, y_mm = (maker.x_mm, maker.y_mm) if maker else grid_axes(spec, cfg)
                 made, renderers = make_frames(spec, todo, workers, scheduler, maker)
-                for rec in made:
-                    store.reserve_space(f, sum(getattr(rec, a).nbytes for a in ARRAYS),
-                                        int(f.attrs["frames"]))
-                    append(f, rec, x_mm, y_mm)
+                # The manifest follows the store every few seconds and at the end (rewritten
+                # after each frame, a store of 100,000 frames would spend its time there).
+                listed = time.perf_counter()
+                try:
+                    for rec in made:
+                        store.reserve_space(f, rec.nbytes, int(f.attrs["frames"]))
+                        append(f, rec, x_mm, y_mm)
+                        bar.update(1)
+                        if time.perf_counter() - listed > MANIFEST_EVERY_S:
+                            rewrite_manifest(f, out / MANIFEST_FILE)
+                            listed = time.perf_counter()
+                finally:
                     rewrite_manifest(f, out / MANIFEST_FILE)
-                    bar.update(1)
                 store.reserve_space(f, 0, int(f.attrs["frames"]))
                 _record_run(f, done, len(todo), time.perf_counter() - t0, renderers)
         rewrite_manifest(f, out / MANIFEST_FILE)
