@@ -24,7 +24,9 @@ by more than :data:`~restoration.frame_status.VIEW_MAX_RESIDUAL_PX` (median), th
 wrong (labels shifted by whole dots leave 4 px) and the frame ``inconsistent``. It needs the
 rig's flat-water view of the object (``view_flat``; a render's ``view_truth`` is that view) and
 an object with texture: the paper's 200 mm checkerboard gives the flow too little to follow
-(docs/results.md).
+(docs/results.md). Whether it has is judged first on the flat-water view alone
+(:func:`textured_share`, a few milliseconds): where too few samples lie on texture for the
+flow to serve, the flow (0.3-0.6 s) is not computed and the frame is the structured light's.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -50,7 +53,7 @@ from wai_core.timings import Timings
 
 __all__ = [
     "ViewLevel", "ViewLevelCalibration", "ViewSamples", "StructuredLightView", "find_view_level",
-    "view_samples",
+    "textured_share", "view_samples",
 ]
 
 Array = NDArray[np.float64]
@@ -73,6 +76,20 @@ Schlieren's check) for the view to weigh the level or check the surface. A speck
 smooth or rough water, a real rig: 0.82-0.91; the paper's 200 mm checkerboard: 0.31, where the
 flow's errors inside the squares pull the level (0.086 mm against the spots' 0.029 mm on the
 compare cases) and miss 1.2-1.7 px at the 90th percentile through a right surface."""
+TEXTURE_PRESMOOTH_PX = 1.0
+"""Gaussian blur of the flat-water view before its gradients (:func:`textured_share`), px: the
+render's or the sensor's pixel noise is no texture the flow can follow."""
+TEXTURE_SIGMA_PX = 4.0
+"""Scale of the flat-water view's structure tensor, px: about the flow's patch."""
+TEXTURE_MIN_EIGEN = 3e-4
+"""Smaller eigenvalue of the structure tensor (grey levels in [0, 1], per px squared) above
+which a sample lies on texture that fixes both directions of the flow."""
+TEXTURE_MIN_SHARE = 0.45
+"""The share of camera v's samples on texture below which the flow is not computed. The
+flat view predicts the flow's share from above: the paper's checkerboard 0.22-0.26 on texture
+(smooth water, the sensor's noise, rough water's noisier view), 0.17-0.41 served; a speckle
+0.76-0.88 on texture, 0.59-0.95 served (alpha 0.02 the least). Below this, no frame has reached
+:data:`SERVED_SHARE`."""
 
 
 @dataclass
@@ -135,10 +152,60 @@ class ViewSamples:
         return len(self.px) >= max(N_SETS * 8, SERVED_SHARE * self.counts["samples"])
 
 
+def textured_share(view_flat: NDArray, px: Array) -> float:
+    """The share of the pixels ``px`` (K, 2: col, row) at which the flat-water view
+    ``view_flat`` (H, W[, 3], linear) has texture in both directions: the smaller eigenvalue of
+    its structure tensor (grey from its 0.5th to its 99.5th percentile as 0 to 1, blurred by
+    :data:`TEXTURE_PRESMOOTH_PX`; the gradients' products smoothed over
+    :data:`TEXTURE_SIGMA_PX`) above :data:`TEXTURE_MIN_EIGEN`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> px = rng.uniform(20, 140, (200, 2))
+    >>> round(textured_share(np.full((160, 160), 0.5), px), 2)
+    0.0
+    >>> import cv2
+    >>> speckle = cv2.GaussianBlur(rng.random((160, 160)).astype(np.float32), (0, 0), 2.0)
+    >>> textured_share(speckle, px) > 0.9
+    True
+    """
+    grey = np.asarray(view_flat, dtype=np.float32)
+    if grey.ndim == 3:
+        grey = grey.mean(axis=-1)
+    lo, hi = np.percentile(grey, [0.5, 99.5])
+    grey = (grey - lo) / (hi - lo if hi > lo else 1.0)
+    grey = cv2.GaussianBlur(np.clip(grey, 0.0, 1.0).astype(np.float32), (0, 0),
+                            TEXTURE_PRESMOOTH_PX)
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    jxx, jyy, jxy = (cv2.GaussianBlur(a, (0, 0), TEXTURE_SIGMA_PX)
+                     for a in (gx * gx, gy * gy, gx * gy))
+    smaller = 0.5 * (jxx + jyy - np.sqrt((jxx - jyy) ** 2 + 4.0 * jxy**2))
+    if not len(px):
+        return 0.0
+    h, w = grey.shape
+    cols = np.clip(np.rint(px[:, 0]).astype(int), 0, w - 1)
+    rows = np.clip(np.rint(px[:, 1]).astype(int), 0, h - 1)
+    return float(np.mean(smaller[rows, cols] > TEXTURE_MIN_EIGEN))
+
+
 def view_samples(images: dict[str, NDArray], cal: ViewLevelCalibration) -> ViewSamples:
     """The view samples of one frame (``images``: ``view`` and ``view_flat``), on synthetic
-    Schlieren's lattice and flow (:class:`~restoration.options.SchlierenOptions`' defaults)."""
-    lines, kept, object_mm, mm_per_px, counts = flow_samples(images, cal, SchlierenOptions())
+    Schlieren's lattice and flow (:class:`~restoration.options.SchlierenOptions`' defaults);
+    none, and no flow computed, where too few of the samples lie on the flat view's texture
+    (:data:`TEXTURE_MIN_SHARE`: counts ``textured`` and ``matched`` 0)."""
+    options = SchlierenOptions()
+    lines = cal.lattice(options.sample_step_px)
+    reach = lines.px[lines.reach]
+    textured = textured_share(cal.radiance(images["view_flat"]), reach)
+    if textured < TEXTURE_MIN_SHARE:
+        n = int(len(reach))
+        return ViewSamples(np.empty((0, 2)), np.empty((0, 3)), np.empty(0),
+                           np.empty(0, dtype=np.int64),
+                           {"samples": n, "textured": int(round(textured * n)), "matched": 0})
+    lines, kept, object_mm, mm_per_px, counts = flow_samples(images, cal, options)
     index = np.flatnonzero(kept)
     ij = lines.ij[index]
     return ViewSamples(lines.px[index], object_mm[index], mm_per_px[index],

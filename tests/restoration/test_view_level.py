@@ -63,3 +63,28 @@ def test_a_frame_without_its_flat_view_is_bad_input(frames, tmp_path, capsys):
     assert main(["restore", str(folder), "--method", "structured-light-view", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "view_flat" in err[0]
+
+
+def test_the_flat_view_says_where_the_flow_cannot_follow(frames, monkeypatch):
+    # The flow is computed only where the flat view has texture in two directions: a single
+    # edge direction (stripes) has a rank-one structure tensor, corners have two; the paper's
+    # large squares leave too few samples on texture and no flow is run for them.
+    import numpy as np
+
+    import restoration.view_level as view_level
+
+    yy, xx = np.mgrid[0:200, 0:200].astype(np.float32)
+    px = np.stack(np.meshgrid(np.arange(30, 170, 7.0), np.arange(30, 170, 7.0)), -1).reshape(-1, 2)
+    stripes = ((xx // 10) % 2).astype(np.float32)
+    checks = (((xx // 10) + (yy // 10)) % 2).astype(np.float32)
+    assert view_level.textured_share(stripes, px) < 0.02
+    assert view_level.textured_share(checks, px) > 0.3
+    flows = []
+    flow_samples = view_level.flow_samples
+    monkeypatch.setattr(view_level, "flow_samples",
+                        lambda *a, **k: flows.append(1) or flow_samples(*a, **k))
+    for name, expected in (("checkerboard", []), ("rough", [1])):
+        cal = ViewLevelCalibration.from_folder(frames[name])
+        samples = view_level.view_samples(cal.load_images(frames[name]), cal)
+        assert flows == expected, name
+        assert samples.served == (name == "rough")
