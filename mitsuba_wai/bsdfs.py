@@ -45,6 +45,18 @@ Two optional properties add physics the restoration's model leaves out (absent: 
   ``R_s cos^2(phi) + R_p sin^2(phi)``, phi the field's angle from the s direction (normal to
   the plane of incidence), instead of ``(R_s + R_p) / 2``. What the diffuser then does to the
   polarisation does not matter: camera s records intensity.
+
+``rough_water_reflection``: a rough water surface's reflection, with polarised light
+-------------------------------------------------------------------------------------
+Mitsuba's ``roughdielectric`` (GGX) has no polarisation. System S needs only the reflected
+branch of a rough surface, so this plugin is that branch: a microfacet normal ``m`` drawn
+from GGX's distribution of visible normals (``alpha``; seen from below, its mirror image, as
+``roughdielectric`` does), the mirror direction about ``m``, and the weight ``F(m) G1(wo, m)``
+with the Fresnel reflectance at the facet: the same expectation as ``roughdielectric``'s
+reflections (which it keeps with probability F and weight ``G1``), every path reflected. With
+``polarisation_axis`` (as ``water_interface``'s) the facet's reflectance is ``R_s cos^2(phi) +
+R_p sin^2(phi)``, phi the field's angle from the facet's s direction (normal to the plane of
+``m`` and the light's direction); without it ``(R_s + R_p) / 2``.
 """
 
 from __future__ import annotations
@@ -255,6 +267,93 @@ def register() -> None:
             extra += "" if self.axis is None else ", polarised"
             return f"WaterInterface[eta={self.eta}, mode={mode}{extra}]"
 
+    def s_share_of(axis, d, m):
+        """Share of a field along ``axis`` (made transverse to the light's direction of travel
+        ``d``) that lies along s, the normal of the plane of ``d`` and the facet normal ``m``
+        (local vectors); 1/2 where that plane is undefined."""
+        s_dir = dr.cross(m, d)
+        e_dot_d = dr.dot(axis, d)
+        e_sq = dr.maximum(dr.squared_norm(axis) - dr.square(e_dot_d), 1e-12)
+        s_sq = dr.squared_norm(s_dir)
+        share = dr.square(dr.dot(axis, s_dir)) / (dr.maximum(s_sq, 1e-24) * e_sq)
+        return dr.select(s_sq > 1e-20, dr.clip(share, 0.0, 1.0), 0.5)
+
+    class RoughWaterReflection(mi.BSDF):
+        def __init__(self, props: mi.Properties) -> None:
+            super().__init__(props)
+            self.eta = props.get("int_ior", 1.333) / props.get("ext_ior", 1.0)
+            self.alpha = float(props.get("alpha", 0.01))
+            self.distr = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, self.alpha, True)
+            self.axis = None
+            if "polarisation_axis" in props:
+                a = [float(v) for v in props.get("polarisation_axis")]
+                norm = sum(v * v for v in a) ** 0.5
+                self.axis = mi.Vector3f(*(v / norm for v in a))
+            lobe = mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
+            self.m_components = [lobe]
+            self.m_flags = lobe
+
+        def _reflectance(self, ctx, si, wi, wo, m_up, side):
+            """F at the facet ``m_up`` (upper hemisphere, the frame mirrored to the side
+            ``side`` of ``wi``: +1 air, -1 water), for the light between ``wi`` and ``wo``."""
+            cos_im = dr.dot(mi.Vector3f(wi.x, wi.y, dr.abs(wi.z)), m_up)
+            r_s, r_p = fresnel_sp(side * cos_im, self.eta)
+            if self.axis is None:
+                return 0.5 * (r_s + r_p)
+            m = mi.Vector3f(m_up.x, m_up.y, side * m_up.z)
+            d = -wi if ctx.mode == mi.TransportMode.Importance else -wo
+            share = s_share_of(si.to_local(self.axis), d, m)
+            return r_s * share + r_p * (1.0 - share)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            wi = si.wi
+            side = dr.select(wi.z < 0, -1.0, 1.0)
+            wi_up = mi.Vector3f(wi.x, wi.y, dr.abs(wi.z))
+            m_up, pdf_m = self.distr.sample(wi_up, sample2)
+            cos_im = dr.dot(wi_up, m_up)
+            wo_up = 2.0 * cos_im * m_up - wi_up
+            bs = dr.zeros(mi.BSDFSample3f)
+            bs.wo = mi.Vector3f(wo_up.x, wo_up.y, side * wo_up.z)
+            bs.pdf = pdf_m / dr.maximum(4.0 * dr.abs(dr.dot(wo_up, m_up)), 1e-12)
+            bs.eta = 1.0
+            bs.sampled_type = mi.UInt32(+mi.BSDFFlags.GlossyReflection)
+            bs.sampled_component = mi.UInt32(0)
+            weight = (self._reflectance(ctx, si, wi, bs.wo, m_up, side)
+                      * self.distr.smith_g1(wo_up, m_up))
+            ok = active & (wi.z != 0) & (wo_up.z > 0) & (cos_im > 0) & (pdf_m > 0)
+            return bs, dr.select(ok, mi.Spectrum(weight), 0.0)
+
+        def _half(self, si, wo):
+            wi = si.wi
+            side = dr.select(wi.z < 0, -1.0, 1.0)
+            wi_up = mi.Vector3f(wi.x, wi.y, dr.abs(wi.z))
+            wo_up = mi.Vector3f(wo.x, wo.y, side * wo.z)
+            m_up = dr.normalize(wi_up + wo_up)
+            ok = (wi.z != 0) & (wo_up.z > 0)
+            return wi, wi_up, wo_up, m_up, side, ok
+
+        def eval(self, ctx, si, wo, active=True):
+            wi, wi_up, wo_up, m_up, side, ok = self._half(si, wo)
+            value = (self._reflectance(ctx, si, wi, wo, m_up, side) * self.distr.eval(m_up)
+                     * self.distr.G(wi_up, wo_up, m_up) / (4.0 * dr.abs(wi.z)))
+            return dr.select(active & ok, mi.Spectrum(value), 0.0)
+
+        def pdf(self, ctx, si, wo, active=True):
+            _, wi_up, wo_up, m_up, _, ok = self._half(si, wo)
+            pdf = self.distr.pdf(wi_up, m_up) / (4.0 * dr.abs(dr.dot(wo_up, m_up)))
+            return dr.select(active & ok, pdf, 0.0)
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
+
+        def traverse(self, callback):
+            pass
+
+        def to_string(self):
+            extra = "" if self.axis is None else ", polarised"
+            return f"RoughWaterReflection[eta={self.eta}, alpha={self.alpha}{extra}]"
+
     mi.register_bsdf("oneway_diffuser", lambda props: OneWayDiffuser(props))
+    mi.register_bsdf("rough_water_reflection", lambda props: RoughWaterReflection(props))
     mi.register_bsdf("water_interface", lambda props: WaterInterface(props))
     _REGISTERED = True

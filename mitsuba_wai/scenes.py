@@ -94,7 +94,9 @@ def water_bsdf(cfg: SystemConfig, system: str) -> dict:
       ``n_water``). It chooses reflection or refraction at random by the Fresnel weight, so
       each system keeps only its share of the paths (noisier at the same spp); it has one
       scalar index (:class:`~mitsuba_wai.render.FrameRenderer` renders sea water's one
-      channel at a time with it) and no polarisation, which it refuses.
+      channel at a time with it) and no polarisation: with polarised projector light, system
+      S's rough surface is ``rough_water_reflection`` (:mod:`mitsuba_wai.bsdfs`: the same
+      microfacets, reflected only, each facet's Fresnel weighed by the field).
     """
     from mitsuba_wai.bsdfs import register
 
@@ -106,16 +108,15 @@ def water_bsdf(cfg: SystemConfig, system: str) -> dict:
     w = cfg.water
     polarised = system == "S" and cfg.pattern.polarisation == "linear"
     if w.roughness > 0:
-        if polarised:
-            raise WaiInputError(
-                "config: [water].roughness > 0 needs [pattern].polarisation = 'none' (the "
-                "rough surface's BSDF has no polarisation)"
-            )
         if w.index_model != "constant":
             raise WaiInputError(
                 "config: [water].roughness > 0 with [water].index_model = 'quan_fry' is "
                 "rendered one colour channel at a time (mitsuba_wai.FrameRenderer)"
             )
+        if polarised:
+            return {"type": "rough_water_reflection", "alpha": float(w.roughness),
+                    "int_ior": w.n_water, "ext_ior": 1.0,
+                    "polarisation_axis": projector_field_axis(cfg).tolist()}
         return {"type": "roughdielectric", "distribution": "ggx", "alpha": float(w.roughness),
                 "int_ior": w.n_water, "ext_ior": 1.0}
     mode = "reflect" if system == "S" else "refract"

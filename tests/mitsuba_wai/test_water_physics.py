@@ -63,10 +63,12 @@ def test_effects_off_give_todays_dicts(paper_cfg):
         }
 
 
-def test_roughness_refuses_polarisation_and_renders_dispersion_per_channel(paper_cfg):
+def test_roughness_reflects_polarised_light_and_renders_dispersion_per_channel(paper_cfg):
     cfg = paper_cfg.replace("water", roughness=0.1).replace("pattern", polarisation="linear")
-    with pytest.raises(WaiInputError, match=r"\[pattern\]\.polarisation"):
-        water_bsdf(cfg, "S")
+    polarised = water_bsdf(cfg, "S")
+    assert polarised["type"] == "rough_water_reflection" and polarised["alpha"] == 0.1
+    assert polarised["polarisation_axis"] == pytest.approx(list(projector_field_axis(cfg)))
+    assert water_bsdf(cfg, "V")["type"] == "roughdielectric"
     with pytest.raises(WaiInputError, match="one colour channel at a time"):
         water_bsdf(paper_cfg.replace("water", roughness=0.1, index_model="quan_fry"), "V")
     rough = water_bsdf(paper_cfg.replace("water", roughness=0.1), "S")
@@ -352,3 +354,104 @@ def test_rough_water_pattern_matches_mitsubas_own_tracer(paper_cfg):
         image = FrameRenderer(c, flat, systems=("pattern",)).render(flat, 3, ("pattern",))
         total[sampling] = float(image["pattern"].sum())
     assert total["stratified"] == pytest.approx(total["independent"], rel=0.03)
+
+
+@pytest.mark.parametrize("theta_deg", [30.0, float(np.degrees(np.arctan(1 / N43))), 45.0, 60.0])
+def test_rough_polarised_reflection_tends_to_fresnel_and_its_fields_add_up(theta_deg):
+    """The rough surface's reflection with polarised light: nearly smooth (alpha 1e-4), the
+    mirror direction and the textbook R_s, R_p, (R_s + R_p) / 2; rough (alpha 0.3), any two
+    orthogonal fields across the ray share each facet's reflectance between them, so their
+    weights add up to twice the unpolarised one, sample by sample."""
+    import drjit as dr
+
+    from mitsuba_wai.bsdfs import register
+
+    mi = mitsuba()
+    register()
+    theta = np.radians(theta_deg)
+    n, t1, t2 = _tilted_frame()
+    d = np.sin(theta) * t1 + np.cos(theta) * n
+    p_axis, s_axis = np.cos(theta) * t1 - np.sin(theta) * n, t2
+    r_s, r_p = fresnel_sp(theta, N43, 1.0)
+    smooth = {"type": "rough_water_reflection", "alpha": 1e-4, "int_ior": N43, "ext_ior": 1.0}
+    si = surface_interaction(n, -d)
+    got = {}
+    for name, axis in (("s", s_axis), ("p", p_axis), ("none", None)):
+        bsdf = dict(smooth) if axis is None else {**smooth, "polarisation_axis": list(axis)}
+        _, w, wo = sample(bsdf, si, mi.Float(0.5), importance=True)
+        np.testing.assert_allclose(wo[0], d - 2 * np.dot(d, n) * n, atol=1e-3)
+        got[name] = w[0, 0]
+    np.testing.assert_allclose([got["s"], got["p"], got["none"]], [r_s, r_p, (r_s + r_p) / 2],
+                               atol=5e-4)
+    k = 256
+    rng = np.random.default_rng(int(theta_deg))
+    si = surface_interaction(n, -d, k)
+    u = mi.Point2f(*(mi.Float(rng.random(k)) for _ in range(2)))
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+    w = {}
+    for name, axis in (("s", s_axis), ("p", p_axis), ("none", None)):
+        rough = {**smooth, "alpha": 0.3}
+        if axis is not None:
+            rough["polarisation_axis"] = list(axis)
+        bsdf = mi.load_dict(rough)
+        bs, weight = bsdf.sample(ctx, si, mi.Float(0.5), u)
+        w[name] = np.array(dr.ravel(weight)).reshape(-1, 3)[:, 0]
+        # The connections' eval and pdf are the sampling's: eval / pdf is its weight.
+        value, pdf = bsdf.eval_pdf(ctx, si, bs.wo)
+        ratio = np.array(dr.ravel(value)).reshape(-1, 3)[:, 0] / np.maximum(np.array(pdf), 1e-30)
+        lit = w[name] > 0
+        np.testing.assert_allclose(ratio[lit], w[name][lit], rtol=1e-4)
+    assert np.count_nonzero(w["none"]) > k // 2
+    np.testing.assert_allclose(w["s"] + w["p"], 2 * w["none"], rtol=1e-5, atol=1e-7)
+    assert np.all((w["s"] >= 0) & (w["s"] <= 1) & (w["p"] >= 0) & (w["p"] <= 1))
+
+
+def test_rough_water_reflects_polarised_light_as_fresnel_says(paper_cfg):
+    """Roughness and polarisation compose: flat water of GGX alpha 0.01 lit by p- and by
+    s-polarised projector light; each spot in the projector's plane of symmetry keeps the ratio
+    R_p / R_s of the textbook Fresnel equations at its incidence (the facets tilt it by tenths
+    of a degree), near Brewster's angle the p spots vanish, and the two polarisations' mean
+    against the unpolarised rough surface (Mitsuba's roughdielectric) is what it is on smooth
+    water (not 1: off the projector's plane the panel's two axes, made transverse to a ray,
+    are not orthogonal)."""
+    from scipy.ndimage import uniform_filter
+
+    from mitsuba_wai.mesh import flat_like
+    from mitsuba_wai.render import FrameRenderer
+    from mitsuba_wai.surface_sampling import wave_surface
+    from tests.conftest import shrink
+    from wai_core.layout import flat_pattern_hits
+
+    cfg = shrink(paper_cfg, factor=2, spp=4).replace("water", roughness=0.01)
+    flat = flat_like(wave_surface(cfg), cfg.water.h0_mm)
+    images = {}
+    for name, deg in (("none", None), ("p", 0.0), ("s", 90.0)):
+        c = cfg if deg is None else cfg.replace(
+            "pattern", polarisation="linear", polarisation_deg=deg)
+        images[name] = FrameRenderer(c, flat, systems=("pattern",)).render(
+            flat, 3, ("pattern",))["pattern"].sum(-1)
+    _, spot, seen = flat_pattern_hits(cfg)
+    panel = cfg.rig.dot_panel_px
+    _, d = cfg.rig.projector.pixel_rays(panel[:, 0], panel[:, 1])
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    theta = np.arccos(d[:, 2])
+    sel = seen & (np.abs(d[:, 1]) < 1e-9) & (np.abs(theta - np.arcsin(1 / N43)) > np.radians(2))
+    assert sel.sum() >= 20
+    cols, rows, _ = cfg.rig.camera_s.project(spot[sel])
+    c0, r0 = np.round(cols).astype(int), np.round(rows).astype(int)
+    energy = {k: uniform_filter(im, 9, mode="constant")[r0, c0] for k, im in images.items()}
+    r_sp = np.array([fresnel_sp(t, N43, 1.0) for t in theta[sel]])
+    ratio = energy["p"] / energy["s"]
+    np.testing.assert_allclose(ratio, r_sp[:, 1] / r_sp[:, 0], atol=0.02)
+    near_brewster = np.abs(theta[sel] - np.arctan(1 / N43)) < np.radians(1.0)
+    assert near_brewster.any() and np.all(ratio[near_brewster] < 0.02)
+    shares = []
+    for c in (cfg, cfg.replace("water", roughness=0.0)):
+        total = {}
+        for name, deg in (("none", None), ("p", 0.0), ("s", 90.0)):
+            cc = c if deg is None else c.replace(
+                "pattern", polarisation="linear", polarisation_deg=deg)
+            total[name] = float(images[name].sum()) if c is cfg else float(FrameRenderer(
+                cc, flat, systems=("pattern",)).render(flat, 3, ("pattern",))["pattern"].sum())
+        shares.append((total["p"] + total["s"]) / 2 / total["none"])
+    assert shares[0] == pytest.approx(shares[1], abs=0.01)
