@@ -168,10 +168,10 @@ REAL_RIG: dict[str, Any] = {
 """The ``real_rig`` effect: housings, lenses, sea water's index per channel, micro-roughness,
 daylight (the sky at 0.003, the sun at 10 times it: the level the pattern holds to, about a
 tenth of a spot's peak in the sun's caustics; docs/results.md, "Degradations") and sensor noise
-in one render. Left out: polarised
-light (the rough surface's BSDF has none), the projector's port (its own row: it narrows the
-pattern, whose closer dots pass the ordering limit on steeper seas whatever the model), and
-crosstalk (its own rows, with and without camera v's red filter)."""
+in one render. Left out: polarised light (its own row: it dims spots, it does not move them),
+the projector's port (its own row: it narrows the pattern, whose closer dots pass the ordering
+limit on steeper seas whatever the model), and crosstalk (its own rows, with and without
+camera v's red filter)."""
 
 ADDED_LIMIT_MM = 0.05
 """Surface RMSE (mm) added to the baseline's at which the report gives each effect's
