@@ -43,6 +43,11 @@ class Anchor:
         Where camera v's view weighed the level (:mod:`restoration.view_level`): the median
         and the 90th percentile of the misses of its lines of sight through the surface
         against the flow's object points, flat-water px.
+    view_served_share, view_textured_share
+        Where the view was asked (:mod:`restoration.view_level`): the share of camera v's
+        samples in view that the flow served, or, where the flat view showed too little
+        texture for the flow to be run, the share of them on texture (the view weighs the
+        level from a served share of 0.6).
 
     Examples
     --------
@@ -72,6 +77,8 @@ class Anchor:
     image_fit_evaluations: int | None = None
     view_residual_px: float | None = None
     view_residual_p90_px: float | None = None
+    view_served_share: float | None = None
+    view_textured_share: float | None = None
 
     def update(self, **values: Any) -> None:
         """Set the named fields.

@@ -137,6 +137,9 @@ class ViewSamples:
         Each sample's interleaved set (0 .. N_SETS - 1).
     counts : dict
         :func:`~restoration.schlieren.flow_samples`'s counts.
+    textured_share : float or None
+        Where the flow was not run: the share of the samples in view on the flat view's
+        texture (:func:`textured_share`, below :data:`TEXTURE_MIN_SHARE`); None where it ran.
     """
 
     px: Array
@@ -144,6 +147,7 @@ class ViewSamples:
     mm_per_px: Array
     sets: NDArray[np.int64]
     counts: dict[str, int]
+    textured_share: float | None = None
 
     @property
     def served(self) -> bool:
@@ -195,7 +199,7 @@ def view_samples(images: dict[str, NDArray], cal: ViewLevelCalibration) -> ViewS
     """The view samples of one frame (``images``: ``view`` and ``view_flat``), on synthetic
     Schlieren's lattice and flow (:class:`~restoration.options.SchlierenOptions`' defaults);
     none, and no flow computed, where too few of the samples lie on the flat view's texture
-    (:data:`TEXTURE_MIN_SHARE`: counts ``textured`` and ``matched`` 0)."""
+    (:data:`TEXTURE_MIN_SHARE`; their share in ``textured_share``)."""
     options = SchlierenOptions()
     lines = cal.lattice(options.sample_step_px)
     reach = lines.px[lines.reach]
@@ -203,8 +207,7 @@ def view_samples(images: dict[str, NDArray], cal: ViewLevelCalibration) -> ViewS
     if textured < TEXTURE_MIN_SHARE:
         n = int(len(reach))
         return ViewSamples(np.empty((0, 2)), np.empty((0, 3)), np.empty(0),
-                           np.empty(0, dtype=np.int64),
-                           {"samples": n, "textured": int(round(textured * n)), "matched": 0})
+                           np.empty(0, dtype=np.int64), {"samples": n, "matched": 0}, textured)
     lines, kept, object_mm, mm_per_px, counts = flow_samples(images, cal, options)
     index = np.flatnonzero(kept)
     ij = lines.ij[index]
@@ -334,7 +337,13 @@ class StructuredLightView(StructuredLight):
             if "samples" not in memo:
                 memo["samples"] = view_samples(images, cal)
             samples: ViewSamples = memo["samples"]
+            in_view = max(samples.counts["samples"], 1)
+            if samples.textured_share is not None:  # too little texture: no flow was run
+                surface.anchor.update(view_textured_share=samples.textured_share)
+                return surface
+            served = len(samples.px) / in_view
             if not samples.served:
+                surface.anchor.update(view_served_share=served)
                 return surface
 
             passes = int(surface.anchor.refine_passes or options.n_refine)
@@ -354,6 +363,7 @@ class StructuredLightView(StructuredLight):
                                   refine_passes=surface.anchor.refine_passes)
             else:  # no level of its own: the view still checks the surface
                 est = surface
+            est.anchor.update(view_served_share=served)
             miss = view_residual_px(est, samples, cal)
             miss = miss[np.isfinite(miss)]
             if miss.size:

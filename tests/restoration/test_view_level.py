@@ -45,6 +45,7 @@ def test_the_view_pins_the_level_that_rough_spots_leave_uncertain(frames):
     assert plain["status"] == "uncertain_level" and plain["wai_rmse_mm"] > 0.1, plain["message"]
     assert view["status"] == "ok", view["message"]
     assert view["anchor"]["method"] == "view" and view["anchor"]["sigma_mm"] < 0.02
+    assert view["anchor"]["view_served_share"] >= 0.6
     assert view["wai_rmse_mm"] <= 0.05
 
 
@@ -54,6 +55,7 @@ def test_a_checkerboard_object_never_pins_a_wrong_level_as_ok(frames):
     cal = ViewLevelCalibration.from_folder(frames["checkerboard"])
     result = StructuredLightView()(cal.load_images(frames["checkerboard"]), cal)
     assert result.status != "ok", result.surface.anchor
+    assert result.surface.anchor.view_textured_share < 0.45
 
 
 def test_a_frame_without_its_flat_view_is_bad_input(frames, tmp_path, capsys):
@@ -88,3 +90,4 @@ def test_the_flat_view_says_where_the_flow_cannot_follow(frames, monkeypatch):
         samples = view_level.view_samples(cal.load_images(frames[name]), cal)
         assert flows == expected, name
         assert samples.served == (name == "rough")
+        assert (samples.textured_share is None) == (name == "rough")
