@@ -63,6 +63,8 @@ class FrameMaker:
         self.x_mm, self.y_mm = grid_axes(spec, self.base)
         self._renderers: dict[int, Any] = {}
         self._flat: dict[str, NDArray] | None = None
+        cam = self.base.rig.camera_v  # the same rig every frame: its pixel rays once
+        self._rays = cam.pixel_rays(*cam.pixel_grid())
 
     def surface(
         self, cfg: SystemConfig, time_s: float | None = None, level: int = 0
@@ -143,7 +145,7 @@ class FrameMaker:
         geometry = frame_config(self.base, p)  # the warp needs the rig and the sea, no more
         with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(1) as pool:
             surf = self.surface(geometry)
-            truth = pool.submit(_truth, geometry, surf)
+            truth = pool.submit(_truth, geometry, surf, self._rays)
             _, _, images, gain = self.render(index, surf)
             normals, warp = truth.result()
             return FrameRecord(
@@ -158,8 +160,8 @@ class FrameMaker:
             )
 
 
-def _truth(cfg: SystemConfig, surface: Heightfield) -> tuple[NDArray, NDArray]:
+def _truth(cfg: SystemConfig, surface: Heightfield, rays: tuple[NDArray, NDArray]
+           ) -> tuple[NDArray, NDArray]:
     """The storage grid's unit normals (float32) and camera v's exact warp through
-    ``surface``."""
-    return surface.grid_normals().astype(np.float32), true_view_warp(cfg, surface)
-
+    ``surface`` (``rays``: camera v's pixel rays)."""
+    return surface.grid_normals().astype(np.float32), true_view_warp(cfg, surface, rays)

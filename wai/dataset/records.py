@@ -125,9 +125,8 @@ class FramePacker:
         chunks = {}
         for name in ARRAYS:
             a = np.ascontiguousarray(getattr(rec, name))
-            last = self._last.get(name)
-            if (last is not None and last[0].shape == a.shape and last[0].dtype == a.dtype
-                    and np.array_equal(last[0], a)):
+            last = self._last.get(name)  # only the arrays frames may share are kept
+            if last is not None and last[0].dtype == a.dtype and np.array_equal(last[0], a):
                 chunks[name] = last[1]
                 continue
             chunks[name] = self._compress(name, a)

@@ -93,24 +93,24 @@ def write_dataset(
             if todo:
                 x_mm, y_mm = (maker.x_mm, maker.y_mm) if maker else grid_axes(spec, cfg)
                 made, renderers = make_frames(spec, todo, workers, scheduler, maker)
-                # The manifest follows the store every few seconds and at the end (rewritten
-                # after each frame, a store of 100,000 frames would spend its time there).
+                # The manifest follows the store every few seconds and at the end, interrupted
+                # or not (rewritten after each frame, a store of 100,000 frames would spend its
+                # time there).
                 listed = time.perf_counter()
-                try:
-                    for rec in made:
-                        store.reserve_space(f, rec.nbytes, int(f.attrs["frames"]))
-                        append(f, rec, x_mm, y_mm)
-                        bar.update(1)
-                        if time.perf_counter() - listed > MANIFEST_EVERY_S:
-                            rewrite_manifest(f, out / MANIFEST_FILE)
-                            listed = time.perf_counter()
-                finally:
-                    rewrite_manifest(f, out / MANIFEST_FILE)
+                for rec in made:
+                    store.reserve_space(f, rec.nbytes, int(f.attrs["frames"]))
+                    append(f, rec, x_mm, y_mm)
+                    bar.update(1)
+                    if time.perf_counter() - listed > MANIFEST_EVERY_S:
+                        rewrite_manifest(f, out / MANIFEST_FILE)
+                        listed = time.perf_counter()
                 store.reserve_space(f, 0, int(f.attrs["frames"]))
                 _record_run(f, done, len(todo), time.perf_counter() - t0, renderers)
-        rewrite_manifest(f, out / MANIFEST_FILE)
     finally:
-        store.close_store(f)
+        try:
+            rewrite_manifest(f, out / MANIFEST_FILE)
+        finally:
+            store.close_store(f)
     write_preview(out)
     # The folder's page; the marker names every file (a store written before the preview had
     # only the two).
