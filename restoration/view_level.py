@@ -176,8 +176,8 @@ def textured_share(view_flat: NDArray, px: Array) -> float:
     True
     """
     grey = np.asarray(view_flat, dtype=np.float32)
-    if grey.ndim == 3:
-        grey = grey.mean(axis=-1)
+    if grey.ndim == 3:  # the channels' sum: the grey's scale goes with the percentiles below
+        grey = sum(grey[..., c] for c in range(grey.shape[-1]))
     lo, hi = np.percentile(grey, [0.5, 99.5])
     grey = (grey - lo) / (hi - lo if hi > lo else 1.0)
     grey = cv2.GaussianBlur(np.clip(grey, 0.0, 1.0).astype(np.float32), (0, 0),
