@@ -300,13 +300,30 @@ def test_polarised_pattern_fades_near_brewster(paper_cfg):
     the textbook Fresnel equations at its incidence; near Brewster's angle the p spots vanish."""
     from scipy.ndimage import uniform_filter
 
+    from tests.conftest import shrink
+
+    cfg = shrink(paper_cfg, factor=2, spp=4)
+    images = _polarised_patterns(cfg)
+    theta, rows, cols = _spots_in_projector_plane(cfg, margin_deg=1.0)
+    # Each spot's energy: the sum over a 5 x 5 px window around its flat-water centre.
+    energy = {k: 25.0 * uniform_filter(im, 5, mode="constant")[rows, cols]
+              for k, im in images.items()}
+    r_sp = np.array([fresnel_sp(t, N43, 1.0) for t in theta])
+    r_mean = r_sp.mean(axis=1)
+    np.testing.assert_allclose(energy["p"] / energy["none"], r_sp[:, 1] / r_mean, atol=0.01)
+    np.testing.assert_allclose(energy["s"] / energy["none"], r_sp[:, 0] / r_mean, atol=0.01)
+    near_brewster = np.abs(theta - np.arctan(1 / N43)) < np.radians(1.0)
+    assert near_brewster.any() and np.all(energy["p"][near_brewster] < 0.01 * energy["none"][
+        near_brewster])
+
+
+def _polarised_patterns(cfg):
+    """Camera s's grey pattern over flat water of ``cfg`` lit by unpolarised (``none``),
+    p-polarised (``p``, the field at 0 deg) and s-polarised (``s``, 90 deg) projector light."""
     from mitsuba_wai.mesh import flat_like
     from mitsuba_wai.render import FrameRenderer
     from mitsuba_wai.surface_sampling import wave_surface
-    from tests.conftest import shrink
-    from wai_core.layout import flat_pattern_hits
 
-    cfg = shrink(paper_cfg, factor=2, spp=4)
     flat = flat_like(wave_surface(cfg), cfg.water.h0_mm)
     images = {}
     for name, deg in (("none", None), ("p", 0.0), ("s", 90.0)):
@@ -314,27 +331,25 @@ def test_polarised_pattern_fades_near_brewster(paper_cfg):
             "pattern", polarisation="linear", polarisation_deg=deg)
         images[name] = FrameRenderer(c, flat, systems=("pattern",)).render(
             flat, 3, ("pattern",))["pattern"].sum(-1)
+    return images
+
+
+def _spots_in_projector_plane(cfg, margin_deg):
+    """The flat-water spots of the dots in the projector's plane of symmetry (their plane of
+    incidence is the projector's xz plane), more than ``margin_deg`` from the critical angle:
+    each one's incidence (rad) and its centre's pixel row and column in camera s."""
+    from wai_core.layout import flat_pattern_hits
+
     _, spot, seen = flat_pattern_hits(cfg)
-    projector = cfg.rig.projector
     panel = cfg.rig.dot_panel_px
-    _, d = projector.pixel_rays(panel[:, 0], panel[:, 1])
+    _, d = cfg.rig.projector.pixel_rays(panel[:, 0], panel[:, 1])
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     theta = np.arccos(d[:, 2])
-    critical = np.arcsin(1 / N43)
-    sel = seen & (np.abs(d[:, 1]) < 1e-9) & (np.abs(theta - critical) > np.radians(1.0))
+    sel = (seen & (np.abs(d[:, 1]) < 1e-9)
+           & (np.abs(theta - np.arcsin(1 / N43)) > np.radians(margin_deg)))
     assert sel.sum() >= 20
     cols, rows, _ = cfg.rig.camera_s.project(spot[sel])
-    c0, r0 = np.round(cols).astype(int), np.round(rows).astype(int)
-    # Each spot's energy: the sum over a 5 x 5 px window around its flat-water centre.
-    energy = {k: 25.0 * uniform_filter(im, 5, mode="constant")[r0, c0]
-              for k, im in images.items()}
-    r_sp = np.array([fresnel_sp(t, N43, 1.0) for t in theta[sel]])
-    r_mean = r_sp.mean(axis=1)
-    np.testing.assert_allclose(energy["p"] / energy["none"], r_sp[:, 1] / r_mean, atol=0.01)
-    np.testing.assert_allclose(energy["s"] / energy["none"], r_sp[:, 0] / r_mean, atol=0.01)
-    near_brewster = np.abs(theta[sel] - np.arctan(1 / N43)) < np.radians(1.0)
-    assert near_brewster.any() and np.all(energy["p"][near_brewster] < 0.01 * energy["none"][
-        near_brewster])
+    return theta[sel], np.round(rows).astype(int), np.round(cols).astype(int)
 
 
 def test_rough_water_pattern_matches_mitsubas_own_tracer(paper_cfg):
@@ -416,42 +431,19 @@ def test_rough_water_reflects_polarised_light_as_fresnel_says(paper_cfg):
     are not orthogonal)."""
     from scipy.ndimage import uniform_filter
 
-    from mitsuba_wai.mesh import flat_like
-    from mitsuba_wai.render import FrameRenderer
-    from mitsuba_wai.surface_sampling import wave_surface
     from tests.conftest import shrink
-    from wai_core.layout import flat_pattern_hits
 
     cfg = shrink(paper_cfg, factor=2, spp=4).replace("water", roughness=0.01)
-    flat = flat_like(wave_surface(cfg), cfg.water.h0_mm)
-    images = {}
-    for name, deg in (("none", None), ("p", 0.0), ("s", 90.0)):
-        c = cfg if deg is None else cfg.replace(
-            "pattern", polarisation="linear", polarisation_deg=deg)
-        images[name] = FrameRenderer(c, flat, systems=("pattern",)).render(
-            flat, 3, ("pattern",))["pattern"].sum(-1)
-    _, spot, seen = flat_pattern_hits(cfg)
-    panel = cfg.rig.dot_panel_px
-    _, d = cfg.rig.projector.pixel_rays(panel[:, 0], panel[:, 1])
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    theta = np.arccos(d[:, 2])
-    sel = seen & (np.abs(d[:, 1]) < 1e-9) & (np.abs(theta - np.arcsin(1 / N43)) > np.radians(2))
-    assert sel.sum() >= 20
-    cols, rows, _ = cfg.rig.camera_s.project(spot[sel])
-    c0, r0 = np.round(cols).astype(int), np.round(rows).astype(int)
-    energy = {k: uniform_filter(im, 9, mode="constant")[r0, c0] for k, im in images.items()}
-    r_sp = np.array([fresnel_sp(t, N43, 1.0) for t in theta[sel]])
+    images = _polarised_patterns(cfg)
+    theta, rows, cols = _spots_in_projector_plane(cfg, margin_deg=2.0)
+    energy = {k: uniform_filter(im, 9, mode="constant")[rows, cols] for k, im in images.items()}
+    r_sp = np.array([fresnel_sp(t, N43, 1.0) for t in theta])
     ratio = energy["p"] / energy["s"]
     np.testing.assert_allclose(ratio, r_sp[:, 1] / r_sp[:, 0], atol=0.02)
-    near_brewster = np.abs(theta[sel] - np.arctan(1 / N43)) < np.radians(1.0)
+    near_brewster = np.abs(theta - np.arctan(1 / N43)) < np.radians(1.0)
     assert near_brewster.any() and np.all(ratio[near_brewster] < 0.02)
     shares = []
-    for c in (cfg, cfg.replace("water", roughness=0.0)):
-        total = {}
-        for name, deg in (("none", None), ("p", 0.0), ("s", 90.0)):
-            cc = c if deg is None else c.replace(
-                "pattern", polarisation="linear", polarisation_deg=deg)
-            total[name] = float(images[name].sum()) if c is cfg else float(FrameRenderer(
-                cc, flat, systems=("pattern",)).render(flat, 3, ("pattern",))["pattern"].sum())
+    for patterns in (images, _polarised_patterns(cfg.replace("water", roughness=0.0))):
+        total = {k: float(im.sum()) for k, im in patterns.items()}
         shares.append((total["p"] + total["s"]) / 2 / total["none"])
     assert shares[0] == pytest.approx(shares[1], abs=0.01)
