@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mitsuba_wai.variant import mitsuba
-from mitsuba_wai.water_hit import water_grid, water_intersect
+from mitsuba_wai.water_hit import WaterGeometry
 
 # Light paths per pass (the paper's 800 x 600 film at 8 spp is one pass): 16 bytes per path and
 # bounce come back to the CPU, ~0.2 GB at most.
@@ -148,16 +148,18 @@ def pass_split(spp: int, pixels: int, max_samples: int | None = None) -> list[in
 def _trace_pass(
     scene: Any, spp: int, spp_total: int, seed: int, max_depth: int, water: Any = None,
     stratified: bool = False, emitter: Any = None, camera: Any = None,
+    geometry: WaterGeometry | None = None,
 ) -> list[tuple[Any, ...]]:
     """One pass: for each bounce, the film pixel (``W * H`` where none), the RGB value and the
     pixel of a non-finite value (``W * H`` where finite) of every path's camera connection, as
     Dr.Jit arrays (evaluated); with ``water`` (``(a, b, air_segments)``, 1/mm) the value is the
     direct light and the scattered share follows as a fourth array; ``camera`` connects in place
-    of the scene's sensor (its ``sample_direction``)."""
+    of the scene's sensor (its ``sample_direction``); ``geometry`` answers the direct pass's
+    questions about the water (:func:`_trace_direct`)."""
     import drjit as dr
 
     if emitter is not None and _direct_scene(scene, max_depth, emitter):
-        return _trace_direct(scene, spp, spp_total, seed, water, emitter, camera)
+        return _trace_direct(scene, spp, spp_total, seed, water, emitter, camera, geometry)
     mi = mitsuba()
     sensor = scene.sensors()[0]
     film = sensor.film()
@@ -228,6 +230,7 @@ def _direct_scene(scene: Any, max_depth: int, emitter: Any) -> bool:
 
 def _trace_direct(
     scene: Any, spp: int, spp_total: int, seed: int, water: Any, emitter: Any, camera: Any,
+    geometry: WaterGeometry | None = None,
 ) -> list[tuple[Any, ...]]:
     """:func:`_trace_pass` for system S's two-vertex paths (:func:`_direct_scene`): emitter
     -> water (a delta BSDF, called directly) -> the diffuser (the rectangle's own
@@ -237,6 +240,9 @@ def _trace_direct(
     (its BSDF is a delta), no path can take a third vertex, and none of the steps draws a
     random number (the emitter's samples are its own), so it gives the same image without
     the sampler, the BSDF dispatch or the general intersection of the second segment.
+    The water's hits and whether it lies in a ray's way come from ``geometry``
+    (:class:`~mitsuba_wai.water_hit.WaterGeometry`: the water alone, the same answers), by
+    default the scene's own.
     """
     import drjit as dr
 
@@ -246,14 +252,14 @@ def _trace_direct(
     n = width * height * spp
     shapes = {shape.id(): shape for shape in scene.shapes()}
     water_bsdf, diffuser = shapes["water"].bsdf(), shapes["diffuser"]
+    geometry = WaterGeometry.of(scene) if geometry is None else geometry
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
     ray, throughput, length = emitter(sensor.shutter_open(), n, seed)
     active = dr.max(throughput) != 0.0
-    water_mesh = shapes["water"]
-    slope = _slope_bound(water_mesh)
+    slope = geometry.slope
     # The water's hit on its grid (mitsuba_wai.water_hit): the rays start past the diffuser,
     # the scene's only other shape, so the water's first hit is the scene's.
-    si = water_intersect(scene, water_mesh, water_grid(water_mesh), ray, slope, active)
+    si = geometry.intersect(ray, active)
     active = active & si.is_valid()
     if water is not None:
         length = length + dr.select(active, si.t, 0.0)
@@ -271,8 +277,8 @@ def _trace_direct(
     active = active & si.is_valid()
     # The water lies in the way only of rays flatter than its steepest facet (module notes).
     flat = -ray.d.z <= slope * dr.norm(mi.Vector2f(ray.d.x, ray.d.y))
-    blocked = scene.ray_test(mi.Ray3f(ray.o, ray.d, si.t * (1.0 - 1e-4), ray.time,
-                                      ray.wavelengths), active & flat)
+    blocked = geometry.occluded(mi.Ray3f(ray.o, ray.d, si.t * (1.0 - 1e-4), ray.time,
+                                         ray.wavelengths), active & flat)
     active = active & ~blocked
     if water is not None:
         length = length + dr.select(active, si.t, 0.0)
@@ -283,20 +289,6 @@ def _trace_direct(
                      None if water is None else (water[0], water[1], length), False)
     dr.eval(*splat)
     return [splat]
-
-
-def _slope_bound(mesh: Any) -> Any:
-    """Steepest facet slope ``|grad z|`` of a mesh, a little over it (a bound of every
-    triangle's), as a one-element Dr.Jit array: computed where the mesh is, no read-back."""
-    import drjit as dr
-
-    mi = mitsuba()
-    faces = dr.unravel(mi.Vector3u, mesh.faces_buffer())
-    positions = mesh.vertex_positions_buffer()
-    a, b, c = (dr.gather(mi.Point3f, positions, k) for k in faces)
-    normal = dr.cross(b - a, c - a)
-    slope = dr.norm(mi.Vector2f(normal.x, normal.y)) / dr.abs(normal.z)
-    return dr.max(dr.select(dr.isfinite(slope), slope, 0.0)) * 1.01 + 1e-6
 
 
 def _connect(
@@ -365,7 +357,7 @@ def _splat(total: NDArray, pixel: NDArray, r: NDArray, g: NDArray, b: NDArray,
 
 def render_particles(
     scene: Any, spp: int, seed: int, max_depth: int, stratified: bool = False,
-    emitter: Any = None, camera: Any = None,
+    emitter: Any = None, camera: Any = None, geometry: WaterGeometry | None = None,
 ) -> tuple[NDArray[np.float32], int]:
     """Render a particle-traced scene (see the module notes) to linear RGB (H, W, 3).
 
@@ -392,6 +384,9 @@ def render_particles(
     camera : mitsuba_wai.lens.CameraLens, optional
         The camera's principal point, distortion and port: each vertex connects through them
         (:meth:`~mitsuba_wai.lens.CameraLens.sample_direction`); default the scene's sensor.
+    geometry : mitsuba_wai.water_hit.WaterGeometry, optional
+        The water the direct pass asks (its hits, whether it is in a ray's way), when the
+        scene's own is not up to date; default the scene's.
 
     Returns
     -------
@@ -401,7 +396,8 @@ def render_particles(
         Pixels that received a non-finite splat (rare degenerate camera connections): zeroed,
         as :func:`mitsuba_wai.render.render_image` does with Mitsuba's image.
     """
-    images, n_bad = _render(scene, spp, seed, max_depth, None, stratified, emitter, camera)
+    images, n_bad = _render(scene, spp, seed, max_depth, None, stratified, emitter, camera,
+                            geometry)
     return images[0], n_bad
 
 
@@ -440,7 +436,7 @@ def render_particles_water(
 
 def _render(
     scene: Any, spp: int, seed: int, max_depth: int, water: Any, stratified: bool,
-    emitter: Any = None, camera: Any = None,
+    emitter: Any = None, camera: Any = None, geometry: WaterGeometry | None = None,
 ) -> tuple[list[NDArray[np.float32]], int]:
     """The images of :func:`render_particles` (one) or :func:`render_particles_water` (two)."""
     import drjit as dr
@@ -459,7 +455,8 @@ def _render(
     for k, spp_k in enumerate(pass_split(spp, n_pix)):
         pass_seed = (int(seed) + k * PASS_SEED_STRIDE) % 2**32
         for pixel, *rgbs, nonfinite in _trace_pass(scene, spp_k, spp, pass_seed, max_depth,
-                                                   water, stratified, emitter, camera):
+                                                   water, stratified, emitter, camera,
+                                                   geometry):
             if dr.all(pixel == n_pix):  # a bounce that never reaches the camera (delta BSDFs)
                 continue
             if not dr.all(nonfinite == n_pix):

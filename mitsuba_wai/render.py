@@ -41,7 +41,13 @@ from mitsuba_wai.diffuser import screen_blur
 from mitsuba_wai.dots import DotEmitter
 from mitsuba_wai.frame_images import render_frame_images
 from mitsuba_wai.lens import scene_lenses
-from mitsuba_wai.particles import pass_split, render_particles, render_particles_water
+from mitsuba_wai.particles import (
+    _direct_scene,
+    pass_split,
+    render_particles,
+    render_particles_water,
+)
+from mitsuba_wai.render_files import write_images, write_surface
 from mitsuba_wai.scene_record import render_seed, scene_record
 from mitsuba_wai.scenes import (
     pattern_depth,
@@ -60,14 +66,13 @@ from mitsuba_wai.seawater import (
 from mitsuba_wai.surface_sampling import file_surface, labelled, moving_surface, wave_surface
 from mitsuba_wai.textures import object_texture
 from mitsuba_wai.variant import mitsuba, select_variant
-from mitsuba_wai.view_tracer import render_view
+from mitsuba_wai.view_tracer import _direct_parts, render_view
+from mitsuba_wai.water_hit import SceneWater, WaterGeometry
 from wai_core.config import SensorConfig, SystemConfig
 from wai_core.heightfield import Heightfield
-from wai_core.images import record_previews
-from wai_core.io import write_exr, write_json, write_png
+from wai_core.io import write_json
 from wai_core.outputs import atomic_dir, check_output_dir
 from wai_core.rig_checks import check_surface_in_rig
-from wai_core.sensor import integer_image
 from wai_core.signals import raise_if_interrupted
 from wai_core.timings import Timings
 
@@ -82,6 +87,7 @@ OUTPUT_COMMAND = "render"
 def render_image(
     scene: object, spp: int, seed: int, particle_depth: int | None = None,
     stratified: bool = False, emitter: object = None, camera: object = None,
+    geometry: WaterGeometry | None = None,
 ) -> tuple[NDArray[np.float32], int]:
     """Render a loaded scene to linear RGB (H, W, 3); non-finite pixels are zeroed and counted.
 
@@ -104,6 +110,8 @@ def render_image(
         The particle tracer's emitter in place of the scene's (``render_particles``'s).
     camera : mitsuba_wai.lens.CameraLens, optional
         The particle tracer's camera in place of the scene's sensor (``render_particles``'s).
+    geometry : mitsuba_wai.water_hit.WaterGeometry, optional
+        The water the particle tracer's direct pass asks (``render_particles``'s).
 
     Returns
     -------
@@ -114,7 +122,8 @@ def render_image(
     import drjit as dr
 
     if particle_depth is not None:
-        return render_particles(scene, spp, seed, particle_depth, stratified, emitter, camera)
+        return render_particles(scene, spp, seed, particle_depth, stratified, emitter, camera,
+                                geometry)
     mi = mitsuba()
     size = scene.sensors()[0].film().crop_size()
     passes = pass_split(spp, int(size[0]) * int(size[1]), MAX_WAVEFRONT)
@@ -193,7 +202,6 @@ class FrameRenderer:
                 scene_v.update(view_emitters(self.cfg))
             self._scenes["view"] = mi.load_dict(scene_v)
         self._params = {k: mi.traverse(scene) for k, scene in self._scenes.items()}
-        self._faces = None  # the water's faces uploaded last (flat uint32), None: unknown
         # [crosstalk]: the projector's light on the object, the view's texture per frame.
         self._crosstalk = (Crosstalk(self.cfg, self._scenes["view"], tex)
                            if "view" in self._scenes and self.cfg.crosstalk.enabled else None)
@@ -204,6 +212,35 @@ class FrameRenderer:
             {"pattern": DotEmitter(self.cfg)}
             if self._stratified and "pattern" in self._scenes else {}
         )
+        # The renders the direct tracers take ask the water alone: one acceleration structure
+        # a surface for them all, the systems' scenes brought up to date only when used.
+        self._direct = self._direct_renders()
+        self._water = SceneWater(self._params, WaterGeometry.own(tm) if self._direct else None)
+
+    def _direct_renders(self) -> frozenset[str]:
+        """The renders :meth:`render` gives the direct tracers (system S's dots,
+        :func:`~mitsuba_wai.particles._direct_scene`; system V's two steps,
+        :func:`~mitsuba_wai.view_tracer._direct_parts`): those that ask only the water."""
+        if self.cfg.water_optics.enabled or self.cfg.ambient.enabled or self._crosstalk:
+            return frozenset()
+        direct = set()
+        emitter = self._emitters.get("pattern")
+        if emitter is not None and _direct_scene(self._scenes["pattern"],
+                                                 pattern_depth(self.cfg), emitter):
+            direct.add("pattern")
+        if ("view" in self._scenes and self._stratified
+                and _direct_parts(self._scenes["view"]) is not None):
+            direct.add("view")
+        return frozenset(direct)
+
+    def _geometry(self, key: str) -> WaterGeometry | None:
+        """The water a direct render ``key`` asks; None: its scene's own (brought up to date)."""
+        return self._water.geometry if key in self._direct else None
+
+    def scene(self, key: str) -> Any:
+        """The loaded scene ``key`` (``"pattern"``, ``"view"``) holding the last surface."""
+        self._water.sync([key])
+        return self._scenes[key]
 
     def _set_surface(self, surface: Heightfield) -> None:
         for channel in self._channels:
@@ -212,13 +249,8 @@ class FrameRenderer:
             return
         if surface.z.shape != self.grid.z.shape:
             raise ValueError("surface grid differs from the renderer's mesh grid")
-        vertices, normals, faces = meshes.surface_buffers(surface)
-        # The faces change only where a surface's holes differ: otherwise the grid's stay.
-        same_faces = self._faces is not None and np.array_equal(faces, self._faces)
-        for params in self._params.values():
-            meshes.set_mesh_buffers(params, vertices, normals, None if same_faces else faces,
-                                    prefix="water.")
-        self._faces = faces
+        self._water.set(*meshes.surface_buffers(surface))
+        self._water.sync(k for k in self._scenes if k not in self._direct)
 
     def render(
         self,
@@ -263,11 +295,11 @@ class FrameRenderer:
                 # sky and a pinhole, and for "independent", Mitsuba's own integrator (the
                 # tracer's general steps carry a lens through daylight: the same expectation).
                 out[key], bad = render_view(self._scenes[key], spp[key], seed,
-                                            self._lenses[key])
+                                            self._lenses[key], self._geometry(key))
             else:
                 out[key], bad = render_image(self._scenes[key], spp[key], seed, depth[key],
                                              self._stratified, self._emitters.get(key),
-                                             self._lenses.get(key))
+                                             self._lenses.get(key), self._geometry(key))
             if key == "view" and self.cfg.water_optics.enabled:
                 lengths = view_path_lengths(self._scenes["view"], self.cfg)
                 out[key] = water_view(out[key], lengths, self.cfg)
@@ -362,36 +394,6 @@ def channel_renderers(cfg: SystemConfig, grid: Heightfield, texture: NDArray | N
                       texture, systems, flat_only=flat_only)
         for n in water_channel_indices(cfg)
     )
-
-
-def write_images(
-    folder: Path, images: dict[str, NDArray], view_gain: float, sensor: SensorConfig | None = None
-) -> None:
-    """Each image as ``NAME.exr`` and a ``NAME.png`` preview, recorded as the tool's own
-    (:func:`wai_core.images.record_previews`); views (``view*``) are shown at the exposure
-    that undoes the radiance gain, others at their own 99.5th percentile.
-
-    With an enabled ``sensor`` the images are ``DN / full scale`` and ``NAME.png`` is the
-    camera's integer image at the ADC depth (:func:`wai_core.sensor.integer_image`)."""
-    import cv2
-
-    for name, img in images.items():
-        write_exr(folder / f"{name}.exr", img)
-        if sensor is not None and sensor.enabled:
-            raw = integer_image(img, sensor)
-            if not cv2.imwrite(str(folder / f"{name}.png"), np.ascontiguousarray(raw[..., ::-1])):
-                raise OSError(f"could not write {folder / f'{name}.png'}")
-            continue
-        exposure = 1.0 / view_gain if name.startswith("view") else None
-        write_png(folder / f"{name}.png", img, exposure=exposure)
-    # The previews are the tool's own: they never make the frame's images ambiguous.
-    record_previews(folder, {f"{name}.png": (f"{name}.exr", img) for name, img in images.items()})
-
-
-def write_surface(folder: Path, surface: Heightfield) -> None:
-    """The true surface as ``heightfield.npz`` and the mesh rendered as ``surface.ply``."""
-    surface.save(folder / "heightfield.npz")
-    meshes.heightfield_mesh(surface).export(folder / "surface.ply")
 
 
 @dataclass(frozen=True)

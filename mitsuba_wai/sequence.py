@@ -21,13 +21,8 @@ import numpy as np
 
 from mitsuba_wai.degrade import render_exposure, resolve_exposure, sense, subframe_plan
 from mitsuba_wai.frame_images import render_flat_water
-from mitsuba_wai.render import (
-    OUTPUT_COMMAND,
-    FrameRenderer,
-    Rendered,
-    write_images,
-    write_surface,
-)
+from mitsuba_wai.render import OUTPUT_COMMAND, FrameRenderer, Rendered
+from mitsuba_wai.render_files import write_images, write_surface
 from mitsuba_wai.scene_record import render_seed, scene_record
 from mitsuba_wai.surface_sampling import moving_surface, wave_surface
 from wai_core.config import SystemConfig, config_from_dict

@@ -32,16 +32,18 @@ from numpy.typing import NDArray
 
 from mitsuba_wai import particles
 from mitsuba_wai.variant import mitsuba
-from mitsuba_wai.water_hit import water_grid, water_intersect
+from mitsuba_wai.water_hit import WaterGeometry
 
 __all__ = ["render_view"]
 
 
-def _trace_pass(scene: Any, spp: int, seed: int, lens: Any = None) -> tuple[Any, int]:
+def _trace_pass(scene: Any, spp: int, seed: int, lens: Any = None,
+                geometry: WaterGeometry | None = None) -> tuple[Any, int]:
     """Sum (Color3f, W * H) of each pixel's radiance over one pass's camera samples (non-finite
     where a sample is) and their number ``s`` per pixel: ``spp`` as the sampler takes it
     (``multijitter`` rounds 5 up to 6, as in ``mi.render``); with ``lens``
-    (:class:`mitsuba_wai.lens.CameraLens`) the rays are its, not the sensor's."""
+    (:class:`mitsuba_wai.lens.CameraLens`) the rays are its, not the sensor's; ``geometry``
+    answers the direct steps' questions about the water (:func:`_direct_radiance`)."""
     import drjit as dr
 
     mi = mitsuba()
@@ -76,7 +78,7 @@ def _trace_pass(scene: Any, spp: int, seed: int, lens: Any = None) -> tuple[Any,
         arriving = si_next.emitter(scene, onward).eval(si_next, onward)
         radiance = weight * (emitted + dr.select(onward, bsdf_weight * arriving, 0.0))
     else:
-        radiance = weight * _direct_radiance(scene, ray, sampler, *direct)
+        radiance = weight * _direct_radiance(scene, ray, sampler, *direct, geometry)
     # Each pixel's samples are consecutive: their sum here, a non-finite one making it so
     # (the three channels evaluated together first: one trace, not one per channel).
     dr.eval(radiance)
@@ -96,25 +98,27 @@ def _direct_parts(scene: Any) -> tuple[Any, Any] | None:
     return shapes["water"], shapes["object"]
 
 
-def _direct_radiance(scene: Any, ray: Any, sampler: Any, water: Any, plane: Any) -> Any:
+def _direct_radiance(scene: Any, ray: Any, sampler: Any, water: Any, plane: Any,
+                     geometry: WaterGeometry | None = None) -> Any:
     """Radiance (Color3f) along camera rays of system V's two-shape scene: the general
     steps with their choices fixed. The first hit, through the scene; the water's BSDF,
     called directly (the same random numbers drawn); then the object plane's own
     intersection and emitter. A ray that meets the object without the water reaches it
     with weight 1; the water lies in the way of a refracted ray only where that ray is
-    flatter than the steepest facet, and only there is it tested."""
+    flatter than the steepest facet, and only there is it tested. The water's hits and
+    whether it lies in a ray's way come from ``geometry`` (the water alone: the object is
+    met on its own plane), by default the scene's."""
     import drjit as dr
 
-    from mitsuba_wai.particles import _slope_bound
-
     mi = mitsuba()
-    slope = _slope_bound(water)
-    # The water's hit on its grid (mitsuba_wai.water_hit), the scene's first where the object
-    # plane is not met before it along the ray.
-    si = water_intersect(scene, water, water_grid(water), ray, slope, True)
-    before = plane.ray_intersect(ray, mi.RayFlags.Minimal, si.is_valid()).t < si.t
-    hit = si.is_valid()
-    on_water = hit & (si.shape == mi.ShapePtr(water)) & ~before
+    geometry = WaterGeometry.of(scene) if geometry is None else geometry
+    slope = geometry.slope
+    # The water's hit on its grid (mitsuba_wai.water_hit); the object plane, where it is met
+    # first, is the first hit (a borrowed scene's own hit may be the object already).
+    si = geometry.intersect(ray, True)
+    before = plane.ray_intersect(ray, mi.RayFlags.Minimal, True).t < si.t
+    hit = si.is_valid() | before
+    on_water = si.is_valid() & (si.shape == mi.ShapePtr(geometry.mesh)) & ~before
     bs, bsdf_weight = water.bsdf().sample(
         mi.BSDFContext(), si, sampler.next_1d(hit), sampler.next_2d(hit), on_water
     )
@@ -128,7 +132,7 @@ def _direct_radiance(scene: Any, ray: Any, sampler: Any, water: Any, plane: Any)
     onward = onward & si_next.is_valid()
     d = next_ray.d
     flat = d.z <= slope * dr.norm(mi.Vector2f(d.x, d.y))
-    blocked = scene.ray_test(
+    blocked = geometry.occluded(
         mi.Ray3f(next_ray.o, d, si_next.t * (1.0 - 1e-4), ray.time, ray.wavelengths),
         onward & refracted & flat,
     )
@@ -138,7 +142,7 @@ def _direct_radiance(scene: Any, ray: Any, sampler: Any, water: Any, plane: Any)
 
 
 def render_view(
-    scene: Any, spp: int, seed: int, lens: Any = None
+    scene: Any, spp: int, seed: int, lens: Any = None, geometry: WaterGeometry | None = None,
 ) -> tuple[NDArray[np.float32], int]:
     """Render system V's scene (see the module notes) to linear RGB (H, W, 3).
 
@@ -156,6 +160,9 @@ def render_view(
     lens : mitsuba_wai.lens.CameraLens, optional
         The camera's principal point, distortion and port: each pixel sample's ray through
         them (:meth:`~mitsuba_wai.lens.CameraLens.sample_ray`); default the sensor's pinhole.
+    geometry : mitsuba_wai.water_hit.WaterGeometry, optional
+        The water the direct steps ask (its hits, whether it is in a ray's way), when the
+        scene's own is not up to date; default the scene's.
 
     Returns
     -------
@@ -179,12 +186,13 @@ def render_view(
     width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
     passes = particles.pass_split(spp, width * height, particles.MAX_PASS_SAMPLES)
     if len(passes) == 1:
-        return _mean_image(*_trace_pass(scene, spp, int(seed) % 2**32, lens), width, height)
+        return _mean_image(*_trace_pass(scene, spp, int(seed) % 2**32, lens, geometry),
+                           width, height)
     total = np.zeros((height, width, 3))
     bad = np.zeros((height, width), dtype=bool)
     count = 0
     for k, spp_k in enumerate(passes):
-        sums, taken = _trace_pass(scene, spp_k, (int(seed) + k) % 2**32, lens)
+        sums, taken = _trace_pass(scene, spp_k, (int(seed) + k) % 2**32, lens, geometry)
         sums = np.stack([np.asarray(sums[c]) for c in range(3)], axis=1)
         sums = sums.reshape(height, width, 3)
         bad |= ~np.isfinite(sums).all(axis=2)

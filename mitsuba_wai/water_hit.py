@@ -15,6 +15,10 @@ Rays this cannot settle (not steep enough, no settled facet after the steps, or 
 the grid, where the mesh may or may not lie in the way) are left to Embree, so the answer is
 the mesh's for every ray: the grid only saves Embree's traversal for the rays it can settle,
 in the repository's scenes nearly all of them.
+
+:class:`WaterGeometry` holds the water's mesh in a scene of its own: the one acceleration
+structure the direct tracers of both systems ask (:mod:`mitsuba_wai.particles`,
+:mod:`mitsuba_wai.view_tracer`), so a new surface costs one Embree build, not one per scene.
 """
 
 from __future__ import annotations
@@ -24,10 +28,12 @@ from typing import Any
 
 import numpy as np
 
+from mitsuba_wai.mesh import set_mesh_buffers, to_mitsuba
 from mitsuba_wai.variant import mitsuba
 from wai_core.heightfield import grid_faces
 
-__all__ = ["WaterGrid", "water_grid", "water_intersect"]
+__all__ = ["SceneWater", "WaterGeometry", "WaterGrid", "slope_bound", "water_grid",
+           "water_intersect"]
 
 # Newton steps before the last facet's (each a facet's plane): the paper's steep rays settle
 # in one and the last; the few others go to Embree.
@@ -137,7 +143,7 @@ def water_intersect(scene: Any, mesh: Any, grid: WaterGrid | None, ray: Any, slo
     ray : mitsuba.Ray3f, (n,)
         Lab, mm; unit directions.
     slope : mitsuba.Float, (1,)
-        A bound of the facets' slopes ``|grad z|`` (:func:`mitsuba_wai.particles._slope_bound`).
+        A bound of the facets' slopes ``|grad z|`` (:func:`slope_bound`).
     active : mitsuba.Bool, (n,)
 
     Returns
@@ -200,3 +206,146 @@ def water_intersect(scene: Any, mesh: Any, grid: WaterGrid | None, ray: Any, slo
     # Embree for the rest (rays flatter than a facet, crossings off the grid, unsettled ones).
     rest = scene.ray_intersect(ray, flags, True, active & ~resolved)
     return dr.select(resolved, si, rest)
+
+
+def slope_bound(mesh: Any) -> Any:
+    """Steepest facet slope ``|grad z|`` of a mesh, a little over it (a bound of every
+    triangle's), as a one-element Dr.Jit array: computed where the mesh is, no read-back."""
+    import drjit as dr
+
+    mi = mitsuba()
+    faces = dr.unravel(mi.Vector3u, mesh.faces_buffer())
+    positions = mesh.vertex_positions_buffer()
+    a, b, c = (dr.gather(mi.Point3f, positions, k) for k in faces)
+    normal = dr.cross(b - a, c - a)
+    slope = dr.norm(mi.Vector2f(normal.x, normal.y)) / dr.abs(normal.z)
+    return dr.max(dr.select(dr.isfinite(slope), slope, 0.0)) * 1.01 + 1e-6
+
+
+class WaterGeometry:
+    """The water's mesh and the scene the direct tracers ask for its hits and for whether it
+    lies in a ray's way (:func:`water_intersect`, ``ray_test``).
+
+    A system's scene holds the water beside other shapes (the diffuser below it, the object
+    above it), and every new surface rebuilds each scene's acceleration structure: on a fine
+    mesh (640 000 triangles) one build takes longer than a render. The direct tracers ask
+    only about the water (their rays start past the diffuser, and the object is met on its
+    own plane), so one scene holding the water alone answers both systems, built once a
+    surface (:meth:`own`, :meth:`update`); :meth:`of` borrows a system's scene and mesh as
+    they are.
+
+    Attributes
+    ----------
+    scene : mitsuba.Scene
+        Holds :attr:`mesh` (and, when borrowed, the system's other shapes).
+    mesh : mitsuba.Mesh
+        The water, its vertex normals the surface's.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from wai_core.heightfield import Heightfield
+    >>> x = y = np.linspace(-100.0, 100.0, 5)
+    >>> water = WaterGeometry.own(Heightfield(x, y, np.full((5, 5), 150.0)).to_trimesh())
+    >>> (water.grid.nx, water.grid.ny)
+    (5, 5)
+    """
+
+    def __init__(self, scene: Any, mesh: Any, owned: bool = False) -> None:
+        self.scene = scene
+        self.mesh = mesh
+        self._params = mitsuba().traverse(scene) if owned else None
+        self._grid: tuple[WaterGrid | None] | None = None
+        self._slope: Any = None
+
+    @classmethod
+    def own(cls, tm: Any) -> WaterGeometry:
+        """The water of the ``trimesh`` ``tm`` in a scene of its own."""
+        mesh = to_mitsuba(tm, "water", {"type": "diffuse"})  # never shaded: the systems' BSDFs
+        return cls(mitsuba().load_dict({"type": "scene", "water": mesh}), mesh, owned=True)
+
+    @classmethod
+    def of(cls, scene: Any) -> WaterGeometry:
+        """A system's scene and its ``water`` mesh, as they are."""
+        return cls(scene, {shape.id(): shape for shape in scene.shapes()}["water"])
+
+    def update(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray | None
+               ) -> None:
+        """New buffers (:func:`mitsuba_wai.mesh.set_mesh_buffers`) for an owned geometry."""
+        if self._params is None:
+            raise ValueError("a borrowed water geometry changes with its own scene")
+        set_mesh_buffers(self._params, vertices, normals, faces, prefix="water.")
+        self._grid = None
+        self._slope = None
+
+    @property
+    def grid(self) -> WaterGrid | None:
+        """The mesh's grid (:func:`water_grid`), found once a surface."""
+        if self._grid is None:
+            self._grid = (water_grid(self.mesh),)
+        return self._grid[0]
+
+    @property
+    def slope(self) -> Any:
+        """:func:`slope_bound` of the mesh, once a surface."""
+        if self._slope is None:
+            import drjit as dr
+
+            self._slope = slope_bound(self.mesh)
+            dr.eval(self._slope)
+        return self._slope
+
+    def intersect(self, ray: Any, active: Any) -> Any:
+        """The water's first hit along ``ray`` (:func:`water_intersect`)."""
+        return water_intersect(self.scene, self.mesh, self.grid, ray, self.slope, active)
+
+    def occluded(self, ray: Any, active: Any) -> Any:
+        """Whether the water (and, when borrowed, the scene's other shapes) lies on ``ray``
+        before its ``maxt``."""
+        return self.scene.ray_test(ray, active)
+
+
+class SceneWater:
+    """The water of a renderer's scenes, swapped per surface: the shared :class:`WaterGeometry`
+    at once, each system's scene only when a render goes through it (Mitsuba's integrators,
+    the general tracers), so a frame whose renders all take the direct tracers rebuilds one
+    acceleration structure.
+
+    Parameters
+    ----------
+    params : dict
+        Each scene's ``mitsuba.traverse`` (its water's buffers ``water.*``), by key.
+    geometry : WaterGeometry, optional
+        The direct tracers' water; None: every scene is updated with each surface.
+    """
+
+    def __init__(self, params: dict[str, Any], geometry: WaterGeometry | None) -> None:
+        self._params = params
+        self.geometry = geometry
+        self._buffers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._faces: dict[str | None, np.ndarray] = {}  # the faces each holds (None: geometry)
+        self._stale: set[str] = set()
+
+    def set(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> None:
+        """A new surface's flat buffers (:func:`mitsuba_wai.mesh.surface_buffers`)."""
+        self._buffers = (vertices, normals, faces)
+        self._stale = set(self._params)
+        if self.geometry is None:
+            self.sync(self._params)
+            return
+        self.geometry.update(vertices, normals, self._new_faces(None, faces))
+
+    def sync(self, keys: Any) -> None:
+        """Bring the scenes ``keys`` to the last surface."""
+        for key in [k for k in keys if k in self._stale]:
+            vertices, normals, faces = self._buffers
+            set_mesh_buffers(self._params[key], vertices, normals, self._new_faces(key, faces),
+                             prefix="water.")
+            self._stale.discard(key)
+
+    def _new_faces(self, key: str | None, faces: np.ndarray) -> np.ndarray | None:
+        """``faces`` where they differ from those ``key`` holds (a surface's holes), else
+        None: the grid's stay."""
+        same = key in self._faces and np.array_equal(faces, self._faces[key])
+        self._faces[key] = faces
+        return None if same else faces

@@ -13,6 +13,7 @@ import tempfile
 from pathlib import Path
 
 import h5py
+import hdf5plugin  # noqa: F401  (the store's compression filter, Blosc)
 import matplotlib.pyplot as plt
 import numpy as np
 

@@ -163,7 +163,7 @@ def test_dots_drawn_directly_are_the_projectors_emission(paper_cfg, code):
     surface = wave_surface(cfg)
     renderer = FrameRenderer(cfg, surface, systems=("pattern",))
     renderer._set_surface(surface)
-    scene = renderer._scenes["pattern"]
+    scene = renderer.scene("pattern")
     ref, _ = render_particles(scene, 4, 3, SCENE_S_DEPTH, stratified=True)
     dots, bad = render_particles(scene, 4, 3, SCENE_S_DEPTH, emitter=DotEmitter(cfg))
     assert bad == 0

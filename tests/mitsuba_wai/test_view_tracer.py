@@ -15,7 +15,7 @@ def view_scene(paper_cfg):
     surface = wave_surface(cfg)
     renderer = FrameRenderer(cfg, surface, systems=("view",))
     renderer._set_surface(surface)
-    return renderer._scenes["view"]
+    return renderer.scene("view")
 
 
 def test_view_is_mitsubas_path_traced_image(view_scene):

@@ -7,7 +7,7 @@ from mitsuba_wai import particles
 from mitsuba_wai.mesh import flat_like
 from mitsuba_wai.render import FrameRenderer
 from mitsuba_wai.surface_sampling import wave_surface
-from mitsuba_wai.water_hit import water_grid, water_intersect
+from mitsuba_wai.water_hit import slope_bound, water_grid, water_intersect
 from tests.conftest import shrink
 
 
@@ -37,14 +37,14 @@ def test_grid_hit_is_the_meshs(renderer, wavy):
     cfg, fr = renderer
     surface = wave_surface(cfg)
     fr._set_surface(surface if wavy else flat_like(surface, cfg.water.h0_mm))
-    scene = fr._scenes["pattern"]
+    scene = fr.scene("pattern")
     mesh = {s.id(): s for s in scene.shapes()}["water"]
     grid = water_grid(mesh)
     assert grid is not None and (grid.ny, grid.nx) == surface.z.shape
     ray = _rays(mi, 20000, 3)
     flags = mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame
     embree = scene.ray_intersect(ray, flags, True, True)
-    mine = water_intersect(scene, mesh, grid, ray, particles._slope_bound(mesh), mi.Bool(True))
+    mine = water_intersect(scene, mesh, grid, ray, slope_bound(mesh), mi.Bool(True))
     dr.eval(embree, mine)
     a, b = embree.is_valid().numpy(), mine.is_valid().numpy()
     assert a.mean() > 0.5
@@ -76,3 +76,29 @@ def test_grid_of_other_meshes_is_none(renderer):
     params.update()
     dr.eval()
     assert water_grid(m) is None
+
+
+def test_the_shared_water_gives_the_scenes_own_images(paper_cfg):
+    # A renderer's direct tracers ask one scene holding the water alone (one acceleration
+    # structure a surface); each system's scene, brought up to date, gives the same bits.
+    from mitsuba_wai.dots import DotEmitter
+    from mitsuba_wai.particles import render_particles
+    from mitsuba_wai.scenes import pattern_depth
+    from mitsuba_wai.view_tracer import render_view
+
+    cfg = shrink(paper_cfg, factor=8, spp=2)
+    first = wave_surface(cfg)
+    fr = FrameRenderer(cfg, first)
+    assert fr._direct == {"pattern", "view"}
+    later = wave_surface(cfg.replace("waves", time_s=cfg.waves.time_s + 3.0))
+    shared = fr.render(later, seed=5)
+    own = {
+        "pattern": render_particles(fr.scene("pattern"), cfg.render.spp_pattern, 5,
+                                    pattern_depth(cfg), True, DotEmitter(cfg))[0],
+        "view": render_view(fr.scene("view"), cfg.render.spp_view, 5)[0],
+    }
+    for key in ("pattern", "view"):
+        assert shared[key].tobytes() == own[key].tobytes(), key
+    # The two surfaces' images differ: the equality is no scene left holding the first.
+    other = fr.render(first, seed=5)
+    assert all(other[k].tobytes() != shared[k].tobytes() for k in ("pattern", "view"))

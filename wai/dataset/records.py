@@ -8,6 +8,10 @@ leaves a readable file that a rerun continues (:func:`open_store`, :func:`trim`)
 A frame's arrays are compressed where the frame is made (:class:`FramePacker`, in the worker
 that rendered it) and written into the store as they are (HDF5's direct chunk writes): the
 writing process only moves bytes, so it does not bound how many workers a store can take.
+
+The compression is Blosc's LZ4 after a byte shuffle (:func:`filters`), a filter HDF5 reads
+through ``hdf5plugin``: a reader of the store imports it before reading the arrays
+(``import hdf5plugin``), as :func:`read_frame` does.
 """
 
 from __future__ import annotations
@@ -30,8 +34,9 @@ from wai.dataset.store import DATASET_FILE, FORMAT, FORMAT_FAMILY
 from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 
-__all__ = ["ARRAYS", "FILTERS", "FramePacker", "FrameRecord", "PackedFrame", "append",
-           "open_store", "read_frame", "read_manifest", "read_runs", "rewrite_manifest", "trim"]
+__all__ = ["ARRAYS", "FramePacker", "FrameRecord", "PackedFrame", "append",
+           "filters", "open_store", "read_frame", "read_manifest", "read_runs",
+           "rewrite_manifest", "trim"]
 
 
 # Attributes that must match for a rerun to append to an existing store.
@@ -65,14 +70,24 @@ class FrameRecord:
 ARRAYS = ("view", "view_truth", "pattern", "pattern_flat", "height_mm", "normals", "warp_px")
 """The per-frame datasets of the store, in :class:`FrameRecord`'s order."""
 
-_IMAGE = {"compression": "lzf"}
-_FLOAT32 = {"compression": "lzf", "shuffle": True}
-FILTERS: dict[str, dict[str, Any]] = {
-    "view": _IMAGE, "view_truth": _IMAGE, "pattern": _IMAGE, "pattern_flat": _IMAGE,
-    "height_mm": _FLOAT32, "normals": _FLOAT32, "warp_px": _FLOAT32,
-}
-"""Each array's HDF5 filters: LZF, the float32 arrays byte-shuffled first (their exponents and
-high bytes together: 1.6-2.2 times smaller than LZF alone makes them, which gained 1.0-1.4)."""
+
+def filters() -> dict[str, Any]:
+    """The HDF5 filter of every per-frame array (``h5py.create_dataset``'s keywords): Blosc's
+    LZ4 at level 5 after a byte shuffle, which puts the floats' exponents and high bytes
+    together. On a frame of the paper's size it makes the arrays as small as LZF after the
+    same shuffle did (5.96 against 5.84 MB) in a seventh of the time (12 against 80 ms on
+    one core); the filter is ``hdf5plugin``'s, registered by importing it."""
+    import hdf5plugin
+
+    return dict(**hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE))
+
+
+def h5_file(path: str | Path, mode: str = "r") -> Any:
+    """``h5py.File(path, mode)`` with the store's compression filter registered."""
+    import h5py
+    import hdf5plugin  # noqa: F401  (registers the filter)
+
+    return h5py.File(path, mode)
 
 _SHARED = ("pattern_flat", "view_truth")
 # The arrays frames may share (the flat-water renders, without the sensor's noise): their
@@ -88,7 +103,7 @@ class PackedFrame:
     params : FrameParams
     chunks : dict
         Per array of :data:`ARRAYS`: its shape, dtype (``numpy`` string), HDF5 filter mask and
-        compressed bytes (:data:`FILTERS`).
+        compressed bytes (:func:`filters`).
     """
 
     params: FrameParams
@@ -101,7 +116,7 @@ class PackedFrame:
 
 
 class FramePacker:
-    """Compresses frames into the store's chunks (:data:`FILTERS`), by HDF5 itself in a file
+    """Compresses frames into the store's chunks (:func:`filters`), by HDF5 itself in a file
     held in memory, so the bytes are the ones the store's own filters would write.
 
     Examples
@@ -135,14 +150,12 @@ class FramePacker:
         return PackedFrame(rec.params, chunks)
 
     def _compress(self, name: str, a: NDArray) -> tuple[tuple[int, ...], str, int, bytes]:
-        import h5py
-
         if self._file is None:
-            self._file = h5py.File(io.BytesIO(), "w")
+            self._file = h5_file(io.BytesIO(), "w")
         key = f"{name}/{a.dtype.str}/{'x'.join(map(str, a.shape))}"
         if key not in self._file:
             self._file.create_dataset(key, shape=(1, *a.shape), dtype=a.dtype,
-                                      chunks=(1, *a.shape), **FILTERS[name])
+                                      chunks=(1, *a.shape), **filters())
         ds = self._file[key]
         ds[0] = a
         mask, data = ds.id.read_direct_chunk((0,) * ds.ndim)
@@ -153,7 +166,7 @@ def _versions() -> dict[str, str]:
     from importlib.metadata import PackageNotFoundError, version
 
     out = {"python": platform.python_version(), "numpy": np.__version__}
-    for pkg in ("mitsuba", "drjit", "h5py", "wavy-water-testbed"):
+    for pkg in ("mitsuba", "drjit", "h5py", "hdf5plugin", "wavy-water-testbed"):
         try:
             out[pkg] = version(pkg)
         except PackageNotFoundError:
@@ -215,7 +228,7 @@ def append(f: Any, rec: PackedFrame, x_mm: NDArray, y_mm: NDArray) -> None:
         shape, dtype, mask, data = rec.chunks[name]
         if name not in f:
             f.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape),
-                             dtype=np.dtype(dtype), chunks=(1, *shape), **FILTERS[name])
+                             dtype=np.dtype(dtype), chunks=(1, *shape), **filters())
         ds = f[name]
         if ds.shape[1:] != tuple(shape) or ds.dtype != np.dtype(dtype):
             raise ValueError(f"{name}: a frame of {shape} {dtype} in a store of "
@@ -285,9 +298,7 @@ def read_frame(out_dir: str | Path, index: int) -> FrameRecord:
     >>> rec.warp_px.shape                           # doctest: +SKIP
     (60, 80, 2)
     """
-    import h5py
-
-    with h5py.File(Path(out_dir) / DATASET_FILE, "r") as f:
+    with h5_file(Path(out_dir) / DATASET_FILE) as f:
         k = int(f.attrs["frames"])
         if not 0 <= index < k:
             raise WaiInputError(f"frame {index}: the dataset holds frames 0 .. {k - 1}")

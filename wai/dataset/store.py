@@ -42,10 +42,11 @@ PREVIEW_FILE = "preview.png"
 """A look at the store's first frames (:func:`wai.dataset.write.write_preview`)."""
 FOLDER_FILES = (DATASET_FILE, MANIFEST_FILE, PREVIEW_FILE, "index.html")
 """Everything ``wai dataset`` writes in its folder."""
-FORMAT = "wai-dataset/2"
+FORMAT = "wai-dataset/3"
 """The ``format`` attribute of a store ``wai dataset`` writes (what a rerun looks for). Stores
 of ``wai-dataset/1`` rendered flat water for every frame and compressed the float32 arrays
-without the shuffle: they are read alike, but not continued."""
+without the shuffle, those of ``wai-dataset/2`` compressed with LZF: they are read alike, but
+not continued."""
 FORMAT_FAMILY = "wai-dataset/"
 """The prefix of every store format ``wai dataset`` has written."""
 WARP_BYTES_PER_PX = 50
@@ -146,8 +147,8 @@ def reserve_space(f: Any, nbytes: int, stored: int) -> None:
     f : h5py.File
         The store, open to append.
     nbytes : int
-        The frame's bytes, uncompressed (LZF never grows data by more than a few per cent;
-        :data:`METADATA_BYTES` covers that).
+        The frame's bytes, uncompressed (Blosc keeps a block that would not shrink as it is,
+        behind a header of a few bytes; :data:`METADATA_BYTES` covers that).
     stored : int
         The frames the store holds, for the message.
 
