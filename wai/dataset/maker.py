@@ -63,6 +63,7 @@ class FrameMaker:
         self.x_mm, self.y_mm = grid_axes(spec, self.base)
         self._renderers: dict[int, Any] = {}
         self._flat: dict[str, NDArray] | None = None
+        self._flat_kept: tuple | None = None  # the flat renders last converted, and the result
         cam = self.base.rig.camera_v  # the same rig every frame: its pixel rays once
         self._rays = cam.pixel_rays(*cam.pixel_grid())
 
@@ -148,16 +149,34 @@ class FrameMaker:
             truth = pool.submit(_truth, geometry, surf, self._rays)
             _, _, images, gain = self.render(index, surf)
             normals, warp = truth.result()
+            view_truth, pattern_flat = self._flat_record(images, gain)
             return FrameRecord(
                 params=p,
                 view=(images["view"] / gain).astype(np.float16),
-                view_truth=(images["view_truth"] / gain).astype(np.float16),
-                pattern=images["pattern"].mean(axis=-1).astype(np.float16),
-                pattern_flat=images["pattern_flat"].mean(axis=-1).astype(np.float16),
+                view_truth=view_truth,
+                pattern=_grey16(images["pattern"]),
+                pattern_flat=pattern_flat,
                 height_mm=surf.z.astype(np.float32),
                 normals=normals,
                 warp_px=warp,
             )
+
+    def _flat_record(self, images: dict[str, NDArray], gain: float) -> tuple[NDArray, NDArray]:
+        """The frame's flat-water pair as the store holds it: without a sensor, the shared
+        render's, converted once for every frame."""
+        flat = images["view_truth"], images["pattern_flat"]
+        kept = self._flat_kept
+        if kept is not None and kept[0] is flat[0] and kept[1] is flat[1] and kept[2] == gain:
+            return kept[3]
+        out = (flat[0] / gain).astype(np.float16), _grey16(flat[1])
+        self._flat_kept = (*flat, gain, out)
+        return out
+
+
+def _grey16(image: NDArray[np.float32]) -> NDArray[np.float16]:
+    """The channels' mean of an (H, W, 3) float32 image as float16 (``image.mean(axis=-1)``'s
+    float32 values, summed in the same order, in a fifth of its time)."""
+    return ((image[..., 0] + image[..., 1] + image[..., 2]) / 3).astype(np.float16)
 
 
 def _truth(cfg: SystemConfig, surface: Heightfield, rays: tuple[NDArray, NDArray]
