@@ -404,13 +404,13 @@ def render_particles(
 def render_particles_water(
     scene: Any, spp: int, seed: int, max_depth: int, absorption_per_mm: NDArray,
     scattering_per_mm: NDArray, air_segments: int = 0, stratified: bool = False,
-    emitter: Any = None, camera: Any = None,
+    emitter: Any = None, camera: Any = None, geometry: WaterGeometry | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], int]:
     """:func:`render_particles` with Beer-Lambert weights along each path (module notes).
 
     Parameters
     ----------
-    scene, spp, seed, max_depth, stratified, emitter, camera
+    scene, spp, seed, max_depth, stratified, emitter, camera, geometry
         As :func:`render_particles`.
     absorption_per_mm, scattering_per_mm : (3,) array_like
         a and b per channel (R, G, B), 1/mm.
@@ -430,7 +430,8 @@ def render_particles_water(
         [float(v) for v in absorption_per_mm], [float(v) for v in scattering_per_mm],
         int(air_segments),
     )
-    images, n_bad = _render(scene, spp, seed, max_depth, water, stratified, emitter, camera)
+    images, n_bad = _render(scene, spp, seed, max_depth, water, stratified, emitter, camera,
+                            geometry)
     return images[0], images[1], n_bad
 
 

@@ -212,8 +212,8 @@ class FrameRenderer:
             {"pattern": DotEmitter(self.cfg)}
             if self._stratified and "pattern" in self._scenes else {}
         )
-        # The renders the direct tracers take ask the water alone: one acceleration structure
-        # a surface for them all, the systems' scenes brought up to date only when used.
+        # The renders the direct tracers take ask the water alone, on its grid: no acceleration
+        # structure to build a surface, the systems' scenes brought up to date only when used.
         self._direct = self._direct_renders()
         self._water = SceneWater(self._params, WaterGeometry.own(tm) if self._direct else None)
 
@@ -221,7 +221,7 @@ class FrameRenderer:
         """The renders :meth:`render` gives the direct tracers (system S's dots,
         :func:`~mitsuba_wai.particles._direct_scene`; system V's two steps,
         :func:`~mitsuba_wai.view_tracer._direct_parts`): those that ask only the water."""
-        if self.cfg.water_optics.enabled or self.cfg.ambient.enabled or self._crosstalk:
+        if self.cfg.ambient.enabled or self._crosstalk:
             return frozenset()
         direct = set()
         emitter = self._emitters.get("pattern")
@@ -235,7 +235,7 @@ class FrameRenderer:
 
     def _geometry(self, key: str) -> WaterGeometry | None:
         """The water a direct render ``key`` asks; None: its scene's own (brought up to date)."""
-        return self._water.geometry if key in self._direct else None
+        return self._water.shared if key in self._direct else None
 
     def scene(self, key: str) -> Any:
         """The loaded scene ``key`` (``"pattern"``, ``"view"``) holding the last surface."""
@@ -301,7 +301,7 @@ class FrameRenderer:
                                              self._stratified, self._emitters.get(key),
                                              self._lenses.get(key), self._geometry(key))
             if key == "view" and self.cfg.water_optics.enabled:
-                lengths = view_path_lengths(self._scenes["view"], self.cfg)
+                lengths = view_path_lengths(self.scene("view"), self.cfg)
                 out[key] = water_view(out[key], lengths, self.cfg)
             if key == "pattern":
                 out[key] = screen_blur(out[key], self.cfg)  # a no-op unless [diffuser].blur_mm
@@ -356,11 +356,11 @@ class FrameRenderer:
         lens = self._lenses["pattern"]  # the sun's caustics reach camera s through it too
         if not w.enabled:
             return render_particles(self._scenes[key], spp, seed, depth, self._stratified,
-                                    self._emitters.get(key), lens)
+                                    self._emitters.get(key), lens, self._geometry(key))
         a, b = coefficients_per_mm(w)
         direct, scattered, bad = render_particles_water(
             self._scenes[key], spp, seed, depth, a, b, air_segments, self._stratified,
-            self._emitters.get(key), lens,
+            self._emitters.get(key), lens, self._geometry(key),
         )
         return direct + glow(scattered, w.forward_fraction, glow_sigma_px(self.cfg, "S")), bad
 

@@ -16,9 +16,9 @@ the grid, where the mesh may or may not lie in the way) are left to Embree, so t
 the mesh's for every ray: the grid only saves Embree's traversal for the rays it can settle,
 in the repository's scenes nearly all of them.
 
-:class:`WaterGeometry` holds the water's mesh in a scene of its own: the one acceleration
-structure the direct tracers of both systems ask (:mod:`mitsuba_wai.particles`,
-:mod:`mitsuba_wai.view_tracer`), so a new surface costs one Embree build, not one per scene.
+:class:`WaterGeometry` answers the direct tracers of both systems (:mod:`mitsuba_wai.particles`,
+:mod:`mitsuba_wai.view_tracer`) on the grid alone, the rays the facets do not settle marched
+over its cells (:func:`_march`): a new surface then costs no Embree build.
 """
 
 from __future__ import annotations
@@ -35,9 +35,10 @@ from wai_core.heightfield import grid_faces
 __all__ = ["SceneWater", "WaterGeometry", "WaterGrid", "slope_bound", "water_grid",
            "water_intersect"]
 
-# Newton steps before the last facet's (each a facet's plane): the paper's steep rays settle
-# in one and the last; the few others go to Embree.
-_STEPS = 1
+# Newton steps before the last facet's (each a facet's plane): with two, all but a few in 10^4
+# of the paper's steep rays settle on the finest meshes (with one, up to 5 % did not); the rest
+# go to Embree or the march.
+_STEPS = 2
 
 
 @dataclass(frozen=True)
@@ -134,12 +135,13 @@ def water_intersect(scene: Any, mesh: Any, grid: WaterGrid | None, ray: Any, slo
 
     Parameters
     ----------
-    scene : mitsuba.Scene
-        Holds ``mesh``; Embree intersects it for the rays the grid cannot settle.
+    scene : mitsuba.Scene or None
+        Holds ``mesh``; Embree intersects it for the rays the grid's facets cannot settle.
+        None: those rays march over the grid's cells (:func:`_march`), no Embree.
     mesh : mitsuba.Mesh
         The water mesh (vertex normals).
     grid : WaterGrid or None
-        Its grid (:func:`water_grid`); None: Embree for every ray.
+        Its grid (:func:`water_grid`); None: Embree for every ray (``scene`` needed).
     ray : mitsuba.Ray3f, (n,)
         Lab, mm; unit directions.
     slope : mitsuba.Float, (1,)
@@ -170,42 +172,222 @@ def water_intersect(scene: Any, mesh: Any, grid: WaterGrid | None, ray: Any, slo
         t = (za + gu * (o.x - xa) + gv * (o.y - ya) - o.z) / (d.z - gu * d.x - gv * d.y)
     # The last facet under the point, by its own vertices (Mitsuba's float32 geometry).
     px, py = dr.fma(d.x, t, o.x), dr.fma(d.y, t, o.y)
-    a, upper, u, v, *_ = _facet(grid, heights, px, py)
+    a, upper, *_ = _facet(grid, heights, px, py)
+    hit = _facet_hit(grid, positions, a, upper, o, d)
+    a_hit, upper_hit, *_ = _facet(grid, heights, hit.px, hit.py)
+    on_grid = ((hit.fu >= 0.0) & (hit.fv >= 0.0) & (hit.fu <= grid.nx - 1)
+               & (hit.fv <= grid.ny - 1))
+    # Settled: the hit lies on the facet whose plane gave it (a point on an edge between two
+    # facets may not settle; Embree or the march takes it).
+    resolved = steep & on_grid & (a_hit == a) & (upper_hit == upper) & (hit.t > 0.0)
+    if scene is not None:
+        si = _interaction(mesh, hit, a, upper, ray, resolved)
+        # Embree for the rest (rays flatter than a facet, crossings off the grid, unsettled).
+        rest = scene.ray_intersect(ray, flags, True, active & ~resolved)
+        return dr.select(resolved, si, rest)
+    # The rest marched over the grid's cells: the first facet each meets.
+    found, a_m, upper_m = _march(grid, positions, heights, o, d, dr.inf, active & ~resolved,
+                                 steep)
+    a, upper = dr.select(resolved, a, a_m), dr.select(resolved, upper, upper_m)
+    hit = _facet_hit(grid, positions, a, upper, o, d)
+    return _interaction(mesh, hit, a, upper, ray, resolved | (found & (hit.t > 0.0)))
+
+
+@dataclass
+class _FacetHit:
+    """A ray's hit on the plane of a given facet: its vertices, unit normal, distance, lab
+    point ``(px, py)``, grid coordinates ``(fu, fv)`` (in cell widths) and the point's
+    coordinates ``(u, v)`` in the facet's cell."""
+
+    p0: Any
+    p1: Any
+    p2: Any
+    i1: Any
+    i2: Any
+    n: Any
+    t: Any
+    px: Any
+    py: Any
+    fu: Any
+    fv: Any
+    u: Any
+    v: Any
+
+
+def _facet_hit(grid: WaterGrid, positions: Any, a: Any, upper: Any, o: Any, d: Any
+               ) -> _FacetHit:
+    """Where rays ``o + t d`` meet the planes of the facets ``(a, upper)`` (module notes)."""
+    import drjit as dr
+
+    mi = mitsuba()
     i1 = dr.select(upper, a + grid.nx + 1, a + 1)
     i2 = dr.select(upper, a + grid.nx, a + grid.nx + 1)
     p0, p1, p2 = (dr.gather(mi.Point3f, positions, i) for i in (a, i1, i2))
     n = dr.normalize(dr.cross(p1 - p0, p2 - p0))
-    t_hit = dr.dot(p0 - o, n) / dr.dot(d, n)
-    px, py = dr.fma(d.x, t_hit, o.x), dr.fma(d.y, t_hit, o.y)
-    a_hit, upper_hit, u, v, *_ = _facet(grid, heights, px, py)
+    t = dr.dot(p0 - o, n) / dr.dot(d, n)
+    px, py = dr.fma(d.x, t, o.x), dr.fma(d.y, t, o.y)
     fu = (px - grid.x0) * (1.0 / grid.dx)
     fv = (py - grid.y0) * (1.0 / grid.dy)
-    on_grid = ((fu >= 0.0) & (fv >= 0.0) & (fu <= grid.nx - 1) & (fv <= grid.ny - 1))
-    # Settled: the hit lies on the facet whose plane gave it (a point on an edge between two
-    # facets may not settle; Embree takes it).
-    resolved = steep & on_grid & (a_hit == a) & (upper_hit == upper) & (t_hit > 0.0)
+    u = fu - mi.Float(mi.Int32(a % grid.nx))
+    v = fv - mi.Float(mi.Int32(a // grid.nx))
+    return _FacetHit(p0, p1, p2, i1, i2, n, t, px, py, fu, fv, u, v)
+
+
+def _interaction(mesh: Any, hit: _FacetHit, a: Any, upper: Any, ray: Any, valid: Any) -> Any:
+    """The surface interaction of rays at their facet hits, as Mitsuba's mesh makes it of
+    Embree's (``t`` inf where not ``valid``)."""
+    import drjit as dr
+
+    mi = mitsuba()
+    u, v = hit.u, hit.v
     # Barycentrics of (p0, p1, p2): (a, b, d) has b1 = u - v, b2 = v; (a, d, c) b1 = u, b2 = v - u.
     b1 = dr.clip(dr.select(upper, u, u - v), 0.0, 1.0)
     b2 = dr.clip(dr.select(upper, v - u, v), 0.0, 1.0 - b1)
     b0 = 1.0 - b1 - b2
     normals = mesh.vertex_normals_buffer()
-    n0, n1, n2 = (dr.gather(mi.Normal3f, normals, i) for i in (a, i1, i2))
+    n0, n1, n2 = (dr.gather(mi.Normal3f, normals, i) for i in (a, hit.i1, hit.i2))
     ns = dr.normalize(dr.fma(n2, b2, dr.fma(n1, b1, n0 * b0)))
-    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(t_hit))
-    si.t = dr.select(resolved, t_hit, dr.inf)
-    si.p = dr.fma(d, t_hit, o)
-    si.n = mi.Normal3f(n)
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(hit.t))
+    si.t = dr.select(valid, hit.t, dr.inf)
+    si.p = dr.fma(ray.d, hit.t, ray.o)
+    si.n = mi.Normal3f(hit.n)
     # Mitsuba's shading frame: its s the first edge p1 - p0 (the mesh's dp/du) made normal to ns.
-    e1 = p1 - p0
+    e1 = hit.p1 - hit.p0
     s_axis = dr.normalize(dr.fma(-ns, dr.dot(ns, e1), e1))
     si.sh_frame = mi.Frame3f(s_axis, dr.cross(ns, s_axis), ns)
-    si.wi = si.to_local(-d)
+    si.wi = si.to_local(-ray.d)
     si.time = ray.time
     si.wavelengths = ray.wavelengths
     si.shape = mi.ShapePtr(mesh)
-    # Embree for the rest (rays flatter than a facet, crossings off the grid, unsettled ones).
-    rest = scene.ray_intersect(ray, flags, True, active & ~resolved)
-    return dr.select(resolved, si, rest)
+    return si
+
+
+# How far (mm) a steep ray must lie below the mesh where it leaves the grid, or above it where
+# it enters, to be taken as missing it without a march: well past float32 rounding at 150 mm.
+_SIDE_MM = 1e-3
+
+
+def _slab(lo: float, hi: float, oc: Any, dc: Any) -> tuple[Any, Any]:
+    """The distances along rays (origins ``oc``, directions ``dc`` along one axis) between
+    which they lie within ``[lo, hi]`` on that axis (infinite for a ray parallel to it)."""
+    import drjit as dr
+
+    flat = dr.abs(dc) < 1e-12
+    inside = (oc >= lo) & (oc <= hi)
+    ta, tb = (lo - oc) / dc, (hi - oc) / dc
+    t_in = dr.select(flat, dr.select(inside, -dr.inf, dr.inf), dr.minimum(ta, tb))
+    t_out = dr.select(flat, dr.select(inside, dr.inf, -dr.inf), dr.maximum(ta, tb))
+    return t_in, t_out
+
+
+def _above_mesh(grid: WaterGrid, heights: Any, o: Any, d: Any, t: Any) -> Any:
+    """How far (mm) the points ``o + t d`` lie above the mesh's facet under them (on the grid:
+    the cell clamped at its edges)."""
+    import drjit as dr
+
+    px, py = dr.fma(d.x, t, o.x), dr.fma(d.y, t, o.y)
+    _, _, _, _, za, xa, ya, gu, gv = _facet(grid, heights, px, py)
+    return dr.fma(d.z, t, o.z) - (za + gu * (px - xa) + gv * (py - ya))
+
+
+# Slack of the march's triangle test, in barycentric units: a ray through an edge or a vertex
+# counts on both sides (the first cell's facet is then the hit), so none slips between facets.
+_EDGE_SLACK = 1e-5
+
+
+def _march(grid: WaterGrid, positions: Any, heights: Any, o: Any, d: Any, t_max: Any,
+           active: Any, steep: Any = None) -> tuple[Any, Any, Any]:
+    """The first facet each ray ``o + t d``, ``0 < t <= t_max``, meets on the grid: the cells
+    under the ray's path in the order it crosses them (a 2-D digital differential analyser
+    over the span where the ray lies within the grid and the heights' range), each cell's
+    two triangles tested (Moller-Trumbore); the first cell with a hit holds the nearest,
+    since a facet lies within its cell. A ray of ``steep`` crosses the mesh at most once: one
+    below the mesh where it leaves the grid, or above it where it enters, meets nothing.
+
+    Every step, the first one's set-up included, runs inside the loop: a kernel's lanes that
+    do not march (nearly all of a render's) cost it nothing but the loop's test.
+
+    Returns ``found`` and the facet ``(a, upper)`` as :func:`_facet` names it.
+    """
+    import drjit as dr
+
+    mi = mitsuba()
+    nx, ny = grid.nx, grid.ny
+    x1, y1 = grid.x0 + (nx - 1) * grid.dx, grid.y0 + (ny - 1) * grid.dy
+    z0, z1 = dr.min(heights), dr.max(heights)
+    steep = dr.zeros(mi.Bool, 1) if steep is None else steep
+
+    def start() -> tuple[Any, ...]:
+        """The first cell, its next boundaries along x and y, the span's end, and whether
+        the ray has nothing to march."""
+        sx, sy = _slab(grid.x0, x1, o.x, d.x), _slab(grid.y0, y1, o.y, d.y)
+        sz = _slab(z0 - 1e-3, z1 + 1e-3, o.z, d.z)
+        t_in = dr.maximum(dr.maximum(sx[0], sy[0]), dr.maximum(sz[0], 0.0))
+        t_out = dr.minimum(dr.minimum(sx[1], sy[1]), dr.minimum(sz[1], t_max))
+        box_in = dr.maximum(dr.maximum(sx[0], sy[0]), 0.0)
+        box_out = dr.minimum(sx[1], sy[1])
+        missed = steep & ((_above_mesh(grid, heights, o, d, box_out) < -_SIDE_MM)
+                          | (_above_mesh(grid, heights, o, d, box_in) > _SIDE_MM))
+        fu = (dr.fma(d.x, t_in, o.x) - grid.x0) * (1.0 / grid.dx)
+        fv = (dr.fma(d.y, t_in, o.y) - grid.y0) * (1.0 / grid.dy)
+        col = dr.clip(mi.Int32(dr.floor(fu)), 0, nx - 2)
+        row = dr.clip(mi.Int32(dr.floor(fv)), 0, ny - 2)
+        edge_x = grid.x0 + mi.Float(col + dr.select(d.x > 0.0, 1, 0)) * grid.dx
+        edge_y = grid.y0 + mi.Float(row + dr.select(d.y > 0.0, 1, 0)) * grid.dy
+        next_x = dr.select(dr.abs(d.x) < 1e-12, dr.inf, (edge_x - o.x) / d.x)
+        next_y = dr.select(dr.abs(d.y) < 1e-12, dr.inf, (edge_y - o.y) / d.y)
+        return col, row, next_x, next_y, t_out, missed | (t_in > t_out)
+
+    def triangle(i0: Any, i1: Any, i2: Any) -> tuple[Any, Any]:
+        p0, p1, p2 = (dr.gather(mi.Point3f, positions, i) for i in (i0, i1, i2))
+        e1, e2 = p1 - p0, p2 - p0
+        pv = dr.cross(d, e2)
+        det = dr.dot(e1, pv)
+        inv = dr.rcp(det)
+        tv = o - p0
+        b1 = dr.dot(tv, pv) * inv
+        qv = dr.cross(tv, e1)
+        b2 = dr.dot(d, qv) * inv
+        t = dr.dot(e2, qv) * inv
+        ok = ((dr.abs(det) > 1e-20) & (b1 >= -_EDGE_SLACK) & (b2 >= -_EDGE_SLACK)
+              & (b1 + b2 <= 1.0 + _EDGE_SLACK) & (t > 0.0) & (t <= t_max))
+        return ok, t
+
+    def cond(started, col, row, next_x, next_y, t_out, done, found, a_hit, upper_hit):
+        return ~done
+
+    def body(started, col, row, next_x, next_y, t_out, done, found, a_hit, upper_hit):
+        first = start()
+        col, row, next_x, next_y, t_out = (
+            dr.select(started, mine, theirs)
+            for mine, theirs in zip((col, row, next_x, next_y, t_out), first[:5], strict=True))
+        skip = ~started & first[5]
+        a = mi.UInt32(row * nx + col)
+        low_ok, low_t = triangle(a, a + 1, a + nx + 1)
+        up_ok, up_t = triangle(a, a + nx + 1, a + nx)
+        here = (low_ok | up_ok) & ~skip
+        a_hit = dr.select(here, a, a_hit)
+        upper_hit = dr.select(here, up_ok & (~low_ok | (up_t < low_t)), upper_hit)
+        found = found | here
+        # The ray's distance to the cell's next boundary along x and y, and between them.
+        along_x = next_x < next_y
+        entry = dr.minimum(next_x, next_y)
+        col = dr.select(along_x, col + dr.select(d.x > 0.0, 1, -1), col)
+        row = dr.select(along_x, row, row + dr.select(d.y > 0.0, 1, -1))
+        next_x = dr.select(along_x, next_x + grid.dx / dr.abs(d.x), next_x)
+        next_y = dr.select(along_x, next_y, next_y + grid.dy / dr.abs(d.y))
+        done = (skip | here | (entry > t_out) | (col < 0) | (col > nx - 2) | (row < 0)
+                | (row > ny - 2))
+        return dr.full(mi.Bool, True, dr.width(done)), col, row, next_x, next_y, t_out, done, \
+            found, a_hit, upper_hit
+
+    n = max(dr.width(o.x), dr.width(d.x), dr.width(active))
+    state = (dr.zeros(mi.Bool, n), dr.zeros(mi.Int32, n), dr.zeros(mi.Int32, n),
+             dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Float, n),
+             ~(active & dr.full(mi.Bool, True, n)), dr.zeros(mi.Bool, n),
+             dr.zeros(mi.UInt32, n), dr.zeros(mi.Bool, n))
+    *_, found, a_hit, upper_hit = dr.while_loop(state, cond, body)
+    return found, a_hit, upper_hit
 
 
 def slope_bound(mesh: Any) -> Any:
@@ -223,23 +405,25 @@ def slope_bound(mesh: Any) -> Any:
 
 
 class WaterGeometry:
-    """The water's mesh and the scene the direct tracers ask for its hits and for whether it
-    lies in a ray's way (:func:`water_intersect`, ``ray_test``).
+    """The water's mesh as the direct tracers ask it: its first hit along rays
+    (:func:`water_intersect`) and whether it lies in a ray's way (:meth:`occluded`).
 
     A system's scene holds the water beside other shapes (the diffuser below it, the object
     above it), and every new surface rebuilds each scene's acceleration structure: on a fine
-    mesh (640 000 triangles) one build takes longer than a render. The direct tracers ask
-    only about the water (their rays start past the diffuser, and the object is met on its
-    own plane), so one scene holding the water alone answers both systems, built once a
-    surface (:meth:`own`, :meth:`update`); :meth:`of` borrows a system's scene and mesh as
-    they are.
+    mesh (640 000 triangles) one Embree build takes longer than a render. The direct tracers
+    ask only about the water (their rays start past the diffuser, and the object is met on
+    its own plane), and a regular grid answers that on its own: steep rays settle on their
+    facet in a Newton step, the rest march over the cells (:func:`_march`). :meth:`own` holds
+    a mesh in no scene, which a new surface costs only its upload (:meth:`update`); :meth:`of`
+    borrows a system's scene and its mesh as they are (Embree for the rays the facets do not
+    settle, and for every ray on a mesh with holes).
 
     Attributes
     ----------
-    scene : mitsuba.Scene
-        Holds :attr:`mesh` (and, when borrowed, the system's other shapes).
     mesh : mitsuba.Mesh
         The water, its vertex normals the surface's.
+    scene : mitsuba.Scene or None
+        The borrowed scene holding :attr:`mesh`; None for an owned mesh.
 
     Examples
     --------
@@ -251,36 +435,34 @@ class WaterGeometry:
     (5, 5)
     """
 
-    def __init__(self, scene: Any, mesh: Any, owned: bool = False) -> None:
-        self.scene = scene
+    def __init__(self, mesh: Any, scene: Any = None) -> None:
         self.mesh = mesh
-        self._params = mitsuba().traverse(scene) if owned else None
+        self.scene = scene
         self._grid: tuple[WaterGrid | None] | None = None
         self._slope: Any = None
+        self._heights: Any = None
 
     @classmethod
     def own(cls, tm: Any) -> WaterGeometry:
-        """The water of the ``trimesh`` ``tm`` in a scene of its own."""
-        mesh = to_mitsuba(tm, "water", {"type": "diffuse"})  # never shaded: the systems' BSDFs
-        return cls(mitsuba().load_dict({"type": "scene", "water": mesh}), mesh, owned=True)
+        """The water of the ``trimesh`` ``tm``, in no scene."""
+        return cls(to_mitsuba(tm, "water", {"type": "diffuse"}))  # never shaded: the systems'
 
     @classmethod
     def of(cls, scene: Any) -> WaterGeometry:
         """A system's scene and its ``water`` mesh, as they are."""
-        return cls(scene, {shape.id(): shape for shape in scene.shapes()}["water"])
+        return cls({shape.id(): shape for shape in scene.shapes()}["water"], scene)
 
     def update(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray | None
                ) -> None:
-        """New buffers (:func:`mitsuba_wai.mesh.set_mesh_buffers`) for an owned geometry."""
-        if self._params is None:
+        """New buffers (:func:`mitsuba_wai.mesh.set_mesh_buffers`) for an owned mesh."""
+        if self.scene is not None:
             raise ValueError("a borrowed water geometry changes with its own scene")
-        set_mesh_buffers(self._params, vertices, normals, faces, prefix="water.")
-        self._grid = None
-        self._slope = None
+        set_mesh_buffers(self.mesh, vertices, normals, faces)
+        self._grid = self._slope = self._heights = None
 
     @property
     def grid(self) -> WaterGrid | None:
-        """The mesh's grid (:func:`water_grid`), found once a surface."""
+        """The mesh's grid (:func:`water_grid`; None where it has holes), once a surface."""
         if self._grid is None:
             self._grid = (water_grid(self.mesh),)
         return self._grid[0]
@@ -297,18 +479,30 @@ class WaterGeometry:
 
     def intersect(self, ray: Any, active: Any) -> Any:
         """The water's first hit along ``ray`` (:func:`water_intersect`)."""
+        if self.scene is None and self.grid is None:
+            raise ValueError("a water mesh with holes is intersected through its scene")
         return water_intersect(self.scene, self.mesh, self.grid, ray, self.slope, active)
 
     def occluded(self, ray: Any, active: Any) -> Any:
         """Whether the water (and, when borrowed, the scene's other shapes) lies on ``ray``
         before its ``maxt``."""
-        return self.scene.ray_test(ray, active)
+        import drjit as dr
+
+        if self.scene is not None:
+            return self.scene.ray_test(ray, active)
+        if self.grid is None:
+            raise ValueError("a water mesh with holes is intersected through its scene")
+        mi = mitsuba()
+        positions = self.mesh.vertex_positions_buffer()
+        heights = dr.gather(mi.Float, positions,
+                            dr.arange(mi.UInt32, self.grid.nx * self.grid.ny) * 3 + 2)
+        return _march(self.grid, positions, heights, ray.o, ray.d, ray.maxt, active)[0]
 
 
 class SceneWater:
     """The water of a renderer's scenes, swapped per surface: the shared :class:`WaterGeometry`
     at once, each system's scene only when a render goes through it (Mitsuba's integrators,
-    the general tracers), so a frame whose renders all take the direct tracers rebuilds one
+    the general tracers), so a frame whose renders all take the direct tracers rebuilds no
     acceleration structure.
 
     Parameters
@@ -334,6 +528,16 @@ class SceneWater:
             self.sync(self._params)
             return
         self.geometry.update(vertices, normals, self._new_faces(None, faces))
+        if self.geometry.grid is None:  # holes: each scene's own water, Embree's
+            self.sync(self._params)
+
+    @property
+    def shared(self) -> WaterGeometry | None:
+        """The water the direct tracers ask for the last surface: the shared geometry where
+        its grid serves (a surface without holes), else None (each scene's own)."""
+        if self.geometry is None or self.geometry.grid is None:
+            return None
+        return self.geometry
 
     def sync(self, keys: Any) -> None:
         """Bring the scenes ``keys`` to the last surface."""
