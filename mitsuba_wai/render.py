@@ -182,12 +182,17 @@ class FrameRenderer:
         self._stratified = self.cfg.render.sampling == "stratified"
         mi = mitsuba()
         tm = meshes.heightfield_mesh(self.grid)
+        # Where the direct tracers may take the renders, the scenes are loaded around a plane
+        # of a few vertices (no acceleration structure of the fine mesh to build) and take
+        # the surface when a render goes through them (SceneWater.sync).
+        lazy = not (self.cfg.ambient.enabled or self.cfg.crosstalk.enabled)
+        scene_tm = meshes.heightfield_mesh(meshes.plane_grid(self.grid)) if lazy else tm
         self._scenes: dict[str, Any] = {}
         self._params: dict[str, Any] = {}
         # Each scene owns its mesh object: Mitsuba meshes cannot be shared between scenes.
         ambient = self.cfg.ambient
         if "pattern" in self.systems:
-            water_s = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "S"))
+            water_s = meshes.to_mitsuba(scene_tm, "water", water_bsdf(self.cfg, "S"))
             self._scenes["pattern"] = mi.load_dict(pattern_scene(self.cfg, water_s))
             if ambient.enabled and ambient.sun_irradiance > 0:
                 water_sun = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "A"))
@@ -196,7 +201,7 @@ class FrameRenderer:
                 )
         if "view" in self.systems:
             tex = self.texture if self.texture is not None else object_texture(self.cfg.object)
-            water_v = meshes.to_mitsuba(tm, "water", water_bsdf(self.cfg, "V"))
+            water_v = meshes.to_mitsuba(scene_tm, "water", water_bsdf(self.cfg, "V"))
             scene_v = view_scene(self.cfg, water_v, tex)
             if ambient.enabled:
                 scene_v.update(view_emitters(self.cfg))
@@ -216,6 +221,9 @@ class FrameRenderer:
         # structure to build a surface, the systems' scenes brought up to date only when used.
         self._direct = self._direct_renders()
         self._water = SceneWater(self._params, WaterGeometry.own(tm) if self._direct else None)
+        if lazy:
+            self._water.set(*meshes.surface_buffers(self.grid))
+            self._water.sync(k for k in self._scenes if k not in self._direct)
 
     def _direct_renders(self) -> frozenset[str]:
         """The renders :meth:`render` gives the direct tracers (system S's dots,

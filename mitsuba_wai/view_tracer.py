@@ -177,7 +177,7 @@ def render_view(
     >>> from mitsuba_wai import FrameRenderer, wave_surface
     >>> cfg = load_system("paper")
     >>> renderer = FrameRenderer(cfg, wave_surface(cfg), systems=("view",))
-    >>> image, bad = render_view(renderer._scenes["view"], 1, seed=0)
+    >>> image, bad = render_view(renderer.scene("view"), 1, seed=0)
     >>> image.shape, bad
     ((600, 800, 3), 0)
     """

@@ -34,7 +34,7 @@ def test_pattern_is_mitsubas_ptracer_image_and_bit_reproducible(tiny):
     from mitsuba_wai.variant import mitsuba
 
     cfg, renderer = tiny
-    scene = renderer._scenes["pattern"]
+    scene = renderer.scene("pattern")
     ours, bad = render_particles(scene, 4, 123, SCENE_S_DEPTH)
     again, _ = render_particles(scene, 4, 123, SCENE_S_DEPTH)
     assert ours.tobytes() == again.tobytes()
@@ -50,7 +50,7 @@ def test_pattern_is_mitsubas_ptracer_image_and_bit_reproducible(tiny):
 
 def test_passes_keep_the_expectation(tiny, monkeypatch):
     cfg, renderer = tiny
-    scene = renderer._scenes["pattern"]
+    scene = renderer.scene("pattern")
     pixels = cfg.camera_s.width_px * cfg.camera_s.height_px
     one, _ = render_particles(scene, 12, 5, SCENE_S_DEPTH)
     monkeypatch.setattr(particles, "MAX_PASS_SAMPLES", 5 * pixels)  # passes of 4 spp
@@ -64,7 +64,7 @@ def test_view_in_passes_beyond_the_wavefront_limit(tiny, monkeypatch):
     # Mitsuba refuses a wavefront over 2^32 samples whose spp its own split does not divide;
     # render_image splits first. Shown with the limit lowered to 3 spp of this film.
     cfg, renderer = tiny
-    scene = renderer._scenes["view"]
+    scene = renderer.scene("view")
     pixels = cfg.camera_v.width_px * cfg.camera_v.height_px
     single, _ = render_image(scene, 7, 3)
     monkeypatch.setattr(render_mod, "MAX_WAVEFRONT", 3 * pixels)
@@ -119,7 +119,7 @@ def test_stratified_particles_keep_the_image_and_cut_its_noise(tiny):
     # gathers its light (8 x 8 pixel sums; measured ~0.35x): the difference between two seeds'
     # images is what a frame's spot centres inherit.
     _, renderer = tiny
-    scene = renderer._scenes["pattern"]
+    scene = renderer.scene("pattern")
     img = {s: [render_particles(scene, 4, seed, SCENE_S_DEPTH, stratified=s)[0]
                for seed in (11, 12)] for s in (False, True)}
     again = render_particles(scene, 4, 11, SCENE_S_DEPTH, stratified=True)[0]
@@ -137,7 +137,7 @@ def test_a_new_seed_reuses_the_compiled_kernels(tiny, stratified):
     import drjit as dr
 
     _, renderer = tiny
-    scene = renderer._scenes["pattern"]
+    scene = renderer.scene("pattern")
     render_particles(scene, 2, 21, SCENE_S_DEPTH, stratified=stratified)
     dr.kernel_history()  # clears the history
     dr.set_flag(dr.JitFlag.KernelHistory, True)
@@ -217,7 +217,7 @@ def test_no_shadow_rays_needed_between_diffuser_and_camera(tiny, monkeypatch):
     from mitsuba_wai.dots import DotEmitter
 
     cfg, renderer = tiny
-    scene = renderer._scenes["pattern"]
+    scene = renderer.scene("pattern")
     emitter = DotEmitter(cfg)
     monkeypatch.setattr(particles, "_direct_scene", lambda *args: False)
     fast, _ = render_particles(scene, 4, 8, SCENE_S_DEPTH, emitter=emitter)
@@ -236,7 +236,7 @@ def test_two_vertex_tracer_gives_the_general_tracers_image(tiny, monkeypatch):
     from mitsuba_wai.dots import DotEmitter
 
     cfg, renderer = tiny
-    scene = renderer._scenes["pattern"]
+    scene = renderer.scene("pattern")
     emitter = DotEmitter(cfg)
     assert particles._direct_scene(scene, SCENE_S_DEPTH, emitter)
     direct, _ = render_particles(scene, 4, 8, SCENE_S_DEPTH, emitter=emitter)

@@ -70,7 +70,7 @@ def test_grid_of_other_meshes_is_none(renderer):
 
     mi = particles.mitsuba()
     _, fr = renderer
-    mesh = {s.id(): s for s in fr._scenes["pattern"].shapes()}["water"]
+    mesh = {s.id(): s for s in fr.scene("pattern").shapes()}["water"]
     m = mi.Mesh("holes", vertex_count=mesh.vertex_count(), face_count=mesh.face_count() - 1,
                 has_vertex_normals=True)
     params = mi.traverse(m)
