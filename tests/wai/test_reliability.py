@@ -566,12 +566,12 @@ def test_a_disk_that_fills_while_writing_is_one_line_and_keeps_nothing(capfd, tm
     # RuntimeError is turned into one): one line, exit 2, the temporary folder removed.
     import errno
 
-    from mitsuba_wai import render as render_mod
+    from mitsuba_wai import render_files
 
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(render_mod, "write_png", full)
+    monkeypatch.setattr(render_files, "write_png", full)
     before = snapshot(tmp_path)
     code, err, _ = run(capfd, "render", inputs["tiny"], "--out", tmp_path / "o", "--spp", "1",
                        "--quiet")

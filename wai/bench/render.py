@@ -47,8 +47,10 @@ def _bench_system(cfg: Any, surface: Any, system: str, runs: int) -> dict[str, A
 def bench_render(config: str | Path, runs: int, variant: str = "auto") -> dict[str, Any]:
     """Wall time per frame of each scene (pattern: camera s, view: camera v).
 
-    A frame is what a sweep pays for it: the new surface's upload (mesh buffers and BVH) and
-    the render, read back to a NumPy image. ``surface_update`` is the upload alone.
+    A frame is what a sweep pays for it: the new surface's upload (the mesh buffers, and the
+    acceleration structure of each scene a render goes through; the direct tracers ask the
+    water's grid, no structure) and the render, read back to a NumPy image.
+    ``surface_update`` is the upload alone.
 
     Parameters
     ----------
