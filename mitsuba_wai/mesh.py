@@ -9,6 +9,8 @@ surface that the restoration assumes, not the facets.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import trimesh
 
@@ -142,3 +144,59 @@ def set_mesh_buffers(
     if faces is not None:
         params[f"{prefix}faces"] = mi.UInt32(faces)
     params.update()
+
+
+class SceneWater:
+    """The water of a renderer's scenes, swapped per surface: the shared
+    :class:`~mitsuba_wai.water_hit.WaterGeometry` at once, each system's scene only when a
+    render goes through it (Mitsuba's integrators, the general tracers), so a frame whose
+    renders all take the direct tracers rebuilds no acceleration structure.
+
+    Parameters
+    ----------
+    params : dict
+        Each scene's ``mitsuba.traverse`` (its water's buffers ``water.*``), by key.
+    geometry : mitsuba_wai.water_hit.WaterGeometry, optional
+        The direct tracers' water; None: every scene is updated with each surface.
+    """
+
+    def __init__(self, params: dict[str, Any], geometry: Any) -> None:
+        self._params = params
+        self.geometry = geometry
+        self._buffers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._faces: dict[str | None, np.ndarray] = {}  # the faces each holds (None: geometry)
+        self._stale: set[str] = set()
+
+    def set(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> None:
+        """A new surface's flat buffers (:func:`mitsuba_wai.mesh.surface_buffers`)."""
+        self._buffers = (vertices, normals, faces)
+        self._stale = set(self._params)
+        if self.geometry is None:
+            self.sync(self._params)
+            return
+        self.geometry.update(vertices, normals, self._new_faces(None, faces))
+        if self.geometry.grid is None:  # holes: each scene's own water, Embree's
+            self.sync(self._params)
+
+    @property
+    def shared(self) -> Any:
+        """The water the direct tracers ask for the last surface: the shared geometry where
+        its grid serves (a surface without holes), else None (each scene's own)."""
+        if self.geometry is None or self.geometry.grid is None:
+            return None
+        return self.geometry
+
+    def sync(self, keys: Any) -> None:
+        """Bring the scenes ``keys`` to the last surface."""
+        for key in [k for k in keys if k in self._stale]:
+            vertices, normals, faces = self._buffers
+            set_mesh_buffers(self._params[key], vertices, normals, self._new_faces(key, faces),
+                             prefix="water.")
+            self._stale.discard(key)
+
+    def _new_faces(self, key: str | None, faces: np.ndarray) -> np.ndarray | None:
+        """``faces`` where they differ from those ``key`` holds (a surface's holes), else
+        None: the grid's stay."""
+        same = key in self._faces and np.array_equal(faces, self._faces[key])
+        self._faces[key] = faces
+        return None if same else faces

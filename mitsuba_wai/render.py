@@ -67,7 +67,7 @@ from mitsuba_wai.surface_sampling import file_surface, labelled, moving_surface,
 from mitsuba_wai.textures import object_texture
 from mitsuba_wai.variant import mitsuba, select_variant
 from mitsuba_wai.view_tracer import _direct_parts, render_view
-from mitsuba_wai.water_hit import SceneWater, WaterGeometry
+from mitsuba_wai.water_hit import WaterGeometry
 from wai_core.config import SensorConfig, SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import write_json
@@ -220,7 +220,8 @@ class FrameRenderer:
         # The renders the direct tracers take ask the water alone, on its grid: no acceleration
         # structure to build a surface, the systems' scenes brought up to date only when used.
         self._direct = self._direct_renders()
-        self._water = SceneWater(self._params, WaterGeometry.own(tm) if self._direct else None)
+        self._water = meshes.SceneWater(self._params,
+                                        WaterGeometry.own(tm) if self._direct else None)
         if lazy:
             self._water.set(*meshes.surface_buffers(self.grid))
             self._water.sync(k for k in self._scenes if k not in self._direct)

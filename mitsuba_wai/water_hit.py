@@ -12,9 +12,9 @@ of Embree's: the point, the facet's geometric normal ``normalize(cross(p1 - p0, 
 and the shading normal interpolated from the vertex normals by the hit's barycentrics.
 
 Rays this cannot settle (not steep enough, no settled facet after the steps, or a crossing off
-the grid, where the mesh may or may not lie in the way) are left to Embree, so the answer is
-the mesh's for every ray: the grid only saves Embree's traversal for the rays it can settle,
-in the repository's scenes nearly all of them.
+the grid, where the mesh may or may not lie in the way) are left to Embree, or march over the
+grid's cells (:func:`_march`), so the answer is the mesh's for every ray: the grid saves
+Embree's traversal for the rays it can settle, in the repository's scenes nearly all of them.
 
 :class:`WaterGeometry` answers the direct tracers of both systems (:mod:`mitsuba_wai.particles`,
 :mod:`mitsuba_wai.view_tracer`) on the grid alone, the rays the facets do not settle marched
@@ -32,8 +32,7 @@ from mitsuba_wai.mesh import set_mesh_buffers, to_mitsuba
 from mitsuba_wai.variant import mitsuba
 from wai_core.heightfield import grid_faces
 
-__all__ = ["SceneWater", "WaterGeometry", "WaterGrid", "slope_bound", "water_grid",
-           "water_intersect"]
+__all__ = ["WaterGeometry", "WaterGrid", "slope_bound", "water_grid", "water_intersect"]
 
 # Newton steps before the last facet's (each a facet's plane): with two, all but a few in 10^4
 # of the paper's steep rays settle on the finest meshes (with one, up to 5 % did not); the rest
@@ -497,59 +496,3 @@ class WaterGeometry:
         heights = dr.gather(mi.Float, positions,
                             dr.arange(mi.UInt32, self.grid.nx * self.grid.ny) * 3 + 2)
         return _march(self.grid, positions, heights, ray.o, ray.d, ray.maxt, active)[0]
-
-
-class SceneWater:
-    """The water of a renderer's scenes, swapped per surface: the shared :class:`WaterGeometry`
-    at once, each system's scene only when a render goes through it (Mitsuba's integrators,
-    the general tracers), so a frame whose renders all take the direct tracers rebuilds no
-    acceleration structure.
-
-    Parameters
-    ----------
-    params : dict
-        Each scene's ``mitsuba.traverse`` (its water's buffers ``water.*``), by key.
-    geometry : WaterGeometry, optional
-        The direct tracers' water; None: every scene is updated with each surface.
-    """
-
-    def __init__(self, params: dict[str, Any], geometry: WaterGeometry | None) -> None:
-        self._params = params
-        self.geometry = geometry
-        self._buffers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._faces: dict[str | None, np.ndarray] = {}  # the faces each holds (None: geometry)
-        self._stale: set[str] = set()
-
-    def set(self, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> None:
-        """A new surface's flat buffers (:func:`mitsuba_wai.mesh.surface_buffers`)."""
-        self._buffers = (vertices, normals, faces)
-        self._stale = set(self._params)
-        if self.geometry is None:
-            self.sync(self._params)
-            return
-        self.geometry.update(vertices, normals, self._new_faces(None, faces))
-        if self.geometry.grid is None:  # holes: each scene's own water, Embree's
-            self.sync(self._params)
-
-    @property
-    def shared(self) -> WaterGeometry | None:
-        """The water the direct tracers ask for the last surface: the shared geometry where
-        its grid serves (a surface without holes), else None (each scene's own)."""
-        if self.geometry is None or self.geometry.grid is None:
-            return None
-        return self.geometry
-
-    def sync(self, keys: Any) -> None:
-        """Bring the scenes ``keys`` to the last surface."""
-        for key in [k for k in keys if k in self._stale]:
-            vertices, normals, faces = self._buffers
-            set_mesh_buffers(self._params[key], vertices, normals, self._new_faces(key, faces),
-                             prefix="water.")
-            self._stale.discard(key)
-
-    def _new_faces(self, key: str | None, faces: np.ndarray) -> np.ndarray | None:
-        """``faces`` where they differ from those ``key`` holds (a surface's holes), else
-        None: the grid's stay."""
-        same = key in self._faces and np.array_equal(faces, self._faces[key])
-        self._faces[key] = faces
-        return None if same else faces
