@@ -103,17 +103,20 @@ smooth seas: ~3400 px): it is always split at its saddles."""
 
 
 SPLIT_PROMINENCE = 0.2
-"""A peak inside a joined segment is a spot of its own when it rises above the saddle to any
-higher peak by this share of the segment's maximum (a spot blurred by roughness keeps ~0.7
-of its peak above the pedestal; noise on one spot's ridge ~0.05)."""
+"""A peak inside a joined segment is a spot of its own when the saddle to any higher peak lies
+below it by this share of its own height (a spot blurred by roughness keeps ~0.7 of its peak
+above the pedestal; noise on one spot's ridge ~0.05). Its own, not the segment's: on rough
+water a row of spots smears into one ridge whose dim spots' saddles are a small share of its
+brightest spot's peak."""
 
 
 def _split_joined(smooth: NDArray[np.float32], labels: NDArray[np.int32], n: int,
                   area_px: int) -> tuple[int, int]:
     """Split, in place, every segment of ``labels`` larger than ``area_px`` pixels at the
-    saddles between its prominent peaks (:data:`SPLIT_PROMINENCE`: h-maxima, then a watershed
-    of ``smooth`` from them); returns the new number of labels and the segments split.
-    Without such segments (a smooth surface's) this costs one count of the labels."""
+    saddles between its prominent peaks (:data:`SPLIT_PROMINENCE`: h-maxima of the logarithm,
+    where a peak's height over its saddle is their ratio, then a watershed of ``smooth`` from
+    them); returns the new number of labels and the segments split. Without such segments (a
+    smooth surface's) this costs one count of the labels."""
     from scipy import ndimage
     from skimage.morphology import h_maxima
     from skimage.segmentation import watershed
@@ -128,7 +131,9 @@ def _split_joined(smooth: NDArray[np.float32], labels: NDArray[np.int32], n: int
         box = boxes[lab - 1]
         inside = labels[box] == lab
         sub = np.where(inside, smooth[box], 0.0).astype(np.float64)
-        peaks = h_maxima(sub, SPLIT_PROMINENCE * float(sub.max())).astype(bool) & inside
+        # Outside the segment (and at its faintest) the logarithm stops 1e-3 of its maximum.
+        log_sub = np.log(np.maximum(sub, 1e-3 * float(sub.max())))
+        peaks = h_maxima(log_sub, -np.log1p(-SPLIT_PROMINENCE)).astype(bool) & inside
         markers, n_peaks = ndimage.label(peaks, structure=np.ones((3, 3)))
         if n_peaks < 2:
             continue

@@ -214,6 +214,23 @@ def test_a_joined_segment_splits_into_its_two_spots():
     assert np.array_equal(np.unique(labels), [0, 1, 2])
 
 
+def test_dim_spots_on_a_bright_spots_ridge_are_split_by_their_own_saddles():
+    """Rough water smears a row of spots into one ridge whose brightness falls along it: each
+    spot's saddle to the next is a share of its own peak, not of the ridge's brightest (a
+    saddle 0.1 of the brightest spot's peak below a dim spot is most of that spot's)."""
+    c = np.array([[20.0 + 9.0 * k, 30.0] for k in range(6)])
+    flux = 1000.0 * 0.45 ** np.arange(6)  # each spot under half its brighter neighbour
+    img = draw_dots(c, flux, np.diag([5.0, 3.0]), shape=(60, 90)).astype(np.float32)
+    labels = (img > 1e-4 * img.max()).astype(np.int32)
+    assert labels.sum() > 20 and np.unique(labels).size == 2  # one segment holds them all
+    n, split = _split_joined(img, labels, 2, area_px=20)
+    assert (n, split) == (7, 1)
+    cols = np.arange(90)[None, :]
+    means = sorted((np.where(labels == lab, img, 0.0) * cols).sum()
+                   / np.where(labels == lab, img, 0.0).sum() for lab in range(1, 7))
+    assert np.abs(np.array(means) - c[:, 0]).max() < 2.0  # each part around its own dot
+
+
 def reference_detect(image: np.ndarray) -> dict[str, np.ndarray]:
     """:func:`detect_spots` (default parameters) written plainly: a loop over segments, float64,
     each spot's centroid window evaluated pixel by pixel over its box. Only the image-level

@@ -36,17 +36,17 @@ def _metrics(folder, method):
 
 def test_the_view_pins_the_level_that_rough_spots_leave_uncertain(frames):
     # GGX alpha 0.01 blurs every spot: the slopes' integrability leaves the level's standard
-    # error past the bound (uncertain_level, a level tenths of a millimetre off). The view's
-    # lines of sight through the surface pin it: ok, within 0.05 mm of the truth.
+    # error past the bound (uncertain_level). The view's lines of sight through the surface
+    # pin it: ok, within 0.05 mm of the truth and nearer it than the integrability level.
     folder = frames["rough"]
     assert main(["restore", str(folder), "--quiet"]) == 0
     assert main(["restore", str(folder), "--method", "structured-light-view", "--quiet"]) == 0
     plain, view = _metrics(folder, "structured-light"), _metrics(folder, "structured-light-view")
-    assert plain["status"] == "uncertain_level" and plain["wai_rmse_mm"] > 0.1, plain["message"]
+    assert plain["status"] == "uncertain_level", plain["message"]
     assert view["status"] == "ok", view["message"]
     assert view["anchor"]["method"] == "view" and view["anchor"]["sigma_mm"] < 0.02
     assert view["anchor"]["view_served_share"] >= 0.6
-    assert view["wai_rmse_mm"] <= 0.05
+    assert view["wai_rmse_mm"] <= min(0.05, plain["wai_rmse_mm"])
 
 
 def test_a_checkerboard_object_never_pins_a_wrong_level_as_ok(frames):
