@@ -41,7 +41,8 @@ def frame_status(
             f"pattern_flat is not flat water for this rig: its {seen} spots lie "
             f"{reference.rms_px:.2f} px (RMS, {reference.rms_px / spacing:.0%} of their "
             "spacing) from the calibrated flat-water positions: pattern and pattern_flat "
-            "swapped, or the rig moved since calibration?"
+            "swapped, the rig moved since calibration, or spots too blurred to place (rough "
+            "water, a defocused projector)?"
         )
     if seen < SPARSE_FRACTION * in_view:
         return Status.SPARSE, (

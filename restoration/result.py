@@ -9,7 +9,8 @@ verdict as a sweep does:
 ``bad_reference``
     the flat-water reference is not flat water for this rig: its spots lie further from the
     calibrated flat-water positions than :data:`REFERENCE_RMS_FRACTION` of their spacing (the
-    pattern images swapped, or the rig moved since it was calibrated);
+    pattern images swapped, the rig moved since it was calibrated, or spots too blurred to
+    place: rough water, a defocused projector);
 ``sparse``
     the flat-water reference shows fewer than :data:`SPARSE_FRACTION` of the features the
     calibration puts in view (a lost pattern, swapped reference and frame), or fewer than that
