@@ -248,6 +248,9 @@ class FrameRenderer:
 
     def scene(self, key: str) -> Any:
         """The loaded scene ``key`` (``"pattern"``, ``"view"``) holding the last surface."""
+        if self._channels:
+            raise ValueError("sea water's three indices render through each channel's renderer "
+                             "(its scene(key))")
         self._water.sync([key])
         return self._scenes[key]
 
