@@ -219,7 +219,7 @@ class FrameRenderer:
         )
         # The renders the direct tracers take ask the water alone, on its grid: no acceleration
         # structure to build a surface, the systems' scenes brought up to date only when used.
-        self._direct = self._direct_renders()
+        self._direct = self._direct_renders() if lazy else frozenset()
         self._water = meshes.SceneWater(self._params,
                                         WaterGeometry.own(tm) if self._direct else None)
         if lazy:
@@ -229,9 +229,8 @@ class FrameRenderer:
     def _direct_renders(self) -> frozenset[str]:
         """The renders :meth:`render` gives the direct tracers (system S's dots,
         :func:`~mitsuba_wai.particles._direct_scene`; system V's two steps,
-        :func:`~mitsuba_wai.view_tracer._direct_parts`): those that ask only the water."""
-        if self.cfg.ambient.enabled or self._crosstalk:
-            return frozenset()
+        :func:`~mitsuba_wai.view_tracer._direct_parts`): those that ask only the water, where
+        neither daylight nor crosstalk lights the scenes."""
         direct = set()
         emitter = self._emitters.get("pattern")
         if emitter is not None and _direct_scene(self._scenes["pattern"],

@@ -162,7 +162,7 @@ def water_intersect(scene: Any, mesh: Any, grid: WaterGrid | None, ray: Any, slo
     o, d = ray.o, ray.d
     steep = active & (d.z > slope * dr.norm(mi.Vector2f(d.x, d.y)))
     positions = mesh.vertex_positions_buffer()
-    heights = dr.gather(mi.Float, positions, dr.arange(mi.UInt32, grid.nx * grid.ny) * 3 + 2)
+    heights = _heights(grid, positions)
     # Start where the ray meets the plane of the mean vertex height.
     t = (dr.mean(heights) - o.z) / d.z
     for _ in range(_STEPS):
@@ -190,6 +190,14 @@ def water_intersect(scene: Any, mesh: Any, grid: WaterGrid | None, ray: Any, slo
     a, upper = dr.select(resolved, a, a_m), dr.select(resolved, upper, upper_m)
     hit = _facet_hit(grid, positions, a, upper, o, d)
     return _interaction(mesh, hit, a, upper, ray, resolved | (found & (hit.t > 0.0)))
+
+
+def _heights(grid: WaterGrid, positions: Any) -> Any:
+    """The heights (mm) of a grid mesh's vertices, from its flat position buffer."""
+    import drjit as dr
+
+    mi = mitsuba()
+    return dr.gather(mi.Float, positions, dr.arange(mi.UInt32, grid.nx * grid.ny) * 3 + 2)
 
 
 @dataclass
@@ -412,7 +420,7 @@ class WaterGeometry:
     mesh (640 000 triangles) one Embree build takes longer than a render. The direct tracers
     ask only about the water (their rays start past the diffuser, and the object is met on
     its own plane), and a regular grid answers that on its own: steep rays settle on their
-    facet in a Newton step, the rest march over the cells (:func:`_march`). :meth:`own` holds
+    facet in a few Newton steps, the rest march over the cells (:func:`_march`). :meth:`own` holds
     a mesh in no scene, which a new surface costs only its upload (:meth:`update`); :meth:`of`
     borrows a system's scene and its mesh as they are (Embree for the rays the facets do not
     settle, and for every ray on a mesh with holes).
@@ -439,7 +447,6 @@ class WaterGeometry:
         self.scene = scene
         self._grid: tuple[WaterGrid | None] | None = None
         self._slope: Any = None
-        self._heights: Any = None
 
     @classmethod
     def own(cls, tm: Any) -> WaterGeometry:
@@ -457,7 +464,7 @@ class WaterGeometry:
         if self.scene is not None:
             raise ValueError("a borrowed water geometry changes with its own scene")
         set_mesh_buffers(self.mesh, vertices, normals, faces)
-        self._grid = self._slope = self._heights = None
+        self._grid = self._slope = None
 
     @property
     def grid(self) -> WaterGrid | None:
@@ -485,14 +492,11 @@ class WaterGeometry:
     def occluded(self, ray: Any, active: Any) -> Any:
         """Whether the water (and, when borrowed, the scene's other shapes) lies on ``ray``
         before its ``maxt``."""
-        import drjit as dr
 
         if self.scene is not None:
             return self.scene.ray_test(ray, active)
         if self.grid is None:
             raise ValueError("a water mesh with holes is intersected through its scene")
-        mi = mitsuba()
         positions = self.mesh.vertex_positions_buffer()
-        heights = dr.gather(mi.Float, positions,
-                            dr.arange(mi.UInt32, self.grid.nx * self.grid.ny) * 3 + 2)
-        return _march(self.grid, positions, heights, ray.o, ray.d, ray.maxt, active)[0]
+        return _march(self.grid, positions, _heights(self.grid, positions), ray.o, ray.d,
+                      ray.maxt, active)[0]
