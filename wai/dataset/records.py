@@ -35,7 +35,7 @@ from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 
 __all__ = ["ARRAYS", "FramePacker", "FrameRecord", "PackedFrame", "append",
-           "filters", "open_store", "read_frame", "read_manifest", "read_runs",
+           "filters", "h5_file", "open_store", "read_frame", "read_manifest", "read_runs",
            "rewrite_manifest", "trim"]
 
 
