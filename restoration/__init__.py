@@ -83,6 +83,7 @@ from restoration.rig_calibration import (
 )
 from restoration.rig_score import RigGridScore, rig_grid_score
 from restoration.schlieren import SchlierenCalibration, restore_schlieren
+from restoration.schlieren_level import SchlierenLevelled
 from restoration.scoring import OBJECT_MIN_LEVEL, Scores, Truth, score
 from restoration.sequence import (
     SequenceRestore,
@@ -129,6 +130,7 @@ __all__ = [
     "RigGridScore",
     "Schlieren",
     "SchlierenCalibration",
+    "SchlierenLevelled",
     "SchlierenOptions",
     "Scores",
     "SequenceRestore",

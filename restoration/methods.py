@@ -35,6 +35,7 @@ from restoration.options import (
 from restoration.protocol import BUILT_IN, Method
 from restoration.result import RestoreResult
 from restoration.schlieren import SchlierenCalibration, restore_schlieren
+from restoration.schlieren_level import SchlierenLevelled
 from restoration.structured_light import StructuredLight
 from restoration.view_level import StructuredLightView
 from wai_core.errors import WaiInputError
@@ -146,11 +147,14 @@ class InverseRendering:
 
 METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name: Alterman,
                             Schlieren.name: Schlieren, InverseRendering.name: InverseRendering,
-                            StructuredLightView.name: StructuredLightView}
+                            StructuredLightView.name: StructuredLightView,
+                            SchlierenLevelled.name: SchlierenLevelled}
 """Methods by name: ``structured-light`` (the paper's), ``alterman`` (the sun sensor),
 ``schlieren`` (synthetic Schlieren on camera v's view), ``inverse-rendering`` (the
-structured light's surface refitted to the pattern image) and ``structured-light-view`` (the
-structured light, its level pinned by camera v's view: :mod:`restoration.view_level`)."""
+structured light's surface refitted to the pattern image), ``structured-light-view`` (the
+structured light, its level pinned by camera v's view: :mod:`restoration.view_level`) and
+``schlieren-sl`` (synthetic Schlieren at that structured light's level:
+:mod:`restoration.schlieren_level`)."""
 BUILT_IN.update(METHODS.values())
 
 

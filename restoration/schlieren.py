@@ -32,6 +32,7 @@ undetermined inside them (docs/results.md, "Methods compared").
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
@@ -55,7 +56,7 @@ from wai_core.timings import Timings
 __all__ = [
     "SchlierenCalibration", "SightLines", "cached_lattice", "flat_view_file", "flat_view_flow",
     "flow_samples",
-    "reconstruct_schlieren", "restore_schlieren", "slopes_on_sight_lines",
+    "LevelRule", "reconstruct_schlieren", "restore_schlieren", "slopes_on_sight_lines",
 ]
 
 Array = NDArray[np.float64]
@@ -263,11 +264,12 @@ def flow_samples(images: dict[str, NDArray], cal: Any,
 
 
 def reconstruct_schlieren(lines: SightLines, index: NDArray, object_mm: Array,
-                          cal: RigCalibration, options: SchlierenOptions) -> RaySurface:
+                          cal: RigCalibration, options: SchlierenOptions,
+                          level_mm: float | None = None) -> RaySurface:
     """The surface from the object points ``object_mm`` (K, 3) that the lines of sight
     ``lines``' samples ``index`` (K,) reach through it: each sample's slope by Snell's law
     (:func:`slopes_on_sight_lines`) where its line crosses the surface, integrated with the
-    samples' mean height at the gauge's h0 and refined along the lines
+    samples' mean height at ``level_mm`` (None: the gauge's h0) and refined along the lines
     (:func:`~restoration.ray_surface.integrate_along_rays`).
 
     Raises
@@ -281,8 +283,9 @@ def reconstruct_schlieren(lines: SightLines, index: NDArray, object_mm: Array,
     def slopes_at(points: Array, which: NDArray) -> tuple[Array, Array]:
         return slopes_on_sight_lines(points, dirs[which], object_mm[which], n_water)
 
+    level = cal.cfg.water.h0_mm if level_mm is None else float(level_mm)
     return integrate_along_rays(lines.ij[index], lines.origins_mm[index], dirs, slopes_at,
-                                cal.cfg.water.h0_mm, options, options.refine_tol_mm)
+                                level, options, options.refine_tol_mm)
 
 
 def _consistency(surface: RaySurface, lines: SightLines, index: NDArray, object_mm: Array,
@@ -306,18 +309,30 @@ def _sparse_message(used: int, counts: dict[str, int]) -> str:
             "(the object's texture does not follow the waves elsewhere)")
 
 
+LEVEL_PASSES = 4
+"""Most reconstructions at a :data:`LevelRule`'s level (each bends the slopes a little, and
+the rule is asked again)."""
+
+LevelRule = Callable[[RaySurface], tuple[Anchor, tuple[Status, str] | None]]
+"""Where a surface at the gauge's level should lie instead: given it, the anchor of the level
+to rebuild it at (its ``anchor_mm`` the samples' mean height) and the verdict on that level
+(None: it holds; else the status and message it gives the frame)."""
+
+
 def restore_schlieren(
     images: dict[str, NDArray],
     cal: SchlierenCalibration,
     options: SchlierenOptions | None = None,
+    level: LevelRule | None = None,
 ) -> RestoreResult:
     """Run the method on loaded images (``view``, ``view_flat``).
 
     Returns a :class:`~restoration.result.RestoreResult`: ``ok`` with the surface (its
-    level the gauge's), the restored view, the forward check and the timings; ``sparse``
-    when the flow serves fewer than :data:`~restoration.result.SPARSE_FRACTION` of the
-    samples in view; ``inconsistent`` when the surface does not send the lines of sight where
-    the flow does (module notes); ``failed`` when the samples fix no surface.
+    level the gauge's, or ``level``'s), the restored view, the forward check and the timings;
+    ``sparse`` when the flow serves fewer than :data:`~restoration.result.SPARSE_FRACTION`
+    of the samples in view; ``inconsistent`` when the surface does not send the lines of
+    sight where the flow does (module notes); ``failed`` when the samples fix no surface;
+    where ``level`` gives a verdict on its level (and the frame is none of these), that.
 
     Examples
     --------
@@ -340,7 +355,18 @@ def restore_schlieren(
     try:
         with timings("surface"):
             surface = reconstruct_schlieren(lines, index, object_mm[index], cal, options)
-            surface = replace(surface, anchor=Anchor("gauge", float(cal.cfg.water.h0_mm)))
+            at_mm = float(cal.cfg.water.h0_mm)
+            anchor, verdict = Anchor("gauge", at_mm), None
+            # A new level bends the slopes a little: the rule is asked again until it holds.
+            for _ in range(LEVEL_PASSES if level is not None else 0):
+                anchor, verdict = level(surface)
+                if anchor.anchor_mm is None or abs(anchor.anchor_mm - at_mm) <= (
+                        options.refine_tol_mm):
+                    break
+                at_mm = float(anchor.anchor_mm)
+                surface = reconstruct_schlieren(lines, index, object_mm[index], cal, options,
+                                                at_mm)
+            surface = replace(surface, anchor=replace(anchor, anchor_mm=at_mm))
     except RestorationFailed as exc:
         return RestoreResult(METHOD, Status.FAILED, str(exc), counts=counts)
     with timings("consistency"):
@@ -358,6 +384,8 @@ def restore_schlieren(
         status = Status.INCONSISTENT
         message = (f"the surface sends the lines of sight {check.median_px:.2f} px (median) "
                    f"from where the flow puts them (threshold {check.threshold_px:g} px)")
+    elif verdict is not None:
+        status, message = verdict
     return RestoreResult(METHOD, status, message, None, surface, view, timings.to_dict(), counts,
                          consistency=check)
 

@@ -32,11 +32,11 @@ from wai_core.system import load_rig
 
 VIDEO_METHODS = ("mean", "registration", "lucky")
 """The image-only baselines (:mod:`restoration.video`)."""
-FRAME_METHODS = ("structured-light", "structured-light-view", "schlieren",
+FRAME_METHODS = ("structured-light", "structured-light-view", "schlieren", "schlieren-sl",
                  "wai.examples.plugin_method:AsSeen")
 """The per-frame methods compared by default: the paper's, the paper's with its level pinned
-by camera v's view, synthetic Schlieren on camera v's view, and the unrestored view as a method
-of one's own (its floor)."""
+by camera v's view, synthetic Schlieren on camera v's view (at the gauge's level and at the
+structured light's), and the unrestored view as a method of one's own (its floor)."""
 _SPECKLE = {"object.texture": "speckle"}
 DEGRADATIONS: dict[str, dict[str, Any]] = {
     "none": {},

@@ -1,0 +1,134 @@
+"""Synthetic Schlieren with its level from the structured light on the same rig
+(``--method schlieren-sl``).
+
+Schlieren's slopes do not pin the level: at a wrong level they bend into another, nearly
+integrable field, which the integration keeps (:mod:`restoration.schlieren`). At the gauge's
+h0 that is what limits it: long waves raise or lower the whole patch camera v sees by
+millimetres (3-31 mm on the frames of U = 1 m/s that miss 0.1 mm de-meaned, docs/results.md),
+and its de-meaned error grows with that offset, from its 0.02 mm floor to 0.26 mm.
+
+A rig with both systems knows the level from camera s's dots: the structured light's
+surface, its level pinned by the slopes' integrability and by camera v's own view
+(:class:`~restoration.view_level.StructuredLightView`), holds where its dots are clean and
+keeps a level within a fraction of a millimetre where they blur (rough water), while
+Schlieren's flow never looks at the pattern. This method runs that structured light first,
+reconstructs Schlieren's surface at the gauge's level, moves the level to where the samples'
+heights agree with the structured light's surface over the part of the patch both cover
+(the median difference), and reconstructs it there (:func:`structured_light_level`).
+
+Its status is Schlieren's (``sparse``, ``inconsistent``), then the level's: ``uncertain_level``
+where the structured light's level is (its standard error past its bound), ``gauge_level``
+where the structured light gives no level (a frame it failed, or whose surface covers less
+than :data:`MIN_SHARED` of Schlieren's samples): there the level is the gauge's, as plain
+Schlieren's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from restoration.calibration import LevelTrack
+from restoration.level import Anchor
+from restoration.options import SchlierenOptions, StructuredLightOptions, checked_options
+from restoration.ray_surface import RaySurface
+from restoration.result import RestoreResult, Status
+from restoration.schlieren import LevelRule, restore_schlieren
+from restoration.view_level import StructuredLightView, ViewLevelCalibration
+
+__all__ = ["MIN_SHARED", "SchlierenLevelled", "structured_light_level"]
+
+MIN_SHARED = 0.25
+"""The share of Schlieren's samples the structured light's surface must cover for its level to
+be taken (the paper's rig at U = 1 m/s: 0.53-0.89)."""
+
+LEVEL_STATUSES = (Status.OK, Status.UNCERTAIN_LEVEL)
+"""The structured light's statuses whose level is taken (an uncertain one passes its verdict
+on)."""
+
+
+def structured_light_level(light: RestoreResult, gauge_mm: float) -> LevelRule:
+    """The level rule (:data:`~restoration.schlieren.LevelRule`) that moves a Schlieren
+    surface to the structured light's ``light`` (a frame's result): the samples' mean height
+    shifted by the median of the structured light's heights less theirs where both are known;
+    the gauge's ``gauge_mm`` with the verdict ``gauge_level`` where ``light`` gives no level.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from restoration import RestoreResult, Status
+    >>> rule = structured_light_level(RestoreResult("structured-light", Status.FAILED, "no"),
+    ...                               150.0)
+    >>> anchor, (status, _) = rule(None)
+    >>> anchor.method, anchor.anchor_mm, str(status)
+    ('gauge_fallback', 150.0, 'gauge_level')
+    """
+
+    def fallback(why: str) -> tuple[Anchor, tuple[Status, str]]:
+        return Anchor("gauge_fallback", float(gauge_mm)), (
+            Status.GAUGE_LEVEL, f"{why}: the gauge's h0 was used")
+
+    def rule(surface: RaySurface) -> tuple[Anchor, tuple[Status, str] | None]:
+        if light.surface is None or light.status not in LEVEL_STATUSES:
+            return fallback(f"the structured light gives no level ({light.status}"
+                            + (f": {light.message}" if light.message else "") + ")")
+        points = surface.points_mm
+        theirs = light.surface.heightfield.height(points[:, 0], points[:, 1])
+        shared = np.isfinite(theirs)
+        if shared.mean() < MIN_SHARED:
+            return fallback(f"the structured light's surface covers {shared.mean():.0%} of the "
+                            f"samples (less than {MIN_SHARED:.0%})")
+        shift = float(np.median(theirs[shared] - points[shared, 2]))
+        own = light.surface.anchor
+        anchor = Anchor("structured_light", float(np.mean(points[:, 2])) + shift,
+                        searched_mm=own.anchor_mm, sigma_mm=own.sigma_mm)
+        verdict = None
+        if light.status is Status.UNCERTAIN_LEVEL:
+            verdict = (Status.UNCERTAIN_LEVEL,
+                       f"the structured light's level, which the surface takes: {light.message}")
+        return anchor, verdict
+
+    return rule
+
+
+class SchlierenLevelled:
+    """Synthetic Schlieren at the structured light's level (module notes), configured once:
+    Schlieren's options, and the structured light's (its level's source, pinned by the view).
+
+    Examples
+    --------
+    >>> from restoration import SchlierenLevelled, SchlierenOptions
+    >>> method = SchlierenLevelled(SchlierenOptions(sample_step_px=4))
+    >>> method.name, method.options.sample_step_px
+    ('schlieren-sl', 4)
+    """
+
+    name = "schlieren-sl"
+    calibration_type = ViewLevelCalibration
+    options_type = SchlierenOptions
+
+    def __init__(self, options: SchlierenOptions | None = None,
+                 light: StructuredLightOptions | None = None) -> None:
+        self.options = checked_options(self.name, SchlierenOptions, options)
+        self.light = StructuredLightView(light)
+
+    def __repr__(self) -> str:
+        return f"SchlierenLevelled({self.options!r})"
+
+    def __call__(
+        self,
+        images: dict[str, NDArray],
+        cal: ViewLevelCalibration,
+        track: LevelTrack | None = None,
+    ) -> RestoreResult:
+        """Restore one frame (``pattern``, ``pattern_flat``, ``view``, ``view_flat``);
+        ``track``: the structured light's (a sequence's level)."""
+        light = self.light(images, cal, track)
+        rule = structured_light_level(light, float(cal.cfg.water.h0_mm))
+        result = restore_schlieren(images, cal, self.options, rule)
+        result.method = self.name
+        light_ms = light.timings_ms or {}
+        if result.timings_ms is not None:  # the level's source is part of the method's time
+            result.timings_ms["level"] = float(light_ms.get("end_to_end", 0.0))
+            result.timings_ms["end_to_end"] += result.timings_ms["level"]
+        return result

@@ -1,0 +1,94 @@
+"""Synthetic Schlieren at the structured light's level (``--method schlieren-sl``): the level
+rule against surfaces of known offset, and a rendered frame whose patch lies millimetres
+from the gauge's h0 (a long wave under it), restored against its truth."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from restoration import RaySurface, RestoreResult, Status
+from restoration.level import Anchor
+from restoration.schlieren_level import MIN_SHARED, structured_light_level
+from tests.conftest import render_paper_frame
+from wai.cli import main
+from wai_core.heightfield import Heightfield
+
+
+def _sea(offset_mm=0.0):
+    x = np.linspace(-200.0, 200.0, 201)
+    y = np.linspace(-150.0, 150.0, 151)
+    xx, yy = np.meshgrid(x, y)
+    return Heightfield(x, y, 150.0 + offset_mm + 2.0 * np.sin(xx / 40.0) * np.cos(yy / 55.0))
+
+
+def _samples(sea, xy):
+    """A Schlieren surface whose samples lie on ``sea`` at ``xy`` (K, 2)."""
+    z = sea.height(xy[:, 0], xy[:, 1])
+    return RaySurface(heightfield=sea, ij=np.zeros((len(xy), 2), int),
+                      points_mm=np.column_stack([xy, z]), normals=np.zeros((len(xy), 3)),
+                      slopes=np.zeros((len(xy), 2)), iterations=0, height_change_mm=0.0,
+                      kept=np.arange(len(xy)))
+
+
+def _light(sea, status=Status.OK, message=""):
+    surface = SimpleNamespace(heightfield=sea, anchor=Anchor("view", 151.0, sigma_mm=0.004))
+    return RestoreResult("structured-light-view", status, message, surface=surface)
+
+
+@pytest.fixture
+def xy():
+    return np.random.default_rng(4).uniform([-150.0, -100.0], [150.0, 100.0], (400, 2))
+
+
+def test_the_level_moves_by_the_structured_lights_offset(xy):
+    # The structured light's surface is the same sea 3.7 mm higher: the rule puts the
+    # samples' mean 3.7 mm higher, and passes no verdict on an ok level.
+    at_gauge = _samples(_sea(), xy)
+    anchor, verdict = structured_light_level(_light(_sea(3.7)), 150.0)(at_gauge)
+    assert anchor.method == "structured_light" and verdict is None
+    assert anchor.anchor_mm == pytest.approx(np.mean(at_gauge.points_mm[:, 2]) + 3.7, abs=1e-9)
+    assert anchor.sigma_mm == 0.004
+
+
+def test_an_uncertain_or_missing_level_is_said(xy):
+    at_gauge = _samples(_sea(), xy)
+    _, (status, message) = structured_light_level(
+        _light(_sea(0.5), Status.UNCERTAIN_LEVEL, "the level's standard error is 0.2 mm"),
+        150.0)(at_gauge)
+    assert status is Status.UNCERTAIN_LEVEL and "0.2 mm" in message
+    # A failed frame, and a surface over too little of the patch: the gauge's level.
+    failed = RestoreResult("structured-light-view", Status.FAILED, "too few spots")
+    anchor, (status, message) = structured_light_level(failed, 150.0)(at_gauge)
+    assert (anchor.method, anchor.anchor_mm, status) == ("gauge_fallback", 150.0,
+                                                          Status.GAUGE_LEVEL)
+    assert "too few spots" in message
+    edge = at_gauge.points_mm[:, 0].min() + 0.5 * MIN_SHARED * 300.0
+    corner = _sea(1.0)
+    corner = Heightfield(corner.x, corner.y, np.where(corner.x[None, :] < edge, corner.z, np.nan))
+    anchor, (status, _) = structured_light_level(_light(corner), 150.0)(at_gauge)
+    assert status is Status.GAUGE_LEVEL and anchor.anchor_mm == 150.0
+
+
+@pytest.fixture(scope="module")
+def frame(tmp_path_factory):
+    # U = 1 m/s, sea 7: the patch camera v sees lies ~17 mm below h0 (a long wave's trough).
+    return render_paper_frame(tmp_path_factory.mktemp("schlieren_sl") / "f", seed=7,
+                              texture="speckle")
+
+
+@pytest.mark.slow
+def test_the_structured_lights_level_takes_schlieren_to_its_floor(frame):
+    # At the gauge's level the slopes bend (de-meaned 0.25 mm, absolute ~17 mm); at the
+    # structured light's, the truth says within 0.1 mm de-meaned and 0.2 mm absolute.
+    for method in ("schlieren", "schlieren-sl"):
+        assert main(["restore", str(frame), "--method", method, "--quiet"]) == 0
+    plain, levelled = (json.loads((frame / f"restore_{m}" / "metrics.json").read_text())
+                       for m in ("schlieren", "schlieren-sl"))
+    assert plain["wai_rmse_mm"] > 5.0 and plain["wai_rmse_demeaned_mm"] > 0.15
+    assert levelled["status"] == "ok" and levelled["anchor"]["method"] == "structured_light"
+    assert levelled["wai_rmse_demeaned_mm"] <= 0.1
+    assert levelled["wai_rmse_mm"] <= 0.2
