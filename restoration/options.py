@@ -256,6 +256,10 @@ class SchlierenOptions(SurfaceOptions):
         The frame is ``inconsistent`` when the median of its samples' residual (where the
         surface sends each line of sight on the object against where the flow put it, in
         flat-water pixels) exceeds this, px.
+    edge_margin_px : float
+        A sample is kept where the flow puts it this far or more inside the flat view's
+        textured part (from the image's border and from the pixels that do not see the
+        object), px (0: anywhere).
 
     Examples
     --------
@@ -270,6 +274,7 @@ class SchlierenOptions(SurfaceOptions):
     flow: str = "fine"
     flow_check_px: float = 0.5
     max_residual_px: float = 0.25
+    edge_margin_px: float = 32.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -284,6 +289,8 @@ class SchlierenOptions(SurfaceOptions):
         for name in ("flow_check_px", "max_residual_px"):
             if not getattr(self, name) > 0:
                 raise WaiInputError(f"{name} must be > 0, not {getattr(self, name)}")
+        if not self.edge_margin_px >= 0:
+            raise WaiInputError(f"edge_margin_px must be >= 0, not {self.edge_margin_px}")
 
 
 @dataclass(frozen=True)

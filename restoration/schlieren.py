@@ -40,6 +40,7 @@ from typing import Any, ClassVar
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from restoration.calibration import RigCalibration
 from restoration.consistency import Consistency
@@ -256,11 +257,29 @@ def flow_samples(images: dict[str, NDArray], cal: Any,
     step = trace_to_object(camera, None, h0, n, z_obj, q[:, 0] + 1.0, q[:, 1])
     reach = lines.reach
     flowed = reach & (np.nan_to_num(trip[rows, cols], nan=np.inf) < options.flow_check_px)
-    kept = flowed & seen.ok & step.ok
+    on_object = flowed & seen.ok & step.ok
+    kept = on_object & _inside_view(lines, q, options.edge_margin_px, flow.shape[:2])
     mm_per_px = np.linalg.norm(step.object_mm - seen.object_mm, axis=1)
     counts = {"samples": int(reach.sum()), "rejected_flow": int((reach & ~flowed).sum()),
-              "rejected_object": int((flowed & ~kept).sum()), "matched": int(kept.sum())}
+              "rejected_object": int((flowed & ~on_object).sum()),
+              "rejected_edge": int((on_object & ~kept).sum()), "matched": int(kept.sum())}
     return lines, kept, seen.object_mm, mm_per_px, counts
+
+
+def _inside_view(lines: SightLines, q: Array, margin_px: float, size: tuple[int, int]
+                 ) -> NDArray[np.bool_]:
+    """Whether each flat-water pixel ``q`` (K, 2) lies ``margin_px`` or more inside the flat
+    view's textured part: from the image's border and from the lattice's samples that do not
+    see the object (``lines.reach`` false: beyond its edge, or outside Snell's window). Near
+    there the flow matches the object's texture to what lies past it."""
+    h, w = size
+    inside = ((q[:, 0] >= margin_px) & (q[:, 0] <= w - 1 - margin_px)
+              & (q[:, 1] >= margin_px) & (q[:, 1] <= h - 1 - margin_px))
+    beyond = lines.px[~lines.reach]
+    if margin_px > 0 and len(beyond):
+        distance, _ = cKDTree(beyond).query(np.nan_to_num(q, nan=-1e9))
+        inside &= distance > margin_px
+    return inside
 
 
 def reconstruct_schlieren(lines: SightLines, index: NDArray, object_mm: Array,

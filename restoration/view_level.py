@@ -197,10 +197,13 @@ def textured_share(view_flat: NDArray, px: Array) -> float:
 
 def view_samples(images: dict[str, NDArray], cal: ViewLevelCalibration) -> ViewSamples:
     """The view samples of one frame (``images``: ``view`` and ``view_flat``), on synthetic
-    Schlieren's lattice and flow (:class:`~restoration.options.SchlierenOptions`' defaults);
-    none, and no flow computed, where too few of the samples lie on the flat view's texture
-    (:data:`TEXTURE_MIN_SHARE`; their share in ``textured_share``)."""
-    options = SchlierenOptions()
+    Schlieren's lattice and flow (:class:`~restoration.options.SchlierenOptions`' defaults,
+    but every sample up to the object's edge: the level's residual is clipped at
+    :data:`CLIP_PX`, so a sample the flow gets wrong there weighs little, and the level
+    search keeps more of the structured light's patch); none, and no flow computed, where too
+    few of the samples lie on the flat view's texture (:data:`TEXTURE_MIN_SHARE`; their share
+    in ``textured_share``)."""
+    options = SchlierenOptions(edge_margin_px=0.0)
     lines = cal.lattice(options.sample_step_px)
     reach = lines.px[lines.reach]
     textured = textured_share(cal.radiance(images["view_flat"]), reach)

@@ -5,6 +5,7 @@ checkerboard (where the flow cannot follow the waves: never ``ok``)."""
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -142,3 +143,17 @@ def test_a_sequence_restored_by_both_methods_keeps_both(tmp_path):
     ours = json.loads((folder / "frame001" / "restore_schlieren" / "metrics.json").read_text())
     theirs = json.loads((folder / "frame001" / "restore" / "metrics.json").read_text())
     assert (ours["method"], theirs["method"]) == ("schlieren", "structured-light")
+
+
+def test_samples_the_flow_puts_near_the_objects_edge_are_left_out():
+    # A lattice whose right part does not see the object (beyond its edge): flat-water
+    # pixels within the margin of that part, or of the image's border, are not kept.
+    from restoration.schlieren import _inside_view
+
+    rows, cols = np.mgrid[4:100:8, 4:160:8]
+    px = np.column_stack([cols.ravel(), rows.ravel()]).astype(float)
+    lines = SimpleNamespace(px=px, reach=px[:, 0] < 100.0)
+    q = np.array([[60.0, 50.0], [90.0, 50.0], [8.0, 50.0], [60.0, 95.0], [np.nan, 50.0]])
+    assert _inside_view(lines, q, 16.0, (100, 160)).tolist() == [True, False, False, False,
+                                                                   False]
+    assert _inside_view(lines, q[:4], 0.0, (100, 160)).all()
