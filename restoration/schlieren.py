@@ -32,6 +32,7 @@ undetermined inside them (docs/results.md, "Methods compared").
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -55,9 +56,9 @@ from wai_core.optics import trace_to_object
 from wai_core.timings import Timings
 
 __all__ = [
-    "SchlierenCalibration", "SightLines", "cached_lattice", "flat_view_file", "flat_view_flow",
-    "flow_samples",
-    "LevelRule", "reconstruct_schlieren", "restore_schlieren", "slopes_on_sight_lines",
+    "LastFlow", "LevelRule", "SchlierenCalibration", "SightLines", "cached_lattice",
+    "flat_view_file", "flat_view_flow", "flow_samples", "reconstruct_schlieren",
+    "restore_schlieren", "slopes_on_sight_lines",
 ]
 
 Array = NDArray[np.float64]
@@ -80,6 +81,8 @@ class SchlierenCalibration(RigCalibration):
 
     _lattices: dict[int, SightLines] = field(default_factory=dict, init=False, repr=False,
                                              compare=False)
+    flows: LastFlow = field(default_factory=lambda: LastFlow(), init=False, repr=False,
+                            compare=False)
 
     IMAGES: ClassVar[tuple[str, ...]] = ("view", "view_flat")
 
@@ -90,6 +93,46 @@ class SchlierenCalibration(RigCalibration):
     def lattice(self, step_px: int) -> SightLines:
         """The sample pixels every ``step_px`` and their lines of sight (kept per step)."""
         return cached_lattice(self, self._lattices, step_px)
+
+
+class LastFlow:
+    """A calibration's last frame's flow (:func:`flat_view_flow`) per quality, given again
+    while the frame's ``view`` and ``view_flat`` are the same arrays: a method that asks twice
+    for one frame (``schlieren-sl``'s level and its surface) computes it once.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> images = {"view": rng.random((60, 80)), "view_flat": rng.random((60, 80))}
+    >>> flows, radiance = LastFlow(), (lambda image: image)
+    >>> flows.of(images, radiance, "medium")[0] is flows.of(images, radiance, "medium")[0]
+    True
+    """
+
+    def __init__(self) -> None:
+        self._last: dict[str, tuple[Any, Any, tuple[NDArray, NDArray]]] = {}
+
+    def __getstate__(self) -> dict:
+        return {}  # a calibration sent to another process starts with no flow kept
+
+    def __setstate__(self, state: dict) -> None:
+        self._last = {}
+
+    def of(self, images: dict[str, NDArray], radiance: Callable[[NDArray], NDArray],
+           quality: str) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """:func:`flat_view_flow` of ``images``' view and flat view, each through
+        ``radiance`` (the calibration's), at ``quality``."""
+        view, flat = images["view"], images["view_flat"]
+        last = self._last.get(quality)
+        if last is not None and last[0]() is view and last[1]() is flat:
+            return last[2]
+        flow = flat_view_flow(radiance(view), radiance(flat), quality)
+        try:
+            self._last[quality] = (weakref.ref(view), weakref.ref(flat), flow)
+        except TypeError:  # an image that takes no weak reference is not kept
+            pass
+        return flow
 
 
 def flat_view_file(folder: str | Path) -> Path:
@@ -243,12 +286,11 @@ def flow_samples(images: dict[str, NDArray], cal: Any,
                                                      dict[str, int]]:
     """The lattice, which of its samples the flow serves, their object points, the object
     plane's size of one flat-water pixel at each (mm) and the counts. ``cal``: a calibration
-    with camera v's lattice (:class:`SchlierenCalibration`,
+    with camera v's lattice and its :class:`LastFlow` (:class:`SchlierenCalibration`,
     :class:`~restoration.view_level.ViewLevelCalibration`); ``images``: ``view`` and
     ``view_flat``."""
     cfg = cal.cfg
-    flow, trip = flat_view_flow(cal.radiance(images["view"]), cal.radiance(images["view_flat"]),
-                                options.flow)
+    flow, trip = cal.flows.of(images, cal.radiance, options.flow)
     lines = cal.lattice(options.sample_step_px)
     cols, rows = lines.px[:, 0].astype(int), lines.px[:, 1].astype(int)
     q = lines.px + flow[rows, cols]

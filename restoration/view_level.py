@@ -43,7 +43,13 @@ from numpy.typing import NDArray
 from restoration.calibration import Calibration
 from restoration.observations import Observations
 from restoration.options import SchlierenOptions, StructuredLightOptions, checked_options
-from restoration.schlieren import SightLines, cached_lattice, flat_view_file, flow_samples
+from restoration.schlieren import (
+    LastFlow,
+    SightLines,
+    cached_lattice,
+    flat_view_file,
+    flow_samples,
+)
 from restoration.structured_light import StructuredLight, reconstruct_at
 from restoration.surface import SurfaceEstimate
 from wai_core.errors import RestorationFailed
@@ -107,6 +113,8 @@ class ViewLevelCalibration(Calibration):
 
     _lattices: dict[int, SightLines] = field(default_factory=dict, init=False, repr=False,
                                              compare=False)
+    flows: LastFlow = field(default_factory=lambda: LastFlow(), init=False, repr=False,
+                            compare=False)
 
     IMAGES: ClassVar[tuple[str, ...]] = ("pattern", "pattern_flat", "view", "view_flat")
 

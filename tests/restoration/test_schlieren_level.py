@@ -92,3 +92,22 @@ def test_the_structured_lights_level_takes_schlieren_to_its_floor(frame):
     assert levelled["status"] == "ok" and levelled["anchor"]["method"] == "structured_light"
     assert levelled["wai_rmse_demeaned_mm"] <= 0.1
     assert levelled["wai_rmse_mm"] <= 0.2
+
+
+@pytest.mark.slow
+def test_one_frame_computes_its_flow_once(frame, monkeypatch):
+    # The structured light's level from the view and Schlieren's surface read one flow; a new
+    # frame's images (new arrays) get their own.
+    import restoration.schlieren as schlieren
+    from restoration import SchlierenLevelled, ViewLevelCalibration
+
+    calls = []
+    real = schlieren.flat_view_flow
+    monkeypatch.setattr(schlieren, "flat_view_flow",
+                        lambda *a, **k: calls.append(1) or real(*a, **k))
+    cal = ViewLevelCalibration.from_folder(frame)
+    images = cal.load_images(frame)
+    method = SchlierenLevelled()
+    assert method(images, cal).status == "ok" and len(calls) == 1
+    method({name: image.copy() for name, image in images.items()}, cal)
+    assert len(calls) == 2
