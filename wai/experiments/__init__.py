@@ -279,8 +279,9 @@ EXPERIMENTS: dict[str, Experiment] = {
         description=(
             "Each case (sea state, seed, condition) is one rendered sequence at 30 frames/s; "
             "every method restores it: the per-frame ones (structured light, structured light "
-            "with its level from camera v's view, synthetic Schlieren, the unrestored view as a "
-            "method of one's own, and any --method SPEC) "
+            "with its level from camera v's view, synthetic Schlieren at the gauge's level and "
+            "at the structured light's, the unrestored view as a method of one's own, and any "
+            "--method SPEC) "
             "frame by frame, the video ones (temporal mean, registration by optical flow, "
             "lucky-region fusion) from the whole sequence. The conditions: the paper's scene, "
             "its object a speckle (Schlieren's texture), the sensor's noise, and where the "
