@@ -127,8 +127,10 @@ class SchlierenLevelled:
         rule = structured_light_level(light, float(cal.cfg.water.h0_mm))
         result = restore_schlieren(images, cal, self.options, rule)
         result.method = self.name
-        light_ms = light.timings_ms or {}
-        if result.timings_ms is not None:  # the level's source is part of the method's time
-            result.timings_ms["level"] = float(light_ms.get("end_to_end", 0.0))
-            result.timings_ms["end_to_end"] += result.timings_ms["level"]
+        # The level's source is part of the method's time (a frame that stopped before its
+        # surface has no other).
+        level_ms = float((light.timings_ms or {}).get("end_to_end", 0.0))
+        timings = result.timings_ms
+        timings["level"] = level_ms
+        timings["end_to_end"] = float(timings.get("end_to_end", 0.0)) + level_ms
         return result

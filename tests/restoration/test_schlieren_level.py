@@ -111,3 +111,22 @@ def test_one_frame_computes_its_flow_once(frame, monkeypatch):
     assert method(images, cal).status == "ok" and len(calls) == 1
     method({name: image.copy() for name, image in images.items()}, cal)
     assert len(calls) == 2
+
+
+def test_a_frame_that_stops_early_says_so_with_its_time(monkeypatch):
+    # Schlieren's flow serving too few samples (a sparse frame, no surface, no timings of its
+    # own) beside a structured light that failed: the frame is sparse, timed by the level's
+    # source.
+    import restoration.schlieren_level as module
+    from restoration import SchlierenLevelled
+
+    monkeypatch.setattr(module, "restore_schlieren", lambda images, cal, options, rule:
+                        RestoreResult("schlieren", Status.SPARSE, "the flow serves 3 %"))
+    method = SchlierenLevelled()
+    monkeypatch.setattr(method, "light", lambda images, cal, track: RestoreResult(
+        "structured-light-view", Status.FAILED, "no spots", timings_ms={"end_to_end": 12.5}))
+    cal = SimpleNamespace(cfg=SimpleNamespace(water=SimpleNamespace(h0_mm=150.0)))
+    result = method({}, cal)
+    assert (result.method, result.status, result.message) == ("schlieren-sl", Status.SPARSE,
+                                                               "the flow serves 3 %")
+    assert result.timings_ms == {"level": 12.5, "end_to_end": 12.5}
