@@ -35,6 +35,7 @@ from __future__ import annotations
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -64,35 +65,6 @@ __all__ = [
 Array = NDArray[np.float64]
 
 METHOD = "schlieren"
-
-
-@dataclass
-class SchlierenCalibration(RigCalibration):
-    """What synthetic Schlieren knows: the rig (camera v, the water's level and index, the
-    object's height) and, derived once, the lattice of sample pixels with their lines of sight.
-
-    Examples
-    --------
-    >>> from wai_core import load_system
-    >>> cal = SchlierenCalibration(load_system("paper"))
-    >>> cal.image_size("view_flat")
-    (600, 800)
-    """
-
-    _lattices: dict[int, SightLines] = field(default_factory=dict, init=False, repr=False,
-                                             compare=False)
-    flows: LastFlow = field(default_factory=lambda: LastFlow(), init=False, repr=False,
-                            compare=False)
-
-    IMAGES: ClassVar[tuple[str, ...]] = ("view", "view_flat")
-
-    def image_files(self, folder: str | Path) -> dict[str, Path]:
-        """The view and the rig's flat-water view in ``folder`` (:func:`flat_view_file`)."""
-        return {"view": find_image(folder, "view"), "view_flat": flat_view_file(folder)}
-
-    def lattice(self, step_px: int) -> SightLines:
-        """The sample pixels every ``step_px`` and their lines of sight (kept per step)."""
-        return cached_lattice(self, self._lattices, step_px)
 
 
 class LastFlow:
@@ -133,6 +105,34 @@ class LastFlow:
         except TypeError:  # an image that takes no weak reference is not kept
             pass
         return flow
+
+
+@dataclass
+class SchlierenCalibration(RigCalibration):
+    """What synthetic Schlieren knows: the rig (camera v, the water's level and index, the
+    object's height) and, derived once, the lattice of sample pixels with their lines of sight.
+
+    Examples
+    --------
+    >>> from wai_core import load_system
+    >>> cal = SchlierenCalibration(load_system("paper"))
+    >>> cal.image_size("view_flat")
+    (600, 800)
+    """
+
+    _lattices: dict[int, SightLines] = field(default_factory=dict, init=False, repr=False,
+                                             compare=False)
+    flows: LastFlow = field(default_factory=LastFlow, init=False, repr=False, compare=False)
+
+    IMAGES: ClassVar[tuple[str, ...]] = ("view", "view_flat")
+
+    def image_files(self, folder: str | Path) -> dict[str, Path]:
+        """The view and the rig's flat-water view in ``folder`` (:func:`flat_view_file`)."""
+        return {"view": find_image(folder, "view"), "view_flat": flat_view_file(folder)}
+
+    def lattice(self, step_px: int) -> SightLines:
+        """The sample pixels every ``step_px`` and their lines of sight (kept per step)."""
+        return cached_lattice(self, self._lattices, step_px)
 
 
 def flat_view_file(folder: str | Path) -> Path:
@@ -181,6 +181,14 @@ class SightLines:
     origins_mm: Array
     dirs: Array
     reach: NDArray[np.bool_]
+
+    @cached_property
+    def beyond(self) -> cKDTree | None:
+        """A tree of the pixels that do not see the object (None where every one does),
+        built once per lattice: where the flow's samples must keep away from
+        (:func:`_inside_view`)."""
+        unseen = self.px[~self.reach]
+        return cKDTree(unseen) if len(unseen) else None
 
     @classmethod
     def build(cls, cal: RigCalibration, step_px: int) -> SightLines:
@@ -317,9 +325,8 @@ def _inside_view(lines: SightLines, q: Array, margin_px: float, size: tuple[int,
     h, w = size
     inside = ((q[:, 0] >= margin_px) & (q[:, 0] <= w - 1 - margin_px)
               & (q[:, 1] >= margin_px) & (q[:, 1] <= h - 1 - margin_px))
-    beyond = lines.px[~lines.reach]
-    if margin_px > 0 and len(beyond):
-        distance, _ = cKDTree(beyond).query(np.nan_to_num(q, nan=-1e9))
+    if margin_px > 0 and lines.beyond is not None:
+        distance, _ = lines.beyond.query(np.nan_to_num(q, nan=-1e9))
         inside &= distance > margin_px
     return inside
 

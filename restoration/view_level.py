@@ -113,8 +113,7 @@ class ViewLevelCalibration(Calibration):
 
     _lattices: dict[int, SightLines] = field(default_factory=dict, init=False, repr=False,
                                              compare=False)
-    flows: LastFlow = field(default_factory=lambda: LastFlow(), init=False, repr=False,
-                            compare=False)
+    flows: LastFlow = field(default_factory=LastFlow, init=False, repr=False, compare=False)
 
     IMAGES: ClassVar[tuple[str, ...]] = ("pattern", "pattern_flat", "view", "view_flat")
 

@@ -5,7 +5,6 @@ checkerboard (where the flow cannot follow the waves: never ``ok``)."""
 from __future__ import annotations
 
 import json
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -152,7 +151,8 @@ def test_samples_the_flow_puts_near_the_objects_edge_are_left_out():
 
     rows, cols = np.mgrid[4:100:8, 4:160:8]
     px = np.column_stack([cols.ravel(), rows.ravel()]).astype(float)
-    lines = SimpleNamespace(px=px, reach=px[:, 0] < 100.0)
+    lines = SightLines(np.zeros((len(px), 2), np.int64), px, np.zeros((len(px), 3)),
+                       np.zeros((len(px), 3)), px[:, 0] < 100.0)
     q = np.array([[60.0, 50.0], [90.0, 50.0], [8.0, 50.0], [60.0, 95.0], [np.nan, 50.0]])
     assert _inside_view(lines, q, 16.0, (100, 160)).tolist() == [True, False, False, False,
                                                                    False]
