@@ -48,6 +48,9 @@ class Anchor:
         samples in view that the flow served, or, where the flat view showed too little
         texture for the flow to be run, the share of them on texture (the view weighs the
         level from a served share of 0.6).
+    source_difference_mm
+        Where another method's surface set the level (:mod:`restoration.schlieren_level`):
+        the RMS difference between this surface's samples and it, once levelled, mm.
 
     Examples
     --------
@@ -79,6 +82,7 @@ class Anchor:
     view_residual_p90_px: float | None = None
     view_served_share: float | None = None
     view_textured_share: float | None = None
+    source_difference_mm: float | None = None
 
     def update(self, **values: Any) -> None:
         """Set the named fields.

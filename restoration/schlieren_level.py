@@ -16,11 +16,13 @@ reconstructs Schlieren's surface at the gauge's level, moves the level to where 
 heights agree with the structured light's surface over the part of the patch both cover
 (the median difference), and reconstructs it there (:func:`structured_light_level`).
 
-Its status is Schlieren's (``sparse``, ``inconsistent``), then the level's: ``uncertain_level``
-where the structured light's level is (its standard error past its bound), ``gauge_level``
-where the structured light gives no level (a frame it failed, or whose surface covers less
-than :data:`MIN_SHARED` of Schlieren's samples): there the level is the gauge's, as plain
-Schlieren's.
+Its status is Schlieren's (``sparse``, ``inconsistent``), then the two systems' agreement:
+``inconsistent`` where Schlieren's heights and the structured light's surface, levelled, differ
+by more than :data:`MAX_DIFFERENCE_MM` RMS over the part both cover; then the level's:
+``uncertain_level`` where the structured light's level is (its standard error past its bound),
+``gauge_level`` where the structured light gives no level (a frame it failed, or whose surface
+covers less than :data:`MIN_SHARED` of Schlieren's samples): there the level is the gauge's,
+as plain Schlieren's.
 """
 
 from __future__ import annotations
@@ -36,11 +38,18 @@ from restoration.result import RestoreResult, Status
 from restoration.schlieren import LevelRule, restore_schlieren
 from restoration.view_level import StructuredLightView, ViewLevelCalibration
 
-__all__ = ["MIN_SHARED", "SchlierenLevelled", "structured_light_level"]
+__all__ = ["MAX_DIFFERENCE_MM", "MIN_SHARED", "SchlierenLevelled", "structured_light_level"]
 
 MIN_SHARED = 0.25
 """The share of Schlieren's samples the structured light's surface must cover for its level to
 be taken (the paper's rig at U = 1 m/s: 0.53-0.89)."""
+
+MAX_DIFFERENCE_MM = 0.04
+"""The RMS difference between Schlieren's heights and the structured light's surface over the
+samples both cover, once levelled, past which the frame is ``inconsistent``: one of the two
+shapes is wrong in a part. On the compare cases' rough frames (GGX alpha 0.01, 41 with a
+level) right frames reach 0.038 mm and the four whose Schlieren shape is 0.115-0.367 mm off
+0.046-0.126 mm; on smooth water 0.001-0.020 mm (docs/results.md)."""
 
 LEVEL_STATUSES = (Status.OK, Status.UNCERTAIN_LEVEL)
 """The structured light's statuses whose level is taken (an uncertain one passes its verdict
@@ -78,12 +87,20 @@ def structured_light_level(light: RestoreResult, gauge_mm: float) -> LevelRule:
         if shared.mean() < MIN_SHARED:
             return fallback(f"the structured light's surface covers {shared.mean():.0%} of the "
                             f"samples (less than {MIN_SHARED:.0%})")
-        shift = float(np.median(theirs[shared] - points[shared, 2]))
+        difference = theirs[shared] - points[shared, 2]
+        shift = float(np.median(difference))
+        rms = float(np.sqrt(np.mean((difference - shift) ** 2)))
         own = light.surface.anchor
         anchor = Anchor("structured_light", float(np.mean(points[:, 2])) + shift,
-                        searched_mm=own.anchor_mm, sigma_mm=own.sigma_mm)
+                        searched_mm=own.anchor_mm, sigma_mm=own.sigma_mm,
+                        source_difference_mm=rms)
         verdict = None
-        if light.status is Status.UNCERTAIN_LEVEL:
+        if rms > MAX_DIFFERENCE_MM:
+            verdict = (Status.INCONSISTENT,
+                       f"the surface and the structured light's differ by {rms:.3f} mm RMS over "
+                       f"the samples both cover, once levelled (more than {MAX_DIFFERENCE_MM} "
+                       "mm): one of them is wrong in a part")
+        elif light.status is Status.UNCERTAIN_LEVEL:
             verdict = (Status.UNCERTAIN_LEVEL,
                        f"the structured light's level, which the surface takes: {light.message}")
         return anchor, verdict

@@ -12,7 +12,7 @@ import pytest
 
 from restoration import RaySurface, RestoreResult, Status
 from restoration.level import Anchor
-from restoration.schlieren_level import MIN_SHARED, structured_light_level
+from restoration.schlieren_level import MAX_DIFFERENCE_MM, MIN_SHARED, structured_light_level
 from tests.conftest import render_paper_frame
 from wai.cli import main
 from wai_core.heightfield import Heightfield
@@ -71,6 +71,27 @@ def test_an_uncertain_or_missing_level_is_said(xy):
     corner = Heightfield(corner.x, corner.y, np.where(corner.x[None, :] < edge, corner.z, np.nan))
     anchor, (status, _) = structured_light_level(_light(corner), 150.0)(at_gauge)
     assert status is Status.GAUGE_LEVEL and anchor.anchor_mm == 150.0
+
+
+def test_two_shapes_that_differ_in_a_part_are_inconsistent(xy):
+    # The structured light's surface carries a 0.3 mm bump over a tenth of the patch that
+    # Schlieren's samples lack (one of the two is wrong there): RMS about 0.3 * sqrt(0.1) ~
+    # 0.09 mm, past the bound; the same surfaces without the bump agree, and the level the
+    # rule sets is the median's, which the bump does not move.
+    sea = _sea(2.0)
+    bump = np.where(sea.x[None, :] > 120.0, 0.3, 0.0) * np.ones_like(sea.z)
+    at_gauge = _samples(_sea(), xy)
+    anchor, (status, message) = structured_light_level(
+        _light(Heightfield(sea.x, sea.y, sea.z + bump)), 150.0)(at_gauge)
+    assert status is Status.INCONSISTENT and "wrong in a part" in message
+    assert anchor.source_difference_mm > MAX_DIFFERENCE_MM
+    assert anchor.anchor_mm == pytest.approx(np.mean(at_gauge.points_mm[:, 2]) + 2.0, abs=1e-9)
+    anchor, verdict = structured_light_level(_light(sea), 150.0)(at_gauge)
+    assert verdict is None and anchor.source_difference_mm < 1e-9
+    # The verdict outranks an uncertain level: a wrong shape is worse news.
+    _, (status, _) = structured_light_level(
+        _light(Heightfield(sea.x, sea.y, sea.z + bump), Status.UNCERTAIN_LEVEL), 150.0)(at_gauge)
+    assert status is Status.INCONSISTENT
 
 
 @pytest.fixture(scope="module")
