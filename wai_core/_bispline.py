@@ -129,8 +129,8 @@ def _eval_point(ty: NDArray, tx: NDArray, uy: NDArray, ux: NDArray, ly: NDArray,
     sx = _span_of(tx, lx, nx, x)
     by0, by1, by2, by3, dy0, dy1, dy2, dy3 = _basis(ty, uy, sy, y, scratch)
     bx0, bx1, bx2, bx3, dx0, dx1, dx2, dx3 = _basis(tx, ux, sx, x, scratch)
-    # The 4 x 4 sums written out (a loop over rows indexing tuples of the basis took 7 %
-    # longer); the same products in the same order.
+    # The 4 x 4 sums written out: the products and their order of a loop over the rows,
+    # which, indexing tuples of the basis, compiles 7 % slower.
     r, c = sy - _DEGREE, sx - _DEGREE
     c00, c01, c02, c03 = coef[r, c], coef[r, c + 1], coef[r, c + 2], coef[r, c + 3]
     c10, c11, c12, c13 = coef[r + 1, c], coef[r + 1, c + 1], coef[r + 1, c + 2], coef[r + 1, c + 3]
