@@ -183,7 +183,7 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
     projector = cfg.rig.projector
     rect = cfg.rig.diffuser_rect
     center = np.array([rect[0].mean(), rect[1].mean(), cfg.diffuser.z_mm])
-    panel = np.array(cfg.rig.panel_image)  # the rig's, made once; Mitsuba takes a writable copy
+    panel = cfg.rig.panel_image  # the rig's, made once (read-only)
 
     def projector_dict(image: NDArray) -> dict:
         return {
@@ -206,7 +206,7 @@ def pattern_scene(cfg: SystemConfig, water_mesh: object) -> dict:
             image[..., channel] = panel[..., channel]
             lights[name] = projector_dict(image)
     else:
-        lights = {"projector": projector_dict(panel)}
+        lights = {"projector": projector_dict(np.array(panel))}  # Mitsuba takes a writable one
     return {
         "type": "scene",
         "integrator": {"type": "ptracer", "max_depth": pattern_depth(cfg), "hide_emitters": True},
