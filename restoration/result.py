@@ -23,8 +23,9 @@ verdict as a sweep does:
     the surface does not reproduce the detected spots through the exact geometric model
     (:mod:`restoration.consistency`): its level or shape cannot be right;
 ``gauge_level``
-    the slopes did not pin the level, so the gauge's h0 was used (calm water: the shape is
-    fine, the level is the gauge's);
+    the slopes did not pin the level, so the gauge's h0 was used (the structured light on calm
+    water: the shape is fine, the level is the gauge's; synthetic Schlieren, whose slopes
+    never pin it, on every frame its checks pass: its shape bends with the level's error);
 ``uncertain_level``
     the slopes pin the level, but loosely: its standard error (the spread of the level found
     from interleaved sets of the samples) exceeds the method's bound

@@ -18,11 +18,13 @@ Camera v looks up through the water at a known object; a flat-water view of it i
    samples moved along their sight lines to the integrated heights until they settle
    (:func:`~restoration.ray_surface.integrate_along_rays`); the slopes do not pin the level,
    so it is the gauge's ``h0`` (the field's methods give heights up to a constant: scores
-   that compare shapes are the de-meaned ones);
+   that compare shapes are the de-meaned ones); a wrong level bends the slopes, so the shape
+   too is only as right as the level;
 4. the truth-free check: each sample's line of sight traced through the surface to the
    object, against the flow's ``X`` (in flat-water pixels); a median residual above
    ``max_residual_px`` makes the frame ``inconsistent`` (a flow that follows no surface: an
-   object without texture at the waves' scale, a checkerboard's plain squares);
+   object without texture at the waves' scale, a checkerboard's plain squares); a frame it
+   passes is ``gauge_level``, not ``ok``: nothing in the view tells the level;
 5. the view is restored by the same reverse ray tracing as the other methods'.
 
 The object must carry texture at the scale of the waves: ``[object] texture = "speckle"`` is
@@ -57,9 +59,9 @@ from wai_core.optics import trace_to_object
 from wai_core.timings import Timings
 
 __all__ = [
-    "LastFlow", "LevelRule", "SchlierenCalibration", "SightLines", "cached_lattice",
-    "flat_view_file", "flat_view_flow", "flow_samples", "reconstruct_schlieren",
-    "restore_schlieren", "slopes_on_sight_lines",
+    "GAUGE_LEVEL_MESSAGE", "LastFlow", "LevelRule", "SchlierenCalibration", "SightLines",
+    "cached_lattice", "flat_view_file", "flat_view_flow", "flow_samples",
+    "reconstruct_schlieren", "restore_schlieren", "slopes_on_sight_lines",
 ]
 
 Array = NDArray[np.float64]
@@ -377,6 +379,13 @@ def _sparse_message(used: int, counts: dict[str, int]) -> str:
             "(the object's texture does not follow the waves elsewhere)")
 
 
+GAUGE_LEVEL_MESSAGE = (
+    "the slopes do not pin the level: the gauge's h0 was used, and the shape bends with the "
+    "patch's offset from it (--method schlieren-sl takes the structured light's level)")
+"""Plain Schlieren's verdict on a frame no check flags: its level is always the gauge's, which
+long waves move the patch away from, and its shape bends with that offset (docs/results.md,
+"Synthetic Schlieren"), so it is never ``ok``."""
+
 LEVEL_PASSES = 4
 """Most reconstructions at a :data:`LevelRule`'s level (each bends the slopes a little, and
 the rule is asked again)."""
@@ -395,19 +404,21 @@ def restore_schlieren(
 ) -> RestoreResult:
     """Run the method on loaded images (``view``, ``view_flat``).
 
-    Returns a :class:`~restoration.result.RestoreResult`: ``ok`` with the surface (its
-    level the gauge's, or ``level``'s), the restored view, the forward check and the timings;
-    ``sparse`` when the flow serves fewer than :data:`~restoration.result.SPARSE_FRACTION`
-    of the samples in view; ``inconsistent`` when the surface does not send the lines of
-    sight where the flow does (module notes); ``failed`` when the samples fix no surface;
-    where ``level`` gives a verdict on its level (and the frame is none of these), that.
+    Returns a :class:`~restoration.result.RestoreResult` with the surface (its level the
+    gauge's, or ``level``'s), the restored view, the forward check and the timings. Its
+    status: ``sparse`` when the flow serves fewer than
+    :data:`~restoration.result.SPARSE_FRACTION` of the samples in view; ``inconsistent`` when
+    the surface does not send the lines of sight where the flow does (module notes);
+    ``failed`` when the samples fix no surface; else ``level``'s verdict on its level
+    (``ok`` where it holds), and without a ``level``, ``gauge_level``
+    (:data:`GAUGE_LEVEL_MESSAGE`).
 
     Examples
     --------
     >>> from restoration import SchlierenCalibration, restore_schlieren   # doctest: +SKIP
     >>> cal = SchlierenCalibration.from_folder("renders/schlieren")       # doctest: +SKIP
     >>> restore_schlieren(cal.load_images("renders/schlieren"), cal).status  # doctest: +SKIP
-    <Status.OK: 'ok'>
+    <Status.GAUGE_LEVEL: 'gauge_level'>
     """
     options = SchlierenOptions() if options is None else options
     for name in cal.IMAGES:
@@ -454,6 +465,8 @@ def restore_schlieren(
                    f"from where the flow puts them (threshold {check.threshold_px:g} px)")
     elif verdict is not None:
         status, message = verdict
+    elif level is None:
+        status, message = Status.GAUGE_LEVEL, GAUGE_LEVEL_MESSAGE
     return RestoreResult(METHOD, status, message, None, surface, view, timings.to_dict(), counts,
                          consistency=check)
 
