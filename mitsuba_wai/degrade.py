@@ -126,15 +126,14 @@ class SubframePlan:
         return len(self.times_s)
 
 
-def motion_rates(cfg: SystemConfig, amplitude: float = 1.0) -> dict[str, float]:
+def motion_rates(cfg: SystemConfig) -> dict[str, float]:
     """The practical maximum image speeds of both systems under ``cfg``'s waves (see the
-    module docstring), px/s, with the rates they derive from.
+    module docstring), px/s, with the rates they derive from (they scale with the waves'
+    ``height_scale``).
 
     Parameters
     ----------
     cfg : SystemConfig
-    amplitude : float
-        Wave heights scaled by this factor about h0 (the rates scale with it).
 
     Returns
     -------
@@ -145,7 +144,7 @@ def motion_rates(cfg: SystemConfig, amplitude: float = 1.0) -> dict[str, float]:
     from wai_core.layout import flat_pattern_hits
 
     sea = sea_surface(cfg.waves)
-    a = sea.amplitudes_mm * abs(float(amplitude))
+    a = sea.amplitudes_mm
     k, w = sea.k_rad_per_mm[:, None], sea.omega_rad_s[:, None]
     sdot = MOTION_SIGMAS * float(np.sqrt(np.sum((a * k * w) ** 2) / 2))
     etadot = MOTION_SIGMAS * float(np.sqrt(np.sum((a * w) ** 2) / 2))
@@ -169,13 +168,13 @@ def motion_rates(cfg: SystemConfig, amplitude: float = 1.0) -> dict[str, float]:
     }
 
 
-def subframe_plan(cfg: SystemConfig, amplitude: float = 1.0) -> SubframePlan:
+def subframe_plan(cfg: SystemConfig) -> SubframePlan:
     """The sub-frames of ``cfg``'s exposure by the rule of the module docstring; one at
     ``time_s`` when ``[motion].exposure_s`` is 0."""
     m, t = cfg.motion, cfg.waves.time_s
     if m.exposure_s <= 0:
         return SubframePlan((t,), {"pattern": 0.0, "view": 0.0})
-    rates = motion_rates(cfg, amplitude)
+    rates = motion_rates(cfg)
     shift = {k: rates[k] for k in ("pattern", "view")}
     wanted = math.ceil(m.exposure_s * max(shift.values()) / m.max_shift_px - 1e-9)
     n = min(max(wanted, 1), m.max_subframes)
@@ -292,7 +291,7 @@ def sense(
     return out
 
 
-def degradation_record(cfg: SystemConfig, amplitude: float = 1.0) -> dict[str, Any]:
+def degradation_record(cfg: SystemConfig) -> dict[str, Any]:
     """What ``scene.json`` adds about the enabled degradations (empty when none is): the
     sensor's derived gain and full scale, the motion's sub-frames and image speeds."""
     out: dict[str, Any] = {}
@@ -307,7 +306,7 @@ def degradation_record(cfg: SystemConfig, amplitude: float = 1.0) -> dict[str, A
                       "view_truth": "noiseless (ground truth)"},
         }
     if cfg.motion.exposure_s > 0:
-        plan = subframe_plan(cfg, amplitude)
+        plan = subframe_plan(cfg)
         out["motion"] = dataclasses.asdict(plan) | {"subframes": plan.n}
     if cfg.water_optics.enabled:
         out["water_optics"] = _water_record(cfg)

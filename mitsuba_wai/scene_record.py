@@ -20,7 +20,7 @@ from wai_core.layout import observed_patch, surface_extent
 
 
 def scene_record(
-    cfg: SystemConfig, variant: str, surface: Heightfield, source: str, amplitude: float = 1.0
+    cfg: SystemConfig, variant: str, surface: Heightfield, source: str
 ) -> dict:
     """What ``scene.json`` holds: enough for the restoration to run from the folder alone
     (and, when enabled, the degradations' derived values under ``degradations``)."""
@@ -72,7 +72,7 @@ def scene_record(
             "python": platform.python_version(),
         },
     }
-    degradations = degradation_record(cfg, amplitude)
+    degradations = degradation_record(cfg)
     if degradations:
         record["degradations"] = degradations
     return record

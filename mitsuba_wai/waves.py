@@ -420,8 +420,8 @@ def sea_surface(waves: WavesConfig) -> SeaSurface:
     ``+-90 deg`` about ``wind_direction_deg``. Phases uniform in ``[0, 2 pi)``. All randomness comes
     from ``numpy.random.default_rng(seed)`` (frequency jitter first, then phases), so a seed fixes
     the surface. Wave numbers follow ``dispersion`` (:func:`wavenumber_rad_m`); the amplitudes,
-    a frequency spectrum, do not depend on it. ``time_s`` of the config is not used: time is
-    passed to the evaluators.
+    a frequency spectrum, do not depend on it; ``height_scale`` multiplies them. ``time_s`` of
+    the config is not used: time is passed to the evaluators.
 
     Calm water (``wind_speed_m_s == 0``) gives all amplitudes, frequencies and wave numbers zero:
     a flat surface.
@@ -455,7 +455,7 @@ def sea_surface(waves: WavesConfig) -> SeaSurface:
     energy_m2 = 2.0 * pm_spectrum(omega, waves.wind_speed_m_s)[:, None] * d_omega * dir_weights
     band = (waves.omega_min_rel * omega_p, waves.omega_max_rel * omega_p)
     return SeaSurface(
-        amplitudes_mm=np.sqrt(energy_m2) * MM_PER_M,
+        amplitudes_mm=np.sqrt(energy_m2) * MM_PER_M * float(waves.height_scale),
         omega_rad_s=omega,
         k_rad_per_mm=wavenumber_rad_m(omega, waves.dispersion) / MM_PER_M,
         directions_rad=directions,

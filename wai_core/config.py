@@ -283,6 +283,8 @@ def validate(cfg: SystemConfig) -> None:
         )
     if not 0 < wv.omega_min_rel < wv.omega_max_rel:
         raise WaiInputError("config: [waves] needs 0 < omega_min_rel < omega_max_rel")
+    if not (np.isfinite(wv.height_scale) and wv.height_scale >= 0):
+        raise WaiInputError(f"config: [waves].height_scale must be >= 0, not {wv.height_scale}")
     if wv.seed < 0:
         raise WaiInputError(f"config: [waves].seed must be >= 0, not {wv.seed}")
     if cfg.pattern.spacing_px <= 2 * cfg.pattern.sigma_px:

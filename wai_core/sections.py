@@ -54,6 +54,11 @@ class WavesConfig:
     dispersion: str = "gravity"
     """``"gravity"``: deep-water waves, omega^2 = g k; ``"capillary"``: gravity-capillary
     waves, omega^2 = g k + (sigma / rho) k^3 (what matters past ~5 omega_p at low wind)."""
+    height_scale: float = 1.0
+    """Multiplies every harmonic's amplitude: waves of the same shape, wavelengths and speed,
+    their heights and slopes this many times the fully developed sea's of eq. 42 (a young or
+    swell-laden sea is steeper at the same U; the sweeps take the surface towards eq. 35's
+    ordering limit with it). 1: the spectrum as the paper has it."""
 
 
 @dataclass(frozen=True)

@@ -71,7 +71,8 @@ def test_the_subframe_count_follows_the_rule(paper_cfg):
         assert np.ptp(t) == pytest.approx(exposure * (1 - 1 / plan.n))
     assert subframe_plan(paper_cfg).times_s == (paper_cfg.waves.time_s,)  # off: one frame
     # steeper waves move faster, in proportion
-    assert motion_rates(paper_cfg, amplitude=2.0)["view"] == pytest.approx(2 * rates["view"])
+    steeper = paper_cfg.replace("waves", height_scale=2.0)
+    assert motion_rates(steeper)["view"] == pytest.approx(2 * rates["view"])
 
 
 def test_the_rule_bounds_the_surface_s_actual_slope_rate(paper_cfg):

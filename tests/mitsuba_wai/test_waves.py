@@ -114,6 +114,28 @@ def test_direction_count_keeps_energy(n_directions):
     assert sea.significant_wave_height_mm == pytest.approx(pm_hs_m(1.0) * 1000.0, rel=0.05)
 
 
+def test_height_scale_makes_the_same_sea_steeper(paper_sea):
+    # Twice the height scale: Hs twice Pierson-Moskowitz's at the same U, the same wavelengths
+    # and phases (so the same shape: heights and slopes doubled everywhere).
+    steep = make_sea(height_scale=2.0)
+    assert steep.significant_wave_height_mm == pytest.approx(2 * pm_hs_m(1.0) * 1000.0,
+                                                             rel=0.05)
+    assert steep.shortest_wavelength_mm == paper_sea.shortest_wavelength_mm
+    x, y = np.meshgrid(np.linspace(-300.0, 300.0, 13), np.linspace(-200.0, 200.0, 9))
+    np.testing.assert_allclose(steep.height_mm(x, y, 3.0), 2 * paper_sea.height_mm(x, y, 3.0),
+                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(steep.slopes(x, y, 3.0), 2 * np.asarray(paper_sea.slopes(x, y, 3.0)),
+                               rtol=1e-12, atol=1e-15)
+
+
+def test_a_negative_height_scale_is_refused():
+    from wai_core import load_system
+    from wai_core.config import validate
+
+    with pytest.raises(WaiInputError, match=r"\[waves\]\.height_scale"):
+        validate(load_system("paper").replace("waves", height_scale=-1.0))
+
+
 # --- sampling and dispersion ------------------------------------------------------------------
 
 

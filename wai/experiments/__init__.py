@@ -286,7 +286,8 @@ EXPERIMENTS: dict[str, Experiment] = {
             "lucky-region fusion) from the whole sequence. The conditions: the paper's scene, "
             "its object a speckle (Schlieren's texture), the sensor's noise, and where the "
             "geometric method is weak (micro-roughness 0.01 and 0.02, gravity-capillary waves "
-            "to 5 omega_p, a defocused projector; through the speckle object). Scores against "
+            "to 4, 5 and 6 omega_p, waves twice as steep, a defocused projector; through the "
+            "speckle object). Scores against "
             "the truth: view SSIM and PSNR, corner STD, surface RMSE (and de-meaned) where a "
             "method has a surface; ms per frame and the frames each needs, charted speed "
             "against accuracy.\n\n"
@@ -296,8 +297,8 @@ EXPERIMENTS: dict[str, Experiment] = {
             "prints the report."
         ),
         quick="one sea state, one seed, the paper's scene and its speckle object, 8 frames",
-        duration="about 3 min with --quick --seeds 1; roughly an hour without (2 sea states, "
-                 "2 seeds, 7 conditions, 30 frames)",
+        duration="about 3 min with --quick --seeds 1; roughly an hour and a half without (2 sea "
+                 "states, 2 seeds, 10 conditions, 30 frames)",
         run=_run_compare,
         seeds=2,
         quick_seeds=1,

@@ -46,14 +46,18 @@ DEGRADATIONS: dict[str, dict[str, Any]] = {
     # object so that Schlieren, which does not look at the pattern, has its texture.
     "rough_0.01": {"water.roughness": 0.01, "render.spp_pattern": 64, **_SPECKLE},
     "rough_0.02": {"water.roughness": 0.02, "render.spp_pattern": 64, **_SPECKLE},
+    "capillary_4": {"waves.dispersion": "capillary", "waves.omega_max_rel": 4.0, **_SPECKLE},
     "capillary_5": {"waves.dispersion": "capillary", "waves.omega_max_rel": 5.0, **_SPECKLE},
+    "capillary_6": {"waves.dispersion": "capillary", "waves.omega_max_rel": 6.0, **_SPECKLE},
+    "steep_2": {"waves.height_scale": 2.0, **_SPECKLE},
     "defocus_2mm": {"projector.aperture_mm": 2.0, "projector.focus_mm": 400.0, **_SPECKLE},
 }
 """The cases' conditions, as configuration keys: the paper's scene (``none``), its object a
 lab tank's speckle (``speckle``: what Schlieren needs; no corners to score), the sensor's
 noise, and where the geometric method is weak: micro-roughness (GGX alpha, 64 pattern
-samples as the budget takes), gravity-capillary waves to 5 omega_p, a defocused projector
-(2 mm aperture focused at 400 mm)."""
+samples as the budget takes), gravity-capillary waves to 4, 5 and 6 omega_p, waves twice as
+high and steep as the fully developed sea (towards eq. 35's ordering limit), a defocused
+projector (2 mm aperture focused at 400 mm)."""
 QUICK_DEGRADATIONS = ("none", "speckle")
 """The conditions of ``--quick``."""
 SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "rmse_demeaned_mm", "grid_px",

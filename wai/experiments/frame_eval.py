@@ -17,7 +17,8 @@ Point keys (all optional except ``config`` and ``seed``)
     The pattern's ``[pattern].code``: ``"none"`` (matched by ordering) or ``"colour"``
     (decoded, :mod:`restoration.features.decode`).
 ``amplitude`` (float, default 1)
-    Scales the wave heights about h0 at fixed U (steeper waves of the same shape).
+    The waves' ``[waves].height_scale``: heights and slopes scaled at fixed U (steeper waves
+    of the same shape).
 ``signal_e``, ``read_noise_e`` (float, e-), ``bits`` (int)
     Any of them turns the scene's ``[sensor]`` on (:mod:`wai_core.sensor`: shot noise, read
     noise, full well, ADC) with these overrides: ``signal_e`` electrons at the 99.9th
@@ -96,6 +97,8 @@ def frame_config(point: dict[str, Any]) -> SystemConfig:
     cfg = load_rig(point["config"]).replace("waves", seed=int(point["seed"]))
     if point.get("wind_mps") is not None:
         cfg = cfg.replace("waves", wind_speed_m_s=float(point["wind_mps"]))
+    if point.get("amplitude") is not None:
+        cfg = cfg.replace("waves", height_scale=float(point["amplitude"]))
     if point.get("spacing_px") is not None:
         cfg = cfg.replace("pattern", spacing_px=float(point["spacing_px"]))
     if point.get("code"):
@@ -129,12 +132,7 @@ def frame_config(point: dict[str, Any]) -> SystemConfig:
     return cfg
 
 
-def scaled_surface(surface: Heightfield, h0_mm: float, amplitude: float) -> Heightfield:
-    """``surface`` with its heights about ``h0_mm`` multiplied by ``amplitude``."""
-    return Heightfield(surface.x, surface.y, h0_mm + amplitude * (surface.z - h0_mm))
-
-
-def render_frame(cfg: SystemConfig, amplitude: float = 1.0) -> tuple[dict[str, Any], Any]:
+def render_frame(cfg: SystemConfig) -> tuple[dict[str, Any], Any]:
     """Render the four images of one frame in memory, blurred (``[motion]``) and read by the
     sensor (``[sensor]``) when enabled; returns them (with ``render_s_pattern`` and
     ``render_s_view``, the wavy renders' wall times, and ``subframes``) and the true surface
@@ -153,12 +151,12 @@ def render_frame(cfg: SystemConfig, amplitude: float = 1.0) -> tuple[dict[str, A
     h0 = cfg.water.h0_mm
 
     def surface_at(t: float) -> Heightfield:
-        return scaled_surface(wave_surface(cfg.replace("waves", time_s=t)), h0, amplitude)
+        return wave_surface(cfg.replace("waves", time_s=t))
 
     surface = surface_at(cfg.waves.time_s)
     renderer = FrameRenderer(cfg, surface)
     seed = render_seed(cfg)
-    plan = subframe_plan(cfg, amplitude)
+    plan = subframe_plan(cfg)
     images: dict[str, Any] = {}
     for system in ("pattern", "view"):
         t0 = time.perf_counter()
@@ -278,7 +276,7 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     if point.get("render_overrides"):
         rendered = with_keys(cfg, json.loads(point["render_overrides"]))
     try:
-        images, surface = render_frame(rendered, float(point.get("amplitude", 1.0)))
+        images, surface = render_frame(rendered)
     except (WaiInputError, ValueError) as exc:  # e.g. waves that reach the diffuser
         row["frame_status"] = f"failed: cannot render: {exc}"
         return row

@@ -145,14 +145,14 @@ def run_seeds(cfg: SystemConfig, seeds: list[int], out: Path) -> list[SeedRun]:
 
 
 def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> list[dict]:
-    """Scale the waves' heights by each factor: measured slope amplitude Φ and the fraction of
-    dots whose correspondence is correct (against the geometric model's labels)."""
+    """Scale the waves' heights by each factor (``[waves].height_scale``): measured slope
+    amplitude Φ and the fraction of dots whose correspondence is correct (against the
+    geometric model's labels)."""
     from mitsuba_wai import FrameRenderer, flat_like, render_seed, wave_surface
     from restoration import RestorationFailed, features_from_reference, prepare_reference
     from wai.experiments.frame_eval import correspondence_counts
     from wai_core.errors import WaiInputError
     from wai_core.forward import predict_spots
-    from wai_core.heightfield import Heightfield
 
     c = cfg.replace("waves", seed=seed)
     base = wave_surface(c)
@@ -162,7 +162,7 @@ def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> l
     reference = prepare_reference(flat_img["pattern"], c)
     rows = []
     for a in tqdm(factors, desc="paper: amplitude sweep", leave=True):
-        surface = Heightfield(base.x, base.y, h0 + a * (base.z - h0))
+        surface = wave_surface(c.replace("waves", height_scale=a))
         img = renderer.render(surface, render_seed(c), which=("pattern",))["pattern"]
         try:
             counts = correspondence_counts(c, surface, features_from_reference(img, reference, c))
