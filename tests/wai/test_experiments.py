@@ -264,6 +264,27 @@ def test_the_methods_chart_shows_each_methods_spread_over_the_cases(tmp_path, mo
     assert f"{os.cpu_count()} cores" in ssim_axis.get_xlabel()
 
 
+def test_compare_counts_the_ok_frames_the_truth_finds_wrong():
+    """A method's ``ok`` frames with a surface past WRONG_OK_MM are summed over its cases; a
+    method without a surface (a video method) has no such count, and the report says so."""
+    from wai.experiments import compare
+
+    rows = []
+    for method, wrong in (("dots", (0, 2, 1)), ("fused", (None, None, None))):
+        for k, w in enumerate(wrong):
+            row = {key: None for key in compare.SCORES}
+            row.update(method=method, method_name=method, status="ok", ssim=0.9,
+                       ms_per_frame=10.0 + k, frames_ok=8, frames=8, frames_ok_wrong=w)
+            rows.append(row)
+    summary = {e["method"]: e for e in compare.summarize(rows)}
+    assert summary["dots"]["frames_ok_wrong"] == 3 and summary["dots"]["frames_ok"] == 24
+    assert summary["fused"]["frames_ok_wrong"] is None
+    table = compare.report(list(summary.values()), "wai experiment compare").splitlines()
+    dots = next(line for line in table if line.startswith("| dots |"))
+    fused = next(line for line in table if line.startswith("| fused |"))
+    assert dots.split("|")[4].strip() == "3" and fused.split("|")[4].strip() == "-"
+
+
 def test_compare_conditions_are_valid_scenes_and_give_schlieren_its_texture():
     # Every condition of the case set is a scene the renderer accepts; the ones where the
     # geometric method is weak are seen through the speckle object, so Schlieren (which

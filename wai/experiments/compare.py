@@ -62,12 +62,16 @@ QUICK_DEGRADATIONS = ("none", "speckle")
 """The conditions of ``--quick``."""
 SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "rmse_demeaned_mm", "grid_px",
           "grid_fraction", "rig_px", "rig_fraction", "ms_per_frame", "reference_ms",
-          "frame_per_reference", "frames_needed", "frames_ok", "frames")
+          "frame_per_reference", "frames_needed", "frames_ok", "frames_ok_wrong", "frames")
 MIN_CORNERS = 10
 """Fewest corners, found in the truth, the distorted and the restored view alike, for a corner
 STD (two corners have a spread, but not one that says much: a blurred view shows few)."""
-COUNTS = ("frames_ok", "frames")
+COUNTS = ("frames_ok", "frames_ok_wrong", "frames")
 """Scores summed over a method's cases, not averaged."""
+WRONG_OK_MM = 0.25
+"""A frame that says ``ok`` with its surface further than this from the truth (RMSE, mm) is
+counted in ``frames_ok_wrong``: a status that should have flagged it (a method is never to say
+``ok`` there)."""
 GRID_FRAMES = 8
 """Frames of a per-frame method the truth-free grid score looks at, evenly spaced (finding a
 partial board costs more than a structured-light restoration)."""
@@ -180,7 +184,10 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
             for key in ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "rmse_demeaned_mm",
                         "grid_px", "grid_fraction", "rig_px", "rig_fraction")}
     return {**mean, "ms_per_frame": float(np.median([r["ms"] for r in rows if r["ms"]])),
-            "frames_needed": 1, "frames_ok": sum(r["ok"] for r in rows), "frames": len(rows),
+            "frames_needed": 1, "frames_ok": sum(r["ok"] for r in rows),
+            "frames_ok_wrong": sum(bool(r["ok"] and (r.get("rmse_mm") or 0.0) > WRONG_OK_MM)
+                                   for r in rows),
+            "frames": len(rows),
             "method_name": method.name}
 
 
@@ -236,10 +243,10 @@ def evaluate(point: dict[str, Any]) -> dict[str, Any]:
 
 
 def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per method: the means of its scores over the cases, its frames (``frames_ok`` and
-    ``frames`` summed over the cases: a failed frame is counted, not averaged away), its cases,
-    and the cases it failed on (``failed_cases``; ``error``: the first one's status, e.g. a
-    method of one's own that raised)."""
+    """Per method: the means of its scores over the cases, its frames (``frames_ok``,
+    ``frames_ok_wrong`` and ``frames`` summed over the cases: a failed frame is counted, not
+    averaged away), its cases, and the cases it failed on (``failed_cases``; ``error``: the
+    first one's status, e.g. a method of one's own that raised)."""
     out = []
     for method in dict.fromkeys(r["method"] for r in rows):
         part = [r for r in rows if r["method"] == method and not is_error(r.get("status"))]
@@ -250,8 +257,10 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         entry.update({k: _mean([r.get(k) for r in part]) for k in SCORES})
         entry.update({f"{k}_sd": _sd([r.get(k) for r in part])
                       for k in ("corner_std_px", "ssim", "rmse_demeaned_mm")})
-        for k in COUNTS:
-            entry[k] = int(sum(int(float(r[k])) for r in part if r.get(k) not in (None, "")))
+        for k in COUNTS:  # None where no case has the count (frames_ok_wrong: no surface)
+            have = [float(r[k]) for r in part if r.get(k) not in (None, "")]
+            have = [v for v in have if np.isfinite(v)]
+            entry[k] = int(sum(have)) if have else None
         out.append(entry)
     return out
 
@@ -338,14 +347,15 @@ def report(summary: list[dict[str, Any]], command: str,
         return "-" if v is None else format(v, spec)
 
     lines = [f"# Methods compared (`{command}`)", "",
-             "| method | frames needed | ok / frames | view SSIM | PSNR dB | corner STD px | "
-             "surface RMSE mm | de-meaned mm | grid px (no truth) | corners found | "
-             "rig px (no truth) | ms per frame | x reference |",
-             "|" + " --- |" * 13]
+             "| method | frames needed | ok / frames | ok but wrong | view SSIM | PSNR dB | "
+             "corner STD px | surface RMSE mm | de-meaned mm | grid px (no truth) | "
+             "corners found | rig px (no truth) | ms per frame | x reference |",
+             "|" + " --- |" * 14]
     for e in summary:
         lines.append(
             f"| {e['name']} | {f(e['frames_needed'], '.0f')} | {f(e['frames_ok'], '.0f')} / "
-            f"{f(e['frames'], '.0f')} | {f(e['ssim'], '.4f')} | {f(e['psnr_db'], '.2f')} | "
+            f"{f(e['frames'], '.0f')} | {f(e.get('frames_ok_wrong'), '.0f')} | "
+            f"{f(e['ssim'], '.4f')} | {f(e['psnr_db'], '.2f')} | "
             f"{f(e['corner_std_px'], '.3f')} | {f(e['rmse_mm'], '.4f')} | "
             f"{f(e.get('rmse_demeaned_mm'), '.4f')} | "
             f"{f(e.get('grid_px'), '.3f')} | {f(e.get('grid_fraction'), '.0%')} | "
@@ -358,7 +368,9 @@ def report(summary: list[dict[str, Any]], command: str,
         lines.append(f"- {e['name']} failed on {e['failed_cases']} of "
                      f"{e['failed_cases'] + e['cases']} cases: {e['error']}")
     tau, count = rank_agreement(summary)
-    lines += ["", f"Corner STD: over the views that show at least {MIN_CORNERS} of the truth's "
+    lines += ["", f"Ok but wrong: frames that said `ok` with a surface RMSE over {WRONG_OK_MM:g} "
+              "mm (a status that should have flagged them; - for methods without a surface). "
+              f"Corner STD: over the views that show at least {MIN_CORNERS} of the truth's "
               "corners. Grid px: RMS distance of the view's checkerboard corners from the best "
               "map of a regular grid seen through flat water (no truth read); corners found: "
               "the share of the board's inner corners it scored. Rig px: spread of the "
