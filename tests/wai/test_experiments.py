@@ -269,6 +269,12 @@ def test_compare_counts_the_ok_frames_the_truth_finds_wrong():
     method without a surface (a video method) has no such count, and the report says so."""
     from wai.experiments import compare
 
+    # Per case: an ok frame past the bound counts, a flagged one and a right one do not; a
+    # method whose frames carry no surface has no count.
+    frames = [{"ok": True, "rmse_mm": compare.WRONG_OK_MM + 0.05},
+              {"ok": False, "rmse_mm": 1.0}, {"ok": True, "rmse_mm": 0.1}]
+    assert compare._ok_but_wrong(frames) == 1
+    assert compare._ok_but_wrong([{"ok": True}, {"ok": True, "rmse_mm": None}]) is None
     rows = []
     for method, wrong in (("dots", (0, 2, 1)), ("fused", (None, None, None))):
         for k, w in enumerate(wrong):

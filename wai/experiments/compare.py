@@ -185,10 +185,17 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
                         "grid_px", "grid_fraction", "rig_px", "rig_fraction")}
     return {**mean, "ms_per_frame": float(np.median([r["ms"] for r in rows if r["ms"]])),
             "frames_needed": 1, "frames_ok": sum(r["ok"] for r in rows),
-            "frames_ok_wrong": sum(bool(r["ok"] and (r.get("rmse_mm") or 0.0) > WRONG_OK_MM)
-                                   for r in rows),
-            "frames": len(rows),
+            "frames_ok_wrong": _ok_but_wrong(rows), "frames": len(rows),
             "method_name": method.name}
+
+
+def _ok_but_wrong(rows: list[dict[str, Any]]) -> int | None:
+    """Frames of ``rows`` that say ``ok`` with a surface RMSE past :data:`WRONG_OK_MM`; None
+    where no frame has a surface to score (a method of the view alone)."""
+    scored = [r for r in rows if r.get("rmse_mm") is not None]
+    if not scored:
+        return None
+    return sum(bool(r["ok"] and r["rmse_mm"] > WRONG_OK_MM) for r in scored)
 
 
 def _video_method(folder: Path, name: str) -> dict[str, Any]:
