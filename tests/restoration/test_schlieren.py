@@ -56,21 +56,28 @@ def _waves(cal, amplitude_mm=3.0):
     return Heightfield(x, y, z)
 
 
-def test_exact_displacements_give_the_surface_to_its_shape(cal):
-    # The object points each pixel sees through a known surface, traced by the restoration's
-    # own forward model (wai_core.optics, not the method): the method recovers the surface
-    # to well under the issue's 0.1 mm (de-meaned), its mean at the gauge's h0.
-    truth = _waves(cal)
+def _reconstruct_exact(cal, truth, level_mm=None):
+    """The method's surface from the object points each sample's line of sight reaches through
+    ``truth``, traced by the restoration's own forward model (wai_core.optics, not the
+    method), at ``level_mm`` (None: the gauge's h0)."""
     options = SchlierenOptions()
     lines = SightLines.build(cal, options.sample_step_px)
     cfg = cal.cfg
     traced = trace_to_object(cal.camera_v, truth, cfg.water.h0_mm, cfg.water.n_water,
                              cfg.object_z_mm, lines.px[:, 0], lines.px[:, 1])
     index = np.flatnonzero(traced.ok)
-    est = reconstruct_schlieren(lines, index, traced.object_mm[index], cal, options)
+    return reconstruct_schlieren(lines, index, traced.object_mm[index], cal, options, level_mm)
+
+
+def test_exact_displacements_give_the_surface_to_its_shape(cal):
+    # The object points each pixel sees through a known surface, traced by the restoration's
+    # own forward model (wai_core.optics, not the method): the method recovers the surface
+    # to well under the issue's 0.1 mm (de-meaned), its mean at the gauge's h0.
+    truth = _waves(cal)
+    est = _reconstruct_exact(cal, truth)
     err = surface_errors(est.heightfield, truth)
     assert err["rmse_demeaned_mm"] < 0.03
-    assert np.mean(est.points_mm[:, 2]) == pytest.approx(cfg.water.h0_mm, abs=1e-6)
+    assert np.mean(est.points_mm[:, 2]) == pytest.approx(cal.cfg.water.h0_mm, abs=1e-6)
     # The samples lie where their lines of sight cross the true surface (up to the level).
     lift = est.points_mm[:, 2] - truth.height(est.points_mm[:, 0], est.points_mm[:, 1])
     assert np.std(lift) < 0.03
@@ -86,17 +93,10 @@ def test_the_shape_is_only_as_right_as_the_level(cal):
     # call its own frames right: its status is the gauge's level (rendered frames below).
     raised = _waves(cal)
     raised = Heightfield(raised.x, raised.y, raised.z + 20.0)
-    options = SchlierenOptions()
-    lines = SightLines.build(cal, options.sample_step_px)
-    cfg = cal.cfg
-    traced = trace_to_object(cal.camera_v, raised, cfg.water.h0_mm, cfg.water.n_water,
-                             cfg.object_z_mm, lines.px[:, 0], lines.px[:, 1])
-    index = np.flatnonzero(traced.ok)
-    at_gauge = reconstruct_schlieren(lines, index, traced.object_mm[index], cal, options)
+    at_gauge = _reconstruct_exact(cal, raised)
     pts = at_gauge.points_mm
     true_mean = float(np.mean(raised.height(pts[:, 0], pts[:, 1])))
-    at_truth = reconstruct_schlieren(lines, index, traced.object_mm[index], cal, options,
-                                     true_mean)
+    at_truth = _reconstruct_exact(cal, raised, true_mean)
     bent = surface_errors(at_gauge.heightfield, raised)["rmse_demeaned_mm"]
     right = surface_errors(at_truth.heightfield, raised)["rmse_demeaned_mm"]
     assert right < 0.03 < 0.1 < bent

@@ -157,8 +157,8 @@ def amplitude_sweep(cfg: SystemConfig, factors: list[float], seed: int = 0) -> l
     c = cfg.replace("waves", seed=seed)
     base = wave_surface(c)
     renderer = FrameRenderer(c, base)
-    h0 = cfg.water.h0_mm
-    flat_img = renderer.render(flat_like(base, h0), render_seed(c), which=("pattern",))
+    flat_img = renderer.render(flat_like(base, cfg.water.h0_mm), render_seed(c),
+                               which=("pattern",))
     reference = prepare_reference(flat_img["pattern"], c)
     rows = []
     for a in tqdm(factors, desc="paper: amplitude sweep", leave=True):
