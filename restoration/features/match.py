@@ -32,9 +32,9 @@ from restoration.features.ordering import (
     _UNLIT,
     _absent_nodes,
     _anchor_shift,
+    _braced_piece,
     _Growth,
     _kept_order_violations,
-    _largest_component,
     _relabel,
     _SpotLookup,
 )
@@ -67,7 +67,8 @@ class Matches:
         ``matched``: kept matches, of which ``matched_unobserved`` are dots not seen on flat water.
         Lattice nodes dropped: ``rejected_order`` (break eq. 33 with a grid neighbour),
         ``rejected_merged`` (their spot is a merged blob), ``rejected_ambiguous`` (two candidate
-        spots, or a spot claimed by two nodes), ``rejected_border`` (spot cut by the image or
+        spots, a spot claimed by two nodes, or no closed loop of matches through the node
+        to check its label), ``rejected_border`` (spot cut by the image or
         diffuser edge, or saturated), ``rejected_unlit`` (matched to a node that is not a lit dot);
         after the surface, ``rejected_inconsistent`` (spots the surface built with them did not
         reproduce at all: :func:`restoration.structured_light.without_samples`).
@@ -251,7 +252,11 @@ def match_distorted(
        stretched or squeezed far from flat water's spacing, where one step at that spacing
        falls between spots: ``counts['regrown']`` 1 or 2); the largest piece is kept.
     2. Spots claimed by two nodes are dropped, then pairs that break eq. 33
-       (:func:`order_violations`).
+       (:func:`order_violations`). Of what is left, the corners of the largest piece of whole
+       lattice squares are kept, with the pieces joined to it by two links or more: a label
+       is checked only around closed loops of matches, and a chain, a column one dot wide or
+       a patch hanging off the rest by one link can be labelled a dot off unseen
+       (:func:`~restoration.features.ordering._braced_piece`).
     3. Anchoring: growing fixes labels only up to a whole-lattice shift when spots move by more
        than half a spacing. The shift is chosen so that matched nodes are lit dots and in-view
        nodes seen empty are not (:func:`_anchor_shift`), and applied to all labels.
@@ -366,8 +371,9 @@ def match_distorted(
     unlit = ~ref.lit[kept] & ~bad
     reason[kept[unlit]] = _UNLIT
     kept = kept[~bad & ~unlit]
-    # Labels are only consistent within one connected piece of the lattice: keep the largest.
-    main = _largest_component(tab.lat, kept)
+    # Labels are checked only around closed loops of matches: keep the pieces of whole lattice
+    # squares that such loops join.
+    main = _braced_piece(tab.lat, kept)
     reason[kept[~main]] = _AMBIGUOUS
     kept = kept[main]
     lost = np.ones(len(ref.ij), bool)

@@ -214,6 +214,56 @@ def _largest_component(lat: _Lattice, nodes: IntArray) -> BoolArray:
     return lab == np.argmax(np.bincount(lab)[1:]) + 1
 
 
+JOIN_LINKS = 2
+"""Lattice links that join a piece of whole squares to the checked ones: two close a loop
+through the join, along which the slopes must integrate; one closes none."""
+
+
+def _braced_piece(lat: _Lattice, nodes: IntArray) -> BoolArray:
+    """Which of ``nodes`` have their labels checked by closed loops of matches: the corners of
+    the largest piece of whole lattice squares (all four corners among ``nodes``; squares
+    joined where they share a side), and of every other such piece joined to those by at
+    least :data:`JOIN_LINKS` links.
+
+    Ordering labels a spot relative to its neighbours, so only a closed loop of matches can
+    contradict a label a whole dot off: a chain hanging off the rest, a column one dot wide or
+    a patch joined by a single link can carry such labels unseen, and the surface through them
+    reproduces their spots. Where there are no squares at all, the largest 4-connected piece
+    (:func:`_largest_component`).
+    """
+    if len(nodes) == 0:
+        return np.zeros(0, bool)
+    q = lat.ij[nodes] - lat.lo
+    occupied = np.zeros(lat.grid.shape, bool)
+    occupied[q[:, 1], q[:, 0]] = True
+    # square (r, c) has corners (r, c), (r + 1, c), (r, c + 1), (r + 1, c + 1)
+    square = occupied[:-1, :-1] & occupied[1:, :-1] & occupied[:-1, 1:] & occupied[1:, 1:]
+    labels, n = ndimage.label(square)
+    if n == 0:
+        return _largest_component(lat, nodes)
+    size = np.bincount(labels.ravel(), minlength=n + 1)
+    size[0] = 0
+    piece = np.zeros(lat.grid.shape, np.int64)  # each node's largest piece, 0: none
+    for dr in (0, 1):
+        for dc in (0, 1):
+            corner = piece[dr : dr + labels.shape[0], dc : dc + labels.shape[1]]
+            np.copyto(corner, labels, where=size[labels] > size[corner])
+    links = np.zeros((n + 1, n + 1), np.int64)
+    for a, b in ((piece[:-1], piece[1:]), (piece[:, :-1], piece[:, 1:])):
+        across = (a > 0) & (b > 0) & (a != b)
+        np.add.at(links, (a[across], b[across]), 1)
+    links += links.T
+    kept = np.zeros(n + 1, bool)
+    kept[np.argmax(size)] = True
+    while True:
+        joined = ~kept & (links[:, kept].sum(axis=1) >= JOIN_LINKS)
+        if not joined.any():
+            break
+        kept |= joined
+    kept[0] = False
+    return kept[piece[q[:, 1], q[:, 0]]]
+
+
 def _relabel(
     lat: _Lattice, match: IntArray, reason: NDArray[np.int8], shift: IntArray
 ) -> tuple[IntArray, NDArray[np.int8], int]:

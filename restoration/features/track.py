@@ -34,8 +34,8 @@ from restoration.features.match import (
 )
 from restoration.features.ordering import (
     _anchor_shift,
+    _braced_piece,
     _kept_order_violations,
-    _largest_component,
     _SpotLookup,
 )
 from restoration.features.reference import ReferenceGrid
@@ -297,7 +297,7 @@ def track_spots(
     if unlit.sum() > 0.02 * len(kept) or bad.sum() > 0.1 * len(kept):
         return None
     kept = kept[~bad & ~unlit]
-    kept = kept[_largest_component(tab.lat, kept)]
+    kept = kept[_braced_piece(tab.lat, kept)]
     if len(kept) < TRACK_KEEP * n_previous:
         return None
     matched = np.zeros(n, bool)

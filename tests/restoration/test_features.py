@@ -29,7 +29,7 @@ from restoration.features._lattice import _LatticeTables
 from restoration.features._segments import _segment, _split_joined
 from restoration.features.detect import _background, _minimum_bias, _noise_sigma
 from restoration.features.match import _choose_seed
-from restoration.features.ordering import _anchor_shift, _SpotLookup
+from restoration.features.ordering import _anchor_shift, _braced_piece, _SpotLookup
 from wai_core.config import SystemConfig, load_config
 from wai_core.errors import RestorationFailed, WaiInputError
 
@@ -755,3 +755,25 @@ def test_scratch_arrays_kept_between_frames_change_no_spot():
     with scales.workspace.borrow():  # taken: this frame works in fresh arrays
         assert same(detect_spots(imgs[0], scales=scales), want[0])
     assert same(detect_spots(imgs[1], scales=pickle.loads(pickle.dumps(scales))), want[1])
+
+
+def test_labels_are_kept_only_where_closed_loops_of_matches_check_them():
+    # Ordering checks a label against its neighbours, so only a closed loop of matches can
+    # contradict a label shifted by one dot. Matched here: a 6 x 6 block with a hole in it;
+    # a patch beside it joined by two links, through which a loop runs; a chain hanging off
+    # its corner, a column one dot wide on its top and a patch joined by one link. The block
+    # (hole and all) and the patch of two links are checked, the rest is not.
+    block = [(i, j) for i in range(6) for j in range(6) if (i, j) != (2, 3)]
+    patch2 = ([(i, j) for i in (-3, -2) for j in range(-1, 7)]
+              + [(-1, -1), (-1, 0), (-1, 5), (-1, 6)])  # links (-1, 0)-(0, 0), (-1, 5)-(0, 5)
+    chain = [(6, 0), (7, 0), (8, 0), (9, 0)]
+    column = [(1, j) for j in range(6, 12)]
+    patch1 = [(i, j) for i in range(6, 9) for j in range(5, 8)]  # link (6, 5)-(5, 5)
+    nodes_ij = np.array(block + patch2 + chain + column + patch1)
+    lattice = np.array([(i, j) for i in range(-6, 17) for j in range(-4, 16)])
+    lat = _LatticeTables.of(lattice, np.ones(len(lattice), bool)).lat
+    kept = _braced_piece(lat, lat.lookup(nodes_ij))
+    np.testing.assert_array_equal(kept, np.arange(len(nodes_ij)) < len(block) + len(patch2))
+    # Without a single whole square, the largest 4-connected piece.
+    line = np.array([(i, 0) for i in range(5)] + [(i, 3) for i in range(2)])
+    assert _braced_piece(lat, lat.lookup(line)).tolist() == [True] * 5 + [False] * 2
