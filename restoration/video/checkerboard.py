@@ -347,9 +347,11 @@ def _skips_corners(grey: NDArray[np.uint8], corners: NDArray, pattern: tuple[int
         return True
     grid = corners.reshape(rows, cols, 2)
     steps = [np.linalg.norm(np.diff(grid, axis=a), axis=2) for a in (1, 0)]
-    ratios = np.r_[(steps[0][:, 1:] / steps[0][:, :-1]).ravel(),
-                   (steps[1][1:] / steps[1][:-1]).ravel()]
-    if np.any(np.maximum(ratios, 1.0 / ratios) > _MAX_STEP_RATIO):
+    with np.errstate(divide="ignore", invalid="ignore"):  # two corners in one place
+        ratios = np.r_[(steps[0][:, 1:] / steps[0][:, :-1]).ravel(),
+                       (steps[1][1:] / steps[1][:-1]).ravel()]
+        stretch = np.maximum(ratios, 1.0 / ratios)
+    if not np.all(np.isfinite(stretch)) or np.any(stretch > _MAX_STEP_RATIO):
         return True
     along = (grid[:, 1:] + grid[:, :-1]) / 2.0, (grid[1:] + grid[:-1]) / 2.0
     radius = max(2.0, float(min(np.median(st) for st in steps)) / 4.0)

@@ -3,6 +3,8 @@ and not a homography; what the water adds on top of it shows in the residual."""
 
 from __future__ import annotations
 
+import warnings
+
 import cv2
 import numpy as np
 import pytest
@@ -159,6 +161,12 @@ def test_a_grid_that_skips_corners_is_refused():
     assert not _skips_corners(image, s.corners, s.pattern)
     for part in (grid[::2], grid[np.r_[0:3, 4:rows]]):  # every other row; row 3 jumped
         assert _skips_corners(image, part.reshape(-1, 2), (cols, part.shape[0]))
+    # Two corners found in one place: no step to compare, refused without a warning.
+    folded = grid.copy()
+    folded[2, 3] = folded[2, 2]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _skips_corners(image, folded.reshape(-1, 2), (cols, rows))
 
 
 def test_a_distorted_views_score_does_not_depend_on_opencvs_random_state():
