@@ -202,13 +202,19 @@ def _absent_nodes(
     return cand
 
 
+def _occupied(lat: _Lattice, nodes: IntArray) -> tuple[IntArray, BoolArray]:
+    """The nodes' places ``(col, row)`` (K, 2) on ``lat.grid``, and the grid's mask of them."""
+    q = lat.ij[nodes] - lat.lo
+    occupied = np.zeros(lat.grid.shape, bool)
+    occupied[q[:, 1], q[:, 0]] = True
+    return q, occupied
+
+
 def _largest_component(lat: _Lattice, nodes: IntArray) -> BoolArray:
     """Which of ``nodes`` belong to their largest 4-connected piece of the lattice."""
     if len(nodes) == 0:
         return np.zeros(0, bool)
-    q = lat.ij[nodes] - lat.lo
-    occupied = np.zeros(lat.grid.shape, bool)
-    occupied[q[:, 1], q[:, 0]] = True
+    q, occupied = _occupied(lat, nodes)
     labels, _ = ndimage.label(occupied)
     lab = labels[q[:, 1], q[:, 0]]
     return lab == np.argmax(np.bincount(lab)[1:]) + 1
@@ -233,9 +239,7 @@ def _braced_piece(lat: _Lattice, nodes: IntArray) -> BoolArray:
     """
     if len(nodes) == 0:
         return np.zeros(0, bool)
-    q = lat.ij[nodes] - lat.lo
-    occupied = np.zeros(lat.grid.shape, bool)
-    occupied[q[:, 1], q[:, 0]] = True
+    q, occupied = _occupied(lat, nodes)
     # square (r, c) has corners (r, c), (r + 1, c), (r, c + 1), (r + 1, c + 1)
     square = occupied[:-1, :-1] & occupied[1:, :-1] & occupied[:-1, 1:] & occupied[1:, 1:]
     labels, n = ndimage.label(square)

@@ -94,28 +94,34 @@ def test_a_loosely_pinned_level_is_uncertain():
     assert status == "uncertain_level" and "standard error" in message
 
 
+def _render_and_restore(cfg, folder):
+    """The structured light's result on a frame of ``cfg`` rendered into ``folder``, and its
+    surface's errors against the render's truth."""
+    from mitsuba_wai import render_folder
+    from restoration import surface_errors
+    from wai_core.heightfield import load_heightfield
+
+    render_folder(cfg, folder, progress=False)
+    cal = Calibration.from_folder(folder)
+    result = StructuredLight()(cal.load_images(folder), cal)
+    truth = load_heightfield(folder / "heightfield.npz")
+    return result, surface_errors(result.surface.heightfield, truth)
+
+
 @pytest.mark.slow
 def test_rough_water_s_biased_level_is_not_ok(tmp_path):
     # GGX alpha 0.01 at U = 1.5 m/s (the compare experiment's case, seed 1, its fourth frame):
     # the rough surface's halo biases the spots, and with them the level, by half a millimetre
     # to a millimetre while the shape stays within a fraction of that; the level's spread
     # over the sample sets says so, and the frame is not ok.
-    from mitsuba_wai import render_folder
-    from restoration import surface_errors
-    from wai_core.heightfield import load_heightfield
     from wai_core.system import load_rig
 
     cfg = (load_rig("paper").replace("water", roughness=0.01).replace("render", spp_pattern=64)
            .replace("waves", wind_speed_m_s=1.5, seed=1, time_s=10.0 + 3 / 30))
-    render_folder(cfg, tmp_path, progress=False)
-    cal = Calibration.from_folder(tmp_path)
-    result = StructuredLight()(cal.load_images(tmp_path), cal)
-    truth = load_heightfield(tmp_path / "heightfield.npz")
-    err = surface_errors(result.surface.heightfield, truth)
+    result, err = _render_and_restore(cfg, tmp_path)
     # the level, not the shape
     assert err["rmse_mm"] > 0.25 and err["rmse_demeaned_mm"] < 0.25 * err["rmse_mm"]
     assert result.status == "uncertain_level"
-
 
 
 @pytest.mark.slow
@@ -125,17 +131,12 @@ def test_a_fold_s_patch_hanging_by_one_link_does_not_make_a_wrong_frame_ok(tmp_p
     # off, joined to the rest by a single lattice link. Its surface reproduces its spots, and
     # no closed loop of matches contradicts it; kept, the frame said ok 0.38 mm from the
     # truth. Whatever the frame says, ok must be right.
-    from mitsuba_wai import render_folder
-    from restoration import surface_errors
-    from wai_core.heightfield import load_heightfield
     from wai_core.system import load_rig
 
     cfg = load_rig("paper").replace("waves", height_scale=2.0, time_s=10.0 + 2 / 30)
-    render_folder(cfg, tmp_path, progress=False)
-    cal = Calibration.from_folder(tmp_path)
-    result = StructuredLight()(cal.load_images(tmp_path), cal)
-    err = surface_errors(result.surface.heightfield, load_heightfield(tmp_path / "heightfield.npz"))
+    result, err = _render_and_restore(cfg, tmp_path)
     assert result.status != "ok" or err["rmse_mm"] < 0.05
+
 
 def test_a_reference_that_shows_few_dots_is_sparse_whatever_the_labels():
     status, message = _status(800, ambiguous=False, observed=int(0.5 * SPARSE_FRACTION * 1000))
