@@ -110,8 +110,12 @@ lattice stretched or squeezed far from flat water's spacing: its seed's nearest 
 dot many spacings away), dots (each way)."""
 
 # A growth that matches fewer than this fraction of the flat-water dots is tried once more from
-# another seed (see match_distorted).
+# another seed (see match_distorted), and while the largest piece is under REGROW_PATCH of
+# them (a patch grown from a seed in the confused part of the image), from further seeds, up to
+# REGROW_SEEDS growths in all.
 REGROW_BELOW = 0.5
+REGROW_PATCH = 0.2
+REGROW_SEEDS = 5
 
 
 def _det2(m: FloatArray) -> FloatArray:
@@ -247,10 +251,12 @@ def match_distorted(
 
     1. Region growing over the lattice (:func:`_grow`) from the node whose nearest spot is most
        confidently its own (close to the flat-water position, or to ``prior_px``). A growth
-       that matches under :data:`REGROW_BELOW` of the dots is tried again from a seed away
-       from it, then across the lattice's lines by the first spot along each step (a lattice
-       stretched or squeezed far from flat water's spacing, where one step at that spacing
-       falls between spots: ``counts['regrown']`` 1 or 2); the largest piece is kept.
+       that matches under :data:`REGROW_BELOW` of the dots is tried again from a seed clear of
+       it, and while the largest piece is a patch (:data:`REGROW_PATCH`) from further seeds
+       clear of every piece and seed before (:data:`REGROW_SEEDS` growths in all), then
+       across the lattice's lines by the first spot along each step (a lattice stretched or
+       squeezed far from flat water's spacing, where one step at that spacing falls between
+       spots: ``counts['regrown']`` 1 or 2); the largest piece is kept.
     2. Spots claimed by two nodes are dropped, then pairs that break eq. 33
        (:func:`order_violations`). Of what is left, the corners of the largest piece of whole
        lattice squares are kept, with the pieces joined to it by two links or more: a label
@@ -318,45 +324,58 @@ def match_distorted(
         hull = visible_px
     visible = _Outline.of(hull)
 
-    def grow_from(exclude: BoolArray | None, ray_steps: bool = False) -> _Growth | None:
+    def grow_from(exclude: BoolArray | None, ray_steps: bool = False
+                  ) -> tuple[_Growth | None, int]:
         seed = _choose_seed(tab, base, ref, spots, lookup, accept, ratio, exclude)
         if seed < 0:
-            return None
+            return None, seed
         seed_spot = int(lookup.nearest(base[seed])[1][0])
         g = _grow(
             tab, base, ref.spacing_px, spots, lookup, (seed, seed_spot), visible, accept, ratio,
             ray_steps=ray_steps,
         )
         _drop_double_claims(g)
-        return g
+        return g, seed
 
-    g = grow_from(None)
+    g, seed = grow_from(None)
     if g is None:
         return empty
     counts["regrown"] = 0
-    if np.sum(g.match >= 0) < REGROW_BELOW * n_obs:
-        # A fold of the pattern (a caustic) stops the growing: try once more from a seed away
-        # from the first piece, and keep the larger piece.
-        near_first = np.zeros(len(ref.ij) + 1, bool)
-        near_first[tab.nbrs8[g.match >= 0]] = True
-        near_first[np.flatnonzero(g.match >= 0)] = True
-        other = grow_from(near_first[:-1])
-        if other is not None and np.sum(other.match >= 0) > np.sum(g.match >= 0):
-            g, counts["regrown"] = other, 1
+    # A fold of the pattern (a caustic) stops the growing, and a seed in the confused part of
+    # the image grows only a patch: grow again from seeds clear of every piece and seed so
+    # far, whose spots no piece has taken (a node beside a piece, seeded on the piece's own
+    # spots, grows the piece again labelled a dot off), and keep the largest piece.
+    cleared = np.zeros(len(ref.ij) + 1, bool)  # entry G: "no neighbour"
+    taken = np.zeros(len(spots), bool)
+    nearest_spot = lookup.nearest(base)[1]
+    last = g
+    for k in range(REGROW_SEEDS - 1):
+        if np.sum(g.match >= 0) >= (REGROW_BELOW if k == 0 else REGROW_PATCH) * n_obs:
+            break
+        grown = np.flatnonzero(last.match >= 0)
+        cleared[grown] = cleared[seed] = True
+        cleared[tab.nbrs8[grown]] = cleared[tab.nbrs8[seed]] = True
+        taken[last.match[grown]] = True
+        cleared[:-1] |= taken[nearest_spot]
+        last, seed = grow_from(cleared[:-1])
+        if last is None:
+            break
+        if np.sum(last.match >= 0) > np.sum(g.match >= 0):
+            g, counts["regrown"] = last, 1
     if np.sum(g.match >= 0) < REGROW_BELOW * n_obs:
         # Still small: the lattice may be stretched or squeezed past a step at flat water's
         # spacing (a strong lens of the waves, denser dots behind a port); grow across its
         # lines by the first spot along each step.
-        other = grow_from(None, ray_steps=True)
+        other, _ = grow_from(None, ray_steps=True)
         if other is not None and np.sum(other.match >= 0) > np.sum(g.match >= 0):
             g, counts["regrown"] = other, 2
 
     shift, tied = np.zeros(2, np.int64), np.zeros((1, 2), np.int64)
     if anchor:
-        absent = _absent_nodes(tab, g, lookup, ref.spacing_px, visible)
+        absent, seen_lit = _absent_nodes(tab, g, lookup, ref.spacing_px, visible, spots.flux)
         reach = max(max_shift, STRETCHED_MAX_LABEL_SHIFT) if counts["regrown"] == 2 \
             else max_shift
-        shift, tied = _anchor_shift(tab, g.match >= 0, absent, reach)
+        shift, tied = _anchor_shift(tab, seen_lit, absent, reach)
     n_tied = len(tied)
     match, reason, n_off = _relabel(tab.lat, g.match, g.reason, shift)
     counts.update(

@@ -186,20 +186,49 @@ def _anchor_shift(
     return shifts[pick].astype(np.int64), shifts[tied].astype(np.int64)
 
 
+DIM_FLUX = 0.1
+"""A spot whose flux is under this fraction of its matched neighbours' (their median) is no
+sign of a lit dot in the anchoring: it is light scattered into a dark node's place (by rough
+water or a caustic's skirt). At GGX alpha 0.01 the faint spots the growth finds at unlit marker
+dots carry 1-4 % of their neighbours' flux, lit dots' own spots over half (1st percentile)."""
+
+
+def _neighbour_flux(tab: _LatticeTables, match: IntArray, flux: FloatArray) -> FloatArray:
+    """Median flux of each node's matched 8-neighbours' spots (n,); NaN where fewer than two
+    are matched."""
+    spot_flux = np.full(len(match) + 1, np.nan)
+    spot_flux[:-1][match >= 0] = flux[match[match >= 0]]
+    around = np.sort(spot_flux[tab.nbrs8], axis=1)  # NaN last
+    k = np.sum(np.isfinite(around), axis=1)
+    rows = np.arange(len(around))
+    lo, hi = around[rows, np.maximum((k - 1) // 2, 0)], around[rows, np.maximum(k // 2, 0)]
+    return np.where(k >= 2, 0.5 * (lo + hi), np.nan)
+
+
 def _absent_nodes(
     tab: _LatticeTables, g: _Growth, lookup: _SpotLookup, spacing: FloatArray,
-    visible: _Outline,
-) -> BoolArray:
-    """Nodes seen empty: unmatched, predicted from at least two matched neighbours to a place
-    well inside the visible area where no spot at all lies within half a spacing."""
-    matched = np.append(g.match >= 0, False)
-    cand = g.tried & (g.match < 0) & (matched[tab.nbrs8].sum(axis=1) >= 2)
+    visible: _Outline, flux: FloatArray,
+) -> tuple[BoolArray, BoolArray]:
+    """The anchoring's evidence: nodes seen empty, and nodes seen lit (n,) each.
+
+    Seen empty: unmatched, predicted from at least two matched neighbours to a place well
+    inside the visible area where no spot lies within half a spacing, or only a dim one
+    (:data:`DIM_FLUX`); and matched nodes whose spot is dim. Seen lit: the other matched
+    nodes."""
+    matched = g.match >= 0
+    around = _neighbour_flux(tab, g.match, flux)
+    dim = np.zeros(len(matched), bool)
+    dim[matched] = flux[g.match[matched]] < DIM_FLUX * around[matched]  # NaN: not dim
+    cand = g.tried & ~matched & (np.append(matched, False)[tab.nbrs8].sum(axis=1) >= 2)
     idx = np.flatnonzero(cand)
     idx = idx[visible.inside(g.pred_px[idx], spacing[idx])]
-    dist, _, _ = lookup.nearest(g.pred_px[idx], 0.5 * spacing[idx] + 1.0)
+    dist, spot, _ = lookup.nearest(g.pred_px[idx], 0.5 * spacing[idx] + 1.0)
+    near = dist <= 0.5 * spacing[idx]
+    faint = np.zeros(len(idx), bool)
+    faint[near] = flux[spot[near]] < DIM_FLUX * around[idx[near]]
     cand[:] = False
-    cand[idx[dist > 0.5 * spacing[idx]]] = True
-    return cand
+    cand[idx[~near | faint]] = True
+    return cand | dim, matched & ~dim
 
 
 def _occupied(lat: _Lattice, nodes: IntArray) -> tuple[IntArray, BoolArray]:

@@ -526,6 +526,29 @@ def test_shifted_pattern_is_anchored_by_unlit_marker_dots():
     assert len(m) > 0.9 * seen.sum()
 
 
+def test_faint_light_in_the_marker_dots_places_does_not_hide_them():
+    # Rough water scatters a few per cent of the neighbours' light into an unlit marker dot's
+    # place (1-4 % at GGX alpha 0.01), where the detector, which keeps spots 200x dimmer than
+    # the bright ones, finds a faint spot. The pattern is wider than the view, so only the
+    # markers can pin the lattice shift: counted as lit dots, the faint spots hide them and
+    # every shift ties (the labels are then all wrong); counted as the dark they are, the
+    # markers pin it.
+    rng = np.random.default_rng(6)
+    sp = 22.0
+    ij, px, lit, cov, ref = marked_lattice(sp, 20, 25, [[0, 0], [1, 0], [0, 1], [5, -4],
+                                                        [6, -4], [5, -3]])
+    u = 0.25 * sp * np.stack([np.sin(ij[:, 1] / 5.0), np.cos(ij[:, 0] / 6.0)], 1)
+    pos = px + np.array([2, 1]) * sp + u
+    image = draw_dots(pos[lit], 3000.0, cov) + draw_dots(pos[~lit], 0.03 * 3000.0, cov)
+    spots = detect_spots(rng.poisson(image).astype(np.float32))
+    assert (cKDTree(spots.centres_px).query(pos[~lit])[0] < 1.0).sum() == (~lit).sum()
+    m = match_distorted(ref, spots)
+    assert (m.counts["anchor_di"], m.counts["anchor_dj"]) == (-2, -1)
+    assert m.counts["anchor_candidates"] == 1
+    assert labels_correct(m, ij, pos).all()
+    assert len(m) > 900
+
+
 def test_behind_a_projector_port_the_lattice_runs_on_past_the_grid_without_a_kink(cfg):
     """A flat port bends each dot's ray smoothly, so a lattice line's spacing changes smoothly
     past the grid's last dot too. A homography fitted to the grid cannot follow the port's
