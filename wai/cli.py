@@ -118,6 +118,8 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
         args.name, args.config, args.out, seeds=args.seeds if exp.seeds is not None else None,
         quick=args.quick, sweep=SweepOptions.from_args(args) if exp.sweep else None,
         methods=getattr(args, "method", None), frames=getattr(args, "frames", None),
+        first_seed=getattr(args, "first_seed", None),
+        conditions=getattr(args, "condition", None),
     )
     return 0
 
@@ -159,6 +161,15 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
                            help=f"frames of each case's sequence (default: {exp.frames}; with "
                            f"--quick: {exp.quick_frames}); fewer make room for a slow method "
                            "over every case (--method inverse-rendering)")
+        if exp.conditions:
+            q.add_argument("--first-seed", type=int, default=None, metavar="S",
+                           help="seeds S..S+K-1 with --seeds K: seeds a run has not looked at "
+                           "(default: 0)")
+            q.add_argument("--condition", action="append", choices=exp.conditions,
+                           metavar="NAME",
+                           help="only this condition (repeatable): "
+                           f"{', '.join(exp.conditions)} (default: all but "
+                           "rough_0.01_256; with --quick: none, speckle)")
         q.set_defaults(func=_cmd_experiment)
 
 

@@ -156,6 +156,46 @@ def test_compare_takes_its_frames_per_case_and_other_experiments_refuse_them(tmp
     assert not set(eight[0]) & set(compare.SCORES)
 
 
+def test_compare_runs_the_seeds_and_conditions_asked_for(tmp_path, monkeypatch):
+    """--first-seed and --condition reach the comparison's cases (seeds a run has not looked
+    at, a few conditions); an unknown condition or a negative seed stops it with one line
+    before any render, and an experiment without conditions refuses both."""
+    import dataclasses
+
+    from wai import experiments
+    from wai.experiments import compare
+    from wai_core.errors import WaiInputError
+
+    exp = experiments.EXPERIMENTS["compare"]
+    assert exp.conditions == tuple(compare.DEGRADATIONS)  # the help lists them all
+    assert set(compare.DEFAULT_DEGRADATIONS) == set(compare.DEGRADATIONS) - {"rough_0.01_256"}
+    points = compare.compare_points(["structured-light"], 2, False, 8, 2,
+                                    ["rough_0.01", "speckle", "rough_0.01"])
+    assert {p["seed"] for p in points} == {2, 3}
+    assert [p["degradation"] for p in points[:2]] == ["rough_0.01", "speckle"]
+    assert len(points) == 2 * 2 * 2  # winds x seeds x conditions, a condition named twice once
+    assert {compare.case_name(p) for p in points} >= {"U1_seed002_rough_0.01_8f",
+                                                       "U1.5_seed003_speckle_8f"}
+    default = compare.compare_points(["structured-light"], 1, False, 8)
+    assert {p["degradation"] for p in default} == set(compare.DEFAULT_DEGRADATIONS)
+    with pytest.raises(WaiInputError, match="--condition 'windy'"):
+        compare.compare_points(["structured-light"], 1, False, 8, 0, ["windy"])
+    got = []
+    monkeypatch.setitem(experiments.EXPERIMENTS, "compare", dataclasses.replace(
+        exp, run=lambda *args, **kw: got.append((kw["first_seed"], kw["conditions"]))))
+    experiments.run_experiment("compare", out=tmp_path / "a")
+    experiments.run_experiment("compare", out=tmp_path / "b", first_seed=4,
+                               conditions=["rough_0.01_256"])
+    assert got == [(0, []), (4, ["rough_0.01_256"])]
+    with pytest.raises(WaiInputError, match="takes no --first-seed or --condition"):
+        experiments.run_experiment("budget", first_seed=3)
+    monkeypatch.undo()
+    for bad in (["--first-seed", "-1"], ["--condition", "windy"]):
+        assert main(["experiment", "compare", "--quick", "--out", str(tmp_path / "d"),
+                     "--workers", "0", "--no-progress", *bad]) == 2
+    assert not (tmp_path / "d").exists()
+
+
 def test_compare_reports_the_truth_free_grid_score_and_its_rank_agreement():
     """The table has the grid score's columns; Kendall's tau is +1 when the grid residual
     orders the methods as corner STD does, -1 when it reverses them, and no verdict with

@@ -20,6 +20,8 @@ def _args(name: str) -> list[str]:
         args += ["--workers", "2", "--no-progress"]
     if exp.frames is not None:
         args += ["--frames", "3"]
+    if exp.conditions:
+        args += ["--first-seed", "1", "--condition", "speckle"]
     return args
 
 
@@ -48,3 +50,6 @@ def test_every_experiment_runs_quick_from_a_plain_install(installed, name):
         assert cases and all(c.name.endswith("_3f") for c in cases)
         assert all(len(list(c.glob("frame*"))) == 3 for c in cases)
         assert "--frames 3" in report.read_text()
+        # --first-seed and --condition: only seed 1's speckle case, and the report says so
+        assert [c.name for c in cases] == ["U1_seed001_speckle_3f"]
+        assert "--first-seed 1 --condition speckle" in report.read_text()

@@ -72,10 +72,11 @@ def _run_calibration(config: str | Path, out: Path, seeds: int | None, quick: bo
 
 def _run_compare(config: str | Path, out: Path, seeds: int | None, quick: bool,
                  sweep: SweepOptions, methods: list[str] | None = None,
-                 frames: int | None = None) -> None:
+                 frames: int | None = None, first_seed: int = 0,
+                 conditions: list[str] | None = None) -> None:
     from wai.experiments.compare import run_compare
 
-    run_compare(config, out, seeds, quick, sweep, methods, frames)
+    run_compare(config, out, seeds, quick, sweep, methods, frames, first_seed, conditions)
 
 
 def _run_seawater(config: str | Path, out: Path, seeds: int | None, quick: bool,
@@ -119,6 +120,9 @@ class Experiment:
         experiment renders no sequences and has no ``--frames``.
     quick_frames : int or None
         The default of ``--frames`` with ``--quick``.
+    conditions : tuple of str
+        The conditions ``--condition NAME`` may pick (repeatable; an experiment with them
+        also takes ``--first-seed``); empty: it takes neither.
     """
 
     summary: str
@@ -132,6 +136,7 @@ class Experiment:
     methods: bool = False
     frames: int | None = None
     quick_frames: int | None = None
+    conditions: tuple[str, ...] = ()
 
 
 # Durations: --quick measured on an idle 2-core machine (CPU rendering, llvm_ad_rgb; the
@@ -306,6 +311,8 @@ EXPERIMENTS: dict[str, Experiment] = {
         methods=True,
         frames=30,
         quick_frames=8,
+        conditions=("none", "speckle", "sensor", "rough_0.01", "rough_0.02", "capillary_4",
+                    "capillary_5", "capillary_6", "steep_2", "defocus_2mm", "rough_0.01_256"),
     ),
     "seawater": Experiment(
         summary="spot SNR of a blue-green and a red pattern after the same sea water",
@@ -336,7 +343,8 @@ def describe(name: str, width: int = 79) -> str:
 def run_experiment(name: str, config: str | Path = "paper", out: str | Path | None = None,
                    seeds: int | None = None, quick: bool = False,
                    sweep: SweepOptions | None = None, methods: list[str] | None = None,
-                   frames: int | None = None) -> None:
+                   frames: int | None = None, first_seed: int | None = None,
+                   conditions: list[str] | None = None) -> None:
     """Run experiment ``name`` into ``out`` and print its tables.
 
     Parameters
@@ -361,11 +369,16 @@ def run_experiment(name: str, config: str | Path = "paper", out: str | Path | No
         Frames of each rendered sequence, for the experiments that render sequences
         (:attr:`Experiment.frames`); None: its :attr:`Experiment.frames`, or
         :attr:`Experiment.quick_frames` with ``quick``.
+    first_seed : int or None
+        The first seed (seeds ``first_seed`` .. ``first_seed + seeds - 1``), for the
+        experiments with conditions (:attr:`Experiment.conditions`); None: 0.
+    conditions : list of str or None
+        Only these of :attr:`Experiment.conditions`; None: the experiment's own choice.
 
     Raises
     ------
     WaiInputError
-        ``name`` is no experiment.
+        ``name`` is no experiment, or an option it does not take.
     """
     from wai.sweep import SweepOptions
     from wai_core.errors import WaiInputError
@@ -382,7 +395,11 @@ def run_experiment(name: str, config: str | Path = "paper", out: str | Path | No
         raise WaiInputError(f"experiment {name}: takes no --method")
     if frames is not None and exp.frames is None:
         raise WaiInputError(f"experiment {name}: takes no --frames")
+    if (first_seed is not None or conditions) and not exp.conditions:
+        raise WaiInputError(f"experiment {name}: takes no --first-seed or --condition")
     extra: dict[str, object] = {}
+    if exp.conditions:
+        extra.update(first_seed=first_seed or 0, conditions=list(conditions or []))
     if exp.methods:
         extra["methods"] = list(methods or [])
     if exp.frames is not None:

@@ -51,15 +51,24 @@ DEGRADATIONS: dict[str, dict[str, Any]] = {
     "capillary_6": {"waves.dispersion": "capillary", "waves.omega_max_rel": 6.0, **_SPECKLE},
     "steep_2": {"waves.height_scale": 2.0, **_SPECKLE},
     "defocus_2mm": {"projector.aperture_mm": 2.0, "projector.focus_mm": 400.0, **_SPECKLE},
+    # Only when named (--condition): micro-roughness with 4x the pattern's samples, where the
+    # spots' Monte Carlo noise no longer adds to the halo's.
+    "rough_0.01_256": {"water.roughness": 0.01, "render.spp_pattern": 256, **_SPECKLE},
 }
 """The cases' conditions, as configuration keys: the paper's scene (``none``), its object a
 lab tank's speckle (``speckle``: what Schlieren needs; no corners to score), the sensor's
 noise, and where the geometric method is weak: micro-roughness (GGX alpha, 64 pattern
 samples as the budget takes), gravity-capillary waves to 4, 5 and 6 omega_p, waves twice as
 high and steep as the fully developed sea (towards eq. 35's ordering limit), a defocused
-projector (2 mm aperture focused at 400 mm)."""
+projector (2 mm aperture focused at 400 mm); and, run only when named (:data:`ON_REQUEST`),
+micro-roughness 0.01 at 256 pattern samples."""
 QUICK_DEGRADATIONS = ("none", "speckle")
 """The conditions of ``--quick``."""
+ON_REQUEST = ("rough_0.01_256",)
+"""Conditions run only when named with ``--condition`` (four times the render of their
+64-sample case)."""
+DEFAULT_DEGRADATIONS = tuple(d for d in DEGRADATIONS if d not in ON_REQUEST)
+"""The conditions of a run without ``--quick`` or ``--condition``."""
 SCORES = ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "rmse_demeaned_mm", "grid_px",
           "grid_fraction", "rig_px", "rig_fraction", "ms_per_frame", "reference_ms",
           "frame_per_reference", "frames_needed", "frames_ok", "frames_ok_wrong", "frames")
@@ -90,14 +99,34 @@ def case_name(point: dict[str, Any]) -> str:
             f"_{point['case_frames']}f")
 
 
-def compare_points(methods: list[str], seeds: int, quick: bool, frames: int
+def compare_points(methods: list[str], seeds: int, quick: bool, frames: int,
+                   first_seed: int = 0, conditions: list[str] | None = None
                    ) -> list[dict[str, Any]]:
-    """Every (case, method): sea states, seeds and degradations crossed with the methods, each
-    case a sequence of ``frames``."""
+    """Every (case, method): sea states, seeds ``first_seed`` .. ``first_seed + seeds - 1``
+    and conditions crossed with the methods, each case a sequence of ``frames``.
+
+    ``conditions``: keys of :data:`DEGRADATIONS` (None: :data:`DEFAULT_DEGRADATIONS`, with
+    ``quick`` :data:`QUICK_DEGRADATIONS`).
+
+    Raises
+    ------
+    WaiInputError
+        An unknown condition, or a negative ``first_seed``.
+    """
+    if first_seed < 0:
+        raise WaiInputError(f"--first-seed must be 0 or more, not {first_seed}")
+    unknown = [c for c in conditions or [] if c not in DEGRADATIONS]
+    if unknown:
+        raise WaiInputError(f"--condition {unknown[0]!r}: not a condition of compare (one of "
+                            f"{', '.join(DEGRADATIONS)})")
     winds = (1.0,) if quick else (1.0, 1.5)
-    degradations = QUICK_DEGRADATIONS if quick else tuple(DEGRADATIONS)
+    if conditions:
+        degradations = tuple(dict.fromkeys(conditions))
+    else:
+        degradations = QUICK_DEGRADATIONS if quick else DEFAULT_DEGRADATIONS
+    seed_range = range(first_seed, first_seed + seeds)
     return [{"wind": w, "seed": s, "degradation": d, "method": m, "case_frames": frames}
-            for w in winds for s in range(seeds) for d in degradations for m in methods]
+            for w in winds for s in seed_range for d in degradations for m in methods]
 
 
 def render_case(config: str, point: dict[str, Any], root: Path) -> Path:
@@ -410,18 +439,20 @@ def report(summary: list[dict[str, Any]], command: str,
 
 def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
                 sweep: SweepOptions | None = None, methods: list[str] | None = None,
-                frames: int | None = None) -> list[dict[str, Any]]:
+                frames: int | None = None, first_seed: int = 0,
+                conditions: list[str] | None = None) -> list[dict[str, Any]]:
     """The experiment into ``out``: renders, the sweep's table, the summary, chart, report.
 
     ``frames``: of each case's sequence (None: :data:`FRAMES`, with ``quick``
     :data:`QUICK_FRAMES`). Rows and cases are kept per frame count: a rerun with another
-    count renders and restores its own.
+    count renders and restores its own. ``first_seed`` and ``conditions``: see
+    :func:`compare_points` (seeds a run has not looked at, a few conditions).
 
     Raises
     ------
     WaiInputError
-        A method that does not resolve, or fewer than :data:`MIN_FRAMES` frames, before any
-        render.
+        A method that does not resolve, an unknown condition, a negative ``first_seed``, or
+        fewer than :data:`MIN_FRAMES` frames, before any render.
     """
     from tqdm import tqdm
 
@@ -436,8 +467,9 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
     for spec in specs:  # a bad name fails here, before any render
         if spec not in VIDEO_METHODS:
             method_class(spec)
+    points = compare_points(list(dict.fromkeys(specs)), seeds, quick, frames, first_seed,
+                            conditions)
     out = output_folder(out)
-    points = compare_points(list(dict.fromkeys(specs)), seeds, quick, frames)
     cases = {case_name(p): p for p in points}
     sweep = SweepOptions() if sweep is None else sweep
     for name, p in tqdm(cases.items(), desc="render", unit="case", disable=not sweep.progress):
@@ -451,6 +483,9 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
     command = sweep_command("compare", seeds, quick)
     if frames != default:
         command += f" --frames {frames}"
+    if first_seed:
+        command += f" --first-seed {first_seed}"
+    command += "".join(f" --condition {c}" for c in dict.fromkeys(conditions or []))
     case_taus = case_agreement(rows)
     text = report(summary, command, case_taus)
     tau, _ = rank_agreement(summary)
