@@ -347,11 +347,12 @@ def match_distorted(
     # spots, grows the piece again labelled a dot off), and keep the largest piece.
     cleared = np.zeros(len(ref.ij) + 1, bool)  # entry G: "no neighbour"
     taken = np.zeros(len(spots), bool)
-    nearest_spot = lookup.nearest(base)[1]
     last = g
     for k in range(REGROW_SEEDS - 1):
         if np.sum(g.match >= 0) >= (REGROW_BELOW if k == 0 else REGROW_PATCH) * n_obs:
             break
+        if k == 0:
+            nearest_spot = lookup.nearest(base)[1]
         grown = np.flatnonzero(last.match >= 0)
         cleared[grown] = cleared[seed] = True
         cleared[tab.nbrs8[grown]] = cleared[tab.nbrs8[seed]] = True
