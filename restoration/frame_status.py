@@ -10,7 +10,8 @@ from restoration.options import StructuredLightOptions
 from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, Status
 from restoration.surface import SurfaceEstimate
 
-__all__ = ["SEARCHED_LEVELS", "VIEW_MAX_RESIDUAL_PX", "VIEW_MAX_TAIL_PX", "frame_status"]
+__all__ = ["SEARCHED_LEVELS", "VIEW_MAX_RESIDUAL_PX", "VIEW_MAX_TAIL_PX", "frame_status",
+           "unpinned_patch"]
 
 SEARCHED_LEVELS = ("integrability", "view")
 """Anchor methods whose level was searched, with a standard error that makes a frame
@@ -24,6 +25,17 @@ dots, 1.1-5.0 px (docs/results.md, "The level from the view")."""
 VIEW_MAX_TAIL_PX = 1.0
 """The same for the misses' 90th percentile: a surface wrong in a part. Right surfaces leave
 0.07-0.16 px smooth and 0.34-0.59 px rough; a real rig's frame holding wrong labels, 1.6 px."""
+
+
+def unpinned_patch(features: Matches, reference: ReferenceGrid) -> bool:
+    """Whether ``features`` are a small patch (under :data:`SPARSE_FRACTION` of the dots in
+    view) whose labels only the ordering gave: shifted by whole dots, its slopes would
+    integrate nearly as well (docs/results.md, "Knowing when a frame is wrong"), so only labels
+    that something pins (the pattern decoded, a unique lattice anchor, camera v's view) make it
+    trustworthy."""
+    in_view = max(int(reference.counts.get("predicted_in_view", 0)), 1)
+    return bool(len(features) < SPARSE_FRACTION * in_view
+                and features.counts.get("labels_ambiguous", 1))
 
 
 def frame_status(
@@ -48,11 +60,7 @@ def frame_status(
         return Status.SPARSE, (
             f"the flat-water reference shows only {seen} of the {in_view} dots in view"
         )
-    # A small patch whose labels only the ordering gave may be shifted by whole dots, and its
-    # slopes then integrate nearly as well (docs/results.md, "Knowing when a frame is wrong"):
-    # only labels that the pattern pins (decoded, or a unique lattice anchor) make a small patch
-    # trustworthy.
-    if len(features) < SPARSE_FRACTION * in_view and features.counts.get("labels_ambiguous", 1):
+    if unpinned_patch(features, reference):
         return Status.SPARSE, (
             f"only {len(features)} of the {in_view} dots in view were matched, and nothing in "
             "the pattern pins their labels (they may be shifted by whole dots)"

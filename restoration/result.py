@@ -17,8 +17,9 @@ verdict as a sweep does:
     were matched (waves past the correspondence limit) and nothing in the pattern pins their
     labels: a small patch labelled by ordering alone may be shifted by whole dots and still
     integrate, so it cannot be trusted. A small patch whose labels are pinned (decoded by the
-    coded pattern, or a unique lattice anchor at the pattern's edge or markers) is judged by
-    the checks below like any other;
+    coded pattern, a unique lattice anchor at the pattern's edge or markers, or, with
+    ``structured-light-view``, camera v's lines of sight, which labels a dot off send
+    millimetres astray) is judged by the checks below like any other;
 ``inconsistent``
     the surface does not reproduce the detected spots through the exact geometric model
     (:mod:`restoration.consistency`): its level or shape cannot be right;

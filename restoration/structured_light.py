@@ -401,11 +401,13 @@ class StructuredLight:
                     )
                     obs = obs if shifted_obs is None else shifted_obs
                 surface.heightfield  # noqa: B018  (a patch too small to grid fails here)
+            memo: dict[str, Any] = {}
+            features, obs, surface = self._pin_labels(features, obs, surface, reference, cal,
+                                                      images, memo, timings)
             if options.spot_bias:
                 with timings("surface"):
                     obs = self._observe_debiased(features, surface, cal, timings)
                     surface = estimate_surface(obs, cal, options, start)
-            memo: dict[str, Any] = {}
             surface = self._level(obs, cal, surface, images, memo, timings)
             surface, view, check = self._view_and_check(images, cal, obs, surface, reference,
                                                         state, timings)
@@ -458,6 +460,15 @@ class StructuredLight:
                 spots = spots - spot_correction_px(cal, features.ij, surface,
                                                    SpotBiasModel.of_water(cal.cfg.water))
         return cal.observe(features.ij, spots, flat_referenced=self.options.flat_referenced)
+
+    def _pin_labels(self, features: Matches, obs: Observations, surface: SurfaceEstimate,
+                    reference: ReferenceGrid, cal: Calibration, images: dict[str, NDArray],
+                    memo: dict[str, Any], timings: Timings
+                    ) -> tuple[Matches, Observations, SurfaceEstimate]:
+        """The labels, their observations and surface, pinned where something beyond the
+        pattern can pin them: here nothing (a method that sees more overrides it,
+        :class:`restoration.view_level.StructuredLightView`)."""
+        return features, obs, surface
 
     def _level(self, obs: Observations, cal: Calibration, surface: SurfaceEstimate,
                images: dict[str, NDArray], memo: dict[str, Any],

@@ -41,6 +41,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from restoration.calibration import Calibration
+from restoration.features import Matches, ReferenceGrid
+from restoration.frame_status import VIEW_MAX_RESIDUAL_PX, unpinned_patch
 from restoration.observations import Observations
 from restoration.options import SchlierenOptions, StructuredLightOptions, checked_options
 from restoration.schlieren import (
@@ -50,7 +52,13 @@ from restoration.schlieren import (
     flat_view_file,
     flow_samples,
 )
-from restoration.structured_light import StructuredLight, reconstruct_at
+from restoration.structured_light import (
+    MIN_SHIFT_KEEP,
+    StructuredLight,
+    estimate_surface,
+    reconstruct_at,
+    shifted,
+)
 from restoration.surface import SurfaceEstimate
 from wai_core.errors import RestorationFailed
 from wai_core.images import find_image
@@ -314,6 +322,15 @@ def find_view_level(rebuild: Callable[[float], SurfaceEstimate], start_mm: float
     return ViewLevel(level, sigma, levels, cost, estimate, int(inside.sum()))
 
 
+PIN_FACTOR = 4.0
+"""Camera v's view pins a small patch's labels when one labelling's lines of sight meet the
+flow's object points (median miss within
+:data:`~restoration.frame_status.VIEW_MAX_RESIDUAL_PX`) and every labelling a dot from it
+misses by this many times as much, and past that bound too. On rough water (GGX alpha 0.01)
+the right labels leave 0.25 px and the labels a dot off 6-15 px (docs/results.md)."""
+_ONE_DOT = np.array([[di, dj] for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj])
+
+
 class StructuredLightView(StructuredLight):
     """The structured light with its level pinned by camera v's view (module notes),
     configured once.
@@ -334,6 +351,60 @@ class StructuredLightView(StructuredLight):
 
     def __repr__(self) -> str:
         return f"StructuredLightView({self.options!r})"
+
+    def _pin_labels(self, features: Matches, obs: Observations, surface: SurfaceEstimate,
+                    reference: ReferenceGrid, cal: Calibration, images: dict[str, NDArray],
+                    memo: dict[str, Any], timings: Timings
+                    ) -> tuple[Matches, Observations, SurfaceEstimate]:
+        """A small patch whose labels the pattern leaves open (it would be ``sparse``:
+        :func:`~restoration.frame_status.unpinned_patch`) pinned by the view where it can be.
+
+        The labelling and each of its one-dot shifts are rebuilt at the level the view gives
+        them, and their lines of sight traced to the object; where one of them meets the
+        flow's object points and every other misses by :data:`PIN_FACTOR` times as much, that
+        one is kept and its labels are pinned (``counts``: ``labels_ambiguous`` 0,
+        ``labels_pinned_by_view`` 1; ``label_shift_di``/``dj`` add its shift). Otherwise
+        everything is as it was (``labels_pinned_by_view`` 0). Up to nine view-level searches
+        (0.2-0.5 s each), on such frames only."""
+        if not unpinned_patch(features, reference):
+            return features, obs, surface
+        options = self.options
+        tried = [(np.zeros(2, np.int64), features, obs, surface)]
+        for step in _ONE_DOT:
+            keep = reference.lit_at(features.ij + step)
+            if keep.sum() < MIN_SHIFT_KEEP * len(keep):
+                continue
+            other = shifted(features, step, keep)
+            other_obs = cal.observe(other.ij, other.spot_px,
+                                    flat_referenced=options.flat_referenced)
+            try:
+                with timings("surface"):
+                    other_surface = estimate_surface(other_obs, cal, options)
+            except RestorationFailed:
+                continue
+            tried.append((step, other, other_obs, other_surface))
+        misses = np.full(len(tried), np.inf)
+        for k, (_, _, o, est) in enumerate(tried):
+            try:
+                miss = self._level(o, cal, est, images, memo, timings).anchor.view_residual_px
+            except RestorationFailed:
+                continue
+            misses[k] = np.inf if miss is None else miss
+        best = int(np.argmin(misses))
+        rest = np.delete(misses, best)
+        pinned = bool(misses[best] <= VIEW_MAX_RESIDUAL_PX
+                      and np.all(rest > max(VIEW_MAX_RESIDUAL_PX, PIN_FACTOR * misses[best])))
+        if not pinned:
+            features.counts["labels_pinned_by_view"] = 0
+            return features, obs, surface
+        step, f, o, est = tried[best]
+        base = features.counts
+        f.counts.update(
+            labels_ambiguous=0, labels_pinned_by_view=1,
+            label_shift_di=int(base.get("label_shift_di", 0) + step[0]),
+            label_shift_dj=int(base.get("label_shift_dj", 0) + step[1]),
+        )
+        return f, o, est
 
     def _level(self, obs: Observations, cal: Calibration, surface: SurfaceEstimate,
                images: dict[str, NDArray], memo: dict[str, Any],

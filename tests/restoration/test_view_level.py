@@ -58,6 +58,48 @@ def test_a_checkerboard_object_never_pins_a_wrong_level_as_ok(frames):
     assert result.surface.anchor.view_textured_share < 0.45
 
 
+@pytest.fixture(scope="module")
+def ripples(tmp_path_factory):
+    # Gravity-capillary ripples to 5 omega_p at U = 1 m/s (the compare case, seed 0, its first
+    # frame): they fold the pattern, and only a patch of about a hundred dots is matched,
+    # with no marker dot among them to pin its lattice shift.
+    root = tmp_path_factory.mktemp("ripples")
+    waves = {"dispersion": "capillary", "omega_max_rel": 5.0}
+    return {texture: render_paper_frame(root / texture, seed=0, texture=texture, waves=waves)
+            for texture in ("speckle", "checkerboard")}
+
+
+def test_the_view_pins_a_small_patch_s_labels_that_the_pattern_leaves_open(ripples):
+    # Labels a dot off send camera v's lines of sight millimetres astray on the object (6-15
+    # px of flat-water view on rough water, against 0.25 px for the right ones): the view
+    # tells the labellings apart where the integrability of a small patch cannot, and the
+    # patch is no longer sparse. The truth: the surface within a tenth of a spot's worth.
+    from restoration import StructuredLight, surface_errors
+    from wai_core.heightfield import load_heightfield
+
+    folder = ripples["speckle"]
+    cal = ViewLevelCalibration.from_folder(folder)
+    images = cal.load_images(folder)
+    plain = StructuredLight()(images, cal)
+    assert plain.status == "sparse" and plain.features.counts["labels_ambiguous"] == 1
+    view = StructuredLightView()(images, cal)
+    assert view.features.counts["labels_pinned_by_view"] == 1
+    assert view.features.counts["labels_ambiguous"] == 0
+    assert view.status == "ok", view.message
+    err = surface_errors(view.surface.heightfield, load_heightfield(folder / "heightfield.npz"))
+    assert err["rmse_mm"] < 0.02
+
+
+def test_without_texture_the_view_pins_no_labels(ripples):
+    # The same ripples over the paper's checkerboard: no flow, no lines of sight to weigh the
+    # labellings, and the patch stays sparse.
+    folder = ripples["checkerboard"]
+    cal = ViewLevelCalibration.from_folder(folder)
+    view = StructuredLightView()(cal.load_images(folder), cal)
+    assert view.features.counts["labels_pinned_by_view"] == 0
+    assert view.status == "sparse"
+
+
 def test_a_frame_without_its_flat_view_is_bad_input(frames, tmp_path, capsys):
     folder = tmp_path / "no_flat"
     shutil.copytree(frames["rough"], folder, ignore=shutil.ignore_patterns("view_truth*",
