@@ -368,6 +368,18 @@ class StructuredLightView(StructuredLight):
         (0.2-0.5 s each), on such frames only."""
         if not unpinned_patch(features, reference):
             return features, obs, surface
+
+        def miss_of(o: Observations, est: SurfaceEstimate) -> float:
+            try:
+                miss = self._level(o, cal, est, images, memo, timings).anchor.view_residual_px
+            except RestorationFailed:
+                return np.inf
+            return np.inf if miss is None else float(miss)
+
+        features.counts["labels_pinned_by_view"] = 0
+        misses = [miss_of(obs, surface)]
+        if not np.isfinite(misses[0]):  # the view weighs nothing here (no texture, no flow)
+            return features, obs, surface
         options = self.options
         tried = [(np.zeros(2, np.int64), features, obs, surface)]
         for step in _ONE_DOT:
@@ -383,19 +395,11 @@ class StructuredLightView(StructuredLight):
             except RestorationFailed:
                 continue
             tried.append((step, other, other_obs, other_surface))
-        misses = np.full(len(tried), np.inf)
-        for k, (_, _, o, est) in enumerate(tried):
-            try:
-                miss = self._level(o, cal, est, images, memo, timings).anchor.view_residual_px
-            except RestorationFailed:
-                continue
-            misses[k] = np.inf if miss is None else miss
+            misses.append(miss_of(other_obs, other_surface))
         best = int(np.argmin(misses))
-        rest = np.delete(misses, best)
-        pinned = bool(misses[best] <= VIEW_MAX_RESIDUAL_PX
-                      and np.all(rest > max(VIEW_MAX_RESIDUAL_PX, PIN_FACTOR * misses[best])))
-        if not pinned:
-            features.counts["labels_pinned_by_view"] = 0
+        rest = np.delete(np.asarray(misses), best)
+        if not (len(rest) and misses[best] <= VIEW_MAX_RESIDUAL_PX
+                and np.all(rest > max(VIEW_MAX_RESIDUAL_PX, PIN_FACTOR * misses[best]))):
             return features, obs, surface
         step, f, o, est = tried[best]
         base = features.counts
