@@ -204,6 +204,24 @@ def shifted(features: Matches, shift: NDArray, keep: NDArray) -> Matches:
     )
 
 
+def shifted_surface(
+    features: Matches, shift: NDArray, reference: ReferenceGrid, cal: Calibration,
+    options: StructuredLightOptions,
+) -> tuple[Matches, Observations, SurfaceEstimate] | None:
+    """``features`` relabelled ``ij + shift`` (the rows that stay on lit dots), their
+    observations and the surface estimated from them; None where fewer than
+    :data:`MIN_SHIFT_KEEP` of them stay on lit dots or no surface can be estimated."""
+    keep = reference.lit_at(features.ij + shift)
+    if keep.sum() < MIN_SHIFT_KEEP * len(keep):
+        return None
+    candidate = shifted(features, shift, keep)
+    obs = cal.observe(candidate.ij, candidate.spot_px, flat_referenced=options.flat_referenced)
+    try:
+        return candidate, obs, estimate_surface(obs, cal, options)
+    except RestorationFailed:
+        return None
+
+
 def resolve_label_shift(
     features: Matches,
     surface: SurfaceEstimate,
@@ -228,16 +246,10 @@ def resolve_label_shift(
     for shift in features.alt_shifts[:MAX_SHIFT_CANDIDATES]:
         if not shift.any():
             continue
-        keep = reference.lit_at(features.ij + shift)
-        if keep.sum() < MIN_SHIFT_KEEP * len(keep):
+        built = shifted_surface(features, shift, reference, cal, options)
+        if built is None:
             continue
-        candidate = shifted(features, shift, keep)
-        obs = cal.observe(candidate.ij, candidate.spot_px,
-                          flat_referenced=options.flat_referenced)
-        try:
-            est = estimate_surface(obs, cal, options)
-        except RestorationFailed:
-            continue
+        candidate, obs, est = built
         tried += 1
         residual = integration_residual_mm(est, obs.plans)
         residuals.append(residual)

@@ -52,13 +52,7 @@ from restoration.schlieren import (
     flat_view_file,
     flow_samples,
 )
-from restoration.structured_light import (
-    MIN_SHIFT_KEEP,
-    StructuredLight,
-    estimate_surface,
-    reconstruct_at,
-    shifted,
-)
+from restoration.structured_light import StructuredLight, reconstruct_at, shifted_surface
 from restoration.surface import SurfaceEstimate
 from wai_core.errors import RestorationFailed
 from wai_core.images import find_image
@@ -380,22 +374,14 @@ class StructuredLightView(StructuredLight):
         misses = [miss_of(obs, surface)]
         if not np.isfinite(misses[0]):  # the view weighs nothing here (no texture, no flow)
             return features, obs, surface
-        options = self.options
         tried = [(np.zeros(2, np.int64), features, obs, surface)]
         for step in _ONE_DOT:
-            keep = reference.lit_at(features.ij + step)
-            if keep.sum() < MIN_SHIFT_KEEP * len(keep):
+            with timings("surface"):
+                built = shifted_surface(features, step, reference, cal, self.options)
+            if built is None:
                 continue
-            other = shifted(features, step, keep)
-            other_obs = cal.observe(other.ij, other.spot_px,
-                                    flat_referenced=options.flat_referenced)
-            try:
-                with timings("surface"):
-                    other_surface = estimate_surface(other_obs, cal, options)
-            except RestorationFailed:
-                continue
-            tried.append((step, other, other_obs, other_surface))
-            misses.append(miss_of(other_obs, other_surface))
+            tried.append((step, *built))
+            misses.append(miss_of(built[1], built[2]))
         best = int(np.argmin(misses))
         rest = np.delete(np.asarray(misses), best)
         if not (len(rest) and misses[best] <= VIEW_MAX_RESIDUAL_PX
