@@ -4,6 +4,8 @@ slow tier."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from wai.experiments import EXPERIMENTS
@@ -53,3 +55,13 @@ def test_every_experiment_runs_quick_from_a_plain_install(installed, name):
         # --first-seed and --condition: only seed 1's speckle case, and the report says so
         assert [c.name for c in cases] == ["U1_seed001_speckle_3f"]
         assert "--first-seed 1 --condition speckle" in report.read_text()
+        # Frames by condition: counted from each frame's status, they agree with the
+        # methods' ok counts; the speckle object is a baseline, compared with nothing.
+        summary = json.loads((installed.elsewhere / name / "compare_summary.json").read_text())
+        counted = {e["method"]: e for e in summary["conditions"]}
+        surfaces = [m for m in summary["methods"] if m.get("rmse_mm") is not None]
+        assert surfaces and all(counted[m["method"]]["ok"] == m["frames_ok"]
+                                and counted[m["method"]]["frames"] == m["frames"] == 3
+                                and counted[m["method"]]["ok_within"] is None
+                                for m in surfaces)
+        assert "## Frames by condition" in report.read_text()

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from wai.experiments.compare_frames import by_condition, condition_report, frame_columns
 from wai.experiments.outputs import output_folder, publish, sweep_command, sweep_rows
 from wai.sweep import SweepOptions, is_error
 from wai_core.config import with_keys
@@ -196,7 +197,7 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
     for k, frame in enumerate(seq.frame_dirs):
         done = restore_frame(frame, cal, method, track, flat_from=[folder])
         res, m = done.result, done.metrics
-        row = {"ok": res.ok, "ms": res.timings_ms.get("end_to_end")}
+        row = {"ok": res.ok, "status": str(res.status), "ms": res.timings_ms.get("end_to_end")}
         if res.has_view:
             row.update(_rig(res.view.image, res.view.valid, cal))
             if k in gridded:
@@ -215,7 +216,8 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
     return {**mean, "ms_per_frame": float(np.median([r["ms"] for r in rows if r["ms"]])),
             "frames_needed": 1, "frames_ok": sum(r["ok"] for r in rows),
             "frames_ok_wrong": _ok_but_wrong(rows), "frames": len(rows),
-            "method_name": method.name}
+            "method_name": method.name,
+            **frame_columns([r["status"] for r in rows], [r.get("rmse_mm") for r in rows])}
 
 
 def _ok_but_wrong(rows: list[dict[str, Any]]) -> int | None:
@@ -378,7 +380,8 @@ def case_agreement(rows: list[dict[str, Any]]) -> list[float | None]:
 
 
 def report(summary: list[dict[str, Any]], command: str,
-           case_taus: list[float | None] | None = None) -> str:
+           case_taus: list[float | None] | None = None,
+           conditions: list[dict[str, Any]] | None = None) -> str:
     def f(v: Any, spec: str) -> str:
         return "-" if v is None else format(v, spec)
 
@@ -434,6 +437,7 @@ def report(summary: list[dict[str, Any]], command: str,
     if case_taus:
         each = ", ".join("-" if t is None else f"{t:.2f}" for t in case_taus)
         lines.append(f"Within each case: tau = {each}.")
+    lines += condition_report(conditions or [])
     return "\n".join(lines) + "\n"
 
 
@@ -487,12 +491,13 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
         command += f" --first-seed {first_seed}"
     command += "".join(f" --condition {c}" for c in dict.fromkeys(conditions or []))
     case_taus = case_agreement(rows)
-    text = report(summary, command, case_taus)
+    by_case = by_condition(rows, DEGRADATIONS)
+    text = report(summary, command, case_taus, by_case)
     tau, _ = rank_agreement(summary)
     write_json(out / "compare_summary.json",
                {"command": command, "methods": summary, "kendall_tau_grid_corner_std": tau,
                 "kendall_tau_rig_corner_std": rank_agreement(summary, "rig_px")[0],
-                "kendall_tau_per_case": case_taus})
+                "kendall_tau_per_case": case_taus, "conditions": by_case})
     _figure(summary, out / "compare.png")
     publish(out / "compare.md", text)
     return summary

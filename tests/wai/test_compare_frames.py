@@ -1,0 +1,72 @@
+"""Compare's frames by condition: statuses and surface errors frame by frame, each frame
+against the same frame without the condition's effect."""
+
+from __future__ import annotations
+
+import pytest
+
+from wai.experiments.compare import DEGRADATIONS, report
+from wai.experiments.compare_frames import ADDED_MM, by_condition, frame_columns
+
+
+def _row(degradation, statuses, rmse, method="sl", seed=0, **extra):
+    return {"wind": 1.0, "seed": seed, "method": method, "degradation": degradation,
+            "case_frames": len(statuses), **frame_columns(statuses, rmse), **extra}
+
+
+def test_a_frame_counts_within_the_bar_only_against_its_own_baseline_frame():
+    """Frame k under roughness is judged against frame k of the speckle case of the same seed
+    and method: ok and within ADDED_MM of it counts, ok past it or not ok does not, and a
+    frame whose baseline has no surface is not compared."""
+    base = [0.010, 0.200, 0.010, None]
+    rough = [0.010 + ADDED_MM * 0.9,   # ok, within: counts
+             0.200 + ADDED_MM * 0.5,   # ok, within its own (large) baseline: counts
+             0.010 + ADDED_MM * 1.1,   # ok, past the bar
+             0.030]                    # ok, but its baseline frame has no surface
+    rows = [_row("speckle", ["ok", "ok", "ok", "failed"], base),
+            _row("rough_0.01", ["ok", "ok", "ok", "ok"], rough),
+            # Another seed's baseline is not this seed's: its frames are all far off.
+            _row("speckle", ["ok"] * 4, [5.0] * 4, seed=1),
+            _row("rough_0.01", ["ok", "sparse", "ok", "ok"], [5.01, 9.0, 5.2, 5.0], seed=1)]
+    got = {(e["condition"], e["method"]): e for e in by_condition(rows, DEGRADATIONS)}
+    rough_entry = got["rough_0.01", "sl"]
+    assert rough_entry["baseline"] == "speckle"
+    assert (rough_entry["frames"], rough_entry["ok"]) == (8, 7)
+    assert rough_entry["compared"] == 3 + 4
+    assert rough_entry["ok_within"] == 2 + 2  # seed 1: frames 0 and 3
+    assert rough_entry["ok_share"] == pytest.approx(7 / 8)
+    speckle = got["speckle", "sl"]
+    assert speckle["baseline"] is None and speckle["ok_within"] is None
+    assert (speckle["frames"], speckle["ok"]) == (8, 7)
+
+
+def test_conditions_that_change_the_waves_or_have_no_surface_are_not_compared():
+    rows = [_row("speckle", ["ok", "ok"], [0.01, 0.01]),
+            _row("capillary_5", ["ok", "ok"], [0.02, 0.02]),
+            _row("sensor", ["ok", "ok"], [0.02, 0.02]),
+            _row("none", ["ok", "ok"], [0.01, 0.3]),
+            # A video method's row: no frames of its own; a table written before the columns.
+            {"wind": 1.0, "seed": 0, "method": "mean", "degradation": "speckle"},
+            {"wind": "1.0", "seed": "0", "method": "old", "degradation": "speckle",
+             "frame_statuses": "", "frame_rmse_mm": ""}]
+    got = {(e["condition"], e["method"]): e for e in by_condition(rows, DEGRADATIONS)}
+    assert set(got) == {("speckle", "sl"), ("capillary_5", "sl"), ("sensor", "sl"),
+                        ("none", "sl")}
+    assert got["capillary_5", "sl"]["baseline"] is None
+    # Sensor noise is seen on the checkerboard: its baseline is the plain scene.
+    assert got["sensor", "sl"]["baseline"] == "none"
+    assert (got["sensor", "sl"]["compared"], got["sensor", "sl"]["ok_within"]) == (2, 2)
+    # Read back from a CSV the keys are strings: the same frames match.
+    as_text = [{k: str(v) for k, v in r.items()} for r in rows[2:4]]
+    again = {e["condition"]: e for e in by_condition(as_text, DEGRADATIONS)}
+    assert again["sensor"]["ok_within"] == 2
+
+
+def test_the_report_gives_the_frames_by_condition():
+    rows = [_row("speckle", ["ok", "ok"], [0.01, 0.01]),
+            _row("rough_0.01", ["ok", "sparse"], [0.02, 0.5])]
+    text = report([], "wai experiment compare", None, by_condition(rows, DEGRADATIONS))
+    line = next(x for x in text.splitlines() if x.startswith("| rough_0.01 | sl |"))
+    assert "| 1 / 2 | 50% | 1 / 2 | speckle |" in line
+    assert "## Frames by condition" in text
+    assert "Frames by condition" not in report([], "wai experiment compare")
