@@ -72,6 +72,7 @@ from wai_core.config import SensorConfig, SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import write_json
 from wai_core.outputs import atomic_dir, check_output_dir
+from wai_core.rig import DEVICES
 from wai_core.rig_checks import check_surface_in_rig
 from wai_core.signals import raise_if_interrupted
 from wai_core.timings import Timings
@@ -170,8 +171,9 @@ class FrameRenderer:
 
     def __post_init__(self) -> None:
         self.variant = select_variant()
-        # A rough surface's BSDF has one index: sea water's three are rendered one channel at
-        # a time, each by a renderer of its own (three times the cost, only then).
+        # A rough surface's BSDF, and a housing port's water side, have one index: sea water's
+        # three are rendered one channel at a time, each by a renderer of its own (three times
+        # the cost, only then).
         self._channels = channel_renderers(self.cfg, self.grid, self.texture, self.systems,
                                            self.flat_only)
         if self._channels:
@@ -396,9 +398,13 @@ def channel_renderers(cfg: SystemConfig, grid: Heightfield, texture: NDArray | N
                       systems: tuple[str, ...],
                       flat_only: bool = False) -> tuple[FrameRenderer, ...]:
     """Three renderers, one per colour channel with that channel's index of sea water, where
-    a rough surface (one scalar index) meets ``index_model = "quan_fry"``; none otherwise."""
+    ``index_model = "quan_fry"`` meets a rough surface or a housing port (each takes one
+    scalar index: a port's refraction into the water follows the channel's, 0.006 apart
+    across them); none otherwise."""
     w = cfg.water
-    if not (w.roughness > 0 and w.index_model == "quan_fry"):
+    ported = any(cfg.rig.optics(name).has_port for name in DEVICES
+                 if getattr(cfg, name) is not None)
+    if not ((w.roughness > 0 or ported) and w.index_model == "quan_fry"):
         return ()
     return tuple(
         FrameRenderer(cfg.replace("water", index_model="constant", n_water=float(n)), grid,

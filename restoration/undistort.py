@@ -24,6 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from wai_core.distortion import distort, distortion_one_to_one
 from wai_core.lens import DeviceOptics
+from wai_core.optics import pattern_index
 
 __all__ = ["PinholeRemap", "diffuser_pinhole_px"]
 
@@ -120,4 +121,4 @@ def diffuser_pinhole_px(cfg: Any, px: ArrayLike) -> NDArray:
     array([[399.5, 299.5]])
     """
     return cfg.rig.optics("camera_s").plane_pinhole_px(px, float(cfg.diffuser.z_mm),
-                                                        float(cfg.water.n_water))
+                                                        pattern_index(cfg))

@@ -67,8 +67,20 @@ __all__ = [
 Array = NDArray[np.float64]
 
 CLIP_PX = 2.0
-"""A sample's view residual counts up to this (flat-water px): a line of sight that meets the
-object far from its flow point (a flow error, a patch edge) weighs no more than one this far."""
+"""A sample's view residual counts up to this (flat-water px) while the level is searched: a
+line of sight that meets the object far from its flow point (a flow error, a patch edge)
+weighs no more than one this far."""
+FINE_CLIP_TIMES = 3.0
+"""Once found, the level is found again with each residual clipped at this many times the
+samples' median residual at it (within :data:`FINE_CLIP_MIN_PX` and :data:`CLIP_PX`): the
+frame's own flow noise sets what an outlier is. A few flow errors within 2 px weigh as much
+as hundreds of samples at the noise's 0.1-0.3 px and pull the level with them; on rough
+water, where the blurred view keeps flows the smooth one rejects, they moved it 0.03-0.1 mm
+(docs/results.md, "The level's outliers")."""
+FINE_CLIP_MIN_PX = 0.5
+"""The fine clip's floor (px): the residual of a right surface's samples is rarely below a
+few tenths of a pixel (the flow's noise), and a clip near it would weigh the noise's own
+tail as outliers."""
 PROBE_MM = 0.3
 """First probes' distance either side of the integrability level, mm."""
 MAX_PROBES = 9
@@ -284,19 +296,25 @@ def find_view_level(rebuild: Callable[[float], SurfaceEstimate], start_mm: float
 
     for level in (start_mm - PROBE_MM, start_mm, start_mm + PROBE_MM):
         probe(level)
+    clip, fine = CLIP_PX, False
     while True:
         levels = np.array(sorted(residuals))
         stack = np.array([residuals[a] for a in levels])
         inside = np.isfinite(stack).all(axis=0)
         if inside.sum() < N_SETS * 8:
             return None
-        cost = np.mean(np.minimum(stack[:, inside], CLIP_PX) ** 2, axis=1)
+        cost = np.mean(np.minimum(stack[:, inside], clip) ** 2, axis=1)
         best = int(np.argmin(cost))
         near = slice(max(best - 1, 0), min(best + 2, len(levels)))
         vertex = _vertex(levels[near], cost[near]) if cost[near].size == 3 else None
         if vertex is None:  # the minimum at the probes' edge: step out
             vertex = levels[best] + (PROBE_MM if best == len(levels) - 1 else -PROBE_MM)
-        if np.abs(levels - vertex).min() < VERTEX_TOL_MM or len(levels) >= MAX_PROBES:
+        settled = np.abs(levels - vertex).min() < VERTEX_TOL_MM
+        if settled and not fine:  # found: the frame's own noise now sets the clip
+            noise = float(np.median(stack[best, inside]))
+            clip, fine = float(np.clip(FINE_CLIP_TIMES * noise, FINE_CLIP_MIN_PX, CLIP_PX)), True
+            continue
+        if settled or len(levels) >= MAX_PROBES:
             break
         probe(float(np.clip(vertex, levels[0] - PROBE_MM, levels[-1] + PROBE_MM)))
     if best in (0, len(levels) - 1):
@@ -305,7 +323,7 @@ def find_view_level(rebuild: Callable[[float], SurfaceEstimate], start_mm: float
     if level is None:
         return None
     # Each interleaved set's own vertex over the same three probes: their spread.
-    clipped = np.minimum(stack[near][:, inside], CLIP_PX) ** 2
+    clipped = np.minimum(stack[near][:, inside], clip) ** 2
     sets = samples.sets[inside]
     own = [_vertex(levels[near], clipped[:, sets == k].mean(axis=1)) for k in range(N_SETS)
            if np.any(sets == k)]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -209,3 +210,29 @@ def channel_indices(salinity_psu: float, temperature_c: float) -> tuple[float, f
     """
     n = quan_fry_index(salinity_psu, temperature_c, np.array(CHANNEL_WAVELENGTHS_NM))
     return float(n[0]), float(n[1]), float(n[2])
+
+
+def pattern_index(cfg: Any) -> float:
+    """The water's index for the pattern's light, where it meets a housing port (camera s's,
+    the projector's): ``[water] n_water``, or for sea water (``index_model = "quan_fry"``) the
+    channels' indices (:func:`channel_indices`) weighted by the pattern's colour, as the
+    detector sums the channels (blue-green: 1.3437 at 35 PSU and 15 degrees C, where a port
+    modelled at 4/3 moved the level by 0.13 mm; docs/results.md, "The whole real rig").
+
+    Examples
+    --------
+    >>> from wai_core import load_system, with_keys
+    >>> cfg = load_system("paper")
+    >>> pattern_index(cfg) == cfg.water.n_water
+    True
+    >>> sea = with_keys(cfg, {"water.index_model": "quan_fry", "water.salinity_psu": 35.0,
+    ...                       "water.temperature_c": 15.0})
+    >>> round(pattern_index(sea), 4)
+    1.3437
+    """
+    w = cfg.water
+    if w.index_model != "quan_fry":
+        return float(w.n_water)
+    colour = np.asarray(cfg.pattern.color, dtype=float)
+    n = np.asarray(channel_indices(w.salinity_psu, w.temperature_c))
+    return float(np.dot(colour, n) / colour.sum())

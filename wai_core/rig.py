@@ -100,10 +100,14 @@ class Rig:
 
     @cached_property
     def _models(self) -> dict[str, PinholeCamera | PortCamera]:
+        from wai_core.optics import pattern_index
         from wai_core.port import camera_model
 
+        # Camera s and the projector see the pattern's light, camera v the object's.
         n_water = float(self.cfg.water.n_water)
-        return {name: camera_model(optics, n_water) for name, optics in self._optics.items()}
+        n_pattern = pattern_index(self.cfg)
+        return {name: camera_model(optics, n_water if name == "camera_v" else n_pattern)
+                for name, optics in self._optics.items()}
 
     def camera_model(self, name: str) -> PinholeCamera | PortCamera:
         """Device ``name`` as the restoration models it once its lens is undone (images and
