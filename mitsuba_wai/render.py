@@ -171,9 +171,8 @@ class FrameRenderer:
 
     def __post_init__(self) -> None:
         self.variant = select_variant()
-        # A rough surface's BSDF, and a housing port's water side, have one index: sea water's
-        # three are rendered one channel at a time, each by a renderer of its own (three times
-        # the cost, only then).
+        # A rough BSDF or a port takes one index: sea water's three are rendered one channel
+        # at a time, each by a renderer of its own (three times the cost, only then).
         self._channels = channel_renderers(self.cfg, self.grid, self.texture, self.systems,
                                            self.flat_only)
         if self._channels:
@@ -399,8 +398,7 @@ def channel_renderers(cfg: SystemConfig, grid: Heightfield, texture: NDArray | N
                       flat_only: bool = False) -> tuple[FrameRenderer, ...]:
     """Three renderers, one per colour channel with that channel's index of sea water, where
     ``index_model = "quan_fry"`` meets a rough surface or a housing port (each takes one
-    scalar index: a port's refraction into the water follows the channel's, 0.006 apart
-    across them); none otherwise."""
+    index: 0.006 apart across the channels); none otherwise."""
     w = cfg.water
     ported = any(cfg.rig.optics(name).has_port for name in DEVICES
                  if getattr(cfg, name) is not None)

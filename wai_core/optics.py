@@ -216,7 +216,7 @@ def pattern_index(cfg: Any) -> float:
     """The water's index for the pattern's light, where it meets a housing port (camera s's,
     the projector's): ``[water] n_water``, or for sea water (``index_model = "quan_fry"``) the
     channels' indices (:func:`channel_indices`) weighted by the pattern's colour, as the
-    detector sums the channels (blue-green: 1.3437 at 35 PSU and 15 degrees C, where a port
+    detector sums the channels (blue-green: 1.3441 at 35 PSU and 15 degrees C, where a port
     modelled at 4/3 moved the level by 0.13 mm; docs/results.md, "The whole real rig").
 
     Examples
@@ -228,7 +228,7 @@ def pattern_index(cfg: Any) -> float:
     >>> sea = with_keys(cfg, {"water.index_model": "quan_fry", "water.salinity_psu": 35.0,
     ...                       "water.temperature_c": 15.0})
     >>> round(pattern_index(sea), 4)
-    1.3437
+    1.3441
     """
     w = cfg.water
     if w.index_model != "quan_fry":
