@@ -42,6 +42,7 @@ from restoration.options import InverseRenderingOptions, StructuredLightOptions
 from restoration.pattern_model import DotParticles, PatternModel, Raster, Traced
 from restoration.result import RestoreResult, Status
 from restoration.structured_light import StructuredLight
+from wai_core.optics import pattern_index
 from wai_core.timings import Timings
 
 __all__ = ["METHOD", "PatternFit", "fit_pattern", "restore_inverse_rendering"]
@@ -316,7 +317,7 @@ def restore_inverse_rendering(
                                 FIT_SMOOTHNESS)
         fit = fit_pattern(pattern, spline, model, blur_px=options.blur_px,
                           passes=options.passes, iterations=options.iterations,
-                          n_water=float(cal.cfg.water.n_water) if options.fresnel else None)
+                          n_water=pattern_index(cal.cfg) if options.fresnel else None)
         z, zx, zy = fit.spline.evaluate(xy[:, 0], xy[:, 1])[:3]
         keep = np.isfinite(z)
         points = np.column_stack([xy, np.where(keep, z, surface.points_mm[:, 2])])

@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 from restoration.fit import SMOOTHNESS, BSplineSurface, hits, knot_step, spline_through
 from restoration.pattern_model import dot_quadrature, facet_light, ggx_facet_slopes
 from wai_core.light_paths import dot_rays, real_spot_px, spots_from_hits
+from wai_core.optics import pattern_index
 
 __all__ = ["SpotBiasModel", "spot_bias_px", "spot_correction_px"]
 
@@ -67,16 +68,18 @@ class SpotBiasModel:
     window: float = 1.75
 
     @classmethod
-    def of_water(cls, water: Any) -> SpotBiasModel:
-        """The model of a scene's ``[water]`` (its roughness and index).
+    def of_scene(cls, cfg: Any) -> SpotBiasModel:
+        """The model of a scene: its water's roughness, and the index the pattern's light
+        meets at the surface (:func:`wai_core.optics.pattern_index`: ``[water] n_water``, or
+        sea water's at the pattern's colour).
 
         Examples
         --------
         >>> from wai_core import load_system
-        >>> SpotBiasModel.of_water(load_system("paper").water).roughness
+        >>> SpotBiasModel.of_scene(load_system("paper")).roughness
         0.0
         """
-        return cls(roughness=float(water.roughness), n_water=float(water.n_water))
+        return cls(roughness=float(cfg.water.roughness), n_water=pattern_index(cfg))
 
 
 def spot_bias_px(rig: Any, panel_px: Array, surface: BSplineSurface | None, level_mm: float,

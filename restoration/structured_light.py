@@ -470,7 +470,7 @@ class StructuredLight:
         if self.options.spot_bias:
             with timings("spot_bias"):
                 spots = spots - spot_correction_px(cal, features.ij, surface,
-                                                   SpotBiasModel.of_water(cal.cfg.water))
+                                                   SpotBiasModel.of_scene(cal.cfg))
         return cal.observe(features.ij, spots, flat_referenced=self.options.flat_referenced)
 
     def _pin_labels(self, features: Matches, obs: Observations, surface: SurfaceEstimate,

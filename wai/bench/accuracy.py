@@ -84,7 +84,7 @@ def _surface_variant(
         t_first = time.perf_counter()
         est = estimate_surface(cal.observe(features.ij, spots), cal, options)
         spots = spots - spot_correction_px(cal, features.ij, est,
-                                           SpotBiasModel.of_water(cfg.water))
+                                           SpotBiasModel.of_scene(cfg))
         extra_ms = 1e3 * (time.perf_counter() - t_first)
     elif name == "oracle_anchor":
         # The gauge reading replaced by the truth's mean height over the samples.
