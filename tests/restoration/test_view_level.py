@@ -133,3 +133,36 @@ def test_the_flat_view_says_where_the_flow_cannot_follow(frames, monkeypatch):
         assert flows == expected, name
         assert samples.served == (name == "rough")
         assert (samples.textured_share is None) == (name == "rough")
+
+
+def test_a_few_flow_errors_do_not_pull_the_level(monkeypatch):
+    """Residuals whose truth is known: 2000 samples meet their flow points at level 0 (0.1 px
+    of noise, each moving 0.5-1.5 px per mm of level), 5 % are flow errors that would meet
+    theirs 0.4 mm higher and miss by 1-1.6 px at level 0, inside the search's 2 px clip. Clipped
+    at the frame's own noise once found, the level is the samples', not the errors'."""
+    import numpy as np
+
+    from restoration import view_level
+    from restoration.view_level import ViewSamples, find_view_level
+
+    rng = np.random.default_rng(5)
+    k, bad = 2000, 100
+    gain = rng.uniform(0.5, 1.5, k)
+    gain[:bad] = 3.0
+    noise = np.abs(rng.normal(0.0, 0.1, k))
+    noise[:bad] = 1.0
+    at = np.zeros(k)
+    at[:bad] = 0.4
+
+    def residual(level, samples, cal):
+        return np.hypot(gain * (level - at), noise)
+
+    monkeypatch.setattr(view_level, "view_residual_px", residual)
+    samples = ViewSamples(np.zeros((k, 2)), np.zeros((k, 3)), np.ones(k),
+                          np.arange(k) % view_level.N_SETS, {})
+    found = find_view_level(lambda level: level, 0.05, samples, None)
+    assert abs(found.anchor_mm) < 0.01, found.anchor_mm
+    # The errors' own pull, under the 2 px clip alone: what the fine clip removes.
+    monkeypatch.setattr(view_level, "FINE_CLIP_MIN_PX", view_level.CLIP_PX)
+    pulled = find_view_level(lambda level: level, 0.05, samples, None)
+    assert pulled.anchor_mm > 0.05, pulled.anchor_mm
