@@ -72,7 +72,6 @@ from wai_core.config import SensorConfig, SystemConfig
 from wai_core.heightfield import Heightfield
 from wai_core.io import write_json
 from wai_core.outputs import atomic_dir, check_output_dir
-from wai_core.rig import DEVICES
 from wai_core.rig_checks import check_surface_in_rig
 from wai_core.signals import raise_if_interrupted
 from wai_core.timings import Timings
@@ -400,9 +399,7 @@ def channel_renderers(cfg: SystemConfig, grid: Heightfield, texture: NDArray | N
     ``index_model = "quan_fry"`` meets a rough surface or a housing port (each takes one
     index: 0.006 apart across the channels); none otherwise."""
     w = cfg.water
-    ported = any(cfg.rig.optics(name).has_port for name in DEVICES
-                 if getattr(cfg, name) is not None)
-    if not ((w.roughness > 0 or ported) and w.index_model == "quan_fry"):
+    if not ((w.roughness > 0 or cfg.rig.ported) and w.index_model == "quan_fry"):
         return ()
     return tuple(
         FrameRenderer(cfg.replace("water", index_model="constant", n_water=float(n)), grid,

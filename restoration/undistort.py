@@ -24,7 +24,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from wai_core.distortion import distort, distortion_one_to_one
 from wai_core.lens import DeviceOptics
-from wai_core.optics import pattern_index
 
 __all__ = ["PinholeRemap", "diffuser_pinhole_px"]
 
@@ -121,4 +120,4 @@ def diffuser_pinhole_px(cfg: Any, px: ArrayLike) -> NDArray:
     array([[399.5, 299.5]])
     """
     return cfg.rig.optics("camera_s").plane_pinhole_px(px, float(cfg.diffuser.z_mm),
-                                                        pattern_index(cfg))
+                                                        cfg.rig.port_index("camera_s"))

@@ -32,7 +32,6 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from wai_core.geometry import PinholeCamera, intersect_plane_z, reflect
-from wai_core.optics import pattern_index
 
 if TYPE_CHECKING:
     from wai_core.heightfield import Heightfield
@@ -79,7 +78,7 @@ def dot_rays(rig: Any, panel_px: ArrayLike) -> tuple[Array, Array]:
     optics = rig.optics("projector")
     if optics.has_port:
         px = np.asarray(panel_px, dtype=float)
-        return optics.pixel_rays(px[:, 0], px[:, 1], pattern_index(rig.cfg))
+        return optics.pixel_rays(px[:, 0], px[:, 1], rig.port_index("projector"))
     px = optics.pinhole_px(np.asarray(panel_px, dtype=float))
     return rig.projector.pixel_rays(px[:, 0], px[:, 1])
 
@@ -155,7 +154,7 @@ def real_spot_px(rig: Any, pinhole_px: ArrayLike) -> Array:
         return px
     o, d = rig.camera_s.pixel_rays(px[:, 0], px[:, 1])
     points, _ = intersect_plane_z(o, d, float(rig.cfg.diffuser.z_mm))
-    cols, rows, valid = optics.project(points, pattern_index(rig.cfg))
+    cols, rows, valid = optics.project(points, rig.port_index("camera_s"))
     out = np.column_stack([cols, rows])
     out[~valid] = np.nan
     return out

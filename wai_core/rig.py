@@ -99,14 +99,36 @@ class Rig:
         return self._optics[name]
 
     @cached_property
-    def _models(self) -> dict[str, PinholeCamera | PortCamera]:
+    def ported(self) -> bool:
+        """Whether any device sits behind a housing port."""
+        return any(optics.has_port for optics in self._optics.values())
+
+    @cached_property
+    def _port_indices(self) -> dict[str, float]:
         from wai_core.optics import pattern_index
+
+        n_pattern = pattern_index(self.cfg)
+        return {name: float(self.cfg.water.n_water) if name == "camera_v" else n_pattern
+                for name in DEVICES}
+
+    def port_index(self, name: str) -> float:
+        """The water's index where device ``name``'s rays cross its port: camera s's and the
+        projector's carry the pattern's light (:func:`wai_core.optics.pattern_index`), camera
+        v's the object's (``[water] n_water``; the restoration's view takes each channel's).
+
+        Examples
+        --------
+        >>> from wai_core import load_system
+        >>> load_system("paper").rig.port_index("camera_s")
+        1.3333333333
+        """
+        return self._port_indices[name]
+
+    @cached_property
+    def _models(self) -> dict[str, PinholeCamera | PortCamera]:
         from wai_core.port import camera_model
 
-        # Camera s and the projector see the pattern's light, camera v the object's.
-        n_water = float(self.cfg.water.n_water)
-        n_pattern = pattern_index(self.cfg)
-        return {name: camera_model(optics, n_water if name == "camera_v" else n_pattern)
+        return {name: camera_model(optics, self.port_index(name))
                 for name, optics in self._optics.items()}
 
     def camera_model(self, name: str) -> PinholeCamera | PortCamera:
