@@ -3,7 +3,7 @@ statuses: :mod:`restoration.result`)."""
 
 from __future__ import annotations
 
-from restoration.consistency import TAIL_FACTOR, Consistency
+from restoration.consistency import TAIL_FACTOR, TAIL_NEIGHBOURS, Consistency
 from restoration.features import Matches, ReferenceGrid
 from restoration.features.match import MAX_LABEL_SHIFT
 from restoration.options import StructuredLightOptions
@@ -75,16 +75,17 @@ def frame_status(
             f"the surface misses the detected spots by {check.median_px:.2f} px (median; "
             f"threshold {check.threshold_px:.2f} px)"
         )
-    if not check.tail_consistent:
-        return Status.INCONSISTENT, (
-            f"the surface misses a twentieth of the detected spots by {check.p95_px:.2f} px or "
-            f"more (95th percentile; more than {TAIL_FACTOR:g}x the threshold "
-            f"{check.threshold_px:.2f} px): it is wrong in a part"
-        )
     if check.gross.any():
         return Status.INCONSISTENT, (
             f"the surface misses {check.where_gross()} by more than {check.gross_px:.1f} px "
             "(a fifth of the dot spacing): it is wrong there"
+        )
+    if not check.tail_consistent:
+        return Status.INCONSISTENT, (
+            f"the surface misses the spots of a part of it: a twentieth of the detected spots "
+            f"and their {TAIL_NEIGHBOURS} nearest are missed by {check.local_p95_px:.2f} px or "
+            f"more (median of each neighbourhood, 95th percentile; more than {TAIL_FACTOR:g}x "
+            f"the threshold {check.threshold_px:.2f} px): it is wrong in a part"
         )
     view_px, view_p90 = surface.anchor.view_residual_px, surface.anchor.view_residual_p90_px
     if view_px is not None and view_px > VIEW_MAX_RESIDUAL_PX:

@@ -44,7 +44,7 @@ def _status(n_matched, ambiguous, observed=1000, in_view=1000, median_px=0.2, rm
                                 rms_px=rms_px, median_spacing_px=13.0)
     surface = SimpleNamespace(anchor=Anchor("integrability", sigma_mm=level_sigma_mm))
     check = SimpleNamespace(consistent=median_px <= 1.0, median_px=median_px, threshold_px=1.0,
-                            p95_px=p95_px, tail_consistent=p95_px <= 2.0,
+                            p95_px=p95_px, local_p95_px=p95_px, tail_consistent=p95_px <= 2.0,
                             gross=np.zeros(3, bool))
     return frame_status(features, reference, surface, check, True, StructuredLightOptions(),
                         MM_PER_PX)
@@ -71,20 +71,37 @@ def test_a_small_patch_with_pinned_labels_is_judged_by_its_consistency(n_matched
 
 def test_a_frame_wrong_in_a_part_is_inconsistent_though_its_median_fits():
     # A patch of shifted labels that the rest of the frame outvotes: the median residual
-    # within the threshold, the 95th percentile past twice it.
+    # within the threshold, the patch's spots missed together.
     assert _status(800, ambiguous=True, median_px=0.3, p95_px=1.9)[0] == "ok"
     status, message = _status(800, ambiguous=True, median_px=0.3, p95_px=2.6)
-    assert status == "inconsistent" and "95th percentile" in message
+    assert status == "inconsistent" and "a part" in message
 
 
-def test_the_tail_rule_reads_the_consistency_s_own_figures():
-    from restoration.consistency import TAIL_FACTOR, Consistency
+def _grid_check(residual_px):
+    from restoration.consistency import Consistency
 
-    def check(p95):
-        return Consistency(np.zeros(3), 0.1, p95, 0.3, 3, None, np.zeros((3, 2)))
+    xy = np.stack(np.meshgrid(np.arange(30.0), np.arange(30.0)), axis=-1).reshape(-1, 2)
+    r = np.asarray(residual_px, float)
+    return Consistency(r, float(np.median(r)), float(np.percentile(r, 95)), 0.3, r.size, None,
+                       xy)
 
-    assert check(0.99 * TAIL_FACTOR * 0.3).tail_consistent
-    assert not check(1.01 * TAIL_FACTOR * 0.3).tail_consistent
+
+def test_the_tail_rule_flags_spots_missed_together_not_one_by_one():
+    from restoration.consistency import TAIL_FACTOR
+
+    rng = np.random.default_rng(3)
+    base = rng.uniform(0.0, 0.15, 900)
+    # Rough water: one spot in twelve far off (three times the threshold), each alone.
+    scattered = base.copy()
+    scattered[rng.permutation(900)[:75]] = 0.9
+    assert _grid_check(scattered).p95_px > 2.0 * 0.3  # the spots' own tail passes it
+    assert _grid_check(scattered).tail_consistent
+    # A wrong part: a block of 64 spots (7 %) missed together, just past and just within.
+    block = np.zeros((30, 30), bool)
+    block[:8, :8] = True
+    for factor, consistent in ((1.02, False), (0.98, True)):
+        patch = np.where(block.ravel(), factor * TAIL_FACTOR * 0.3, base)
+        assert _grid_check(patch).tail_consistent is consistent
 
 
 def test_a_loosely_pinned_level_is_uncertain():
