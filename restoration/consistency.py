@@ -135,9 +135,10 @@ class Consistency:
     @cached_property
     def local_p95_px(self) -> float:
         """The 95th percentile of the samples' local residuals (each the median of its own
-        and its :data:`TAIL_NEIGHBOURS` nearest samples' residuals in ``xy_mm``), px; 0 when
-        fewer than a neighbourhood's majority of samples pass :data:`TAIL_FACTOR` times the
-        threshold (then no local residual can), NaN with fewer samples than a neighbourhood.
+        and its :data:`TAIL_NEIGHBOURS` nearest samples' residuals in ``xy_mm``), px. NaN
+        (not worked out) where fewer samples than a neighbourhood's majority pass
+        :data:`TAIL_FACTOR` times the threshold, so that no local residual can, and with fewer
+        samples than a neighbourhood.
 
         Examples
         --------
@@ -157,7 +158,7 @@ class Consistency:
             return float("nan")
         residual = self.residual_px[finite]
         if np.count_nonzero(residual > TAIL_FACTOR * self.threshold_px) < k // 2 + 1:
-            return 0.0
+            return float("nan")
         xy = self.xy_mm[finite]
         _, nearest = cKDTree(xy).query(xy, k=k)
         return float(np.percentile(np.median(residual[nearest], axis=1), 95))
