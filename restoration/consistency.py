@@ -192,13 +192,14 @@ class Consistency:
 
     def summary(self) -> dict[str, Any]:
         """Plain values for ``metrics.json`` (``residual_local_p95_px``: the tail rule's figure,
-        :attr:`local_p95_px`; ``confident_fraction``: of the samples, those whose residual is
-        within the threshold)."""
+        :attr:`local_p95_px`, None where not worked out; ``confident_fraction``: of the
+        samples, those whose residual is within the threshold)."""
         finite = np.isfinite(self.residual_px)
         return {
             "residual_median_px": self.median_px,
             "residual_p95_px": self.p95_px,
-            "residual_local_p95_px": self.local_p95_px,
+            "residual_local_p95_px": (self.local_p95_px if np.isfinite(self.local_p95_px)
+                                      else None),
             "threshold_px": self.threshold_px,
             "consistent": self.consistent,
             "n_predicted": self.n_predicted,

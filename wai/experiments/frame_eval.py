@@ -62,7 +62,8 @@ otherwise the restoration's own truth-free status: ``sparse``, ``inconsistent``,
 ``gauge_level``, ``uncertain_level``, ``dark_view``, see :mod:`restoration.result`;
 ``method_status`` is that status alone, without the truth's ``wrong_labels``), the level and
 its standard error (``anchor_mm``, ``anchor_sigma_mm``), the forward-consistency residual
-(``residual_median_px``, ``residual_p95_px``, ``residual_threshold_px``), the
+(``residual_median_px``, ``residual_p95_px``, ``residual_threshold_px``, and the tail rule's
+``residual_local_p95_px``), the
 correspondence counts against the geometric model (``n_in_view``, ``n_matched``,
 ``n_correct``, ``fraction_correct`` of the dots in view, ``label_precision`` of the kept
 ones), eq. 35's effective slope amplitude ``phi_deg``, the
@@ -260,6 +261,7 @@ def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[s
         "refine_passes": result.surface.anchor.refine_passes,
         "residual_median_px": result.consistency.median_px,
         "residual_p95_px": result.consistency.p95_px,
+        "residual_local_p95_px": result.consistency.local_p95_px,
         "residual_threshold_px": result.consistency.threshold_px,
     }
 
