@@ -31,6 +31,7 @@ from mitsuba_wai.sequence import render_frames, render_sequence
 from mitsuba_wai.surface_sampling import file_surface, wave_grid_axes, wave_surface
 from mitsuba_wai.textures import object_texture
 from mitsuba_wai.variant import select_variant
+from mitsuba_wai.warp_trace import ViewWarpTracer
 from mitsuba_wai.waves import mesh_spacing_mm, sea_surface
 
 __all__ = [
@@ -39,6 +40,7 @@ __all__ = [
     "Frame",
     "FrameRenderer",
     "SunRenderer",
+    "ViewWarpTracer",
     "alterman_surface",
     "check_render_memory",
     "coefficients_per_mm",

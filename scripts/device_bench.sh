@@ -42,7 +42,7 @@ step() {  # step NAME LIMIT_S COMMAND...: run, keep its output and wall time
 : > "$out/steps.txt"
 export -f wai
 export py
-step tests 150 "$py" -m pytest -q -x -m "gpu or not slow" tests/test_gpu.py tests/mitsuba_wai/test_render.py tests/mitsuba_wai/test_lens.py
+step tests 150 "$py" -m pytest -q -x -m "gpu or not slow" tests/test_gpu.py tests/mitsuba_wai/test_render.py tests/mitsuba_wai/test_lens.py tests/mitsuba_wai/test_warp_trace.py
 step render 60 bash -c 'wai bench render --variant cuda_ad_rgb --runs 10 --json'
 rm -rf "$out/ds800" "$out/ds1600"
 step dataset_800x600 90 bash -c "wai dataset --frames 200 --size 800x600 --out '$out/ds800' --quiet"

@@ -110,7 +110,7 @@ class Heightfield:
         if ok.any():
             n = int(ok.sum())
             h, gx, gy = np.empty(n), np.empty(n), np.empty(n)
-            height_gradient(*self._compiled_spline(), np.ascontiguousarray(y[ok]),
+            height_gradient(*self.compiled_spline(), np.ascontiguousarray(y[ok]),
                             np.ascontiguousarray(x[ok]), h, gx, gy)
             for o, v in zip(out, (h, gx, gy), strict=True):
                 o[ok] = v
@@ -213,7 +213,7 @@ class Heightfield:
             p = np.empty_like(flat_d)
             n = np.empty_like(flat_d)
             valid = np.empty(flat_d.shape[0], dtype=bool)
-            intersect_rays(*self._compiled_spline(), flat_o, flat_d, z_ref, int(n_iter), tol,
+            intersect_rays(*self.compiled_spline(), flat_o, flat_d, z_ref, int(n_iter), tol,
                            p, n, valid)
             return p.reshape(d.shape), valid.reshape(d.shape[:-1]), n.reshape(d.shape)
         # With holes, each step's points are checked against them (:meth:`contains`).
@@ -236,7 +236,7 @@ class Heightfield:
         n[~valid] = np.nan
         return p, valid, n
 
-    def _compiled_spline(self) -> tuple[NDArray, ...]:
+    def compiled_spline(self) -> tuple[NDArray, ...]:
         """The spline's knots along y and x, their :func:`~wai_core._bispline.uniform_spans`
         and :func:`~wai_core._bispline.span_table`, and its coefficients (len(ty) - 4,
         len(tx) - 4), as the compiled kernels take them; worked out once per surface."""

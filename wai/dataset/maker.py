@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from wai.dataset.records import FrameRecord
 from wai.dataset.spec import DatasetSpec, flat_seed, frame_config, sample_params
-from wai.dataset.truth import true_view_warp
+from wai.dataset.truth import NEWTON_STEPS, true_view_warp
 from wai_core.config import SystemConfig
 from wai_core.heightfield import Heightfield
 
@@ -66,6 +66,7 @@ class FrameMaker:
         self._flat_kept: tuple | None = None  # the flat renders last converted, and the result
         cam = self.base.rig.camera_v  # the same rig every frame: its pixel rays once
         self._rays = cam.pixel_rays(*cam.pixel_grid())
+        self._tracer: Any = None  # the warp's tracer on the renderer's device, made on first use
 
     def surface(
         self, cfg: SystemConfig, time_s: float | None = None, level: int = 0
@@ -135,9 +136,8 @@ class FrameMaker:
         thread: idle ones would spin beside Dr.Jit's, and the sums are the same in any process.
 
         The truth (the exact warp and the normals, from the storage grid's surface) is worked
-        out on a second thread while the frame renders: the warp's compiled trace releases the
-        GIL, so host and renderer overlap (on a GPU, the host's share of a frame hides behind
-        the device's)."""
+        out on a second thread while the frame renders: the warp is traced by Dr.Jit on the
+        renderer's device (:class:`mitsuba_wai.ViewWarpTracer`), the normals on the host."""
         from concurrent.futures import ThreadPoolExecutor
 
         from threadpoolctl import threadpool_limits
@@ -146,7 +146,11 @@ class FrameMaker:
         geometry = frame_config(self.base, p)  # the warp needs the rig and the sea, no more
         with threadpool_limits(1, user_api="blas"), ThreadPoolExecutor(1) as pool:
             surf = self.surface(geometry)
-            truth = pool.submit(_truth, geometry, surf, self._rays)
+            if self._tracer is None:  # here: it sets the renders' variant when none is
+                from mitsuba_wai import ViewWarpTracer
+
+                self._tracer = ViewWarpTracer(self.base.rig, self._rays)
+            truth = pool.submit(self._truth, geometry, surf)
             _, _, images, gain = self.render(index, surf)
             normals, warp = truth.result()
             view_truth, pattern_flat = self._flat_record(images, gain)
@@ -160,6 +164,15 @@ class FrameMaker:
                 normals=normals,
                 warp_px=warp,
             )
+
+    def _truth(self, cfg: SystemConfig, surface: Heightfield) -> tuple[NDArray, NDArray]:
+        """The storage grid's unit normals (float32) and camera v's exact warp through
+        ``surface``: traced on the renderer's device (the CPU's compiled kernels, which give
+        the same warp to float32 rounding, where the surface has holes)."""
+        normals = surface.grid_normals().astype(np.float32)
+        if surface.has_holes:
+            return normals, true_view_warp(cfg, surface, self._rays)
+        return normals, self._tracer(cfg.rig, surface, n_iter=NEWTON_STEPS)
 
     def _flat_record(self, images: dict[str, NDArray], gain: float) -> tuple[NDArray, NDArray]:
         """The frame's flat-water pair as the store holds it: without a sensor, the shared
@@ -177,10 +190,3 @@ def _grey16(image: NDArray[np.float32]) -> NDArray[np.float16]:
     """The channels' mean of an (H, W, 3) float32 image as float16 (``image.mean(axis=-1)``'s
     float32 values, summed in the same order, in a fifth of its time)."""
     return ((image[..., 0] + image[..., 1] + image[..., 2]) / 3).astype(np.float16)
-
-
-def _truth(cfg: SystemConfig, surface: Heightfield, rays: tuple[NDArray, NDArray]
-           ) -> tuple[NDArray, NDArray]:
-    """The storage grid's unit normals (float32) and camera v's exact warp through
-    ``surface`` (``rays``: camera v's pixel rays)."""
-    return surface.grid_normals().astype(np.float32), true_view_warp(cfg, surface, rays)

@@ -20,7 +20,7 @@ from wai.dataset.spec import DatasetSpec
 from wai.threads import limit_native_threads
 from wai_core.errors import WaiInputError
 
-__all__ = ["frame_resources", "make_frames"]
+__all__ = ["frame_resources", "make_frames", "size_pools"]
 
 
 # A worker process's FrameMaker and FramePacker of each spec (its scenes stay loaded between
@@ -38,11 +38,24 @@ def _make_cached(spec: DatasetSpec, index: int, host_threads: dict[str, int] | N
         from distributed.comm import get_address_host
 
         host = get_address_host(get_worker().address)
-        limit_native_threads(max(1, (os.cpu_count() or 1) // host_threads.get(host, 1)))
+        size_pools(max(1, (os.cpu_count() or 1) // host_threads.get(host, 1)))
     if spec not in _MAKERS:
         _MAKERS[spec] = FrameMaker(spec), FramePacker()
     maker, packer = _MAKERS[spec]
     return packer.pack(maker.make(index))
+
+
+@functools.cache
+def size_pools(threads: int) -> None:
+    """Size a worker's native thread pools to ``threads`` (:func:`wai.threads.
+    limit_native_threads`), Dr.Jit's to one more: a frame's truth is traced on the renderer's
+    device from a second thread while the frame renders (:meth:`FrameMaker.make`), and on the
+    CPU both kernels then run side by side rather than one after the other (48-120 frames on
+    2 cores, two workers: 4.1-4.25 frames/s against 3.7-3.9 with one Dr.Jit thread each)."""
+    limit_native_threads(threads)
+    import drjit
+
+    drjit.set_thread_count(threads + 1)
 
 
 def frame_resources(workers: Sequence[dict[str, Any]]) -> dict[str, int] | None:
@@ -97,7 +110,7 @@ def _dask_client(scheduler: str) -> Any:
 
 def _frames_in_pool(spec: DatasetSpec, indices: Sequence[int], n: int) -> Iterator[PackedFrame]:
     threads = max(1, (os.cpu_count() or 1) // n)
-    with multiprocessing.get_context("spawn").Pool(n, limit_native_threads, (threads,)) as pool:
+    with multiprocessing.get_context("spawn").Pool(n, size_pools, (threads,)) as pool:
         yield from pool.imap(functools.partial(_make_cached, spec), indices)
 
 
