@@ -18,7 +18,7 @@ Dr.Jit lane per pixel, in float64, on the backend of the active Mitsuba variant:
 The CPU kernel starts each ray from its neighbour's hit where that converged; here every ray
 starts from the plane (the kernel's fallback), so a ray that crosses the surface more than once
 may settle on another crossing than the CPU's: the warps agree to within 1e-3 px but on such
-rays (``tests/mitsuba_wai/test_warp_trace.py``).
+rays (``tests/wai/test_dataset.py``).
 """
 
 from __future__ import annotations
