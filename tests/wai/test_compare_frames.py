@@ -70,3 +70,24 @@ def test_the_report_gives_the_frames_by_condition():
     assert "| 1 / 2 | 50% | 1 / 2 | speckle |" in line
     assert "## Frames by condition" in text
     assert "Frames by condition" not in report([], "wai experiment compare")
+
+
+def test_a_frame_whose_view_is_not_scored_keeps_its_surface_error() -> None:
+    # A steep frame can restore its surface while camera v sees almost none of the object
+    # through it: the view has no scores, and the surface's error must still reach the row
+    # (and with it the "ok but wrong" count).
+    from types import SimpleNamespace
+
+    from wai.experiments.compare import WRONG_OK_MM, _ok_but_wrong, frame_row
+
+    result = SimpleNamespace(ok=True, status="ok", timings_ms={"end_to_end": 12.0},
+                             has_view=False)
+    wrong = WRONG_OK_MM + 0.1
+    done = SimpleNamespace(result=result, scores=SimpleNamespace(restored=None),
+                           metrics={"wai_rmse_mm": wrong, "wai_rmse_demeaned_mm": 0.05})
+    row = frame_row(done, cal=None)
+    assert row["rmse_mm"] == wrong and row["rmse_demeaned_mm"] == 0.05
+    assert "ssim" not in row
+    assert _ok_but_wrong([row]) == 1
+    unscored = SimpleNamespace(result=result, scores=None, metrics={})
+    assert frame_row(unscored, cal=None)["rmse_mm"] is None

@@ -196,20 +196,7 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
     gridded = set(np.linspace(0, n - 1, min(n, GRID_FRAMES)).round().astype(int).tolist())
     for k, frame in enumerate(seq.frame_dirs):
         done = restore_frame(frame, cal, method, track, flat_from=[folder])
-        res, m = done.result, done.metrics
-        row = {"ok": res.ok, "status": str(res.status), "ms": res.timings_ms.get("end_to_end")}
-        if res.has_view:
-            row.update(_rig(res.view.image, res.view.valid, cal))
-            if k in gridded:
-                row.update(_grid(res.view.image, res.view.valid, cal))
-        if done.scores is not None and done.scores.restored is not None:
-            row.update(ssim=done.scores.restored["ssim"],
-                       psnr_db=done.scores.restored["psnr_db"],
-                       corner_std_px=_corner_std(m.get("corner_std_restored_px"),
-                                                 m.get("corners_common", 0)),
-                       rmse_mm=m.get("wai_rmse_mm"),
-                       rmse_demeaned_mm=m.get("wai_rmse_demeaned_mm"))
-        rows.append(row)
+        rows.append(frame_row(done, cal, grid=k in gridded))
     mean = {key: _mean([r.get(key) for r in rows])
             for key in ("ssim", "psnr_db", "corner_std_px", "rmse_mm", "rmse_demeaned_mm",
                         "grid_px", "grid_fraction", "rig_px", "rig_fraction")}
@@ -218,6 +205,27 @@ def _frame_method(folder: Path, spec: str) -> dict[str, Any]:
             "frames_ok_wrong": _ok_but_wrong(rows), "frames": len(rows),
             "method_name": method.name,
             **frame_columns([r["status"] for r in rows], [r.get("rmse_mm") for r in rows])}
+
+
+def frame_row(done: Any, cal: Any, grid: bool = False) -> dict[str, Any]:
+    """One restored frame's row of a per-frame method (``done``: what
+    :func:`restoration.restore_frame` returns): its status and time, the view's scores where
+    the view was scored, the surface's RMSE wherever the truth scored the surface (a frame
+    whose view restores too few pixels to score still has a surface its status vouches for),
+    and the truth-free grid score where ``grid``."""
+    res, m = done.result, done.metrics
+    row = {"ok": res.ok, "status": str(res.status), "ms": res.timings_ms.get("end_to_end")}
+    if res.has_view:
+        row.update(_rig(res.view.image, res.view.valid, cal))
+        if grid:
+            row.update(_grid(res.view.image, res.view.valid, cal))
+    if done.scores is not None and done.scores.restored is not None:
+        row.update(ssim=done.scores.restored["ssim"],
+                   psnr_db=done.scores.restored["psnr_db"],
+                   corner_std_px=_corner_std(m.get("corner_std_restored_px"),
+                                             m.get("corners_common", 0)))
+    row.update(rmse_mm=m.get("wai_rmse_mm"), rmse_demeaned_mm=m.get("wai_rmse_demeaned_mm"))
+    return row
 
 
 def _ok_but_wrong(rows: list[dict[str, Any]]) -> int | None:
