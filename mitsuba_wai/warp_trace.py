@@ -201,7 +201,9 @@ class ViewWarpTracer:
         valid = live & (dr.abs(pz - h) < f64(max(tol_mm, 1e-9) * 1e3)) & (t > 0.0)
         col, row = self._refract_and_return(rig, (px, py, pz), (gx, gy), valid, iterations)
         dr.eval(col, row)
-        out = np.stack([np.asarray(col), np.asarray(row)], axis=-1).astype(np.float32)
+        out = np.empty((int(np.prod(self.shape, dtype=np.int64)), 2), dtype=np.float32)
+        out[:, 0] = col.numpy()
+        out[:, 1] = row.numpy()
         return out.reshape(*self.shape, 2)
 
     def _refract_and_return(self, rig: Any, hit: tuple, slopes: tuple, valid: Any,

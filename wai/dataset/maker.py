@@ -64,9 +64,9 @@ class FrameMaker:
         self._renderers: dict[int, Any] = {}
         self._flat: dict[str, NDArray] | None = None
         self._flat_kept: tuple | None = None  # the flat renders last converted, and the result
-        cam = self.base.rig.camera_v  # the same rig every frame: its pixel rays once
-        self._rays = cam.pixel_rays(*cam.pixel_grid())
-        self._tracer: Any = None  # the warp's tracer on the renderer's device, made on first use
+        # The warp's tracer on the renders' device, made on first use: the same rig every
+        # frame, so it keeps camera v's pixel rays there.
+        self._tracer: Any = None
 
     def surface(
         self, cfg: SystemConfig, time_s: float | None = None, level: int = 0
@@ -149,7 +149,7 @@ class FrameMaker:
             if self._tracer is None:  # here: it sets the renders' variant when none is
                 from mitsuba_wai import ViewWarpTracer
 
-                self._tracer = ViewWarpTracer(self.base.rig, self._rays)
+                self._tracer = ViewWarpTracer(self.base.rig)
             truth = pool.submit(self._truth, geometry, surf)
             _, _, images, gain = self.render(index, surf)
             normals, warp = truth.result()
@@ -171,7 +171,7 @@ class FrameMaker:
         the same warp to float32 rounding, where the surface has holes)."""
         normals = surface.grid_normals().astype(np.float32)
         if surface.has_holes:
-            return normals, true_view_warp(cfg, surface, self._rays)
+            return normals, true_view_warp(cfg, surface)
         return normals, self._tracer(cfg.rig, surface, n_iter=NEWTON_STEPS)
 
     def _flat_record(self, images: dict[str, NDArray], gain: float) -> tuple[NDArray, NDArray]:

@@ -49,10 +49,12 @@ without the shuffle, those of ``wai-dataset/2`` compressed with LZF: they are re
 not continued."""
 FORMAT_FAMILY = "wai-dataset/"
 """The prefix of every store format ``wai dataset`` has written."""
-WARP_BYTES_PER_PX = 50
+WARP_BYTES_PER_PX = 70
 """Peak bytes per camera-v pixel beyond the render's while a frame's warp is traced and its
-record assembled (a dataset frame at 3200 x 2400 px peaks at 271 bytes per pixel, the render
-of the same cameras at 218)."""
+record assembled (a dataset frame at 3200 x 2400 px peaked at 271 bytes per pixel, the render
+of the same cameras at 218, with the warp on the CPU's compiled kernels; traced by Dr.Jit, which
+keeps camera v's rays on the device, the process's peak is 16 bytes per pixel higher: 3.01
+against 2.89 GB for two frames)."""
 METADATA_BYTES = 1 << 20
 """Room reserved beyond a frame's arrays for the store's own records (chunk index, attributes,
 the runs' log)."""
