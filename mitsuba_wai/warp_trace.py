@@ -56,6 +56,7 @@ class _Axis:
         import drjit as dr
 
         n_coef = knots.size - _DEGREE - 1
+        self.jit = jit
         self.knots = jit.Float64(knots)
         self.table = jit.Int32(table.astype(np.int32))
         self.n_coef = n_coef
@@ -67,11 +68,12 @@ class _Axis:
         self.first_span = dr.opaque(jit.Int32, _DEGREE)
         self.last_span = dr.opaque(jit.Int32, n_coef - 1)
 
-    def basis(self, jit: Any, u: Any) -> tuple[Any, list[Any], list[Any]]:
+    def basis(self, u: Any) -> tuple[Any, list[Any], list[Any]]:
         """The span ``s`` holding ``u`` (clamped to the knots), the four cubic basis functions
         and their derivatives (1/mm), each an array of the lanes."""
         import drjit as dr
 
+        jit = self.jit
         j = jit.Int32(dr.floor((u - self.lo) * self.cells))
         s = dr.gather(jit.Int32, self.table, dr.clip(j, 0, self.last_cell))
         t = self.knots
@@ -164,9 +166,7 @@ class ViewWarpTracer:
         coef_d = jit.Float64(np.ascontiguousarray(coef).ravel())
         ncx = dr.opaque(jit.Int32, coef.shape[1])
 
-        def f64(v: float) -> Any:
-            return dr.opaque(jit.Float64, float(v))
-
+        f64 = self._scalar
         ox, oy, oz = (f64(v) for v in self._origin)
         dx, dy, dz = self._dirs
         x_lo, x_hi, y_lo, y_hi = f64(tx[0]), f64(tx[-1]), f64(ty[0]), f64(ty[-1])
@@ -177,8 +177,8 @@ class ViewWarpTracer:
         for step in range(n_iter + 1):
             px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
             live &= (px >= x_lo) & (px <= x_hi) & (py >= y_lo) & (py <= y_hi)
-            sy, by, dby = ay.basis(jit, py)
-            sx, bx, dbx = ax.basis(jit, px)
+            sy, by, dby = ay.basis(py)
+            sx, bx, dbx = ax.basis(px)
             base = (sy - _DEGREE) * ncx + (sx - _DEGREE)
             h_new, gx_new, gy_new = jit.Float64(0.0), jit.Float64(0.0), jit.Float64(0.0)
             for r in range(4):
@@ -206,6 +206,13 @@ class ViewWarpTracer:
         out[:, 1] = row.numpy()
         return out.reshape(*self.shape, 2)
 
+    def _scalar(self, value: float) -> Any:
+        """``value`` as an opaque float64 of the backend: a frame's constants change without
+        a new kernel."""
+        import drjit as dr
+
+        return dr.opaque(self._jit.Float64, float(value))
+
     def _refract_and_return(self, rig: Any, hit: tuple, slopes: tuple, valid: Any,
                             iterations: int) -> tuple[Any, Any]:
         """Each ray refracted at its hit into the air, carried to the object plane and taken
@@ -216,9 +223,7 @@ class ViewWarpTracer:
         jit = self._jit
         cfg = rig.cfg
 
-        def f64(v: float) -> Any:
-            return dr.opaque(jit.Float64, float(v))
-
+        f64 = self._scalar
         n = f64(cfg.water.n_water)
         dx, dy, dz = self._dirs
         gx, gy = slopes
