@@ -136,7 +136,7 @@ def run_calibrate(args: argparse.Namespace) -> None:
         k1, k2 = fit.distortion[:2]
         print(f"{camera}: fx {fit.fx_px:.2f} +- {s['fx_px']:.2f} px, cx {fit.cx_px:.2f} +- "
               f"{s['cx_px']:.2f}, cy {fit.cy_px:.2f} +- {s['cy_px']:.2f} px, k1 {k1:.4f} +- "
-              f"{s['k1']:.4f}, k2 {k2:.4f} +- {s['k2']:.4f}; RMS {fit.rms_px:.3f} px over "
+              f"{s['k1']:.4f}, {_k2_text(fit, k2)}; RMS {fit.rms_px:.3f} px over "
               f"{fit.n_used} views ({fit.n_rejected} without the board)")
     for camera, port in ports.items():
         (tx, ty), (sx, sy) = port.tilt_deg, port.sigma_tilt_deg
@@ -176,12 +176,22 @@ def _camera_s_sigmas(fit: Any, ports: dict[str, Any]) -> list[dict[str, Any]]:
     held = []
     for k, name in enumerate(("k1", "k2")):
         moved = [float(v) for v in fit.distortion]
-        moved[k] += float(fit.sigma[name])
+        # A term held at zero moves as far as the views would let it move when free.
+        moved[k] += float(fit.held_zero.get(name, fit.sigma[name]))
         held.append({"camera_s.distortion": moved})
     if "camera_s" in ports:
         port = ports["camera_s"]
         held.append({"camera_s.port_gap_mm": port.gap_mm + port.sigma_gap_mm})
     return held
+
+
+def _k2_text(fit: Any, k2: float) -> str:
+    """k2 with its deviation, and the terms the views left at zero (not determined)."""
+    held = list(fit.held_zero)
+    text = "k2 held at 0" if "k2" in held else f"k2 {k2:.4f} +- {fit.sigma['k2']:.4f}"
+    if "p1" in held:
+        text += ", p1 and p2 held at 0"
+    return text + (" (under 3 deviations in the views: not determined)" if held else "")
 
 
 def _figures_folder(args: argparse.Namespace) -> Path | None:

@@ -28,11 +28,53 @@ def test_a_distorted_lens_off_centre_is_recovered():
     assert abs(fit.cx_px - ((dev.width_px - 1) / 2 + 15.0)) < 1.0
     assert abs(fit.cy_px - ((dev.height_px - 1) / 2 - 10.0)) < 1.0
     assert abs(fit.distortion[0] + 0.2) < 0.01
+    # k2 is the lens's, so the views determine it; its tangential terms are not there.
+    assert "k2" not in fit.held_zero and abs(fit.distortion[1] - 0.05) < 3 * fit.sigma["k2"]
+    assert set(fit.held_zero) == {"p1", "p2"} and fit.distortion[2:4].tolist() == [0.0, 0.0]
     assert fit.rms_px <= 0.1
     keys = fit.to_config_keys("camera_v", dev)
     calibrated = with_keys(load_system("paper"), keys).camera_v
     assert calibrated.focal_mm == pytest.approx(dev.focal_mm, rel=0.002)
     np.testing.assert_allclose(calibrated.principal_offset_px, [15.0, -10.0], atol=1.0)
+
+
+def _lens_error_px(fit, dev, pixels):
+    """How far ``fit`` puts the true lens's image of each of ``pixels`` (K, 2) off them, px."""
+    import cv2
+
+    f = dev.focal_mm * dev.width_px / dev.sensor_width_mm
+    c = np.array([(dev.width_px - 1) / 2, (dev.height_px - 1) / 2]) + dev.principal_offset_px
+    k_true = np.array([[f, 0, c[0]], [0, f, c[1]], [0, 0, 1]])
+    rays = cv2.undistortPoints(pixels.reshape(-1, 1, 2), k_true, np.asarray(dev.distortion))
+    rays = np.concatenate([rays.reshape(-1, 2), np.ones((len(pixels), 1))], axis=1)
+    k_fit = np.array([[fit.fx_px, 0, fit.cx_px], [0, fit.fy_px, fit.cy_px], [0, 0, 1]])
+    seen = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), k_fit, fit.distortion)[0]
+    return np.linalg.norm(seen.reshape(-1, 2) - pixels, axis=1)
+
+
+@pytest.mark.slow
+def test_terms_the_views_do_not_determine_are_held_at_zero_and_the_corners_stay_right():
+    # A lens of k1 alone: a free fit gives k2 and p1, p2 values the boards barely see, traded
+    # against k1 where the boards are; at the image's corners, where the boards seldom reach,
+    # that trade moves the lens. Held at zero, the lens stays closer to the true one there.
+    cfg = with_keys(load_system("paper"), {"camera_v.distortion": [-0.1, 0.0, 0.0, 0.0, 0.0],
+                                           "camera_v.principal_offset_px": [5.0, 5.0]})
+    dev = cfg.camera_v
+    images = render_checkerboards(cfg, "camera_v", 12, seed=3)
+    free = calibrate_device(images, Board(), (dev.height_px, dev.width_px), select_terms=False)
+    fit = calibrate_device(images, Board(), (dev.height_px, dev.width_px))
+    assert not free.held_zero and set(fit.held_zero) == {"k2", "p1", "p2"}
+    assert fit.distortion[1:].tolist() == [0.0] * 4 and fit.sigma["k2"] == 0.0
+    assert fit.held_zero["k2"] == free.sigma["k2"]
+    assert abs(fit.distortion[0] + 0.1) < 3 * fit.sigma["k1"] + 1e-3
+    rows, cols = np.mgrid[0:dev.height_px:20, 0:dev.width_px:20]
+    pixels = np.stack([cols.ravel(), rows.ravel()], axis=1).astype(float)
+    reach = np.percentile(np.linalg.norm(np.concatenate(fit.corners_px) - (400, 300), axis=1),
+                          95)
+    beyond = np.linalg.norm(pixels - (400, 300), axis=1) > reach
+    assert beyond.mean() > 0.3  # the boards leave the corners out
+    held, free_px = (_lens_error_px(f, dev, pixels[beyond]).max() for f in (fit, free))
+    assert held < free_px and held < 1.0, (held, free_px)
 
 
 def test_boards_not_found_are_counted_and_too_few_refused():
