@@ -196,11 +196,10 @@ def calibrate_device(images: Sequence[NDArray], board: BoardSpec | Any,
     """Calibrate one camera from ``images`` of ``board``, each ``image_size`` (H, W).
 
     The lens model is the least the views call for: k1 always, k2 and the tangential pair
-    (p1, p2) only where they pass :data:`SIGNIFICANT_SIGMAS` standard deviations. A term the
-    views do not determine still takes a value in a free fit, traded against k1 where the
-    boards are (k2's and k1's estimates correlate), and that trade bends the lens where the
-    boards seldom reach (the image's corners, which camera v's view uses); each term that fails
-    the test, the least significant first, is held at zero and the rest fitted again.
+    (p1, p2) only past :data:`SIGNIFICANT_SIGMAS` standard deviations; each term that fails,
+    the least significant first, is held at zero and the rest fitted again. A term the views
+    do not determine, traded against k1 where the boards are, bends the lens where they seldom
+    reach (the image's corners: docs/rig.md).
 
     Parameters
     ----------
@@ -251,8 +250,7 @@ deviations from zero (:func:`calibrate_device`). Three, not two: OpenCV's deviat
 corners' errors as independent, and they are not quite (a lens without tangential terms,
 rendered on three seeds of 12 views, came out with p1 and p2 at 2.0-2.1 deviations on two)."""
 
-_OPTIONAL_TERMS = (("k2",), ("p1", "p2"))
-# The terms the views may leave undetermined; the tangential pair is tested and held together.
+_OPTIONAL_TERMS = (("k2",), ("p1", "p2"))  # the tangential pair is tested and held together
 _DIST_INDEX = {"k1": 0, "k2": 1, "p1": 2, "p2": 3}
 
 
