@@ -191,7 +191,10 @@ def _k2_text(fit: Any, k2: float) -> str:
     text = "k2 held at 0" if "k2" in held else f"k2 {k2:.4f} +- {fit.sigma['k2']:.4f}"
     if "p1" in held:
         text += ", p1 and p2 held at 0"
-    return text + (" (under 3 deviations in the views: not determined)" if held else "")
+    from restoration.rig_calibration import SIGNIFICANT_SIGMAS
+
+    return text + (f" (under {SIGNIFICANT_SIGMAS:g} deviations in the views: not determined)"
+                   if held else "")
 
 
 def _figures_folder(args: argparse.Namespace) -> Path | None:

@@ -93,11 +93,20 @@ def test_render_calibrate_and_restore_options_from_the_command_line(tmp_path, ca
     assert main(["render", "paper", "--checkerboards", "6", "--out", str(out), "--quiet"]) == 0
     truth = json.loads((out / "scene.json").read_text())["checkerboards"]["truth"]
     rig = tmp_path / "rig.json"
+    capsys.readouterr()
     assert main(["calibrate", str(out / "checkerboards"), "--out", str(rig), "--quiet"]) == 0
+    printed = capsys.readouterr().out
     record = json.loads(rig.read_text())
     for camera in ("camera_v", "camera_s"):
         assert record["devices"][camera]["fx_px"] == pytest.approx(truth[camera]["fx_px"],
                                                                    rel=0.002)
+        # The paper's ideal lenses: k1 alone is fitted where nothing else shows in 6 views
+        # (each term held at zero is said so, in the file and on the terminal).
+        held = record["devices"][camera]["held_at_zero"]
+        assert set(held) <= {"k2", "p1", "p2"}
+        assert all(record["devices"][camera]["sigma"][t] == 0.0 for t in held)
+        line = next(x for x in printed.splitlines() if x.startswith(f"{camera}: fx"))
+        assert ("held at 0" in line) == bool(held), line
     keys = read_rig(rig)
     assert set(keys) >= {"camera_v.focal_mm", "camera_s.distortion"}
     capsys.readouterr()
