@@ -59,6 +59,8 @@ class Effect:
     modelled : bool
         The restoration can be told the effect (its scene keys are a rig's or the water's):
         each frame is restored a second time with them.
+    method : str
+        The told restoration's method (:func:`~wai.experiments.frame_eval.method_class`).
     """
 
     label: str
@@ -67,6 +69,7 @@ class Effect:
     realistic: float
     overrides: Callable[[float], dict[str, Any]]
     modelled: bool = False
+    method: str = "structured-light"
 
 
 def _both_cameras(key: str, value: Callable[[float], Any]) -> Callable[[float], dict[str, Any]]:
@@ -143,8 +146,13 @@ EFFECTS: dict[str, Effect] = {
         lambda m: {"crosstalk.camera_v_filter": "red"},
     ),
     "real_rig": Effect(
-        "a real rig at once (1: every effect below at its realistic magnitude that composes)",
-        (1.0,), (1.0,), 1.0, lambda m: REAL_RIG, modelled=True,
+        "a real rig at once (1: every effect below at its realistic magnitude that composes),"
+        " seen on a speckle object; told, with the view's level",
+        (1.0,), (1.0,), 1.0, lambda m: {**REAL_RIG, "object.texture": "speckle"}, modelled=True,
+        # Roughness and the sensor leave the dots' own level uncertain; a rig with both
+        # systems takes it from the view, which needs a textured object (docs/results.md,
+        # "The level from the view").
+        method="structured-light-view",
     ),
 }
 """The effects the budget sweeps, in the order of its table."""
@@ -191,6 +199,8 @@ def budget_points(
             overrides = json.dumps(effect.overrides(m), sort_keys=True)
             for modelled in (False, True) if effect.modelled else (False,):
                 extra = {"modelled": True} if modelled else {}
+                if modelled and effect.method != "structured-light":
+                    extra["method"] = effect.method
                 points += [{"effect": name, "magnitude": float(m), "config": str(config),
                             "seed": s, "repeats": 1, "render_overrides": overrides, **extra}
                            for s in seeds]

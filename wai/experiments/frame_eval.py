@@ -51,6 +51,10 @@ Point keys (all optional except ``config`` and ``seed``)
     The restoration is told the ``render_overrides`` too (its calibration is the rendered
     rig: ports, lenses, the water's index), its images read as a capture's are (resampled
     into the devices' ideal pinholes): the budget's "modelled" column.
+``method`` (str, default ``"structured-light"``)
+    The restoration: ``structured-light``, or ``structured-light-view`` (its level pinned by
+    camera v's view of the object, :mod:`restoration.view_level`; the render's flat-water view
+    is its ``view_flat``, as for a folder of ``wai render``). Both take the same options.
 ``repeats`` (int, default 3)
     Timed restorations per variant; the median is reported.
 
@@ -210,17 +214,16 @@ WARM_TRIES = 3
 """Restorations of one timed repeat until one runs no kernel that was not loaded yet."""
 
 
-def _timed_restore(images: dict, cal: Any, options: Any, repeats: int) -> tuple[Any, dict]:
-    """Restore ``repeats`` times; the last result and the median time of each stage, ms (the
-    result alone when the frame failed). Each variant runs once untimed in a process, and a
-    timed restoration that loaded or compiled a kernel all the same (a code path this
-    variant's first frame did not take) is run again: the timings are of warm code."""
-    from restoration import StructuredLight, kernel_activity
+def _timed_restore(images: dict, cal: Any, method: Any, repeats: int) -> tuple[Any, dict]:
+    """Restore ``repeats`` times with ``method``; the last result and the median time of each
+    stage, ms (the result alone when the frame failed). Each variant runs once untimed in a
+    process, and a timed restoration that loaded or compiled a kernel all the same (a code path
+    this variant's first frame did not take) is run again: the timings are of warm code."""
+    from restoration import kernel_activity
 
-    method = StructuredLight(options)
-    if repr(options) not in _WARMED:  # compile this variant's kernels outside the timing
+    if repr(method) not in _WARMED:  # compile this variant's kernels outside the timing
         method(images, cal)
-        _WARMED.add(repr(options))
+        _WARMED.add(repr(method))
     stages: dict[str, list[float]] = {}
     result = None
     for _ in range(max(int(repeats), 1)):
@@ -268,11 +271,12 @@ def _scores(result: Any, images: dict, cal: Any, surface: Heightfield) -> dict[s
 
 def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     """Render, restore and score the frame of ``point`` (see the module docstring)."""
-    from restoration import Calibration, RestorationFailed, StructuredLightOptions
+    from restoration import RestorationFailed, StructuredLightOptions
     from wai_core.limits import correspondence_limit, effective_phi_deg
     from wai_core.optics import radiance_gain
 
     cfg = frame_config(point)
+    method_cls = method_class(point.get("method"))
     row: dict[str, Any] = {"phi_max_deg": correspondence_limit(cfg)["phi_max_deg"]}
     rendered = cfg
     if point.get("render_overrides"):
@@ -287,7 +291,9 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     row["phi_deg"] = effective_phi_deg(surface, cfg)
     if point.get("modelled"):
         cfg = rendered
-    cal = Calibration(cfg, radiance_gain(cfg.water.n_water))
+    cal = method_cls.calibration_type(cfg, radiance_gain(cfg.water.n_water))
+    if "view_flat" in cal.IMAGES:  # a render's flat-water view, as a render folder's
+        images["view_flat"] = images["view_truth"]
     images.update({name: cal.to_pinhole(name, images[name])
                    for name in ("view", "view_flat", "view_truth") if name in images})
     base = StructuredLightOptions()
@@ -302,7 +308,7 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
                 for ref in refinements:
                     options = replace(base, integrator=name, warp_step_px=step,
                                       **REFINEMENTS[ref])
-                    result, ms = _timed_restore(images, cal, options, repeats)
+                    result, ms = _timed_restore(images, cal, method_cls(options), repeats)
                     if result.status == "failed":
                         raise RestorationFailed(result.message)
                     suffix = _suffix(name, step, integrators, steps)
@@ -321,6 +327,21 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
     row["method_status"] = result.status
     row["frame_status"] = "wrong_labels" if wrong else result.status
     return row
+
+
+def method_class(name: str | None) -> type:
+    """The restoration a point names (``method``): :class:`~restoration.StructuredLight` by
+    default, or :class:`~restoration.StructuredLightView`.
+
+    >>> method_class("structured-light-view").name
+    'structured-light-view'
+    """
+    from restoration import StructuredLight, StructuredLightView
+
+    classes = {cls.name: cls for cls in (StructuredLight, StructuredLightView)}
+    if (name or StructuredLight.name) not in classes:
+        raise WaiInputError(f"point: method must be one of {', '.join(classes)}, not {name!r}")
+    return classes[name or StructuredLight.name]
 
 
 REFINEMENTS: dict[str, dict[str, Any]] = {
