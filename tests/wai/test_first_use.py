@@ -117,7 +117,6 @@ def test_a_sweep_timing_that_ran_a_new_kernel_is_taken_again(monkeypatch):
 
     import numba
 
-    import restoration
     from wai.experiments import frame_eval
 
     calls: list[bool] = []
@@ -134,9 +133,8 @@ def test_a_sweep_timing_that_ran_a_new_kernel_is_taken_again(monkeypatch):
             return SimpleNamespace(restored=True, surface=SimpleNamespace(timings_ms={}),
                                    timings_ms={"end_to_end": 500.0 if cold else 5.0})
 
-    monkeypatch.setattr(restoration, "StructuredLight", Restore)
     monkeypatch.setattr(frame_eval, "_WARMED", set())
-    _, ms = frame_eval._timed_restore({}, None, "variant", repeats=1)
+    _, ms = frame_eval._timed_restore({}, None, Restore("variant"), repeats=1)
     assert ms == {"end_to_end": 5.0}
     assert calls == [True, True, False]
 
