@@ -330,18 +330,19 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
 
 
 def method_class(name: str | None) -> type:
-    """The restoration a point names (``method``): :class:`~restoration.StructuredLight` by
-    default, or :class:`~restoration.StructuredLightView`.
+    """The restoration a point names (``method``): a built-in method of the structured light's
+    family (:data:`restoration.METHODS`, taking its options), :class:`~restoration.StructuredLight`
+    by default.
 
     >>> method_class("structured-light-view").name
     'structured-light-view'
     """
-    from restoration import StructuredLight, StructuredLightView
+    from restoration import METHODS, StructuredLight
 
-    classes = {cls.name: cls for cls in (StructuredLight, StructuredLightView)}
-    if (name or StructuredLight.name) not in classes:
-        raise WaiInputError(f"point: method must be one of {', '.join(classes)}, not {name!r}")
-    return classes[name or StructuredLight.name]
+    family = [n for n, cls in METHODS.items() if issubclass(cls, StructuredLight)]
+    if (name or StructuredLight.name) not in family:
+        raise WaiInputError(f"point: method must be one of {', '.join(family)}, not {name!r}")
+    return METHODS[name or StructuredLight.name]
 
 
 REFINEMENTS: dict[str, dict[str, Any]] = {
