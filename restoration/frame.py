@@ -240,7 +240,8 @@ def folder_metrics(
     rig: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """``metrics.json``: the truth-free summary, the scores (or why there are none), the
-    options, the render's ``seed`` (from its ``scene.json``) and the ``rig`` applied, if any
+    options (``spot_bias`` left to the scene: whether the spots were corrected), the render's
+    ``seed`` (from its ``scene.json``) and the ``rig`` applied, if any
     (:func:`with_rig`)."""
     metrics = result.summary()
     if scores is not None:
@@ -253,6 +254,8 @@ def folder_metrics(
             else "no truth in the folder (heightfield.npz, view_truth.*)"
         )
     metrics["options"] = method.options.to_dict()
+    if metrics["options"].get("spot_bias", False) is None:  # by the scene: say whether it ran
+        metrics["options"]["spot_bias"] = "spot_bias" in result.timings_ms
     metrics["seed"] = seed
     if rig is not None:
         metrics["rig"] = rig

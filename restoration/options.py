@@ -153,12 +153,16 @@ class StructuredLightOptions(SurfaceOptions):
         datum: an error in it moves the level by about as much (docs/results.md, "Calibrating
         a real rig"). Off, the spots are taken as detected and the level comes from the data
         alone.
-    spot_bias : bool
+    spot_bias : bool or None
         Correct each spot for where its light's centre lies off its dot's centre ray on the
         estimated surface (Fresnel's reflectance across the dot, the water's microfacets, the
-        surface's curvature; :mod:`restoration.spot_bias`) and estimate the surface again: on
-        smooth water about a third less error for about 0.1 s a frame, so off by default
-        (docs/results.md, "Where a spot's light centre lies").
+        surface's curvature; :mod:`restoration.spot_bias`) and estimate the surface again.
+        None (the default): on where the scene's water is rough (``[water] roughness`` > 0:
+        the microfacets move every spot along the projector's tilt, and the level the view
+        or the slopes give follows them), off on smooth water, where it takes about a third
+        off the error but moves a few frames' levels the wrong way, for about 0.1 s a frame
+        (docs/results.md, "Where a spot's light centre lies"). :meth:`spot_bias_for` says
+        which for a scene.
 
     Examples
     --------
@@ -178,7 +182,7 @@ class StructuredLightOptions(SurfaceOptions):
     max_refine: int = 40
     fit_spots: bool = False
     flat_referenced: bool = True
-    spot_bias: bool = False
+    spot_bias: bool | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -196,6 +200,26 @@ class StructuredLightOptions(SurfaceOptions):
             raise WaiInputError(f"refine_tol_mm must be > 0, not {self.refine_tol_mm}")
         if not self.anchor_step_mm > 0:
             raise WaiInputError(f"anchor_step_mm must be > 0, not {self.anchor_step_mm}")
+
+    def spot_bias_for(self, cfg: Any) -> bool:
+        """Whether the spots are corrected for their bias (:attr:`spot_bias`) in the scene
+        ``cfg``: as set, or, where unset, where its water is rough.
+
+        Examples
+        --------
+        >>> from dataclasses import replace
+        >>> from wai_core import load_system
+        >>> cfg = load_system("paper")
+        >>> rough = replace(cfg, water=replace(cfg.water, roughness=0.01))
+        >>> opts = StructuredLightOptions()
+        >>> opts.spot_bias_for(cfg), opts.spot_bias_for(rough)
+        (False, True)
+        >>> StructuredLightOptions(spot_bias=False).spot_bias_for(rough)
+        False
+        """
+        if self.spot_bias is not None:
+            return bool(self.spot_bias)
+        return float(cfg.water.roughness) > 0
 
 
 @dataclass(frozen=True)

@@ -416,7 +416,7 @@ class StructuredLight:
             memo: dict[str, Any] = {}
             features, obs, surface = self._pin_labels(features, obs, surface, reference, cal,
                                                       images, memo, timings)
-            if options.spot_bias:
+            if options.spot_bias_for(cal.cfg):
                 with timings("surface"):
                     obs = self._observe_debiased(features, surface, cal, timings)
                     surface = estimate_surface(obs, cal, options, start)
@@ -463,11 +463,12 @@ class StructuredLight:
 
     def _observe_debiased(self, features: Matches, surface: SurfaceEstimate,
                           cal: Calibration, timings: Timings) -> Observations:
-        """The features' observations; with ``spot_bias``, each spot less its bias on
-        ``surface`` beyond flat water's (:func:`restoration.spot_bias.spot_correction_px`,
-        timed as ``spot_bias``, a part of the surface's time)."""
+        """The features' observations; with ``spot_bias`` (as set, or on rough water), each
+        spot less its bias on ``surface`` beyond flat water's
+        (:func:`restoration.spot_bias.spot_correction_px`, timed as ``spot_bias``, a part of
+        the surface's time)."""
         spots = features.spot_px
-        if self.options.spot_bias:
+        if self.options.spot_bias_for(cal.cfg):
             with timings("spot_bias"):
                 spots = spots - spot_correction_px(cal, features.ij, surface,
                                                    SpotBiasModel.of_scene(cal.cfg))

@@ -69,7 +69,7 @@ def method_options(args: argparse.Namespace) -> SurfaceOptions:
     choices = {"integrator": args.integrator, "n_refine": args.refine, "anchor": anchor,
                "fit_spots": True if args.fit else None,
                "flat_referenced": False if args.as_detected else None,
-               "spot_bias": True if args.spot_bias else None}
+               "spot_bias": args.spot_bias}
     try:
         return get_method(args.method, **choices).options
     except WaiInputError as exc:

@@ -37,13 +37,16 @@ def test_points_carry_the_overrides_and_a_baseline_per_seed():
     assert json.loads(k1[0]["render_overrides"])["camera_s.distortion"][0] < 0
     aperture = [p for p in points if p["effect"] == "aperture"]  # nothing to be told
     assert aperture and not any(p.get("modelled") for p in aperture)
-    # The whole real rig, told, takes its level from the view (a textured object); every
-    # other point restores as the paper does.
-    real = [p for p in points if p["effect"] == "real_rig"]
-    assert {p.get("method") for p in real if p.get("modelled")} == {"structured-light-view"}
-    assert all(json.loads(p["render_overrides"])["object.texture"] == "speckle" for p in real)
-    assert not any(p.get("method") for p in points if p["effect"] != "real_rig")
-    assert not any(p.get("method") for p in real if not p.get("modelled"))
+    # Rough water and the whole real rig, told, take their level from the view (a textured
+    # object); every other point restores as the paper does.
+    for name in ("real_rig", "roughness"):
+        real = [p for p in points if p["effect"] == name]
+        assert {p.get("method") for p in real if p.get("modelled")} == {"structured-light-view"}
+        assert all(json.loads(p["render_overrides"])["object.texture"] == "speckle"
+                   for p in real)
+        assert not any(p.get("method") for p in real if not p.get("modelled"))
+    assert not any(p.get("method") for p in points
+                   if p["effect"] not in ("real_rig", "roughness"))
 
 
 def test_a_point_names_a_method_of_the_structured_light_or_is_refused():

@@ -71,6 +71,9 @@ def test_unset_restore_flags_leave_each_methods_defaults():
         method_options(parse(["restore", "d", "--method", "alterman", "--as-detected"]))
     assert method_options(parse(["restore", "d", "--spot-bias"])) == StructuredLightOptions(
         spot_bias=True)
+    assert method_options(parse(["restore", "d", "--no-spot-bias"])) == StructuredLightOptions(
+        spot_bias=False)
+    assert StructuredLightOptions().spot_bias is None  # left to the scene's water
     with pytest.raises(WaiInputError, match="--spot-bias"):
         method_options(parse(["restore", "d", "--method", "alterman", "--spot-bias"]))
 

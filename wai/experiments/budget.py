@@ -123,9 +123,15 @@ EFFECTS: dict[str, Effect] = {
     # 64 pattern samples: Mitsuba's roughdielectric picks reflection with probability F, so
     # at 4 a spot keeps F of its particles and the render's noise, not the roughness, would
     # dominate (at alpha 0.005: frames failed at 4 spp, 0.44 mm at 64).
-    "roughness": Effect("water micro-roughness (GGX alpha)", (0.002, 0.005, 0.01, 0.03),
-                        (0.005,), 0.01,
-                        lambda m: {"water.roughness": m, "render.spp_pattern": 64}),
+    # Told, the restoration corrects each spot for its microfacets' shift
+    # (StructuredLightOptions.spot_bias, on by default where the scene's water is rough) and
+    # takes the level from the view, which needs a textured object: the rough spots leave the
+    # dots' own level uncertain (docs/results.md, "The level from the view").
+    "roughness": Effect("water micro-roughness (GGX alpha), seen on a speckle object",
+                        (0.002, 0.005, 0.01, 0.03), (0.005,), 0.01,
+                        lambda m: {"water.roughness": m, "render.spp_pattern": 64,
+                                   "object.texture": "speckle"},
+                        modelled=True, method="structured-light-view"),
     "capillary": Effect(
         "spectrum cutoff (x omega_p), gravity-capillary waves", (3.0, 4.0, 6.0), (4.0,), 4.0,
         lambda m: {"waves.dispersion": "capillary", "waves.omega_max_rel": m},
