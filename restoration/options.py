@@ -159,9 +159,10 @@ class StructuredLightOptions(SurfaceOptions):
         surface's curvature; :mod:`restoration.spot_bias`) and estimate the surface again.
         None (the default): on where the scene's water is rough (``[water] roughness`` > 0:
         the microfacets move every spot along the projector's tilt, and the level the view
-        or the slopes give follows them), off on smooth water, where it takes about a third
-        off the error but moves a few frames' levels the wrong way, for about 0.1 s a frame
-        (docs/results.md, "Where a spot's light centre lies"). :meth:`spot_bias_for` says
+        or the slopes give follows them; 0.2-1.2 s a frame there, each dot's 32 facets
+        traced), off on smooth water, where it takes about a third off the error but moves a
+        few frames' levels the wrong way, for about 0.1 s a frame (docs/results.md, "Where a
+        spot's light centre lies"). :meth:`spot_bias_for` says
         which for a scene.
 
     Examples
