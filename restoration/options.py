@@ -162,8 +162,7 @@ class StructuredLightOptions(SurfaceOptions):
         or the slopes give follows them; 0.2-1.2 s a frame there, each dot's 32 facets
         traced), off on smooth water, where it takes about a third off the error but moves a
         few frames' levels the wrong way, for about 0.1 s a frame (docs/results.md, "Where a
-        spot's light centre lies"). :meth:`spot_bias_for` says
-        which for a scene.
+        spot's light centre lies"). :meth:`spot_bias_for` says which for a scene.
 
     Examples
     --------

@@ -166,8 +166,9 @@ def test_rough_water_corrects_its_spots_by_default(rough_frame):
     # reflectance climbs steeply: the renderer's spots of the dots met near it (44-53 degrees
     # on the true surface) lie along the projector's tilt (+x), a fraction of a pixel off
     # their centre rays, past what the flat reference removes (docs/results.md, 0.2-0.4 px
-    # before the correction). A rough scene is corrected without being asked, a smooth one
-    # not, and the correction takes most of that shift away.
+    # before the correction). A rough scene is corrected without being asked (a smooth one
+    # is not: StructuredLightOptions.spot_bias_for's example), and the correction takes most
+    # of that shift away.
     from restoration import Calibration, StructuredLightOptions
     from restoration.spot_bias import spot_correction_px
     from wai_core.heightfield import load_heightfield
