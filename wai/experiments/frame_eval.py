@@ -330,19 +330,21 @@ def evaluate_frame(point: dict[str, Any]) -> dict[str, Any]:
 
 
 def method_class(name: str | None) -> type:
-    """The restoration a point names (``method``): a built-in method of the structured light's
-    family (:data:`restoration.METHODS`, taking its options), :class:`~restoration.StructuredLight`
-    by default.
+    """The restoration a point names (``method``, found by
+    :func:`restoration.methods.method_class`): one of the structured light's family (it takes
+    the structured light's options), :class:`~restoration.StructuredLight` by default.
 
     >>> method_class("structured-light-view").name
     'structured-light-view'
     """
     from restoration import METHODS, StructuredLight
+    from restoration.methods import method_class as named
 
-    family = [n for n, cls in METHODS.items() if issubclass(cls, StructuredLight)]
-    if (name or StructuredLight.name) not in family:
+    cls = named(name or StructuredLight.name)
+    if not (isinstance(cls, type) and issubclass(cls, StructuredLight)):
+        family = [n for n, c in METHODS.items() if issubclass(c, StructuredLight)]
         raise WaiInputError(f"point: method must be one of {', '.join(family)}, not {name!r}")
-    return METHODS[name or StructuredLight.name]
+    return cls
 
 
 REFINEMENTS: dict[str, dict[str, Any]] = {
