@@ -33,12 +33,14 @@ from mitsuba_wai.textures import object_texture
 from mitsuba_wai.variant import select_variant
 from mitsuba_wai.warp_trace import ViewWarpTracer
 from mitsuba_wai.waves import mesh_spacing_mm, sea_surface
+from mitsuba_wai.waves_jit import JitWaveGrid
 
 __all__ = [
     "OUTPUT_COMMAND",
     "Board",
     "Frame",
     "FrameRenderer",
+    "JitWaveGrid",
     "SunRenderer",
     "ViewWarpTracer",
     "alterman_surface",

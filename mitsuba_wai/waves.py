@@ -264,7 +264,7 @@ class SeaSurface:
         -------
         ndarray with the broadcast shape of the inputs
         """
-        a, *_ = self._flat()
+        a, *_ = self.harmonics()
         return self._sum_harmonics(x_mm, y_mm, time_s, np.cos, a[:, None])[..., 0]
 
     def slopes(
@@ -274,7 +274,7 @@ class SeaSurface:
 
         Parameters are as for :meth:`height_mm`; each output has the broadcast input shape.
         """
-        a, kx, ky, _, _ = self._flat()
+        a, kx, ky, _, _ = self.harmonics()
         # d/dx of a cos(wt - kx x - ky y + eps) is a kx sin(...).
         out = self._sum_harmonics(x_mm, y_mm, time_s, np.sin, np.stack([a * kx, a * ky], axis=1))
         return out[..., 0], out[..., 1]
@@ -308,8 +308,10 @@ class SeaSurface:
         y = np.asarray(y_mm, dtype=float).ravel()
         return Heightfield(x, y, mean_level_mm + self._grid_eta(x, y, float(time_s)))
 
-    def _flat(self) -> tuple[Array, Array, Array, Array, Array]:
-        """Harmonics that carry energy as flat arrays ``(a_mm, kx, ky, omega, eps)``, each (C,)."""
+    def harmonics(self) -> tuple[Array, Array, Array, Array, Array]:
+        """The harmonics that carry energy as flat arrays, each (C,): amplitudes ``a`` (mm),
+        wave vectors ``kx``, ``ky`` (rad/mm), ``omega`` (rad/s) and phases ``eps`` (rad), so
+        that ``eta = sum a cos(omega t - kx x - ky y + eps)``."""
         m, n = self.amplitudes_mm.shape
         k = np.broadcast_to(self.k_rad_per_mm[:, None], (m, n))
         kx = k * np.cos(self.directions_rad)
@@ -331,7 +333,7 @@ class SeaSurface:
         ``weights`` is (C, K); returns (..., K) over the broadcast point shape.
         """
         x, y, t = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (x_mm, y_mm, time_s)))
-        _, kx, ky, omega, eps = self._flat()
+        _, kx, ky, omega, eps = self.harmonics()
         # phase = omega t + eps - kx x - ky y, as one (P, 3) @ (3, C) product per block.
         pts = np.stack([x.ravel(), y.ravel(), t.ravel()], axis=1)
         coeffs = np.stack([-kx, -ky, omega])
@@ -346,7 +348,7 @@ class SeaSurface:
 
     def _grid_eta(self, x: Array, y: Array, time_s: float) -> Array:
         """Elevation over ``y`` (m,) by ``x`` (n,), mm, shape (m, n), by blocked matrix products."""
-        a, kx, ky, omega, eps = self._flat()
+        a, kx, ky, omega, eps = self.harmonics()
         amp = a * np.exp(1j * (omega * time_s + eps))
         eta = np.zeros((y.size, x.size))
         if not a.size:

@@ -78,7 +78,11 @@ for name, r in rows.items():
     elif "passed" in r:
         fig = f"{r['passed']} passed"
     elif "bench" in r:
-        fig = json.dumps(r["bench"].get("frame_pair_ms", ""))[:60]
+        b = r["bench"]
+        fig = f"frame pair {b.get('frame_pair_ms', float('nan')):.1f} ms"
+        if "waves" in b:
+            fig += (f"; waves host {b['waves']['host']['median_ms']:.1f} ms,"
+                    f" device {b['waves']['device']['median_ms']:.2f} ms")
     print(f"{name:<20}{r['rc']:>4}{r['wall_s']:>8}  {fig}")
 print(f"figures: {out / 'device_bench.json'}")
 PY

@@ -83,6 +83,22 @@ def test_the_store_holds_the_frames_as_made(store: Path) -> None:
         assert stored_bytes < 0.9 * f["normals"].shape[0] * made.normals.nbytes
 
 
+def test_waves_summed_on_the_device_give_the_same_truth(store: Path) -> None:
+    # A GPU's worker sums the waves on the device (Dr.Jit), a CPU's by BLAS: here both on
+    # this machine's backend, against the frame the store holds.
+    from wai.dataset import DatasetSpec, FrameMaker
+
+    w, h = (int(v) for v in SIZE.split("x"))
+    made = FrameMaker(DatasetSpec(seed=4, spp=2, size_px=(w, h)), waves_on_device=True).make(1)
+    stored = read_frame(store, 1)
+    assert np.ptp(stored.height_mm) > 1.0
+    np.testing.assert_allclose(made.height_mm, stored.height_mm, atol=1e-4)  # float32's step
+    np.testing.assert_allclose(made.normals, stored.normals, atol=1e-6)
+    valid = np.isfinite(stored.warp_px)
+    np.testing.assert_array_equal(np.isfinite(made.warp_px), valid)
+    assert np.max(np.abs(made.warp_px[valid] - stored.warp_px[valid])) < 0.01
+
+
 def test_the_frames_share_one_flat_water_render(store: Path, tmp_path: Path) -> None:
     # Flat water is the rig's, not the frame's: one render serves every frame, while the
     # waves' renders are each frame's own. With the sensor on, each frame reads it afresh:

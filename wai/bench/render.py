@@ -44,13 +44,30 @@ def _bench_system(cfg: Any, surface: Any, system: str, runs: int) -> dict[str, A
     }
 
 
+def _bench_waves(cfg: Any, runs: int) -> dict[str, Any]:
+    """The sea's heights on the scene's mesh grid (a new time each run, so every sum is done):
+    by the host's matrix product, and on the renders' device (:class:`mitsuba_wai.JitWaveGrid`,
+    the surface read back to the host as a dataset's worker takes it)."""
+    from mitsuba_wai import JitWaveGrid, sea_surface, wave_grid_axes
+
+    x, y = wave_grid_axes(cfg)
+    sea = sea_surface(cfg.waves)
+    t0, h0 = cfg.waves.time_s, cfg.water.h0_mm
+    grid = JitWaveGrid(x, y)
+    _, host = time_runs(lambda i: sea.grid(x, y, t0 + 0.1 * i, mean_level_mm=h0), runs)
+    warm, device = time_runs(lambda i: grid.heightfield(sea, t0 + 0.1 * i, h0), runs)
+    return {"vertices": int(x.size * y.size), "harmonics": sea.harmonics()[0].size,
+            "host": summarize(host), "device": {"warmup_ms": warm * 1e3, **summarize(device)}}
+
+
 def bench_render(config: str | Path, runs: int, variant: str = "auto") -> dict[str, Any]:
     """Wall time per frame of each scene (pattern: camera s, view: camera v).
 
     A frame is what a sweep pays for it: the new surface's upload (the mesh buffers, and the
     acceleration structure of each scene a render goes through; the direct tracers ask the
     water's grid, no structure) and the render, read back to a NumPy image.
-    ``surface_update`` is the upload alone.
+    ``surface_update`` is the upload alone; ``waves`` the sea's heights on the mesh grid, by
+    the host and on the renders' device.
 
     Parameters
     ----------
@@ -80,6 +97,7 @@ def bench_render(config: str | Path, runs: int, variant: str = "auto") -> dict[s
         "runtime": runtime(),
         "scenes": scenes,
         "surface_update": {"vertices": int(surface.z.size), **scenes["pattern"]["surface_update"]},
+        "waves": _bench_waves(cfg, runs),
         "peak_rss_mib": peak_rss_mib(),
     }
 
@@ -104,6 +122,10 @@ def print_render(res: dict[str, Any]) -> None:
     )
     u = res["surface_update"]
     print(f"surface update ({u['vertices']} vertices): median {u['median_ms']:.1f} ms")
+    w = res["waves"]
+    print(f"waves ({w['vertices']} vertices, {w['harmonics']} harmonics): host (BLAS) median "
+          f"{w['host']['median_ms']:.1f} ms, device (Dr.Jit) median "
+          f"{w['device']['median_ms']:.1f} ms")
     print(f"peak RSS {res['peak_rss_mib']:.0f} MiB")
 
 

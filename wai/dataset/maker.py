@@ -46,9 +46,16 @@ class FrameMaker:
     dataset's :func:`~wai.dataset.spec.flat_seed`, and every frame's ``pattern_flat`` and
     ``view_truth`` are them (read by the frame's own sensor when degraded).
 
+    The waves are summed where the frame renders: on a GPU (``cuda_ad_rgb``) on the device
+    (:class:`mitsuba_wai.JitWaveGrid`, one grid of points per mesh level), on a CPU by the
+    host's matrix product (:meth:`mitsuba_wai.waves.SeaSurface.grid`, faster there); the two
+    agree to float64 rounding.
+
     Parameters
     ----------
     spec : DatasetSpec
+    waves_on_device : bool, optional
+        Sum the waves on the renders' device (default: where that is a GPU).
 
     Examples
     --------
@@ -57,8 +64,10 @@ class FrameMaker:
     (60, 80, 3)
     """
 
-    def __init__(self, spec: DatasetSpec) -> None:
+    def __init__(self, spec: DatasetSpec, waves_on_device: bool | None = None) -> None:
         self.spec = spec
+        self._waves_on_device = waves_on_device
+        self._wave_grids: dict[int, Any] = {}  # mesh level -> JitWaveGrid
         self.base = spec.base_config()
         self.x_mm, self.y_mm = grid_axes(spec, self.base)
         self._renderers: dict[int, Any] = {}
@@ -73,11 +82,19 @@ class FrameMaker:
     ) -> Heightfield:
         """The sea state of ``cfg`` at ``time_s`` (default its own) on the storage grid, or
         on mesh ``level`` (spacing times ``2**level``)."""
-        from mitsuba_wai import sea_surface
+        from mitsuba_wai import JitWaveGrid, sea_surface, select_variant
 
         t = cfg.waves.time_s if time_s is None else time_s
+        sea = sea_surface(cfg.waves)
+        if self._waves_on_device is None:
+            self._waves_on_device = select_variant().startswith("cuda")
+        if self._waves_on_device:
+            if level not in self._wave_grids:
+                self._wave_grids[level] = JitWaveGrid(_coarser(self.x_mm, level),
+                                                      _coarser(self.y_mm, level))
+            return self._wave_grids[level].heightfield(sea, t, mean_level_mm=cfg.water.h0_mm)
         x, y = _coarser(self.x_mm, level), _coarser(self.y_mm, level)
-        return sea_surface(cfg.waves).grid(x, y, t, mean_level_mm=cfg.water.h0_mm)
+        return sea.grid(x, y, t, mean_level_mm=cfg.water.h0_mm)
 
     def level(self, cfg: SystemConfig) -> int:
         """The coarsest mesh level whose spacing resolves ``cfg``'s shortest wave."""
