@@ -25,7 +25,7 @@ from restoration.level import Anchor
 from restoration.observations import Observations
 from restoration.options import SurfaceOptions
 from restoration.reverse_trace import Restoration, SplinePatches, ViewPlan, ViewState, restore_view
-from restoration.spot_bias import SpotBiasModel, spot_bias_px
+from restoration.spot_bias import SpotBiasModel, flat_gain, spot_bias_px
 from restoration.undistort import PinholeRemap
 from wai_core.config import SystemConfig, config_from_dict
 from wai_core.errors import WaiInputError
@@ -286,6 +286,7 @@ class Calibration(RigCalibration):
 
     reference: ReferenceGrid | None = None
     _flat_bias_px: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _bias_gain: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     IMAGES: ClassVar[tuple[str, ...]] = ("pattern", "pattern_flat", "view")
 
@@ -298,6 +299,22 @@ class Calibration(RigCalibration):
             self._flat_bias_px[model] = spot_bias_px(rig, rig.dot_panel_px, None,
                                                      float(self.cfg.water.h0_mm), model)
         return self._flat_bias_px[model]
+
+    def spot_bias_gain(self, model: SpotBiasModel) -> NDArray[np.float64]:
+        """The share of the modelled spot bias the flat reference's spots show, per axis (2,)
+        (:func:`restoration.spot_bias.flat_gain`: its spots' shifts from the calibrated
+        places against :meth:`flat_spot_bias_px`; 1 on smooth water); computed once per model
+        from the prepared reference (ones before :meth:`prepare`)."""
+        if self.reference is None or self.reference.shift_px is None:
+            return np.ones(2)
+        if model not in self._bias_gain:
+            ref = self.reference
+            use = ref.observed & ref.lit  # projected dots seen on flat water
+            dots = self.cfg.rig.dot_index(ref.ij[use])
+            self._bias_gain[model] = flat_gain(ref.shift_px[use],
+                                               self.flat_spot_bias_px(model)[dots],
+                                               model.roughness)
+        return self._bias_gain[model]
 
     @property
     def projector(self) -> PinholeCamera:

@@ -156,7 +156,10 @@ class StructuredLightOptions(SurfaceOptions):
     spot_bias : bool or None
         Correct each spot for where its light's centre lies off its dot's centre ray on the
         estimated surface (Fresnel's reflectance across the dot, the water's microfacets, the
-        surface's curvature; :mod:`restoration.spot_bias`) and estimate the surface again.
+        surface's curvature; :mod:`restoration.spot_bias`; on rough water scaled by the share
+        of the modelled shift the flat reference's spots show, the rest taken back by the
+        neighbours' light: :meth:`restoration.Calibration.spot_bias_gain`) and estimate the
+        surface again.
         None (the default): on where the scene's water is rough (``[water] roughness`` > 0:
         the microfacets move every spot along the projector's tilt, and the level the view
         or the slopes give follows them; 0.2-1.2 s a frame there, each dot's 32 facets

@@ -195,6 +195,10 @@ class RestoreResult:
         calibration puts them, RMS px (structured light; the check of a rig, docs/rig.md).
     reference_spacing_px : float or None
         The reference's median dot spacing, px (the residual's scale).
+    spot_bias_gain : (float, float) or None
+        Where the spots were corrected for their bias (structured light's ``spot_bias``): the
+        share of the modelled bias taken off, along x and y
+        (:meth:`restoration.Calibration.spot_bias_gain`).
     """
 
     method: str
@@ -210,6 +214,7 @@ class RestoreResult:
     warnings: list[str] = field(default_factory=list)
     reference_rms_px: float | None = None
     reference_spacing_px: float | None = None
+    spot_bias_gain: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         self.status = Status(self.status)
@@ -273,6 +278,8 @@ class RestoreResult:
                 "rms_of_spacing": float(self.reference_rms_px / (self.reference_spacing_px
                                                                  or np.nan)),
             }
+            if self.spot_bias_gain is not None:
+                out["flat_reference"]["spot_bias_gain"] = [float(g) for g in self.spot_bias_gain]
         if self.warnings:
             out["warnings"] = list(self.warnings)
         if self.timings_ms:

@@ -22,6 +22,14 @@ carries (Fresnel's reflectance at its facet, the facet's share of the projected 
 diffuser. The spot's bias is that weighted centroid less the centre ray's spot, in camera s's
 pixels, and the correction subtracts from each detected spot its bias on the surface less its
 bias on flat water at the gauge's level: :func:`spot_bias_px`.
+
+The model is of a spot alone. On rough water every spot's halo lies to the same side, so with
+every dot lit a neighbour's halo lights the opposite flank of each spot and takes part of its
+shift back; on smooth water there is no halo and nothing is taken back. The flat reference
+says how much: its spots' shifts from their calibrated places against the model's flat-water
+bias have a least-squares slope of 0.98 along x on smooth water and 0.51-0.61 at GGX
+alpha 0.01 (docs/results.md). On rough water the correction is scaled by that slope, per axis
+(:func:`flat_gain`).
 """
 
 from __future__ import annotations
@@ -37,9 +45,14 @@ from restoration.pattern_model import dot_quadrature, facet_light, ggx_facet_slo
 from wai_core.light_paths import dot_rays, real_spot_px, spots_from_hits
 from wai_core.optics import pattern_index
 
-__all__ = ["SpotBiasModel", "spot_bias_px", "spot_correction_px"]
+__all__ = ["MIN_GAIN_SPOTS", "SpotBiasModel", "flat_gain", "shown_share", "spot_bias_px",
+           "spot_correction_px"]
 
 Array = NDArray[np.float64]
+
+MIN_GAIN_SPOTS = 50
+"""Flat-water spots :func:`shown_share` needs to fit the share; with fewer the correction
+takes the model's shift whole."""
 
 
 @dataclass(frozen=True)
@@ -156,12 +169,60 @@ def _windowed_centroid(px: Array, weight: Array, window: float, n_iter: int = 3)
     return x
 
 
+def shown_share(shift_px: Array, model_px: Array) -> Array:
+    """The least-squares slope (with an intercept), per axis (2,), of measured spot shifts
+    ``shift_px`` (K, 2) (a flat reference's spots less their calibrated places) on the
+    model's flat-water bias ``model_px`` (K, 2) at the same dots: the share of the modelled
+    shift the spots show. NaN on an axis the model does not vary along, or with fewer than
+    :data:`MIN_GAIN_SPOTS` dots where both are known.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> model = rng.normal(0.0, 0.3, (400, 2))
+    >>> shift = 0.55 * model + 0.02 + rng.normal(0.0, 0.05, (400, 2))
+    >>> np.round(shown_share(shift, model), 1)
+    array([0.6, 0.6])
+    """
+    share = np.full(2, np.nan)
+    known = np.isfinite(shift_px).all(axis=1) & np.isfinite(model_px).all(axis=1)
+    if known.sum() < MIN_GAIN_SPOTS:
+        return share
+    for axis in (0, 1):
+        m = model_px[known, axis] - model_px[known, axis].mean()
+        spread = float(m @ m)
+        if spread > 0:
+            share[axis] = float(m @ shift_px[known, axis]) / spread
+    return share
+
+
+def flat_gain(shift_px: Array, model_px: Array, roughness: float) -> Array:
+    """The share of the modelled bias a correction takes off, per axis (2,): on rough water
+    what the flat reference shows (:func:`shown_share` of its measured shifts ``shift_px`` on
+    the model's flat-water bias ``model_px``, each (K, 2)), clipped to [0, 1]; 1 on smooth
+    water (``roughness`` 0: no halo, nothing taken back) and where the share is unknown.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> model = np.random.default_rng(1).normal(0.0, 0.3, (400, 2))
+    >>> flat_gain(0.5 * model, model, 0.01), flat_gain(0.5 * model, model, 0.0)
+    (array([0.5, 0.5]), array([1., 1.]))
+    """
+    if roughness <= 0:
+        return np.ones(2)
+    share = shown_share(shift_px, model_px)
+    return np.clip(np.where(np.isfinite(share), share, 1.0), 0.0, 1.0)
+
+
 def spot_correction_px(cal: Any, ij: NDArray, surface: Any, model: SpotBiasModel) -> Array:
     """What to subtract from the detected spots of the dots ``ij`` (K, 2) before they are
     observed (K, 2), camera s pixels: each dot's bias on ``surface`` (a
     :class:`~restoration.surface.SurfaceEstimate`, as a spline through its heights and slopes)
-    less its bias on flat water (which the flat reference holds too); zero where either is
-    unknown."""
+    less its bias on flat water (which the flat reference holds too), times the share of it
+    the flat reference shows (:meth:`restoration.Calibration.spot_bias_gain`, 1 on smooth
+    water); zero where either bias is unknown."""
     rig = cal.cfg.rig
     dots = rig.dot_index(ij)
     xy = surface.points_mm[:, :2]
@@ -169,5 +230,5 @@ def spot_correction_px(cal: Any, ij: NDArray, surface: Any, model: SpotBiasModel
                             SMOOTHNESS)
     level = float(surface.anchor.anchor_mm)
     on_surface = spot_bias_px(rig, rig.dot_panel_px[dots], spline, level, model)
-    correction = on_surface - cal.flat_spot_bias_px(model)[dots]
+    correction = (on_surface - cal.flat_spot_bias_px(model)[dots]) * cal.spot_bias_gain(model)
     return np.where(np.isfinite(correction), correction, 0.0)

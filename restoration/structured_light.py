@@ -455,10 +455,12 @@ class StructuredLight:
         if state is not None:
             state.take(features, ok=status == Status.OK, residual_px=check.median_px,
                        tried=bool(history))
+        gain = (tuple(cal.spot_bias_gain(SpotBiasModel.of_scene(cal.cfg)))
+                if options.spot_bias_for(cal.cfg) else None)
         return RestoreResult(
             self.name, status, message, features, surface, view, timings.to_dict(),
             features.counts, check, reference_rms_px=float(reference.rms_px),
-            reference_spacing_px=reference.median_spacing_px,
+            reference_spacing_px=reference.median_spacing_px, spot_bias_gain=gain,
         )
 
     def _observe_debiased(self, features: Matches, surface: SurfaceEstimate,

@@ -308,7 +308,8 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "--spot-bias", action=argparse.BooleanOptionalAction, default=None,
         help="structured light: correct each spot for where its light's centre lies off its "
         "dot's centre ray on the surface (Fresnel's reflectance across the dot, the water's "
-        "roughness) and estimate the surface again, ~0.1 s more per frame on smooth water, "
+        "roughness; on rough water by the share of it the flat reference's spots show) and "
+        "estimate the surface again, ~0.1 s more per frame on smooth water, "
         "0.2-1.2 s on rough (default: on where the scene's water is rough, off on smooth "
         "water, where it takes about a third off the error but moves a few levels the wrong "
         "way; 'wai guide results', \"Where a spot's light centre lies\")",
