@@ -142,3 +142,14 @@ def mitsuba(requested: str = "auto") -> ModuleType:
     import mitsuba as mi
 
     return mi
+
+
+def jit_arrays(requested: str = "auto") -> ModuleType:
+    """The Dr.Jit array module of the renders' variant, the variant set on first use:
+    ``drjit.cuda`` on ``cuda_ad_rgb`` (the GPU), ``drjit.llvm`` on ``llvm_ad_rgb`` (every
+    core)."""
+    if select_variant(requested).startswith("cuda"):
+        import drjit.cuda as jit
+    else:
+        import drjit.llvm as jit
+    return jit

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mitsuba_wai.variant import jit_arrays
 from wai_core.heightfield import Heightfield
 from wai_core.light_paths import pack_camera
 
@@ -35,18 +36,6 @@ __all__ = ["ViewWarpTracer"]
 
 _CONVERGED_MM = 1e-9  # as wai_core._bispline: a residual below which a step changes nothing
 _DEGREE = 3
-
-
-def _backend() -> Any:
-    """The Dr.Jit array module of the renders' variant (:func:`~mitsuba_wai.variant.
-    select_variant`: ``drjit.cuda`` or ``drjit.llvm``), set first where none is."""
-    from mitsuba_wai.variant import select_variant
-
-    if select_variant().startswith("cuda"):
-        import drjit.cuda as jit
-    else:
-        import drjit.llvm as jit
-    return jit
 
 
 class _Axis:
@@ -131,7 +120,7 @@ class ViewWarpTracer:
     def __init__(self, rig: Any, rays: tuple[NDArray, NDArray] | None = None) -> None:
         cam = rig.camera_v
         origin, dirs = cam.pixel_rays(*cam.pixel_grid()) if rays is None else rays
-        self._jit = jit = _backend()
+        self._jit = jit = jit_arrays()
         self.shape = np.shape(dirs)[:-1]
         flat = np.asarray(dirs, dtype=float).reshape(-1, 3)
         self._dirs = [jit.Float64(np.ascontiguousarray(flat[:, c])) for c in range(3)]

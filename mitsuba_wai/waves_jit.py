@@ -22,22 +22,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from mitsuba_wai.variant import jit_arrays
 from mitsuba_wai.waves import SeaSurface
 from wai_core.heightfield import Heightfield
 
 __all__ = ["JitWaveGrid"]
-
-
-def _backend() -> Any:
-    """The Dr.Jit array module of the renders' variant (``drjit.cuda`` or ``drjit.llvm``),
-    the variant set first where none is."""
-    from mitsuba_wai.variant import select_variant
-
-    if select_variant().startswith("cuda"):
-        import drjit.cuda as jit
-    else:
-        import drjit.llvm as jit
-    return jit
 
 
 class JitWaveGrid:
@@ -66,7 +55,7 @@ class JitWaveGrid:
     def __init__(self, x_mm: ArrayLike, y_mm: ArrayLike) -> None:
         import drjit as dr
 
-        jit = _backend()
+        jit = jit_arrays()
         self.x_mm = np.asarray(x_mm, dtype=float).ravel()
         self.y_mm = np.asarray(y_mm, dtype=float).ravel()
         self._jit = jit
