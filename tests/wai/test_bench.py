@@ -17,6 +17,8 @@ from wai_core.sequence import read_sequence
 STAGES = (
     "render_s",
     "render_v",
+    "waves_host",
+    "waves_device",
     "features",
     "features.detect",
     "features.match",

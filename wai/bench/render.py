@@ -130,13 +130,19 @@ def print_render(res: dict[str, Any]) -> None:
 
 
 def render_stages(render: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """``render_s``/``render_v`` and their uploads from :func:`bench_render`'s scenes."""
+    """``render_s``/``render_v`` and their uploads from :func:`bench_render`'s scenes, and the
+    wave sum by the host and on the device (``waves_host``, ``waves_device``)."""
     stages: dict[str, dict[str, Any]] = {}
     for stage, scene in RENDER_STAGES.items():
         r = render["scenes"][scene]
         summary = {k: v for k, v in r.items() if k.endswith("_ms") and k != "warmup_ms"}
         stages[stage] = {"group": "render", **summary, "runs": r["runs"]}
         stages[f"{stage}.surface_update"] = {"group": "render", **r["surface_update"]}
+    # The sea's heights on the mesh grid, by the host and on the renders' device.
+    waves = render["waves"]
+    stages["waves_host"] = {"group": "render", **waves["host"]}
+    stages["waves_device"] = {"group": "render",
+                              **{k: v for k, v in waves["device"].items() if k != "warmup_ms"}}
     return stages
 
 
