@@ -93,13 +93,13 @@ class JitWaveGrid:
 
         jit = self._jit
         a, kx_host, ky_host, omega, eps = sea.harmonics()
-        amp = a * np.exp(1j * (omega * float(time_s) + eps))
-        re, im = jit.Float64(amp.real), jit.Float64(amp.imag)
-        kx_all, ky_all = jit.Float64(kx_host), jit.Float64(ky_host)
         x, y = self._x, self._y
         width = dr.width(x)
         if not a.size:  # calm: nothing to sum
             return tuple(dr.zeros(jit.Float64, width) for _ in range(3 if slopes else 1))
+        amp = a * np.exp(1j * (omega * float(time_s) + eps))
+        re, im = jit.Float64(amp.real), jit.Float64(amp.imag)
+        kx_all, ky_all = jit.Float64(kx_host), jit.Float64(ky_host)
 
         def body(c: Any, z: Any, sx: Any, sy: Any) -> tuple[Any, ...]:
             kx = dr.gather(jit.Float64, kx_all, c)

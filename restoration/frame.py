@@ -255,7 +255,7 @@ def folder_metrics(
         )
     metrics["options"] = method.options.to_dict()
     if metrics["options"].get("spot_bias", False) is None:  # by the scene: say whether it ran
-        metrics["options"]["spot_bias"] = "spot_bias" in result.timings_ms
+        metrics["options"]["spot_bias"] = result.spot_bias_gain is not None
     metrics["seed"] = seed
     if rig is not None:
         metrics["rig"] = rig

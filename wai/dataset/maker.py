@@ -88,12 +88,12 @@ class FrameMaker:
         sea = sea_surface(cfg.waves)
         if self._waves_on_device is None:
             self._waves_on_device = select_variant().startswith("cuda")
-        if self._waves_on_device:
-            if level not in self._wave_grids:
-                self._wave_grids[level] = JitWaveGrid(_coarser(self.x_mm, level),
-                                                      _coarser(self.y_mm, level))
+        if self._waves_on_device and level in self._wave_grids:
             return self._wave_grids[level].heightfield(sea, t, mean_level_mm=cfg.water.h0_mm)
         x, y = _coarser(self.x_mm, level), _coarser(self.y_mm, level)
+        if self._waves_on_device:
+            self._wave_grids[level] = JitWaveGrid(x, y)
+            return self._wave_grids[level].heightfield(sea, t, mean_level_mm=cfg.water.h0_mm)
         return sea.grid(x, y, t, mean_level_mm=cfg.water.h0_mm)
 
     def level(self, cfg: SystemConfig) -> int:
