@@ -27,7 +27,7 @@ The model is of a spot alone. On rough water every spot's halo lies to the same 
 every dot lit a neighbour's halo lights the opposite flank of each spot and takes part of its
 shift back; on smooth water there is no halo and nothing is taken back. The flat reference
 says how much: its spots' shifts from their calibrated places against the model's flat-water
-bias have a least-squares slope of 0.98 along x on smooth water and 0.51-0.61 at GGX
+bias have a least-squares slope of 0.98 along x on smooth water and 0.40-0.64 at GGX
 alpha 0.01 (docs/results.md). On rough water the correction is scaled by that slope, per axis
 (:func:`flat_gain`).
 """
