@@ -42,10 +42,11 @@ from restoration.options import InverseRenderingOptions, StructuredLightOptions
 from restoration.pattern_model import DotParticles, PatternModel, Raster, Traced
 from restoration.result import RestoreResult, Status
 from restoration.structured_light import StructuredLight
+from restoration.view_level import StructuredLightView
 from wai_core.optics import pattern_index
 from wai_core.timings import Timings
 
-__all__ = ["METHOD", "PatternFit", "fit_pattern", "restore_inverse_rendering"]
+__all__ = ["METHOD", "PatternFit", "fit_pattern", "refit_to_pattern", "restore_inverse_rendering"]
 
 Array = NDArray[np.float64]
 
@@ -297,7 +298,16 @@ def restore_inverse_rendering(
     <Status.OK: 'ok'>
     """
     options = InverseRenderingOptions() if options is None else options
-    start = StructuredLight(_start_options(options))(images, cal, track)
+    first = StructuredLightView if options.start == StructuredLightView.name else StructuredLight
+    start = first(_start_options(options))(images, cal, track)
+    return refit_to_pattern(start, images, cal, options)
+
+
+def refit_to_pattern(start: RestoreResult, images: dict[str, NDArray], cal: Calibration,
+                     options: InverseRenderingOptions | None = None) -> RestoreResult:
+    """The surface of ``start`` (a structured light's result on ``images``) refitted to the
+    pattern image: :func:`restore_inverse_rendering` after its start."""
+    options = InverseRenderingOptions() if options is None else options
     if start.surface is None:
         return replace(start, method=METHOD)
     surface = start.surface
@@ -309,8 +319,7 @@ def restore_inverse_rendering(
         dots = rig.dot_index(surface.ij)
         particles = DotParticles.of(rig, rig.dot_panel_px[dots], options.quadrature_order,
                                     roughness, options.facets)
-        pattern = np.asarray(images["pattern"], float)
-        pattern = pattern[..., :3].sum(axis=2) if pattern.ndim == 3 else pattern
+        pattern = _gray(images["pattern"])
         model = PatternModel(rig, particles, pattern.shape)
         xy = surface.points_mm[:, :2]
         spline = spline_through(xy, surface.points_mm[:, 2], surface.slopes, knot_step(xy),
@@ -344,6 +353,12 @@ def restore_inverse_rendering(
     times["end_to_end"] = times.get("end_to_end", 0.0) + times["image_fit"]
     return replace(start, method=METHOD, status=status, message=message, surface=refit,
                    view=view, timings_ms=times, counts=counts, consistency=None)
+
+
+def _gray(image: NDArray) -> Array:
+    """A pattern image as one channel (its channels summed), float."""
+    image = np.asarray(image, float)
+    return image[..., :3].sum(axis=2) if image.ndim == 3 else image
 
 
 def _start_options(options: InverseRenderingOptions) -> StructuredLightOptions:

@@ -130,6 +130,8 @@ class InverseRendering:
 
     def __init__(self, options: InverseRenderingOptions | None = None) -> None:
         self.options = checked_options(self.name, InverseRenderingOptions, options)
+        if self.options.start == StructuredLightView.name:  # its start reads the view's
+            self.calibration_type = StructuredLightView.calibration_type
 
     def __repr__(self) -> str:
         return f"InverseRendering({self.options!r})"

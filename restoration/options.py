@@ -16,8 +16,8 @@ from restoration.integrate import GRIDDERS, INTEGRATORS
 from wai_core.errors import WaiInputError
 
 __all__ = [
-    "ANCHORS", "FLOW_QUALITIES", "AltermanOptions", "InverseRenderingOptions", "SchlierenOptions",
-    "StructuredLightOptions", "SurfaceOptions", "checked_options",
+    "ANCHORS", "FLOW_QUALITIES", "INVERSE_STARTS", "AltermanOptions", "InverseRenderingOptions",
+    "SchlierenOptions", "StructuredLightOptions", "SurfaceOptions", "checked_options",
 ]
 
 OptionsT = TypeVar("OptionsT", bound="SurfaceOptions")
@@ -320,6 +320,10 @@ class SchlierenOptions(SurfaceOptions):
             raise WaiInputError(f"edge_margin_px must be >= 0, not {self.edge_margin_px}")
 
 
+INVERSE_STARTS = ("structured-light", "structured-light-view")
+"""Values of :attr:`InverseRenderingOptions.start`."""
+
+
 @dataclass(frozen=True)
 class InverseRenderingOptions(StructuredLightOptions):
     """Inverse rendering's choices (:mod:`restoration.inverse_rendering`): the structured
@@ -345,6 +349,11 @@ class InverseRenderingOptions(StructuredLightOptions):
     fresnel : bool
         Weight each particle by Fresnel's reflectance at its facet (the scene's index), taken
         on the surface at the start of each pass.
+    start : str
+        The surface the fit starts from and the level it keeps: ``"structured-light"`` (the
+        paper's method) or ``"structured-light-view"`` (its level pinned by camera v's view of
+        the object: :class:`~restoration.StructuredLightView`; needs the view's flat-water
+        image, ``view_flat`` or a render's ``view_truth``).
 
     Examples
     --------
@@ -361,6 +370,7 @@ class InverseRenderingOptions(StructuredLightOptions):
     roughness: float | None = None
     min_explained: float = 0.5
     fresnel: bool = True
+    start: str = "structured-light"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -374,6 +384,9 @@ class InverseRenderingOptions(StructuredLightOptions):
             raise WaiInputError(f"roughness must be in [0, 1), not {self.roughness}")
         if not 0 <= self.min_explained < 1:
             raise WaiInputError(f"min_explained must be in [0, 1), not {self.min_explained}")
+        if self.start not in INVERSE_STARTS:
+            raise WaiInputError(f"unknown start {self.start!r} (known: "
+                                f"{', '.join(INVERSE_STARTS)})")
 
 
 def checked_options(method: str, cls: type[OptionsT], options: SurfaceOptions | None) -> OptionsT:

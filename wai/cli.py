@@ -305,6 +305,13 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "default on the mean of the paper's rig ('wai guide results')",
     )
     p.add_argument(
+        "--start", default=None, choices=["structured-light", "structured-light-view"],
+        help="inverse-rendering only: the surface its fit starts from and whose level it "
+        "keeps, the structured light's or the one whose level camera v's view pins (needs "
+        "the view's flat-water image; 'wai guide results', \"Inverse rendering\") "
+        "(default: structured-light)",
+    )
+    p.add_argument(
         "--spot-bias", action=argparse.BooleanOptionalAction, default=None,
         help="structured light: correct each spot for where its light's centre lies off its "
         "dot's centre ray on the surface (Fresnel's reflectance across the dot, the water's "

@@ -145,7 +145,8 @@ def test_the_loss_gradient_is_its_finite_difference(rig):
 def test_bad_options_are_refused():
     from wai_core.errors import WaiInputError
 
-    for bad in ({"blur_px": 0.0}, {"passes": 0}, {"roughness": 1.5}, {"min_explained": 1.0}):
+    for bad in ({"blur_px": 0.0}, {"passes": 0}, {"roughness": 1.5}, {"min_explained": 1.0},
+                {"start": "flat-water"}):
         with pytest.raises(WaiInputError):
             InverseRenderingOptions(**bad)
 
@@ -180,3 +181,33 @@ def test_a_fit_that_explains_too_little_is_inconsistent(frame):
     result = InverseRendering(InverseRenderingOptions(min_explained=0.99, passes=1,
                                                       iterations=3))(images, cal)
     assert result.status == "inconsistent" and "median dot's light" in result.message
+
+
+@pytest.mark.slow
+def test_a_fit_started_at_the_views_level_keeps_it(tmp_path):
+    # --start structured-light-view: the fit starts from the surface whose level camera v's
+    # view pins (an object with texture, so that the view has one to give), keeps that level
+    # (the image hardly determines it) and its accuracy.
+    from mitsuba_wai import render_folder
+    from restoration import InverseRendering, StructuredLightView, restore_folder
+    from wai_core.system import load_rig
+
+    frame = tmp_path / "speckle"
+    render_folder(load_rig("paper").replace("waves", seed=11).replace("object",
+                                                                       texture="speckle"),
+                  frame, progress=False)
+    slv = restore_folder(frame, StructuredLightView(), write=False)
+    assert slv.result.surface.anchor.method == "view"
+    ir = restore_folder(frame, InverseRendering(InverseRenderingOptions(
+        start="structured-light-view")), write=False)
+    assert ir.result.status == "ok" and ir.result.surface.anchor.method == "view"
+    assert ir.result.surface.anchor.image_fit_evaluations > 0
+    level = np.nanmean(ir.result.surface.heightfield.z - slv.result.surface.heightfield.z)
+    assert abs(level) < 0.005
+    assert ir.scores.surface["rmse_mm"] <= slv.scores.surface["rmse_mm"] + 0.005
+
+
+def test_the_start_is_inverse_renderings_own_flag(frame, capsys):
+    assert main(["restore", str(frame), "--start", "structured-light-view", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("wai: error: --start:")
