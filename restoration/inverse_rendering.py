@@ -28,6 +28,7 @@ status on.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -73,6 +74,9 @@ class PatternFit:
         The loss after each pass.
     iterations : int
         Loss evaluations.
+    curve : list of float
+        The loss after each L-BFGS iteration, the passes in turn (the first entry: at the
+        start, once the dots' brightness is fitted).
     traced : Traced
         The particles through the final surface.
     timings_ms : dict of str to float
@@ -85,6 +89,7 @@ class PatternFit:
     loss: list[float]
     iterations: int
     traced: Traced
+    curve: list[float] = field(default_factory=list)
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -253,6 +258,11 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
     obj = _Objective(model, raster, np.asarray(image, float), start.coeffs.shape, t,
                      smoothness)
     losses: list[float] = []
+    curve: list[float] = []
+
+    def step(intermediate_result: Any) -> None:
+        curve.append(float(intermediate_result.fun))
+
     with timings("fit"):
         for _ in range(int(passes)):
             traced = model.trace(spline, obj.t)
@@ -260,8 +270,11 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
                 obj.light = model.reflectance(spline, traced, n_water)
             obj.set_mask(traced, reach_px)
             obj.fit_amplitudes(traced)
+            if not curve:
+                curve.append(obj(spline.coeffs.ravel(), spline)[0])
             res = minimize(obj, spline.coeffs.ravel(), args=(spline,), jac=True,
-                           method="L-BFGS-B", options={"maxiter": int(iterations)})
+                           method="L-BFGS-B", options={"maxiter": int(iterations)},
+                           callback=step)
             spline = obj.spline(spline, res.x)
             losses.append(float(res.fun))
     with timings("explained"):
@@ -269,7 +282,7 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
         explained = _explained(obj, traced, window_px)
     timings.add("total", timings.total())
     return PatternFit(spline, obj.amplitudes, obj.background, explained, losses, obj.calls,
-                      traced, timings.to_dict())
+                      traced, curve=curve, timings_ms=timings.to_dict())
 
 
 METHOD = "inverse-rendering"
@@ -339,7 +352,9 @@ def refit_to_pattern(start: RestoreResult, images: dict[str, NDArray], cal: Cali
                                 gain=cal.view_gain)
     explained = float(np.nanmedian(fit.explained)) if np.isfinite(fit.explained).any() else 0.0
     refit.anchor.update(image_fit_explained=explained, image_fit_loss=fit.loss,
-                        image_fit_evaluations=fit.iterations)
+                        image_fit_evaluations=fit.iterations, image_fit_curve=fit.curve,
+                        image_fit_ms_per_evaluation=fit.timings_ms["fit"] / max(fit.iterations,
+                                                                                1))
     status, message = start.status, start.message
     if status == Status.OK and explained < options.min_explained:
         status = Status.INCONSISTENT

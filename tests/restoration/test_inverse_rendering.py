@@ -171,6 +171,14 @@ def test_a_rendered_frame_is_refitted_as_well_as_the_structured_light(frame):
     assert ir["method"] == "inverse-rendering" and ir["status"] == "ok"
     assert ir["wai_rmse_mm"] <= sl["wai_rmse_mm"] + 0.005
     assert ir["feature_counts"]["dots_fitted"] > 500
+    # The loss curve: one entry at the start and one per L-BFGS iteration, each pass's own
+    # iterations never raising it (a line search accepts only a decrease).
+    anchor = ir["anchor"]
+    curve = np.array(anchor["image_fit_curve"])
+    assert 2 <= len(curve) <= anchor["image_fit_evaluations"] + 1
+    assert curve[-1] < curve[0] and curve[-1] == pytest.approx(anchor["image_fit_loss"][-1])
+    assert np.sum(np.diff(curve) > 1e-12) <= len(anchor["image_fit_loss"]) - 1
+    assert anchor["image_fit_ms_per_evaluation"] > 0
 
 
 def test_a_fit_that_explains_too_little_is_inconsistent(frame):
