@@ -114,10 +114,33 @@ def test_restore_measures_frames_in_parallel(frame_dir, capsys):
     assert "--workers must be at least 1" in capsys.readouterr().err
 
 
+@pytest.mark.slow
+def test_restore_times_the_fit_to_the_pattern_image(frame_dir, capsys):
+    # Another method timed the same way; inverse rendering's loss evaluations are a part of
+    # its image fit's time, and no frames-in-parallel figure is claimed for it.
+    assert main(["bench", "restore", "--dir", str(frame_dir), "--runs", "1", "--method",
+                 "inverse-rendering", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    fit = res["image_fit"]
+    assert res["method"] == "inverse-rendering" and res["parallel"] is None
+    assert fit["evaluations"] >= 2 and fit["ms_per_evaluation"] > 0
+    assert fit["evaluations"] * fit["ms_per_evaluation"] <= res["stages_ms"]["image_fit"]
+    assert res["stages_ms"]["image_fit"] <= res["end_to_end_ms"]
+
+
+def test_restore_refuses_a_method_it_cannot_time(frame_dir, capsys):
+    assert main(["bench", "restore", "--dir", str(frame_dir), "--method", "nothing"]) == 2
+    assert capsys.readouterr().err.startswith("wai: error: --method: unknown method")
+    assert main(["bench", "restore", "--dir", str(frame_dir), "--method", "schlieren",
+                 "--workers", "2"]) == 2
+    assert "--workers 2" in capsys.readouterr().err
+
+
 # The invocations README.md and docs/results.md give, one per option set.
 DOCUMENTED = [
     "bench", "bench --runs 5 --out renders/bench", "bench render --runs 3 --json",
-    "bench restore --runs 10 --json", "bench accuracy --seeds 10",
+    "bench restore --runs 10 --json", "bench restore --runs 3 --method inverse-rendering",
+    "bench accuracy --seeds 10",
     "bench accuracy --seeds 10 --config coded.toml --out renders/bench_acc_coded",
     "bench accuracy --seeds 10 --camera 1280x960", "bench surfaces --phi 0.8", "bench inputs",
     "bench video --workers 2 --frames 60", "bench video --workers 2 --fps 120 --track",

@@ -190,6 +190,11 @@ def peak_traced_mib(fn: Callable[[], Any]) -> float:
     return (peak - base) / 2**20
 
 
+MITSUBA_TUTORIAL_ITERATION_MS = 37.6
+"""Time of one Adam iteration of Mitsuba 3's caustic-design tutorial (a 512 x 512 heightmap
+through ``ptracer``) on a GPU, ms: the reference a fit to the pattern image is set against."""
+
+
 def _render_dir(render_dir: str | Path | None, config: str | Path, variant: str) -> Path:
     """``render_dir``, or ``renders/bench`` (rendered from ``config`` unless already there)."""
     if render_dir is not None:
@@ -206,8 +211,10 @@ def _render_dir(render_dir: str | Path | None, config: str | Path, variant: str)
 
 
 def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None = None,
-                  variant: str = "auto", workers: int | None = None) -> dict[str, Any]:
-    """Time :class:`restoration.StructuredLight` on a render folder (rendered if not given).
+                  variant: str = "auto", workers: int | None = None,
+                  method: str = "structured-light") -> dict[str, Any]:
+    """Time a method (default :class:`restoration.StructuredLight`) on a render folder
+    (rendered if not given).
 
     Loading the images is not timed (a camera delivers them in memory); everything from the
     pattern image to the restored view is. A warm-up run (which also prepares the flat-water
@@ -226,10 +233,12 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
         Mitsuba variant of that render, when it is made.
     workers : int or None
         Worker processes that then restore the frame side by side, ``max(runs, 10)`` each, for
-        the machine's throughput (:func:`wai.bench.video.throughput`); 1: none; None:
-        :func:`wai.threads.default_workers`. One frame's restoration is serial: its stages
-        are milliseconds each and depend on each other, so a machine's cores are used by
-        frames in parallel.
+        the machine's throughput (:func:`wai.bench.video.throughput`, the structured light's);
+        1: none; None: :func:`wai.threads.default_workers` (another method: none). One
+        frame's restoration is serial: its stages are milliseconds each and depend on each
+        other, so a machine's cores are used by frames in parallel.
+    method : str
+        The method timed: a name of :func:`restoration.method_names` or ``module:Class``.
 
     Returns
     -------
@@ -241,22 +250,32 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
         ``derived`` and ``notes`` on them; ``warmup_ms``, ``peak_rss_mib`` and
         ``tracemalloc_peak_mib``; ``reference``: the reference workload timed in the same run
         and ``end_to_end_per_reference``, the end-to-end median in units of it; ``parallel``:
-        :func:`~wai.bench.video.throughput`'s figures, None with one worker.
+        :func:`~wai.bench.video.throughput`'s figures, None with one worker; ``method``; and
+        for a fit to the pattern image, ``image_fit``: its loss evaluations and ms per
+        evaluation (medians over the runs) beside :data:`MITSUBA_TUTORIAL_ITERATION_MS`.
     """
-    from restoration import Calibration, StructuredLight
+    from restoration import StructuredLight, get_method
 
     check_runs(runs)
+    try:
+        restore = get_method(method)
+    except WaiInputError as exc:
+        raise WaiInputError(f"--method: {exc}") from None
+    own = restore.name == StructuredLight.name
     if workers is None:
         from wai.threads import default_workers
 
-        workers = default_workers()
+        workers = default_workers() if own else 1
     if workers < 1:
         raise WaiInputError(f"--workers must be at least 1, got {workers}")
+    if workers > 1 and not own:
+        raise WaiInputError(f"--workers {workers}: frames in parallel are timed for "
+                            f"structured-light only, not {restore.name} (give --workers 1)")
     render_dir = _render_dir(render_dir, config, variant)
-    cal = Calibration.from_folder(render_dir)
+    cal = restore.calibration_type.from_folder(render_dir)
     images = cal.load_images(render_dir)
-    restore = StructuredLight()
     options = restore.options
+    fits: dict[str, list[float]] = {}
     reference = reference_workload()
     raw: dict[str, list[float]] = {}
     stages: dict[str, list[float]] = {}
@@ -266,6 +285,11 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
         res = restore(images, cal)
         if i < 0:  # the warm-up's figures are not kept
             return
+        anchor = getattr(getattr(res, "surface", None), "anchor", None)
+        if getattr(anchor, "image_fit_ms_per_evaluation", None) is not None:
+            fits.setdefault("evaluations", []).append(float(anchor.image_fit_evaluations))
+            fits.setdefault("ms_per_evaluation", []).append(
+                float(anchor.image_fit_ms_per_evaluation))
         for name, ms in _raw_timings(res).items():
             raw.setdefault(name, []).append(ms)
         times, made = stage_times(res)
@@ -281,6 +305,10 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
         summary["share"] = summary["median_ms"] / e2e["median_ms"]
     return {
         "render_dir": str(render_dir),
+        "method": restore.name,
+        "image_fit": ({k: float(np.median(v)) for k, v in fits.items()}
+                      | {"tutorial_iteration_ms": MITSUBA_TUTORIAL_ITERATION_MS}
+                      if fits else None),
         "machine": machine(),
         "runtime": runtime(),
         "options": options.to_dict(),
@@ -327,7 +355,8 @@ def print_restore(res: dict[str, Any]) -> None:
     e = res["end_to_end"]
     rt = res["runtime"]
     print(
-        f"restore {res['render_dir']}: end to end median {e['median_ms']:.1f} ms "
+        f"restore {res['render_dir']} ({res.get('method', 'structured-light')}): end to end "
+        f"median {e['median_ms']:.1f} ms "
         f"({res['fps']:.1f} frames/s; min {e['min_ms']:.1f}, max {e['max_ms']:.1f}, "
         f"{e['runs']} runs, {res['machine']['cores']} cores, "
         f"{rt.get('opencv_threads')} OpenCV threads, {rt.get('numba_threads')} restoration "
@@ -343,6 +372,14 @@ def print_restore(res: dict[str, Any]) -> None:
         f"peak RSS {res['peak_rss_mib']:.0f} MiB; Python/NumPy allocations in one restoration "
         f"peak at {res['tracemalloc_peak_mib']:.1f} MiB (tracemalloc)"
     )
+    fit = res.get("image_fit")
+    if fit:
+        print(
+            f"fit to the pattern image: {fit['evaluations']:.0f} loss evaluations, "
+            f"{fit['ms_per_evaluation']:.1f} ms each (the model's image and its gradient; "
+            f"median over the runs) against {fit['tutorial_iteration_ms']} ms a GPU iteration "
+            "of Mitsuba's caustic-design tutorial"
+        )
     par = res.get("parallel")
     if par:
         print(
