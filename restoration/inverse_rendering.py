@@ -27,6 +27,7 @@ status on.
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
@@ -44,6 +45,7 @@ from restoration.pattern_model import DotParticles, PatternModel, Raster, Traced
 from restoration.result import RestoreResult, Status
 from restoration.structured_light import StructuredLight
 from restoration.view_level import StructuredLightView
+from wai_core.errors import WaiInputError
 from wai_core.optics import pattern_index
 from wai_core.timings import Timings
 
@@ -80,6 +82,8 @@ class PatternFit:
     traced : Traced
         The particles through the final surface.
     timings_ms : dict of str to float
+        ``fit`` (the passes), ``descent`` (their L-BFGS descents), ``explained``, ``total``
+        (ms) and ``ms_per_evaluation`` (the descents' time over their loss evaluations).
     """
 
     spline: BSplineSurface
@@ -220,7 +224,8 @@ def _explained(obj: _Objective, traced: Traced, window_px: float) -> Array:
 def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
                 blur_px: float = 1.5, passes: int = 2, iterations: int = 30,
                 smoothness: float = SMOOTHNESS, window_px: float = 6.0,
-                reach_px: float = 8.0, n_water: float | None = None) -> PatternFit:
+                reach_px: float = 8.0, n_water: float | None = None,
+                backend: str = "numpy") -> PatternFit:
     """Fit the spline ``start`` to the pattern ``image`` (H, W) through ``model``.
 
     Parameters
@@ -246,6 +251,10 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
         facet, taken on the surface at the start of each pass
         (:meth:`~restoration.pattern_model.PatternModel.reflectance`); None: the dot's
         Gaussian alone.
+    backend : str
+        Where the loss and its gradient are evaluated: ``"numpy"`` (the hand-written
+        adjoint) or a Dr.Jit backend of :func:`restoration.pattern_jit.jit_module`
+        (``"llvm"``, ``"cuda"``, ``"auto"``; camera s an ideal pinhole).
 
     Returns
     -------
@@ -259,6 +268,7 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
                      smoothness)
     losses: list[float] = []
     curve: list[float] = []
+    descent_calls = 0
 
     def step(intermediate_result: Any) -> None:
         curve.append(float(intermediate_result.fun))
@@ -272,17 +282,45 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
             obj.fit_amplitudes(traced)
             if not curve:
                 curve.append(obj(spline.coeffs.ravel(), spline)[0])
-            res = minimize(obj, spline.coeffs.ravel(), args=(spline,), jac=True,
-                           method="L-BFGS-B", options={"maxiter": int(iterations)},
-                           callback=step)
+            fun = obj if backend == "numpy" else _JitObjective(obj, spline, backend)
+            before = obj.calls
+            with timings("descent"), nullcontext() if fun is obj else fun.loss.in_order():
+                res = minimize(fun, spline.coeffs.ravel(), args=(spline,), jac=True,
+                               method="L-BFGS-B", options={"maxiter": int(iterations)},
+                               callback=step)
+            descent_calls += obj.calls - before
+            if fun is not obj:
+                obj.t = fun.loss.t
             spline = obj.spline(spline, res.x)
             losses.append(float(res.fun))
     with timings("explained"):
         traced = model.trace(spline, obj.t)
         explained = _explained(obj, traced, window_px)
-    timings.add("total", timings.total())
+    timings.add("total", timings.total("fit", "explained"))
+    timings.add("ms_per_evaluation", timings.total("descent") / max(descent_calls, 1))
     return PatternFit(spline, obj.amplitudes, obj.background, explained, losses, obj.calls,
                       traced, curve=curve, timings_ms=timings.to_dict())
+
+
+class _JitObjective:
+    """:class:`_Objective`'s loss and gradient for one pass, its image term on Dr.Jit
+    (:class:`restoration.pattern_jit.JitImageLoss`; the brightness, the mask and each
+    particle's light held as the pass set them)."""
+
+    def __init__(self, obj: _Objective, like: BSplineSurface, backend: str) -> None:
+        from restoration.pattern_jit import JitImageLoss
+
+        p = obj.model.particles
+        self.obj = obj
+        self.loss = JitImageLoss(obj.model, obj.raster, like, obj.observed, obj.mask, obj.norm,
+                                 obj.amplitudes[p.dot] * obj.light, obj.background, obj.t,
+                                 backend)
+
+    def __call__(self, c: Array, like: BSplineSurface) -> tuple[float, Array]:
+        self.obj.calls += 1
+        loss, grad = self.loss(c)
+        reg, reg_grad = self.obj._second(c)
+        return loss + reg, grad + reg_grad
 
 
 METHOD = "inverse-rendering"
@@ -337,9 +375,11 @@ def refit_to_pattern(start: RestoreResult, images: dict[str, NDArray], cal: Cali
         xy = surface.points_mm[:, :2]
         spline = spline_through(xy, surface.points_mm[:, 2], surface.slopes, knot_step(xy),
                                 FIT_SMOOTHNESS)
+        backend = _backend(options.backend, rig)
         fit = fit_pattern(pattern, spline, model, blur_px=options.blur_px,
                           passes=options.passes, iterations=options.iterations,
-                          n_water=pattern_index(cal.cfg) if options.fresnel else None)
+                          n_water=pattern_index(cal.cfg) if options.fresnel else None,
+                          backend=backend)
         z, zx, zy = fit.spline.evaluate(xy[:, 0], xy[:, 1])[:3]
         keep = np.isfinite(z)
         points = np.column_stack([xy, np.where(keep, z, surface.points_mm[:, 2])])
@@ -353,8 +393,8 @@ def refit_to_pattern(start: RestoreResult, images: dict[str, NDArray], cal: Cali
     explained = float(np.nanmedian(fit.explained)) if np.isfinite(fit.explained).any() else 0.0
     refit.anchor.update(image_fit_explained=explained, image_fit_loss=fit.loss,
                         image_fit_evaluations=fit.iterations, image_fit_curve=fit.curve,
-                        image_fit_ms_per_evaluation=fit.timings_ms["fit"] / max(fit.iterations,
-                                                                                1))
+                        image_fit_backend=backend,
+                        image_fit_ms_per_evaluation=fit.timings_ms["ms_per_evaluation"])
     status, message = start.status, start.message
     if status == Status.OK and explained < options.min_explained:
         status = Status.INCONSISTENT
@@ -368,6 +408,29 @@ def refit_to_pattern(start: RestoreResult, images: dict[str, NDArray], cal: Cali
     times["end_to_end"] = times.get("end_to_end", 0.0) + times["image_fit"]
     return replace(start, method=METHOD, status=status, message=message, surface=refit,
                    view=view, timings_ms=times, counts=counts, consistency=None)
+
+
+def _backend(choice: str, rig: Any) -> str:
+    """The fit's backend for ``choice`` (:attr:`InverseRenderingOptions.backend`) on ``rig``:
+    Dr.Jit's (``"cuda"`` where a CUDA device is present, else ``"llvm"``) where camera s is an
+    ideal pinhole and ``choice`` is not ``"numpy"``; ``"numpy"`` otherwise.
+
+    Raises
+    ------
+    WaiInputError
+        For ``"drjit"`` on a rig whose camera s has a lens model or a port.
+    """
+    from restoration.pattern_jit import jit_module, usable
+
+    if choice == "numpy":
+        return "numpy"
+    if usable(rig):
+        return jit_module("auto").__name__.split(".")[1]
+    if choice == "drjit":
+        raise WaiInputError("inverse rendering's backend 'drjit' models camera s as an ideal "
+                            "pinhole; this rig's has a lens model or a port (backend 'auto' "
+                            "or 'numpy')")
+    return "numpy"
 
 
 def _gray(image: NDArray) -> Array:

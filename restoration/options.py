@@ -16,7 +16,8 @@ from restoration.integrate import GRIDDERS, INTEGRATORS
 from wai_core.errors import WaiInputError
 
 __all__ = [
-    "ANCHORS", "FLOW_QUALITIES", "INVERSE_STARTS", "AltermanOptions", "InverseRenderingOptions",
+    "ANCHORS", "FLOW_QUALITIES", "INVERSE_BACKENDS", "INVERSE_STARTS", "AltermanOptions",
+    "InverseRenderingOptions",
     "SchlierenOptions", "StructuredLightOptions", "SurfaceOptions", "checked_options",
 ]
 
@@ -322,6 +323,8 @@ class SchlierenOptions(SurfaceOptions):
 
 INVERSE_STARTS = ("structured-light", "structured-light-view")
 """Values of :attr:`InverseRenderingOptions.start`."""
+INVERSE_BACKENDS = ("auto", "drjit", "numpy")
+"""Values of :attr:`InverseRenderingOptions.backend`."""
 
 
 @dataclass(frozen=True)
@@ -354,6 +357,11 @@ class InverseRenderingOptions(StructuredLightOptions):
         paper's method) or ``"structured-light-view"`` (its level pinned by camera v's view of
         the object: :class:`~restoration.StructuredLightView`; needs the view's flat-water
         image, ``view_flat`` or a render's ``view_truth``).
+    backend : str
+        Where the fit's loss and gradient are evaluated: ``"drjit"`` (Dr.Jit's automatic
+        adjoint, :mod:`restoration.pattern_jit`, on the CUDA device where there is one, else
+        LLVM on every core; camera s an ideal pinhole), ``"numpy"`` (the hand-written
+        adjoint, any lens), ``"auto"`` (Dr.Jit where it models the rig, else NumPy).
 
     Examples
     --------
@@ -371,6 +379,7 @@ class InverseRenderingOptions(StructuredLightOptions):
     min_explained: float = 0.5
     fresnel: bool = True
     start: str = "structured-light"
+    backend: str = "auto"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -384,6 +393,9 @@ class InverseRenderingOptions(StructuredLightOptions):
             raise WaiInputError(f"roughness must be in [0, 1), not {self.roughness}")
         if not 0 <= self.min_explained < 1:
             raise WaiInputError(f"min_explained must be in [0, 1), not {self.min_explained}")
+        if self.backend not in INVERSE_BACKENDS:
+            raise WaiInputError(f"unknown backend {self.backend!r} (known: "
+                                f"{', '.join(INVERSE_BACKENDS)})")
         if self.start not in INVERSE_STARTS:
             raise WaiInputError(f"unknown start {self.start!r} (known: "
                                 f"{', '.join(INVERSE_STARTS)})")

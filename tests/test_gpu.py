@@ -66,3 +66,22 @@ def test_cuda_renders_restore_as_llvm_renders_do(both):
     cpu, gpu = metrics["llvm_ad_rgb"], metrics["cuda_ad_rgb"]
     assert gpu["status"] == cpu["status"] == "ok"
     assert gpu["wai_rmse_mm"] == pytest.approx(cpu["wai_rmse_mm"], abs=0.005)
+
+
+def test_the_pattern_fits_loss_on_cuda_is_llvms():
+    # The inverse rendering's loss on the GPU: the same code on drjit.cuda.ad, the same loss
+    # and gradient as on LLVM to the order of the GPU's atomic sums.
+    from restoration.pattern_jit import JitImageLoss
+    from tests.restoration.test_pattern_jit import _setup
+
+    obj, llvm, spline, rng = _setup(0.005, seed=7)
+    c = spline.coeffs.ravel() + rng.normal(0.0, 0.02, spline.coeffs.size)
+    start = llvm.t
+    cpu_loss, cpu_grad = llvm(c)
+    p = obj.model.particles
+    cuda = JitImageLoss(obj.model, obj.raster, spline, obj.observed, obj.mask, obj.norm,
+                        obj.amplitudes[p.dot] * obj.light, obj.background, start,
+                        backend="cuda")
+    gpu_loss, gpu_grad = cuda(c)
+    assert gpu_loss == pytest.approx(cpu_loss, rel=1e-9)
+    assert np.linalg.norm(gpu_grad - cpu_grad) < 1e-6 * np.linalg.norm(cpu_grad)

@@ -252,7 +252,8 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
         and ``end_to_end_per_reference``, the end-to-end median in units of it; ``parallel``:
         :func:`~wai.bench.video.throughput`'s figures, None with one worker; ``method``; and
         for a fit to the pattern image, ``image_fit``: its loss evaluations and ms per
-        evaluation (medians over the runs) beside :data:`MITSUBA_TUTORIAL_ITERATION_MS`.
+        evaluation in its descents (medians over the runs) and its ``backend``, beside
+        :data:`MITSUBA_TUTORIAL_ITERATION_MS`.
     """
     from restoration import StructuredLight, get_method
 
@@ -276,6 +277,7 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
     images = cal.load_images(render_dir)
     options = restore.options
     fits: dict[str, list[float]] = {}
+    backends: set[str] = set()
     reference = reference_workload()
     raw: dict[str, list[float]] = {}
     stages: dict[str, list[float]] = {}
@@ -290,6 +292,7 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
             fits.setdefault("evaluations", []).append(float(anchor.image_fit_evaluations))
             fits.setdefault("ms_per_evaluation", []).append(
                 float(anchor.image_fit_ms_per_evaluation))
+            backends.add(str(anchor.image_fit_backend))
         for name, ms in _raw_timings(res).items():
             raw.setdefault(name, []).append(ms)
         times, made = stage_times(res)
@@ -307,7 +310,8 @@ def bench_restore(config: str | Path, runs: int, render_dir: str | Path | None =
         "render_dir": str(render_dir),
         "method": restore.name,
         "image_fit": ({k: float(np.median(v)) for k, v in fits.items()}
-                      | {"tutorial_iteration_ms": MITSUBA_TUTORIAL_ITERATION_MS}
+                      | {"tutorial_iteration_ms": MITSUBA_TUTORIAL_ITERATION_MS,
+                         "backend": ", ".join(sorted(backends))}
                       if fits else None),
         "machine": machine(),
         "runtime": runtime(),
@@ -375,10 +379,11 @@ def print_restore(res: dict[str, Any]) -> None:
     fit = res.get("image_fit")
     if fit:
         print(
-            f"fit to the pattern image: {fit['evaluations']:.0f} loss evaluations, "
-            f"{fit['ms_per_evaluation']:.1f} ms each (the model's image and its gradient; "
-            f"median over the runs) against {fit['tutorial_iteration_ms']} ms a GPU iteration "
-            "of Mitsuba's caustic-design tutorial"
+            f"fit to the pattern image ({fit['backend']}): {fit['evaluations']:.0f} loss "
+            f"evaluations, {fit['ms_per_evaluation']:.1f} ms each in its descents (the model's "
+            f"image and its gradient; median over the runs) against "
+            f"{fit['tutorial_iteration_ms']} ms a GPU iteration of Mitsuba's caustic-design "
+            "tutorial"
         )
     par = res.get("parallel")
     if par:
