@@ -12,7 +12,9 @@ captured pattern and the spline's coefficients are moved down the loss's exact g
 ``I`` the pattern image, ``M(c)`` the model blurred by ``blur_px`` (its dots' brightness and
 the background by linear least squares before each pass), ``W`` the pixels near the model's
 particles (the light of dots the fit does not model stays out), ``L`` second differences of the
-coefficients (the smoothness where no particle lands). L-BFGS within each pass.
+coefficients (the smoothness where no particle lands). L-BFGS within each pass, the image
+term's loss and gradient on Dr.Jit (:mod:`restoration.pattern_jit`) where camera s is an ideal
+pinhole, else the NumPy model's hand-written adjoint (``InverseRenderingOptions.backend``).
 
 It starts from the structured light's surface and fits the dots the structured light matched
 (from flat water, the periodic pattern's local minima hold the fit once spots move by more than
