@@ -28,6 +28,7 @@ of the residual's profile.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -41,8 +42,8 @@ from wai_core.heightfield import Heightfield
 from wai_core.light_paths import reflect_to_diffuser
 from wai_core.timings import Timings
 
-__all__ = ["BSplineSurface", "FitResult", "Linearised", "fit_surface", "hits", "knot_step",
-           "linearise", "spline_through"]
+__all__ = ["BSplineSurface", "FitResult", "Linearised", "basis_terms", "fit_surface", "hits",
+           "knot_step", "linearise", "spline_through"]
 
 Array = NDArray[np.float64]
 
@@ -72,14 +73,21 @@ _FD_T_MM = 1e-3  # finite-difference steps of the per-dot forward model: along t
 _FD_SLOPE = 1e-6  # and in slope
 
 
+def basis_terms(u: Any) -> tuple[list[Any], list[Any], list[Any]]:
+    """Uniform cubic B-spline weights at fractions ``u``, with first and second derivatives in
+    ``u``: three lists of four terms, each like ``u`` (any array type with arithmetic: NumPy's
+    or Dr.Jit's)."""
+    u2, u3 = u * u, u * u * u
+    b = [(1 - u) ** 3 / 6, (3 * u3 - 6 * u2 + 4) / 6, (-3 * u3 + 3 * u2 + 3 * u + 1) / 6, u3 / 6]
+    db = [-3 * (1 - u) ** 2 / 6, (9 * u2 - 12 * u) / 6, (-9 * u2 + 6 * u + 3) / 6, 3 * u2 / 6]
+    d2b = [6 * (1 - u) / 6, (18 * u - 12) / 6, (-18 * u + 6) / 6, 6 * u / 6]
+    return b, db, d2b
+
+
 def _basis(u: Array) -> tuple[Array, Array, Array]:
     """Uniform cubic B-spline weights (N, 4) at fractions ``u`` (N,), with first and second
     derivatives in ``u``."""
-    u2, u3 = u * u, u * u * u
-    b = np.stack([(1 - u) ** 3, 3 * u3 - 6 * u2 + 4, -3 * u3 + 3 * u2 + 3 * u + 1, u3], 1) / 6
-    db = np.stack([-3 * (1 - u) ** 2, 9 * u2 - 12 * u, -9 * u2 + 6 * u + 3, 3 * u2], 1) / 6
-    d2b = np.stack([6 * (1 - u), 18 * u - 12, -18 * u + 6, 6 * u], 1) / 6
-    return b, db, d2b
+    return tuple(np.stack(terms, 1) for terms in basis_terms(u))
 
 
 @dataclass

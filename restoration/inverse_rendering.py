@@ -282,12 +282,17 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
                 obj.light = model.reflectance(spline, traced, n_water)
             obj.set_mask(traced, reach_px)
             obj.fit_amplitudes(traced)
-            if not curve:
-                curve.append(obj(spline.coeffs.ravel(), spline)[0])
             fun = obj if backend == "numpy" else _JitObjective(obj, spline, backend)
             before = obj.calls
+
+            def evaluate(c: Array, like: BSplineSurface, fun: Any = fun) -> tuple[float, Array]:
+                value = fun(c, like)
+                if not curve:  # L-BFGS evaluates its start first: the curve's first entry
+                    curve.append(float(value[0]))
+                return value
+
             with timings("descent"), nullcontext() if fun is obj else fun.loss.in_order():
-                res = minimize(fun, spline.coeffs.ravel(), args=(spline,), jac=True,
+                res = minimize(evaluate, spline.coeffs.ravel(), args=(spline,), jac=True,
                                method="L-BFGS-B", options={"maxiter": int(iterations)},
                                callback=step)
             descent_calls += obj.calls - before

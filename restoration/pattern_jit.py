@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from restoration.fit import BSplineSurface
+from restoration.fit import BSplineSurface, basis_terms
 from restoration.pattern_model import PatternModel, Raster
 
 __all__ = ["JitImageLoss", "jit_module", "usable"]
@@ -114,7 +114,6 @@ class JitImageLoss:
         self._s = [F(np.ascontiguousarray(slopes[:, k])) for k in range(2)]
         self._w = F(np.asarray(weights, float))
         self._t = F(np.asarray(t, float))
-        self._like = like
         self._x0, self._y0, self._step = float(like.x0_mm), float(like.y0_mm), float(like.step_mm)
         self._ny, self._nx = like.coeffs.shape
         h, w = raster.shape
@@ -130,7 +129,6 @@ class JitImageLoss:
         self._tc = [float(v) for v in np.asarray(cam.pose.t_mm, float)]
         self._f = float(cam.focal_px)
         self._z_h = float(model.z_h_mm)
-        self.calls = 0
 
     @contextmanager
     def in_order(self) -> Iterator[None]:
@@ -169,8 +167,8 @@ class JitImageLoss:
         ix = dr.clip(ix, 0, self._nx - 4)
         iy = dr.clip(iy, 0, self._ny - 4)
         u, v = gx - jit.Float64(ix), gy - jit.Float64(iy)
-        bu, dbu = _basis(u)
-        bv, dbv = _basis(v)
+        bu, dbu, _ = basis_terms(u)
+        bv, dbv, _ = basis_terms(v)
         z = zx = zy = 0.0
         for a in range(4):
             row = (iy + a) * self._nx + ix
@@ -202,7 +200,6 @@ class JitImageLoss:
         """The loss at coefficients ``c`` (flat) and its gradient in them."""
         dr, jit = self._dr, self._jit
         F = jit.Float64
-        self.calls += 1
         coeffs = F(np.asarray(c, float).ravel())
         dr.enable_grad(coeffs)
         (ox, oy, oz), (dx, dy, dz) = self._o, self._d
@@ -266,14 +263,3 @@ class JitImageLoss:
         inner = (index // w + 1) * stride + index % w + 1
         return dr.gather(jit.Float64, padded, jit.UInt32(inner))
 
-
-def _basis(u: Any) -> tuple[list[Any], list[Any]]:
-    """Uniform cubic B-spline weights at fractions ``u`` and their derivatives in ``u``
-    (:func:`restoration.fit._basis`), as four Dr.Jit arrays each."""
-    u2, u3 = u * u, u * u * u
-    one = 1.0 - u
-    b = [one * one * one / 6.0, (3.0 * u3 - 6.0 * u2 + 4.0) / 6.0,
-         (-3.0 * u3 + 3.0 * u2 + 3.0 * u + 1.0) / 6.0, u3 / 6.0]
-    db = [-3.0 * one * one / 6.0, (9.0 * u2 - 12.0 * u) / 6.0,
-          (-9.0 * u2 + 6.0 * u + 3.0) / 6.0, 3.0 * u2 / 6.0]
-    return b, db
