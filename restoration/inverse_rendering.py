@@ -331,6 +331,12 @@ class _JitObjective:
 
 
 METHOD = "inverse-rendering"
+"""The method's name; started at the view's level, ``inverse-rendering-view``."""
+
+
+def _method(options: InverseRenderingOptions) -> str:
+    """The result's method name for ``options``' start."""
+    return f"{METHOD}-view" if options.start == StructuredLightView.name else METHOD
 
 
 def restore_inverse_rendering(
@@ -367,7 +373,7 @@ def refit_to_pattern(start: RestoreResult, images: dict[str, NDArray], cal: Cali
     pattern image: :func:`restore_inverse_rendering` after its start."""
     options = InverseRenderingOptions() if options is None else options
     if start.surface is None:
-        return replace(start, method=METHOD)
+        return replace(start, method=_method(options))
     surface = start.surface
     timings = Timings()
     with timings("image_fit"):
@@ -413,7 +419,7 @@ def refit_to_pattern(start: RestoreResult, images: dict[str, NDArray], cal: Cali
     times["image_fit"] = timings.to_dict()["image_fit"]
     times["reverse_trace"] = timings.to_dict()["reverse_trace"]
     times["end_to_end"] = times.get("end_to_end", 0.0) + times["image_fit"]
-    return replace(start, method=METHOD, status=status, message=message, surface=refit,
+    return replace(start, method=_method(options), status=status, message=message, surface=refit,
                    view=view, timings_ms=times, counts=counts, consistency=None)
 
 

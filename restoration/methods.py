@@ -16,6 +16,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import sys
+from dataclasses import replace
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,8 @@ from restoration.view_level import StructuredLightView
 from wai_core.errors import WaiInputError
 
 __all__ = [
-    "ENTRY_POINT_GROUP", "METHODS", "Alterman", "InverseRendering", "Schlieren", "as_method",
+    "ENTRY_POINT_GROUP", "METHODS", "Alterman", "InverseRendering", "InverseRenderingView",
+    "Schlieren", "as_method",
     "get_method", "load_calibration", "method_class", "method_names",
 ]
 
@@ -147,16 +149,41 @@ class InverseRendering:
         return restore_inverse_rendering(images, cal, self.options, track)
 
 
+class InverseRenderingView(InverseRendering):
+    """Inverse rendering started at the view's level: the fit starts from
+    :class:`~restoration.StructuredLightView`'s surface (the structured light whose level
+    camera v's view pins) and keeps its level; its options' ``start`` is always that.
+
+    Examples
+    --------
+    >>> from restoration import InverseRenderingOptions, InverseRenderingView
+    >>> InverseRenderingView(InverseRenderingOptions(iterations=10)).options.start
+    'structured-light-view'
+    """
+
+    name = "inverse-rendering-view"
+    calibration_type = StructuredLightView.calibration_type
+
+    def __init__(self, options: InverseRenderingOptions | None = None) -> None:
+        options = checked_options(self.name, InverseRenderingOptions, options)
+        super().__init__(replace(options, start=StructuredLightView.name))
+
+    def __repr__(self) -> str:
+        return f"InverseRenderingView({self.options!r})"
+
+
 METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name: Alterman,
                             Schlieren.name: Schlieren, InverseRendering.name: InverseRendering,
                             StructuredLightView.name: StructuredLightView,
-                            SchlierenLevelled.name: SchlierenLevelled}
+                            SchlierenLevelled.name: SchlierenLevelled,
+                            InverseRenderingView.name: InverseRenderingView}
 """Methods by name: ``structured-light`` (the paper's), ``alterman`` (the sun sensor),
 ``schlieren`` (synthetic Schlieren on camera v's view), ``inverse-rendering`` (the
 structured light's surface refitted to the pattern image), ``structured-light-view`` (the
 structured light, its level pinned by camera v's view: :mod:`restoration.view_level`) and
 ``schlieren-sl`` (synthetic Schlieren at that structured light's level:
-:mod:`restoration.schlieren_level`)."""
+:mod:`restoration.schlieren_level`) and ``inverse-rendering-view`` (the refit started from
+``structured-light-view``'s surface)."""
 BUILT_IN.update(METHODS.values())
 
 

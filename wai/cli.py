@@ -277,7 +277,8 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "view and its flat-water view; an object with texture, [object] texture = "
         "\"speckle\"), inverse-rendering (the structured light's surface refitted to the "
         "whole pattern image), structured-light-view (its level pinned by the view), "
-        "schlieren-sl (Schlieren at that structured light's level), the video methods "
+        "schlieren-sl (Schlieren at that structured light's level), inverse-rendering-view "
+        "(the refit started from structured-light-view's surface), the video methods "
         "registration, lucky "
         "and mean (from a video file, a folder of frames or a sequence; no scene.json), a "
         "method of one's own as module:Class, "
@@ -303,13 +304,6 @@ def _add_restore(sub: argparse._SubParsersAction) -> None:
         "model (restoration.fit_level.fit_level): ~0.3-1 s more per frame, no more accurate "
         "than the "
         "default on the mean of the paper's rig ('wai guide results')",
-    )
-    p.add_argument(
-        "--start", default=None, choices=["structured-light", "structured-light-view"],
-        help="inverse-rendering only: the surface its fit starts from and whose level it "
-        "keeps, the structured light's or the one whose level camera v's view pins (needs "
-        "the view's flat-water image; 'wai guide results', \"Inverse rendering\") "
-        "(default: structured-light)",
     )
     p.add_argument(
         "--spot-bias", action=argparse.BooleanOptionalAction, default=None,

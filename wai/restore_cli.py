@@ -66,13 +66,10 @@ def method_options(args: argparse.Namespace) -> SurfaceOptions:
                 "always the gauge's (--anchor gauge)"
             )
         anchor = None
-    if args.start is not None and args.method != "inverse-rendering":
-        raise WaiInputError(f"--start: inverse-rendering's start, not an option of "
-                            f"{args.method}")
     choices = {"integrator": args.integrator, "n_refine": args.refine, "anchor": anchor,
                "fit_spots": True if args.fit else None,
                "flat_referenced": False if args.as_detected else None,
-               "spot_bias": args.spot_bias, "start": args.start}
+               "spot_bias": args.spot_bias}
     try:
         return get_method(args.method, **choices).options
     except WaiInputError as exc:

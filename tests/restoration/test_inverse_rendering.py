@@ -193,29 +193,37 @@ def test_a_fit_that_explains_too_little_is_inconsistent(frame):
 
 @pytest.mark.slow
 def test_a_fit_started_at_the_views_level_keeps_it(tmp_path):
-    # --start structured-light-view: the fit starts from the surface whose level camera v's
-    # view pins (an object with texture, so that the view has one to give), keeps that level
-    # (the image hardly determines it) and its accuracy.
+    # wai restore --method inverse-rendering-view: the fit starts from the surface whose
+    # level camera v's view pins (an object with texture, so that the view has one to give),
+    # keeps that level (the image hardly determines it) and its accuracy.
     from mitsuba_wai import render_folder
-    from restoration import InverseRendering, StructuredLightView, restore_folder
     from wai_core.system import load_rig
 
     frame = tmp_path / "speckle"
     render_folder(load_rig("paper").replace("waves", seed=11).replace("object",
                                                                        texture="speckle"),
                   frame, progress=False)
-    slv = restore_folder(frame, StructuredLightView(), write=False)
-    assert slv.result.surface.anchor.method == "view"
-    ir = restore_folder(frame, InverseRendering(InverseRenderingOptions(
-        start="structured-light-view")), write=False)
-    assert ir.result.status == "ok" and ir.result.surface.anchor.method == "view"
-    assert ir.result.surface.anchor.image_fit_evaluations > 0
-    level = np.nanmean(ir.result.surface.heightfield.z - slv.result.surface.heightfield.z)
+    for method in ("structured-light-view", "inverse-rendering-view"):
+        assert main(["restore", str(frame), "--method", method, "--quiet"]) == 0
+    slv = json.loads((frame / "restore_structured-light-view" / "metrics.json").read_text())
+    ir = json.loads((frame / "restore_inverse-rendering-view" / "metrics.json").read_text())
+    assert slv["anchor"]["method"] == "view"
+    assert ir["method"] == "inverse-rendering-view" and ir["status"] == "ok"
+    assert ir["anchor"]["method"] == "view" and ir["anchor"]["image_fit_evaluations"] > 0
+    z = {m: np.load(frame / f"restore_{m}" / "heightfield_est.npz")["z"]
+         for m in ("structured-light-view", "inverse-rendering-view")}
+    level = np.nanmean(z["inverse-rendering-view"] - z["structured-light-view"])
     assert abs(level) < 0.005
-    assert ir.scores.surface["rmse_mm"] <= slv.scores.surface["rmse_mm"] + 0.005
+    assert ir["wai_rmse_mm"] <= slv["wai_rmse_mm"] + 0.005
 
 
-def test_the_start_is_inverse_renderings_own_flag(frame, capsys):
-    assert main(["restore", str(frame), "--start", "structured-light-view", "--quiet"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("wai: error: --start:")
+def test_the_view_start_is_a_method_of_its_own():
+    from restoration import InverseRenderingView, get_method
+
+    # Its start is always the view's, whatever options it is given, and it reads the
+    # view's calibration (the flat-water view pins the level).
+    method = get_method("inverse-rendering-view", n_refine=0)
+    assert isinstance(method, InverseRenderingView)
+    assert method.options.start == "structured-light-view" and method.options.n_refine == 0
+    assert InverseRenderingView(InverseRenderingOptions()).options.start == method.options.start
+    assert method.calibration_type is get_method("structured-light-view").calibration_type

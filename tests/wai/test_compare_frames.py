@@ -91,3 +91,37 @@ def test_a_frame_whose_view_is_not_scored_keeps_its_surface_error() -> None:
     assert _ok_but_wrong([row]) == 1
     unscored = SimpleNamespace(result=result, scores=None, metrics={})
     assert frame_row(unscored, cal=None)["rmse_mm"] is None
+
+
+def test_a_method_rescues_only_the_structured_lights_weak_frames_of_the_same_case():
+    from wai.experiments.compare_frames import RIGHT_MM, WRONG_OK_MM, rescues
+
+    sl = "structured-light"
+    rows = [
+        # The reference: frame 0 right, 1 ok but past RIGHT_MM, 2 not ok, 3 no surface.
+        _row("rough_0.01", ["ok", "ok", "sparse", "failed"],
+             [0.01, RIGHT_MM + 0.05, 0.02, None], method=sl),
+        # The method: right on frame 0 (not weak, not counted), right on 1 and 3, ok but
+        # far off on 2.
+        _row("rough_0.01", ["ok", "ok", "ok", "ok"],
+             [0.01, RIGHT_MM * 0.5, WRONG_OK_MM + 0.1, RIGHT_MM * 0.9], method="m"),
+        # Another seed: the reference is right everywhere, so nothing is weak there, and the
+        # method's wrong frames on it are not counted here.
+        _row("rough_0.01", ["ok", "ok"], [0.01, 0.02], method=sl, seed=1),
+        _row("rough_0.01", ["ok", "ok"], [1.0, 1.0], method="m", seed=1),
+        # A condition where the method misses what the reference also misses.
+        _row("steep_2", ["inconsistent"], [5.0], method=sl),
+        _row("steep_2", ["inconsistent"], [0.01], method="m"),
+    ]
+    got = {(e["condition"], e["method"]): e for e in rescues(rows)}
+    assert set(got) == {("rough_0.01", "m"), ("steep_2", "m"), ("all", "m")}
+    rough = got["rough_0.01", "m"]
+    assert (rough["weak"], rough["rescued"], rough["ok_wrong"]) == (3, 2, 1)
+    steep = got["steep_2", "m"]
+    assert (steep["weak"], steep["rescued"], steep["ok_wrong"]) == (1, 0, 0)
+    total = got["all", "m"]
+    assert (total["weak"], total["rescued"]) == (4, 2) and total["rescued_share"] == 0.5
+    text = report([], "wai experiment compare", rescued=rescues(rows))
+    assert "## Where structured-light is weak" in text
+    assert "| all | m | 4 | 2 | 50% | 1 |" in text
+    assert "is weak" not in report([], "wai experiment compare")

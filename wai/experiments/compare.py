@@ -22,7 +22,14 @@ from typing import Any
 
 import numpy as np
 
-from wai.experiments.compare_frames import by_condition, condition_report, frame_columns
+from wai.experiments.compare_frames import (
+    WRONG_OK_MM,
+    by_condition,
+    condition_report,
+    frame_columns,
+    rescue_report,
+    rescues,
+)
 from wai.experiments.outputs import output_folder, publish, sweep_command, sweep_rows
 from wai.sweep import SweepOptions, is_error
 from wai_core.config import with_keys
@@ -78,10 +85,6 @@ MIN_CORNERS = 10
 STD (two corners have a spread, but not one that says much: a blurred view shows few)."""
 COUNTS = ("frames_ok", "frames_ok_wrong", "frames")
 """Scores summed over a method's cases, not averaged."""
-WRONG_OK_MM = 0.25
-"""A frame that says ``ok`` with its surface further than this from the truth (RMSE, mm) is
-counted in ``frames_ok_wrong``: a status that should have flagged it (a method is never to say
-``ok`` there)."""
 GRID_FRAMES = 8
 """Frames of a per-frame method the truth-free grid score looks at, evenly spaced (finding a
 partial board costs more than a structured-light restoration)."""
@@ -389,7 +392,8 @@ def case_agreement(rows: list[dict[str, Any]]) -> list[float | None]:
 
 def report(summary: list[dict[str, Any]], command: str,
            case_taus: list[float | None] | None = None,
-           conditions: list[dict[str, Any]] | None = None) -> str:
+           conditions: list[dict[str, Any]] | None = None,
+           rescued: list[dict[str, Any]] | None = None) -> str:
     def f(v: Any, spec: str) -> str:
         return "-" if v is None else format(v, spec)
 
@@ -446,6 +450,7 @@ def report(summary: list[dict[str, Any]], command: str,
         each = ", ".join("-" if t is None else f"{t:.2f}" for t in case_taus)
         lines.append(f"Within each case: tau = {each}.")
     lines += condition_report(conditions or [])
+    lines += rescue_report(rescued or [])
     return "\n".join(lines) + "\n"
 
 
@@ -500,12 +505,14 @@ def run_compare(config: str | Path, out: str | Path, seeds: int, quick: bool,
     command += "".join(f" --condition {c}" for c in dict.fromkeys(conditions or []))
     case_taus = case_agreement(rows)
     by_case = by_condition(rows, DEGRADATIONS)
-    text = report(summary, command, case_taus, by_case)
+    rescued = rescues(rows)
+    text = report(summary, command, case_taus, by_case, rescued)
     tau, _ = rank_agreement(summary)
     write_json(out / "compare_summary.json",
                {"command": command, "methods": summary, "kendall_tau_grid_corner_std": tau,
                 "kendall_tau_rig_corner_std": rank_agreement(summary, "rig_px")[0],
-                "kendall_tau_per_case": case_taus, "conditions": by_case})
+                "kendall_tau_per_case": case_taus, "conditions": by_case,
+                "rescues": rescued})
     _figure(summary, out / "compare.png")
     publish(out / "compare.md", text)
     return summary

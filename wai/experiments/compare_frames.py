@@ -9,6 +9,8 @@ on the condition's baseline (the same waves, seed and frame seen without the eff
 ``speckle`` for a condition seen through the speckle object, ``none`` otherwise). That is the
 error budget's bar (:data:`wai.experiments.budget.ADDED_LIMIT_MM`) met frame by frame; a
 condition that changes the waves (capillary, steeper) has no baseline of the same surface.
+:func:`rescues` reads every method on the frames where the structured light is weak (not
+``ok``, or more than :data:`RIGHT_MM` off): how many of them it restores ``ok`` within it.
 """
 
 from __future__ import annotations
@@ -20,11 +22,22 @@ import numpy as np
 
 from wai.experiments.budget import ADDED_LIMIT_MM, OK_SHARE
 
-__all__ = ["ADDED_MM", "by_condition", "condition_report", "frame_columns"]
+__all__ = ["ADDED_MM", "REFERENCE_METHOD", "RIGHT_MM", "WRONG_OK_MM", "by_condition",
+           "condition_report", "frame_columns", "rescue_report", "rescues"]
 
 ADDED_MM = ADDED_LIMIT_MM
 """Surface RMSE (mm) a frame may add to the same frame's on its condition's baseline and
 still count as right under the condition (the error budget's bar)."""
+RIGHT_MM = 0.1
+"""Surface RMSE (mm) within which a frame counts as right: the structured light's frames
+past it (or not ``ok``) are its weak frames, and another method's ``ok`` frame within it
+there is one it rescues."""
+WRONG_OK_MM = 0.25
+"""A frame that says ``ok`` with its surface further than this from the truth (RMSE, mm) is
+counted in ``frames_ok_wrong``: a status that should have flagged it (a method is never to say
+``ok`` there)."""
+REFERENCE_METHOD = "structured-light"
+"""The method whose weak frames :func:`rescues` counts (the paper's)."""
 
 
 def frame_columns(statuses: Sequence[str], rmse_mm: Sequence[float | None]) -> dict[str, str]:
@@ -151,4 +164,70 @@ def condition_report(entries: Sequence[Mapping[str, Any]]) -> list[str]:
               "method) on its baseline, the condition without its effect; a condition that "
               "changes the waves has none. The error budget's reach asks "
               f"{OK_SHARE:.0%} of frames `ok`."]
+    return lines
+
+
+def rescues(rows: Sequence[Mapping[str, Any]],
+            reference: str = REFERENCE_METHOD) -> list[dict[str, Any]]:
+    """Per condition and method, on the frames where ``reference`` is weak (not ``ok``, or
+    its surface more than :data:`RIGHT_MM` off, or none): ``weak`` (those frames, each
+    matched to the same case and frame of the method), ``rescued`` (of them, the method's
+    ``ok`` frames within :data:`RIGHT_MM`), ``rescued_share`` and ``ok_wrong`` (its ``ok``
+    frames more than :data:`WRONG_OK_MM` off); then each method's totals over the
+    conditions (condition ``all``). Conditions where ``reference`` has no weak frame are
+    left out.
+
+    ``rows``: compare's case rows, as for :func:`by_condition`.
+
+    Examples
+    --------
+    >>> rows = [dict(wind=1, seed=0, method=m, degradation="rough", case_frames=3,
+    ...              **frame_columns(s, r))
+    ...         for m, s, r in (("structured-light", ["ok", "sparse", "ok"], [0.01, 2.0, 0.3]),
+    ...                         ("mine", ["ok", "ok", "ok"], [0.01, 0.05, 0.4]))]
+    >>> [(e["condition"], e["weak"], e["rescued"], e["ok_wrong"]) for e in rescues(rows)]
+    [('rough', 2, 1, 1), ('all', 2, 1, 1)]
+    """
+    frames = {}
+    for row in rows:
+        got = _frames(row)
+        if got is not None:
+            frames[_case_key(row, str(row["degradation"]))] = got
+    out: dict[tuple[str, str], dict[str, Any]] = {}
+    for key, (status, rmse) in frames.items():
+        method, condition = key[3], key[4]
+        base = frames.get(key[:3] + (reference, condition))
+        if method == reference or base is None or len(base[0]) != len(status):
+            continue
+        base_right = np.array([s == "ok" for s in base[0]]) & (base[1] <= RIGHT_MM)
+        weak = ~base_right
+        if not weak.any():
+            continue
+        ok = np.array([s == "ok" for s in status])
+        for name in (condition, "all"):
+            entry = out.setdefault((name, method), {"condition": name, "method": method,
+                                                    "weak": 0, "rescued": 0, "ok_wrong": 0})
+            entry["weak"] += int(weak.sum())
+            entry["rescued"] += int((weak & ok & (rmse <= RIGHT_MM)).sum())
+            entry["ok_wrong"] += int((weak & ok & (rmse > WRONG_OK_MM)).sum())
+    for entry in out.values():
+        entry["rescued_share"] = entry["rescued"] / entry["weak"]
+    return sorted(out.values(), key=lambda e: (e["condition"] == "all", e["condition"],
+                                               e["method"]))
+
+
+def rescue_report(entries: Sequence[Mapping[str, Any]],
+                  reference: str = REFERENCE_METHOD) -> list[str]:
+    """:func:`rescues`' entries as a Markdown section (no lines where there are none)."""
+    if not entries:
+        return []
+    lines = ["", f"## Where {reference} is weak", "",
+             f"| condition | method | weak frames | `ok` within {RIGHT_MM:g} mm | share | "
+             f"`ok` past {WRONG_OK_MM:g} mm |", "|" + " --- |" * 6]
+    for e in entries:
+        lines.append(f"| {e['condition']} | {e['method']} | {e['weak']} | {e['rescued']} | "
+                     f"{e['rescued_share']:.0%} | {e['ok_wrong']} |")
+    lines += ["", f"Weak frames: those {reference} does not call `ok`, or calls `ok` with a "
+              f"surface more than {RIGHT_MM:g} mm RMSE from the truth; each method is read "
+              "on the same frames of the same cases. `all`: every condition together."]
     return lines
