@@ -125,3 +125,16 @@ def test_a_method_rescues_only_the_structured_lights_weak_frames_of_the_same_cas
     assert "## Where structured-light is weak" in text
     assert "| all | m | 4 | 2 | 50% | 1 |" in text
     assert "is weak" not in report([], "wai experiment compare")
+
+
+def test_the_frame_tables_name_a_method_as_the_summary_does():
+    # A method of one's own is given by its spec (a file path or module:Class) and names
+    # itself; the frame tables show its name, as compare's summary table does.
+    from wai.experiments.compare_frames import rescues
+
+    spec = "/somewhere/mine.py:Mine"
+    rows = [_row("rough_0.01", ["sparse"], [1.0], method="structured-light",
+                 method_name="structured-light"),
+            _row("rough_0.01", ["ok"], [0.02], method=spec, method_name="mine")]
+    assert {e["method"] for e in rescues(rows)} == {"mine"}
+    assert "mine" in {e["method"] for e in by_condition(rows, DEGRADATIONS)}

@@ -78,6 +78,17 @@ def _baseline(condition: str, conditions: Mapping[str, Mapping[str, Any]]) -> st
     return "speckle" if keys.get("object.texture") == "speckle" else "none"
 
 
+def _names(rows: Sequence[Mapping[str, Any]]) -> dict[str, str]:
+    """Each method spec's name as the methods call themselves (``method_name``; the spec
+    where a row has none), as compare's summary table shows them."""
+    names: dict[str, str] = {}
+    for row in rows:
+        spec, name = str(row["method"]), row.get("method_name")
+        if isinstance(name, str) and name:
+            names.setdefault(spec, name)
+    return names
+
+
 def _case_key(row: Mapping[str, Any], degradation: str) -> tuple:
     return (float(row["wind"]), int(float(row["seed"])), str(row.get("case_frames", "")),
             str(row["method"]), degradation)
@@ -106,7 +117,7 @@ def by_condition(rows: Sequence[Mapping[str, Any]],
     ...            "rough": {"water.roughness": 0.01, "object.texture": "speckle"}})]
     [('speckle', 2, None), ('rough', 1, 0)]
     """
-    frames = {}
+    frames, names = {}, _names(rows)
     for row in rows:
         got = _frames(row)
         if got is not None and np.isfinite(got[1]).any():
@@ -116,7 +127,8 @@ def by_condition(rows: Sequence[Mapping[str, Any]],
         method, condition = key[3], key[4]
         base_name = _baseline(condition, conditions)
         entry = out.setdefault((condition, method), {
-            "condition": condition, "method": method, "baseline": base_name, "frames": 0,
+            "condition": condition, "method": names.get(method, method),
+            "baseline": base_name, "frames": 0,
             "ok": 0, "compared": 0 if base_name else None,
             "ok_within": 0 if base_name else None, "_rmse": []})
         ok = np.array([s == "ok" for s in status])
@@ -188,7 +200,7 @@ def rescues(rows: Sequence[Mapping[str, Any]],
     >>> [(e["condition"], e["weak"], e["rescued"], e["ok_wrong"]) for e in rescues(rows)]
     [('rough', 2, 1, 1), ('all', 2, 1, 1)]
     """
-    frames = {}
+    frames, names = {}, _names(rows)
     for row in rows:
         got = _frames(row)
         if got is not None:
@@ -205,7 +217,8 @@ def rescues(rows: Sequence[Mapping[str, Any]],
             continue
         ok = np.array([s == "ok" for s in status])
         for name in (condition, "all"):
-            entry = out.setdefault((name, method), {"condition": name, "method": method,
+            entry = out.setdefault((name, method), {"condition": name,
+                                                    "method": names.get(method, method),
                                                     "weak": 0, "rescued": 0, "ok_wrong": 0})
             entry["weak"] += int(weak.sum())
             entry["rescued"] += int((weak & ok & (rmse <= RIGHT_MM)).sum())
