@@ -180,7 +180,7 @@ METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name
 """Methods by name: ``structured-light`` (the paper's), ``alterman`` (the sun sensor),
 ``schlieren`` (synthetic Schlieren on camera v's view), ``inverse-rendering`` (the
 structured light's surface refitted to the pattern image), ``structured-light-view`` (the
-structured light, its level pinned by camera v's view: :mod:`restoration.view_level`) and
+structured light, its level pinned by camera v's view: :mod:`restoration.view_level`),
 ``schlieren-sl`` (synthetic Schlieren at that structured light's level:
 :mod:`restoration.schlieren_level`) and ``inverse-rendering-view`` (the refit started from
 ``structured-light-view``'s surface)."""
