@@ -7,10 +7,11 @@ adjoint (``drjit.backward``) instead of the hand-written one: the particles' hit
 method (detached; the hit's derivative is the implicit one, ``dz / (d_z - grad z . d_xy)``,
 as in :func:`restoration.fit.linearise`), the reflection about the facet's normal, the
 diffuser plane, camera s's pinhole, the splats (scatter-adds into the image), the blur (a
-sum of shifted gathers with scipy's kernel) and the loss. One evaluation is one kernel launch
-for the forward pass and one for the adjoint, on whichever device Dr.Jit has; the spline's
-coefficients come in and their gradient goes out (a few hundred numbers a call), the images
-and the particles stay on the device for the pass.
+sum of shifted gathers with the NumPy model's kernel,
+:attr:`~restoration.pattern_model.Raster.kernel`) and the loss. One evaluation is one kernel
+launch for the forward pass and one for the adjoint, on whichever device Dr.Jit has; the
+spline's coefficients come in and their gradient goes out (a few hundred numbers a call), the
+images and the particles stay on the device for the pass.
 
 Camera s must be the ideal pinhole (no lens distortion, principal offset or port): the
 lens models live in NumPy; :func:`usable` says whether a rig qualifies.
@@ -55,14 +56,6 @@ def jit_module(backend: str = "auto") -> ModuleType:
 def usable(rig: Any) -> bool:
     """Whether the Dr.Jit loss models ``rig``'s camera s (its ideal pinhole only)."""
     return bool(rig.optics("camera_s").ideal)
-
-
-def _kernel(sigma_px: float, truncate: float = 3.0) -> Array:
-    """scipy's ``gaussian_filter`` kernel for ``sigma_px`` and ``truncate``."""
-    radius = int(truncate * float(sigma_px) + 0.5)
-    x = np.arange(-radius, radius + 1, dtype=float)
-    w = np.exp(-0.5 * (x / sigma_px) ** 2)
-    return w / w.sum()
 
 
 class JitImageLoss:
@@ -118,7 +111,7 @@ class JitImageLoss:
         self._ny, self._nx = like.coeffs.shape
         h, w = raster.shape
         self._h, self._w_px = h, w
-        self._kernel = _kernel(raster.sigma_px)
+        self._kernel = raster.kernel
         self._observed = F(np.asarray(observed, float).ravel())
         self._mask = F(np.asarray(mask, float).ravel())
         self._norm = float(norm)

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import gaussian_filter, gaussian_filter1d
 
 from restoration.fit import BSplineSurface, hits, linearise
 from wai_core.geometry import fresnel_reflectance
@@ -39,6 +39,9 @@ __all__ = ["DotParticles", "PatternModel", "Raster", "Traced", "dot_quadrature",
            "ggx_facet_slopes"]
 
 Array = NDArray[np.float64]
+
+BLUR_TRUNCATE = 3.0
+"""The model image's Gaussian blur ends this many standard deviations out."""
 
 _FD_MM = 1e-3  # finite-difference step of camera s's projection on the diffuser, mm
 GGX_CAP = 0.9
@@ -281,7 +284,19 @@ class Raster:
 
     def blur(self, image: Array) -> Array:
         """``image`` blurred by the Gaussian of :attr:`sigma_px` (zero beyond the image)."""
-        return gaussian_filter(image, self.sigma_px, mode="constant", truncate=3.0)
+        return gaussian_filter(image, self.sigma_px, mode="constant", truncate=BLUR_TRUNCATE)
+
+    @property
+    def kernel(self) -> Array:
+        """The blur's one-dimensional kernel (2 r + 1,), weights summing to 1: :meth:`blur`
+        applies it along each axis in turn (scipy's own, read off its response to an
+        impulse)."""
+        half = int(np.ceil(BLUR_TRUNCATE * self.sigma_px)) + 1
+        impulse = np.zeros(2 * half + 1)
+        impulse[half] = 1.0
+        response = gaussian_filter1d(impulse, self.sigma_px, mode="constant",
+                                     truncate=BLUR_TRUNCATE)
+        return response[response > 0]
 
     def _cells(self, px: Array) -> tuple[NDArray, NDArray, Array, Array]:
         h, w = self.shape
