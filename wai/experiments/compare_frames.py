@@ -89,6 +89,17 @@ def _names(rows: Sequence[Mapping[str, Any]]) -> dict[str, str]:
     return names
 
 
+def _case_frames(rows: Sequence[Mapping[str, Any]]
+                 ) -> dict[tuple, tuple[list[str], np.ndarray]]:
+    """Each row's frames (:func:`_frames`) by its case and method (:func:`_case_key`)."""
+    out = {}
+    for row in rows:
+        got = _frames(row)
+        if got is not None:
+            out[_case_key(row, str(row["degradation"]))] = got
+    return out
+
+
 def _case_key(row: Mapping[str, Any], degradation: str) -> tuple:
     return (float(row["wind"]), int(float(row["seed"])), str(row.get("case_frames", "")),
             str(row["method"]), degradation)
@@ -117,11 +128,8 @@ def by_condition(rows: Sequence[Mapping[str, Any]],
     ...            "rough": {"water.roughness": 0.01, "object.texture": "speckle"}})]
     [('speckle', 2, None), ('rough', 1, 0)]
     """
-    frames, names = {}, _names(rows)
-    for row in rows:
-        got = _frames(row)
-        if got is not None and np.isfinite(got[1]).any():
-            frames[_case_key(row, str(row["degradation"]))] = got
+    names = _names(rows)
+    frames = {k: v for k, v in _case_frames(rows).items() if np.isfinite(v[1]).any()}
     out: dict[tuple[str, str], dict[str, Any]] = {}
     for key, (status, rmse) in frames.items():
         method, condition = key[3], key[4]
@@ -200,11 +208,7 @@ def rescues(rows: Sequence[Mapping[str, Any]],
     >>> [(e["condition"], e["weak"], e["rescued"], e["ok_wrong"]) for e in rescues(rows)]
     [('rough', 2, 1, 1), ('all', 2, 1, 1)]
     """
-    frames, names = {}, _names(rows)
-    for row in rows:
-        got = _frames(row)
-        if got is not None:
-            frames[_case_key(row, str(row["degradation"]))] = got
+    frames, names = _case_frames(rows), _names(rows)
     out: dict[tuple[str, str], dict[str, Any]] = {}
     for key, (status, rmse) in frames.items():
         method, condition = key[3], key[4]
