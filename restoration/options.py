@@ -365,7 +365,8 @@ class InverseRenderingOptions(StructuredLightOptions):
     backend : str
         Where the fit's loss and gradient are evaluated: ``"drjit"`` (Dr.Jit's automatic
         adjoint, :mod:`restoration.pattern_jit`, on the CUDA device where there is one, else
-        LLVM on every core; camera s an ideal pinhole), ``"numpy"`` (the hand-written
+        LLVM, its descents on one thread so that a rerun is the same fit bit for bit; camera
+        s an ideal pinhole), ``"numpy"`` (the hand-written
         adjoint, any lens), ``"auto"`` (Dr.Jit where it models the rig, else NumPy).
 
     Examples
