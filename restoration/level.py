@@ -19,8 +19,9 @@ class Anchor:
     ----------
     method : str
         ``gauge`` (the gauge's h0), ``integrability`` (searched from the slopes,
-        :mod:`restoration.anchor`) or ``gauge_fallback`` (searched, but the slopes did not pin
-        it: the gauge's h0); empty until the level is set.
+        :mod:`restoration.anchor`), ``gauge_fallback`` (searched, but the slopes did not pin
+        it: the gauge's h0), ``structured_light`` (another method's surface) or ``pattern``
+        (camera s's spots, :mod:`restoration.pattern_level`); empty until the level is set.
     anchor_mm : float or None
         The level the samples' mean height was pinned at, mm.
     searched_mm, sigma_mm : float or None
@@ -54,6 +55,11 @@ class Anchor:
     source_difference_mm
         Where another method's surface set the level (:mod:`restoration.schlieren_level`):
         the RMS difference between this surface's samples and it, once levelled, mm.
+    pattern_alias_ratio, pattern_matched_share, pattern_residual_px
+        Where camera s's spots set the level without labels (``pattern``,
+        :mod:`restoration.pattern_level`): the best level's score over the runner-up's, the
+        share of the dots' predicted spots that land on a detected spot, and their median
+        miss, px.
 
     Examples
     --------
@@ -89,6 +95,9 @@ class Anchor:
     view_served_share: float | None = None
     view_textured_share: float | None = None
     source_difference_mm: float | None = None
+    pattern_alias_ratio: float | None = None
+    pattern_matched_share: float | None = None
+    pattern_residual_px: float | None = None
 
     def update(self, **values: Any) -> None:
         """Set the named fields.

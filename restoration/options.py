@@ -288,6 +288,10 @@ class SchlierenOptions(SurfaceOptions):
         A sample is kept where the flow puts it this far or more inside the flat view's
         textured part (from the image's border and from the pixels that do not see the
         object), px (0: anywhere).
+    level_search_mm : float
+        ``schlieren-sl`` where the structured light gives no level: the half-width of the
+        search for the level camera s's spots show (:mod:`restoration.pattern_level`) about
+        the gauge's h0, mm (0: the gauge's level, ``gauge_level``).
 
     Examples
     --------
@@ -303,6 +307,7 @@ class SchlierenOptions(SurfaceOptions):
     flow_check_px: float = 0.5
     max_residual_px: float = 0.25
     edge_margin_px: float = 32.0
+    level_search_mm: float = 20.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -317,8 +322,9 @@ class SchlierenOptions(SurfaceOptions):
         for name in ("flow_check_px", "max_residual_px"):
             if not getattr(self, name) > 0:
                 raise WaiInputError(f"{name} must be > 0, not {getattr(self, name)}")
-        if not self.edge_margin_px >= 0:
-            raise WaiInputError(f"edge_margin_px must be >= 0, not {self.edge_margin_px}")
+        for name in ("edge_margin_px", "level_search_mm"):
+            if not getattr(self, name) >= 0:
+                raise WaiInputError(f"{name} must be >= 0, not {getattr(self, name)}")
 
 
 INVERSE_STARTS = ("structured-light", "structured-light-view")

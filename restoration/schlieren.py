@@ -62,7 +62,8 @@ from wai_core.optics import trace_to_object
 from wai_core.timings import Timings
 
 __all__ = [
-    "GAUGE_LEVEL_MESSAGE", "LastFlow", "LevelRule", "SchlierenCalibration", "SightLines",
+    "COARSE_PASSES", "GAUGE_LEVEL_MESSAGE", "LastFlow", "LevelRule", "Rebuild",
+    "SchlierenCalibration", "SightLines",
     "cached_lattice", "flat_view_file", "flat_view_flow", "flow_samples",
     "reconstruct_schlieren", "restore_schlieren", "slopes_on_sight_lines",
 ]
@@ -428,10 +429,18 @@ LEVEL_PASSES = 4
 """Most reconstructions at a :data:`LevelRule`'s level (each bends the slopes a little, and
 the rule is asked again)."""
 
-LevelRule = Callable[[RaySurface], tuple[Anchor, tuple[Status, str] | None]]
-"""Where a surface at the gauge's level should lie instead: given it, the anchor of the level
-to rebuild it at (its ``anchor_mm`` the samples' mean height) and the verdict on that level
-(None: it holds; else the status and message it gives the frame)."""
+COARSE_PASSES = 3
+"""Most refinement passes of a rebuild a level search asks for as coarse."""
+
+Rebuild = Callable[[float, bool], RaySurface]
+"""The frame's surface rebuilt with its samples' mean height at a level, mm (``True``: a coarse
+rebuild, at most :data:`COARSE_PASSES` refinement passes), for a rule that searches."""
+
+LevelRule = Callable[[RaySurface, Rebuild], tuple[Anchor, tuple[Status, str] | None]]
+"""Where a surface at the gauge's level should lie instead: given it (and how to rebuild it at
+another level), the anchor of the level to rebuild it at (its ``anchor_mm`` the samples' mean
+height) and the verdict on that level (None: it holds; else the status and message it gives
+the frame)."""
 
 
 def restore_schlieren(
@@ -470,13 +479,19 @@ def restore_schlieren(
         return RestoreResult(METHOD, Status.SPARSE, _sparse_message(index.size, counts),
                              counts=counts)
     try:
+        coarse = replace(options, n_refine=min(options.n_refine, COARSE_PASSES))
+
+        def rebuild(level_mm: float, rough: bool) -> RaySurface:
+            return reconstruct_schlieren(lines, index, object_mm[index], cal,
+                                         coarse if rough else options, level_mm)
+
         with timings("surface"):
             surface = reconstruct_schlieren(lines, index, object_mm[index], cal, options)
             at_mm = float(cal.cfg.water.h0_mm)
             anchor, verdict = Anchor("gauge", at_mm), None
             # A new level bends the slopes a little: the rule is asked again until it holds.
             for _ in range(LEVEL_PASSES if level is not None else 0):
-                anchor, verdict = level(surface)
+                anchor, verdict = level(surface, rebuild)
                 if anchor.anchor_mm is None or abs(anchor.anchor_mm - at_mm) <= (
                         options.refine_tol_mm):
                     break

@@ -20,25 +20,36 @@ Its status is Schlieren's (``sparse``, ``inconsistent``), then the two systems' 
 ``inconsistent`` where Schlieren's heights and the structured light's surface, levelled, differ
 by more than :data:`MAX_DIFFERENCE_MM` RMS over the part both cover; then the level's:
 ``uncertain_level`` where the structured light's level is (its standard error past its bound),
-``gauge_level`` where the structured light gives no level (a frame it failed, or whose surface
-covers less than :data:`MIN_SHARED` of Schlieren's samples): there the level is the gauge's,
+Where the structured light gives no level (a frame it failed or left ``sparse``, a flat
+reference it refused, a surface covering less than :data:`MIN_SHARED` of Schlieren's samples)
+its spots may still be in camera s's image: the level is searched where Schlieren's surface
+sends the projector's dots onto them, no labels needed (:mod:`restoration.pattern_level`),
+``uncertain_level`` where a level one dot spacing away fits nearly as well. Only where that
+search finds nothing (or ``level_search_mm`` is 0) is the level the gauge's, ``gauge_level``,
 as plain Schlieren's.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
 from restoration.calibration import LevelTrack
+from restoration.features import detect_spots
+from restoration.features.camera_s import pinhole_spots
 from restoration.level import Anchor
 from restoration.options import SchlierenOptions, StructuredLightOptions, checked_options
+from restoration.pattern_level import MAX_ALIAS_RATIO, PatternLevel, find_pattern_level
 from restoration.ray_surface import RaySurface
 from restoration.result import RestoreResult, Status
-from restoration.schlieren import LevelRule, restore_schlieren
+from restoration.schlieren import LevelRule, Rebuild, restore_schlieren
 from restoration.view_level import StructuredLightView, ViewLevelCalibration
+from wai_core.errors import RestorationFailed
 
-__all__ = ["MAX_DIFFERENCE_MM", "MIN_SHARED", "SchlierenLevelled", "structured_light_level"]
+__all__ = ["MAX_DIFFERENCE_MM", "MIN_SHARED", "SchlierenLevelled", "pattern_anchor",
+           "structured_light_level"]
 
 MIN_SHARED = 0.25
 """The share of Schlieren's samples the structured light's surface must cover for its level to
@@ -56,11 +67,30 @@ LEVEL_STATUSES = (Status.OK, Status.UNCERTAIN_LEVEL)
 on)."""
 
 
-def structured_light_level(light: RestoreResult, gauge_mm: float) -> LevelRule:
+def pattern_anchor(found: PatternLevel) -> tuple[Anchor, tuple[Status, str] | None]:
+    """The anchor of a level camera s's spots gave, and its verdict: None where it is unique,
+    ``uncertain_level`` where a level one dot spacing away fits nearly as well."""
+    anchor = Anchor("pattern", found.level_mm, searched_mm=found.level_mm,
+                    evaluations=found.evaluations, pattern_alias_ratio=found.alias_ratio,
+                    pattern_matched_share=found.matched_share,
+                    pattern_residual_px=found.residual_px)
+    if found.unique:
+        return anchor, None
+    return anchor, (Status.UNCERTAIN_LEVEL,
+                    f"the level from camera s's spots is not unique: another level fits "
+                    f"{found.alias_ratio:.2f} as well (more than {MAX_ALIAS_RATIO}), as one a "
+                    "dot spacing away can")
+
+
+def structured_light_level(light: RestoreResult, gauge_mm: float,
+                           search: Callable[[Rebuild], PatternLevel] | None = None
+                           ) -> LevelRule:
     """The level rule (:data:`~restoration.schlieren.LevelRule`) that moves a Schlieren
     surface to the structured light's ``light`` (a frame's result): the samples' mean height
-    shifted by the median of the structured light's heights less theirs where both are known;
-    the gauge's ``gauge_mm`` with the verdict ``gauge_level`` where ``light`` gives no level.
+    shifted by the median of the structured light's heights less theirs where both are known.
+    Where ``light`` gives no level: ``search``'s level (the surface's rebuild given, e.g.
+    :func:`~restoration.pattern_level.find_pattern_level`; run once), else the gauge's
+    ``gauge_mm`` with the verdict ``gauge_level``.
 
     Examples
     --------
@@ -68,25 +98,37 @@ def structured_light_level(light: RestoreResult, gauge_mm: float) -> LevelRule:
     >>> from restoration import RestoreResult, Status
     >>> rule = structured_light_level(RestoreResult("structured-light", Status.FAILED, "no"),
     ...                               150.0)
-    >>> anchor, (status, _) = rule(None)
+    >>> anchor, (status, _) = rule(None, None)
     >>> anchor.method, anchor.anchor_mm, str(status)
     ('gauge_fallback', 150.0, 'gauge_level')
     """
+    searched: list[tuple[Anchor, tuple[Status, str] | None]] = []
 
-    def fallback(why: str) -> tuple[Anchor, tuple[Status, str]]:
+    def gauge(why: str) -> tuple[Anchor, tuple[Status, str]]:
         return Anchor("gauge_fallback", float(gauge_mm)), (
             Status.GAUGE_LEVEL, f"{why}: the gauge's h0 was used")
 
-    def rule(surface: RaySurface) -> tuple[Anchor, tuple[Status, str] | None]:
+    def fallback(why: str, rebuild: Rebuild | None) -> tuple[Anchor, tuple[Status, str] | None]:
+        if search is None or rebuild is None:
+            return gauge(why)
+        if not searched:  # the rule is asked again at the level it gave
+            try:
+                searched.append(pattern_anchor(search(rebuild)))
+            except RestorationFailed as exc:
+                searched.append(gauge(f"{why}, and {exc}"))
+        return searched[0]
+
+    def rule(surface: RaySurface, rebuild: Rebuild | None = None
+             ) -> tuple[Anchor, tuple[Status, str] | None]:
         if light.surface is None or light.status not in LEVEL_STATUSES:
             return fallback(f"the structured light gives no level ({light.status}"
-                            + (f": {light.message}" if light.message else "") + ")")
+                            + (f": {light.message}" if light.message else "") + ")", rebuild)
         points = surface.points_mm
         theirs = light.surface.heightfield.height(points[:, 0], points[:, 1])
         shared = np.isfinite(theirs)
         if shared.mean() < MIN_SHARED:
             return fallback(f"the structured light's surface covers {shared.mean():.0%} of the "
-                            f"samples (less than {MIN_SHARED:.0%})")
+                            f"samples (less than {MIN_SHARED:.0%})", rebuild)
         difference = theirs[shared] - points[shared, 2]
         shift = float(np.median(difference))
         rms = float(np.sqrt(np.mean((difference - shift) ** 2)))
@@ -141,7 +183,15 @@ class SchlierenLevelled:
         """Restore one frame (``pattern``, ``pattern_flat``, ``view``, ``view_flat``);
         ``track``: the structured light's (a sequence's level)."""
         light = self.light(images, cal, track)
-        rule = structured_light_level(light, float(cal.cfg.water.h0_mm))
+        h0_mm, search_mm = float(cal.cfg.water.h0_mm), float(self.options.level_search_mm)
+
+        def search(rebuild: Rebuild) -> PatternLevel:
+            cal.prepare(images["pattern_flat"])
+            spots = pinhole_spots(detect_spots(images["pattern"],
+                                               scales=cal.reference.spot_scales), cal.cfg)
+            return find_pattern_level(rebuild, spots.centres_px, cal, h0_mm, search_mm)
+
+        rule = structured_light_level(light, h0_mm, search if search_mm > 0 else None)
         result = restore_schlieren(images, cal, self.options, rule)
         result.method = self.name
         # The level's source is part of the method's time (a frame that stopped before its

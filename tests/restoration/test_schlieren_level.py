@@ -166,3 +166,65 @@ def test_an_ok_frame_is_right_where_its_lines_of_sight_could_not_be_checked(tmp_
     assert metrics["status"] == "ok"
     assert metrics["wai_rmse_mm"] <= 0.1
     assert metrics["feature_counts"]["unverified"] > 0
+
+
+def _found(score, runner_up):
+    from restoration.pattern_level import PatternLevel
+
+    return PatternLevel(level_mm=148.6, score=score, runner_up=runner_up, matched_share=0.5,
+                        residual_px=0.2, evaluations=70)
+
+
+def test_without_the_structured_lights_level_the_search_runs_once_and_says_if_it_is_unique(xy):
+    # The structured light failed: the level is the search's, asked once however often the
+    # rule is; a level another fits nearly as well is uncertain; a search that finds none
+    # leaves the gauge's.
+    from wai_core.errors import RestorationFailed
+
+    at_gauge = _samples(_sea(), xy)
+    failed = _light(_sea(), Status.FAILED, "too few spots")
+    calls = []
+
+    def search(rebuild):
+        calls.append(rebuild)
+        return _found(0.3, 0.6)
+
+    rule = structured_light_level(failed, 150.0, search)
+    for _ in range(3):
+        anchor, verdict = rule(at_gauge, "rebuild")
+    assert calls == ["rebuild"] and verdict is None
+    assert (anchor.method, anchor.anchor_mm) == ("pattern", 148.6)
+    assert anchor.pattern_alias_ratio == pytest.approx(0.5)
+    _, (status, message) = structured_light_level(
+        failed, 150.0, lambda rebuild: _found(0.5, 0.55))(at_gauge, "rebuild")
+    assert status is Status.UNCERTAIN_LEVEL and "not unique" in message
+
+    def none(rebuild):
+        raise RestorationFailed("no level sends the dots onto the spots")
+
+    anchor, (status, message) = structured_light_level(failed, 150.0, none)(at_gauge, "r")
+    assert (anchor.method, anchor.anchor_mm, status) == ("gauge_fallback", 150.0,
+                                                        Status.GAUGE_LEVEL)
+    assert "no level sends" in message
+
+
+def test_where_the_structured_light_fails_the_patterns_spots_give_the_level(tmp_path):
+    # U = 1 m/s, sea 1, gravity-capillary waves to 6 omega_p: caustics fold the pattern and the
+    # structured light labels too few spots to give a surface (the compare case capillary_6,
+    # frame 0). Schlieren's shape is right to 0.004 mm at the true level and millimetres off
+    # at the gauge's: the spots, unlabelled, must give the level, the frame ok within 0.1 mm of
+    # the renderer's truth; without the search the frame keeps the gauge's level.
+    from restoration import SchlierenOptions, get_method, restore_folder
+
+    frame = render_paper_frame(tmp_path / "f", seed=1, texture="speckle",
+                               waves={"dispersion": "capillary", "omega_max_rel": 6.0})
+    light = restore_folder(frame, "structured-light-view", write=False)
+    assert light.result.status not in (Status.OK, Status.UNCERTAIN_LEVEL)
+    assert main(["restore", str(frame), "--method", "schlieren-sl", "--quiet"]) == 0
+    metrics = json.loads((frame / "restore_schlieren-sl" / "metrics.json").read_text())
+    assert metrics["status"] == "ok" and metrics["anchor"]["method"] == "pattern"
+    assert metrics["wai_rmse_mm"] <= 0.1
+    plain = restore_folder(frame, get_method("schlieren-sl", SchlierenOptions(level_search_mm=0)),
+                           write=False)
+    assert plain.result.status is Status.GAUGE_LEVEL
+    assert plain.metrics["wai_rmse_mm"] > 0.25
