@@ -66,6 +66,7 @@ from restoration.options import (
     StructuredLightOptions,
     SurfaceOptions,
 )
+from restoration.pattern_level import PatternLevel, find_pattern_level
 from restoration.port_calibration import PortFit, calibrate_port
 from restoration.protocol import Method, run_method
 from restoration.ray_surface import RaySurface
@@ -123,6 +124,7 @@ __all__ = [
     "LevelTrack",
     "Method",
     "Observations",
+    "PatternLevel",
     "PortFit",
     "RaySurface",
     "RestorationFailed",
@@ -152,6 +154,7 @@ __all__ = [
     "detect_spots",
     "estimate_surface",
     "features_from_reference",
+    "find_pattern_level",
     "fit_to_spots",
     "get_method",
     "image_metrics",

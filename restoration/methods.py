@@ -181,9 +181,9 @@ METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name
 ``schlieren`` (synthetic Schlieren on camera v's view), ``inverse-rendering`` (the
 structured light's surface refitted to the pattern image), ``structured-light-view`` (the
 structured light, its level pinned by camera v's view: :mod:`restoration.view_level`),
-``schlieren-sl`` (synthetic Schlieren at that structured light's level:
-:mod:`restoration.schlieren_level`) and ``inverse-rendering-view`` (the refit started from
-``structured-light-view``'s surface)."""
+``schlieren-sl`` (synthetic Schlieren at that structured light's level, or where it gives
+none at the level camera s's spots show: :mod:`restoration.schlieren_level`) and
+``inverse-rendering-view`` (the refit started from ``structured-light-view``'s surface)."""
 BUILT_IN.update(METHODS.values())
 
 

@@ -262,7 +262,8 @@ FLOW_QUALITIES = ("fine", "medium")
 class SchlierenOptions(SurfaceOptions):
     """Synthetic Schlieren's choices (:mod:`restoration.schlieren`). Its slopes do not pin
     the level (a wrong level bends them into another, nearly integrable field): the level is
-    always the gauge's, so there is no anchor to choose.
+    the gauge's, or with ``schlieren-sl`` the structured light's or camera s's spots', so
+    there is no anchor to choose.
 
     Attributes
     ----------

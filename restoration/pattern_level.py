@@ -24,12 +24,17 @@ Search
 3. The candidate with the lowest matched score (:attr:`PatternLevel.score`) is the level. A
    level one dot spacing away (about 6 mm on the paper's rig) can fit nearly as well, so the
    ratio of the best score to the runner-up's says whether the level is unique: past
-   :data:`MAX_ALIAS_RATIO` it is ``uncertain_level``.
+   :data:`MAX_ALIAS_RATIO` it is ``uncertain_level``. So it is where the matched spots miss
+   their predictions by more than :data:`MAX_RESIDUAL_FRACTION` of the spacing (median):
+   spots that blurred (rough water's lobes lie along the projector's tilt, as the level's
+   shift does) place the level a tenth of a millimetre or more off.
 
-On the compare cases where the structured light is weak (U = 1 and 1.5 m/s, seeds 0 and 1:
-GGX alpha 0.02, capillary cut-offs 5 and 6 omega_p, steep waves), 88 frames it fails or leaves
-past 0.1 mm: with the level found here 56 are within 0.1 mm at a ratio at most 0.7, and none
-past 0.25 mm; every frame past 0.25 mm had a ratio of 0.77 or more (docs/results.md).
+On the compare cases where the structured light is weak (U = 1 and 1.5 m/s, seeds 0 and 1,
+8 frames each of GGX alpha 0.02, capillary cut-offs 5 and 6 omega_p and steep waves: 128
+frames, 88 of them ones the structured light fails or leaves past 0.1 mm), at the level found
+here 103 frames lie within 0.1 mm (ratios 0.001-0.704), 13 within 0.1-0.25 mm (0.45-0.90)
+and 12 past 0.25 mm (0.77-1.0). The matched spots' median miss: 0.04-0.32 px on smooth
+water, 0.68-1.34 px at alpha 0.02, whose levels lie up to 0.3 mm off (docs/results.md).
 """
 
 from __future__ import annotations
@@ -46,8 +51,8 @@ from restoration.consistency import predict_spots_px
 from restoration.ray_surface import RaySurface
 from wai_core.errors import RestorationFailed
 
-__all__ = ["CANDIDATES", "COARSE_STEP_MM", "MATCH_FRACTION", "MAX_ALIAS_RATIO", "STEP_TOL_MM",
-           "PatternLevel", "find_pattern_level"]
+__all__ = ["CANDIDATES", "COARSE_STEP_MM", "MATCH_FRACTION", "MAX_ALIAS_RATIO",
+           "MAX_RESIDUAL_FRACTION", "STEP_TOL_MM", "PatternLevel", "find_pattern_level"]
 
 Array = NDArray[np.float64]
 
@@ -76,7 +81,11 @@ DERIVATIVE_MM = 0.05
 """The level step of the finite difference that gives each spot's change with the level, mm."""
 MAX_ALIAS_RATIO = 0.7
 """The best level's score over the runner-up's past which the level is ``uncertain_level``:
-on the compare cases' weak frames, right levels 0.001-0.70, the frames past 0.25 mm 0.77-1.0."""
+on the compare cases (module notes) frames within 0.1 mm 0.001-0.704, past 0.25 mm 0.77-1.0."""
+MAX_RESIDUAL_FRACTION = 0.04
+"""The matched spots' median miss, as a fraction of the median dot spacing, past which the
+level is ``uncertain_level``: on the paper's rig (13 px spacing) 0.52 px, between smooth
+water's 0.04-0.32 px and rough water's (alpha 0.02) 0.68-1.34 px."""
 
 
 @dataclass(frozen=True)
@@ -96,6 +105,8 @@ class PatternLevel:
         Share of the predicted spots that were matched.
     residual_px : float
         Median distance of the matched spots, px.
+    spacing_px : float
+        The flat reference's median dot spacing, px.
     evaluations : int
         Surfaces rebuilt.
     """
@@ -105,6 +116,7 @@ class PatternLevel:
     runner_up: float
     matched_share: float
     residual_px: float
+    spacing_px: float
     evaluations: int
 
     @property
@@ -116,6 +128,12 @@ class PatternLevel:
     def unique(self) -> bool:
         """Whether the alias ratio is within :data:`MAX_ALIAS_RATIO`."""
         return self.alias_ratio <= MAX_ALIAS_RATIO
+
+    @property
+    def placed(self) -> bool:
+        """Whether the matched spots' median miss is within :data:`MAX_RESIDUAL_FRACTION` of
+        the spacing."""
+        return bool(self.residual_px <= MAX_RESIDUAL_FRACTION * self.spacing_px)
 
 
 class _Spots:
@@ -225,4 +243,4 @@ def find_pattern_level(rebuild: Rebuild, spots_px: Array, cal: Calibration, star
     level, score, share, residual = found[0]
     runner_up = found[1][1] if len(found) > 1 else 1.0
     return PatternLevel(float(level), score, float(runner_up), share, residual,
-                        spots.evaluations)
+                        spots.spacing_px, spots.evaluations)

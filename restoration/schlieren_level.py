@@ -41,7 +41,12 @@ from restoration.features import detect_spots
 from restoration.features.camera_s import pinhole_spots
 from restoration.level import Anchor
 from restoration.options import SchlierenOptions, StructuredLightOptions, checked_options
-from restoration.pattern_level import MAX_ALIAS_RATIO, PatternLevel, find_pattern_level
+from restoration.pattern_level import (
+    MAX_ALIAS_RATIO,
+    MAX_RESIDUAL_FRACTION,
+    PatternLevel,
+    find_pattern_level,
+)
 from restoration.ray_surface import RaySurface
 from restoration.result import RestoreResult, Status
 from restoration.schlieren import LevelRule, Rebuild, restore_schlieren
@@ -68,18 +73,24 @@ on)."""
 
 
 def pattern_anchor(found: PatternLevel) -> tuple[Anchor, tuple[Status, str] | None]:
-    """The anchor of a level camera s's spots gave, and its verdict: None where it is unique,
-    ``uncertain_level`` where a level one dot spacing away fits nearly as well."""
+    """The anchor of a level camera s's spots gave, and its verdict: None where it holds,
+    ``uncertain_level`` where a level one dot spacing away fits nearly as well or the spots
+    are too blurred to place it."""
     anchor = Anchor("pattern", found.level_mm, searched_mm=found.level_mm,
                     evaluations=found.evaluations, pattern_alias_ratio=found.alias_ratio,
                     pattern_matched_share=found.matched_share,
                     pattern_residual_px=found.residual_px)
-    if found.unique:
-        return anchor, None
-    return anchor, (Status.UNCERTAIN_LEVEL,
-                    f"the level from camera s's spots is not unique: another level fits "
-                    f"{found.alias_ratio:.2f} as well (more than {MAX_ALIAS_RATIO}), as one a "
-                    "dot spacing away can")
+    if not found.unique:
+        return anchor, (Status.UNCERTAIN_LEVEL,
+                        f"the level from camera s's spots is not unique: another level fits "
+                        f"{found.alias_ratio:.2f} as well (more than {MAX_ALIAS_RATIO}), as one "
+                        "a dot spacing away can")
+    if not found.placed:
+        return anchor, (Status.UNCERTAIN_LEVEL,
+                        f"camera s's spots lie {found.residual_px:.2f} px (median) from where the "
+                        f"surface sends the dots, more than {MAX_RESIDUAL_FRACTION:g} of their "
+                        f"spacing: too blurred to place the level (rough water?)")
+    return anchor, None
 
 
 def structured_light_level(light: RestoreResult, gauge_mm: float,

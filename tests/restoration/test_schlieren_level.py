@@ -168,17 +168,17 @@ def test_an_ok_frame_is_right_where_its_lines_of_sight_could_not_be_checked(tmp_
     assert metrics["feature_counts"]["unverified"] > 0
 
 
-def _found(score, runner_up):
+def _found(score, runner_up, residual_px=0.2):
     from restoration.pattern_level import PatternLevel
 
     return PatternLevel(level_mm=148.6, score=score, runner_up=runner_up, matched_share=0.5,
-                        residual_px=0.2, evaluations=70)
+                        residual_px=residual_px, spacing_px=13.0, evaluations=70)
 
 
 def test_without_the_structured_lights_level_the_search_runs_once_and_says_if_it_is_unique(xy):
     # The structured light failed: the level is the search's, asked once however often the
-    # rule is; a level another fits nearly as well is uncertain; a search that finds none
-    # leaves the gauge's.
+    # rule is; a level another fits nearly as well is uncertain, and so is one whose spots
+    # miss by 0.8 px of a 13 px spacing; a search that finds none leaves the gauge's.
     from wai_core.errors import RestorationFailed
 
     at_gauge = _samples(_sea(), xy)
@@ -198,6 +198,9 @@ def test_without_the_structured_lights_level_the_search_runs_once_and_says_if_it
     _, (status, message) = structured_light_level(
         failed, 150.0, lambda rebuild: _found(0.5, 0.55))(at_gauge, "rebuild")
     assert status is Status.UNCERTAIN_LEVEL and "not unique" in message
+    _, (status, message) = structured_light_level(
+        failed, 150.0, lambda rebuild: _found(0.3, 0.6, residual_px=0.8))(at_gauge, "rebuild")
+    assert status is Status.UNCERTAIN_LEVEL and "too blurred" in message
 
     def none(rebuild):
         raise RestorationFailed("no level sends the dots onto the spots")
