@@ -109,6 +109,13 @@ class PatternLevel:
         The flat reference's median dot spacing, px.
     evaluations : int
         Surfaces rebuilt.
+
+    Examples
+    --------
+    >>> from restoration import PatternLevel
+    >>> found = PatternLevel(148.6, 0.3, 0.6, 0.5, 0.2, spacing_px=13.0, evaluations=70)
+    >>> found.alias_ratio, found.unique, found.placed
+    (0.5, True, True)
     """
 
     level_mm: float
