@@ -456,4 +456,15 @@ def anchor_line(anchor: dict[str, Any]) -> str:
     if anchor.get("method") == "gauge_fallback":
         why = "not pinned" if sigma is None or not np.isfinite(sigma) else f"+- {sigma:.2f} mm"
         return f"{level} from the gauge (integrability {why}: too little curvature)"
+    if anchor.get("method") == "view":
+        return (f"{level} from camera v's view (+- {_num(sigma, '.3f', ' mm')}: the level at "
+                "which the surface sends the view's lines of sight where the flow puts them)")
+    if anchor.get("method") == "structured_light":
+        return (f"{level} from the structured light's surface (the two differ by "
+                f"{_num(anchor.get('source_difference_mm'), '.3f', ' mm')} RMS where both "
+                "reach, once levelled)")
+    if anchor.get("method") == "pattern":
+        return (f"{level} from camera s's spots (another level fits "
+                f"{_num(anchor.get('pattern_alias_ratio'), '.2f', '')} as well; the matched "
+                f"spots miss by {_num(anchor.get('pattern_residual_px'), '.2f', ' px')})")
     return f"{level} from the gauge"

@@ -20,7 +20,8 @@ class Anchor:
     method : str
         ``gauge`` (the gauge's h0), ``integrability`` (searched from the slopes,
         :mod:`restoration.anchor`), ``gauge_fallback`` (searched, but the slopes did not pin
-        it: the gauge's h0), ``structured_light`` (another method's surface) or ``pattern``
+        it: the gauge's h0), ``view`` (camera v's view, :mod:`restoration.view_level`),
+        ``structured_light`` (another method's surface) or ``pattern``
         (camera s's spots, :mod:`restoration.pattern_level`); empty until the level is set.
     anchor_mm : float or None
         The level the samples' mean height was pinned at, mm.

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from restoration import RaySurface, RestoreResult, Status
+from restoration.frame import anchor_line
 from restoration.level import Anchor
 from restoration.schlieren_level import MAX_DIFFERENCE_MM, MIN_SHARED, structured_light_level
 from tests.conftest import render_paper_frame
@@ -227,6 +228,8 @@ def test_where_the_structured_light_fails_the_patterns_spots_give_the_level(tmp_
     metrics = json.loads((frame / "restore_schlieren-sl" / "metrics.json").read_text())
     assert metrics["status"] == "ok" and metrics["anchor"]["method"] == "pattern"
     assert metrics["wai_rmse_mm"] <= 0.1
+    line = anchor_line(metrics["anchor"])
+    assert "from camera s's spots" in line and "gauge" not in line
     plain = restore_folder(frame, get_method("schlieren-sl", SchlierenOptions(level_search_mm=0)),
                            write=False)
     assert plain.result.status is Status.GAUGE_LEVEL
