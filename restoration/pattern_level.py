@@ -39,7 +39,6 @@ water, 0.68-1.34 px at alpha 0.02, whose levels lie up to 0.3 mm off (docs/resul
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,17 +47,13 @@ from scipy.spatial import cKDTree
 
 from restoration.calibration import Calibration
 from restoration.consistency import predict_spots_px
-from restoration.ray_surface import RaySurface
+from restoration.schlieren import Rebuild
 from wai_core.errors import RestorationFailed
 
 __all__ = ["CANDIDATES", "COARSE_STEP_MM", "MATCH_FRACTION", "MAX_ALIAS_RATIO",
            "MAX_RESIDUAL_FRACTION", "STEP_TOL_MM", "PatternLevel", "find_pattern_level"]
 
 Array = NDArray[np.float64]
-
-Rebuild = Callable[[float, bool], RaySurface]
-"""The surface rebuilt with its samples' mean height at a level, mm (``True``: a coarse
-rebuild, few refinement passes)."""
 
 COARSE_STEP_MM = 1.0
 """Levels between the coarse search's probes, mm (the fine search's basin is about +-1.5 mm
@@ -213,7 +208,7 @@ def find_pattern_level(rebuild: Rebuild, spots_px: Array, cal: Calibration, star
     ----------
     rebuild : callable
         ``rebuild(level_mm, coarse)``: the surface with its samples' mean height at
-        ``level_mm``, mm (:data:`Rebuild`).
+        ``level_mm``, mm (:data:`~restoration.schlieren.Rebuild`).
     spots_px : (N, 2) ndarray
         The wavy pattern's detected spot centres, camera s's pinhole px.
     cal : Calibration

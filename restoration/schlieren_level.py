@@ -19,14 +19,15 @@ heights agree with the structured light's surface over the part of the patch bot
 Its status is Schlieren's (``sparse``, ``inconsistent``), then the two systems' agreement:
 ``inconsistent`` where Schlieren's heights and the structured light's surface, levelled, differ
 by more than :data:`MAX_DIFFERENCE_MM` RMS over the part both cover; then the level's:
-``uncertain_level`` where the structured light's level is (its standard error past its bound),
+``uncertain_level`` where the structured light's level is (its standard error past its bound).
+
 Where the structured light gives no level (a frame it failed or left ``sparse``, a flat
 reference it refused, a surface covering less than :data:`MIN_SHARED` of Schlieren's samples)
 its spots may still be in camera s's image: the level is searched where Schlieren's surface
-sends the projector's dots onto them, no labels needed (:mod:`restoration.pattern_level`),
-``uncertain_level`` where a level one dot spacing away fits nearly as well. Only where that
-search finds nothing (or ``level_search_mm`` is 0) is the level the gauge's, ``gauge_level``,
-as plain Schlieren's.
+sends the projector's dots onto them, no labels needed (:mod:`restoration.pattern_level`);
+``uncertain_level`` where a level one dot spacing away fits nearly as well or the spots are
+too blurred to place it. Only where that search finds nothing (or ``level_search_mm`` is 0)
+is the level the gauge's, ``gauge_level``, as plain Schlieren's.
 """
 
 from __future__ import annotations
