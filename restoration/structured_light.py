@@ -29,6 +29,7 @@ from restoration.features.match import MAX_LABEL_SHIFT
 from restoration.features.track import TrackedSpots, features_tracked
 from restoration.fit_level import fit_level
 from restoration.frame_status import frame_status
+from restoration.label_parts import misplaced_parts
 from restoration.observations import Observations
 from restoration.options import StructuredLightOptions, checked_options
 from restoration.result import RestoreResult, Status
@@ -441,6 +442,17 @@ class StructuredLight:
                 surface, view, check = self._view_and_check(images, cal, obs, surface,
                                                             reference, state, timings,
                                                             rejected_xy)
+            with timings("surface"):
+                drop = self._misplaced(features, cal)
+            if drop.any():
+                features = without_samples(features, features.ij[drop], "rejected_shifted_part")
+                with timings("surface"):
+                    obs = self._observe_debiased(features, surface, cal, timings)
+                    surface = estimate_surface(obs, cal, options, start)
+                surface = self._level(obs, cal, surface, images, memo, timings)
+                surface, view, check = self._view_and_check(images, cal, obs, surface,
+                                                            reference, state, timings,
+                                                            rejected_xy)
         except RestorationFailed as exc:
             if state is not None:
                 state.take(None, ok=False)
@@ -485,6 +497,22 @@ class StructuredLight:
         :class:`restoration.view_level.StructuredLightView`)."""
         return features, obs, surface
 
+    def _misplaced(self, features: Matches, cal: Calibration) -> NDArray[np.bool_]:
+        """The features in parts a neck joins whose labels a shift fits far better
+        (:mod:`restoration.label_parts`; the parts tested counted in
+        ``counts["shifted_parts_tested"]``)."""
+        options = self.options
+
+        def residual_of(part: NDArray, shift: NDArray) -> float:
+            obs = cal.observe(features.ij[part] + shift, features.spot_px[part],
+                              flat_referenced=options.flat_referenced)
+            return integration_residual_mm(estimate_surface(obs, cal, options))
+
+        drop, gains = misplaced_parts(features.ij, residual_of)
+        if gains:
+            features.counts["shifted_parts_tested"] = len(gains)
+        return drop
+
     def _level(self, obs: Observations, cal: Calibration, surface: SurfaceEstimate,
                images: dict[str, NDArray], memo: dict[str, Any],
                timings: Timings) -> SurfaceEstimate:
@@ -527,12 +555,13 @@ class StructuredLight:
         return surface, view, check
 
 
-def without_samples(features: Matches, ij: NDArray) -> Matches:
-    """``features`` without the samples whose grid indices are ``ij`` (K, 2), counted as
-    ``rejected_inconsistent``: spots the surface built from them did not reproduce at all."""
+def without_samples(features: Matches, ij: NDArray,
+                    count: str = "rejected_inconsistent") -> Matches:
+    """``features`` without the samples whose grid indices are ``ij`` (K, 2), counted under
+    ``count``: by default ``rejected_inconsistent``, spots the surface built from them did not
+    reproduce at all."""
     drop = (features.ij[:, None, :] == np.asarray(ij)[None, :, :]).all(axis=2).any(axis=1)
-    counts = {**features.counts, "rejected_inconsistent":
-              features.counts.get("rejected_inconsistent", 0) + int(drop.sum())}
+    counts = {**features.counts, count: features.counts.get(count, 0) + int(drop.sum())}
     keep = ~drop
     return replace(features, ij=features.ij[keep], ref_px=features.ref_px[keep],
                    spot_px=features.spot_px[keep], observed=features.observed[keep],
