@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from wai_core.errors import RestorationFailed
+from wai_core.errors import RestorationFailed, WaiInputError
 
 __all__ = ["MAX_SHIFT_GAIN", "MIN_PART", "SHIFT_REACH", "misplaced_parts", "necked_parts"]
 
@@ -111,7 +111,7 @@ def misplaced_parts(ij: NDArray, residual_of: Callable[[NDArray[np.bool_], NDArr
         for shift in shifts:
             try:
                 residuals.append(float(residual_of(part, shift)))
-            except RestorationFailed:  # a shift that makes no surface is no candidate
+            except (RestorationFailed, WaiInputError):  # no surface: no candidate
                 residuals.append(np.nan)
         own = residuals[len(shifts) // 2]
         lowest = np.nanmin(residuals) if np.isfinite(residuals).any() else np.nan

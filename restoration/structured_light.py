@@ -502,10 +502,13 @@ class StructuredLight:
         (:mod:`restoration.label_parts`; the parts tested counted in
         ``counts["shifted_parts_tested"]``)."""
         options = self.options
+        reach = np.abs(cal.cfg.rig.dot_ij).max(axis=0)
 
         def residual_of(part: NDArray, shift: NDArray) -> float:
-            obs = cal.observe(features.ij[part] + shift, features.spot_px[part],
-                              flat_referenced=options.flat_referenced)
+            ij = features.ij[part] + shift
+            if np.any(np.abs(ij) > reach):  # a dot off the grid: no candidate
+                return float("nan")
+            obs = cal.observe(ij, features.spot_px[part], flat_referenced=options.flat_referenced)
             return integration_residual_mm(estimate_surface(obs, cal, options))
 
         drop, gains = misplaced_parts(features.ij, residual_of)
