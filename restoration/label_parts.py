@@ -12,6 +12,12 @@ its slopes fit one surface far better under the right labels than under the wron
 integration residual falls 4-60x at the true shift, where a right part's is lowest at its own
 labels or within 1.7x of it).
 
+Labelling already refuses a patch joined to the checked squares by fewer than two links
+(:func:`restoration.features.ordering._braced_piece`, ``JOIN_LINKS``): a closed loop must run
+through the join. The parts here were joined by necks wide enough to close such loops, yet a
+loop through a neck of one or two dots still carried the shift; this test reads the part's
+own integrability instead of the join's width.
+
 Each part that a 3 x 3 opening of the labelled lattice separates from the largest, of at
 least :data:`MIN_PART` dots, is integrated alone under its labels and under every shift within
 :data:`SHIFT_REACH` dots; where a shift lowers its integration residual more than
