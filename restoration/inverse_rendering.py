@@ -40,18 +40,23 @@ from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
 from restoration.calibration import Calibration, LevelTrack
+from restoration.features import detect_spots
+from restoration.features.camera_s import pinhole_spots
 from restoration.fit import SMOOTHNESS as FIT_SMOOTHNESS
 from restoration.fit import BSplineSurface, knot_step, spline_through
 from restoration.options import InverseRenderingOptions, StructuredLightOptions
+from restoration.pattern_level import dots_on_spots, predicted_spots_px
 from restoration.pattern_model import DotParticles, PatternModel, Raster, Traced
 from restoration.result import RestoreResult, Status
+from restoration.schlieren_level import SchlierenLevelled
 from restoration.structured_light import StructuredLight
 from restoration.view_level import StructuredLightView
 from wai_core.errors import WaiInputError
 from wai_core.optics import pattern_index
 from wai_core.timings import Timings
 
-__all__ = ["METHOD", "PatternFit", "fit_pattern", "refit_to_pattern", "restore_inverse_rendering"]
+__all__ = ["METHOD", "MIN_DOTS", "SCHLIEREN_START", "PatternFit", "fit_pattern",
+           "refit_schlieren", "refit_to_pattern", "restore_inverse_rendering"]
 
 Array = NDArray[np.float64]
 
@@ -132,14 +137,21 @@ class _Objective:
         s = self.smoothness
         return 0.5 * s * float(np.sum(dxx**2) + np.sum(dyy**2)), s * g.ravel()
 
-    def set_mask(self, traced: Traced, reach_px: float) -> None:
-        """Score only the pixels within ``reach_px`` (full-resolution px) of a particle: the
-        light of dots the fit does not model stays out of its loss."""
+    def set_mask(self, traced: Traced, reach_px: float, unmodelled_px: Array | None = None
+                 ) -> None:
+        """Score only the pixels within ``reach_px`` (full-resolution px) of a particle, and
+        nearer to a particle than to any spot of ``unmodelled_px`` (U, 2), the detected spots
+        of dots the fit does not model: their light stays out of its loss."""
         h, w = self.raster.shape
         yy, xx = np.mgrid[0:h, 0:w]
         centres = np.column_stack([xx.ravel(), yy.ravel()]).astype(float)
         dist = cKDTree(traced.px[traced.ok]).query(centres, distance_upper_bound=reach_px)[0]
-        self.mask = (dist < reach_px).reshape(h, w).astype(float)
+        near = dist < reach_px
+        if unmodelled_px is not None and len(unmodelled_px):
+            other = cKDTree(unmodelled_px).query(centres[near],
+                                                 distance_upper_bound=reach_px)[0]
+            near[np.flatnonzero(near)[other < dist[near]]] = False
+        self.mask = near.reshape(h, w).astype(float)
         obs = self.observed[self.mask > 0]
         self.norm = float(np.sum((obs - obs.mean()) ** 2)) if obs.size else 1.0
         self.norm = self.norm or 1.0
@@ -227,7 +239,7 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
                 blur_px: float = 1.5, passes: int = 2, iterations: int = 30,
                 smoothness: float = SMOOTHNESS, window_px: float = 6.0,
                 reach_px: float = 8.0, n_water: float | None = None,
-                backend: str = "numpy") -> PatternFit:
+                backend: str = "numpy", unmodelled_px: Array | None = None) -> PatternFit:
     """Fit the spline ``start`` to the pattern ``image`` (H, W) through ``model``.
 
     Parameters
@@ -257,6 +269,9 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
         Where the loss and its gradient are evaluated: ``"numpy"`` (the hand-written
         adjoint) or a Dr.Jit backend of :func:`restoration.pattern_jit.jit_module`
         (``"llvm"``, ``"cuda"``, ``"auto"``; camera s an ideal pinhole).
+    unmodelled_px : (U, 2) ndarray, optional
+        Detected spots (image px) of dots ``model`` leaves out: the pixels nearer to one of
+        them than to a particle are not scored.
 
     Returns
     -------
@@ -280,7 +295,7 @@ def fit_pattern(image: Array, start: BSplineSurface, model: PatternModel, *,
             traced = model.trace(spline, obj.t)
             if n_water is not None:
                 obj.light = model.reflectance(spline, traced, n_water)
-            obj.set_mask(traced, reach_px)
+            obj.set_mask(traced, reach_px, unmodelled_px)
             obj.fit_amplitudes(traced)
             fun = obj if backend == "numpy" else _JitObjective(obj, spline, backend)
             before = obj.calls
@@ -331,12 +346,20 @@ class _JitObjective:
 
 
 METHOD = "inverse-rendering"
-"""The method's name; started at the view's level, ``inverse-rendering-view``."""
+"""The method's name; started at the view's level, ``inverse-rendering-view``; falling back on
+Schlieren's surface, ``inverse-rendering-schlieren``."""
+
+SCHLIEREN_START = "schlieren-sl"
+"""The start that falls back on :class:`~restoration.SchlierenLevelled`'s surface where the
+structured light at the view's level is not ``ok``."""
+
+_NAMES = {StructuredLight.name: METHOD, StructuredLightView.name: f"{METHOD}-view",
+          SCHLIEREN_START: f"{METHOD}-schlieren"}
 
 
 def _method(options: InverseRenderingOptions) -> str:
     """The result's method name for ``options``' start."""
-    return f"{METHOD}-view" if options.start == StructuredLightView.name else METHOD
+    return _NAMES[options.start]
 
 
 def restore_inverse_rendering(
@@ -345,14 +368,16 @@ def restore_inverse_rendering(
     options: InverseRenderingOptions | None = None,
     track: LevelTrack | None = None,
 ) -> RestoreResult:
-    """Run the method on loaded images (``pattern``, ``pattern_flat``, ``view``).
+    """Run the method on loaded images (``pattern``, ``pattern_flat``, ``view``; and
+    ``view_flat`` for the start ``"schlieren-sl"``).
 
-    Returns a :class:`~restoration.result.RestoreResult`: the structured light's when it
-    gives no surface (its status and reason); otherwise the refitted surface (on the structured
-    light's grid and support), the view restored through it, and the status (module notes).
-    ``counts`` gains ``dots_fitted`` and ``loss_evaluations``, ``timings_ms`` ``image_fit``,
-    the surface's anchor ``image_fit_explained`` (the median dot's share), ``image_fit_loss``
-    (after each pass) and ``image_fit_evaluations``.
+    Returns a :class:`~restoration.result.RestoreResult`: the start's when it gives no
+    surface (its status and reason); otherwise the refitted surface (on the start's grid and
+    support), the view restored through it, and the status (module notes). ``counts`` gains
+    ``dots_fitted`` and ``loss_evaluations``, ``timings_ms`` ``image_fit``, the surface's
+    anchor ``image_fit_explained`` (the median dot's share), ``image_fit_loss`` (after each
+    pass), ``image_fit_evaluations`` and ``image_fit_start`` (the method whose surface the
+    fit started from).
 
     Examples
     --------
@@ -362,37 +387,93 @@ def restore_inverse_rendering(
     <Status.OK: 'ok'>
     """
     options = InverseRenderingOptions() if options is None else options
-    first = StructuredLightView if options.start == StructuredLightView.name else StructuredLight
-    start = first(_start_options(options))(images, cal, track)
-    return refit_to_pattern(start, images, cal, options)
+    if options.start == StructuredLight.name:
+        return refit_to_pattern(StructuredLight(_start_options(options))(images, cal, track),
+                                images, cal, options)
+    light = StructuredLightView(_start_options(options))(images, cal, track)
+    if options.start == StructuredLightView.name or light.status == Status.OK:
+        return refit_to_pattern(light, images, cal, options)
+    return refit_schlieren(SchlierenLevelled().from_light(images, cal, light), images, cal,
+                           options)
 
 
 def refit_to_pattern(start: RestoreResult, images: dict[str, NDArray], cal: Calibration,
                      options: InverseRenderingOptions | None = None) -> RestoreResult:
     """The surface of ``start`` (a structured light's result on ``images``) refitted to the
-    pattern image: :func:`restore_inverse_rendering` after its start."""
+    pattern image, the dots it labelled: :func:`restore_inverse_rendering` after its start."""
     options = InverseRenderingOptions() if options is None else options
     if start.surface is None:
         return replace(start, method=_method(options))
+    surface = start.surface
+    xy = surface.points_mm[:, :2]
+    spline = spline_through(xy, surface.points_mm[:, 2], surface.slopes, knot_step(xy),
+                            FIT_SMOOTHNESS)
+    return _refit(start, images, cal, options, cal.cfg.rig.dot_index(surface.ij), spline)
+
+
+def refit_schlieren(start: RestoreResult, images: dict[str, NDArray], cal: Calibration,
+                    options: InverseRenderingOptions | None = None) -> RestoreResult:
+    """The surface of ``start`` (:class:`~restoration.SchlierenLevelled`'s result on
+    ``images``, whose samples are camera v's lines of sight, not dots) refitted to the
+    pattern image: the dots labelled where their spots, predicted through that surface at
+    its level, land clearly nearest one detected spot
+    (:func:`~restoration.pattern_level.dots_on_spots`); the other detected spots' light is
+    left out of the loss. Its status is ``start``'s, and ``inconsistent`` where the fit
+    explains too little (as :func:`refit_to_pattern`'s) or no dot could be labelled."""
+    options = InverseRenderingOptions() if options is None else options
+    if start.surface is None:
+        return replace(start, method=_method(options))
+    surface = start.surface
+    cal.prepare(images["pattern_flat"])
+    reference = cal.reference
+    spots = pinhole_spots(detect_spots(images["pattern"], scales=reference.spot_scales),
+                          cal.cfg)
+    rig = cal.cfg.rig
+    level = float(np.mean(surface.points_mm[:, 2]))
+    predicted = (predicted_spots_px(surface.heightfield, level, cal)
+                 + reference.flat_shift_at(rig.dot_ij))
+    dots, found = dots_on_spots(predicted, spots.centres_px, reference.median_spacing_px)
+    if len(dots) < MIN_DOTS:  # the start as it was, not ok where it said ok
+        status, message = start.status, start.message
+        if status == Status.OK:
+            status = Status.INCONSISTENT
+            message = (f"the surface sends {len(dots)} dots clearly onto a spot (fewest "
+                       f"{MIN_DOTS})")
+        return replace(start, method=_method(options), status=status, message=message)
+    origin, dirs = rig.dot_rays
+    origin = np.broadcast_to(np.asarray(origin, float), dirs.shape)[dots]
+    crossing = origin + ((level - origin[:, 2]) / dirs[dots, 2])[:, None] * dirs[dots]
+    spline = spline_through(surface.points_mm[:, :2], surface.points_mm[:, 2], surface.slopes,
+                            knot_step(crossing[:, :2]), FIT_SMOOTHNESS)
+    unmodelled = np.delete(spots.in_image_px, found, axis=0)
+    return _refit(start, images, cal, options, dots, spline, unmodelled)
+
+
+MIN_DOTS = 20
+"""Fewest dots a fit from Schlieren's surface needs labelled."""
+
+
+def _refit(start: RestoreResult, images: dict[str, NDArray], cal: Calibration,
+           options: InverseRenderingOptions, dots: NDArray, spline: BSplineSurface,
+           unmodelled_px: Array | None = None) -> RestoreResult:
+    """``start``'s surface, as ``spline``, refitted to the pattern image through the dots
+    ``dots`` (indices of the rig's), ``unmodelled_px`` the detected spots of none of them."""
     surface = start.surface
     timings = Timings()
     with timings("image_fit"):
         rig = cal.cfg.rig
         roughness = (float(cal.cfg.water.roughness) if options.roughness is None
                      else float(options.roughness))
-        dots = rig.dot_index(surface.ij)
         particles = DotParticles.of(rig, rig.dot_panel_px[dots], options.quadrature_order,
                                     roughness, options.facets)
         pattern = _gray(images["pattern"])
         model = PatternModel(rig, particles, pattern.shape)
-        xy = surface.points_mm[:, :2]
-        spline = spline_through(xy, surface.points_mm[:, 2], surface.slopes, knot_step(xy),
-                                FIT_SMOOTHNESS)
         backend = _backend(options.backend, rig)
         fit = fit_pattern(pattern, spline, model, blur_px=options.blur_px,
                           passes=options.passes, iterations=options.iterations,
                           n_water=pattern_index(cal.cfg) if options.fresnel else None,
-                          backend=backend)
+                          backend=backend, unmodelled_px=unmodelled_px)
+        xy = surface.points_mm[:, :2]
         z, zx, zy = fit.spline.evaluate(xy[:, 0], xy[:, 1])[:3]
         keep = np.isfinite(z)
         points = np.column_stack([xy, np.where(keep, z, surface.points_mm[:, 2])])
@@ -406,7 +487,7 @@ def refit_to_pattern(start: RestoreResult, images: dict[str, NDArray], cal: Cali
     explained = float(np.nanmedian(fit.explained)) if np.isfinite(fit.explained).any() else 0.0
     refit.anchor.update(image_fit_explained=explained, image_fit_loss=fit.loss,
                         image_fit_evaluations=fit.iterations, image_fit_curve=fit.curve,
-                        image_fit_backend=backend,
+                        image_fit_backend=backend, image_fit_start=start.method,
                         image_fit_ms_per_evaluation=fit.timings_ms["ms_per_evaluation"])
     status, message = start.status, start.message
     if status == Status.OK and explained < options.min_explained:

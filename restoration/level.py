@@ -38,12 +38,13 @@ class Anchor:
         its standard error (mm), the levels probed and how many converged, whether the
         reconstruction's level was kept, and why.
     image_fit_explained, image_fit_loss, image_fit_evaluations, image_fit_curve,
-    image_fit_ms_per_evaluation, image_fit_backend
+    image_fit_ms_per_evaluation, image_fit_backend, image_fit_start
         After a fit to the pattern image (:mod:`restoration.inverse_rendering`): the median
         dot's share of its light the fit explains, the loss after each pass, the loss
         evaluations, the loss after each iteration (from the start's), the descents' time
-        per evaluation (each one the model's image and its gradient), ms, and where the fit ran
-        (``"numpy"``, or Dr.Jit's ``"llvm"`` or ``"cuda"``).
+        per evaluation (each one the model's image and its gradient), ms, where the fit ran
+        (``"numpy"``, or Dr.Jit's ``"llvm"`` or ``"cuda"``), and the method whose surface it
+        started from.
     view_residual_px, view_residual_p90_px
         Where camera v's view weighed the level (:mod:`restoration.view_level`): the median
         and the 90th percentile of the misses of its lines of sight through the surface
@@ -91,6 +92,7 @@ class Anchor:
     image_fit_curve: list[float] | None = None
     image_fit_ms_per_evaluation: float | None = None
     image_fit_backend: str | None = None
+    image_fit_start: str | None = None
     view_residual_px: float | None = None
     view_residual_p90_px: float | None = None
     view_served_share: float | None = None

@@ -132,7 +132,7 @@ class InverseRendering:
 
     def __init__(self, options: InverseRenderingOptions | None = None) -> None:
         self.options = checked_options(self.name, InverseRenderingOptions, options)
-        if self.options.start == StructuredLightView.name:  # its start reads the view's
+        if self.options.start != StructuredLight.name:  # its start reads the view's
             self.calibration_type = StructuredLightView.calibration_type
 
     def __repr__(self) -> str:
@@ -172,18 +172,45 @@ class InverseRenderingView(InverseRendering):
         return f"InverseRenderingView({self.options!r})"
 
 
+class InverseRenderingSchlieren(InverseRendering):
+    """Inverse rendering that falls back on Schlieren's surface: the fit starts from
+    :class:`~restoration.StructuredLightView`'s surface where that is ``ok``, else from
+    :class:`~restoration.SchlierenLevelled`'s, its dots labelled by the spots that surface
+    predicts (:func:`~restoration.inverse_rendering.refit_schlieren`); its options' ``start``
+    is always ``"schlieren-sl"``.
+
+    Examples
+    --------
+    >>> from restoration import InverseRenderingOptions, InverseRenderingSchlieren
+    >>> InverseRenderingSchlieren(InverseRenderingOptions(iterations=10)).options.start
+    'schlieren-sl'
+    """
+
+    name = "inverse-rendering-schlieren"
+    calibration_type = SchlierenLevelled.calibration_type
+
+    def __init__(self, options: InverseRenderingOptions | None = None) -> None:
+        options = checked_options(self.name, InverseRenderingOptions, options)
+        super().__init__(replace(options, start=SchlierenLevelled.name))
+
+    def __repr__(self) -> str:
+        return f"InverseRenderingSchlieren({self.options!r})"
+
+
 METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name: Alterman,
                             Schlieren.name: Schlieren, InverseRendering.name: InverseRendering,
                             StructuredLightView.name: StructuredLightView,
                             SchlierenLevelled.name: SchlierenLevelled,
-                            InverseRenderingView.name: InverseRenderingView}
+                            InverseRenderingView.name: InverseRenderingView,
+                            InverseRenderingSchlieren.name: InverseRenderingSchlieren}
 """Methods by name: ``structured-light`` (the paper's), ``alterman`` (the sun sensor),
 ``schlieren`` (synthetic Schlieren on camera v's view), ``inverse-rendering`` (the
 structured light's surface refitted to the pattern image), ``structured-light-view`` (the
 structured light, its level pinned by camera v's view: :mod:`restoration.view_level`),
 ``schlieren-sl`` (synthetic Schlieren at that structured light's level, or where it gives
 none at the level camera s's spots show: :mod:`restoration.schlieren_level`) and
-``inverse-rendering-view`` (the refit started from ``structured-light-view``'s surface)."""
+``inverse-rendering-view`` (the refit started from ``structured-light-view``'s surface) and
+``inverse-rendering-schlieren`` (from ``schlieren-sl``'s where that start is not ``ok``)."""
 BUILT_IN.update(METHODS.values())
 
 

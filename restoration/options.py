@@ -328,7 +328,7 @@ class SchlierenOptions(SurfaceOptions):
                 raise WaiInputError(f"{name} must be >= 0, not {getattr(self, name)}")
 
 
-INVERSE_STARTS = ("structured-light", "structured-light-view")
+INVERSE_STARTS = ("structured-light", "structured-light-view", "schlieren-sl")
 """Values of :attr:`InverseRenderingOptions.start`."""
 INVERSE_BACKENDS = ("auto", "drjit", "numpy")
 """Values of :attr:`InverseRenderingOptions.backend`."""
@@ -368,7 +368,10 @@ class InverseRenderingOptions(StructuredLightOptions):
         The surface the fit starts from and the level it keeps: ``"structured-light"`` (the
         paper's method) or ``"structured-light-view"`` (its level pinned by camera v's view of
         the object: :class:`~restoration.StructuredLightView`; needs the view's flat-water
-        image, ``view_flat`` or a render's ``view_truth``).
+        image, ``view_flat`` or a render's ``view_truth``), or ``"schlieren-sl"``: that
+        start where it is ``ok``, else :class:`~restoration.SchlierenLevelled`'s surface
+        (Schlieren at the level the structured light or camera s's spots give) and the dots
+        its predicted spots label (Schlieren's default options).
     backend : str
         Where the fit's loss and gradient are evaluated: ``"drjit"`` (Dr.Jit's automatic
         adjoint, :mod:`restoration.pattern_jit`, on the CUDA device where there is one, else

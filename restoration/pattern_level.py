@@ -49,9 +49,11 @@ from restoration.calibration import Calibration
 from restoration.consistency import predict_spots_px
 from restoration.schlieren import Rebuild
 from wai_core.errors import RestorationFailed
+from wai_core.heightfield import Heightfield
 
-__all__ = ["CANDIDATES", "COARSE_STEP_MM", "MATCH_FRACTION", "MAX_ALIAS_RATIO",
-           "MAX_RESIDUAL_FRACTION", "STEP_TOL_MM", "PatternLevel", "find_pattern_level"]
+__all__ = ["CANDIDATES", "COARSE_STEP_MM", "LABEL_RATIO", "LABEL_REACH", "MATCH_FRACTION",
+           "MAX_ALIAS_RATIO", "MAX_RESIDUAL_FRACTION", "STEP_TOL_MM", "PatternLevel",
+           "dots_on_spots", "find_pattern_level", "predicted_spots_px"]
 
 Array = NDArray[np.float64]
 
@@ -81,6 +83,12 @@ MAX_RESIDUAL_FRACTION = 0.04
 """The matched spots' median miss, as a fraction of the median dot spacing, past which the
 level is ``uncertain_level``: on the paper's rig (13 px spacing) 0.52 px, between smooth
 water's 0.04-0.32 px and rough water's (alpha 0.02) 0.68-1.34 px."""
+LABEL_REACH = 0.25
+"""A dot takes the label of the detected spot nearest its prediction within this fraction of
+the median dot spacing (:func:`dots_on_spots`)."""
+LABEL_RATIO = 0.6
+"""... and only when that spot is this much nearer than the second nearest (the tracking's
+rule, :data:`restoration.features.track.TRACK_RATIO`)."""
 
 
 @dataclass(frozen=True)
@@ -138,6 +146,61 @@ class PatternLevel:
         return bool(self.residual_px <= MAX_RESIDUAL_FRACTION * self.spacing_px)
 
 
+def predicted_spots_px(heightfield: Heightfield, level_mm: float, cal: Calibration) -> Array:
+    """Every projector dot's spot (G, 2) in camera s's pinhole px, reflected by
+    ``heightfield`` (absolute heights, mm; each dot's ray started where it crosses
+    ``level_mm``), in the order of the rig's dots; NaN where its ray misses the surface.
+    Flat water's shift is not added
+    (:meth:`~restoration.features.ReferenceGrid.flat_shift_at`)."""
+    rig = cal.cfg.rig
+    origin, dirs = rig.dot_rays
+    origin = np.broadcast_to(np.asarray(origin, float), dirs.shape)
+    t = (level_mm - origin[:, 2]) / dirs[:, 2]
+    return predict_spots_px(heightfield, origin, dirs, origin + t[:, None] * dirs,
+                            cal.camera_s, cal.diffuser_z_mm)
+
+
+def dots_on_spots(predicted_px: Array, spots_px: Array, spacing_px: float
+                  ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Labels for detected spots from predictions: each dot whose predicted spot has one
+    detected spot clearly nearest (within :data:`LABEL_REACH` of ``spacing_px``, and
+    :data:`LABEL_RATIO` times nearer than the next) that no other dot claims.
+
+    Parameters
+    ----------
+    predicted_px : (G, 2) ndarray
+        Each dot's predicted spot, px (NaN: none).
+    spots_px : (N, 2) ndarray
+        The detected spots, px.
+    spacing_px : float
+        The dots' median spacing in the image, px.
+
+    Returns
+    -------
+    dots, spots : (K,) ndarray of int
+        The dots labelled (indices into ``predicted_px``) and their spots (into ``spots_px``).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> predicted = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [np.nan, np.nan]])
+    >>> spots = np.array([[10.5, 0.2], [0.4, 0.0], [25.0, 0.0]])
+    >>> dots, found = dots_on_spots(predicted, spots, spacing_px=10.0)
+    >>> dots.tolist(), found.tolist()
+    ([0, 1], [1, 0])
+    """
+    spots_px = np.asarray(spots_px, float).reshape(-1, 2)
+    dots = np.flatnonzero(np.isfinite(predicted_px).all(axis=1))
+    if len(spots_px) < 2 or not len(dots):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    distance, nearest = cKDTree(spots_px).query(predicted_px[dots], k=2)
+    ok = (distance[:, 0] < LABEL_REACH * spacing_px) & (
+        distance[:, 0] < LABEL_RATIO * distance[:, 1])
+    claims = np.bincount(nearest[ok, 0], minlength=len(spots_px))
+    ok[ok] &= claims[nearest[ok, 0]] == 1
+    return dots[ok].astype(np.int64), nearest[ok, 0].astype(np.int64)
+
+
 class _Spots:
     """The detected spots (pinhole px) and every dot's predicted spot on a surface."""
 
@@ -148,20 +211,14 @@ class _Spots:
         self.spots_px = spots_px
         self.spacing_px = float(cal.reference.median_spacing_px)
         self.radius_px = MATCH_FRACTION * self.spacing_px
-        rig = cal.cfg.rig
-        origin, self.dirs = rig.dot_rays
-        self.origin = np.broadcast_to(np.asarray(origin, float), self.dirs.shape)
-        self.shift_px = cal.reference.flat_shift_at(rig.dot_ij)
+        self.shift_px = cal.reference.flat_shift_at(cal.cfg.rig.dot_ij)
         self.cal, self.rebuild, self.evaluations = cal, rebuild, 0
 
     def predict(self, level_mm: float, coarse: bool) -> Array:
         """Every dot's spot (G, 2) px from the surface at ``level_mm``; NaN off it."""
         surface = self.rebuild(level_mm, coarse)
         self.evaluations += 1
-        t = (level_mm - self.origin[:, 2]) / self.dirs[:, 2]
-        return predict_spots_px(surface.heightfield, self.origin, self.dirs,
-                                self.origin + t[:, None] * self.dirs, self.cal.camera_s,
-                                self.cal.diffuser_z_mm)
+        return predicted_spots_px(surface.heightfield, level_mm, self.cal)
 
     def coarse_score(self, level_mm: float) -> float:
         px = self.predict(level_mm, True)

@@ -13,7 +13,7 @@ the slopes do not pin the level, the gauge's ``h0`` is the samples' mean height)
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -75,6 +75,17 @@ class RaySurface:
     kept: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     timings_ms: dict[str, float] = field(default_factory=dict)
     anchor: Anchor = field(default_factory=lambda: Anchor("gauge"))
+
+    def refitted(self, heightfield: Heightfield, points_mm: Array, slopes: Array,
+                 **timings_ms: float) -> RaySurface:
+        """This surface replaced by ``heightfield`` (e.g. a fit to the pattern image), its
+        samples moved to ``points_mm`` (K, 3) with ``slopes`` (K, 2), and ``timings_ms``
+        added (:meth:`restoration.surface.SurfaceEstimate.refitted`'s counterpart)."""
+        normals = np.column_stack([-slopes, np.ones(len(slopes))])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        return replace(self, heightfield=heightfield, points_mm=points_mm, slopes=slopes,
+                       normals=normals, timings_ms={**self.timings_ms, **timings_ms},
+                       anchor=replace(self.anchor))
 
 
 def points_on_lines(origins_mm: Array, dirs: Array, heights_mm: ArrayLike) -> Array:

@@ -194,7 +194,12 @@ class SchlierenLevelled:
     ) -> RestoreResult:
         """Restore one frame (``pattern``, ``pattern_flat``, ``view``, ``view_flat``);
         ``track``: the structured light's (a sequence's level)."""
-        light = self.light(images, cal, track)
+        return self.from_light(images, cal, self.light(images, cal, track))
+
+    def from_light(self, images: dict[str, NDArray], cal: ViewLevelCalibration,
+                   light: RestoreResult) -> RestoreResult:
+        """:meth:`__call__` given the structured light's result on the frame, ``light``
+        (:class:`~restoration.StructuredLightView`'s)."""
         h0_mm, search_mm = float(cal.cfg.water.h0_mm), float(self.options.level_search_mm)
 
         def search(rebuild: Rebuild) -> PatternLevel:

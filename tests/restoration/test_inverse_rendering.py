@@ -142,6 +142,34 @@ def test_the_loss_gradient_is_its_finite_difference(rig):
         assert np.isclose(grad @ v, fd, rtol=0.02, atol=0.005 * np.linalg.norm(grad))
 
 
+def test_the_light_of_dots_the_fit_leaves_out_stays_out_of_its_loss(rig):
+    # Flat water, every dot lit, half of them (a checkerboard of the lattice) modelled: the
+    # other half's spots, named as unmodelled, take the pixels nearer them out of the loss.
+    # At the true surface the loss is then near zero and the modelled dots' brightness near
+    # its truth (1); scored with the neighbours' light the same fit is off in both.
+    lit = np.flatnonzero(rig.lit)
+    ij = rig.dot_ij[lit]
+    kept = lit[(ij.sum(axis=1) % 2) == 0]
+    left = lit[(ij.sum(axis=1) % 2) == 1]
+    _, model_all, flat_all, traced_all = _on_flat_water(rig, rig.dot_panel_px[lit])
+    shape = model_all.shape
+    h0 = rig.cfg.water.h0_mm
+    observed = _Objective(model_all, Raster(shape, 1.5), np.zeros(shape),
+                          flat_all.coeffs.shape, model_all.flat_t(h0), 0.0).image(traced_all)
+    parts, model, flat, traced = _on_flat_water(rig, rig.dot_panel_px[kept])
+    unmodelled = np.array([traced_all.px[model_all.particles.dot == k].mean(axis=0)
+                           for k in np.flatnonzero(np.isin(lit, left))])
+    result = {}
+    for name, spots in (("scored", None), ("left out", unmodelled)):
+        obj = _Objective(model, Raster(shape, 1.5), observed, flat.coeffs.shape,
+                         model.flat_t(h0), 0.0)
+        obj.set_mask(traced, 8.0, spots)
+        obj.fit_amplitudes(traced)
+        result[name] = (obj(flat.coeffs.ravel(), flat)[0], np.median(np.abs(obj.amplitudes - 1)))
+    assert result["left out"][0] < 0.2 * result["scored"][0]
+    assert result["left out"][1] < 0.5 * result["scored"][1]
+
+
 def test_bad_options_are_refused():
     from wai_core.errors import WaiInputError
 
@@ -215,6 +243,59 @@ def test_a_fit_started_at_the_views_level_keeps_it(tmp_path):
     level = np.nanmean(z["inverse-rendering-view"] - z["structured-light-view"])
     assert abs(level) < 0.005
     assert ir["wai_rmse_mm"] <= slv["wai_rmse_mm"] + 0.005
+    # Where that start is ok, the fit that falls back on Schlieren's surface is this one.
+    from restoration import restore_folder
+
+    fallback = restore_folder(frame, "inverse-rendering-schlieren", write=False)
+    assert fallback.result.surface.anchor.image_fit_start == "structured-light-view"
+    np.testing.assert_array_equal(fallback.result.surface.heightfield.z,
+                                  z["inverse-rendering-view"])
+
+
+@pytest.mark.slow
+def test_where_the_structured_light_gives_no_surface_the_fit_starts_from_schlieren(tmp_path):
+    # U = 1 m/s, sea 3, gravity-capillary waves to 6 omega_p, 10 s (the compare case
+    # capillary_6, frame 0): the structured light at the view's level gives no surface (too
+    # few spots labelled, or a level it cannot pin). Schlieren's, at the
+    # level camera s's spots show, predicts every dot's spot; the dots that land clearly on
+    # one detected spot are the fit's. Those labels must be the renderer's (the spot nearest
+    # each dot's true reflection, less flat water's shift), and the refit ok within 0.1 mm of
+    # the truth.
+    from restoration import Status, get_method, restore_folder
+    from restoration.features import detect_spots
+    from restoration.features.camera_s import pinhole_spots
+    from restoration.inverse_rendering import MIN_DOTS
+    from restoration.pattern_level import dots_on_spots, predicted_spots_px
+    from tests.conftest import render_paper_frame
+    from wai_core.heightfield import load_heightfield
+
+    frame = render_paper_frame(tmp_path / "f", seed=3, texture="speckle",
+                               waves={"dispersion": "capillary", "omega_max_rel": 6.0,
+                                      "time_s": 10.0})
+    light = restore_folder(frame, "structured-light-view", write=False).result
+    assert light.status is not Status.OK
+    assert main(["restore", str(frame), "--method", "inverse-rendering-schlieren",
+                 "--quiet"]) == 0
+    ir = json.loads((frame / "restore_inverse-rendering-schlieren" / "metrics.json").read_text())
+    assert ir["status"] == "ok" and ir["anchor"]["image_fit_start"] == "schlieren-sl"
+    assert ir["anchor"]["method"] == "pattern" and ir["wai_rmse_mm"] <= 0.1
+
+    start = restore_folder(frame, "schlieren-sl", write=False).result
+    cal = get_method("schlieren-sl").calibration_type.from_folder(frame)
+    images = cal.load_images(frame)
+    reference = cal.prepare(images["pattern_flat"])
+    spots = pinhole_spots(detect_spots(images["pattern"], scales=reference.spot_scales),
+                          cal.cfg).centres_px
+    rig = cal.cfg.rig
+    shift = reference.flat_shift_at(rig.dot_ij)
+    level = float(np.mean(start.surface.points_mm[:, 2]))
+    predicted = predicted_spots_px(start.surface.heightfield, level, cal) + shift
+    dots, found = dots_on_spots(predicted, spots, reference.median_spacing_px)
+    assert len(dots) >= MIN_DOTS
+    truth = spots_through(rig, load_heightfield(frame / "heightfield.npz"),
+                          rig.dot_panel_px[dots]) + shift[dots]
+    nearest = np.argmin(np.linalg.norm(spots[None] - truth[:, None], axis=2), axis=1)
+    assert np.mean(nearest == found) >= 0.99
 
 
 def test_the_view_start_is_a_method_of_its_own():
