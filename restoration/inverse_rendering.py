@@ -20,6 +20,11 @@ It starts from the structured light's surface and fits the dots the structured l
 (from flat water, the periodic pattern's local minima hold the fit once spots move by more than
 half their spacing: measured, docs/results.md). The level stays near the start's: raising
 the surface and bending it back moves every spot by microns, so the image hardly determines it.
+Where the structured light (at the view's level) is not ``ok``, the start ``"schlieren-sl"``
+takes Schlieren's surface at the level the structured light or camera s's spots give
+(:class:`~restoration.SchlierenLevelled`): every dot's spot is predicted through it, a dot whose
+prediction lands clearly on one detected spot takes it (the labels the structured light could
+not give), and the detected spots of the others are left out of the loss.
 
 The truth-free status: the share of each dot's light the fit explains (the residual's energy
 against the image's contrast in a window about the dot's spot); the frame is ``inconsistent``

@@ -129,14 +129,18 @@ class InverseRendering:
     name = "inverse-rendering"
     calibration_type = Calibration
     options_type = InverseRenderingOptions
+    fixed_start: str | None = None
+    """The ``start`` the options always take (a method named for its start); None: theirs."""
 
     def __init__(self, options: InverseRenderingOptions | None = None) -> None:
-        self.options = checked_options(self.name, InverseRenderingOptions, options)
+        options = checked_options(self.name, InverseRenderingOptions, options)
+        self.options = options if self.fixed_start is None else replace(
+            options, start=self.fixed_start)
         if self.options.start != StructuredLight.name:  # its start reads the view's
             self.calibration_type = StructuredLightView.calibration_type
 
     def __repr__(self) -> str:
-        return f"InverseRendering({self.options!r})"
+        return f"{type(self).__name__}({self.options!r})"
 
     def __call__(
         self,
@@ -163,13 +167,7 @@ class InverseRenderingView(InverseRendering):
 
     name = "inverse-rendering-view"
     calibration_type = StructuredLightView.calibration_type
-
-    def __init__(self, options: InverseRenderingOptions | None = None) -> None:
-        options = checked_options(self.name, InverseRenderingOptions, options)
-        super().__init__(replace(options, start=StructuredLightView.name))
-
-    def __repr__(self) -> str:
-        return f"InverseRenderingView({self.options!r})"
+    fixed_start = StructuredLightView.name
 
 
 class InverseRenderingSchlieren(InverseRendering):
@@ -188,13 +186,7 @@ class InverseRenderingSchlieren(InverseRendering):
 
     name = "inverse-rendering-schlieren"
     calibration_type = SchlierenLevelled.calibration_type
-
-    def __init__(self, options: InverseRenderingOptions | None = None) -> None:
-        options = checked_options(self.name, InverseRenderingOptions, options)
-        super().__init__(replace(options, start=SchlierenLevelled.name))
-
-    def __repr__(self) -> str:
-        return f"InverseRenderingSchlieren({self.options!r})"
+    fixed_start = SchlierenLevelled.name
 
 
 METHODS: dict[str, type] = {StructuredLight.name: StructuredLight, Alterman.name: Alterman,

@@ -308,3 +308,17 @@ def test_the_view_start_is_a_method_of_its_own():
     assert method.options.start == "structured-light-view" and method.options.n_refine == 0
     assert InverseRenderingView(InverseRenderingOptions()).options.start == method.options.start
     assert method.calibration_type is get_method("structured-light-view").calibration_type
+
+
+def test_the_schlieren_fallback_is_a_method_of_its_own():
+    from restoration import InverseRenderingSchlieren, get_method
+
+    # Its start is always "schlieren-sl", whatever options it is given, and it reads the
+    # calibration Schlieren's surface needs (the flat-water view).
+    method = get_method("inverse-rendering-schlieren", iterations=3)
+    assert isinstance(method, InverseRenderingSchlieren)
+    assert method.options.start == "schlieren-sl" and method.options.iterations == 3
+    assert (InverseRenderingSchlieren(InverseRenderingOptions(start="structured-light"))
+            .options.start == "schlieren-sl")
+    assert method.calibration_type is get_method("schlieren-sl").calibration_type
+    assert repr(method).startswith("InverseRenderingSchlieren(")

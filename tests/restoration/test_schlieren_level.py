@@ -234,3 +234,27 @@ def test_where_the_structured_light_fails_the_patterns_spots_give_the_level(tmp_
                            write=False)
     assert plain.result.status is Status.GAUGE_LEVEL
     assert plain.metrics["wai_rmse_mm"] > 0.25
+
+
+def test_a_dot_takes_a_spot_only_where_the_spot_is_clearly_its_own():
+    from restoration.pattern_level import LABEL_RATIO, LABEL_REACH, dots_on_spots
+
+    # A lattice of spots 10 px apart, each dot predicted 0.5 px off its own: all labelled,
+    # each with its own spot. Then the cases the rule refuses.
+    ii, jj = np.meshgrid(np.arange(6), np.arange(5))
+    spots = 10.0 * np.column_stack([ii.ravel(), jj.ravel()])
+    predicted = spots + 0.5
+    dots, found = dots_on_spots(predicted, spots, spacing_px=10.0)
+    assert dots.tolist() == list(range(30)) and found.tolist() == list(range(30))
+    moved = predicted.copy()
+    moved[0] = spots[0] + LABEL_REACH * 10.0 + 0.1         # too far from any spot
+    moved[1] = (spots[1] + spots[2]) / 2                    # halfway: not clearly either
+    moved[3] = spots[4] + 0.3                               # claims dot 4's spot too
+    moved[5] = [np.nan, np.nan]                             # off the surface
+    dots, found = dots_on_spots(moved, spots, spacing_px=10.0)
+    assert not set(dots) & {0, 1, 3, 4, 5} and len(dots) == 25
+    assert (found == dots).all()
+    # The ratio rule: the nearest spot 2 px away, the next beyond or within 2 / LABEL_RATIO.
+    for beyond, labelled in ((2.0 / LABEL_RATIO + 0.2, [0]), (2.0 / LABEL_RATIO - 0.2, [])):
+        two = np.array([[2.0, 0.0], [-beyond, 0.0]])
+        assert dots_on_spots(np.zeros((1, 2)), two, spacing_px=10.0)[0].tolist() == labelled
