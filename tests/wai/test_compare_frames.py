@@ -138,3 +138,18 @@ def test_the_frame_tables_name_a_method_as_the_summary_does():
             _row("rough_0.01", ["ok"], [0.02], method=spec, method_name="mine")]
     assert {e["method"] for e in rescues(rows)} == {"mine"}
     assert "mine" in {e["method"] for e in by_condition(rows, DEGRADATIONS)}
+
+
+def test_the_chart_names_every_method_whichever_panels_it_has_a_point_in(tmp_path):
+    # On a speckle object most methods find no corners: a legend read off the corner panel
+    # alone named only the methods that did. Every method with a time is named.
+    from wai.experiments.compare import _figure
+
+    def entry(name, corner_std_px=None, ssim=None, rmse=None):
+        return {"name": name, "ms_per_frame": 10.0, "corner_std_px": corner_std_px,
+                "ssim": ssim, "rmse_demeaned_mm": rmse}
+
+    summary = [entry("a", ssim=0.8, rmse=0.02), entry("b", corner_std_px=0.5, ssim=0.7),
+               entry("c", rmse=0.01), {**entry("d", ssim=0.9), "ms_per_frame": None}]
+    assert _figure(summary, tmp_path / "compare.png") == ["a", "b", "c"]
+    assert (tmp_path / "compare.png").stat().st_size > 0

@@ -314,24 +314,28 @@ def summarize(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def _figure(summary: list[dict[str, Any]], path: Path) -> None:
+def _figure(summary: list[dict[str, Any]], path: Path) -> list[str]:
     """Speed against accuracy: one marker and colour per method, named in a legend below the
     panels (labels beside the points overlapped where methods cluster), the spread over the
-    sequences as error bars."""
+    sequences as error bars. Returns the legend's names: every method with a time, whichever
+    panels it has a point in."""
     import os
 
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
     from matplotlib.ticker import NullFormatter
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), layout="constrained")
     markers = "osD^vP*Xh<>"
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    legend: list[Line2D] = []
     for i, e in enumerate(x for x in summary if x["ms_per_frame"] is not None):
         style = {"marker": markers[i % len(markers)], "color": colours[i % len(colours)],
                  "linestyle": "none", "markersize": 7}
+        legend.append(Line2D([], [], label=e["name"], **style))
         for ax, key in zip(axes, ("corner_std_px", "ssim", "rmse_demeaned_mm"), strict=True):
             if e[key] is not None:
                 spread = e.get(f"{key}_sd")
@@ -352,16 +356,14 @@ def _figure(summary: list[dict[str, Any]], path: Path) -> None:
         ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel(f"ms per frame ({os.cpu_count()} cores, this run)")
         ax.grid(alpha=0.3, which="both")
-    handles, labels = axes[0].get_legend_handles_labels()
-    if not handles:
-        handles, labels = axes[1].get_legend_handles_labels()
-    if handles:
-        fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 5),
+    if legend:
+        fig.legend(handles=legend, loc="outside lower center", ncol=min(len(legend), 5),
                    fontsize=8, frameon=False)
     fig.suptitle("Speed against accuracy, every method on the same rendered sequences "
                  "(means over the sequences; bars: their standard deviation)")
     fig.savefig(path, dpi=120)
     plt.close(fig)
+    return [h.get_label() for h in legend]
 
 
 def rank_agreement(summary: list[dict[str, Any]], key: str = "grid_px"
