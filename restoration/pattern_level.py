@@ -9,7 +9,9 @@ paper's rig about 1.7 px of the spot's shift per mm of level, mostly along the p
 tilt). Where the structured light cannot label its spots (the caustics of capillary waves,
 the merged spots of rough water, a flat reference it refuses) the spots are still in the
 image: this search predicts every dot's spot from the surface rebuilt at a level and keeps
-the level whose predictions land on detected spots. No spot needs a label.
+the level whose predictions land on detected spots. No spot needs a label; once the level is
+found, the same predictions give labels where they are clear (:func:`dots_on_spots`, which
+inverse rendering's fit from Schlieren's surface starts from).
 
 Search
 ------
