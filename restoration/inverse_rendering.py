@@ -410,10 +410,13 @@ def refit_to_pattern(start: RestoreResult, images: dict[str, NDArray], cal: Cali
     if start.surface is None:
         return replace(start, method=_method(options))
     surface = start.surface
-    xy = surface.points_mm[:, :2]
-    spline = spline_through(xy, surface.points_mm[:, 2], surface.slopes, knot_step(xy),
-                            FIT_SMOOTHNESS)
-    return _refit(start, images, cal, options, cal.cfg.rig.dot_index(surface.ij), spline)
+    timings = Timings()
+    with timings("image_fit"):
+        xy = surface.points_mm[:, :2]
+        spline = spline_through(xy, surface.points_mm[:, 2], surface.slopes, knot_step(xy),
+                                FIT_SMOOTHNESS)
+    return _refit(start, images, cal, options, cal.cfg.rig.dot_index(surface.ij), spline,
+                  timings)
 
 
 def refit_schlieren(start: RestoreResult, images: dict[str, NDArray], cal: Calibration,
@@ -429,29 +432,36 @@ def refit_schlieren(start: RestoreResult, images: dict[str, NDArray], cal: Calib
     if start.surface is None:
         return replace(start, method=_method(options))
     surface = start.surface
-    cal.prepare(images["pattern_flat"])
-    reference = cal.reference
-    spots = pinhole_spots(detect_spots(images["pattern"], scales=reference.spot_scales),
-                          cal.cfg)
-    rig = cal.cfg.rig
-    level = float(np.mean(surface.points_mm[:, 2]))
-    predicted = (predicted_spots_px(surface.heightfield, level, cal)
-                 + reference.flat_shift_at(rig.dot_ij))
-    dots, found = dots_on_spots(predicted, spots.centres_px, reference.median_spacing_px)
+    timings = Timings()
+    with timings("image_fit"):  # the labels and the start's spline: the fit's time
+        cal.prepare(images["pattern_flat"])
+        reference = cal.reference
+        spots = pinhole_spots(detect_spots(images["pattern"], scales=reference.spot_scales),
+                              cal.cfg)
+        rig = cal.cfg.rig
+        level = float(np.mean(surface.points_mm[:, 2]))
+        predicted = (predicted_spots_px(surface.heightfield, level, cal)
+                     + reference.flat_shift_at(rig.dot_ij))
+        dots, found = dots_on_spots(predicted, spots.centres_px, reference.median_spacing_px)
+        if len(dots) >= MIN_DOTS:
+            origin, dirs = rig.dot_rays
+            origin = np.broadcast_to(np.asarray(origin, float), dirs.shape)[dots]
+            crossing = origin + ((level - origin[:, 2]) / dirs[dots, 2])[:, None] * dirs[dots]
+            spline = spline_through(surface.points_mm[:, :2], surface.points_mm[:, 2],
+                                    surface.slopes, knot_step(crossing[:, :2]), FIT_SMOOTHNESS)
+            unmodelled = np.delete(spots.in_image_px, found, axis=0)
     if len(dots) < MIN_DOTS:  # the start as it was, not ok where it said ok
         status, message = start.status, start.message
         if status == Status.OK:
             status = Status.INCONSISTENT
             message = (f"the surface sends {len(dots)} dots clearly onto a spot (fewest "
                        f"{MIN_DOTS})")
-        return replace(start, method=_method(options), status=status, message=message)
-    origin, dirs = rig.dot_rays
-    origin = np.broadcast_to(np.asarray(origin, float), dirs.shape)[dots]
-    crossing = origin + ((level - origin[:, 2]) / dirs[dots, 2])[:, None] * dirs[dots]
-    spline = spline_through(surface.points_mm[:, :2], surface.points_mm[:, 2], surface.slopes,
-                            knot_step(crossing[:, :2]), FIT_SMOOTHNESS)
-    unmodelled = np.delete(spots.in_image_px, found, axis=0)
-    return _refit(start, images, cal, options, dots, spline, unmodelled)
+        times = dict(start.timings_ms)
+        times["image_fit"] = timings.ms["image_fit"]
+        times["end_to_end"] = times.get("end_to_end", 0.0) + times["image_fit"]
+        return replace(start, method=_method(options), status=status, message=message,
+                       timings_ms=times)
+    return _refit(start, images, cal, options, dots, spline, timings, unmodelled)
 
 
 MIN_DOTS = 20
@@ -460,11 +470,11 @@ MIN_DOTS = 20
 
 def _refit(start: RestoreResult, images: dict[str, NDArray], cal: Calibration,
            options: InverseRenderingOptions, dots: NDArray, spline: BSplineSurface,
-           unmodelled_px: Array | None = None) -> RestoreResult:
+           timings: Timings, unmodelled_px: Array | None = None) -> RestoreResult:
     """``start``'s surface, as ``spline``, refitted to the pattern image through the dots
-    ``dots`` (indices of the rig's), ``unmodelled_px`` the detected spots of none of them."""
+    ``dots`` (indices of the rig's), ``unmodelled_px`` the detected spots of none of them;
+    ``timings`` holds the ``image_fit`` time spent before (the start's spline)."""
     surface = start.surface
-    timings = Timings()
     with timings("image_fit"):
         rig = cal.cfg.rig
         roughness = (float(cal.cfg.water.roughness) if options.roughness is None

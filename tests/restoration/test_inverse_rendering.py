@@ -279,6 +279,10 @@ def test_where_the_structured_light_gives_no_surface_the_fit_starts_from_schlier
     ir = json.loads((frame / "restore_inverse-rendering-schlieren" / "metrics.json").read_text())
     assert ir["status"] == "ok" and ir["anchor"]["image_fit_start"] == "schlieren-sl"
     assert ir["anchor"]["method"] == "pattern" and ir["wai_rmse_mm"] <= 0.1
+    # Its time: the structured light's and Schlieren's, then the labels and the fit.
+    times = ir["timings_ms"]
+    assert 0 < times["image_fit"] < times["end_to_end"]
+    assert times["end_to_end"] >= times["level"] + times["image_fit"]
 
     start = restore_folder(frame, "schlieren-sl", write=False).result
     cal = get_method("schlieren-sl").calibration_type.from_folder(frame)
