@@ -50,7 +50,7 @@ from restoration.features.camera_s import pinhole_spots
 from restoration.fit import SMOOTHNESS as FIT_SMOOTHNESS
 from restoration.fit import BSplineSurface, knot_step, spline_through
 from restoration.options import InverseRenderingOptions, StructuredLightOptions
-from restoration.pattern_level import dots_on_spots, predicted_spots_px
+from restoration.pattern_level import dot_crossings_mm, dots_on_spots, predicted_spots_px
 from restoration.pattern_model import DotParticles, PatternModel, Raster, Traced
 from restoration.result import RestoreResult, Status
 from restoration.schlieren_level import SchlierenLevelled
@@ -434,35 +434,27 @@ def refit_schlieren(start: RestoreResult, images: dict[str, NDArray], cal: Calib
     surface = start.surface
     timings = Timings()
     with timings("image_fit"):  # the labels and the start's spline: the fit's time
-        cal.prepare(images["pattern_flat"])
-        reference = cal.reference
+        reference = cal.prepare(images["pattern_flat"])
         spots = pinhole_spots(detect_spots(images["pattern"], scales=reference.spot_scales),
                               cal.cfg)
-        rig = cal.cfg.rig
         level = float(np.mean(surface.points_mm[:, 2]))
         predicted = (predicted_spots_px(surface.heightfield, level, cal)
-                     + reference.flat_shift_at(rig.dot_ij))
+                     + reference.flat_shift_at(cal.cfg.rig.dot_ij))
         dots, found = dots_on_spots(predicted, spots.centres_px, reference.median_spacing_px)
-        if len(dots) >= MIN_DOTS:
-            origin, dirs = rig.dot_rays
-            origin = np.broadcast_to(np.asarray(origin, float), dirs.shape)[dots]
-            crossing = origin + ((level - origin[:, 2]) / dirs[dots, 2])[:, None] * dirs[dots]
-            spline = spline_through(surface.points_mm[:, :2], surface.points_mm[:, 2],
-                                    surface.slopes, knot_step(crossing[:, :2]), FIT_SMOOTHNESS)
-            unmodelled = np.delete(spots.in_image_px, found, axis=0)
     if len(dots) < MIN_DOTS:  # the start as it was, not ok where it said ok
         status, message = start.status, start.message
         if status == Status.OK:
             status = Status.INCONSISTENT
             message = (f"the surface sends {len(dots)} dots clearly onto a spot (fewest "
                        f"{MIN_DOTS})")
-        times = dict(start.timings_ms)
-        times["image_fit"] = timings.ms["image_fit"]
-        times["end_to_end"] = times.get("end_to_end", 0.0) + times["image_fit"]
         return replace(start, method=_method(options), status=status, message=message,
-                       timings_ms=times)
+                       timings_ms=_with_fit_time(start, timings))
+    with timings("image_fit"):
+        crossing = dot_crossings_mm(level, cal)[2][dots]
+        spline = spline_through(surface.points_mm[:, :2], surface.points_mm[:, 2],
+                                surface.slopes, knot_step(crossing[:, :2]), FIT_SMOOTHNESS)
+    unmodelled = np.delete(spots.in_image_px, found, axis=0)
     return _refit(start, images, cal, options, dots, spline, timings, unmodelled)
-
 
 MIN_DOTS = 20
 """Fewest dots a fit from Schlieren's surface needs labelled."""
@@ -511,12 +503,17 @@ def _refit(start: RestoreResult, images: dict[str, NDArray], cal: Calibration,
                    f"{options.min_explained:.0%})")
     counts = {**start.counts, "dots_fitted": int(particles.n_dots),
               "loss_evaluations": int(fit.iterations)}
-    times = dict(start.timings_ms)
-    times["image_fit"] = timings.to_dict()["image_fit"]
-    times["reverse_trace"] = timings.to_dict()["reverse_trace"]
-    times["end_to_end"] = times.get("end_to_end", 0.0) + times["image_fit"]
     return replace(start, method=_method(options), status=status, message=message, surface=refit,
-                   view=view, timings_ms=times, counts=counts, consistency=None)
+                   view=view, timings_ms=_with_fit_time(start, timings), counts=counts,
+                   consistency=None)
+
+
+def _with_fit_time(start: RestoreResult, timings: Timings) -> dict[str, float]:
+    """``start``'s times with the fit's steps of ``timings`` (``image_fit``, and
+    ``reverse_trace`` where it ran) and ``image_fit`` added to ``end_to_end``, ms."""
+    times = {**start.timings_ms, **timings.to_dict()}
+    times["end_to_end"] = start.timings_ms.get("end_to_end", 0.0) + times["image_fit"]
+    return times
 
 
 def _backend(choice: str, rig: Any) -> str:

@@ -49,13 +49,14 @@ from scipy.spatial import cKDTree
 
 from restoration.calibration import Calibration
 from restoration.consistency import predict_spots_px
+from restoration.ray_surface import points_on_lines
 from restoration.schlieren import Rebuild
 from wai_core.errors import RestorationFailed
 from wai_core.heightfield import Heightfield
 
 __all__ = ["CANDIDATES", "COARSE_STEP_MM", "LABEL_RATIO", "LABEL_REACH", "MATCH_FRACTION",
            "MAX_ALIAS_RATIO", "MAX_RESIDUAL_FRACTION", "STEP_TOL_MM", "PatternLevel",
-           "dots_on_spots", "find_pattern_level", "predicted_spots_px"]
+           "dot_crossings_mm", "dots_on_spots", "find_pattern_level", "predicted_spots_px"]
 
 Array = NDArray[np.float64]
 
@@ -148,18 +149,23 @@ class PatternLevel:
         return bool(self.residual_px <= MAX_RESIDUAL_FRACTION * self.spacing_px)
 
 
+def dot_crossings_mm(level_mm: float, cal: Calibration) -> tuple[Array, Array, Array]:
+    """Every projector dot's ray, in the order of the rig's dots: origins (G, 3) mm,
+    directions (G, 3), and where each crosses the plane ``z = level_mm`` (G, 3) mm."""
+    origin, dirs = cal.cfg.rig.dot_rays
+    origin = np.broadcast_to(np.asarray(origin, float), dirs.shape)
+    return origin, dirs, points_on_lines(origin, dirs, level_mm)
+
+
 def predicted_spots_px(heightfield: Heightfield, level_mm: float, cal: Calibration) -> Array:
     """Every projector dot's spot (G, 2) in camera s's pinhole px, reflected by
     ``heightfield`` (absolute heights, mm; each dot's ray started where it crosses
     ``level_mm``), in the order of the rig's dots; NaN where its ray misses the surface.
     Flat water's shift is not added
     (:meth:`~restoration.features.ReferenceGrid.flat_shift_at`)."""
-    rig = cal.cfg.rig
-    origin, dirs = rig.dot_rays
-    origin = np.broadcast_to(np.asarray(origin, float), dirs.shape)
-    t = (level_mm - origin[:, 2]) / dirs[:, 2]
-    return predict_spots_px(heightfield, origin, dirs, origin + t[:, None] * dirs,
-                            cal.camera_s, cal.diffuser_z_mm)
+    origin, dirs, crossing = dot_crossings_mm(level_mm, cal)
+    return predict_spots_px(heightfield, origin, dirs, crossing, cal.camera_s,
+                            cal.diffuser_z_mm)
 
 
 def dots_on_spots(predicted_px: Array, spots_px: Array, spacing_px: float

@@ -424,6 +424,17 @@ class StructuredLight:
             surface = self._level(obs, cal, surface, images, memo, timings)
             surface, view, check = self._view_and_check(images, cal, obs, surface, reference,
                                                         state, timings)
+
+            def again(features: Matches, surface: SurfaceEstimate, rejected_xy: NDArray
+                      ) -> tuple[Observations, SurfaceEstimate, Any, Consistency]:
+                """The surface estimated, levelled and checked again from ``features``."""
+                with timings("surface"):
+                    obs = self._observe_debiased(features, surface, cal, timings)
+                    surface = estimate_surface(obs, cal, options, start)
+                surface = self._level(obs, cal, surface, images, memo, timings)
+                return obs, *self._view_and_check(images, cal, obs, surface, reference, state,
+                                                  timings, rejected_xy)
+
             rejected_xy = np.zeros((0, 2))
             for _ in range(MAX_REJECTION_ROUNDS):
                 if not check.gross.any():
@@ -434,25 +445,12 @@ class StructuredLight:
                 drop = check.gross | unchecked_beside(surface.ij, check)
                 features = without_samples(features, surface.ij[drop])
                 rejected_xy = np.vstack([rejected_xy, check.xy_mm[drop]])
-                with timings("surface"):
-                    obs = self._observe_debiased(features, surface, cal, timings)
-                    surface = estimate_surface(obs, cal, options,
-                                               None if track is None else track.start_mm)
-                surface = self._level(obs, cal, surface, images, memo, timings)
-                surface, view, check = self._view_and_check(images, cal, obs, surface,
-                                                            reference, state, timings,
-                                                            rejected_xy)
+                obs, surface, view, check = again(features, surface, rejected_xy)
             with timings("surface"):
                 drop = self._misplaced(features, cal)
             if drop.any():
                 features = without_samples(features, features.ij[drop], "rejected_shifted_part")
-                with timings("surface"):
-                    obs = self._observe_debiased(features, surface, cal, timings)
-                    surface = estimate_surface(obs, cal, options, start)
-                surface = self._level(obs, cal, surface, images, memo, timings)
-                surface, view, check = self._view_and_check(images, cal, obs, surface,
-                                                            reference, state, timings,
-                                                            rejected_xy)
+                obs, surface, view, check = again(features, surface, rejected_xy)
         except RestorationFailed as exc:
             if state is not None:
                 state.take(None, ok=False)
