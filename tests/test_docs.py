@@ -3,6 +3,7 @@ installed package runs them, ``python -m wai.examples NAME``)."""
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -39,12 +40,17 @@ def test_every_example_is_listed_and_packaged():
 @pytest.mark.slow
 @pytest.mark.parametrize("script", EXAMPLES, ids=[p.stem for p in EXAMPLES])
 def test_example_runs_quick(script, tmp_path):
-    here = tmp_path / "cwd"
+    here, scratch = tmp_path / "cwd", tmp_path / "tmp"
     here.mkdir()
+    scratch.mkdir()
+    # Without --out an example writes to a fresh temporary folder: here, the test's own.
+    env = {**os.environ, "TMPDIR": str(scratch)}
     run = subprocess.run(
         [sys.executable, "-m", "wai.examples", script.stem, "--quick"], cwd=here,
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=120, env=env,
     )
     assert run.returncode == 0, run.stderr[-2000:]
     assert "status" in run.stdout or "RMSE" in run.stdout
     assert not any(here.iterdir())  # nothing written into the folder it ran from
+    for made in scratch.iterdir():  # and what it wrote, in a folder whose path it printed
+        assert made.name.startswith("wai-") and str(made) in run.stdout
