@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -22,6 +23,11 @@ def die_on_first_try(point: dict) -> dict:
     marker = Path(point["dir"]) / f"{point['x']}.tried"
     if point["x"] == 2 or (point["x"] == 1 and not marker.exists()):
         marker.touch()
+        # Die a moment later, as a real crash seldom comes at once: the client has by then
+        # gathered the results the worker finished before. (A result still in the worker's
+        # memory dies with it and runs again; on a loaded machine that rerun could meet the
+        # next death too, and the test would count a point it did not mean to kill.)
+        time.sleep(1.0)
         os._exit(1)
     env = {name: os.environ.get(name) for name in ("OMP_NUM_THREADS", "MALLOC_TRIM_THRESHOLD_")}
     return {"y": point["x"] * 10, "omp": env["OMP_NUM_THREADS"],
