@@ -456,6 +456,7 @@ def refit_schlieren(start: RestoreResult, images: dict[str, NDArray], cal: Calib
     unmodelled = np.delete(spots.in_image_px, found, axis=0)
     return _refit(start, images, cal, options, dots, spline, timings, unmodelled)
 
+
 MIN_DOTS = 20
 """Fewest dots a fit from Schlieren's surface needs labelled."""
 
