@@ -23,8 +23,11 @@ past which the surface is wrong. Right surfaces leave 0.03-0.07 px on smooth wat
 0.20-0.27 px on rough (the flow's own error, the view blurred too); labels shifted by whole
 dots, 1.1-5.0 px (docs/results.md, "The level from the view")."""
 VIEW_MAX_TAIL_PX = 1.0
-"""The same for the misses' 90th percentile: a surface wrong in a part. Right surfaces leave
-0.07-0.16 px smooth and 0.34-0.59 px rough; a real rig's frame holding wrong labels, 1.6 px."""
+"""The same for the misses' 90th percentile, over the samples where the flow is trusted
+(synthetic Schlieren's edge margin inside the object's texture): a surface wrong in a part.
+Right surfaces leave 0.07-0.16 px smooth and 0.34-0.59 px rough; a real rig's frame holding
+wrong labels, 1.6 px (docs/results.md, "The view's tail is read where the flow is
+trusted")."""
 
 
 def unpinned_patch(features: Matches, reference: ReferenceGrid) -> bool:

@@ -47,8 +47,9 @@ class Anchor:
         started from.
     view_residual_px, view_residual_p90_px
         Where camera v's view weighed the level (:mod:`restoration.view_level`): the median
-        and the 90th percentile of the misses of its lines of sight through the surface
-        against the flow's object points, flat-water px.
+        of the misses of its lines of sight through the surface against the flow's object
+        points, flat-water px, and their 90th percentile over the samples synthetic
+        Schlieren's edge margin inside the object's texture (where the flow is trusted).
     view_served_share, view_textured_share
         Where the view was asked (:mod:`restoration.view_level`): the share of camera v's
         samples in view that the flow served, or, where the flat view showed too little

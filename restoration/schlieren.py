@@ -62,7 +62,7 @@ from wai_core.optics import trace_to_object
 from wai_core.timings import Timings
 
 __all__ = [
-    "COARSE_PASSES", "GAUGE_LEVEL_MESSAGE", "LastFlow", "LevelRule", "Rebuild",
+    "COARSE_PASSES", "GAUGE_LEVEL_MESSAGE", "FlowSamples", "LastFlow", "LevelRule", "Rebuild",
     "SchlierenCalibration", "SightLines",
     "cached_lattice", "flat_view_file", "flat_view_flow", "flow_samples",
     "reconstruct_schlieren", "restore_schlieren", "slopes_on_sight_lines",
@@ -295,12 +295,42 @@ def slopes_on_sight_lines(points_mm: Array, dirs: Array, object_mm: Array, n_wat
     return normals, -normals[:, :2] / normals[:, 2:3]
 
 
+@dataclass(frozen=True)
+class FlowSamples:
+    """:func:`flow_samples`'s result: the lattice's samples the flow serves.
+
+    Attributes
+    ----------
+    lines : SightLines
+        The lattice.
+    kept : (K,) ndarray of bool
+        The samples the flow serves, on the object, ``edge_margin_px`` inside the flat view's
+        textured part.
+    object_mm : (K, 3) ndarray
+        The object point each sample's flow points at, mm.
+    mm_per_px : (K,) ndarray
+        The object plane's size of one flat-water pixel at each, mm.
+    counts : dict
+        Samples in reach and those rejected by the flow's round trip, the object and the edge.
+    inner : (K,) ndarray of bool
+        Those of ``kept`` that lie :class:`~restoration.options.SchlierenOptions`' default edge
+        margin inside (``kept`` itself where the options' margin is as large): where the flow
+        is trusted whatever the margin asked.
+    """
+
+    lines: SightLines
+    kept: NDArray[np.bool_]
+    object_mm: Array
+    mm_per_px: Array
+    counts: dict[str, int]
+    inner: NDArray[np.bool_]
+
+
 def flow_samples(images: dict[str, NDArray], cal: Any,
-                 options: SchlierenOptions) -> tuple[SightLines, NDArray, Array, Array,
-                                                     dict[str, int]]:
-    """The lattice, which of its samples the flow serves, their object points, the object
-    plane's size of one flat-water pixel at each (mm) and the counts. ``cal``: a calibration
-    with camera v's lattice and its :class:`LastFlow` (:class:`SchlierenCalibration`,
+                 options: SchlierenOptions) -> FlowSamples:
+    """The lattice's samples the flow serves, their object points and the counts
+    (:class:`FlowSamples`). ``cal``: a calibration with camera v's lattice and its
+    :class:`LastFlow` (:class:`SchlierenCalibration`,
     :class:`~restoration.view_level.ViewLevelCalibration`); ``images``: ``view`` and
     ``view_flat``."""
     cfg = cal.cfg
@@ -315,11 +345,14 @@ def flow_samples(images: dict[str, NDArray], cal: Any,
     flowed = reach & (np.nan_to_num(trip[rows, cols], nan=np.inf) < options.flow_check_px)
     on_object = flowed & seen.ok & step.ok
     kept = on_object & _inside_view(lines, q, options.edge_margin_px, flow.shape[:2])
+    trusted_px = SchlierenOptions.edge_margin_px
+    inner = (kept if options.edge_margin_px >= trusted_px
+             else kept & _inside_view(lines, q, trusted_px, flow.shape[:2]))
     mm_per_px = np.linalg.norm(step.object_mm - seen.object_mm, axis=1)
     counts = {"samples": int(reach.sum()), "rejected_flow": int((reach & ~flowed).sum()),
               "rejected_object": int((flowed & ~on_object).sum()),
               "rejected_edge": int((on_object & ~kept).sum()), "matched": int(kept.sum())}
-    return lines, kept, seen.object_mm, mm_per_px, counts
+    return FlowSamples(lines, kept, seen.object_mm, mm_per_px, counts, inner)
 
 
 def _inside_view(lines: SightLines, q: Array, margin_px: float, size: tuple[int, int]
@@ -473,7 +506,9 @@ def restore_schlieren(
             raise WaiInputError(f"schlieren: the frame needs a {name!r} image")
     timings = Timings()
     with timings("features"):
-        lines, kept, object_mm, mm_per_px, counts = flow_samples(images, cal, options)
+        served = flow_samples(images, cal, options)
+    lines, kept, counts = served.lines, served.kept, served.counts
+    object_mm, mm_per_px = served.object_mm, served.mm_per_px
     index = np.flatnonzero(kept)
     if index.size < max(MIN_SAMPLES, SPARSE_FRACTION * counts["samples"]):
         return RestoreResult(METHOD, Status.SPARSE, _sparse_message(index.size, counts),

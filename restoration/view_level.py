@@ -161,6 +161,10 @@ class ViewSamples:
     textured_share : float or None
         Where the flow was not run: the share of the samples in view on the flat view's
         texture (:func:`textured_share`, below :data:`TEXTURE_MIN_SHARE`); None where it ran.
+    inner : (K,) ndarray of bool or None
+        The samples synthetic Schlieren's edge margin inside the flat view's textured part
+        (:class:`~restoration.schlieren.FlowSamples`), where the flow is trusted to check a
+        part of the surface; None: every sample.
     """
 
     px: Array
@@ -169,6 +173,7 @@ class ViewSamples:
     sets: NDArray[np.int64]
     counts: dict[str, int]
     textured_share: float | None = None
+    inner: NDArray[np.bool_] | None = None
 
     @property
     def served(self) -> bool:
@@ -232,11 +237,12 @@ def view_samples(images: dict[str, NDArray], cal: ViewLevelCalibration) -> ViewS
         n = int(len(reach))
         return ViewSamples(np.empty((0, 2)), np.empty((0, 3)), np.empty(0),
                            np.empty(0, dtype=np.int64), {"samples": n, "matched": 0}, textured)
-    lines, kept, object_mm, mm_per_px, counts = flow_samples(images, cal, options)
-    index = np.flatnonzero(kept)
-    ij = lines.ij[index]
-    return ViewSamples(lines.px[index], object_mm[index], mm_per_px[index],
-                       (ij[:, 0] % 2) * 2 + ij[:, 1] % 2, counts)
+    served = flow_samples(images, cal, options)
+    index = np.flatnonzero(served.kept)
+    ij = served.lines.ij[index]
+    return ViewSamples(served.lines.px[index], served.object_mm[index],
+                       served.mm_per_px[index], (ij[:, 0] % 2) * 2 + ij[:, 1] % 2,
+                       served.counts, inner=served.inner[index])
 
 
 def view_residual_px(surface: SurfaceEstimate, samples: ViewSamples,
@@ -454,8 +460,13 @@ class StructuredLightView(StructuredLight):
                 est = surface
             est.anchor.update(view_served_share=served)
             miss = view_residual_px(est, samples, cal)
-            miss = miss[np.isfinite(miss)]
+            finite = np.isfinite(miss)
+            # The tail only where the flow is trusted: near the object's edge it matches the
+            # texture to what lies past it (docs/results.md, "The view's tail").
+            inner = miss[finite if samples.inner is None else finite & samples.inner]
+            miss = miss[finite]
             if miss.size:
-                est.anchor.update(view_residual_px=float(np.median(miss)),
-                                  view_residual_p90_px=float(np.percentile(miss, 90)))
+                est.anchor.update(view_residual_px=float(np.median(miss)))
+            if inner.size:
+                est.anchor.update(view_residual_p90_px=float(np.percentile(inner, 90)))
         return est

@@ -166,3 +166,31 @@ def test_a_few_flow_errors_do_not_pull_the_level(monkeypatch):
     monkeypatch.setattr(view_level, "FINE_CLIP_MIN_PX", view_level.CLIP_PX)
     pulled = find_view_level(lambda level: level, 0.05, samples, None)
     assert pulled.anchor_mm > 0.05, pulled.anchor_mm
+
+
+def test_the_view_s_tail_is_read_where_the_flow_is_trusted(frames):
+    # Near the object's edge the flow matches the texture to what lies past it: through the
+    # renderer's own surface those samples' lines of sight miss their flow points by far more
+    # than the others', so a tail read over them would call the true surface wrong in a part.
+    # The tail is read over the samples synthetic Schlieren's margin inside the texture.
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    import restoration.view_level as view_level
+    from restoration.frame_status import VIEW_MAX_TAIL_PX
+    from wai_core.heightfield import Heightfield
+
+    folder = frames["rough"]
+    cal = ViewLevelCalibration.from_folder(folder)
+    samples = view_level.view_samples(cal.load_images(folder), cal)
+    truth = np.load(folder / "heightfield.npz")
+    true_surface = SimpleNamespace(heightfield=Heightfield(truth["x"], truth["y"], truth["z"]))
+    miss = view_level.view_residual_px(true_surface, samples, cal)
+    finite = np.isfinite(miss)
+    inner, edge = miss[finite & samples.inner], miss[finite & ~samples.inner]
+    assert inner.size > 0.6 * finite.sum() and edge.size > 0.05 * finite.sum()
+    assert np.percentile(inner, 90) < 0.7 * VIEW_MAX_TAIL_PX
+    assert np.percentile(edge, 90) > 3 * np.percentile(inner, 90)
+    result = StructuredLightView()(cal.load_images(folder), cal)
+    assert result.surface.anchor.view_residual_p90_px < VIEW_MAX_TAIL_PX
