@@ -462,7 +462,8 @@ class StructuredLightView(StructuredLight):
             miss = view_residual_px(est, samples, cal)
             finite = np.isfinite(miss)
             # The tail only where the flow is trusted: near the object's edge it matches the
-            # texture to what lies past it (docs/results.md, "The view's tail").
+            # texture to what lies past it (docs/results.md, "The view's tail is read where
+            # the flow is trusted").
             inner = miss[finite if samples.inner is None else finite & samples.inner]
             miss = miss[finite]
             if miss.size:
