@@ -10,8 +10,8 @@ from restoration.options import StructuredLightOptions
 from restoration.result import REFERENCE_RMS_FRACTION, SPARSE_FRACTION, Status
 from restoration.surface import SurfaceEstimate
 
-__all__ = ["SEARCHED_LEVELS", "VIEW_MAX_RESIDUAL_PX", "VIEW_MAX_TAIL_PX", "frame_status",
-           "unpinned_patch"]
+__all__ = ["SEARCHED_LEVELS", "VIEW_MAX_RESIDUAL_PX", "VIEW_MAX_TAIL_PX",
+           "VIEW_PINNED_MAX_RESIDUAL_PX", "frame_status", "unpinned_patch"]
 
 SEARCHED_LEVELS = ("integrability", "view")
 """Anchor methods whose level was searched, with a standard error that makes a frame
@@ -28,6 +28,15 @@ VIEW_MAX_TAIL_PX = 1.0
 Right surfaces leave 0.07-0.16 px smooth and 0.34-0.59 px rough; a real rig's frame holding
 wrong labels, 1.6 px (docs/results.md, "The view's tail is read where the flow is
 trusted")."""
+VIEW_PINNED_MAX_RESIDUAL_PX = 0.3
+"""Where camera v's view pinned both the labels and the level of a small patch (one the
+pattern leaves open: :func:`unpinned_patch`), the median miss of its lines of sight past which
+the level is not trusted, flat-water px. Such patches were right wherever the view's flow was
+as sharp as on smooth water or at GGX alpha 0.01 (0.07-0.25 px over 37 pinned frames, all
+within 0.04 mm of the truth); at alpha 0.02 (0.37-0.43 px) three of five `ok` ones were
+0.16-0.26 mm off in level: the view picks the level at which a small patch's shape fits best,
+and that shape, from spots the roughness biases, fits best at the wrong level
+(docs/results.md, "The view's level follows the spots, not the flow, at alpha 0.02 too")."""
 
 
 def unpinned_patch(features: Matches, reference: ReferenceGrid) -> bool:
@@ -115,5 +124,13 @@ def frame_status(
             f"the level's standard error is {sigma:.3f} mm (more than {bound_mm:.3f} mm, "
             f"{options.level_max_sigma_px:g} px of camera s): the shape is the data's, the "
             "level may be off by several times that"
+        )
+    if (features.counts.get("labels_pinned_by_view") and surface.anchor.method == "view"
+            and view_px is not None and view_px > VIEW_PINNED_MAX_RESIDUAL_PX):
+        return Status.UNCERTAIN_LEVEL, (
+            f"only camera v's view pinned this small patch's labels and level, and its lines of "
+            f"sight miss by {view_px:.2f} px (median; more than "
+            f"{VIEW_PINNED_MAX_RESIDUAL_PX:g} px): on water this rough a small patch's shape, "
+            "from blurred spots, can pull the level the view picks by tenths of a millimetre"
         )
     return Status.OK, ""
