@@ -100,13 +100,14 @@ def test_without_texture_the_view_pins_no_labels(ripples):
     assert view.status == "sparse"
 
 
-def test_a_small_rough_patch_whose_level_only_the_view_gives_is_not_called_ok(tmp_path):
-    # Rougher water (GGX alpha 0.02; U = 1 m/s, sea 20, the compare's second frame): about a
-    # hundred and thirty dots matched, labels and level pinned by the view, whose lines of
-    # sight miss by about 0.4 px where sharper views leave 0.07-0.25. The shape is right, the
-    # level is not to be trusted (on this frame it is 0.26 mm off): uncertain_level, never ok.
+def test_on_water_rougher_than_the_view_can_level_the_frame_is_not_called_ok(tmp_path):
+    # GGX alpha 0.02 (U = 1 m/s, sea 20, the compare's second frame; a patch of about 130 dots
+    # whose labels the view pinned): camera v's lines of sight miss by about 0.4 px where
+    # right surfaces at alpha 0.01 leave at most 0.34, and the level the view picks follows
+    # the blurred spots' bias (on this frame 0.26 mm off, with a standard error of about
+    # 0.01 mm). The shape is right; the level is not to be trusted: uncertain_level, not ok.
     from restoration import surface_errors
-    from restoration.frame_status import VIEW_PINNED_MAX_RESIDUAL_PX
+    from restoration.frame_status import VIEW_LEVEL_MAX_RESIDUAL_PX
     from wai_core.heightfield import load_heightfield
 
     folder = render_paper_frame(tmp_path / "rough_0.02", seed=20, texture="speckle",
@@ -115,10 +116,10 @@ def test_a_small_rough_patch_whose_level_only_the_view_gives_is_not_called_ok(tm
     cal = ViewLevelCalibration.from_folder(folder)
     result = StructuredLightView()(cal.load_images(folder), cal)
     err = surface_errors(result.surface.heightfield, load_heightfield(folder / "heightfield.npz"))
-    assert result.features.counts["labels_pinned_by_view"] == 1
     assert result.surface.anchor.method == "view"
-    assert result.surface.anchor.view_residual_px > VIEW_PINNED_MAX_RESIDUAL_PX
-    assert result.status == "uncertain_level" and "pinned" in result.message, result.message
+    assert result.surface.anchor.view_residual_px > VIEW_LEVEL_MAX_RESIDUAL_PX
+    assert result.status == "uncertain_level" and "blurred spots" in result.message, \
+        result.message
     assert err["rmse_demeaned_mm"] < 0.05
 
 
