@@ -20,8 +20,8 @@ VIEW_MAX_RESIDUAL_PX = 0.6
 """Where camera v's view weighed the level (:mod:`restoration.view_level`): the median miss
 of its lines of sight through the surface against the flow's object points, flat-water px,
 past which the surface is wrong. Right surfaces leave 0.02-0.07 px on smooth water and
-0.17-0.34 px at GGX alpha 0.01 (the flow's own error, the view blurred too); labels shifted by whole
-dots, 1.1-5.0 px (docs/results.md, "The level from the view")."""
+0.17-0.34 px at GGX alpha 0.01 (the flow's own error, the view blurred too); labels shifted
+by whole dots, 1.1-5.0 px (docs/results.md, "The level from the view")."""
 VIEW_MAX_TAIL_PX = 1.0
 """The same for the misses' 90th percentile, over the samples where the flow is trusted
 (synthetic Schlieren's edge margin inside the object's texture): a surface wrong in a part.
