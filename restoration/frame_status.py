@@ -33,9 +33,10 @@ VIEW_LEVEL_MAX_RESIDUAL_PX = 0.35
 level is not trusted, flat-water px. The miss grows with the water's micro-roughness (the
 view blurred): right surfaces leave 0.02-0.06 px smooth and up to 0.34 px at GGX alpha 0.01
 (175 frames), 0.30-0.78 px at alpha 0.02 (29). There the view's level follows the structured
-light's shape, which the blurred spots bias: of the 12 frames past this bound once `ok`, 11
-lay 0.06-0.26 mm off in level with standard errors of 0.002-0.014 mm that do not see it
-(docs/results.md, "The view's level follows the spots, not the flow, at alpha 0.02 too")."""
+light's shape, which the blurred spots bias: of the 12 stored frames past this bound that the
+other checks call `ok`, 11 lay 0.06-0.26 mm off in level with standard errors of
+0.002-0.014 mm that do not see it (docs/results.md, "The view's level follows the spots, not
+the flow, at alpha 0.02 too")."""
 
 
 def unpinned_patch(features: Matches, reference: ReferenceGrid) -> bool:
